@@ -1,0 +1,412 @@
+"""Stage 1: ``T_zed_from_mech`` from checkerboard captures.
+
+Per pose: corners in the structured-light texture and the rectified ZED-left image (consistent
+order from the pattern), PnP in each, ``T_zed_from_mech_i = T_zed_from_board_i @ inv(T_mech_from_board_i)``.
+Fusion: rotation mean on SO(3) with median/MAD outlier rejection, then joint refinement of the
+extrinsic and every board pose over all corner reprojections in both cameras
+(``scipy.optimize.least_squares``, Huber loss), 1-sigma uncertainty from the Jacobian, and
+leave-one-pose-out cross-validation. ``use_depth`` adds a 3D-to-2D solve through the depth camera's
+own measurement of the board.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial.transform import Rotation
+
+from gtforge.board import Detection, check_board_spec, detect_corners
+from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
+from gtforge.errors import InputError
+from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
+from gtforge.models_base import GTModel, VersionedFile
+from gtforge.synthetic import BoardSpec
+
+log = logging.getLogger("gtforge.calibrate")
+
+
+class BoardModel(GTModel):
+    cols: int = 12
+    rows: int = 9
+    square_size_mm: float = 20.0
+
+    def spec(self) -> BoardSpec:
+        return BoardSpec(self.cols, self.rows, self.square_size_mm)
+
+
+class CalibrateParams(GTModel):
+    board: BoardModel = Field(default_factory=BoardModel)
+    use_depth: bool = False
+    huber_px: float = 1.0
+    outlier_k: float = 4.0  # median + k * 1.4826 * MAD rule on the per-pose extrinsic estimates
+    outlier_floor_deg: float = 0.3
+    outlier_floor_mm: float = 3.0
+    blur_sharpness_px: float = 4.0  # flag poses whose edge width exceeds this
+    min_poses: int = 3
+    leave_one_out: bool = True
+
+
+class PoseReport(GTModel):
+    capture: str
+    status: Literal["used", "skipped", "outlier"]
+    reason: str = ""
+    rms_mech_px: float | None = None
+    rms_zed_px: float | None = None
+    max_px: float | None = None
+    sharpness_mech_px: float | None = None
+    sharpness_zed_px: float | None = None
+    blurred: bool = False
+    init_rot_dev_deg: float | None = None
+    init_trans_dev_mm: float | None = None
+    loo_transfer_mean_px: float | None = None
+    loo_transfer_max_px: float | None = None
+
+
+class MethodResult(GTModel):
+    method: Literal["reprojection", "depth"]
+    T_zed_from_mech: list[list[float]]
+    rms_zed_px: float
+    rot_diff_to_primary_deg: float = 0.0
+    trans_diff_to_primary_mm: float = 0.0
+
+
+class CalibrationFile(VersionedFile):
+    """Output of ``gtforge calibrate``; ``rig`` is what every later stage uses."""
+
+    rig: Rig
+    board: BoardModel
+    method: Literal["reprojection", "depth"] = "reprojection"
+    session_dir: str = ""
+    captures_used: list[str]
+    rms_px: float
+    max_px: float
+    sigma_rot_xyz_deg: list[float]
+    sigma_trans_xyz_mm: list[float]
+    sigma_rot_deg: float
+    sigma_trans_mm: float
+    loo_transfer_mean_px: float | None = None
+    loo_transfer_max_px: float | None = None
+    poses: list[PoseReport]
+    methods: list[MethodResult] = Field(default_factory=list)
+    residuals_by_region_px: dict[str, float] = Field(default_factory=dict)
+    time_s: float = 0.0
+
+
+@dataclass
+class PoseObs:
+    name: str
+    mech_uv: np.ndarray  # (N, 2) detected in the structured-light texture (distorted pixels)
+    zed_uv: np.ndarray  # (N, 2) detected in the rectified ZED left image
+    T_mech_from_board: np.ndarray
+    T_zed_from_board: np.ndarray
+    depth_mm: np.ndarray | None = None
+    det_mech: Detection | None = None
+    det_zed: Detection | None = None
+
+
+# ---- PnP ------------------------------------------------------------------------------------
+def solve_pnp(obj_pts: np.ndarray, uv: np.ndarray, cam: PinholeCamera) -> np.ndarray:
+    """``T_cam_from_obj`` from 3D-2D correspondences (IPPE for planar sets, then LM refinement)."""
+    obj = np.ascontiguousarray(obj_pts, np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(uv, np.float64).reshape(-1, 1, 2)
+    planar = np.ptp(obj[:, 0, 2]) < 1e-9
+    flag = cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_EPNP
+    ok, rvec, tvec = cv2.solvePnP(obj, img, cam.K, cam.dist, flags=flag)
+    if not ok:
+        raise RuntimeError("solvePnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, cam.K, cam.dist, rvec, tvec,
+                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-12))
+    return make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+
+
+# ---- fusion ---------------------------------------------------------------------------------
+def robust_initial_extrinsic(Ts: list[np.ndarray], params: CalibrateParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation mean on SO(3) + translation mean over poses kept by a median/MAD rule.
+
+    Returns (T, inlier mask, rotation deviation deg, translation deviation mm)."""
+    Rs = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts]))
+    ts = np.stack([T[:3, 3] for T in Ts])
+    keep = np.ones(len(Ts), bool)
+    for _ in range(3):
+        R_mean = Rs[keep].mean()
+        t_med = np.median(ts[keep], axis=0)
+        rot_dev = np.degrees((R_mean.inv() * Rs).magnitude())
+        tr_dev = np.linalg.norm(ts - t_med, axis=1)
+        new_keep = np.ones(len(Ts), bool)
+        for dev, floor in ((rot_dev, params.outlier_floor_deg), (tr_dev, params.outlier_floor_mm)):
+            med = np.median(dev[keep])
+            mad = 1.4826 * np.median(np.abs(dev[keep] - med))
+            new_keep &= dev <= med + params.outlier_k * max(mad, floor)
+        if new_keep.sum() < 2 or np.array_equal(new_keep, keep):
+            keep = new_keep if new_keep.sum() >= 2 else keep
+            break
+        keep = new_keep
+    R_mean = Rs[keep].mean()
+    T = make_T(R_mean.as_matrix(), ts[keep].mean(axis=0))
+    rot_dev = np.degrees((R_mean.inv() * Rs).magnitude())
+    tr_dev = np.linalg.norm(ts - T[:3, 3], axis=1)
+    return T, keep, rot_dev, tr_dev
+
+
+def _project_many(cam: PinholeCamera, pts: np.ndarray) -> np.ndarray:
+    return cam.project(pts.reshape(-1, 3)).reshape(pts.shape[:-1] + (2,))
+
+
+def _perturbed(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``T = [exp(x[:3]) R0 | t0 + x[3:]]`` (small-perturbation parametrisation)."""
+    return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])
+
+
+@dataclass
+class Refined:
+    T_zed_from_mech: np.ndarray
+    T_mech_from_board: list[np.ndarray]
+    res_mech: np.ndarray  # (P, N, 2)
+    res_zed: np.ndarray  # (P, N, 2)
+    cov_extrinsic: np.ndarray  # (6, 6): rotation perturbation (rad), translation (mm)
+    n_iter: int
+
+
+def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera, board: BoardSpec,
+                 T_zed_from_mech0: np.ndarray, huber_px: float = 1.0,
+                 T_mech_from_board0: list[np.ndarray] | None = None) -> Refined:
+    """Minimise every corner's reprojection error in both cameras over the extrinsic and the board poses."""
+    P = len(obs)
+    X = board.corners_board()
+    N = len(X)
+    Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
+    uv_m = np.stack([o.mech_uv for o in obs])
+    uv_z = np.stack([o.zed_uv for o in obs])
+
+    def unpack(x):
+        Te = _perturbed(T_zed_from_mech0, x[:6])
+        Tbs = [_perturbed(Tb0[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
+        return Te, Tbs
+
+    def residuals(x):
+        Te, Tbs = unpack(x)
+        pm = np.stack([transform_points(T, X) for T in Tbs])
+        pz = np.stack([transform_points(Te @ T, X) for T in Tbs])
+        rm = _project_many(mech, pm) - uv_m
+        rz = _project_many(zed_cam, pz) - uv_z
+        return np.concatenate([rm.reshape(P, -1), rz.reshape(P, -1)], axis=1).ravel()
+
+    m = P * N * 4
+    sp = lil_matrix((m, 6 + 6 * P), dtype=int)
+    for i in range(P):
+        rows = slice(i * N * 4, (i + 1) * N * 4)
+        sp[rows, 6 + 6 * i: 12 + 6 * i] = 1
+        sp[i * N * 4 + N * 2: (i + 1) * N * 4, :6] = 1
+    x0 = np.zeros(6 + 6 * P)
+    sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
+                        method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    Te, Tbs = unpack(sol.x)
+    r = sol.fun.reshape(P, 4 * N)
+    res_m = r[:, :2 * N].reshape(P, N, 2)
+    res_z = r[:, 2 * N:].reshape(P, N, 2)
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
+    dof = max(m - len(x0), 1)
+    s2 = float(np.sum(sol.fun ** 2) / dof)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((len(x0), len(x0)), np.nan)
+    return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
+
+
+# ---- depth-based corners ----------------------------------------------------------------------
+def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec) -> np.ndarray | None:
+    """3D corners (mech frame): corner rays intersected with a robust plane fit of the board's depth."""
+    if o.depth_mm is None:
+        return None
+    hull = cv2.convexHull(o.mech_uv.astype(np.float32)).reshape(-1, 2)
+    centre = hull.mean(0)
+    hull = centre + 0.92 * (hull - centre)  # stay off the board edge
+    mask = np.zeros(o.depth_mm.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(hull).astype(np.int32)], 1)
+    v, u = np.nonzero((mask > 0) & np.isfinite(o.depth_mm))
+    if len(v) < 50:
+        return None
+    rays = mech.ray_grid()[v, u]
+    z = o.depth_mm[v, u].astype(np.float64)
+    pts = np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1)
+    n, c, _ = fit_plane_robust(pts, threshold_mm=1.0)
+    xy = mech.undistort_to_normalized(o.mech_uv)
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    t = c / (d @ n)
+    return d * t[:, None]
+
+
+# ---- main entry -------------------------------------------------------------------------------
+def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed_left: np.ndarray,
+                mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
+                blur_px: float) -> tuple[PoseObs | None, PoseReport]:
+    dm = detect_corners(texture, board)
+    dz = detect_corners(zed_left, board)
+    if dm is None or dz is None:
+        which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
+        log.warning("capture %s: board not found in the %s image; skipped", name, which)
+        return None, PoseReport(capture=name, status="skipped", reason=f"board not found in the {which} image")
+    X = board.corners_board()
+    T_mb = solve_pnp(X, dm.corners_uv, mech)
+    T_zb = solve_pnp(X, dz.corners_uv, zed.left)
+    blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)
+    if blurred:
+        log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
+    rep = PoseReport(capture=name, status="used", sharpness_mech_px=dm.sharpness_px, sharpness_zed_px=dz.sharpness_px,
+                     blurred=blurred)
+    return PoseObs(name, dm.corners_uv, dz.corners_uv, T_mb, T_zb, depth_mm, dm, dz), rep
+
+
+def _rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(a.reshape(-1, 2) ** 2, axis=1))))
+
+
+def transfer_error(o: PoseObs, T_zed_from_mech: np.ndarray, zed_cam: PinholeCamera, board: BoardSpec) -> np.ndarray:
+    """Per-corner error (px) of mech-PnP board corners mapped into the ZED-left image."""
+    X = transform_points(T_zed_from_mech @ o.T_mech_from_board, board.corners_board())
+    return np.linalg.norm(zed_cam.project(X) - o.zed_uv, axis=1)
+
+
+def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: PinholeCamera,
+                           zed: RectifiedStereo, params: CalibrateParams,
+                           progress: Callable[[str], None] | None = None) -> CalibrationFile:
+    """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place."""
+    t0 = time.perf_counter()
+    board = params.board.spec()
+    if len(obs) < params.min_poses:
+        raise InputError(None, "captures", f"at least {params.min_poses} poses where both cameras see the board",
+                         f"{len(obs)} usable", "add board captures, or check the board size (--cols/--rows)")
+    Ts = [o.T_zed_from_board @ invert_T(o.T_mech_from_board) for o in obs]
+    T0, keep, rot_dev, tr_dev = robust_initial_extrinsic(Ts, params)
+    rep_by_name = {r.capture: r for r in reports}
+    for o, k, rd, td in zip(obs, keep, rot_dev, tr_dev):
+        r = rep_by_name[o.name]
+        r.init_rot_dev_deg, r.init_trans_dev_mm = float(rd), float(td)
+        if not k:
+            r.status, r.reason = "outlier", f"per-pose extrinsic off by {rd:.2f} deg / {td:.1f} mm"
+            log.warning("capture %s: rejected as an outlier (%s)", o.name, r.reason)
+    used = [o for o, k in zip(obs, keep) if k]
+    if len(used) < params.min_poses:
+        raise InputError(None, "captures", f"at least {params.min_poses} consistent poses", f"{len(used)}",
+                         "the per-pose estimates disagree; check the board size and the image pairing")
+    if progress:
+        progress("joint refinement")
+    ref = joint_refine(used, mech, zed.left, board, T0, params.huber_px)
+    allres = []
+    region_res: dict[str, list[float]] = {}
+    for i, o in enumerate(used):
+        r = rep_by_name[o.name]
+        r.rms_mech_px, r.rms_zed_px = _rms(ref.res_mech[i]), _rms(ref.res_zed[i])
+        e = np.concatenate([np.linalg.norm(ref.res_mech[i], axis=1), np.linalg.norm(ref.res_zed[i], axis=1)])
+        r.max_px = float(e.max())
+        allres.append(e)
+        # errors by ZED image region (3x3 grid)
+        gx = np.clip((o.zed_uv[:, 0] / zed.left.width_px * 3).astype(int), 0, 2)
+        gy = np.clip((o.zed_uv[:, 1] / zed.left.height_px * 3).astype(int), 0, 2)
+        for k, en in enumerate(np.linalg.norm(ref.res_zed[i], axis=1)):
+            region_res.setdefault(f"{['top', 'middle', 'bottom'][gy[k]]}-{['left', 'centre', 'right'][gx[k]]}", []).append(en)
+    allres = np.concatenate(allres)
+    cov = ref.cov_extrinsic
+    sig_r = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0, None)))
+    sig_t = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
+    loo_means, loo_maxs = [], []
+    if params.leave_one_out and len(used) > params.min_poses:
+        for i, o in enumerate(used):
+            if progress:
+                progress(f"leave-one-out {i + 1}/{len(used)}")
+            rest = [u for j, u in enumerate(used) if j != i]
+            Tb = [t for j, t in enumerate(ref.T_mech_from_board) if j != i]
+            ref_i = joint_refine(rest, mech, zed.left, board, ref.T_zed_from_mech, params.huber_px, Tb)
+            e = transfer_error(o, ref_i.T_zed_from_mech, zed.left, board)
+            r = rep_by_name[o.name]
+            r.loo_transfer_mean_px, r.loo_transfer_max_px = float(e.mean()), float(e.max())
+            loo_means.append(e.mean())
+            loo_maxs.append(e.max())
+    T_final = ref.T_zed_from_mech
+    methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
+                            rms_zed_px=_rms(ref.res_zed))]
+    method = "reprojection"
+    if params.use_depth:
+        T_d, rms_d = _depth_method(used, mech, zed, board, T_final)
+        if T_d is not None:
+            dr, dt = pose_difference(T_final, T_d)
+            methods.append(MethodResult(method="depth", T_zed_from_mech=T_d.tolist(), rms_zed_px=rms_d,
+                                        rot_diff_to_primary_deg=dr, trans_diff_to_primary_mm=dt))
+            T_final, method = T_d, "depth"
+    rig = Rig(zed=zed, mech=mech, T_zed_from_mech=T_final)
+    return CalibrationFile(
+        rig=rig, board=params.board, method=method, captures_used=[o.name for o in used],
+        rms_px=float(np.sqrt(np.mean(allres ** 2))), max_px=float(allres.max()),
+        sigma_rot_xyz_deg=sig_r.tolist(), sigma_trans_xyz_mm=sig_t.tolist(),
+        sigma_rot_deg=float(np.sqrt(np.sum(sig_r ** 2))), sigma_trans_mm=float(np.sqrt(np.sum(sig_t ** 2))),
+        loo_transfer_mean_px=float(np.mean(loo_means)) if loo_means else None,
+        loo_transfer_max_px=float(np.max(loo_maxs)) if loo_maxs else None,
+        poses=sorted(reports, key=lambda r: -(r.max_px or 0.0)),
+        methods=methods, residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
+        time_s=time.perf_counter() - t0)
+
+
+def _depth_method(used: list[PoseObs], mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
+                  T_init: np.ndarray) -> tuple[np.ndarray | None, float]:
+    P3, P2 = [], []
+    for o in used:
+        X = board_corners_from_depth(o, mech, board)
+        if X is not None:
+            P3.append(X)
+            P2.append(o.zed_uv)
+    if len(P3) < 2:
+        log.warning("--use-depth: fewer than 2 poses with board depth; depth method skipped")
+        return None, float("nan")
+    P3, P2 = np.concatenate(P3), np.concatenate(P2)
+    rvec = cv2.Rodrigues(T_init[:3, :3])[0]
+    tvec = T_init[:3, 3].reshape(3, 1).copy()
+    rvec, tvec = cv2.solvePnPRefineLM(P3.reshape(-1, 1, 3), P2.reshape(-1, 1, 2), zed.left.K, None, rvec, tvec,
+                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12))
+    T = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    res = zed.left.project(transform_points(T, P3)) - P2
+    return T, _rms(res)
+
+
+def calibrate(session_dir: str | Path, out_path: str | Path | None = None, params: CalibrateParams | None = None,
+              captures: list[str] | None = None, exclude: list[str] | None = None,
+              progress: Callable[[str], None] | None = None) -> CalibrationFile:
+    """Calibrate from a capture session's ``board/`` captures; writes ``out_path`` (YAML) when given."""
+    from gtforge.io.captures import open_session
+
+    params = params or CalibrateParams()
+    board = params.board.spec()
+    check_board_spec(board)
+    session = open_session(session_dir)
+    dirs = session.capture_dirs("board")
+    if captures:
+        dirs = [d for d in dirs if d.name in set(captures)]
+    if exclude:
+        dirs = [d for d in dirs if d.name not in set(exclude)]
+    obs, reports = [], []
+    for k, d in enumerate(dirs):
+        if progress:
+            progress(f"detect {d.name} ({k + 1}/{len(dirs)})")
+        cap = session.load_capture(d, need_right=False)
+        o, rep = detect_pose(d.name, cap.mech_texture, cap.mech_depth_mm, cap.zed_left, session.mech, session.zed,
+                             board, params.blur_sharpness_px)
+        reports.append(rep)
+        if o is not None:
+            obs.append(o)
+    result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress)
+    result.session_dir = str(Path(session_dir).resolve())
+    if out_path is not None:
+        result.write(out_path)
+    return result
+
+
+def load_calibration(path: str | Path) -> CalibrationFile:
+    return CalibrationFile.read(path)

@@ -1,0 +1,224 @@
+"""Camera and rig models (pydantic) with projection helpers.
+
+Shapes: ``pts_cam`` ``(N, 3)`` mm in the camera frame; ``uv`` ``(N, 2)`` as ``(u, v)`` px with
+pixel centres at integer coordinates (docs/conventions.md).
+"""
+from __future__ import annotations
+
+import functools
+import math
+
+import cv2
+import numpy as np
+from pydantic import Field, field_validator
+
+from gtforge.geometry import invert_T
+from gtforge.models_base import GTModel, VersionedFile, matrix4_field
+
+ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
+
+
+def _finite(v: float, name: str) -> float:
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be finite")
+    return v
+
+
+class PinholeCamera(GTModel):
+    """Pinhole camera with OpenCV 5-coefficient distortion ``(k1, k2, p1, p2, k3)``."""
+
+    width_px: int = Field(gt=0)
+    height_px: int = Field(gt=0)
+    fx_px: float = Field(gt=0)
+    fy_px: float = Field(gt=0)
+    cx_px: float
+    cy_px: float
+    dist_k1_k2_p1_p2_k3: list[float] = Field(default_factory=lambda: [0.0] * 5)
+
+    @field_validator("fx_px", "fy_px", "cx_px", "cy_px")
+    @classmethod
+    def _fin(cls, v: float, info) -> float:
+        return _finite(v, info.field_name)
+
+    @field_validator("dist_k1_k2_p1_p2_k3")
+    @classmethod
+    def _dist(cls, v: list[float]) -> list[float]:
+        if len(v) != 5:
+            raise ValueError(f"5 coefficients (k1 k2 p1 p2 k3) expected, got {len(v)}")
+        if not all(math.isfinite(x) for x in v):
+            raise ValueError("distortion coefficients must be finite")
+        return [float(x) for x in v]
+
+    # ---- convenience -----------------------------------------------------------------------
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx_px, 0, self.cx_px], [0, self.fy_px, self.cy_px], [0, 0, 1.0]])
+
+    @property
+    def dist(self) -> np.ndarray:
+        return np.array(self.dist_k1_k2_p1_p2_k3, dtype=np.float64)
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(x != 0.0 for x in self.dist_k1_k2_p1_p2_k3)
+
+    @property
+    def size_wh(self) -> tuple[int, int]:
+        return self.width_px, self.height_px
+
+    @classmethod
+    def from_K(cls, K: np.ndarray, width_px: int, height_px: int, dist=None) -> "PinholeCamera":
+        K = np.asarray(K, float)
+        return cls(width_px=int(width_px), height_px=int(height_px), fx_px=float(K[0, 0]), fy_px=float(K[1, 1]),
+                   cx_px=float(K[0, 2]), cy_px=float(K[1, 2]),
+                   dist_k1_k2_p1_p2_k3=[float(x) for x in (np.zeros(5) if dist is None else np.ravel(dist)[:5])])
+
+    def scaled(self, factor: float) -> "PinholeCamera":
+        """The same lens at another resolution (pixel centres stay at integer coordinates)."""
+        return self.model_copy(update=dict(
+            width_px=int(round(self.width_px * factor)), height_px=int(round(self.height_px * factor)),
+            fx_px=self.fx_px * factor, fy_px=self.fy_px * factor,
+            cx_px=(self.cx_px + 0.5) * factor - 0.5, cy_px=(self.cy_px + 0.5) * factor - 0.5))
+
+    # ---- projection ------------------------------------------------------------------------
+    def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
+        """Apply the distortion model to normalised coordinates ``(N, 2)``."""
+        k1, k2, p1, p2, k3 = self.dist_k1_k2_p1_p2_k3
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.stack([xd, yd], axis=1)
+
+    def project(self, pts_cam: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` points in this camera's frame -> ``(N, 2)`` pixels (distortion applied)."""
+        pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
+        xy = pts[:, :2] / pts[:, 2:3]
+        if self.has_distortion:
+            xy = self.distort_normalized(xy)
+        return np.stack([self.fx_px * xy[:, 0] + self.cx_px, self.fy_px * xy[:, 1] + self.cy_px], axis=1)
+
+    def undistort_to_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` pixels -> ``(N, 2)`` normalised ``(x, y)`` with ``z = 1`` (distortion removed)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not self.has_distortion:
+            return np.stack([(uv[:, 0] - self.cx_px) / self.fx_px, (uv[:, 1] - self.cy_px) / self.fy_px], axis=1)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, crit)
+        xy = out.reshape(-1, 2)
+        # one Newton-free polish: fixed-point correction against our own forward model
+        for _ in range(3):
+            err = self.distort_normalized(xy) - np.stack([(uv[:, 0] - self.cx_px) / self.fx_px,
+                                                          (uv[:, 1] - self.cy_px) / self.fy_px], axis=1)
+            xy = xy - err
+        return xy
+
+    def unproject(self, uv: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` pixels and their z-depth (mm) -> ``(N, 3)`` points in the camera frame."""
+        xy = self.undistort_to_normalized(uv)
+        z = np.asarray(depth_mm, dtype=np.float64).reshape(-1)
+        return np.stack([xy[:, 0] * z, xy[:, 1] * z, z], axis=1)
+
+    def ray_grid(self) -> np.ndarray:
+        """``(H, W, 2)`` float64 normalised coordinates of every pixel centre (cached)."""
+        return _ray_grid_cached(self.model_dump_json())
+
+    def check_image_size(self, shape: tuple[int, ...], file=None, what: str = "image") -> None:
+        from gtforge.errors import InputError
+        h, w = shape[:2]
+        if (w, h) != (self.width_px, self.height_px):
+            raise InputError(file, "size", f"{self.width_px}x{self.height_px} px (from the intrinsics)",
+                             f"{w}x{h} px",
+                             f"is this {what} from the camera the intrinsics describe, or at another resolution?")
+
+
+@functools.lru_cache(maxsize=8)
+def _ray_grid_cached(cam_json: str) -> np.ndarray:
+    cam = PinholeCamera.model_validate_json(cam_json)
+    v, u = np.mgrid[0:cam.height_px, 0:cam.width_px]
+    uv = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
+    xy = cam.undistort_to_normalized(uv).reshape(cam.height_px, cam.width_px, 2)
+    xy.setflags(write=False)
+    return xy
+
+
+class RectifiedStereo(GTModel):
+    """A rectified stereo pair: left camera (no distortion), positive baseline, doffs = cx_right - cx_left."""
+
+    left: PinholeCamera
+    baseline_mm: float = Field(gt=0)
+    doffs_px: float = 0.0
+
+    @field_validator("left")
+    @classmethod
+    def _no_dist(cls, v: PinholeCamera) -> PinholeCamera:
+        if v.has_distortion:
+            raise ValueError("a rectified camera has no distortion")
+        return v
+
+    @field_validator("baseline_mm", "doffs_px")
+    @classmethod
+    def _fin(cls, v: float, info) -> float:
+        return _finite(v, info.field_name)
+
+    @property
+    def f_px(self) -> float:
+        return self.left.fx_px
+
+    @property
+    def right(self) -> PinholeCamera:
+        return self.left.model_copy(update=dict(cx_px=self.left.cx_px + self.doffs_px))
+
+    @property
+    def T_zedr_from_zed(self) -> np.ndarray:
+        T = np.eye(4)
+        T[0, 3] = -self.baseline_mm
+        return T
+
+    def depth_to_disparity(self, depth_mm: np.ndarray) -> np.ndarray:
+        """z-depth (mm) -> disparity (px); NaN stays NaN."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = (self.f_px * self.baseline_mm) / np.asarray(depth_mm, np.float64) - self.doffs_px
+        d = np.where(np.asarray(depth_mm) > 0, d, np.nan)
+        return d.astype(np.float32)
+
+    def disparity_to_depth(self, disp_px: np.ndarray) -> np.ndarray:
+        """disparity (px) -> z-depth (mm); NaN or non-positive ``d + doffs`` is NaN (never huge)."""
+        d = np.asarray(disp_px, np.float64) + self.doffs_px
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(d > 0, (self.f_px * self.baseline_mm) / d, np.nan)
+        return z.astype(np.float32)
+
+
+class Rig(VersionedFile):
+    """Rectified ZED pair + structured-light ('mech') camera + ``T_zed_from_mech``."""
+
+    zed: RectifiedStereo
+    mech: PinholeCamera
+    T_zed_from_mech: list[list[float]]
+
+    @field_validator("T_zed_from_mech", mode="before")
+    @classmethod
+    def _T4(cls, v):
+        return matrix4_field(v)
+
+    @property
+    def T(self) -> np.ndarray:
+        return np.array(self.T_zed_from_mech)
+
+    @property
+    def T_mech_from_zed(self) -> np.ndarray:
+        return invert_T(self.T)
+
+
+class StereoCalibrationFile(VersionedFile):
+    """gtforge's own YAML for a rectified ZED pair."""
+
+    zed: RectifiedStereo
+
+
+class CameraFile(VersionedFile):
+    """gtforge's own YAML for a single camera."""
+
+    camera: PinholeCamera

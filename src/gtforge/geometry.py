@@ -1,0 +1,105 @@
+"""Rigid transforms (4x4 float64, named ``T_dst_from_src``) and small geometry helpers."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a 4x4 transform from a 3x3 rotation and a 3-vector translation (mm)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def T_from_rotvec(rotvec_rad: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+    return make_T(Rotation.from_rotvec(np.asarray(rotvec_rad, float).reshape(3)).as_matrix(), t_mm)
+
+
+def rotvec_t_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3].copy()
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform: ``T_src_from_dst = invert_T(T_dst_from_src)``."""
+    R = T[:3, :3]
+    t = T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def transform_points(T_dst_from_src: np.ndarray, pts_src: np.ndarray) -> np.ndarray:
+    """Apply a transform to an ``(N, 3)`` point list."""
+    pts = np.asarray(pts_src, dtype=np.float64)
+    return pts @ T_dst_from_src[:3, :3].T + T_dst_from_src[:3, 3]
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix (deg)."""
+    c = (np.trace(R[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """(rotation angle deg, translation distance mm) between two transforms of the same frames."""
+    return rotation_angle_deg(T_a[:3, :3].T @ T_b[:3, :3]), float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+
+
+def look_at_T_cam_from_world(cam_pos_mm: np.ndarray, target_mm: np.ndarray,
+                             up_world: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera (OpenCV axes) at ``cam_pos_mm`` looking at ``target_mm``; image 'up' towards ``up_world``."""
+    c = np.asarray(cam_pos_mm, float)
+    z = np.asarray(target_mm, float) - c
+    z /= np.linalg.norm(z)
+    up = np.asarray(up_world, float)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R_world_from_cam = np.stack([x, y, z], axis=1)
+    return invert_T(make_T(R_world_from_cam, c))
+
+
+def fit_plane(pts: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane through ``(N, 3)`` points: unit normal n and offset c with n.p = c."""
+    centroid = pts.mean(axis=0)
+    _, _, vt = np.linalg.svd(pts - centroid, full_matrices=False)
+    n = vt[-1]
+    return n, float(n @ centroid)
+
+
+def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int = 200,
+                     rng: np.random.Generator | None = None) -> tuple[np.ndarray, float, np.ndarray]:
+    """RANSAC plane followed by a least-squares refit on the inliers.
+
+    Returns (normal, offset, inlier mask). Requires at least 3 points.
+    """
+    pts = np.asarray(pts, dtype=np.float64)
+    n_pts = len(pts)
+    if n_pts < 3:
+        raise ValueError(f"fit_plane_robust needs >= 3 points, got {n_pts}")
+    rng = rng or np.random.default_rng(0)
+    best = None
+    best_count = -1
+    for _ in range(iterations):
+        idx = rng.choice(n_pts, 3, replace=False)
+        a, b, c = pts[idx]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            continue
+        n /= norm
+        inl = np.abs(pts @ n - n @ a) < threshold_mm
+        cnt = int(inl.sum())
+        if cnt > best_count:
+            best_count, best = cnt, inl
+    if best is None or best_count < 3:
+        best = np.ones(n_pts, bool)
+    for _ in range(3):
+        n, off = fit_plane(pts[best])
+        best = np.abs(pts @ n - off) < threshold_mm
+        if best.sum() < 3:
+            best = np.ones(n_pts, bool)
+    n, off = fit_plane(pts[best])
+    return n, off, best

@@ -1,0 +1,1 @@
+"""I/O boundary: vendor readers and dataset writers. Invalid-value encodings live here only."""

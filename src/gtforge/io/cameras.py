@@ -1,0 +1,252 @@
+"""Readers for camera intrinsics: ROS camera_info YAML, OpenCV FileStorage YAML, gtforge YAML,
+and the ZED factory calibration ``SN<serial>.conf`` (with rectification, no ZED SDK needed).
+
+ZED baseline sign (docs/conventions.md): the right camera sits at ``+|Baseline|`` along the left
+camera's x axis. SN.conf ``TY``/``TZ`` are read as the right camera's position offsets (mm) and
+``RX``/``CV``/``RZ`` as the Rodrigues vector of ``R_right_from_left``; OpenCV's ``T`` is then
+``-R @ (|Baseline|, TY, TZ)``.
+"""
+from __future__ import annotations
+
+import configparser
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from gtforge.camera import ZED_EYE_WIDTHS, CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.errors import InputError
+
+ZED_RES_HEIGHTS = {"2K": 1242, "FHD": 1080, "HD": 720, "VGA": 376}
+
+
+# ---- generic YAML intrinsics ------------------------------------------------------------------
+def _load_yaml_any(path: Path) -> dict:
+    if not path.is_file():
+        raise InputError(path, None, "an intrinsics file", "no such file", "check the path")
+    text = path.read_text(errors="replace")
+    if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
+        return {"__opencv__": True}
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(path, None, "valid YAML", f"a parse error ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, None, "a YAML mapping", type(data).__name__)
+    return data
+
+
+def _matrix(data: dict, keys: tuple[str, ...], shape: tuple[int, int], path: Path, required=True):
+    for k in keys:
+        if k in data:
+            v = data[k]
+            if isinstance(v, dict):
+                v = v.get("data")
+            a = np.asarray(v, dtype=np.float64).reshape(-1) if v is not None else np.zeros(0)
+            n = shape[0] * shape[1]
+            if a.size < n:
+                raise InputError(path, k, f"{n} numbers", f"{a.size}")
+            a = a[:n].reshape(shape)
+            if not np.all(np.isfinite(a)):
+                raise InputError(path, k, "finite numbers", "NaN/inf", "the calibration export is broken")
+            return a
+    if required:
+        raise InputError(path, "/".join(keys), "this key", "missing", "is this a ROS camera_info or OpenCV YAML?")
+    return None
+
+
+def _size(data: dict, path: Path) -> tuple[int, int]:
+    w = data.get("image_width", data.get("width"))
+    h = data.get("image_height", data.get("height"))
+    if w is None or h is None:
+        raise InputError(path, "image_width/image_height", "the image size", "missing")
+    return int(w), int(h)
+
+
+def _opencv_fs(path: Path) -> dict:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise InputError(path, None, "an OpenCV FileStorage file", "unreadable")
+    out = {}
+    for key in ("camera_matrix", "distortion_coefficients", "projection_matrix_right", "P2"):
+        node = fs.getNode(key)
+        if not node.empty():
+            out[key] = node.mat()
+    for key in ("image_width", "image_height", "baseline_mm", "doffs_px"):
+        node = fs.getNode(key)
+        if not node.empty():
+            out[key] = node.real()
+    fs.release()
+    return out
+
+
+def _camera_from_dict(data: dict, path: Path, rectified: bool) -> PinholeCamera:
+    w, h = _size(data, path)
+    if rectified and any(k in data for k in ("projection_matrix", "P", "p")):
+        P = _matrix(data, ("projection_matrix", "P", "p"), (3, 4), path)
+        K, dist = P[:, :3], np.zeros(5)
+    else:
+        K = _matrix(data, ("camera_matrix", "K", "k"), (3, 3), path)
+        d = _matrix(data, ("distortion_coefficients", "D", "d"), (1, 5), path, required=False)
+        dist = np.zeros(5) if d is None else d.reshape(5)
+        if rectified and np.any(dist != 0):
+            raise InputError(path, "distortion_coefficients", "zeros for a rectified camera", str(dist.tolist()),
+                             "pass the rectified (projection) matrix, or use SN.conf with raw images")
+    try:
+        return PinholeCamera.from_K(K, w, h, dist)
+    except Exception as exc:  # pydantic error on fx <= 0 etc.
+        raise InputError(path, "camera_matrix", "positive finite fx, fy", f"{K.ravel().tolist()}",
+                         str(exc).splitlines()[0]) from None
+
+
+def load_camera(path: str | Path) -> PinholeCamera:
+    """Structured-light (or any) camera intrinsics from ROS / OpenCV / gtforge YAML."""
+    path = Path(path)
+    data = _load_yaml_any(path)
+    if data.get("__opencv__"):
+        data = _opencv_fs(path)
+    elif "schema_version" in data:
+        return CameraFile.from_dict(data, path).camera
+    return _camera_from_dict(data, path, rectified=False)
+
+
+def load_zed_rectified(path: str | Path, right_path: str | Path | None = None) -> RectifiedStereo:
+    """Rectified ZED calibration: gtforge YAML, ROS camera_info left (+ right), or OpenCV YAML with
+    ``camera_matrix`` and ``baseline_mm`` (or a right projection matrix ``P2``)."""
+    path = Path(path)
+    data = _load_yaml_any(path)
+    if data.get("__opencv__"):
+        data = _opencv_fs(path)
+    elif "schema_version" in data:
+        return StereoCalibrationFile.from_dict(data, path).zed
+    left = _camera_from_dict(data, path, rectified=True)
+    if right_path is not None:
+        rp = Path(right_path)
+        rdata = _load_yaml_any(rp)
+        P = _matrix(rdata, ("projection_matrix", "P", "p"), (3, 4), rp)
+        baseline_mm = -P[0, 3] / P[0, 0]
+        doffs = P[0, 2] - left.cx_px
+        src = rp
+    elif "baseline_mm" in data:
+        baseline_mm, doffs, src = float(np.ravel(data["baseline_mm"])[0]), float(np.ravel(data.get("doffs_px", 0.0))[0]), path
+    elif any(k in data for k in ("projection_matrix_right", "P2")):
+        P = _matrix(data, ("projection_matrix_right", "P2"), (3, 4), path)
+        baseline_mm, doffs, src = -P[0, 3] / P[0, 0], P[0, 2] - left.cx_px, path
+    else:
+        raise InputError(path, "baseline_mm", "a baseline (baseline_mm, P2, or a right camera_info file)",
+                         "missing", "pass --zed-right-info with the right camera's camera_info YAML")
+    if not math.isfinite(baseline_mm) or baseline_mm <= 0:
+        raise InputError(src, "baseline", "a positive baseline (right camera at +x, P[0,3] = -fx*B)",
+                         f"{baseline_mm:.4g} mm", "were left and right swapped?")
+    # ROS camera_info is written in metres by most drivers (P[0,3] = -fx*B[m]); gtforge works in mm.
+    if baseline_mm < 1.0:
+        baseline_mm *= 1000.0
+    return RectifiedStereo(left=left, baseline_mm=float(baseline_mm), doffs_px=float(doffs))
+
+
+# ---- ZED SN.conf ----------------------------------------------------------------------------
+@dataclass
+class ZedFactoryCalibration:
+    """Raw (unrectified) ZED calibration for one resolution, as in SN<serial>.conf."""
+
+    resolution: str
+    left: PinholeCamera
+    right: PinholeCamera
+    R_right_from_left: np.ndarray
+    t_right_in_left_mm: np.ndarray  # (|Baseline|, TY, TZ)
+    path: Path
+
+    def rectification(self) -> "ZedRectification":
+        size = (self.left.width_px, self.left.height_px)
+        T = -self.R_right_from_left @ self.t_right_in_left_mm
+        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(self.left.K, self.left.dist, self.right.K, self.right.dist,
+                                                    size, self.R_right_from_left, T,
+                                                    flags=cv2.CALIB_ZERO_DISPARITY, alpha=0, newImageSize=size)
+        baseline_mm = -P2[0, 3] / P2[0, 0]
+        if baseline_mm <= 0:
+            raise InputError(self.path, "STEREO.Baseline", "a right camera at +x after rectification",
+                             f"baseline {baseline_mm:.3f} mm", "this should not happen; report it")
+        rect = RectifiedStereo(left=PinholeCamera.from_K(P1[:, :3], *size), baseline_mm=float(baseline_mm),
+                               doffs_px=float(P2[0, 2] - P1[0, 2]))
+        maps_l = cv2.initUndistortRectifyMap(self.left.K, self.left.dist, R1, P1[:, :3], size, cv2.CV_32FC1)
+        maps_r = cv2.initUndistortRectifyMap(self.right.K, self.right.dist, R2, P2[:, :3], size, cv2.CV_32FC1)
+        return ZedRectification(stereo=rect, maps_left=maps_l, maps_right=maps_r, R_rect_from_raw_left=R1)
+
+
+@dataclass
+class ZedRectification:
+    stereo: RectifiedStereo
+    maps_left: tuple[np.ndarray, np.ndarray]
+    maps_right: tuple[np.ndarray, np.ndarray]
+    R_rect_from_raw_left: np.ndarray
+
+    def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
+                cv2.remap(right_raw, *self.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
+
+
+def resolution_from_eye_width(width_px: int, path=None) -> str:
+    if width_px not in ZED_EYE_WIDTHS:
+        raise InputError(path, "image width", f"a ZED eye width {sorted(ZED_EYE_WIDTHS)} px",
+                         f"{width_px} px", "side-by-side images are 2x the eye width; pass the eye width")
+    return ZED_EYE_WIDTHS[width_px]
+
+
+def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
+    """Parse ``SN<serial>.conf`` (INI, case-insensitive keys) for the resolution of ``eye_width_px``."""
+    path = Path(path)
+    res = resolution_from_eye_width(eye_width_px, path)
+    if not path.is_file():
+        raise InputError(path, None, "a ZED SN<serial>.conf file", "no such file",
+                         "download it from the ZED calibration server or copy it from /usr/local/zed/settings")
+    cp = configparser.ConfigParser(strict=False, interpolation=None)
+    try:
+        cp.read_string(path.read_text(errors="replace"))
+    except configparser.Error as exc:
+        raise InputError(path, None, "an INI file", f"a parse error ({str(exc).splitlines()[0]})") from None
+    sections = {s.upper(): s for s in cp.sections()}
+
+    def get(section: str, key: str) -> float:
+        if section not in sections:
+            have = ", ".join(sorted(sections)) or "none"
+            raise InputError(path, f"[{section}]", "this section", f"missing (sections: {have})",
+                             f"is this conf for the resolution {res} ({eye_width_px} px per eye)?")
+        sec = cp[sections[section]]
+        if key.lower() not in sec:
+            raise InputError(path, f"[{section}] {key}", "this key", "missing", "the conf file is incomplete")
+        raw = sec[key.lower()]
+        try:
+            val = float(raw)
+        except ValueError:
+            raise InputError(path, f"[{section}] {key}", "a number", repr(raw)) from None
+        if not math.isfinite(val):
+            raise InputError(path, f"[{section}] {key}", "a finite number", repr(raw), "the conf file is corrupt")
+        return val
+
+    cams = []
+    for side in ("LEFT", "RIGHT"):
+        sec = f"{side}_CAM_{res}"
+        vals = {k: get(sec, k) for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")}
+        h = ZED_RES_HEIGHTS[res]
+        K = np.array([[vals["fx"], 0, vals["cx"]], [0, vals["fy"], vals["cy"]], [0, 0, 1]])
+        cams.append(PinholeCamera.from_K(K, eye_width_px, h, [vals[k] for k in ("k1", "k2", "p1", "p2", "k3")]))
+    baseline = abs(get("STEREO", "Baseline"))
+    ty, tz = get("STEREO", f"TY_{res}"), get("STEREO", f"TZ_{res}")
+    rvec = np.array([get("STEREO", f"RX_{res}"), get("STEREO", f"CV_{res}"), get("STEREO", f"RZ_{res}")])
+    R, _ = cv2.Rodrigues(rvec)
+    return ZedFactoryCalibration(res, cams[0], cams[1], R, np.array([baseline, ty, tz]), path)
+
+
+def write_zed_conf(path: str | Path, calib: dict[str, dict[str, float]]) -> Path:
+    """Write an SN.conf-style INI (used by the synthetic generator and tests)."""
+    from gtforge.io.atomic import atomic_write_text
+
+    lines = []
+    for sec, kv in calib.items():
+        lines.append(f"[{sec}]")
+        lines += [f"{k} = {v!r}" if isinstance(v, float) else f"{k} = {v}" for k, v in kv.items()]
+        lines.append("")
+    return atomic_write_text(path, "\n".join(lines))

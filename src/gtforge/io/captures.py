@@ -1,0 +1,286 @@
+"""Capture readers: structured-light depth + texture, ZED images (side-by-side, separate, video),
+and capture folders (docs/capture-layout.md)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import tifffile
+from pydantic import Field
+
+from gtforge.camera import PinholeCamera, RectifiedStereo
+from gtforge.errors import InputError
+from gtforge.io.formats import read_image
+from gtforge.models_base import GTModel, VersionedFile
+
+DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
+
+
+# ---- depth ----------------------------------------------------------------------------------
+def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_scale_mm: float | None = None,
+               camera: PinholeCamera | None = None, field: str = "depth") -> np.ndarray:
+    """Depth map -> ``(H, W)`` float32 mm with NaN invalid.
+
+    float32 TIFF (Mech-Eye ``DepthMap.tiff``; NaN or 0 invalid), 16-bit PNG (``depth_scale_mm`` mm per
+    count, 0 invalid), ``.npy`` (NaN, 0 or negative invalid). A median valid value below 10 is refused
+    as metres unless ``depth_unit="m"``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, field, "a depth map file", "no such file", "check the capture folder / session.yaml")
+    suf = path.suffix.lower()
+    if suf not in DEPTH_SUFFIXES:
+        raise InputError(path, field, f"a depth map ({', '.join(DEPTH_SUFFIXES)})", f"'{suf}'")
+    try:
+        if suf in (".tif", ".tiff"):
+            a = tifffile.imread(path)
+        elif suf == ".npy":
+            a = np.load(path, allow_pickle=False)
+        else:
+            a = read_image(path, expect="uint16", field=field)
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(path, field, "a readable depth map", f"{type(exc).__name__}: {str(exc)[:80]}",
+                         "the file may be truncated") from None
+    a = np.asarray(a)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim != 2:
+        raise InputError(path, field, "a single-channel (H, W) depth map", f"shape {a.shape}",
+                         "Mech-Eye exports depth as DepthMap.tiff; a point-cloud TIFF has 3 channels")
+    if suf == ".png":
+        if depth_scale_mm is None:
+            raise InputError(path, "depth_scale_mm", "a depth scale for 16-bit PNG depth", "none given",
+                             "pass --depth-scale-mm (e.g. 0.1 for 0.1 mm per count)")
+        d = a.astype(np.float32) * np.float32(depth_scale_mm)
+    else:
+        if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+            raise InputError(path, field, "numeric depth", str(a.dtype))
+        d = a.astype(np.float32)
+    d[~(d > 0)] = np.nan  # 0, negative, NaN -> invalid
+    d[~np.isfinite(d)] = np.nan
+    valid = np.isfinite(d)
+    if not valid.any():
+        raise InputError(path, field, "some valid depth", "no valid pixel", "is the scene out of range?")
+    if depth_unit == "m":
+        d *= 1000.0
+    else:
+        med = float(np.median(d[valid]))
+        if med < 10.0:
+            raise InputError(path, field, "depth in mm (median valid value >= 10)", f"median {med:.4g}",
+                             "this looks like metres: pass --depth-unit m to convert")
+    if camera is not None:
+        camera.check_image_size(d.shape, path, "depth map")
+    return d
+
+
+def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: str = "texture") -> np.ndarray:
+    img = read_image(path, field=field)
+    if img.dtype == np.uint16:  # some Mech-Eye exports are 16-bit grey
+        img = (img / 257.0).round().astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise InputError(path, field, "an 8/16-bit image", str(img.dtype))
+    if camera is not None:
+        camera.check_image_size(img.shape, path, "texture image")
+    return img
+
+
+# ---- ZED images -----------------------------------------------------------------------------
+def split_side_by_side(img: np.ndarray, eye_width_px: int | None = None, path=None) -> tuple[np.ndarray, np.ndarray]:
+    w = img.shape[1]
+    if w % 2:
+        raise InputError(path, "width", "an even side-by-side width (2 x eye width)", f"{w} px")
+    half = w // 2
+    if eye_width_px is not None and half != eye_width_px:
+        raise InputError(path, "width", f"{2 * eye_width_px} px (2 x {eye_width_px} eye width)", f"{w} px",
+                         "is this a side-by-side image at the calibrated resolution?")
+    return np.ascontiguousarray(img[:, :half]), np.ascontiguousarray(img[:, half:])
+
+
+def read_video_frame(path: str | Path, frame_index: int = 0) -> np.ndarray:
+    """One RGB frame of a side-by-side UVC recording (MP4/AVI) through imageio's ffmpeg plugin."""
+    import imageio.v2 as iio2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "video", "a video file", "no such file")
+    try:
+        reader = iio2.get_reader(path, format="FFMPEG")
+    except Exception as exc:
+        raise InputError(path, "video", "an MP4/AVI readable by ffmpeg", f"{type(exc).__name__}",
+                         "is the recording complete?") from None
+    try:
+        n = reader.count_frames()
+        if not 0 <= frame_index < n:
+            raise InputError(path, "frame", f"a frame index in [0, {n})", str(frame_index))
+        return np.asarray(reader.get_data(frame_index))[..., :3].copy()
+    finally:
+        reader.close()
+
+
+def count_video_frames(path: str | Path) -> int:
+    import imageio.v2 as iio2
+
+    reader = iio2.get_reader(Path(path), format="FFMPEG")
+    try:
+        return reader.count_frames()
+    finally:
+        reader.close()
+
+
+# ---- capture folders ------------------------------------------------------------------------
+class FileNames(GTModel):
+    """File names inside each capture folder (defaults: vendor names). Override in session.yaml."""
+
+    mech_texture: str = "2DImage.png"
+    mech_depth: str = "DepthMap.tiff"
+    zed_left: str = "left.png"
+    zed_right: str = "right.png"
+    zed_side_by_side: str = "zed_sbs.png"
+    zed_video: str = "zed.mp4"
+    fruit_mask: str = "fruit_mask.png"
+
+
+class SessionFile(VersionedFile):
+    """``session.yaml`` at the root of a capture session (every field optional)."""
+
+    mech_intrinsics: str = "mech_intrinsics.yaml"
+    zed_calibration: str = "zed_calibration.yaml"
+    zed_right_info: str | None = None
+    zed_rectified: bool = True
+    depth_unit: Literal["mm", "m"] = "mm"
+    depth_scale_mm: float | None = None
+    video_frame: int = 0
+    board_dir: str = "board"
+    scenes_dir: str = "scenes"
+    files: FileNames = Field(default_factory=FileNames)
+    fruit_ids: dict[str, str] = Field(default_factory=dict)
+
+
+@dataclass
+class Capture:
+    """One capture: structured-light texture + depth, rectified ZED left/right (RGB uint8)."""
+
+    name: str
+    folder: Path
+    mech_texture: np.ndarray
+    mech_depth_mm: np.ndarray
+    zed_left: np.ndarray
+    zed_right: np.ndarray | None
+    fruit_mask: np.ndarray | None = None
+    fruit_id: str | None = None
+    input_files: list[Path] = field(default_factory=list)
+
+
+@dataclass
+class Session:
+    root: Path
+    config: SessionFile
+    mech: PinholeCamera
+    zed: RectifiedStereo
+    rectification: object | None  # ZedRectification when raw images + SN.conf
+
+    def capture_dirs(self, kind: Literal["board", "scenes"]) -> list[Path]:
+        d = self.root / (self.config.board_dir if kind == "board" else self.config.scenes_dir)
+        if not d.is_dir():
+            raise InputError(d, None, f"a folder of {kind} captures", "no such folder",
+                             "see docs/capture-layout.md")
+        dirs = sorted(p for p in d.iterdir() if p.is_dir() and not p.name.startswith("."))
+        if not dirs:
+            raise InputError(d, None, "at least one capture folder", "none")
+        return dirs
+
+    def capture_files(self, folder: Path) -> list[Path]:
+        """The input files a capture uses (for hashing), without reading them."""
+        f = self.config.files
+        out = [folder / f.mech_depth, folder / f.mech_texture]
+        if (folder / f.zed_left).exists():
+            out += [folder / f.zed_left, folder / f.zed_right]
+        elif (folder / f.zed_side_by_side).exists():
+            out.append(folder / f.zed_side_by_side)
+        elif (folder / f.zed_video).exists():
+            out.append(folder / f.zed_video)
+        if (folder / f.fruit_mask).exists():
+            out.append(folder / f.fruit_mask)
+        return out
+
+    def load_capture(self, folder: str | Path, need_right: bool = True) -> Capture:
+        folder = Path(folder)
+        f = self.config.files
+        tex = read_texture(folder / f.mech_texture, self.mech, "mech_texture")
+        depth = read_depth(folder / f.mech_depth, self.config.depth_unit, self.config.depth_scale_mm, self.mech,
+                           "mech_depth")
+        eye_w = self.zed.left.width_px
+        if (folder / f.zed_left).exists():
+            left = read_image(folder / f.zed_left, expect="uint8", field="zed_left")
+            right = read_image(folder / f.zed_right, expect="uint8", field="zed_right") if need_right or (
+                folder / f.zed_right).exists() else None
+            src = folder / f.zed_left
+        elif (folder / f.zed_side_by_side).exists():
+            src = folder / f.zed_side_by_side
+            left, right = split_side_by_side(read_image(src, expect="uint8", field="zed_side_by_side"), eye_w, src)
+        elif (folder / f.zed_video).exists():
+            src = folder / f.zed_video
+            left, right = split_side_by_side(read_video_frame(src, self.config.video_frame), eye_w, src)
+        else:
+            raise InputError(folder, "zed images", f"{f.zed_left}+{f.zed_right}, {f.zed_side_by_side} or {f.zed_video}",
+                             "none of them", "see docs/capture-layout.md")
+        if left.ndim == 2:
+            left = np.repeat(left[..., None], 3, axis=2)
+        if right is not None and right.ndim == 2:
+            right = np.repeat(right[..., None], 3, axis=2)
+        self.zed.left.check_image_size(left.shape, src, "ZED left image")
+        if right is not None:
+            self.zed.left.check_image_size(right.shape, src, "ZED right image")
+        if self.rectification is not None and right is not None:
+            left, right = self.rectification.rectify(left, right)
+        mask = None
+        if (folder / f.fruit_mask).exists():
+            mask = read_image(folder / f.fruit_mask, field="fruit_mask")
+            if mask.ndim == 3:
+                mask = mask[..., 0]
+            self.zed.left.check_image_size(mask.shape, folder / f.fruit_mask, "fruit mask")
+            mask = mask > 0
+        return Capture(folder.name, folder, tex, depth, left, right, mask,
+                       self.config.fruit_ids.get(folder.name), self.capture_files(folder))
+
+
+def open_session(root: str | Path) -> Session:
+    """Read ``session.yaml`` (optional) and the camera files of a capture session."""
+    from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
+
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, None, "a capture session folder", "no such folder", "see docs/capture-layout.md")
+    cfg_path = root / "session.yaml"
+    cfg = SessionFile.read(cfg_path) if cfg_path.exists() else SessionFile()
+    mech = load_camera(root / cfg.mech_intrinsics)
+    zpath = root / cfg.zed_calibration
+    rectification = None
+    if zpath.suffix.lower() == ".conf":
+        # raw images: the eye width comes from the first image found
+        eye_w = _guess_eye_width(root, cfg)
+        rectification = read_zed_conf(zpath, eye_w).rectification()
+        zed = rectification.stereo
+        if cfg.zed_rectified:
+            rectification = None  # SDK-rectified images with the factory conf: only the model is used
+    else:
+        zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
+    return Session(root, cfg, mech, zed, rectification)
+
+
+def _guess_eye_width(root: Path, cfg: SessionFile) -> int:
+    f = cfg.files
+    for kind in (cfg.board_dir, cfg.scenes_dir):
+        d = root / kind
+        if not d.is_dir():
+            continue
+        for cap in sorted(d.iterdir()):
+            if (cap / f.zed_left).exists():
+                return read_image(cap / f.zed_left).shape[1]
+            if (cap / f.zed_side_by_side).exists():
+                return read_image(cap / f.zed_side_by_side).shape[1] // 2
+    raise InputError(root, "zed images", "at least one ZED image to choose the SN.conf resolution", "none found")

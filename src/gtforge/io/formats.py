@@ -1,0 +1,148 @@
+"""Dataset file formats: PFM, KITTI uint16 PNG, float32 TIFF, PNG/JPG images, PLY.
+
+Invalid encodings (docs/conventions.md): NaN in memory; PFM ``+inf``; KITTI PNG ``0``; TIFF NaN.
+Every writer is atomic.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+from gtforge.errors import InputError
+from gtforge.io.atomic import atomic_path, atomic_write_bytes
+
+
+# ---- PFM ------------------------------------------------------------------------------------
+def write_pfm(path: str | Path, disp_px: np.ndarray) -> Path:
+    """Write a single-channel float32 PFM (``Pf``, little-endian, rows bottom-to-top); NaN -> +inf."""
+    a = np.asarray(disp_px, dtype=np.float32)
+    if a.ndim != 2:
+        raise ValueError(f"{a.shape=} but expected (H, W)")
+    a = np.where(np.isfinite(a), a, np.float32(np.inf)).astype("<f4")
+    header = f"Pf\n{a.shape[1]} {a.shape[0]}\n-1.0\n".encode("ascii")
+    return atomic_write_bytes(path, header + np.flipud(a).tobytes())
+
+
+def read_pfm(path: str | Path) -> np.ndarray:
+    """Read a PFM (``Pf`` or the first channel of ``PF``) -> ``(H, W)`` float32, inf/NaN -> NaN."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(path, None, "a readable PFM file", exc.strerror or str(exc)) from None
+    m = re.match(rb"(P[fF])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s", data)
+    if not m:
+        raise InputError(path, "header", "'Pf W H scale' PFM header", repr(data[:20]), "is this a PFM file?")
+    kind, w, h, scale = m.group(1), int(m.group(2)), int(m.group(3)), float(m.group(4))
+    ch = 3 if kind == b"PF" else 1
+    n = w * h * ch * 4
+    body = data[m.end():m.end() + n]
+    if len(body) != n:
+        raise InputError(path, "data", f"{n} bytes for {w}x{h}x{ch} float32", f"{len(body)} bytes",
+                         "the file is truncated")
+    a = np.frombuffer(body, dtype="<f4" if scale < 0 else ">f4").reshape(h, w, ch)[..., 0]
+    a = np.flipud(a).astype(np.float32)
+    return np.where(np.isfinite(a), a, np.nan).astype(np.float32)
+
+
+# ---- KITTI ----------------------------------------------------------------------------------
+def write_kitti_disparity(path: str | Path, disp_px: np.ndarray) -> Path:
+    """KITTI uint16 PNG: ``round(d*256)``; invalid (NaN, <0) -> 0; a valid value that rounds to 0 -> 1."""
+    d = np.asarray(disp_px, dtype=np.float64)
+    valid = np.isfinite(d) & (d >= 0)
+    q = np.zeros(d.shape, np.uint16)
+    q[valid] = np.clip(np.round(d[valid] * 256.0), 1, 65535).astype(np.uint16)
+    return write_png16(path, q)
+
+
+def read_kitti_disparity(path: str | Path) -> np.ndarray:
+    q = read_image(path, expect="uint16")
+    d = q.astype(np.float32) / 256.0
+    d[q == 0] = np.nan
+    return d
+
+
+def write_png16(path: str | Path, a: np.ndarray) -> Path:
+    ok, buf = cv2.imencode(".png", np.asarray(a, np.uint16))
+    if not ok:
+        raise RuntimeError(f"PNG encode failed for {path}")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+# ---- TIFF -----------------------------------------------------------------------------------
+def write_tiff_float(path: str | Path, a: np.ndarray) -> Path:
+    """float32 TIFF (depth in mm or weights); NaN stays NaN."""
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, np.asarray(a, np.float32), compression="zlib")
+    return Path(path)
+
+
+# ---- 8-bit images ---------------------------------------------------------------------------
+def write_image(path: str | Path, img: np.ndarray) -> Path:
+    """Write an RGB (H, W, 3) or grey (H, W) uint8 image; format from the suffix (PNG, JPG, BMP)."""
+    a = np.asarray(img)
+    if a.ndim == 3:
+        a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(Path(path).suffix or ".png", a)
+    if not ok:
+        raise RuntimeError(f"image encode failed for {path}")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def read_image(path: str | Path, expect: str | None = None, field: str | None = None) -> np.ndarray:
+    """Read PNG/JPG/BMP/TIFF -> RGB ``(H, W, 3)`` uint8, grey ``(H, W)``, or uint16 as stored.
+
+    Truncated or corrupt files raise ``InputError`` (OpenCV would silently return part of the image).
+    """
+    import imageio.v3 as iio
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, field, "an image file", "no such file", "check the capture folder / session.yaml")
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            a = tifffile.imread(path)
+        else:
+            a = iio.imread(path)
+    except Exception as exc:  # imageio raises several types for corrupt data
+        raise InputError(path, field, "a readable image", f"a decode error ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0][:80] if str(exc) else ''})",
+                         "the file may be truncated or not an image") from None
+    a = np.asarray(a)
+    if a.ndim == 3 and a.shape[2] == 4:
+        a = a[..., :3]
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if expect == "uint16" and a.dtype != np.uint16:
+        raise InputError(path, field, "a 16-bit single-channel PNG", f"{a.dtype} with shape {a.shape}")
+    if expect == "uint8" and a.dtype != np.uint8:
+        raise InputError(path, field, "an 8-bit image", f"{a.dtype}", "convert it to 8-bit PNG")
+    return np.ascontiguousarray(a)
+
+
+def to_gray(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+
+
+# ---- PLY ------------------------------------------------------------------------------------
+def write_ply(path: str | Path, pts_mm: np.ndarray, colors_rgb01: np.ndarray | None = None) -> Path:
+    """Point cloud through Open3D (binary PLY), atomically."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(pts_mm, np.float64).reshape(-1, 3)))
+    if colors_rgb01 is not None:
+        pcd.colors = o3d.utility.Vector3dVector(np.clip(np.asarray(colors_rgb01, np.float64).reshape(-1, 3), 0, 1))
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
+            raise RuntimeError(f"Open3D failed to write {path}")
+    return Path(path)
+
+
+def read_ply_points(path: str | Path) -> np.ndarray:
+    import open3d as o3d
+
+    return np.asarray(o3d.io.read_point_cloud(str(path)).points)

@@ -1,0 +1,88 @@
+"""Base for every file gtforge writes: pydantic, ``extra="forbid"``, ``schema_version``."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
+from gtforge.errors import InputError
+from gtforge.io.atomic import atomic_write_text
+
+M = TypeVar("M", bound="GTModel")
+
+
+class GTModel(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class VersionedFile(GTModel):
+    """A top-level file model. Subclasses set ``SCHEMA_VERSION``."""
+
+    SCHEMA_VERSION: ClassVar[int] = 1
+    schema_version: int = 1
+
+    @field_validator("schema_version")
+    @classmethod
+    def _check_version(cls, v: int) -> int:
+        if v != cls.SCHEMA_VERSION:
+            raise ValueError(f"schema_version {v} is not supported (this gtforge reads {cls.SCHEMA_VERSION})")
+        return v
+
+    # ---- I/O -------------------------------------------------------------------------------
+    def write(self, path: str | Path) -> Path:
+        path = Path(path)
+        data = self.model_dump(mode="json")
+        if path.suffix.lower() == ".json":
+            text = json.dumps(data, indent=2)
+        else:
+            text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
+        atomic_write_text(path, text)
+        return path
+
+    @classmethod
+    def read(cls: type[M], path: str | Path) -> M:
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, None, f"a {cls.__name__} file", "no such file", "check the path")
+        text = path.read_text()
+        try:
+            data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+        except (yaml.YAMLError, json.JSONDecodeError) as exc:
+            raise InputError(path, None, "valid YAML/JSON", f"a parse error ({str(exc).splitlines()[0]})",
+                             "is the file truncated?") from None
+        return cls.from_dict(data, path)
+
+    @classmethod
+    def from_dict(cls: type[M], data: Any, path: str | Path | None = None) -> M:
+        if not isinstance(data, dict):
+            raise InputError(path, None, f"a mapping for {cls.__name__}", type(data).__name__)
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise pydantic_to_input_error(exc, path, cls.__name__) from None
+
+
+def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what: str) -> InputError:
+    err = exc.errors()[0]
+    field = ".".join(str(p) for p in err.get("loc", ()))
+    actual = repr(err.get("input"))
+    if len(actual) > 80:
+        actual = actual[:77] + "..."
+    return InputError(path, field or None, f"a valid {what} ({err.get('msg')})", actual,
+                      f"{len(exc.errors())} problem(s) in total; see docs/" if len(exc.errors()) > 1 else None)
+
+
+def matrix4_field(v: Any) -> list[list[float]]:
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (4, 4):
+        raise ValueError(f"shape {a.shape}, expected (4, 4)")
+    if not np.all(np.isfinite(a)):
+        raise ValueError("non-finite value")
+    R = a[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1) > 1e-5 or np.abs(a[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise ValueError("not a rigid transform (rotation part not orthonormal or last row not 0 0 0 1)")
+    return a.tolist()

@@ -1,0 +1,200 @@
+"""Reprojection core: structured-light depth -> rectified ZED-left depth with a z-buffer.
+
+``splat``: every depth sample to its nearest pixel (rounded, never truncated), nearest wins.
+``mesh`` (default): two triangles per 2x2 quad of the organised depth grid; a triangle whose edges
+span a depth jump steeper than ``max_slant_deg`` is rejected; the rest are rasterised at pixel
+centres with a z-buffer, interpolating 1/Z (exact for planar surfaces). Pixels no valid triangle
+covers stay NaN, so nothing is invented across occlusions or shadows.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numba
+import numpy as np
+
+from gtforge.camera import PinholeCamera, RectifiedStereo
+
+Mode = Literal["mesh", "splat"]
+
+
+@numba.njit(parallel=True, cache=True, fastmath=False)
+def _transform_project(depth, rays, R, t, fx, fy, cx, cy):
+    H, W = depth.shape
+    U = np.empty((H, W), np.float64)
+    V = np.empty((H, W), np.float64)
+    Z = np.empty((H, W), np.float64)
+    for r in numba.prange(H):
+        for c in range(W):
+            z = depth[r, c]
+            if not (z > 0.0) or not math.isfinite(z):
+                U[r, c] = np.nan
+                V[r, c] = np.nan
+                Z[r, c] = np.nan
+                continue
+            x = rays[r, c, 0] * z
+            y = rays[r, c, 1] * z
+            X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+            Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+            if Zc <= 0.0:
+                U[r, c] = np.nan
+                V[r, c] = np.nan
+                Z[r, c] = np.nan
+                continue
+            U[r, c] = fx * X / Zc + cx
+            V[r, c] = fy * Y / Zc + cy
+            Z[r, c] = Zc
+    return U, V, Z
+
+
+@numba.njit(cache=True)
+def _splat(U, V, Z, H, W):
+    zbuf = np.full((H, W), np.inf)
+    Hm, Wm = U.shape
+    for r in range(Hm):
+        for c in range(Wm):
+            z = Z[r, c]
+            if not math.isfinite(z):
+                continue
+            ui = int(math.floor(U[r, c] + 0.5))
+            vi = int(math.floor(V[r, c] + 0.5))
+            if 0 <= ui < W and 0 <= vi < H and z < zbuf[vi, ui]:
+                zbuf[vi, ui] = z
+    return zbuf
+
+
+@numba.njit(cache=True, inline="always")
+def _edge_ok(za, zb, pixdist, tan_max, inv_f, abs_tol):
+    zm = 0.5 * (za + zb)
+    return abs(za - zb) <= zm * tan_max * pixdist * inv_f + abs_tol
+
+
+@numba.njit(cache=True)
+def _raster_tri(zbuf, u0, v0, w0, u1, v1, w1, u2, v2, w2):
+    H, W = zbuf.shape
+    area = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)
+    if abs(area) < 1e-12:
+        return
+    inv_area = 1.0 / area
+    umin = max(int(math.ceil(min(u0, u1, u2) - 1e-9)), 0)
+    umax = min(int(math.floor(max(u0, u1, u2) + 1e-9)), W - 1)
+    vmin = max(int(math.ceil(min(v0, v1, v2) - 1e-9)), 0)
+    vmax = min(int(math.floor(max(v0, v1, v2) + 1e-9)), H - 1)
+    eps = -1e-9
+    for py in range(vmin, vmax + 1):
+        for px in range(umin, umax + 1):
+            l1 = ((px - u0) * (v2 - v0) - (u2 - u0) * (py - v0)) * inv_area
+            l2 = ((u1 - u0) * (py - v0) - (px - u0) * (v1 - v0)) * inv_area
+            l0 = 1.0 - l1 - l2
+            if l0 >= eps and l1 >= eps and l2 >= eps:
+                w = l0 * w0 + l1 * w1 + l2 * w2
+                if w > 0.0:
+                    z = 1.0 / w
+                    if z < zbuf[py, px]:
+                        zbuf[py, px] = z
+
+
+@numba.njit(cache=True)
+def _mesh(U, V, Z, Zm, H, W, tan_max, inv_f, abs_tol):
+    zbuf = np.full((H, W), np.inf)
+    Hm, Wm = U.shape
+    s2 = math.sqrt(2.0)
+    for r in range(Hm - 1):
+        for c in range(Wm - 1):
+            za, zb, zc, zd = Zm[r, c], Zm[r, c + 1], Zm[r + 1, c], Zm[r + 1, c + 1]
+            ua, ub, uc, ud = U[r, c], U[r, c + 1], U[r + 1, c], U[r + 1, c + 1]
+            va, vb, vc, vd = V[r, c], V[r, c + 1], V[r + 1, c], V[r + 1, c + 1]
+            Za, Zb, Zc, Zd = Z[r, c], Z[r, c + 1], Z[r + 1, c], Z[r + 1, c + 1]
+            fa, fb, fc, fd = math.isfinite(Za), math.isfinite(Zb), math.isfinite(Zc), math.isfinite(Zd)
+            # split along the diagonal with the smaller depth change
+            if fa and fd and (not (fb and fc) or abs(za - zd) <= abs(zb - zc)):
+                # triangles (a, b, d) and (a, d, c)
+                if fb and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) \
+                        and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
+                    _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd)
+                if fc and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
+                        and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
+                    _raster_tri(zbuf, ua, va, 1.0 / Za, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
+            elif fb and fc:
+                # triangles (a, b, c) and (b, d, c)
+                if fa and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) \
+                        and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
+                    _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, uc, vc, 1.0 / Zc)
+                if fd and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
+                        and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
+                    _raster_tri(zbuf, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
+    return zbuf
+
+
+@dataclass(frozen=True)
+class ReprojectParams:
+    mode: Mode = "mesh"
+    max_slant_deg: float = 85.0  # mesh: reject triangles steeper than this (surface vs image plane)
+    abs_tol_mm: float = 0.5  # mesh: depth-noise allowance added to the slant bound
+
+
+def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_cam_from_mech: np.ndarray,
+                            cam: PinholeCamera, params: ReprojectParams = ReprojectParams()) -> np.ndarray:
+    """Structured-light depth ``(Hm, Wm)`` mm (NaN invalid) -> z-depth ``(H, W)`` float32 mm in ``cam``
+    (an undistorted camera, e.g. the rectified ZED left), NaN where no measurement lands."""
+    depth = np.ascontiguousarray(depth_mech_mm, dtype=np.float64)
+    if depth.shape != (mech.height_px, mech.width_px):
+        raise ValueError(f"{depth.shape=} but expected {(mech.height_px, mech.width_px)} from the mech intrinsics")
+    if cam.has_distortion:
+        raise ValueError("the target camera must be undistorted (rectified)")
+    T = np.asarray(T_cam_from_mech, np.float64)
+    U, V, Z = _transform_project(depth, np.ascontiguousarray(mech.ray_grid()), np.ascontiguousarray(T[:3, :3]),
+                                 np.ascontiguousarray(T[:3, 3]), cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
+    if params.mode == "splat":
+        zbuf = _splat(U, V, Z, cam.height_px, cam.width_px)
+    elif params.mode == "mesh":
+        f_mech = 0.5 * (mech.fx_px + mech.fy_px)
+        zbuf = _mesh(U, V, Z, depth, cam.height_px, cam.width_px, math.tan(math.radians(params.max_slant_deg)),
+                     1.0 / f_mech, params.abs_tol_mm)
+    else:
+        raise ValueError(f"mode {params.mode!r}, expected 'mesh' or 'splat'")
+    out = zbuf.astype(np.float32)
+    out[~np.isfinite(zbuf)] = np.nan
+    return out
+
+
+@dataclass
+class StereoDepth:
+    depth_mm: np.ndarray  # ZED-left z-depth, float32, NaN invalid
+    disparity_px: np.ndarray  # float32, NaN invalid
+    depth_right_mm: np.ndarray  # the same measurement seen from the right camera (z-buffer)
+    nonoccluded: np.ndarray  # bool: valid and the match is visible in the right image
+
+
+def reproject_to_zed(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_zed_from_mech: np.ndarray,
+                     zed: RectifiedStereo, params: ReprojectParams = ReprojectParams(),
+                     occlusion_rel_tol: float = 0.01, occlusion_abs_tol_mm: float = 0.5) -> StereoDepth:
+    """ZED-left depth, disparity ``d = f*B/Z - doffs`` and the non-occluded mask (right-view z-buffer)."""
+    depth_l = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params)
+    depth_r = project_depth_to_camera(depth_mech_mm, mech, zed.T_zedr_from_zed @ T_zed_from_mech, zed.right, params)
+    disp = zed.depth_to_disparity(depth_l)
+    noc = nonoccluded_mask(depth_l, disp, depth_r, occlusion_rel_tol, occlusion_abs_tol_mm)
+    return StereoDepth(depth_l, disp, depth_r, noc)
+
+
+def nonoccluded_mask(depth_l: np.ndarray, disp: np.ndarray, depth_r: np.ndarray, rel_tol: float = 0.01,
+                     abs_tol_mm: float = 0.5) -> np.ndarray:
+    """A left pixel is non-occluded when its match ``u - d`` lies in the right image and the right-view
+    z-buffer there is not clearly nearer than the pixel's own depth."""
+    H, W = depth_l.shape
+    valid = np.isfinite(disp)
+    v, u = np.nonzero(valid)
+    ur = u - disp[v, u].astype(np.float64)
+    inside = (ur >= -0.5) & (ur <= W - 0.5)
+    u0 = np.clip(np.floor(ur).astype(np.int64), 0, W - 1)
+    u1 = np.clip(u0 + 1, 0, W - 1)
+    z0, z1 = depth_r[v, u0], depth_r[v, u1]
+    zr = np.fmin(z0, z1)  # NaN only if both are NaN
+    zl = depth_l[v, u]
+    occluded = np.isfinite(zr) & (zr < zl * (1 - rel_tol) - abs_tol_mm)
+    out = np.zeros((H, W), bool)
+    out[v, u] = inside & ~occluded
+    return out

@@ -1,0 +1,500 @@
+"""Truth-exact synthetic scenes for tests, the demo and the benchmarks.
+
+Ray-casts analytic scenes (a table plane, a checkerboard at a known pose, a striped spheroid
+"watermelon") into a structured-light camera (lens distortion, depth noise, a projector offset that
+casts depth shadows) and a rectified ZED-like stereo pair (anti-aliased by supersampling, blurred,
+noisy). Every truth is exact: the extrinsic, board poses, corner pixels in both cameras, z-depth and
+disparity at ZED-left pixel centres, which ZED-left pixels the depth camera really saw, the fruit mask.
+
+World frame: the table is ``z = 0``, ``z`` up. Deterministic by seed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gtforge.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
+from gtforge.io.formats import write_image, write_tiff_float
+from gtforge.models_base import VersionedFile
+
+OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
+
+
+# ---- board -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BoardSpec:
+    """Checkerboard: ``cols`` x ``rows`` inner corners, ``square_size_mm``.
+
+    Board frame: origin at inner corner 0, x along a corner row, y down the columns, z into the board.
+    The square diagonally outside corner 0 (board x, y in [-s, 0]) is **black**; with an odd
+    ``cols + rows`` the opposite outer square is white, which fixes the 180-degree ambiguity.
+    """
+
+    cols: int = 12
+    rows: int = 9
+    square_size_mm: float = 20.0
+    margin_mm: float = 15.0
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+    def corners_board(self) -> np.ndarray:
+        """``(N, 3)`` inner corners in the board frame, OpenCV order (x fastest)."""
+        j, i = np.mgrid[0:self.rows, 0:self.cols]
+        s = self.square_size_mm
+        return np.stack([i.ravel() * s, j.ravel() * s, np.zeros(i.size)], axis=1).astype(np.float64)
+
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        s, m = self.square_size_mm, self.margin_mm
+        return (-s - m, self.cols * s + m, -s - m, self.rows * s + m)
+
+    def albedo(self, xy: np.ndarray) -> np.ndarray:
+        s = self.square_size_mm
+        ix = np.floor(xy[:, 0] / s)
+        iy = np.floor(xy[:, 1] / s)
+        inside = (ix >= -1) & (ix <= self.cols - 1) & (iy >= -1) & (iy <= self.rows - 1)
+        dark = inside & (((ix + iy) % 2) == 0)
+        return np.where(dark, 0.08, 0.88)
+
+    @property
+    def diagonal_mm(self) -> float:
+        s = self.square_size_mm
+        return float(np.hypot((self.cols - 1) * s, (self.rows - 1) * s))
+
+
+# ---- procedural texture ----------------------------------------------------------------------
+class ValueNoise:
+    """Smooth deterministic 2-D noise (bilinear value noise, several octaves)."""
+
+    def __init__(self, seed: int, cell_mm: float = 6.0, octaves: int = 3, size: int = 256):
+        rng = np.random.default_rng(seed)
+        self.grids = [rng.random((size, size)) for _ in range(octaves)]
+        self.cell_mm = cell_mm
+        self.size = size
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(xy))
+        amp, total = 1.0, 0.0
+        for k, g in enumerate(self.grids):
+            p = xy / (self.cell_mm / 2 ** k)
+            i0 = np.floor(p).astype(np.int64)
+            f = p - i0
+            f = f * f * (3 - 2 * f)
+            x0, y0 = i0[:, 0] % self.size, i0[:, 1] % self.size
+            x1, y1 = (x0 + 1) % self.size, (y0 + 1) % self.size
+            a = g[y0, x0] * (1 - f[:, 0]) + g[y0, x1] * f[:, 0]
+            b = g[y1, x0] * (1 - f[:, 0]) + g[y1, x1] * f[:, 0]
+            out += amp * (a * (1 - f[:, 1]) + b * f[:, 1])
+            total += amp
+            amp *= 0.5
+        return out / total
+
+
+# ---- scene objects ---------------------------------------------------------------------------
+class PlaneObject:
+    def __init__(self, obj_id: int, T_world_from_local: np.ndarray, albedo, extent=None):
+        self.obj_id = obj_id
+        self.T = T_world_from_local
+        self.T_inv = invert_T(T_world_from_local)
+        self.albedo_fn = albedo
+        self.extent = extent
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        ol = transform_points(self.T_inv, o)
+        dl = d @ self.T_inv[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -ol[:, 2] / dl[:, 2]
+        t = np.where(np.isfinite(t) & (t > 1e-9), t, np.inf)
+        if self.extent is not None:
+            p = ol + t[:, None] * dl
+            x0, x1, y0, y1 = self.extent
+            inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
+            t = np.where(inside, t, np.inf)
+        return t
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        pl = transform_points(self.T_inv, p_world)
+        a = self.albedo_fn(pl[:, :2])
+        return a[:, None] * np.ones(3) if a.ndim == 1 else a
+
+    def normal(self, p_world: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(self.T[:3, 2], p_world.shape)
+
+
+class SpheroidObject:
+    """Axis-aligned ellipsoid resting on the table, watermelon-striped."""
+
+    def __init__(self, obj_id: int, centre: np.ndarray, radii: np.ndarray, stripes: int, phase: float, seed: int):
+        self.obj_id = obj_id
+        self.c = np.asarray(centre, float)
+        self.r = np.asarray(radii, float)
+        self.stripes = stripes
+        self.phase = phase
+        self.noise = ValueNoise(seed + 1000, cell_mm=4.0)
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        os_ = (o - self.c) / self.r
+        ds = d / self.r
+        a = np.einsum("ij,ij->i", ds, ds)
+        b = 2 * np.einsum("ij,ij->i", os_, ds)
+        c = np.einsum("ij,ij->i", os_, os_) - 1
+        disc = b * b - 4 * a * c
+        sq = np.sqrt(np.maximum(disc, 0))
+        t0 = (-b - sq) / (2 * a)
+        t1 = (-b + sq) / (2 * a)
+        t = np.where(t0 > 1e-9, t0, np.where(t1 > 1e-9, t1, np.inf))
+        return np.where(disc >= 0, t, np.inf)
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        q = (p_world - self.c) / self.r
+        phi = np.arctan2(q[:, 1], q[:, 0])
+        lat = np.arcsin(np.clip(q[:, 2], -1, 1))
+        n = self.noise(np.stack([phi * 100, lat * 100], axis=1))
+        wobble = 0.35 * np.sin(3 * lat + self.phase)
+        stripe = np.sin(self.stripes * phi + wobble + self.phase) > 0.25
+        base = np.array([0.35, 0.62, 0.25])
+        dark = np.array([0.08, 0.28, 0.10])
+        col = np.where(stripe[:, None], dark, base)
+        return col * (0.75 + 0.5 * n[:, None])
+
+    def normal(self, p_world: np.ndarray) -> np.ndarray:
+        n = (p_world - self.c) / self.r ** 2
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+class Scene:
+    def __init__(self, objects: list):
+        self.objects = objects
+
+    def raycast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rays ``o + t d`` (``(N, 3)`` each, or ``o`` ``(3,)``) -> nearest ``t`` (inf: miss) and object id."""
+        o = np.broadcast_to(np.asarray(o, float), d.shape)
+        t_best = np.full(len(d), np.inf)
+        id_best = np.zeros(len(d), np.int8)
+        for obj in self.objects:
+            t = obj.intersect(o, d)
+            closer = t < t_best
+            t_best[closer] = t[closer]
+            id_best[closer] = obj.obj_id
+        return t_best, id_best
+
+    def shade(self, p: np.ndarray, ids: np.ndarray, light_dir: np.ndarray) -> np.ndarray:
+        out = np.full((len(p), 3), 0.5)
+        for obj in self.objects:
+            m = ids == obj.obj_id
+            if m.any():
+                lam = np.abs(obj.normal(p[m]) @ light_dir)
+                out[m] = obj.shade(p[m]) * (0.55 + 0.45 * lam)[:, None]
+        return out
+
+
+# ---- the rig ---------------------------------------------------------------------------------
+@dataclass
+class SyntheticRig:
+    mech: PinholeCamera
+    zed: RectifiedStereo
+    T_zed_from_mech: np.ndarray
+    p_projector_in_mech_mm: np.ndarray = field(default_factory=lambda: np.array([-70.0, 0.0, 0.0]))
+    T_zed_from_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @property
+    def T_mech_from_world(self) -> np.ndarray:
+        return invert_T(self.T_zed_from_mech) @ self.T_zed_from_world
+
+
+def default_rig(scale: float = 1.0, distance_mm: float = 650.0) -> SyntheticRig:
+    """A ZED Mini (2K: 2208x1242, 63 mm baseline) beside a Mech-Eye-like camera (1920x1200, distorted),
+    both looking down at a table from about ``distance_mm``; ``scale`` shrinks both resolutions."""
+    zed_left = PinholeCamera(width_px=2208, height_px=1242, fx_px=1066.0, fy_px=1066.0, cx_px=1112.3, cy_px=615.8)
+    mech = PinholeCamera(width_px=1920, height_px=1200, fx_px=1745.0, fy_px=1748.5, cx_px=967.2, cy_px=588.9,
+                         dist_k1_k2_p1_p2_k3=[-0.085, 0.11, 0.0006, -0.0004, -0.03])
+    if scale != 1.0:
+        zed_left, mech = zed_left.scaled(scale), mech.scaled(scale)
+    zed = RectifiedStereo(left=zed_left, baseline_mm=63.0, doffs_px=0.0)
+    # Mech-Eye 115 mm to the right of the ZED left camera, 18 mm lower, toed in by ~6 degrees.
+    T_zed_from_mech = T_from_rotvec(np.radians([1.2, -6.0, 0.7]), [115.0, 18.0, 4.0])
+    T_zed_from_world = look_at_T_cam_from_world([-40.0, -330.0, distance_mm], [-40.0, 0.0, 0.0], up_world=(0, 1, 0))
+    return SyntheticRig(mech, zed, T_zed_from_mech, T_zed_from_world=T_zed_from_world)
+
+
+# ---- rendering ---------------------------------------------------------------------------------
+def _subsample_offsets(ss: int) -> np.ndarray:
+    g = (np.arange(ss) + 0.5) / ss - 0.5
+    du, dv = np.meshgrid(g, g)
+    return np.stack([du.ravel(), dv.ravel()], axis=1)
+
+
+def render_image(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray, supersample: int = 3,
+                 rows_per_chunk: int = 48) -> np.ndarray:
+    """Linear-intensity RGB float image ``(H, W, 3)`` in [0, 1], box-filtered over ``supersample**2`` rays."""
+    T_world_from_cam = invert_T(T_cam_from_world)
+    centre = T_world_from_cam[:3, 3]
+    R = T_world_from_cam[:3, :3]
+    grid = cam.ray_grid()  # (H, W, 2) normalised coordinates of pixel centres
+    # local Jacobian of the normalised coordinates w.r.t. pixel offsets (central differences)
+    jac_u = np.gradient(grid, axis=1)
+    jac_v = np.gradient(grid, axis=0)
+    offs = _subsample_offsets(supersample)
+    light = -R[:, 2] + np.array([0.3, -0.2, 0.0])
+    light /= np.linalg.norm(light)
+    H, W = cam.height_px, cam.width_px
+    out = np.zeros((H, W, 3))
+    for r0 in range(0, H, rows_per_chunk):
+        r1 = min(H, r0 + rows_per_chunk)
+        g = grid[r0:r1].reshape(-1, 2)
+        ju, jv = jac_u[r0:r1].reshape(-1, 2), jac_v[r0:r1].reshape(-1, 2)
+        acc = np.zeros((len(g), 3))
+        for du, dv in offs:
+            xy = g + du * ju + dv * jv
+            d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+            d = d_cam @ R.T
+            t, ids = scene.raycast(centre, d)
+            p = centre + t[:, None] * d
+            col = np.full((len(t), 3), 0.3)
+            hit = np.isfinite(t)
+            col[hit] = scene.shade(p[hit], ids[hit], light)
+            acc += col
+        out[r0:r1] = (acc / len(offs)).reshape(r1 - r0, W, 3)
+    return out
+
+
+def finish_image(linear_rgb: np.ndarray, rng: np.random.Generator, blur_sigma_px: float = 0.6,
+                 noise_sigma: float = 1.5, gray: bool = False) -> np.ndarray:
+    img = linear_rgb * 255.0
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
+    if gray:
+        img = img @ np.array([0.299, 0.587, 0.114])
+    img = img + rng.normal(0, noise_sigma, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def raycast_depth(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact z-depth (mm, inf: miss), object ids and world points at every pixel centre."""
+    T_world_from_cam = invert_T(T_cam_from_world)
+    grid = cam.ray_grid().reshape(-1, 2)
+    d = np.concatenate([grid, np.ones((len(grid), 1))], axis=1) @ T_world_from_cam[:3, :3].T
+    t, ids = scene.raycast(T_world_from_cam[:3, 3], d)
+    p = T_world_from_cam[:3, 3] + np.where(np.isfinite(t), t, 0)[:, None] * d
+    shape = (cam.height_px, cam.width_px)
+    return t.reshape(shape), ids.reshape(shape), p.reshape(shape + (3,))
+
+
+def _visible_from(scene: Scene, origin: np.ndarray, p: np.ndarray, rel_tol: float = 1e-6) -> np.ndarray:
+    """Whether each world point ``p`` is the first hit on the segment from ``origin``."""
+    t, _ = scene.raycast(origin, p - origin)
+    return t >= 1.0 - rel_tol - 1e-4 / np.maximum(np.linalg.norm(p - origin, axis=1), 1e-9)
+
+
+def lit_mask(scene: Scene, rig: SyntheticRig, p_world: np.ndarray) -> np.ndarray:
+    p_proj_world = transform_points(invert_T(rig.T_mech_from_world), rig.p_projector_in_mech_mm[None])[0]
+    return _visible_from(scene, p_proj_world, p_world)
+
+
+# ---- captures --------------------------------------------------------------------------------
+@dataclass
+class SyntheticCapture:
+    name: str
+    kind: str  # "board" or "scene"
+    mech_texture: np.ndarray
+    mech_depth_mm: np.ndarray  # float32, NaN invalid (shadows, misses)
+    zed_left: np.ndarray
+    zed_right: np.ndarray
+    zed_depth_mm: np.ndarray  # exact z at ZED-left pixel centres, NaN where nothing is hit
+    zed_disparity_px: np.ndarray  # exact f*B/Z - doffs, NaN where nothing is hit
+    seen_by_mech: np.ndarray  # bool: ZED-left pixels whose surface point the depth camera measured
+    fruit_mask: np.ndarray  # bool, ZED-left
+    T_mech_from_board: np.ndarray | None = None
+    corners_mech_uv: np.ndarray | None = None
+    corners_zed_uv: np.ndarray | None = None
+    fruit_id: str | None = None
+
+
+def _table(seed: int) -> PlaneObject:
+    noise = ValueNoise(seed, cell_mm=5.0)
+
+    def albedo(xy):
+        n = noise(xy)
+        grain = 0.5 + 0.5 * np.sin(xy[:, 0] * 0.05 + 4 * n)
+        a = 0.35 + 0.35 * n + 0.12 * grain
+        return np.stack([a * 1.0, a * 0.8, a * 0.6], axis=1)
+
+    return PlaneObject(OBJ_TABLE, np.eye(4), albedo)
+
+
+def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Generator, *, kind: str,
+                   supersample: int = 3, depth_noise_mm: float = 0.0, image_noise: float = 1.5,
+                   blur_sigma_px: float = 0.6) -> SyntheticCapture:
+    zed = rig.zed
+    T_zedr_from_world = zed.T_zedr_from_zed @ rig.T_zed_from_world
+    T_mech_from_world = rig.T_mech_from_world
+    left = finish_image(render_image(scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px, image_noise)
+    right = finish_image(render_image(scene, zed.right, T_zedr_from_world, supersample), rng, blur_sigma_px, image_noise)
+    tex = finish_image(render_image(scene, rig.mech, T_mech_from_world, supersample), rng, blur_sigma_px,
+                       image_noise, gray=True)
+    # structured-light depth at mech pixel centres, with projector shadows
+    z_m, ids_m, p_m = raycast_depth(scene, rig.mech, T_mech_from_world)
+    hit = np.isfinite(z_m)
+    lit = np.zeros_like(hit)
+    lit[hit] = lit_mask(scene, rig, p_m[hit])
+    depth = np.where(hit & lit, z_m, np.nan)
+    if depth_noise_mm > 0:
+        depth = depth + rng.normal(0, depth_noise_mm, depth.shape)
+    # ZED-left truth
+    z_z, ids_z, p_z = raycast_depth(scene, zed.left, rig.T_zed_from_world)
+    hit_z = np.isfinite(z_z)
+    zdepth = np.where(hit_z, z_z, np.nan).astype(np.float32)
+    disp = zed.depth_to_disparity(np.where(hit_z, z_z, np.nan))
+    seen = np.zeros(hit_z.shape, bool)
+    pts = p_z[hit_z]
+    p_mech = transform_points(T_mech_from_world, pts)
+    uv = rig.mech.project(p_mech)
+    inside = (p_mech[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= rig.mech.width_px - 1) & \
+             (uv[:, 1] >= 0) & (uv[:, 1] <= rig.mech.height_px - 1)
+    mech_centre = invert_T(T_mech_from_world)[:3, 3]
+    ok = inside.copy()
+    ok[inside] = _visible_from(scene, mech_centre, pts[inside])
+    ok[ok] = lit_mask(scene, rig, pts[ok])
+    seen[hit_z] = ok
+    return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
+                            ids_z == OBJ_FRUIT)
+
+
+def random_board_pose(rng: np.random.Generator, rig: SyntheticRig, board: BoardSpec, margin_px: float = 12.0,
+                      tries: int = 500) -> np.ndarray:
+    """``T_world_from_board`` with the whole board inside both cameras' images."""
+    ex = board.extent_mm()
+    outline = np.array([[ex[0], ex[2], 0], [ex[1], ex[2], 0], [ex[0], ex[3], 0], [ex[1], ex[3], 0]])
+    centre_b = np.array([(ex[0] + ex[1]) / 2, (ex[2] + ex[3]) / 2, 0])
+    for _ in range(tries):
+        # board centre somewhere in the mech camera's view, 120-320 mm above the table
+        T_world_from_mech = invert_T(rig.T_mech_from_world)
+        u = rng.uniform(0.3, 0.7) * rig.mech.width_px
+        v = rng.uniform(0.3, 0.7) * rig.mech.height_px
+        xy = rig.mech.undistort_to_normalized(np.array([[u, v]]))[0]
+        dist = rng.uniform(0.55, 0.85)
+        p_mech = np.array([xy[0], xy[1], 1.0]) * dist * rig.T_mech_from_world[2, 3]
+        c_world = transform_points(T_world_from_mech, p_mech[None])[0]
+        # board faces the cameras (board z into the board = away from camera = world -z), tilted
+        tilt = rng.uniform(-35, 35, size=2)
+        yaw = rng.uniform(-180, 180)
+        R = cv2.Rodrigues(np.radians([180.0 + tilt[0], tilt[1], 0.0]))[0] @ cv2.Rodrigues(np.radians([0, 0, yaw]))[0]
+        T = make_T(R, np.zeros(3))
+        T[:3, 3] = c_world - R @ centre_b
+        ok = True
+        for cam, T_cam_from_world in ((rig.mech, rig.T_mech_from_world), (rig.zed.left, rig.T_zed_from_world),
+                                      (rig.zed.right, rig.zed.T_zedr_from_zed @ rig.T_zed_from_world)):
+            pc = transform_points(T_cam_from_world @ T, outline)
+            if np.any(pc[:, 2] <= 0):
+                ok = False
+                break
+            uv = cam.project(pc)
+            if (uv.min(0) < margin_px).any() or uv[:, 0].max() > cam.width_px - margin_px or \
+                    uv[:, 1].max() > cam.height_px - margin_px:
+                ok = False
+                break
+            # obliquity: board normal vs viewing direction below 60 deg
+            n_cam = (T_cam_from_world @ T)[:3, 2]
+            view = pc.mean(0) / np.linalg.norm(pc.mean(0))
+            if n_cam @ view < np.cos(np.radians(60)):
+                ok = False
+                break
+        if ok and T[2, 3] > 60 and (T @ np.array([*centre_b, 1]))[2] > 100:
+            return T
+    raise RuntimeError("could not place the board inside both cameras; the rig geometry is off")
+
+
+def board_capture(name: str, rig: SyntheticRig, board: BoardSpec, T_world_from_board: np.ndarray,
+                  rng: np.random.Generator, seed: int, **kw) -> SyntheticCapture:
+    scene = Scene([_table(seed), PlaneObject(OBJ_BOARD, T_world_from_board, board.albedo, board.extent_mm())])
+    cap = render_capture(name, scene, rig, rng, kind="board", **kw)
+    cap.T_mech_from_board = rig.T_mech_from_world @ T_world_from_board
+    cb = board.corners_board()
+    cap.corners_mech_uv = rig.mech.project(transform_points(cap.T_mech_from_board, cb))
+    cap.corners_zed_uv = rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_world_from_board, cb))
+    return cap
+
+
+def random_fruit_scene(rng: np.random.Generator, rig: SyntheticRig, seed: int) -> Scene:
+    T_world_from_mech = invert_T(rig.T_mech_from_world)
+    # fruit under the middle of the structured-light view
+    p = T_world_from_mech[:3, 3]
+    d = T_world_from_mech[:3, 2]
+    t = -p[2] / d[2]
+    c_table = p + t * d + np.array([rng.uniform(-60, 60), rng.uniform(-40, 40), 0.0])
+    a = rng.uniform(85, 110)
+    radii = np.array([a, a * rng.uniform(0.85, 1.0), rng.uniform(70, 90)])
+    fruit = SpheroidObject(OBJ_FRUIT, c_table + [0, 0, radii[2]], radii, int(rng.integers(7, 11)),
+                           float(rng.uniform(0, 6.28)), seed)
+    return Scene([_table(seed), fruit])
+
+
+# ---- session writer --------------------------------------------------------------------------
+class SyntheticTruth(VersionedFile):
+    """``truth/rig_truth.yaml``: what the synthetic generator knows exactly."""
+
+    T_zed_from_mech: list[list[float]]
+    p_projector_in_mech_mm: list[float]
+    board_cols: int
+    board_rows: int
+    square_size_mm: float
+    seed: int
+    depth_noise_mm: float
+
+
+def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    write_image(folder / "2DImage.png", cap.mech_texture)
+    write_tiff_float(folder / "DepthMap.tiff", cap.mech_depth_mm)
+    write_image(folder / "left.png", cap.zed_left)
+    write_image(folder / "right.png", cap.zed_right)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    extra = {}
+    if cap.T_mech_from_board is not None:
+        extra = dict(T_mech_from_board=cap.T_mech_from_board, corners_mech_uv=cap.corners_mech_uv,
+                     corners_zed_uv=cap.corners_zed_uv)
+    np.savez_compressed(truth_dir / f"{cap.kind}_{cap.name}.npz", zed_depth_mm=cap.zed_depth_mm,
+                        zed_disparity_px=cap.zed_disparity_px, seen_by_mech=cap.seen_by_mech,
+                        fruit_mask=cap.fruit_mask, **extra)
+
+
+def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3, scale: float = 0.5,
+                     seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.03,
+                     image_noise: float = 1.5, supersample: int = 3, progress=None) -> Path:
+    """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    rig = default_rig(scale)
+    CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
+    StereoCalibrationFile(zed=rig.zed).write(out / "zed_calibration.yaml")
+    SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
+                   board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
+                   depth_noise_mm=depth_noise_mm).write(out / "truth" / "rig_truth.yaml")
+    kw = dict(supersample=supersample, depth_noise_mm=depth_noise_mm, image_noise=image_noise)
+    fruit_ids = {}
+    for i in range(n_board):
+        T = random_board_pose(rng, rig, board)
+        cap = board_capture(f"{i:03d}", rig, board, T, rng, seed + i, **kw)
+        write_capture(out / "board" / cap.name, cap, out / "truth")
+        if progress:
+            progress(f"board {cap.name}")
+    for i in range(n_scenes):
+        scene = random_fruit_scene(rng, rig, seed + 100 + i)
+        cap = render_capture(f"{i:03d}", scene, rig, rng, kind="scene", **kw)
+        write_capture(out / "scenes" / cap.name, cap, out / "truth")
+        fruit_ids[cap.name] = f"fruit{i // 2:02d}"
+        if progress:
+            progress(f"scene {cap.name}")
+    from gtforge.io.captures import SessionFile
+    SessionFile(fruit_ids=fruit_ids).write(out / "session.yaml")
+    return out
