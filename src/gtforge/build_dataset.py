@@ -1,0 +1,442 @@
+"""Stage 2: disparity ground truth aligned with the rectified ZED left image, written in formats
+stereo training code reads without glue (docs/dataset-format.md). Parallel, resumable, atomic."""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+import gtforge
+from gtforge.calibrate import CalibrationFile
+from gtforge.camera import RectifiedStereo, Rig
+from gtforge.errors import InputError
+from gtforge.geometry import fit_plane_robust
+from gtforge.io.atomic import atomic_write_text
+from gtforge.io.formats import write_image, write_kitti_disparity, write_pfm, write_ply, write_tiff_float
+from gtforge.models_base import GTModel, VersionedFile
+from gtforge.reproject import ReprojectParams, reproject_to_zed
+
+log = logging.getLogger("gtforge.build_dataset")
+
+REGION_NONE, REGION_BG, REGION_CENTRE, REGION_EDGE = 0, 1, 2, 3
+
+
+class BuildParams(GTModel):
+    mode: Literal["mesh", "splat"] = "mesh"
+    max_slant_deg: float = Field(85.0, gt=0, lt=90)
+    abs_tol_mm: float = Field(0.5, ge=0)
+    occlusion_rel_tol: float = 0.01
+    fruit_height_mm: float = Field(10.0, gt=0)  # points this far above the table plane are foreground
+    plane_threshold_mm: float = Field(3.0, gt=0)
+    min_component_frac: float = 0.2  # keep foreground components at least this share of the largest
+    erosion_px: int = Field(15, ge=1)  # fruit centre = fruit eroded by this; edge = the rest
+    lambda_edge: float = 1.4
+    lambda_center: float = 1.0
+    lambda_bg: float = 0.8
+    split_train: float = 0.8
+    split_val: float = 0.1
+    split_seed: int = 0
+    kitti: bool = True
+    eth3d: bool = True
+    crop_wh: tuple[int, int] | None = None
+    ply: bool = False
+    max_disp_px: float = 192.0  # statistics: share of pixels above this (many training repos drop them)
+
+    def reproject_params(self) -> ReprojectParams:
+        return ReprojectParams(self.mode, self.max_slant_deg, self.abs_tol_mm)
+
+    def output_hash(self) -> str:
+        """Hash of the parameters that change a scene's files (not the split)."""
+        d = self.model_dump(exclude={"split_train", "split_val", "split_seed"})
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+class SceneStats(GTModel):
+    valid_pct: float
+    nonoccluded_pct: float
+    fruit_pct: float
+    disp_min_px: float | None
+    disp_max_px: float | None
+    over_max_disp_pct: float
+
+
+class SceneMeta(VersionedFile):
+    scene: str
+    fruit_id: str | None = None
+    gtforge_version: str
+    calibration_sha256: str
+    params_hash: str
+    input_sha256: dict[str, str]
+    stats: SceneStats
+    crop_xywh: list[int] | None = None
+    fruit_mask_source: Literal["geometry", "user"] = "geometry"
+    time_s: float = 0.0
+
+
+class Manifest(VersionedFile):
+    gtforge_version: str
+    calibration_path: str
+    calibration_sha256: str
+    session_dir: str
+    params: BuildParams
+    scenes: dict[str, SceneMeta]
+    failures: dict[str, str] = Field(default_factory=dict)
+    splits: dict[str, list[str]] = Field(default_factory=dict)
+
+
+@dataclass
+class BuildSummary:
+    built: list[str]
+    skipped_unchanged: list[str]
+    failures: dict[str, str]
+    out_dir: Path
+    time_s: float
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# ---- regions --------------------------------------------------------------------------------
+def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParams,
+                  user_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(region labels uint8, fruit mask bool). Fruit from geometry: RANSAC plane of the table in the GT
+    point cloud, points more than ``fruit_height_mm`` above it, the largest components."""
+    valid = np.isfinite(depth_mm)
+    if user_mask is not None:
+        fruit = user_mask & valid
+    else:
+        fruit = np.zeros_like(valid)
+        v, u = np.nonzero(valid)
+        if len(v) >= 100:
+            rays = zed.left.ray_grid()[v, u]
+            z = depth_mm[v, u].astype(np.float64)
+            pts = np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1)
+            rng = np.random.default_rng(0)
+            sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
+            n, c, _ = fit_plane_robust(sub, params.plane_threshold_mm, iterations=300, rng=rng)
+            if c > 0:  # orient the normal towards the camera (origin): height = n.p - c > 0 in front
+                n, c = -n, -c
+            height = pts @ n - c
+            fg = np.zeros_like(valid)
+            fg[v, u] = height > params.fruit_height_mm
+            n_cc, labels, stats, _ = cv2.connectedComponentsWithStats(fg.astype(np.uint8), connectivity=8)
+            if n_cc > 1:
+                areas = stats[1:, cv2.CC_STAT_AREA]
+                keep = np.nonzero((areas >= params.min_component_frac * areas.max()) & (areas >= 50))[0] + 1
+                fruit = np.isin(labels, keep)
+    k = 2 * params.erosion_px + 1
+    centre = cv2.erode(fruit.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
+    region = np.full(depth_mm.shape, REGION_NONE, np.uint8)
+    region[valid] = REGION_BG
+    region[fruit & valid] = REGION_EDGE
+    region[centre & valid] = REGION_CENTRE
+    return region, fruit
+
+
+def sgra_weights(region: np.ndarray, params: BuildParams) -> np.ndarray:
+    w = np.zeros(region.shape, np.float32)
+    w[region == REGION_BG] = params.lambda_bg
+    w[region == REGION_CENTRE] = params.lambda_center
+    w[region == REGION_EDGE] = params.lambda_edge
+    return w
+
+
+def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp: np.ndarray,
+                          cx_shift: float = 0.0, cy_shift: float = 0.0) -> str:
+    f, cx, cy = zed.left.fx_px, zed.left.cx_px - cx_shift, zed.left.cy_px - cy_shift
+    finite = disp[np.isfinite(disp)]
+    vmin = int(np.floor(finite.min())) if finite.size else 0
+    vmax = int(np.ceil(finite.max())) if finite.size else 0
+    ndisp = int(max(32, 16 * np.ceil((vmax + 1) / 16)))
+    return (f"cam0=[{f:.6f} 0 {cx:.6f}; 0 {zed.left.fy_px:.6f} {cy:.6f}; 0 0 1]\n"
+            f"cam1=[{f:.6f} 0 {cx + zed.doffs_px:.6f}; 0 {zed.left.fy_px:.6f} {cy:.6f}; 0 0 1]\n"
+            f"doffs={zed.doffs_px:.6f}\nbaseline={zed.baseline_mm:.6f}\nwidth={width}\nheight={height}\n"
+            f"ndisp={ndisp}\nisint=0\nvmin={vmin}\nvmax={vmax}\ndyavg=0\ndymax=0\n")
+
+
+# ---- one scene ------------------------------------------------------------------------------
+def build_scene_arrays(left, right, depth_mech_mm, rig: Rig, params: BuildParams, user_mask=None):
+    sd = reproject_to_zed(depth_mech_mm, rig.mech, rig.T, rig.zed, params.reproject_params(), params.occlusion_rel_tol)
+    region, fruit = fruit_regions(sd.depth_mm, rig.zed, params, user_mask)
+    return sd, region, fruit
+
+
+def _crop_window(fruit: np.ndarray, crop_wh: tuple[int, int]) -> tuple[int, int, int, int]:
+    H, W = fruit.shape
+    cw, ch = min(crop_wh[0], W), min(crop_wh[1], H)
+    if fruit.any():
+        v, u = np.nonzero(fruit)
+        uc, vc = (u.min() + u.max()) / 2, (v.min() + v.max()) / 2
+    else:
+        uc, vc = W / 2, H / 2
+    x0 = int(np.clip(round(uc - cw / 2), 0, W - cw))
+    y0 = int(np.clip(round(vc - ch / 2), 0, H - ch))
+    return x0, y0, cw, ch
+
+
+def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_sha: str, out_dir: str,
+                    params_json: str) -> tuple[str, str | None, dict | None]:
+    """Worker: build one scene into ``scenes/<id>/`` atomically. Returns (id, error or None, meta dict)."""
+    from gtforge.io.captures import open_session
+
+    t0 = time.perf_counter()
+    params = BuildParams.model_validate_json(params_json)
+    cap_dir = Path(capture_dir)
+    sid = cap_dir.name
+    try:
+        session = _cached_session(session_dir)
+        calib = _cached_calibration(calib_path)
+        rig = calib.rig
+        _check_rig_matches_session(rig, session, calib_path)
+        cap = session.load_capture(cap_dir)
+        sd, region, fruit = build_scene_arrays(cap.zed_left, cap.zed_right, cap.mech_depth_mm, rig, params, cap.fruit_mask)
+    except InputError as exc:
+        return sid, str(exc), None
+    disp = sd.disparity_px
+    valid = np.isfinite(disp)
+    left, right, depth = cap.zed_left, cap.zed_right, sd.depth_mm
+    crop = None
+    cx_shift = cy_shift = 0.0
+    if params.crop_wh:
+        x0, y0, cw, ch = _crop_window(fruit, params.crop_wh)
+        sl = (slice(y0, y0 + ch), slice(x0, x0 + cw))
+        left, right, depth, disp, region, fruit = left[sl], right[sl], depth[sl], disp[sl], region[sl], fruit[sl]
+        noc = sd.nonoccluded[sl]
+        valid = valid[sl]
+        crop, cx_shift, cy_shift = [x0, y0, cw, ch], float(x0), float(y0)
+    else:
+        noc = sd.nonoccluded
+    finite = disp[valid]
+    stats = SceneStats(valid_pct=100.0 * valid.mean(), nonoccluded_pct=100.0 * noc.mean(),
+                       fruit_pct=100.0 * fruit.mean(),
+                       disp_min_px=float(finite.min()) if finite.size else None,
+                       disp_max_px=float(finite.max()) if finite.size else None,
+                       over_max_disp_pct=100.0 * float((finite > params.max_disp_px).mean()) if finite.size else 0.0)
+    inputs = {p.name: sha256_file(p) for p in cap.input_files if p.exists()}
+    meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
+                     calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
+                     stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry")
+    scenes = Path(out_dir) / "scenes"
+    tmp = scenes / f".tmp-{sid}-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    mask = np.zeros(disp.shape, np.uint8)
+    mask[valid] = 128
+    mask[noc] = 255
+    write_image(tmp / "im0.png", left)
+    write_image(tmp / "im1.png", right)
+    write_pfm(tmp / "disp0GT.pfm", disp)
+    write_image(tmp / "mask0nocc.png", mask)
+    write_image(tmp / "region.png", region)
+    write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params))
+    write_tiff_float(tmp / "depth0.tiff", depth)
+    atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp, cx_shift, cy_shift))
+    if params.ply:
+        v, u = np.nonzero(valid)
+        K = rig.zed.left
+        z = depth[v, u].astype(np.float64)
+        pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
+        write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
+    meta.time_s = time.perf_counter() - t0
+    meta.write(tmp / "meta.json")
+    final = scenes / sid
+    old = scenes / f".old-{sid}-{os.getpid()}"
+    if final.exists():
+        os.replace(final, old)
+    os.replace(tmp, final)
+    if old.exists():
+        shutil.rmtree(old, ignore_errors=True)
+    return sid, None, meta.model_dump(mode="json")
+
+
+_SESSION_CACHE: dict = {}
+
+
+def _cached_session(session_dir: str):
+    from gtforge.io.captures import open_session
+
+    if session_dir not in _SESSION_CACHE:
+        _SESSION_CACHE[session_dir] = open_session(session_dir)
+    return _SESSION_CACHE[session_dir]
+
+
+def _cached_calibration(path: str) -> CalibrationFile:
+    key = ("calib", path)
+    if key not in _SESSION_CACHE:
+        _SESSION_CACHE[key] = CalibrationFile.read(path)
+    return _SESSION_CACHE[key]
+
+
+def _check_rig_matches_session(rig: Rig, session, calib_path) -> None:
+    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left)):
+        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
+            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
+                             f"{a.width_px}x{a.height_px} px", "was this calibration made for another session?")
+
+
+# ---- splits and views -------------------------------------------------------------------------
+def make_splits(scene_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams) -> dict[str, list[str]]:
+    """Split by fruit: all scenes of one fruit land in the same split. Deterministic by ``split_seed``."""
+    groups: dict[str, list[str]] = {}
+    for s in sorted(scene_ids):
+        groups.setdefault(fruit_ids.get(s) or f"scene:{s}", []).append(s)
+    keys = sorted(groups)
+    rng = np.random.default_rng(params.split_seed)
+    rng.shuffle(keys)
+    n = len(scene_ids)
+    targets = {"train": params.split_train * n, "val": params.split_val * n}
+    out = {"train": [], "val": [], "test": []}
+    for k in keys:
+        for split in ("train", "val", "test"):
+            if split == "test" or len(out[split]) + len(groups[k]) / 2 <= targets[split]:
+                out[split] += groups[k]
+                break
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def _link(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    if tmp.exists():
+        tmp.unlink()
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copy2(src, tmp)
+    os.replace(tmp, dst)
+
+
+def write_views(out: Path, scene_ids: list[str], params: BuildParams) -> None:
+    from gtforge.io.formats import read_image, read_pfm
+
+    for sid in scene_ids:
+        s = out / "scenes" / sid
+        if params.kitti:
+            k = out / "kitti" / "training"
+            _link(s / "im0.png", k / "image_2" / f"{sid}_10.png")
+            _link(s / "im1.png", k / "image_3" / f"{sid}_10.png")
+            disp = read_pfm(s / "disp0GT.pfm")
+            noc = read_image(s / "mask0nocc.png") == 255
+            write_kitti_disparity(k / "disp_occ_0" / f"{sid}_10.png", disp)
+            write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", np.where(noc, disp, np.nan))
+        if params.eth3d:
+            e = out / "eth3d"
+            for f in ("im0.png", "im1.png", "calib.txt"):
+                _link(s / f, e / "two_view_training" / sid / f)
+            for f in ("disp0GT.pfm", "mask0nocc.png"):
+                _link(s / f, e / "two_view_training_gt" / sid / f)
+
+
+def write_lists(out: Path, splits: dict[str, list[str]]) -> None:
+    for split, ids in splits.items():
+        lines = [f"scenes/{s}/im0.png scenes/{s}/im1.png scenes/{s}/disp0GT.pfm" for s in ids]
+        atomic_write_text(out / "filenames" / f"{split}.txt", "\n".join(lines) + ("\n" if lines else ""))
+        klines = [f"training/image_2/{s}_10.png training/image_3/{s}_10.png training/disp_occ_0/{s}_10.png" for s in ids]
+        atomic_write_text(out / "filenames" / f"kitti_{split}.txt", "\n".join(klines) + ("\n" if klines else ""))
+
+
+# ---- the stage --------------------------------------------------------------------------------
+def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str | Path,
+                  params: BuildParams | None = None, workers: int | None = None, overwrite: bool = False,
+                  strict: bool = False, scenes: list[str] | None = None, progress: bool = False) -> BuildSummary:
+    """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md."""
+    from gtforge.io.captures import open_session
+
+    t0 = time.perf_counter()
+    params = params or BuildParams()
+    if not 0 <= params.split_train + params.split_val <= 1:
+        raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")
+    session = open_session(session_dir)
+    calib_path = Path(calibration)
+    calib = CalibrationFile.read(calib_path)
+    _check_rig_matches_session(calib.rig, session, calib_path)
+    calib_sha = sha256_file(calib_path)
+    out = Path(out_dir)
+    (out / "scenes").mkdir(parents=True, exist_ok=True)
+    dirs = session.capture_dirs("scenes")
+    if scenes:
+        dirs = [d for d in dirs if d.name in set(scenes)]
+    phash = params.output_hash()
+    todo, unchanged = [], []
+    metas: dict[str, SceneMeta] = {}
+    for d in dirs:
+        meta_path = out / "scenes" / d.name / "meta.json"
+        if not overwrite and meta_path.exists():
+            try:
+                m = SceneMeta.read(meta_path)
+                files = [p for p in session.capture_files(d) if p.exists()]
+                if m.params_hash == phash and m.calibration_sha256 == calib_sha and \
+                        m.input_sha256 == {p.name: sha256_file(p) for p in files}:
+                    unchanged.append(d.name)
+                    metas[d.name] = m
+                    continue
+            except InputError:
+                pass
+        todo.append(d)
+    failures: dict[str, str] = {}
+    built: list[str] = []
+    workers = max(1, workers or os.cpu_count() or 1)
+    args = [(str(Path(session_dir).resolve()), str(d.resolve()), str(calib_path.resolve()), calib_sha,
+             str(out.resolve()), params.model_dump_json()) for d in todo]
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("build-dataset"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  disable=not progress) as bar:
+        task = bar.add_task("scenes", total=len(args))
+
+        def handle(sid, err, meta):
+            bar.advance(task)
+            if err:
+                failures[sid] = err
+                log.error("scene %s: %s", sid, err)
+                if strict:
+                    raise InputError(None, f"scene {sid}", "a valid capture (--strict)", "an error", err)
+            else:
+                built.append(sid)
+                metas[sid] = SceneMeta.model_validate(meta)
+
+        if workers == 1 or len(args) <= 1:
+            for a in args:
+                handle(*build_one_scene(*a))
+        else:
+            import multiprocessing as mp
+
+            with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=mp.get_context("fork")) as ex:
+                futs = [ex.submit(build_one_scene, *a) for a in args]
+                try:
+                    for f in as_completed(futs):
+                        handle(*f.result())
+                except InputError:
+                    for f in futs:
+                        f.cancel()
+                    raise
+    ok_ids = sorted(metas)
+    fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
+    splits = make_splits(ok_ids, fruit_ids, params)
+    write_views(out, sorted(built) + [s for s in unchanged if not (out / "kitti" / "training" / "image_2" / f"{s}_10.png").exists()], params)
+    write_lists(out, splits)
+    Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()), calibration_sha256=calib_sha,
+             session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in ok_ids},
+             failures=failures, splits=splits).write(out / "manifest.json")
+    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0)

@@ -1,0 +1,129 @@
+"""Stereo metrics following the ETH3D / Middlebury definitions.
+
+* The **GT set** is every pixel with finite ground truth inside the region (and below ``max_disp_px``
+  when given, as training repos do).
+* A prediction is **valid** when finite (readers turn each format's invalid code into NaN).
+* ``epe_px``, ``rmse_px``, ``bad_*_pct`` and ``a*_px`` are computed over GT pixels with a valid
+  prediction; invalid predictions lower ``coverage_pct`` instead. The ``bad_*_all_pct`` variant
+  counts invalid predictions as bad (the Middlebury "all" convention).
+* ``bad_t`` = share of pixels with ``|pred - gt| > t``; ``aNN`` = the NN % quantile of ``|pred - gt|``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from gtforge.models_base import GTModel
+
+BAD_THRESHOLDS_PX = (0.5, 1.0, 2.0, 4.0)
+QUANTILES = (50, 90, 95, 99)
+_HIST_EDGES = np.concatenate([[0.0], np.logspace(-4, 3, 7001)])  # pooled quantiles, 0.23 % bin width
+
+
+class Metrics(GTModel):
+    n_gt: int
+    n_valid: int
+    coverage_pct: float
+    epe_px: float | None
+    rmse_px: float | None
+    bad_0_5_pct: float | None
+    bad_1_0_pct: float | None
+    bad_2_0_pct: float | None
+    bad_4_0_pct: float | None
+    bad_0_5_all_pct: float | None
+    bad_1_0_all_pct: float | None
+    bad_2_0_all_pct: float | None
+    bad_4_0_all_pct: float | None
+    a50_px: float | None
+    a90_px: float | None
+    a95_px: float | None
+    a99_px: float | None
+    depth_mae_mm: float | None = None
+
+
+def _key(t: float) -> str:
+    return f"{t:.1f}".replace(".", "_")
+
+
+class Accumulator:
+    """Pooled statistics over many images (sums + an error histogram for quantiles)."""
+
+    def __init__(self) -> None:
+        self.n_gt = 0
+        self.n_valid = 0
+        self.sum_e = 0.0
+        self.sum_e2 = 0.0
+        self.bad = dict.fromkeys(BAD_THRESHOLDS_PX, 0)
+        self.hist = np.zeros(len(_HIST_EDGES) - 1, np.int64)
+        self.sum_depth_e = 0.0
+        self.n_depth = 0
+
+    def add(self, err: np.ndarray, n_gt: int, depth_err: np.ndarray | None = None) -> None:
+        self.n_gt += n_gt
+        self.n_valid += err.size
+        self.sum_e += float(err.sum())
+        self.sum_e2 += float((err.astype(np.float64) ** 2).sum())
+        for t in BAD_THRESHOLDS_PX:
+            self.bad[t] += int((err > t).sum())
+        self.hist += np.histogram(np.clip(err, 0, _HIST_EDGES[-1]), _HIST_EDGES)[0]
+        if depth_err is not None:
+            self.sum_depth_e += float(depth_err.sum())
+            self.n_depth += depth_err.size
+
+    def result(self) -> Metrics:
+        n, g = self.n_valid, self.n_gt
+        q = {}
+        if n:
+            cdf = np.cumsum(self.hist) / n
+            for p in QUANTILES:
+                q[p] = float(_HIST_EDGES[1:][np.searchsorted(cdf, p / 100.0)])
+        kw = {}
+        for t in BAD_THRESHOLDS_PX:
+            kw[f"bad_{_key(t)}_pct"] = 100.0 * self.bad[t] / n if n else None
+            kw[f"bad_{_key(t)}_all_pct"] = 100.0 * (self.bad[t] + g - n) / g if g else None
+        return Metrics(n_gt=g, n_valid=n, coverage_pct=100.0 * n / g if g else 0.0,
+                       epe_px=self.sum_e / n if n else None, rmse_px=float(np.sqrt(self.sum_e2 / n)) if n else None,
+                       a50_px=q.get(50), a90_px=q.get(90), a95_px=q.get(95), a99_px=q.get(99),
+                       depth_mae_mm=self.sum_depth_e / self.n_depth if self.n_depth else None, **kw)
+
+
+def disparity_metrics(pred_px: np.ndarray, gt_px: np.ndarray, region: np.ndarray | None = None,
+                      max_disp_px: float | None = None, depth_fn=None) -> Metrics:
+    """Metrics of one image. ``pred_px``/``gt_px``: ``(H, W)`` float, NaN/inf invalid. ``region``: bool mask.
+    ``depth_fn``: disparity -> depth (mm); adds the mean absolute depth error."""
+    pred = np.asarray(pred_px, np.float64)
+    gt = np.asarray(gt_px, np.float64)
+    if pred.shape != gt.shape:
+        raise ValueError(f"{pred.shape=} but expected {gt.shape} (the ground truth's shape)")
+    S = np.isfinite(gt)
+    if region is not None:
+        S &= region
+    if max_disp_px is not None:
+        S &= gt < max_disp_px
+    V = S & np.isfinite(pred)
+    err = np.abs(pred[V] - gt[V])
+    derr = None
+    if depth_fn is not None:
+        zp, zg = depth_fn(pred[V]), depth_fn(gt[V])
+        ok = np.isfinite(zp) & np.isfinite(zg)
+        derr = np.abs(zp[ok] - zg[ok])
+    acc = Accumulator()
+    acc.add(err, int(S.sum()), derr)
+    m = acc.result()
+    if err.size:  # exact per-image quantiles
+        qs = np.percentile(err, QUANTILES)
+        m = m.model_copy(update={f"a{p}_px": float(v) for p, v in zip(QUANTILES, qs)})
+    return m
+
+
+def mean_of(metrics: list[Metrics]) -> Metrics:
+    """Average per image (each image weighs the same); None where no image has a value."""
+    out = {}
+    for f in Metrics.model_fields:
+        vals = [getattr(m, f) for m in metrics if getattr(m, f) is not None]
+        if f in ("n_gt", "n_valid"):
+            out[f] = int(sum(vals))
+        else:
+            out[f] = float(np.mean(vals)) if vals else None
+    if out["coverage_pct"] is None:
+        out["coverage_pct"] = 0.0
+    return Metrics(**out)

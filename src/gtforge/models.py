@@ -1,0 +1,207 @@
+"""Disparity predictors for ``gtforge evaluate``: ONNX (onnxruntime), TorchScript (optional torch),
+OpenCV SGBM (baseline) and a folder of predictions. Every predictor maps an RGB uint8 pair
+``(H, W, 3)`` to a float32 ``(H, W)`` disparity (px, NaN invalid)."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Literal, Protocol
+
+import cv2
+import numpy as np
+
+from gtforge.errors import InputError
+from gtforge.models_base import GTModel
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+
+
+class InputConvention(GTModel):
+    """How a network wants its input (Fast-ACVNet / MI-ACVNet defaults: RGB, ImageNet, pad to 32)."""
+
+    channels: Literal["RGB", "BGR"] = "RGB"
+    normalize: Literal["imagenet", "0-255", "0-1"] = "imagenet"
+    fit: Literal["pad", "resize"] = "pad"
+    pad_multiple: int = 32
+    pad_where: Literal["top-right", "bottom-right"] = "top-right"  # Fast-ACVNet pads top and right
+    resize_wh: tuple[int, int] | None = None  # with fit="resize": the network's input size
+
+    def prepare(self, img: np.ndarray) -> np.ndarray:
+        x = img.astype(np.float32)
+        if self.channels == "BGR":
+            x = x[..., ::-1]
+        if self.normalize == "imagenet":
+            x = (x / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
+        elif self.normalize == "0-1":
+            x = x / 255.0
+        return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)
+
+
+class Predictor(Protocol):
+    name: str
+
+    def predict(self, scene_id: str, left: np.ndarray, right: np.ndarray, ndisp: int, vmin: int) -> np.ndarray: ...
+
+
+def _fit(conv: InputConvention, img: np.ndarray) -> tuple[np.ndarray, tuple]:
+    H, W = img.shape[:2]
+    if conv.fit == "resize":
+        if not conv.resize_wh:
+            raise InputError(None, "resize_wh", "a network input size with fit=resize", "none")
+        return cv2.resize(img, conv.resize_wh, interpolation=cv2.INTER_LINEAR), ("resize", H, W)
+    m = conv.pad_multiple
+    ph, pw = (-H) % m, (-W) % m
+    top = ph if conv.pad_where == "top-right" else 0
+    out = cv2.copyMakeBorder(img, top, ph - top, 0, pw, cv2.BORDER_CONSTANT, value=0)
+    return out, ("pad", H, W, top)
+
+
+def _unfit(disp: np.ndarray, info: tuple) -> np.ndarray:
+    if info[0] == "resize":
+        _, H, W = info
+        scale = W / disp.shape[1]
+        return cv2.resize(disp, (W, H), interpolation=cv2.INTER_LINEAR) * scale
+    _, H, W, top = info
+    return disp[top:top + H, :W]
+
+
+class OnnxModel:
+    """Any stereo network exported to ONNX with inputs (left, right) NCHW float32, or one 6-channel input."""
+
+    def __init__(self, path: str | Path, convention: InputConvention | None = None, name: str | None = None):
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise InputError(path, "onnxruntime", "onnxruntime installed", "not installed",
+                             "pip install 'gtforge[onnx]'") from None
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise InputError(self.path, None, "an ONNX model file", "no such file")
+        self.conv = convention or InputConvention()
+        providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
+        try:
+            self.sess = ort.InferenceSession(str(self.path), providers=providers)
+        except Exception as exc:
+            raise InputError(self.path, None, "a loadable ONNX model", f"{type(exc).__name__}: {str(exc)[:100]}") from None
+        self.provider = self.sess.get_providers()[0]
+        self.inputs = self.sess.get_inputs()
+        shapes = [i.shape for i in self.inputs]
+        if len(self.inputs) == 2 and all(len(s) == 4 for s in shapes):
+            self.layout = "two"
+        elif len(self.inputs) == 1 and len(shapes[0]) == 4 and shapes[0][1] == 6:
+            self.layout = "six"
+        else:
+            desc = ", ".join(f"{i.name}{list(i.shape)}" for i in self.inputs)
+            raise InputError(self.path, "inputs", "two NCHW inputs (left, right) or one N x 6 x H x W input", desc,
+                             "export the model with left and right image inputs")
+        self.name = name or self.path.stem
+
+    def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
+        l, info = _fit(self.conv, left)
+        r, _ = _fit(self.conv, right)
+        a, b = self.conv.prepare(l), self.conv.prepare(r)
+        feeds = {self.inputs[0].name: a, self.inputs[1].name: b} if self.layout == "two" else \
+            {self.inputs[0].name: np.concatenate([a, b], axis=1)}
+        out = np.asarray(self.sess.run(None, feeds)[0], np.float32)
+        out = np.squeeze(out)
+        if out.ndim != 2:
+            raise InputError(self.path, "output", "a disparity map (N=1, H, W)", f"shape {out.shape}")
+        return _unfit(out, info).astype(np.float32)
+
+
+class TorchScriptModel:
+    """A TorchScript stereo network (needs torch): ``model(left, right)`` -> disparity (or a list of them)."""
+
+    def __init__(self, path: str | Path, convention: InputConvention | None = None, name: str | None = None):
+        try:
+            import torch
+        except ImportError:
+            raise InputError(path, "torch", "torch installed", "not installed", "pip install 'gtforge[torch]'") from None
+        self.torch = torch
+        self.device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.model = torch.jit.load(str(path), map_location=self.device).eval()
+        self.conv = convention or InputConvention()
+        self.name = name or Path(path).stem
+        self.provider = self.device
+
+    def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
+        torch = self.torch
+        l, info = _fit(self.conv, left)
+        r, _ = _fit(self.conv, right)
+        with torch.no_grad():
+            out = self.model(torch.from_numpy(self.conv.prepare(l)).to(self.device),
+                             torch.from_numpy(self.conv.prepare(r)).to(self.device))
+        if isinstance(out, (list, tuple)):
+            out = out[-1]
+        return _unfit(out.squeeze().float().cpu().numpy(), info).astype(np.float32)
+
+
+class SGBM:
+    """OpenCV semi-global block matching, a classical baseline (sub-pixel, left-right checked)."""
+
+    provider = "cpu"
+
+    def __init__(self, block_size: int = 5, name: str = "SGBM"):
+        self.block_size = block_size
+        self.name = name
+
+    def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
+        bs = self.block_size
+        min_disp = max(0, int(vmin) - 8)
+        num = int(16 * np.ceil(max(16, ndisp + 8 - min_disp) / 16))
+        m = cv2.StereoSGBM_create(minDisparity=min_disp, numDisparities=num, blockSize=bs, P1=8 * 3 * bs * bs,
+                                  P2=32 * 3 * bs * bs, disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,
+                                  speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+        d = m.compute(cv2.cvtColor(left, cv2.COLOR_RGB2BGR), cv2.cvtColor(right, cv2.COLOR_RGB2BGR)).astype(np.float32) / 16.0
+        d[d < min_disp] = np.nan
+        return d
+
+
+class PredictionFolder:
+    """Predicted disparities on disk: ``<id>.pfm``, ``<id>.png``/``<id>_10.png`` (KITTI x256) or ``<id>.npy``."""
+
+    provider = "files"
+
+    def __init__(self, folder: str | Path, name: str | None = None):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise InputError(self.folder, None, "a folder of predicted disparities", "no such folder")
+        self.name = name or self.folder.name
+
+    def find(self, scene_id: str) -> Path | None:
+        for cand in (f"{scene_id}.pfm", f"{scene_id}.npy", f"{scene_id}.png", f"{scene_id}_10.png",
+                     f"{scene_id}/disp0.pfm", f"{scene_id}/disp0GT.pfm"):
+            p = self.folder / cand
+            if p.is_file():
+                return p
+        return None
+
+    def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
+        from gtforge.io.formats import read_kitti_disparity, read_pfm
+
+        p = self.find(scene_id)
+        if p is None:
+            raise InputError(self.folder, scene_id, f"a prediction {scene_id}.pfm/.png/.npy", "missing")
+        if p.suffix == ".pfm":
+            d = read_pfm(p)
+        elif p.suffix == ".png":
+            d = read_kitti_disparity(p)
+        else:
+            try:
+                d = np.load(p, allow_pickle=False).astype(np.float32)
+            except Exception as exc:
+                raise InputError(p, None, "a readable .npy array", type(exc).__name__) from None
+            d = np.squeeze(d)
+            d[~np.isfinite(d) | (d <= 0)] = np.nan
+        if d.shape != left.shape[:2]:
+            raise InputError(p, "size", f"{left.shape[1]}x{left.shape[0]} px (the scene's image)",
+                             f"{d.shape[1]}x{d.shape[0]} px" if d.ndim == 2 else f"shape {d.shape}",
+                             "predictions must be at the dataset's resolution (or crop)")
+        return d
+
+
+def timed_predict(pred: Predictor, *args) -> tuple[np.ndarray, float]:
+    t = time.perf_counter()
+    d = pred.predict(*args)
+    return d, (time.perf_counter() - t) * 1000.0

@@ -1,0 +1,84 @@
+"""For people who train on the data: a framework-neutral loader and the SGRA loss.
+
+SGRA loss: ``gamma1 * L_init + gamma2 * L_resid`` where each term is the SGRA-weighted smooth-L1
+between a disparity estimate and the ground truth over valid pixels:
+``L(pred) = sum(w * smoothL1(pred - gt)) / sum(w)``, ``w`` from ``weight.tiff`` (edge 1.4, centre 1.0,
+background 0.8 by default), 0 where there is no ground truth.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import tifffile
+
+from gtforge.errors import InputError
+from gtforge.io.formats import read_image, read_pfm
+
+
+class StereoDataset:
+    """Scenes of a built dataset as numpy dicts: left, right (H, W, 3 uint8), disparity (float32, NaN
+    invalid), valid (bool), weight (float32 SGRA weights)."""
+
+    def __init__(self, root: str | Path, split: str | None = "train"):
+        self.root = Path(root)
+        if split:
+            lst = self.root / "filenames" / f"{split}.txt"
+            if not lst.is_file():
+                raise InputError(lst, None, f"a '{split}' list", "no such file")
+            self.items = [l.split() for l in lst.read_text().splitlines() if l.strip()]
+        else:
+            ids = sorted(p.name for p in (self.root / "scenes").iterdir() if p.is_dir() and not p.name.startswith("."))
+            self.items = [[f"scenes/{s}/im0.png", f"scenes/{s}/im1.png", f"scenes/{s}/disp0GT.pfm"] for s in ids]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict:
+        l, r, d = (self.root / p for p in self.items[i])
+        disp = read_pfm(d)
+        w = tifffile.imread(d.parent / "weight.tiff").astype(np.float32)
+        return {"left": read_image(l), "right": read_image(r), "disparity": disp, "valid": np.isfinite(disp),
+                "weight": w, "scene": d.parent.name}
+
+    def __iter__(self) -> Iterator[dict]:
+        for i in range(len(self)):
+            yield self[i]
+
+
+def smooth_l1(x: np.ndarray, beta: float = 1.0) -> np.ndarray:
+    ax = np.abs(x)
+    return np.where(ax < beta, 0.5 * ax * ax / beta, ax - 0.5 * beta)
+
+
+def weighted_smooth_l1(pred: np.ndarray, gt: np.ndarray, weight: np.ndarray, valid: np.ndarray | None = None) -> float:
+    m = np.isfinite(gt) & np.isfinite(pred) & (weight > 0)
+    if valid is not None:
+        m &= valid
+    if not m.any():
+        return 0.0
+    return float(np.sum(weight[m] * smooth_l1(pred[m] - gt[m])) / np.sum(weight[m]))
+
+
+def sgra_loss(pred_init: np.ndarray, pred_resid: np.ndarray, gt: np.ndarray, weight: np.ndarray,
+              gamma1: float = 0.3, gamma2: float = 1.0, valid: np.ndarray | None = None) -> float:
+    """Numpy reference of the SGRA loss (``gamma1 * L_init + gamma2 * L_resid``)."""
+    return gamma1 * weighted_smooth_l1(pred_init, gt, weight, valid) + gamma2 * weighted_smooth_l1(pred_resid, gt, weight, valid)
+
+
+def sgra_loss_torch(pred_init, pred_resid, gt, weight, gamma1: float = 0.3, gamma2: float = 1.0, valid=None):
+    """The same loss for torch tensors (needs torch); NaN ground truth is masked out."""
+    import torch
+    import torch.nn.functional as F
+
+    def term(pred):
+        m = torch.isfinite(gt) & (weight > 0)
+        if valid is not None:
+            m = m & valid
+        if not bool(m.any()):
+            return pred.sum() * 0.0
+        l = F.smooth_l1_loss(pred[m], gt[m], reduction="none")
+        return (weight[m] * l).sum() / weight[m].sum()
+
+    return gamma1 * term(pred_init) + gamma2 * term(pred_resid)
