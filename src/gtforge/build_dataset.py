@@ -422,7 +422,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         else:
             import multiprocessing as mp
 
-            with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=mp.get_context("fork")) as ex:
+            with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=mp.get_context("spawn")) as ex:
                 futs = [ex.submit(build_one_scene, *a) for a in args]
                 try:
                     for f in as_completed(futs):

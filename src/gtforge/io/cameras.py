@@ -173,7 +173,8 @@ class ZedFactoryCalibration:
                                doffs_px=float(P2[0, 2] - P1[0, 2]))
         maps_l = cv2.initUndistortRectifyMap(self.left.K, self.left.dist, R1, P1[:, :3], size, cv2.CV_32FC1)
         maps_r = cv2.initUndistortRectifyMap(self.right.K, self.right.dist, R2, P2[:, :3], size, cv2.CV_32FC1)
-        return ZedRectification(stereo=rect, maps_left=maps_l, maps_right=maps_r, R_rect_from_raw_left=R1)
+        return ZedRectification(stereo=rect, maps_left=maps_l, maps_right=maps_r, R_rect_from_raw_left=R1,
+                                R_rect_from_raw_right=R2, P_left=P1, P_right=P2)
 
 
 @dataclass
@@ -182,6 +183,9 @@ class ZedRectification:
     maps_left: tuple[np.ndarray, np.ndarray]
     maps_right: tuple[np.ndarray, np.ndarray]
     R_rect_from_raw_left: np.ndarray
+    R_rect_from_raw_right: np.ndarray
+    P_left: np.ndarray
+    P_right: np.ndarray
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),

@@ -1,0 +1,50 @@
+"""Shared fixtures: one small synthetic session rendered once per test run (exact truth beside it)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gtforge.synthetic import SyntheticTruth, generate_session
+
+
+@pytest.fixture(scope="session")
+def session_dir(tmp_path_factory):
+    """7 board poses + 3 fruit scenes at 0.4x resolution, noise-free depth (ZED 883x497, mech 768x480)."""
+    d = tmp_path_factory.mktemp("session")
+    generate_session(d, n_board=7, n_scenes=3, scale=0.4, seed=11, depth_noise_mm=0.0, image_noise=1.0)
+    return d
+
+
+@pytest.fixture(scope="session")
+def T_true(session_dir):
+    return np.array(SyntheticTruth.read(session_dir / "truth" / "rig_truth.yaml").T_zed_from_mech)
+
+
+@pytest.fixture(scope="session")
+def calibration(session_dir, tmp_path_factory):
+    from gtforge.calibrate import CalibrateParams, calibrate
+
+    path = tmp_path_factory.mktemp("calib") / "calibration.yaml"
+    res = calibrate(session_dir, path, CalibrateParams(use_depth=False))
+    return path, res
+
+
+@pytest.fixture(scope="session")
+def true_calibration(session_dir, calibration, T_true, tmp_path_factory):
+    """The calibration file with the exact extrinsic (isolates the later stages from calibration error)."""
+    from gtforge.calibrate import CalibrationFile
+
+    c = CalibrationFile.read(calibration[0])
+    c.rig = c.rig.model_copy(update={"T_zed_from_mech": T_true.tolist()})
+    path = tmp_path_factory.mktemp("calib_true") / "calibration.yaml"
+    c.write(path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def dataset(session_dir, true_calibration, tmp_path_factory):
+    from gtforge.build_dataset import build_dataset
+
+    out = tmp_path_factory.mktemp("dataset")
+    summary = build_dataset(session_dir, true_calibration, out, workers=1)
+    return out, summary

@@ -1,0 +1,205 @@
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from gtforge.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.errors import InputError
+from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf, write_zed_conf
+from gtforge.io.captures import open_session, read_depth, read_video_frame, split_side_by_side
+from gtforge.io.formats import write_image, write_png16, write_tiff_float
+
+CONF = {
+    "LEFT_CAM_2K": dict(fx=1066.1, fy=1065.8, cx=1112.4, cy=615.2, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002, k3=-0.0051),
+    "RIGHT_CAM_2K": dict(fx=1067.0, fy=1066.9, cx=1104.9, cy=620.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002, k3=-0.0049),
+    "LEFT_CAM_HD": dict(fx=533.0, fy=532.9, cx=640.2, cy=357.6, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002, k3=-0.0051),
+    "RIGHT_CAM_HD": dict(fx=533.5, fy=533.4, cx=636.4, cy=360.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002, k3=-0.0049),
+    "STEREO": dict(Baseline=63.02, TY_2K=0.31, TZ_2K=-0.22, CV_2K=0.0021, RX_2K=-0.0013, RZ_2K=0.0007,
+                   TY_HD=0.31, TZ_HD=-0.22, CV_HD=0.0021, RX_HD=-0.0013, RZ_HD=0.0007),
+}
+
+
+def test_zed_conf_rectification_gives_positive_disparity(tmp_path):
+    p = write_zed_conf(tmp_path / "SN12345.conf", CONF)
+    calib = read_zed_conf(p, 2208)
+    assert calib.resolution == "2K" and calib.left.height_px == 1242
+    assert calib.left.dist_k1_k2_p1_p2_k3[0] == pytest.approx(-0.0412)
+    rect = calib.rectification()
+    assert rect.stereo.baseline_mm == pytest.approx(63.02, rel=2e-3)
+    assert rect.stereo.left.width_px == 2208
+    # a point 800 mm in front of the raw left camera
+    X = np.array([[40.0, -25.0, 800.0]])
+    uvl = cv2.projectPoints(X, np.zeros(3), np.zeros(3), calib.left.K, calib.left.dist)[0]
+    Xr = X @ calib.R_right_from_left.T - calib.R_right_from_left @ calib.t_right_in_left_mm
+    uvr = cv2.projectPoints(Xr, np.zeros(3), np.zeros(3), calib.right.K, calib.right.dist)[0]
+    ul = cv2.undistortPoints(uvl, calib.left.K, calib.left.dist, R=rect.R_rect_from_raw_left, P=rect.P_left).ravel()
+    ur = cv2.undistortPoints(uvr, calib.right.K, calib.right.dist, R=rect.R_rect_from_raw_right, P=rect.P_right).ravel()
+    assert ul[1] == pytest.approx(ur[1], abs=1e-6)  # rows aligned
+    d = ul[0] - ur[0]
+    assert d > 0
+    # and it matches f*B/Z in the rectified frame
+    Z = (rect.R_rect_from_raw_left @ X[0])[2]
+    assert d == pytest.approx(rect.stereo.f_px * rect.stereo.baseline_mm / Z - rect.stereo.doffs_px, rel=1e-3)
+    # the HD section is chosen from the eye width
+    assert read_zed_conf(p, 1280).left.fx_px == pytest.approx(533.0)
+
+
+def test_zed_conf_missing_key(tmp_path):
+    bad = {k: dict(v) for k, v in CONF.items()}
+    del bad["STEREO"]["TY_2K"]
+    p = write_zed_conf(tmp_path / "SN1.conf", bad)
+    with pytest.raises(InputError) as e:
+        read_zed_conf(p, 2208)
+    msg = str(e.value)
+    assert "SN1.conf" in msg and "TY_2K" in msg and "missing" in msg and "\n" not in msg
+
+
+def test_zed_conf_unknown_resolution(tmp_path):
+    p = write_zed_conf(tmp_path / "SN1.conf", {k: v for k, v in CONF.items() if not k.endswith("HD")})
+    with pytest.raises(InputError, match=r"LEFT_CAM_HD.*missing"):
+        read_zed_conf(p, 1280)
+    with pytest.raises(InputError, match="ZED eye width"):
+        read_zed_conf(p, 1000)
+
+
+def test_zed_conf_nan(tmp_path):
+    bad = {k: dict(v) for k, v in CONF.items()}
+    bad["LEFT_CAM_2K"]["fx"] = "nan"
+    p = write_zed_conf(tmp_path / "SN1.conf", bad)
+    with pytest.raises(InputError, match=r"\[LEFT_CAM_2K\] fx.*finite"):
+        read_zed_conf(p, 2208)
+
+
+def test_ros_and_opencv_yaml(tmp_path):
+    K = [700.0, 0, 319.5, 0, 705.0, 241.0, 0, 0, 1]
+    D = [-0.1, 0.05, 0.001, -0.001, 0.0]
+    ros = dict(image_width=640, image_height=480, camera_name="mech", camera_matrix=dict(rows=3, cols=3, data=K),
+               distortion_model="plumb_bob", distortion_coefficients=dict(rows=1, cols=5, data=D),
+               projection_matrix=dict(rows=3, cols=4, data=[700.0, 0, 319.5, 0, 0, 705.0, 241.0, 0, 0, 0, 1, 0]))
+    (tmp_path / "ros.yaml").write_text(yaml.safe_dump(ros))
+    c = load_camera(tmp_path / "ros.yaml")
+    assert (c.width_px, c.fx_px, c.fy_px, c.cx_px) == (640, 700.0, 705.0, 319.5)
+    assert c.dist_k1_k2_p1_p2_k3 == D
+    fs = cv2.FileStorage(str(tmp_path / "cv.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array(K).reshape(3, 3))
+    fs.write("distortion_coefficients", np.array(D).reshape(1, 5))
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    assert load_camera(tmp_path / "cv.yaml") == c
+    CameraFile(camera=c).write(tmp_path / "g.yaml")
+    assert load_camera(tmp_path / "g.yaml") == c
+    # NaN in intrinsics
+    ros["camera_matrix"]["data"] = [float("nan")] + K[1:]
+    (tmp_path / "nan.yaml").write_text(yaml.safe_dump(ros))
+    with pytest.raises(InputError, match=r"nan\.yaml \[camera_matrix\].*finite"):
+        load_camera(tmp_path / "nan.yaml")
+
+
+def test_rectified_zed_from_ros_left_right(tmp_path):
+    left = dict(width=1280, height=720, K=[530.0, 0, 640.0, 0, 530.0, 360.0, 0, 0, 1], D=[0.0] * 5,
+                P=[530.0, 0, 640.0, 0, 0, 530.0, 360.0, 0, 0, 0, 1, 0])
+    right = dict(left, P=[530.0, 0, 640.0, -530.0 * 0.063, 0, 530.0, 360.0, 0, 0, 0, 1, 0])  # metres, as ROS drivers write
+    (tmp_path / "l.yaml").write_text(yaml.safe_dump(left))
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(right))
+    z = load_zed_rectified(tmp_path / "l.yaml", tmp_path / "r.yaml")
+    assert z.baseline_mm == pytest.approx(63.0) and z.doffs_px == 0.0 and z.left.fx_px == 530.0
+    swapped = dict(left, P=[530.0, 0, 640.0, 530.0 * 63, 0, 530.0, 360.0, 0, 0, 0, 1, 0])
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(swapped))
+    with pytest.raises(InputError, match="swapped"):
+        load_zed_rectified(tmp_path / "l.yaml", tmp_path / "s.yaml")
+    with pytest.raises(InputError, match="baseline"):
+        load_zed_rectified(tmp_path / "l.yaml")
+
+
+def test_depth_readers(tmp_path):
+    cam = PinholeCamera(width_px=5, height_px=4, fx_px=10.0, fy_px=10.0, cx_px=2.0, cy_px=1.5)
+    d = np.full((4, 5), 650.0, np.float32)
+    d[0, 0], d[1, 1] = np.nan, 0.0
+    write_tiff_float(tmp_path / "DepthMap.tiff", d)
+    out = read_depth(tmp_path / "DepthMap.tiff", camera=cam)
+    assert out.dtype == np.float32 and np.isnan(out[0, 0]) and np.isnan(out[1, 1]) and out[2, 2] == 650.0
+    # metres refused with a hint, converted on request
+    write_tiff_float(tmp_path / "m.tiff", d / 1000.0)
+    with pytest.raises(InputError, match="--depth-unit m"):
+        read_depth(tmp_path / "m.tiff")
+    assert read_depth(tmp_path / "m.tiff", depth_unit="m")[2, 2] == pytest.approx(650.0)
+    # 16-bit PNG with a scale
+    write_png16(tmp_path / "d.png", np.where(np.isfinite(d), d * 10, 0).astype(np.uint16))
+    np.testing.assert_allclose(read_depth(tmp_path / "d.png", depth_scale_mm=0.1)[2, 2], 650.0)
+    with pytest.raises(InputError, match="depth_scale_mm"):
+        read_depth(tmp_path / "d.png")
+    np.save(tmp_path / "d.npy", d)
+    assert np.isnan(read_depth(tmp_path / "d.npy")[1, 1])
+    # size mismatch with the intrinsics
+    small = PinholeCamera(width_px=6, height_px=4, fx_px=10.0, fy_px=10.0, cx_px=2.0, cy_px=1.5)
+    with pytest.raises(InputError, match=r"6x4 px.*5x4 px"):
+        read_depth(tmp_path / "DepthMap.tiff", camera=small)
+
+
+def test_side_by_side_split():
+    img = np.zeros((4, 10, 3), np.uint8)
+    img[:, 5:] = 7
+    l, r = split_side_by_side(img, 5)
+    assert l.shape == (4, 5, 3) and r.min() == 7 and l.max() == 0
+    with pytest.raises(InputError, match="2 x 6 eye width"):
+        split_side_by_side(img, 6)
+
+
+def test_video_frame(tmp_path):
+    import imageio.v2 as iio
+
+    frames = [np.full((64, 128, 3), 40 * k, np.uint8) for k in range(4)]
+    w = iio.get_writer(tmp_path / "zed.mp4", fps=5, codec="libx264", quality=10, macro_block_size=16)
+    for f in frames:
+        w.append_data(f)
+    w.close()
+    f2 = read_video_frame(tmp_path / "zed.mp4", 2)
+    assert f2.shape == (64, 128, 3) and abs(float(f2.mean()) - 80) < 6
+    with pytest.raises(InputError, match=r"frame index in \[0, 4\)"):
+        read_video_frame(tmp_path / "zed.mp4", 9)
+
+
+def _mini_session(tmp_path, sbs=False):
+    mech = PinholeCamera(width_px=16, height_px=12, fx_px=20.0, fy_px=20.0, cx_px=7.5, cy_px=5.5)
+    zl = PinholeCamera(width_px=20, height_px=10, fx_px=20.0, fy_px=20.0, cx_px=9.5, cy_px=4.5)
+    CameraFile(camera=mech).write(tmp_path / "mech_intrinsics.yaml")
+    StereoCalibrationFile(zed=RectifiedStereo(left=zl, baseline_mm=63.0)).write(tmp_path / "zed_calibration.yaml")
+    c = tmp_path / "scenes" / "000"
+    c.mkdir(parents=True)
+    write_image(c / "2DImage.png", np.zeros((12, 16), np.uint8))
+    write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 600.0, np.float32))
+    if sbs:
+        write_image(c / "zed_sbs.png", np.zeros((10, 40, 3), np.uint8))
+    else:
+        write_image(c / "left.png", np.zeros((10, 20, 3), np.uint8))
+        write_image(c / "right.png", np.zeros((10, 20, 3), np.uint8))
+    return c
+
+
+def test_session_loads_side_by_side(tmp_path):
+    c = _mini_session(tmp_path, sbs=True)
+    cap = open_session(tmp_path).load_capture(c)
+    assert cap.zed_left.shape == (10, 20, 3) and cap.zed_right.shape == (10, 20, 3)
+
+
+def test_session_image_size_mismatch(tmp_path):
+    c = _mini_session(tmp_path)
+    write_image(c / "left.png", np.zeros((10, 22, 3), np.uint8))
+    with pytest.raises(InputError, match=r"left\.png \[size\]: expected 20x10 px.*got 22x10 px"):
+        open_session(tmp_path).load_capture(c)
+
+
+def test_cli_bad_input_is_one_line_exit_2(tmp_path):
+    c = _mini_session(tmp_path)
+    write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 0.6, np.float32))  # metres
+    (tmp_path / "cal.yaml").write_text("schema_version: 1\n")
+    r = subprocess.run([sys.executable, "-m", "gtforge.cli", "calibrate", str(tmp_path / "nowhere")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    lines = [l for l in r.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and "nowhere" in lines[0] and "no such folder" in lines[0]

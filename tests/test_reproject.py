@@ -1,0 +1,101 @@
+"""Reprojection core against exact truth from the generator."""
+import numpy as np
+import pytest
+
+from gtforge.camera import PinholeCamera, RectifiedStereo
+from gtforge.geometry import T_from_rotvec
+from gtforge.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
+from gtforge.synthetic import default_rig, random_fruit_scene, render_capture
+
+
+@pytest.fixture(scope="module")
+def fruit_cap():
+    rig = default_rig(0.35)
+    rng = np.random.default_rng(21)
+    cap = render_capture("s", random_fruit_scene(rng, rig, 21), rig, rng, kind="scene", supersample=1)
+    return rig, cap
+
+
+def test_mesh_accuracy_and_coverage(fruit_cap):
+    rig, cap = fruit_cap
+    sd = reproject_to_zed(cap.mech_depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed)
+    seen = cap.seen_by_mech
+    got = np.isfinite(sd.disparity_px)
+    err = np.abs(sd.disparity_px - cap.zed_disparity_px)
+    assert got[seen].mean() >= 0.995  # coverage of what the depth camera really saw
+    assert np.mean(err[seen & got]) < 0.01  # EPE, noise-free depth and exact extrinsic
+    assert np.mean(err[got] > 1.0) < 0.0005  # no foreground/background mixing
+    assert not np.any(got & ~np.isfinite(cap.zed_disparity_px))  # nothing invented where nothing exists
+    assert sd.depth_mm.dtype == np.float32 and sd.disparity_px.dtype == np.float32
+
+
+def test_splat_rounds_to_nearest_pixel():
+    # one depth sample that lands at u = 10.4, v = 5.6 in the target: the nearest pixel is (10, 6)
+    mech = PinholeCamera(width_px=3, height_px=3, fx_px=100.0, fy_px=100.0, cx_px=1.0, cy_px=1.0)
+    cam = PinholeCamera(width_px=20, height_px=12, fx_px=100.0, fy_px=100.0, cx_px=10.4, cy_px=5.6)
+    depth = np.full((3, 3), np.nan, np.float32)
+    depth[1, 1] = 500.0
+    out = project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(mode="splat"))
+    assert np.isfinite(out).sum() == 1 and out[6, 10] == 500.0
+
+
+def test_zbuffer_keeps_nearest_and_mesh_is_exact_on_planes():
+    cam = PinholeCamera(width_px=64, height_px=48, fx_px=80.0, fy_px=75.0, cx_px=31.3, cy_px=22.8)
+    v, u = np.mgrid[0:48, 0:64]
+    # a slanted plane z = 600 + 0.8 x (in the depth camera); mesh must reproduce it exactly
+    x = (u - cam.cx_px) / cam.fx_px
+    depth = (600.0 / (1 - 0.8 * x)).astype(np.float32)
+    T = T_from_rotvec([0.0, 0.02, 0.0], [5.0, 0.0, 0.0])
+    out = project_depth_to_camera(depth, cam, T, cam, ReprojectParams(mode="mesh", max_slant_deg=89))
+    ok = np.isfinite(out)
+    assert ok.mean() > 0.8
+    # truth: intersect each target ray with the transformed plane
+    Rt, t = T[:3, :3], T[:3, 3]
+    n_m = np.array([-0.8, 0.0, 1.0])  # plane n.p = 600 in the depth camera
+    n_c = Rt @ n_m
+    c_c = 600.0 + n_c @ t
+    rays = np.stack([(u - cam.cx_px) / cam.fx_px, (v - cam.cy_px) / cam.fy_px, np.ones_like(u, float)], axis=-1)
+    z_true = c_c / (rays @ n_c)
+    np.testing.assert_allclose(out[ok], z_true[ok], rtol=2e-5)
+    # a nearer square in front: the z-buffer keeps it
+    depth2 = depth.copy()
+    depth2[20:30, 20:30] = 300.0
+    out2 = project_depth_to_camera(depth2, cam, np.eye(4), cam, ReprojectParams(mode="splat"))
+    assert np.nanmax(out2[22:28, 22:28]) == pytest.approx(300.0)
+
+
+def test_mesh_fills_holes_of_a_sparse_depth_camera(fruit_cap):
+    rig, cap = fruit_cap
+    # the same scene seen by a depth camera 3x sparser than before: splatting leaves holes, mesh does not
+    sparse = rig.mech.scaled(1 / 3)
+    from gtforge.synthetic import Scene, lit_mask, raycast_depth
+
+    rng = np.random.default_rng(21)
+    scene = random_fruit_scene(rng, rig, 21)
+    z, _, p = raycast_depth(scene, sparse, rig.T_mech_from_world)
+    hit = np.isfinite(z)
+    lit = np.zeros_like(hit)
+    lit[hit] = lit_mask(scene, rig, p[hit])
+    depth = np.where(hit & lit, z, np.nan).astype(np.float32)
+    seen = cap.seen_by_mech
+    splat = project_depth_to_camera(depth, sparse, rig.T_zed_from_mech, rig.zed.left, ReprojectParams(mode="splat"))
+    mesh = project_depth_to_camera(depth, sparse, rig.T_zed_from_mech, rig.zed.left, ReprojectParams(mode="mesh"))
+    assert np.isfinite(splat)[seen].mean() < 0.7
+    assert np.isfinite(mesh)[seen].mean() > 0.98
+    d_mesh = rig.zed.depth_to_disparity(mesh)
+    assert np.nanmean(np.abs(d_mesh - cap.zed_disparity_px)[seen]) < 0.02
+
+
+def test_nonoccluded_mask_marks_right_view_occlusions():
+    # a depth camera on the LEFT of the ZED sees table next to the box that the ZED right camera cannot
+    cam = PinholeCamera(width_px=120, height_px=80, fx_px=100.0, fy_px=100.0, cx_px=59.5, cy_px=39.5)
+    zed = RectifiedStereo(left=cam, baseline_mm=63.0)
+    depth = np.full((80, 120), 1000.0, np.float32)
+    depth[30:50, 50:70] = 500.0  # box in front of a wall
+    T = np.eye(4)  # depth camera = ZED left
+    sd = reproject_to_zed(depth, cam, T, zed, ReprojectParams(mode="mesh"))
+    valid = np.isfinite(sd.disparity_px)
+    occ = valid & ~sd.nonoccluded
+    # the wall just left of the box is hidden from the right camera by (12.6 - 6.3) = 6.3 px
+    assert occ[35:45, 44:49].all()
+    assert not occ[35:45, 55:65].any() and not occ[35:45, 75:100].any()
