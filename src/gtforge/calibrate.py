@@ -47,8 +47,8 @@ class CalibrateParams(GTModel):
     use_depth: bool = False
     huber_px: float = 1.0
     outlier_k: float = 4.0  # median + k * 1.4826 * MAD rule on the per-pose extrinsic estimates
-    outlier_floor_deg: float = 0.3
-    outlier_floor_mm: float = 3.0
+    outlier_floor_deg: float = 0.1
+    outlier_floor_mm: float = 1.0
     blur_sharpness_px: float = 4.0  # flag poses whose edge width exceeds this
     min_poses: int = 3
     leave_one_out: bool = True

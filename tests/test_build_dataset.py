@@ -1,0 +1,140 @@
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from gtforge.build_dataset import BuildParams, Manifest, build_dataset, make_splits
+from gtforge.errors import InputError
+from gtforge.io.formats import read_image, read_kitti_disparity, read_pfm, write_tiff_float
+
+
+def test_dataset_matches_exact_truth(session_dir, dataset):
+    out, summary = dataset
+    assert summary.ok and summary.built == ["000", "001", "002"]
+    for sid in summary.built:
+        tr = np.load(session_dir / "truth" / f"scene_{sid}.npz")
+        s = out / "scenes" / sid
+        gt = read_pfm(s / "disp0GT.pfm")
+        seen = tr["seen_by_mech"]
+        ok = np.isfinite(gt)
+        assert ok[seen].mean() >= 0.995
+        err = np.abs(gt - tr["zed_disparity_px"])
+        assert np.mean(err[seen & ok]) < 0.01
+        assert np.mean(err[ok] > 1.0) < 0.0005
+        # masks and regions
+        mask = read_image(s / "mask0nocc.png")
+        assert set(np.unique(mask)) <= {0, 128, 255}
+        np.testing.assert_array_equal(mask > 0, ok)
+        region = read_image(s / "region.png")
+        np.testing.assert_array_equal(region > 0, ok)
+        fruit = (region >= 2) & ok
+        truth_fruit = tr["fruit_mask"] & ok
+        iou = (fruit & truth_fruit).sum() / (fruit | truth_fruit).sum()
+        assert iou > 0.97, iou
+        assert (region == 2).sum() > 0 and (region == 3).sum() > 0
+        import tifffile
+
+        w = tifffile.imread(s / "weight.tiff")
+        np.testing.assert_allclose(np.unique(w), [0.0, 0.8, 1.0, 1.4], rtol=1e-6)
+        depth = tifffile.imread(s / "depth0.tiff")
+        assert depth.dtype == np.float32
+        np.testing.assert_array_equal(np.isfinite(depth), ok)
+        calib = (s / "calib.txt").read_text()
+        for key in ("cam0=", "cam1=", "doffs=", "baseline=63.0", "width=883", "height=497", "ndisp=", "vmin=", "vmax="):
+            assert key in calib
+        # KITTI view round-trips within 1/512 px
+        k = read_kitti_disparity(out / "kitti" / "training" / "disp_occ_0" / f"{sid}_10.png")
+        np.testing.assert_array_equal(np.isfinite(k), ok)
+        assert np.nanmax(np.abs(k - gt)) <= 0.5 / 256 + 1e-6
+        noc = read_kitti_disparity(out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png")
+        np.testing.assert_array_equal(np.isfinite(noc), mask == 255)
+        assert (out / "eth3d" / "two_view_training" / sid / "im0.png").exists()
+        assert (out / "eth3d" / "two_view_training_gt" / sid / "disp0GT.pfm").exists()
+
+
+def test_manifest_and_lists(dataset):
+    out, _ = dataset
+    m = Manifest.read(out / "manifest.json")
+    assert set(m.scenes) == {"000", "001", "002"}
+    st = m.scenes["000"].stats
+    assert 10 < st.valid_pct < 100 and st.disp_min_px > 0 and st.over_max_disp_pct == 0.0
+    assert set(m.scenes["000"].input_sha256) == {"DepthMap.tiff", "2DImage.png", "left.png", "right.png"}
+    listed = []
+    for split in ("train", "val", "test"):
+        lines = (out / "filenames" / f"{split}.txt").read_text().split("\n")
+        for line in filter(None, lines):
+            l, r, d = line.split()
+            assert (out / l).exists() and (out / r).exists() and (out / d).exists()
+            listed.append(l.split("/")[1])
+    assert sorted(listed) == ["000", "001", "002"]
+    # one fruit (scenes 000 and 001 are fruit00 in the generator) never lands in two splits
+    where = {s: k for k, ids in m.splits.items() for s in ids}
+    assert where["000"] == where["001"]
+
+
+def test_splits_group_by_fruit():
+    ids = [f"{i:03d}" for i in range(20)]
+    fruit = {s: f"f{int(s) // 4}" for s in ids}
+    sp = make_splits(ids, fruit, BuildParams(split_train=0.6, split_val=0.2, split_seed=3))
+    assert sorted(sum(sp.values(), [])) == ids
+    for f in set(fruit.values()):
+        members = [s for s in ids if fruit[s] == f]
+        assert len({k for k, v in sp.items() for s in members if s in v}) == 1
+    assert sp == make_splits(ids, fruit, BuildParams(split_train=0.6, split_val=0.2, split_seed=3))
+
+
+def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibration, tmp_path):
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    out = tmp_path / "ds"
+    s1 = build_dataset(sess, true_calibration, out, scenes=["000", "001"], workers=1)
+    assert s1.built == ["000", "001"]
+    # a stale half-written scene from a killed run must not count
+    (out / "scenes" / ".tmp-001-999").mkdir()
+    s2 = build_dataset(sess, true_calibration, out, scenes=["000", "001"], workers=1)
+    assert s2.built == [] and s2.skipped_unchanged == ["000", "001"]
+    # change one input: only that scene is rebuilt
+    d = read_image(sess / "scenes" / "001" / "left.png")
+    from gtforge.io.formats import write_image
+
+    write_image(sess / "scenes" / "001" / "left.png", 255 - d)
+    s3 = build_dataset(sess, true_calibration, out, scenes=["000", "001"], workers=1)
+    assert s3.built == ["001"] and s3.skipped_unchanged == ["000"]
+    # parameters changed: everything rebuilt; --overwrite forces
+    s4 = build_dataset(sess, true_calibration, out, BuildParams(erosion_px=9), scenes=["000", "001"], workers=2)
+    assert s4.built == ["000", "001"]
+    assert build_dataset(sess, true_calibration, out, BuildParams(erosion_px=9), scenes=["000"], overwrite=True,
+                         workers=1).built == ["000"]
+
+
+def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, tmp_path):
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    bad = sess / "scenes" / "001" / "DepthMap.tiff"
+    import tifffile
+
+    write_tiff_float(bad, tifffile.imread(bad) / 1000.0)  # metres
+    out = tmp_path / "ds"
+    s = build_dataset(sess, true_calibration, out, workers=1)
+    assert s.built == ["000", "002"] and list(s.failures) == ["001"]
+    assert "--depth-unit m" in s.failures["001"]
+    assert not (out / "scenes" / "001").exists()
+    assert "001" in json.loads((out / "manifest.json").read_text())["failures"]
+    with pytest.raises(InputError, match="001"):
+        build_dataset(sess, true_calibration, tmp_path / "ds2", strict=True, workers=1)
+
+
+def test_crop_and_ply(session_dir, true_calibration, tmp_path):
+    out = tmp_path / "ds"
+    build_dataset(session_dir, true_calibration, out, BuildParams(crop_wh=(320, 240), ply=True, kitti=False, eth3d=False),
+                  scenes=["000"], workers=1)
+    s = out / "scenes" / "000"
+    assert read_pfm(s / "disp0GT.pfm").shape == (240, 320) and read_image(s / "im0.png").shape == (240, 320, 3)
+    assert "width=320" in (s / "calib.txt").read_text()
+    from gtforge.io.formats import read_ply_points
+
+    pts = read_ply_points(s / "cloud.ply")
+    assert len(pts) == np.isfinite(read_pfm(s / "disp0GT.pfm")).sum()
+    assert not (out / "kitti").exists()

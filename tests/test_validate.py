@@ -1,0 +1,50 @@
+import numpy as np
+import pytest
+
+from gtforge.calibrate import CalibrationFile
+from gtforge.geometry import T_from_rotvec
+from gtforge.validate import bilinear_valid, validate
+
+
+def test_true_extrinsic_passes_with_tiny_errors(session_dir, true_calibration, tmp_path):
+    rep = validate(session_dir, true_calibration, tmp_path)
+    assert len(rep.poses) == 7
+    assert rep.xy_mean_px < 0.1, rep.xy_mean_px
+    assert rep.z_error_mean_pct < 0.02, rep.z_error_mean_pct
+    assert abs(rep.scale_error_pct) < 0.02 and rep.flatness_rms_mm < 0.05
+    assert rep.passed and rep.pass_xy and rep.pass_z
+    assert rep.warnings and "optimistic" in rep.warnings[0]  # these poses calibrated it
+    html = (tmp_path / "validation.html").read_text()
+    assert "PASS" in html and "0.56" in html and "data:image/png;base64" in html
+    assert (tmp_path / "validation.json").exists()
+
+
+def test_perturbed_extrinsic_fails(session_dir, true_calibration, tmp_path):
+    c = CalibrationFile.read(true_calibration)
+    T = T_from_rotvec(np.radians([0.0, 0.2, 0.0]), [0, 0, 0]) @ c.rig.T  # 0.2 deg about the ZED y axis
+    c.rig = c.rig.model_copy(update={"T_zed_from_mech": T.tolist()})
+    path = tmp_path / "bad.yaml"
+    c.write(path)
+    rep = validate(session_dir, path, tmp_path / "out")
+    # 0.2 deg moves image points by about f * 0.0035 rad (883 px wide image, f = 426 px: ~1.5 px)
+    assert rep.xy_mean_px > 0.8
+    assert not rep.pass_xy and not rep.passed
+
+
+def test_holdout_calibrates_and_validates_on_unseen_poses(session_dir, tmp_path):
+    cal = tmp_path / "cal.yaml"
+    rep = validate(session_dir, cal, tmp_path / "out", holdout=2)
+    assert cal.exists()
+    used = CalibrationFile.read(cal).captures_used
+    assert "005" not in used and "006" not in used and len(used) == 5
+    assert [p.capture for p in rep.poses] == ["005", "006"] and not rep.warnings
+    assert rep.xy_mean_px < 0.15 and rep.z_error_mean_pct < 0.05
+
+
+def test_bilinear_over_valid_neighbours_only():
+    img = np.array([[1.0, 2.0], [np.nan, 4.0]])
+    v = bilinear_valid(img, np.array([[0.5, 0.5], [0.0, 0.0], [0.1, 0.9], [0.0, 1.0]]))
+    assert v[0] == pytest.approx((1 + 2 + 4) / 3)
+    assert v[1] == 1.0
+    assert v[2] == pytest.approx((0.09 * 1 + 0.01 * 2 + 0.09 * 4) / 0.19)  # the NaN neighbour's weight is dropped
+    assert np.isnan(v[3])  # exactly on an invalid pixel: no valid support
