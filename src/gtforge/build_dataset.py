@@ -82,6 +82,9 @@ class SceneMeta(VersionedFile):
     crop_xywh: list[int] | None = None
     fruit_mask_source: Literal["geometry", "user"] = "geometry"
     time_s: float = 0.0
+    time_read_s: float = 0.0
+    time_compute_s: float = 0.0
+    time_write_s: float = 0.0
 
 
 class Manifest(VersionedFile):
@@ -209,6 +212,7 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
         rig = calib.rig
         _check_rig_matches_session(rig, session, calib_path)
         cap = session.load_capture(cap_dir)
+        t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.zed_left, cap.zed_right, cap.mech_depth_mm, rig, params, cap.fruit_mask)
     except InputError as exc:
         return sid, str(exc), None
@@ -232,6 +236,7 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
                        disp_min_px=float(finite.min()) if finite.size else None,
                        disp_max_px=float(finite.max()) if finite.size else None,
                        over_max_disp_pct=100.0 * float((finite > params.max_disp_px).mean()) if finite.size else 0.0)
+    t_compute = time.perf_counter()
     inputs = {p.name: sha256_file(p) for p in cap.input_files if p.exists()}
     meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
                      calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
@@ -258,7 +263,9 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
         z = depth[v, u].astype(np.float64)
         pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
         write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
-    meta.time_s = time.perf_counter() - t0
+    t_end = time.perf_counter()
+    meta.time_s, meta.time_read_s = t_end - t0, t_read - t0
+    meta.time_compute_s, meta.time_write_s = t_compute - t_read, t_end - t_compute
     meta.write(tmp / "meta.json")
     final = scenes / sid
     old = scenes / f".old-{sid}-{os.getpid()}"

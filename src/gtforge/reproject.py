@@ -15,6 +15,9 @@ from typing import Literal
 import numba
 import numpy as np
 
+# numba: prefer OpenMP (TBB builds on Debian are often too old and only produce a warning)
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
 from gtforge.camera import PinholeCamera, RectifiedStereo
 
 Mode = Literal["mesh", "splat"]
@@ -50,20 +53,40 @@ def _transform_project(depth, rays, R, t, fx, fy, cx, cy):
     return U, V, Z
 
 
-@numba.njit(cache=True)
-def _splat(U, V, Z, H, W):
-    zbuf = np.full((H, W), np.inf)
-    Hm, Wm = U.shape
-    for r in range(Hm):
-        for c in range(Wm):
-            z = Z[r, c]
-            if not math.isfinite(z):
-                continue
-            ui = int(math.floor(U[r, c] + 0.5))
-            vi = int(math.floor(V[r, c] + 0.5))
-            if 0 <= ui < W and 0 <= vi < H and z < zbuf[vi, ui]:
-                zbuf[vi, ui] = z
-    return zbuf
+@numba.njit(parallel=True, cache=True)
+def _splat_fused(depth, rays, R, t, fx, fy, cx, cy, H, W, n_chunks):
+    """Back-project, transform, project and z-buffer in one pass; one z-buffer per row chunk
+    (no write races), merged by a parallel minimum."""
+    Hm, Wm = depth.shape
+    bufs = np.full((n_chunks, H, W), np.inf, np.float32)
+    rows_per = (Hm + n_chunks - 1) // n_chunks
+    for k in numba.prange(n_chunks):
+        buf = bufs[k]
+        for r in range(k * rows_per, min(Hm, (k + 1) * rows_per)):
+            for c in range(Wm):
+                z = depth[r, c]
+                if not (z > 0.0) or not math.isfinite(z):
+                    continue
+                x = rays[r, c, 0] * z
+                y = rays[r, c, 1] * z
+                Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+                if Zc <= 0.0:
+                    continue
+                X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+                Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+                ui = int(math.floor(fx * X / Zc + cx + 0.5))
+                vi = int(math.floor(fy * Y / Zc + cy + 0.5))
+                if 0 <= ui < W and 0 <= vi < H and Zc < buf[vi, ui]:
+                    buf[vi, ui] = Zc
+    out = np.empty((H, W), np.float32)
+    for v in numba.prange(H):
+        for u in range(W):
+            m = bufs[0, v, u]
+            for k in range(1, n_chunks):
+                if bufs[k, v, u] < m:
+                    m = bufs[k, v, u]
+            out[v, u] = m if m < np.inf else np.nan
+    return out
 
 
 @numba.njit(cache=True, inline="always")
@@ -97,12 +120,30 @@ def _raster_tri(zbuf, u0, v0, w0, u1, v1, w1, u2, v2, w2):
                         zbuf[py, px] = z
 
 
-@numba.njit(cache=True)
-def _mesh(U, V, Z, Zm, H, W, tan_max, inv_f, abs_tol):
-    zbuf = np.full((H, W), np.inf)
+@numba.njit(parallel=True, cache=True)
+def _mesh(U, V, Z, Zm, H, W, tan_max, inv_f, abs_tol, n_chunks):
+    """Rasterise the depth grid's triangles; one z-buffer per chunk of grid rows, merged by minimum."""
     Hm, Wm = U.shape
+    bufs = np.full((n_chunks, H, W), np.inf, np.float32)
+    rows_per = (Hm - 1 + n_chunks - 1) // n_chunks
+    for k in numba.prange(n_chunks):
+        _mesh_rows(bufs[k], U, V, Z, Zm, k * rows_per, min(Hm - 1, (k + 1) * rows_per), tan_max, inv_f, abs_tol)
+    out = np.empty((H, W), np.float32)
+    for v in numba.prange(H):
+        for u in range(W):
+            m = bufs[0, v, u]
+            for k in range(1, n_chunks):
+                if bufs[k, v, u] < m:
+                    m = bufs[k, v, u]
+            out[v, u] = m if m < np.inf else np.nan
+    return out
+
+
+@numba.njit(cache=True)
+def _mesh_rows(zbuf, U, V, Z, Zm, r0, r1, tan_max, inv_f, abs_tol):
+    Wm = U.shape[1]
     s2 = math.sqrt(2.0)
-    for r in range(Hm - 1):
+    for r in range(r0, r1):
         for c in range(Wm - 1):
             za, zb, zc, zd = Zm[r, c], Zm[r, c + 1], Zm[r + 1, c], Zm[r + 1, c + 1]
             ua, ub, uc, ud = U[r, c], U[r, c + 1], U[r + 1, c], U[r + 1, c + 1]
@@ -126,7 +167,6 @@ def _mesh(U, V, Z, Zm, H, W, tan_max, inv_f, abs_tol):
                 if fd and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
                         and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
                     _raster_tri(zbuf, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
-    return zbuf
 
 
 @dataclass(frozen=True)
@@ -140,25 +180,22 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
                             cam: PinholeCamera, params: ReprojectParams = ReprojectParams()) -> np.ndarray:
     """Structured-light depth ``(Hm, Wm)`` mm (NaN invalid) -> z-depth ``(H, W)`` float32 mm in ``cam``
     (an undistorted camera, e.g. the rectified ZED left), NaN where no measurement lands."""
-    depth = np.ascontiguousarray(depth_mech_mm, dtype=np.float64)
+    depth = np.asarray(depth_mech_mm)
     if depth.shape != (mech.height_px, mech.width_px):
         raise ValueError(f"{depth.shape=} but expected {(mech.height_px, mech.width_px)} from the mech intrinsics")
     if cam.has_distortion:
         raise ValueError("the target camera must be undistorted (rectified)")
-    T = np.asarray(T_cam_from_mech, np.float64)
-    U, V, Z = _transform_project(depth, np.ascontiguousarray(mech.ray_grid()), np.ascontiguousarray(T[:3, :3]),
-                                 np.ascontiguousarray(T[:3, 3]), cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
-    if params.mode == "splat":
-        zbuf = _splat(U, V, Z, cam.height_px, cam.width_px)
-    elif params.mode == "mesh":
-        f_mech = 0.5 * (mech.fx_px + mech.fy_px)
-        zbuf = _mesh(U, V, Z, depth, cam.height_px, cam.width_px, math.tan(math.radians(params.max_slant_deg)),
-                     1.0 / f_mech, params.abs_tol_mm)
-    else:
+    if params.mode not in ("mesh", "splat"):
         raise ValueError(f"mode {params.mode!r}, expected 'mesh' or 'splat'")
-    out = zbuf.astype(np.float32)
-    out[~np.isfinite(zbuf)] = np.nan
-    return out
+    T = np.asarray(T_cam_from_mech, np.float64)
+    R, t, rays = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), np.ascontiguousarray(mech.ray_grid())
+    if params.mode == "splat":
+        return _splat_fused(np.ascontiguousarray(depth, dtype=np.float32), rays, R, t, cam.fx_px, cam.fy_px,
+                            cam.cx_px, cam.cy_px, cam.height_px, cam.width_px, max(1, numba.get_num_threads()))
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    U, V, Z = _transform_project(depth, rays, R, t, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
+    return _mesh(U, V, Z, depth, cam.height_px, cam.width_px, math.tan(math.radians(params.max_slant_deg)),
+                 1.0 / (0.5 * (mech.fx_px + mech.fy_px)), params.abs_tol_mm, max(1, numba.get_num_threads()))
 
 
 @dataclass

@@ -1,0 +1,26 @@
+# The two commands a newcomer needs:  make demo  and  make test
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.gtforge-installed
+
+.PHONY: setup demo test bench clean
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh $(VENV)
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)  ## set up, then run calibrate -> build-dataset -> validate -> evaluate on synthetic data
+	$(VENV)/bin/gtforge demo demo_out
+
+test: $(STAMP)  ## set up, then run the test suite
+	$(PY) -m pytest
+
+bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same run)
+	$(PY) benchmarks/bench_reproject.py
+	$(PY) benchmarks/bench_calibrate.py
+	$(PY) benchmarks/bench_build_dataset.py
+
+clean:
+	rm -rf demo_out .pytest_cache
