@@ -95,6 +95,7 @@ def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibrati
     (out / "scenes" / ".tmp-001-999").mkdir()
     s2 = build_dataset(sess, true_calibration, out, scenes=["000", "001"], workers=1)
     assert s2.built == [] and s2.skipped_unchanged == ["000", "001"]
+    assert not (out / "scenes" / ".tmp-001-999").exists()
     # change one input: only that scene is rebuilt
     d = read_image(sess / "scenes" / "001" / "left.png")
     from gtforge.io.formats import write_image

@@ -163,12 +163,12 @@ def test_video_frame(tmp_path):
         read_video_frame(tmp_path / "zed.mp4", 9)
 
 
-def _mini_session(tmp_path, sbs=False):
+def _mini_session(tmp_path, sbs=False, kind="scenes"):
     mech = PinholeCamera(width_px=16, height_px=12, fx_px=20.0, fy_px=20.0, cx_px=7.5, cy_px=5.5)
     zl = PinholeCamera(width_px=20, height_px=10, fx_px=20.0, fy_px=20.0, cx_px=9.5, cy_px=4.5)
     CameraFile(camera=mech).write(tmp_path / "mech_intrinsics.yaml")
     StereoCalibrationFile(zed=RectifiedStereo(left=zl, baseline_mm=63.0)).write(tmp_path / "zed_calibration.yaml")
-    c = tmp_path / "scenes" / "000"
+    c = tmp_path / kind / "000"
     c.mkdir(parents=True)
     write_image(c / "2DImage.png", np.zeros((12, 16), np.uint8))
     write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 600.0, np.float32))
@@ -203,3 +203,34 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path):
     assert "Traceback" not in r.stderr
     lines = [l for l in r.stderr.splitlines() if l.strip()]
     assert len(lines) == 1 and "nowhere" in lines[0] and "no such folder" in lines[0]
+
+
+def _truncate(p):
+    p.write_bytes(p.read_bytes()[:60])
+
+
+@pytest.mark.parametrize("defect, expect", [
+    ("metres", "DepthMap.tiff [mech_depth]: expected depth in mm"),
+    ("truncated", "2DImage.png [mech_texture]: expected a readable image"),
+    ("size", "left.png [size]: expected 20x10 px"),
+    ("nan_intrinsics", "mech_intrinsics.yaml [camera.fx_px]"),
+])
+def test_cli_one_line_errors(tmp_path, defect, expect):
+    c = _mini_session(tmp_path, kind="board")
+    if defect == "metres":
+        write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 0.6, np.float32))
+    elif defect == "truncated":
+        _truncate(c / "2DImage.png")
+    elif defect == "size":
+        write_image(c / "left.png", np.zeros((10, 22, 3), np.uint8))
+    else:
+        t = (tmp_path / "mech_intrinsics.yaml").read_text()
+        (tmp_path / "mech_intrinsics.yaml").write_text(t.replace("fx_px: 20.0", "fx_px: .nan"))
+    out = tmp_path / "calib.yaml"
+    r = subprocess.run([sys.executable, "-m", "gtforge.cli", "calibrate", str(tmp_path), "-o", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    lines = [l for l in r.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert expect in lines[0], lines[0]
+    assert not out.exists()

@@ -56,23 +56,37 @@ def orient_corners(gray: np.ndarray, corners_uv: np.ndarray, board: BoardSpec) -
     return corners_uv, contrast
 
 
-def detect_corners(image: np.ndarray, board: BoardSpec, min_contrast: float = 20.0) -> Detection | None:
+def _find(gray: np.ndarray, ps: tuple[int, int], max_side_px: int) -> tuple[np.ndarray | None, str]:
+    """Coarse corners: SB on a copy scaled to ``max_side_px`` (fast), then SB exhaustive at full size,
+    then classic detection. Sub-pixel accuracy comes from the full-resolution refinement after this."""
+    scale = min(1.0, max_side_px / max(gray.shape))
+    if scale < 1.0:
+        small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        ok, c = cv2.findChessboardCornersSB(small, ps, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if ok:
+            return (c.reshape(-1, 2) + 0.5) / scale - 0.5, "sb-coarse"  # pixel centres at integers
+    ok, c = cv2.findChessboardCornersSB(gray, ps, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE
+                                        | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if ok:
+        return c.reshape(-1, 2), "sb"
+    ok, c = cv2.findChessboardCorners(gray, ps, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    return (c.reshape(-1, 2), "classic") if ok else (None, "")
+
+
+def detect_corners(image: np.ndarray, board: BoardSpec, min_contrast: float = 20.0,
+                   max_side_px: int = 1100) -> Detection | None:
     """Find the board's inner corners (``(N, 2)`` ``(u, v)``, board order) or ``None``.
 
-    ``findChessboardCornersSB`` (accuracy flag), falling back to classic detection; both refined by
-    ``cornerSubPix`` with a window scaled to the square size (measured: mean error 0.03-0.05 px on
-    the synthetic generator versus 0.06 px for SB alone).
+    ``findChessboardCornersSB`` (on a reduced copy first for speed; then with the accuracy and exhaustive
+    flags at full size), falling back to classic detection; always refined at full resolution by
+    ``cornerSubPix`` with a window scaled to the square size (measured: mean error 0.03-0.07 px on the
+    synthetic generator versus 0.06-0.1 px for SB's accuracy mode alone).
     """
     gray = to_gray(image)
     ps = board.pattern_size
-    ok, c = cv2.findChessboardCornersSB(gray, ps, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE
-                                        | cv2.CALIB_CB_NORMALIZE_IMAGE)
-    method = "sb"
-    if not ok:
-        ok, c = cv2.findChessboardCorners(gray, ps, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
-        method = "classic"
-        if not ok:
-            return None
+    c, method = _find(gray, ps, max_side_px)
+    if c is None:
+        return None
     c = c.reshape(-1, 2).astype(np.float32)
     sq_px = float(np.median(np.linalg.norm(np.diff(c.reshape(board.rows, board.cols, 2), axis=1), axis=2)))
     win = int(max(2, min(15, round(sq_px * 0.3))))

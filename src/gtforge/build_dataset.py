@@ -381,6 +381,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     calib_sha = sha256_file(calib_path)
     out = Path(out_dir)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
+    for stale in (out / "scenes").glob(".tmp-*"):  # left by an interrupted run (kill -9): never a scene
+        shutil.rmtree(stale, ignore_errors=True)
+    for stale in (out / "scenes").glob(".old-*"):
+        shutil.rmtree(stale, ignore_errors=True)
     dirs = session.capture_dirs("scenes")
     if scenes:
         dirs = [d for d in dirs if d.name in set(scenes)]

@@ -209,7 +209,7 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
         sp[i * N * 4 + N * 2: (i + 1) * N * 4, :6] = 1
     x0 = np.zeros(6 + 6 * P)
     sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
-                        method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+                        method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
     Te, Tbs = unpack(sol.x)
     r = sol.fun.reshape(P, 4 * N)
     res_m = r[:, :2 * N].reshape(P, N, 2)

@@ -17,8 +17,8 @@ from gtforge.errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.")
-console = Console(stderr=True)
-out = Console(soft_wrap=True, highlight=False)
+console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
+out = Console(soft_wrap=True, highlight=False, markup=False)
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -29,7 +29,9 @@ def _setup_logging(verbose: bool) -> None:
 
 
 def _status(msg: str) -> None:
-    console.print(f"[dim]{msg}[/dim]")
+    """Progress of long work, on an interactive terminal only (logs and pipes stay clean)."""
+    if console.is_terminal:
+        console.print(msg, style="dim")
 
 
 def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
@@ -215,7 +217,9 @@ def main() -> None:
     try:
         app(standalone_mode=True)
     except InputError as exc:
-        console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        from rich.text import Text
+
+        console.print(Text.assemble(("error: ", "bold red"), str(exc)), highlight=False, soft_wrap=True)
         sys.exit(2)
 
 
