@@ -249,8 +249,13 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
     mask = np.zeros(disp.shape, np.uint8)
     mask[valid] = 128
     mask[noc] = 255
-    write_image(tmp / "im0.png", left)
-    write_image(tmp / "im1.png", right)
+    same_pixels = session.rectification is None and crop is None
+    for name, img, key in (("im0.png", left, "zed_left"), ("im1.png", right, "zed_right")):
+        src = cap_dir / getattr(session.config.files, key)
+        if same_pixels and src.suffix.lower() == ".png" and src.exists():
+            shutil.copyfile(src, tmp / name)  # already the PNG we would write: no re-encode
+        else:
+            write_image(tmp / name, img)
     write_pfm(tmp / "disp0GT.pfm", disp)
     write_image(tmp / "mask0nocc.png", mask)
     write_image(tmp / "region.png", region)
@@ -274,6 +279,7 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
     os.replace(tmp, final)
     if old.exists():
         shutil.rmtree(old, ignore_errors=True)
+    write_scene_views(Path(out_dir), sid, params, disp, noc)
     return sid, None, meta.model_dump(mode="json")
 
 
@@ -334,25 +340,27 @@ def _link(src: Path, dst: Path) -> None:
     os.replace(tmp, dst)
 
 
-def write_views(out: Path, scene_ids: list[str], params: BuildParams) -> None:
+def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray | None = None,
+                      noc: np.ndarray | None = None) -> None:
+    """KITTI and ETH3D views of one built scene (links where possible). ``disp``/``noc`` save re-reading."""
     from gtforge.io.formats import read_image, read_pfm
 
-    for sid in scene_ids:
-        s = out / "scenes" / sid
-        if params.kitti:
-            k = out / "kitti" / "training"
-            _link(s / "im0.png", k / "image_2" / f"{sid}_10.png")
-            _link(s / "im1.png", k / "image_3" / f"{sid}_10.png")
+    s = out / "scenes" / sid
+    if params.kitti:
+        k = out / "kitti" / "training"
+        _link(s / "im0.png", k / "image_2" / f"{sid}_10.png")
+        _link(s / "im1.png", k / "image_3" / f"{sid}_10.png")
+        if disp is None:
             disp = read_pfm(s / "disp0GT.pfm")
             noc = read_image(s / "mask0nocc.png") == 255
-            write_kitti_disparity(k / "disp_occ_0" / f"{sid}_10.png", disp)
-            write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", np.where(noc, disp, np.nan))
-        if params.eth3d:
-            e = out / "eth3d"
-            for f in ("im0.png", "im1.png", "calib.txt"):
-                _link(s / f, e / "two_view_training" / sid / f)
-            for f in ("disp0GT.pfm", "mask0nocc.png"):
-                _link(s / f, e / "two_view_training_gt" / sid / f)
+        write_kitti_disparity(k / "disp_occ_0" / f"{sid}_10.png", disp)
+        write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", np.where(noc, disp, np.nan))
+    if params.eth3d:
+        e = out / "eth3d"
+        for f in ("im0.png", "im1.png", "calib.txt"):
+            _link(s / f, e / "two_view_training" / sid / f)
+        for f in ("disp0GT.pfm", "mask0nocc.png"):
+            _link(s / f, e / "two_view_training_gt" / sid / f)
 
 
 def write_lists(out: Path, splits: dict[str, list[str]]) -> None:
@@ -385,9 +393,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         shutil.rmtree(stale, ignore_errors=True)
     for stale in (out / "scenes").glob(".old-*"):
         shutil.rmtree(stale, ignore_errors=True)
-    dirs = session.capture_dirs("scenes")
-    if scenes:
-        dirs = [d for d in dirs if d.name in set(scenes)]
+    dirs = session.select("scenes", scenes)
     phash = params.output_hash()
     todo, unchanged = [], []
     metas: dict[str, SceneMeta] = {}
@@ -445,7 +451,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     ok_ids = sorted(metas)
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
     splits = make_splits(ok_ids, fruit_ids, params)
-    write_views(out, sorted(built) + [s for s in unchanged if not (out / "kitti" / "training" / "image_2" / f"{s}_10.png").exists()], params)
+    for sid in unchanged:  # views of scenes built by an earlier run with other view options
+        if (params.kitti and not (out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png").exists()) or \
+                (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
+            write_scene_views(out, sid, params)
     write_lists(out, splits)
     Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()), calibration_sha256=calib_sha,
              session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in ok_ids},

@@ -459,11 +459,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     board = params.board.spec()
     check_board_spec(board)
     session = open_session(session_dir)
-    dirs = session.capture_dirs("board")
-    if captures:
-        dirs = [d for d in dirs if d.name in set(captures)]
-    if exclude:
-        dirs = [d for d in dirs if d.name not in set(exclude)]
+    dirs = session.select("board", captures, exclude)
     obs, reports = [], []
     for k, d in enumerate(dirs):
         if progress:

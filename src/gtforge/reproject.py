@@ -54,6 +54,21 @@ def _transform_project(depth, rays, R, t, fx, fy, cx, cy):
 
 
 @numba.njit(parallel=True, cache=True)
+def _min_merge(bufs):
+    """Per-pixel minimum over the per-thread z-buffers; inf (nothing landed) -> NaN."""
+    n, H, W = bufs.shape
+    out = np.empty((H, W), np.float32)
+    for v in numba.prange(H):
+        for u in range(W):
+            m = bufs[0, v, u]
+            for k in range(1, n):
+                if bufs[k, v, u] < m:
+                    m = bufs[k, v, u]
+            out[v, u] = m if m < np.inf else np.nan
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
 def _splat_fused(depth, rays, R, t, fx, fy, cx, cy, H, W, n_chunks):
     """Back-project, transform, project and z-buffer in one pass; one z-buffer per row chunk
     (no write races), merged by a parallel minimum."""
@@ -78,15 +93,7 @@ def _splat_fused(depth, rays, R, t, fx, fy, cx, cy, H, W, n_chunks):
                 vi = int(math.floor(fy * Y / Zc + cy + 0.5))
                 if 0 <= ui < W and 0 <= vi < H and Zc < buf[vi, ui]:
                     buf[vi, ui] = Zc
-    out = np.empty((H, W), np.float32)
-    for v in numba.prange(H):
-        for u in range(W):
-            m = bufs[0, v, u]
-            for k in range(1, n_chunks):
-                if bufs[k, v, u] < m:
-                    m = bufs[k, v, u]
-            out[v, u] = m if m < np.inf else np.nan
-    return out
+    return _min_merge(bufs)
 
 
 @numba.njit(cache=True, inline="always")
@@ -128,15 +135,7 @@ def _mesh(U, V, Z, Zm, H, W, tan_max, inv_f, abs_tol, n_chunks):
     rows_per = (Hm - 1 + n_chunks - 1) // n_chunks
     for k in numba.prange(n_chunks):
         _mesh_rows(bufs[k], U, V, Z, Zm, k * rows_per, min(Hm - 1, (k + 1) * rows_per), tan_max, inv_f, abs_tol)
-    out = np.empty((H, W), np.float32)
-    for v in numba.prange(H):
-        for u in range(W):
-            m = bufs[0, v, u]
-            for k in range(1, n_chunks):
-                if bufs[k, v, u] < m:
-                    m = bufs[k, v, u]
-            out[v, u] = m if m < np.inf else np.nan
-    return out
+    return _min_merge(bufs)
 
 
 @numba.njit(cache=True)

@@ -184,17 +184,15 @@ def validate(session_dir: str | Path, calibration: str | Path, out_dir: str | Pa
              progress: Callable[[str], None] | None = None) -> ValidationReport:
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
-    ``holdout=K``: calibrate on all board captures but the last K (written to ``out_dir/calibration.yaml``)
-    and validate on those K."""
+    ``holdout=K``: calibrate on all board captures but the last K (written to ``calibration``) and
+    validate on those K."""
     from gtforge.io.captures import open_session
 
     params = params or ValidateParams()
     board = params.board.spec()
     check_board_spec(board)
     session = open_session(session_dir)
-    dirs = session.capture_dirs("board")
-    if captures:
-        dirs = [d for d in dirs if d.name in set(captures)]
+    dirs = session.select("board", captures)
     calib_path = Path(calibration)
     if holdout:
         if holdout >= len(dirs) - 2:

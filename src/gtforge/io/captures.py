@@ -193,6 +193,16 @@ class Session:
             raise InputError(d, None, "at least one capture folder", "none")
         return dirs
 
+    def select(self, kind: Literal["board", "scenes"], include: list[str] | None = None,
+               exclude: list[str] | None = None) -> list[Path]:
+        """Capture folders of ``kind``, optionally only ``include`` and never ``exclude`` (by folder name)."""
+        dirs = self.capture_dirs(kind)
+        if include:
+            dirs = [d for d in dirs if d.name in set(include)]
+        if exclude:
+            dirs = [d for d in dirs if d.name not in set(exclude)]
+        return dirs
+
     def capture_files(self, folder: Path) -> list[Path]:
         """The input files a capture uses (for hashing), without reading them."""
         f = self.config.files
