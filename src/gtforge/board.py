@@ -98,6 +98,8 @@ def detect_corners(image: np.ndarray, board: BoardSpec, min_contrast: float = 20
     try:
         sharp = cv2.estimateChessboardSharpness(gray, ps, corners.reshape(-1, 1, 2).astype(np.float32))
         sharpness = float(sharp[0][0])
+        if sharpness >= 9999.0:  # OpenCV's "could not measure" value
+            sharpness = float("nan")
     except cv2.error:
         sharpness = float("nan")
     return Detection(corners, sharpness, method, contrast)

@@ -260,11 +260,14 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
     X = board.corners_board()
     T_mb = solve_pnp(X, dm.corners_uv, mech)
     T_zb = solve_pnp(X, dz.corners_uv, zed.left)
-    blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)
+    blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)  # NaN (unmeasurable) is not blurred
     if blurred:
         log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
-    rep = PoseReport(capture=name, status="used", sharpness_mech_px=dm.sharpness_px, sharpness_zed_px=dz.sharpness_px,
-                     blurred=blurred)
+    def finite_or_none(x: float) -> float | None:
+        return x if np.isfinite(x) else None
+
+    rep = PoseReport(capture=name, status="used", sharpness_mech_px=finite_or_none(dm.sharpness_px),
+                     sharpness_zed_px=finite_or_none(dz.sharpness_px), blurred=blurred)
     return PoseObs(name, dm.corners_uv, dz.corners_uv, T_mb, T_zb, depth_mm, dm, dz), rep
 
 

@@ -22,10 +22,14 @@ out = Console(soft_wrap=True, highlight=False, markup=False)
 
 
 def _setup_logging(verbose: bool) -> None:
-    from rich.logging import RichHandler
+    if console.is_terminal:
+        from rich.logging import RichHandler
 
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
-                        handlers=[RichHandler(console=console, show_time=False, show_path=False)], force=True)
+        handler: logging.Handler = RichHandler(console=console, show_time=False, show_path=False)
+        fmt = "%(message)s"
+    else:  # logs and pipes: one plain line per message
+        handler, fmt = logging.StreamHandler(sys.stderr), "%(levelname)s: %(message)s"
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format=fmt, handlers=[handler], force=True)
 
 
 def _status(msg: str) -> None:
