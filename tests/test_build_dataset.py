@@ -139,3 +139,28 @@ def test_crop_and_ply(session_dir, true_calibration, tmp_path):
     pts = read_ply_points(s / "cloud.ply")
     assert len(pts) == np.isfinite(read_pfm(s / "disp0GT.pfm")).sum()
     assert not (out / "kitti").exists()
+
+
+def test_kill_9_leaves_no_half_written_scene(session_dir, true_calibration, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "ds"
+    cmd = [sys.executable, "-m", "gtforge.cli", "build-dataset", str(session_dir), "-c", str(true_calibration),
+           "-o", str(out), "--workers", "1"]
+    p = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 60
+    while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGKILL)  # mid-run, right after the first scene landed
+    p.wait()
+    files = {"im0.png", "im1.png", "disp0GT.pfm", "mask0nocc.png", "region.png", "weight.tiff", "depth0.tiff",
+             "calib.txt", "meta.json"}
+    for d in (out / "scenes").iterdir():
+        if not d.name.startswith("."):
+            assert {f.name for f in d.iterdir()} == files  # every visible scene is complete
+    s = build_dataset(session_dir, true_calibration, out, workers=1)
+    assert sorted(s.built + s.skipped_unchanged) == ["000", "001", "002"] and s.skipped_unchanged
+    assert not list((out / "scenes").glob(".*"))

@@ -234,3 +234,46 @@ def test_cli_one_line_errors(tmp_path, defect, expect):
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert expect in lines[0], lines[0]
     assert not out.exists()
+
+
+def test_session_with_raw_zed_images_and_factory_conf(tmp_path):
+    conf = {k.replace("HD", "VGA"): dict(v) for k, v in CONF.items() if "HD" in k or k == "STEREO"}
+    for side in ("LEFT_CAM_VGA", "RIGHT_CAM_VGA"):
+        conf[side].update(fx=conf[side]["fx"] * 672 / 1280, fy=conf[side]["fy"] * 672 / 1280,
+                          cx=335.6, cy=187.9)
+    conf["STEREO"] = {k.replace("HD", "VGA"): v for k, v in CONF["STEREO"].items() if "2K" not in k}
+    write_zed_conf(tmp_path / "SN42.conf", conf)
+    c = _mini_session(tmp_path)
+    (c / "left.png").unlink()
+    (c / "right.png").unlink()
+    raw = np.zeros((376, 1344, 3), np.uint8)
+    raw[200:204, 100:104] = 255  # a bright dot in the raw left image
+    write_image(c / "zed_sbs.png", raw)
+    (tmp_path / "session.yaml").write_text("schema_version: 1\nzed_calibration: SN42.conf\nzed_rectified: false\n")
+    s = open_session(tmp_path)
+    assert s.zed.left.width_px == 672 and s.zed.baseline_mm == pytest.approx(63.02, rel=2e-3)
+    cap = s.load_capture(c)
+    assert cap.zed_left.shape == (376, 672, 3)
+    calib = read_zed_conf(tmp_path / "SN42.conf", 672)
+    rect = s.rectification
+    expect = cv2.undistortPoints(np.array([[[101.5, 201.5]]]), calib.left.K, calib.left.dist,
+                                 R=rect.R_rect_from_raw_left, P=rect.P_left).ravel()
+    v, u = np.unravel_index(np.argmax(cap.zed_left[..., 0].astype(float)), cap.zed_left.shape[:2])
+    assert abs(u - expect[0]) <= 2.5 and abs(v - expect[1]) <= 2.5
+
+
+def test_session_reads_side_by_side_video(tmp_path):
+    import imageio.v2 as iio
+
+    c = _mini_session(tmp_path)
+    (c / "left.png").unlink()
+    (c / "right.png").unlink()
+    w = iio.get_writer(c / "zed.mp4", fps=5, codec="libx264", quality=10, macro_block_size=1)
+    for k in range(3):
+        f = np.zeros((10, 40, 3), np.uint8)
+        f[:, 20:] = 60 * (k + 1)
+        w.append_data(f)
+    w.close()
+    (tmp_path / "session.yaml").write_text("schema_version: 1\nvideo_frame: 2\n")
+    cap = open_session(tmp_path).load_capture(c)
+    assert cap.zed_left.shape == (10, 20, 3) and abs(float(cap.zed_right.mean()) - 180) < 15

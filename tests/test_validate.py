@@ -48,3 +48,16 @@ def test_bilinear_over_valid_neighbours_only():
     assert v[1] == 1.0
     assert v[2] == pytest.approx((0.09 * 1 + 0.01 * 2 + 0.09 * 4) / 0.19)  # the NaN neighbour's weight is dropped
     assert np.isnan(v[3])  # exactly on an invalid pixel: no valid support
+
+
+def test_cli_validate_exit_codes(session_dir, true_calibration, tmp_path):
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+
+    ok = CliRunner().invoke(app, ["validate", str(session_dir), "-c", str(true_calibration), "-o", str(tmp_path / "a"),
+                                  "--captures", "000,001"])
+    assert ok.exit_code == 0 and "PASS" in ok.output
+    strict = CliRunner().invoke(app, ["validate", str(session_dir), "-c", str(true_calibration), "-o", str(tmp_path / "b"),
+                                      "--captures", "000,001", "--xy-threshold-px", "0.001"])
+    assert strict.exit_code == 1 and "FAIL" in strict.output

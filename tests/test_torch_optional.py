@@ -1,0 +1,37 @@
+"""The optional torch paths: TorchScript consumer and the torch SGRA loss (skipped without torch)."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from gtforge.models import InputConvention, TorchScriptModel  # noqa: E402
+from gtforge.training import sgra_loss, sgra_loss_torch  # noqa: E402
+
+
+class ShiftNet(torch.nn.Module):
+    """Disparity = 10 + mean of the left image's first channel (so inputs matter), as (N, H, W)."""
+
+    def forward(self, left, right):
+        return 10.0 + left[:, 0].mean() * 0.0 + (right[:, 0] * 0.0)
+
+
+def test_torchscript_model_pads_and_crops(tmp_path):
+    path = tmp_path / "m.pt"
+    torch.jit.script(ShiftNet()).save(str(path))
+    m = TorchScriptModel(path, InputConvention())
+    left = np.zeros((50, 70, 3), np.uint8)
+    d = m.predict("x", left, left)
+    assert d.shape == (50, 70) and np.allclose(d, 10.0)
+
+
+def test_torch_sgra_loss_matches_numpy():
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0, 50, (20, 30))
+    gt[0, :5] = np.nan
+    w = rng.choice([0.0, 0.8, 1.0, 1.4], size=gt.shape)
+    init = gt + rng.normal(0, 2, gt.shape)
+    resid = gt + rng.normal(0, 0.5, gt.shape)
+    ref = sgra_loss(init, resid, gt, w, 0.3, 1.0)
+    t = {k: torch.tensor(v) for k, v in dict(init=init, resid=resid, gt=gt, w=w).items()}
+    got = sgra_loss_torch(t["init"], t["resid"], t["gt"], t["w"], 0.3, 1.0)
+    assert float(got) == pytest.approx(ref, rel=1e-9)
