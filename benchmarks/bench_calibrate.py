@@ -47,11 +47,13 @@ def main():
     for sigma in (float(x) for x in args.noise.split(",")):
         nrng = np.random.default_rng(1)
         obs, reps, cerr = [], [], []
-        t_det = time.perf_counter()
+        t_det = 0.0
         for i, (lin_m, lin_z, T_mb) in enumerate(renders):
             tex = finish_image(lin_m, nrng, 0.6, sigma, gray=True)
             left = finish_image(lin_z, nrng, 0.6, sigma)
+            t = time.perf_counter()
             o, r = detect_pose(f"{i:03d}", tex, None, left, rig.mech, rig.zed, board, 4.0)
+            t_det += time.perf_counter() - t
             if o is None:
                 continue
             X = board.corners_board()
@@ -59,7 +61,6 @@ def main():
             cerr.append(np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech @ T_mb, X)) - o.zed_uv, axis=1))
             obs.append(o)
             reps.append(r)
-        t_det = time.perf_counter() - t_det
         for n in counts:
             sub, subr = obs[:n], [PoseReport(capture=r.capture, status="used") for r in reps[:n]]
             t = time.perf_counter()
@@ -73,7 +74,8 @@ def main():
                   f"{itr:>8.3f} {res.sigma_rot_deg:>10.4f} {res.sigma_trans_mm:>9.3f} {res.loo_transfer_mean_px:>7.3f} "
                   f"{t_det * n / len(obs):>9.2f} {t_solve:>8.2f}")
     print("corner err: mean ZED-left detection error vs truth (px); init: robust per-pose PnP mean (baseline);\n"
-          "detect s: corner detection for that many poses (both images); solve s: fusion + refinement + leave-one-out.")
+          "detect s: corner detection + per-pose PnP for that many poses (both images);\n"
+          "solve s: fusion + joint refinement + leave-one-out cross-validation.")
 
 
 if __name__ == "__main__":

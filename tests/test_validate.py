@@ -31,10 +31,11 @@ def test_perturbed_extrinsic_fails(session_dir, true_calibration, tmp_path):
     assert not rep.pass_xy and not rep.passed
 
 
-def test_holdout_calibrates_and_validates_on_unseen_poses(session_dir, tmp_path):
-    cal = tmp_path / "cal.yaml"
-    rep = validate(session_dir, cal, tmp_path / "out", holdout=2)
-    assert cal.exists()
+def test_holdout_calibrates_and_validates_on_unseen_poses(session_dir, true_calibration, tmp_path):
+    before = true_calibration.read_bytes()
+    rep = validate(session_dir, true_calibration, tmp_path / "out", holdout=2)
+    assert true_calibration.read_bytes() == before  # the user's calibration is never overwritten
+    cal = tmp_path / "out" / "holdout_calibration.yaml"
     used = CalibrationFile.read(cal).captures_used
     assert "005" not in used and "006" not in used and len(used) == 5
     assert [p.capture for p in rep.poses] == ["005", "006"] and not rep.warnings

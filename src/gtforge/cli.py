@@ -119,9 +119,11 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
 
 @app.command()
 def validate(session: Path = typer.Argument(..., help="Capture session folder (board/ captures)."),
-             calibration: Path = typer.Option(..., "--calibration", "-c", help="Calibration YAML (with --holdout: written)."),
+             calibration: Optional[Path] = typer.Option(None, "--calibration", "-c",
+                                                        help="Calibration YAML (not needed with --holdout)."),
              output: Path = typer.Option(Path("validation"), "--output", "-o", help="Report folder."),
-             holdout: int = typer.Option(0, help="Calibrate without the last K board captures and validate on them."),
+             holdout: int = typer.Option(0, help="Calibrate without the last K board captures (written to "
+                                                 "OUTPUT/holdout_calibration.yaml) and validate on them."),
              captures: Optional[str] = typer.Option(None, help="Comma-separated capture names to validate on."),
              cols: int = typer.Option(12), rows: int = typer.Option(9), square_mm: float = typer.Option(20.0),
              xy_threshold_px: float = typer.Option(0.3), z_threshold_pct: float = typer.Option(0.05)) -> None:

@@ -179,13 +179,13 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     return pv, vec, None
 
 
-def validate(session_dir: str | Path, calibration: str | Path, out_dir: str | Path | None = None,
+def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: str | Path | None = None,
              params: ValidateParams | None = None, captures: list[str] | None = None, holdout: int = 0,
              progress: Callable[[str], None] | None = None) -> ValidationReport:
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
-    ``holdout=K``: calibrate on all board captures but the last K (written to ``calibration``) and
-    validate on those K."""
+    ``holdout=K``: calibrate on all board captures but the last K and validate on those K; that calibration
+    goes to ``out_dir/holdout_calibration.yaml`` (``calibration`` is neither needed nor touched)."""
     from gtforge.io.captures import open_session
 
     params = params or ValidateParams()
@@ -193,14 +193,18 @@ def validate(session_dir: str | Path, calibration: str | Path, out_dir: str | Pa
     check_board_spec(board)
     session = open_session(session_dir)
     dirs = session.select("board", captures)
-    calib_path = Path(calibration)
     if holdout:
-        if holdout >= len(dirs) - 2:
-            raise InputError(session_dir, "holdout", f"fewer than {len(dirs) - 2} held-out poses (3 must remain)", str(holdout))
+        if holdout > len(dirs) - 3:
+            raise InputError(session_dir, "holdout", f"at most {len(dirs) - 3} held-out poses (3 must remain to calibrate)",
+                             str(holdout))
         held = [d.name for d in dirs[-holdout:]]
+        calib_path = Path(out_dir or ".") / "holdout_calibration.yaml"
         calib = calibrate(session_dir, calib_path, CalibrateParams(board=params.board), exclude=held, progress=progress)
         dirs = dirs[-holdout:]
+    elif calibration is None:
+        raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none")
     else:
+        calib_path = Path(calibration)
         calib = CalibrationFile.read(calib_path)
     warnings = []
     used = set(calib.captures_used)
