@@ -178,7 +178,8 @@ def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp: n
 
 
 # ---- one scene ------------------------------------------------------------------------------
-def build_scene_arrays(left, right, depth_mech_mm, rig: Rig, params: BuildParams, user_mask=None):
+def build_scene_arrays(depth_mech_mm: np.ndarray, rig: Rig, params: BuildParams, user_mask: np.ndarray | None = None):
+    """Ground-truth depth/disparity/occlusion in the ZED-left image, region labels and the fruit mask."""
     sd = reproject_to_zed(depth_mech_mm, rig.mech, rig.T, rig.zed, params.reproject_params(), params.occlusion_rel_tol)
     region, fruit = fruit_regions(sd.depth_mm, rig.zed, params, user_mask)
     return sd, region, fruit
@@ -200,8 +201,6 @@ def _crop_window(fruit: np.ndarray, crop_wh: tuple[int, int]) -> tuple[int, int,
 def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_sha: str, out_dir: str,
                     params_json: str) -> tuple[str, str | None, dict | None]:
     """Worker: build one scene into ``scenes/<id>/`` atomically. Returns (id, error or None, meta dict)."""
-    from gtforge.io.captures import open_session
-
     t0 = time.perf_counter()
     params = BuildParams.model_validate_json(params_json)
     cap_dir = Path(capture_dir)
@@ -213,7 +212,7 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
         _check_rig_matches_session(rig, session, calib_path)
         cap = session.load_capture(cap_dir)
         t_read = time.perf_counter()
-        sd, region, fruit = build_scene_arrays(cap.zed_left, cap.zed_right, cap.mech_depth_mm, rig, params, cap.fruit_mask)
+        sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
     except InputError as exc:
         return sid, str(exc), None
     disp = sd.disparity_px
@@ -249,11 +248,9 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
     mask = np.zeros(disp.shape, np.uint8)
     mask[valid] = 128
     mask[noc] = 255
-    same_pixels = session.rectification is None and crop is None
-    for name, img, key in (("im0.png", left, "zed_left"), ("im1.png", right, "zed_right")):
-        src = cap_dir / getattr(session.config.files, key)
-        if same_pixels and src.suffix.lower() == ".png" and src.exists():
-            shutil.copyfile(src, tmp / name)  # already the PNG we would write: no re-encode
+    for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
+        if src is not None and crop is None:
+            shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
         else:
             write_image(tmp / name, img)
     write_pfm(tmp / "disp0GT.pfm", disp)

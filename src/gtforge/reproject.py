@@ -23,36 +23,6 @@ from gtforge.camera import PinholeCamera, RectifiedStereo
 Mode = Literal["mesh", "splat"]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False)
-def _transform_project(depth, rays, R, t, fx, fy, cx, cy):
-    H, W = depth.shape
-    U = np.empty((H, W), np.float64)
-    V = np.empty((H, W), np.float64)
-    Z = np.empty((H, W), np.float64)
-    for r in numba.prange(H):
-        for c in range(W):
-            z = depth[r, c]
-            if not (z > 0.0) or not math.isfinite(z):
-                U[r, c] = np.nan
-                V[r, c] = np.nan
-                Z[r, c] = np.nan
-                continue
-            x = rays[r, c, 0] * z
-            y = rays[r, c, 1] * z
-            X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-            Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-            if Zc <= 0.0:
-                U[r, c] = np.nan
-                V[r, c] = np.nan
-                Z[r, c] = np.nan
-                continue
-            U[r, c] = fx * X / Zc + cx
-            V[r, c] = fy * Y / Zc + cy
-            Z[r, c] = Zc
-    return U, V, Z
-
-
 @numba.njit(parallel=True, cache=True)
 def _min_merge(bufs):
     """Per-pixel minimum over the per-thread z-buffers; inf (nothing landed) -> NaN."""
@@ -127,45 +97,75 @@ def _raster_tri(zbuf, u0, v0, w0, u1, v1, w1, u2, v2, w2):
                         zbuf[py, px] = z
 
 
+@numba.njit(cache=True, inline="always")
+def _project_row(depth, rays, R, t, fx, fy, cx, cy, r, U, V, Z):
+    """Project one row of the depth grid into the target camera (NaN where invalid or behind it)."""
+    for c in range(depth.shape[1]):
+        z = depth[r, c]
+        U[c] = np.nan
+        V[c] = np.nan
+        Z[c] = np.nan
+        if not (z > 0.0) or not math.isfinite(z):
+            continue
+        x = rays[r, c, 0] * z
+        y = rays[r, c, 1] * z
+        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        if Zc <= 0.0:
+            continue
+        U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) / Zc + cx
+        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) / Zc + cy
+        Z[c] = Zc
+
+
 @numba.njit(parallel=True, cache=True)
-def _mesh(U, V, Z, Zm, H, W, tan_max, inv_f, abs_tol, n_chunks):
-    """Rasterise the depth grid's triangles; one z-buffer per chunk of grid rows, merged by minimum."""
-    Hm, Wm = U.shape
+def _mesh(depth, rays, R, t, fx, fy, cx, cy, H, W, tan_max, inv_f, abs_tol, n_chunks):
+    """Rasterise the depth grid's triangles; one z-buffer per chunk of grid rows, merged by minimum.
+    Each chunk projects its rows on the fly (two rows at a time), so no full-size U/V/Z arrays exist."""
+    Hm, Wm = depth.shape
     bufs = np.full((n_chunks, H, W), np.inf, np.float32)
     rows_per = (Hm - 1 + n_chunks - 1) // n_chunks
     for k in numba.prange(n_chunks):
-        _mesh_rows(bufs[k], U, V, Z, Zm, k * rows_per, min(Hm - 1, (k + 1) * rows_per), tan_max, inv_f, abs_tol)
+        r0, r1 = k * rows_per, min(Hm - 1, (k + 1) * rows_per)
+        if r0 >= r1:
+            continue
+        U = np.empty((2, Wm))
+        V = np.empty((2, Wm))
+        Z = np.empty((2, Wm))
+        _project_row(depth, rays, R, t, fx, fy, cx, cy, r0, U[0], V[0], Z[0])
+        for r in range(r0, r1):
+            a, b = (r - r0) % 2, (r - r0 + 1) % 2
+            _project_row(depth, rays, R, t, fx, fy, cx, cy, r + 1, U[b], V[b], Z[b])
+            _mesh_row_pair(bufs[k], U[a], V[a], Z[a], U[b], V[b], Z[b], depth[r], depth[r + 1], tan_max, inv_f, abs_tol)
     return _min_merge(bufs)
 
 
 @numba.njit(cache=True)
-def _mesh_rows(zbuf, U, V, Z, Zm, r0, r1, tan_max, inv_f, abs_tol):
-    Wm = U.shape[1]
+def _mesh_row_pair(zbuf, Ut, Vt, Zt, Ub, Vb, Zb_, zmt, zmb, tan_max, inv_f, abs_tol):
+    """Triangles of the quads between grid row ``t`` (top) and ``b`` (bottom)."""
     s2 = math.sqrt(2.0)
-    for r in range(r0, r1):
-        for c in range(Wm - 1):
-            za, zb, zc, zd = Zm[r, c], Zm[r, c + 1], Zm[r + 1, c], Zm[r + 1, c + 1]
-            ua, ub, uc, ud = U[r, c], U[r, c + 1], U[r + 1, c], U[r + 1, c + 1]
-            va, vb, vc, vd = V[r, c], V[r, c + 1], V[r + 1, c], V[r + 1, c + 1]
-            Za, Zb, Zc, Zd = Z[r, c], Z[r, c + 1], Z[r + 1, c], Z[r + 1, c + 1]
-            fa, fb, fc, fd = math.isfinite(Za), math.isfinite(Zb), math.isfinite(Zc), math.isfinite(Zd)
-            # split along the diagonal with the smaller depth change
-            if fa and fd and (not (fb and fc) or abs(za - zd) <= abs(zb - zc)):
-                # triangles (a, b, d) and (a, d, c)
-                if fb and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) \
-                        and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
-                    _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd)
-                if fc and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
-                        and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
-                    _raster_tri(zbuf, ua, va, 1.0 / Za, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
-            elif fb and fc:
-                # triangles (a, b, c) and (b, d, c)
-                if fa and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) \
-                        and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
-                    _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, uc, vc, 1.0 / Zc)
-                if fd and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
-                        and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
-                    _raster_tri(zbuf, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
+    for c in range(Ut.shape[0] - 1):
+        za, zb, zc, zd = zmt[c], zmt[c + 1], zmb[c], zmb[c + 1]
+        ua, ub, uc, ud = Ut[c], Ut[c + 1], Ub[c], Ub[c + 1]
+        va, vb, vc, vd = Vt[c], Vt[c + 1], Vb[c], Vb[c + 1]
+        Za, Zb, Zc, Zd = Zt[c], Zt[c + 1], Zb_[c], Zb_[c + 1]
+        fa, fb, fc, fd = math.isfinite(Za), math.isfinite(Zb), math.isfinite(Zc), math.isfinite(Zd)
+        # split along the diagonal with the smaller depth change
+        if fa and fd and (not (fb and fc) or abs(za - zd) <= abs(zb - zc)):
+            # triangles (a, b, d) and (a, d, c)
+            if fb and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) \
+                    and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
+                _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd)
+            if fc and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
+                    and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
+                _raster_tri(zbuf, ua, va, 1.0 / Za, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
+        elif fb and fc:
+            # triangles (a, b, c) and (b, d, c)
+            if fa and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) \
+                    and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
+                _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, uc, vc, 1.0 / Zc)
+            if fd and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
+                    and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
+                _raster_tri(zbuf, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
 
 
 @dataclass(frozen=True)
@@ -191,9 +191,8 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
     if params.mode == "splat":
         return _splat_fused(np.ascontiguousarray(depth, dtype=np.float32), rays, R, t, cam.fx_px, cam.fy_px,
                             cam.cx_px, cam.cy_px, cam.height_px, cam.width_px, max(1, numba.get_num_threads()))
-    depth = np.ascontiguousarray(depth, dtype=np.float64)
-    U, V, Z = _transform_project(depth, rays, R, t, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
-    return _mesh(U, V, Z, depth, cam.height_px, cam.width_px, math.tan(math.radians(params.max_slant_deg)),
+    return _mesh(np.ascontiguousarray(depth, dtype=np.float32), rays, R, t, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px,
+                 cam.height_px, cam.width_px, math.tan(math.radians(params.max_slant_deg)),
                  1.0 / (0.5 * (mech.fx_px + mech.fy_px)), params.abs_tol_mm, max(1, numba.get_num_threads()))
 
 

@@ -173,6 +173,9 @@ class Capture:
     fruit_mask: np.ndarray | None = None
     fruit_id: str | None = None
     input_files: list[Path] = field(default_factory=list)
+    # set when zed_left / zed_right are exactly an RGB PNG file's pixels (no split, rectification, conversion)
+    zed_left_file: Path | None = None
+    zed_right_file: Path | None = None
 
 
 @dataclass
@@ -224,11 +227,13 @@ class Session:
         depth = read_depth(folder / f.mech_depth, self.config.depth_unit, self.config.depth_scale_mm, self.mech,
                            "mech_depth")
         eye_w = self.zed.left.width_px
+        verbatim: list[Path | None] = [None, None]
         if (folder / f.zed_left).exists():
             left = read_image(folder / f.zed_left, expect="uint8", field="zed_left")
             right = read_image(folder / f.zed_right, expect="uint8", field="zed_right") if need_right or (
                 folder / f.zed_right).exists() else None
             src = folder / f.zed_left
+            verbatim = [p if _is_rgb8_png(p) else None for p in (folder / f.zed_left, folder / f.zed_right)]
         elif (folder / f.zed_side_by_side).exists():
             src = folder / f.zed_side_by_side
             left, right = split_side_by_side(read_image(src, expect="uint8", field="zed_side_by_side"), eye_w, src)
@@ -247,6 +252,7 @@ class Session:
             self.zed.left.check_image_size(right.shape, src, "ZED right image")
         if self.rectification is not None and right is not None:
             left, right = self.rectification.rectify(left, right)
+            verbatim = [None, None]
         mask = None
         if (folder / f.fruit_mask).exists():
             mask = read_image(folder / f.fruit_mask, field="fruit_mask")
@@ -255,7 +261,17 @@ class Session:
             self.zed.left.check_image_size(mask.shape, folder / f.fruit_mask, "fruit mask")
             mask = mask > 0
         return Capture(folder.name, folder, tex, depth, left, right, mask,
-                       self.config.fruit_ids.get(folder.name), self.capture_files(folder))
+                       self.config.fruit_ids.get(folder.name), self.capture_files(folder), *verbatim)
+
+
+def _is_rgb8_png(path: Path) -> bool:
+    """True for an 8-bit RGB (colour type 2) PNG, read from its IHDR header."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+    except OSError:
+        return False
+    return len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[24] == 8 and head[25] == 2
 
 
 def open_session(root: str | Path) -> Session:
