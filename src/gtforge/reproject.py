@@ -38,6 +38,26 @@ def _min_merge(bufs):
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _project_row(depth, rays, R, t, fx, fy, cx, cy, r, U, V, Z):
+    """Project one row of the depth grid into the target camera (NaN where invalid or behind it)."""
+    for c in range(depth.shape[1]):
+        z = depth[r, c]
+        U[c] = np.nan
+        V[c] = np.nan
+        Z[c] = np.nan
+        if not (z > 0.0) or not math.isfinite(z):
+            continue
+        x = rays[r, c, 0] * z
+        y = rays[r, c, 1] * z
+        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        if Zc <= 0.0:
+            continue
+        U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) / Zc + cx
+        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) / Zc + cy
+        Z[c] = Zc
+
+
 @numba.njit(parallel=True, cache=True)
 def _splat_fused(depth, rays, R, t, fx, fy, cx, cy, H, W, n_chunks):
     """Back-project, transform, project and z-buffer in one pass; one z-buffer per row chunk
@@ -47,22 +67,18 @@ def _splat_fused(depth, rays, R, t, fx, fy, cx, cy, H, W, n_chunks):
     rows_per = (Hm + n_chunks - 1) // n_chunks
     for k in numba.prange(n_chunks):
         buf = bufs[k]
+        U = np.empty(Wm)
+        V = np.empty(Wm)
+        Z = np.empty(Wm)
         for r in range(k * rows_per, min(Hm, (k + 1) * rows_per)):
+            _project_row(depth, rays, R, t, fx, fy, cx, cy, r, U, V, Z)
             for c in range(Wm):
-                z = depth[r, c]
-                if not (z > 0.0) or not math.isfinite(z):
+                if not math.isfinite(Z[c]):
                     continue
-                x = rays[r, c, 0] * z
-                y = rays[r, c, 1] * z
-                Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-                if Zc <= 0.0:
-                    continue
-                X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-                Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-                ui = int(math.floor(fx * X / Zc + cx + 0.5))
-                vi = int(math.floor(fy * Y / Zc + cy + 0.5))
-                if 0 <= ui < W and 0 <= vi < H and Zc < buf[vi, ui]:
-                    buf[vi, ui] = Zc
+                ui = int(math.floor(U[c] + 0.5))  # nearest pixel centre: round, never truncate
+                vi = int(math.floor(V[c] + 0.5))
+                if 0 <= ui < W and 0 <= vi < H and Z[c] < buf[vi, ui]:
+                    buf[vi, ui] = Z[c]
     return _min_merge(bufs)
 
 
@@ -95,26 +111,6 @@ def _raster_tri(zbuf, u0, v0, w0, u1, v1, w1, u2, v2, w2):
                     z = 1.0 / w
                     if z < zbuf[py, px]:
                         zbuf[py, px] = z
-
-
-@numba.njit(cache=True, inline="always")
-def _project_row(depth, rays, R, t, fx, fy, cx, cy, r, U, V, Z):
-    """Project one row of the depth grid into the target camera (NaN where invalid or behind it)."""
-    for c in range(depth.shape[1]):
-        z = depth[r, c]
-        U[c] = np.nan
-        V[c] = np.nan
-        Z[c] = np.nan
-        if not (z > 0.0) or not math.isfinite(z):
-            continue
-        x = rays[r, c, 0] * z
-        y = rays[r, c, 1] * z
-        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-        if Zc <= 0.0:
-            continue
-        U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) / Zc + cx
-        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) / Zc + cy
-        Z[c] = Zc
 
 
 @numba.njit(parallel=True, cache=True)
