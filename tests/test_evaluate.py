@@ -94,6 +94,8 @@ def test_sgbm_baseline_is_plausible(dataset, tmp_path):
     assert allm.coverage_pct > 80 and 0 < allm.epe_px < 1.0
     assert rep.pooled["fruit"].depth_mae_mm is not None and 0 < rep.pooled["fruit"].depth_mae_mm < 20
     assert len(list((tmp_path / "clouds").glob("*.ply"))) == 3
+    html = (tmp_path / "results.html").read_text()
+    assert "Per scene, worst first" in html and html.count("data:image/png;base64") == 6
     table = compare([tmp_path / "results.json", tmp_path / "results.json"], tmp_path / "cmp")
     assert table.count("| SGBM | all |") == 2
 

@@ -15,6 +15,7 @@ class ShiftNet(torch.nn.Module):
         return 10.0 + left[:, 0].mean() * 0.0 + (right[:, 0] * 0.0)
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch 2.13 deprecates TorchScript; users still ship it
 def test_torchscript_model_pads_and_crops(tmp_path):
     path = tmp_path / "m.pt"
     torch.jit.script(ShiftNet()).save(str(path))
@@ -35,3 +36,12 @@ def test_torch_sgra_loss_matches_numpy():
     t = {k: torch.tensor(v) for k, v in dict(init=init, resid=resid, gt=gt, w=w).items()}
     got = sgra_loss_torch(t["init"], t["resid"], t["gt"], t["w"], 0.3, 1.0)
     assert float(got) == pytest.approx(ref, rel=1e-9)
+
+
+def test_torch_export_program(tmp_path):
+    ex = torch.export.export(ShiftNet(), (torch.zeros(1, 3, 64, 96), torch.zeros(1, 3, 64, 96)))
+    torch.export.save(ex, str(tmp_path / "m.pt2"))
+    m = TorchScriptModel(tmp_path / "m.pt2", InputConvention())
+    left = np.zeros((50, 70, 3), np.uint8)  # padded to 64x96, as exported
+    d = m.predict("x", left, left)
+    assert d.shape == (50, 70) and np.allclose(d, 10.0)

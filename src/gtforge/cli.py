@@ -147,7 +147,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
 def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build-dataset."),
              output: Path = typer.Option(Path("evaluation"), "--output", "-o"),
              onnx: Optional[Path] = typer.Option(None, help="ONNX model (inputs: left, right NCHW)."),
-             torchscript: Optional[Path] = typer.Option(None, help="TorchScript model (needs torch)."),
+             torchscript: Optional[Path] = typer.Option(None, help="TorchScript (.pt) or torch.export (.pt2) model (needs torch)."),
              predictions: Optional[Path] = typer.Option(None, help="Folder of predicted disparities."),
              sgbm: bool = typer.Option(False, help="OpenCV SGBM baseline."),
              name: Optional[str] = typer.Option(None, help="Model name in the tables."),

@@ -111,7 +111,8 @@ class OnnxModel:
 
 
 class TorchScriptModel:
-    """A TorchScript stereo network (needs torch): ``model(left, right)`` -> disparity (or a list of them)."""
+    """A TorchScript (``.pt``) or ``torch.export`` (``.pt2``) stereo network (needs torch):
+    ``model(left, right)`` -> disparity (or a list of them, the last one used)."""
 
     def __init__(self, path: str | Path, convention: InputConvention | None = None, name: str | None = None):
         try:
@@ -120,7 +121,17 @@ class TorchScriptModel:
             raise InputError(path, "torch", "torch installed", "not installed", "pip install 'gtforge[torch]'") from None
         self.torch = torch
         self.device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.model = torch.jit.load(str(path), map_location=self.device).eval()
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, None, "a TorchScript (.pt) or torch.export (.pt2) file", "no such file")
+        try:
+            if path.suffix == ".pt2":
+                self.model = torch.export.load(str(path)).module().to(self.device)
+            else:
+                self.model = torch.jit.load(str(path), map_location=self.device).eval()
+        except Exception as exc:
+            raise InputError(path, None, "a loadable TorchScript / torch.export model",
+                             f"{type(exc).__name__}: {str(exc)[:100]}") from None
         self.conv = convention or InputConvention()
         self.name = name or Path(path).stem
         self.provider = self.device
