@@ -58,6 +58,6 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     say(tables_markdown([ev]))
     say(f"done in {time.perf_counter() - t0:.0f} s. Open:\n"
         f"  {d / 'calibration_report' / 'calibration_report.html'}\n  {d / 'validation' / 'validation.html'}\n"
-        f"  {ds / 'manifest.json'}  (dataset: {ds})\n  {d / 'evaluation' / 'results.md'}")
+        f"  {ds / 'manifest.json'}  (dataset: {ds})\n  {d / 'evaluation' / 'results.html'} (and results.md/.csv/.json)")
     return {"rot_err_deg": rot_err, "trans_err_mm": tr_err, "xy_px": val.xy_mean_px, "z_pct": val.z_error_mean_pct,
             "gt_epe_px": float(np.mean(epes)), "sgbm_epe_px": ev.pooled["all"].epe_px}
