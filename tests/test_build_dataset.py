@@ -125,6 +125,12 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
     assert "001" in json.loads((out / "manifest.json").read_text())["failures"]
     with pytest.raises(InputError, match="001"):
         build_dataset(sess, true_calibration, tmp_path / "ds2", strict=True, workers=1)
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+
+    r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out), "--workers", "1"])
+    assert r.exit_code == 1 and "FAILED 001" in r.output and "unchanged 2" in r.output
 
 
 def test_crop_and_ply(session_dir, true_calibration, tmp_path):
