@@ -479,6 +479,3 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         result.write(out_path)
     return result
 
-
-def load_calibration(path: str | Path) -> CalibrationFile:
-    return CalibrationFile.read(path)

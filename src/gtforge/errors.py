@@ -25,6 +25,3 @@ class InputError(ValueError):
             msg += f" (hint: {hint})"
         super().__init__(msg.replace("\n", " "))
 
-
-class ValidationFailed(RuntimeError):
-    """Raised by nothing in the library; the CLI maps a FAIL verdict to exit code 1."""

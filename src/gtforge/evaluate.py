@@ -14,7 +14,7 @@ from pydantic import Field
 from gtforge.errors import InputError
 from gtforge.io.atomic import atomic_write_text
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
-from gtforge.metrics import Accumulator, Metrics, disparity_metrics, mean_of
+from gtforge.metrics import Accumulator, Metrics, mean_of, metrics_from_errors, region_errors
 from gtforge.models_base import VersionedFile
 from gtforge.models import Predictor, timed_predict
 
@@ -126,16 +126,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         times.append(ms)
         res = {}
         for r, m in masks.items():
-            depth_fn = cal.depth if r.startswith("fruit") else None
-            res[r] = disparity_metrics(pred, gt, m, max_disp_px, depth_fn)
-            S = m & np.isfinite(gt) & (gt < max_disp_px if max_disp_px else True)
-            V = S & np.isfinite(pred)
-            derr = None
-            if depth_fn:
-                zp, zg = cal.depth(pred[V]), cal.depth(gt[V])
-                ok = np.isfinite(zp) & np.isfinite(zg)
-                derr = np.abs(zp[ok] - zg[ok])
-            pooled[r].add(np.abs(pred[V] - gt[V]), int(S.sum()), derr)
+            err, n_gt, derr = region_errors(pred, gt, m, max_disp_px, cal.depth if r.startswith("fruit") else None)
+            res[r] = metrics_from_errors(err, n_gt, derr)
+            pooled[r].add(err, n_gt, derr)
         per_scene.append(SceneResult(scene=sid, time_ms=ms, metrics=res))
         if out is not None:
             err = np.where(masks["all"] & np.isfinite(gt), np.abs(pred - gt), np.nan)

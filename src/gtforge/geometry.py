@@ -17,10 +17,6 @@ def T_from_rotvec(rotvec_rad: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
     return make_T(Rotation.from_rotvec(np.asarray(rotvec_rad, float).reshape(3)).as_matrix(), t_mm)
 
 
-def rotvec_t_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3].copy()
-
-
 def invert_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform: ``T_src_from_dst = invert_T(T_dst_from_src)``."""
     R = T[:3, :3]

@@ -86,10 +86,9 @@ class Accumulator:
                        depth_mae_mm=self.sum_depth_e / self.n_depth if self.n_depth else None, **kw)
 
 
-def disparity_metrics(pred_px: np.ndarray, gt_px: np.ndarray, region: np.ndarray | None = None,
-                      max_disp_px: float | None = None, depth_fn=None) -> Metrics:
-    """Metrics of one image. ``pred_px``/``gt_px``: ``(H, W)`` float, NaN/inf invalid. ``region``: bool mask.
-    ``depth_fn``: disparity -> depth (mm); adds the mean absolute depth error."""
+def region_errors(pred_px: np.ndarray, gt_px: np.ndarray, region: np.ndarray | None = None,
+                  max_disp_px: float | None = None, depth_fn=None) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """(|pred - gt| over GT pixels with a valid prediction, number of GT pixels, depth errors or None)."""
     pred = np.asarray(pred_px, np.float64)
     gt = np.asarray(gt_px, np.float64)
     if pred.shape != gt.shape:
@@ -106,13 +105,25 @@ def disparity_metrics(pred_px: np.ndarray, gt_px: np.ndarray, region: np.ndarray
         zp, zg = depth_fn(pred[V]), depth_fn(gt[V])
         ok = np.isfinite(zp) & np.isfinite(zg)
         derr = np.abs(zp[ok] - zg[ok])
+    return err, int(S.sum()), derr
+
+
+def metrics_from_errors(err: np.ndarray, n_gt: int, depth_err: np.ndarray | None = None) -> Metrics:
+    """One image's metrics from its errors (exact quantiles)."""
     acc = Accumulator()
-    acc.add(err, int(S.sum()), derr)
+    acc.add(err, n_gt, depth_err)
     m = acc.result()
-    if err.size:  # exact per-image quantiles
+    if err.size:
         qs = np.percentile(err, QUANTILES)
         m = m.model_copy(update={f"a{p}_px": float(v) for p, v in zip(QUANTILES, qs)})
     return m
+
+
+def disparity_metrics(pred_px: np.ndarray, gt_px: np.ndarray, region: np.ndarray | None = None,
+                      max_disp_px: float | None = None, depth_fn=None) -> Metrics:
+    """Metrics of one image. ``pred_px``/``gt_px``: ``(H, W)`` float, NaN/inf invalid. ``region``: bool mask.
+    ``depth_fn``: disparity -> depth (mm); adds the mean absolute depth error."""
+    return metrics_from_errors(*region_errors(pred_px, gt_px, region, max_disp_px, depth_fn))
 
 
 def mean_of(metrics: list[Metrics]) -> Metrics:

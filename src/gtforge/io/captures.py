@@ -121,16 +121,6 @@ def read_video_frame(path: str | Path, frame_index: int = 0) -> np.ndarray:
         reader.close()
 
 
-def count_video_frames(path: str | Path) -> int:
-    import imageio.v2 as iio2
-
-    reader = iio2.get_reader(Path(path), format="FFMPEG")
-    try:
-        return reader.count_frames()
-    finally:
-        reader.close()
-
-
 # ---- capture folders ------------------------------------------------------------------------
 class FileNames(GTModel):
     """File names inside each capture folder (defaults: vendor names). Override in session.yaml."""
