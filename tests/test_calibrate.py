@@ -73,3 +73,22 @@ def test_wrong_board_spec_skips_every_pose(session_dir, tmp_path):
 
     with pytest.raises(InputError, match="usable"):
         calibrate(session_dir, tmp_path / "c.yaml", CalibrateParams(board=BoardModel(cols=10, rows=7)))
+
+
+def test_missed_and_blurred_boards_are_reported(session_dir, tmp_path):
+    import shutil
+
+    import cv2
+
+    from gtforge.io.formats import read_image, write_image
+
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    write_image(sess / "board" / "003" / "left.png", np.full((497, 883, 3), 128, np.uint8))  # no board in the ZED
+    img = read_image(sess / "board" / "005" / "left.png")
+    write_image(sess / "board" / "005" / "left.png", cv2.GaussianBlur(img, (0, 0), 1.5))  # out of focus
+    res = calibrate(sess, None, CalibrateParams(leave_one_out=False, blur_sharpness_px=3.5))
+    by = {p.capture: p for p in res.poses}
+    assert by["003"].status == "skipped" and "ZED" in by["003"].reason
+    assert by["005"].blurred and by["005"].sharpness_zed_px > 3.5 and not by["000"].blurred
+    assert "003" not in res.captures_used and len(res.captures_used) == 6
