@@ -138,30 +138,33 @@ def _mesh(depth, rays, R, t, fx, fy, cx, cy, H, W, tan_max, inv_f, abs_tol, n_ch
 @numba.njit(cache=True)
 def _mesh_row_pair(zbuf, Ut, Vt, Zt, Ub, Vb, Zb_, zmt, zmb, tan_max, inv_f, abs_tol):
     """Triangles of the quads between grid row ``t`` (top) and ``b`` (bottom)."""
-    s2 = math.sqrt(2.0)
     for c in range(Ut.shape[0] - 1):
         za, zb, zc, zd = zmt[c], zmt[c + 1], zmb[c], zmb[c + 1]
         ua, ub, uc, ud = Ut[c], Ut[c + 1], Ub[c], Ub[c + 1]
         va, vb, vc, vd = Vt[c], Vt[c + 1], Vb[c], Vb[c + 1]
         Za, Zb, Zc, Zd = Zt[c], Zt[c + 1], Zb_[c], Zb_[c + 1]
         fa, fb, fc, fd = math.isfinite(Za), math.isfinite(Zb), math.isfinite(Zc), math.isfinite(Zd)
-        # split along the diagonal with the smaller depth change
+        # split along the diagonal with the smaller depth change; each triangle has its right angle at
+        # one quad corner (the first vertex passed) and the diagonal between the other two
         if fa and fd and (not (fb and fc) or abs(za - zd) <= abs(zb - zc)):
-            # triangles (a, b, d) and (a, d, c)
-            if fb and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) \
-                    and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
-                _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd)
-            if fc and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
-                    and _edge_ok(za, zd, s2, tan_max, inv_f, abs_tol):
-                _raster_tri(zbuf, ua, va, 1.0 / Za, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
+            if fb:  # (a, b, d)
+                _tri_if_continuous(zbuf, ub, vb, Zb, zb, ua, va, Za, za, ud, vd, Zd, zd, tan_max, inv_f, abs_tol)
+            if fc:  # (a, d, c)
+                _tri_if_continuous(zbuf, uc, vc, Zc, zc, ua, va, Za, za, ud, vd, Zd, zd, tan_max, inv_f, abs_tol)
         elif fb and fc:
-            # triangles (a, b, c) and (b, d, c)
-            if fa and _edge_ok(za, zb, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(za, zc, 1.0, tan_max, inv_f, abs_tol) \
-                    and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
-                _raster_tri(zbuf, ua, va, 1.0 / Za, ub, vb, 1.0 / Zb, uc, vc, 1.0 / Zc)
-            if fd and _edge_ok(zb, zd, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zc, zd, 1.0, tan_max, inv_f, abs_tol) \
-                    and _edge_ok(zb, zc, s2, tan_max, inv_f, abs_tol):
-                _raster_tri(zbuf, ub, vb, 1.0 / Zb, ud, vd, 1.0 / Zd, uc, vc, 1.0 / Zc)
+            if fa:  # (a, b, c)
+                _tri_if_continuous(zbuf, ua, va, Za, za, ub, vb, Zb, zb, uc, vc, Zc, zc, tan_max, inv_f, abs_tol)
+            if fd:  # (b, d, c)
+                _tri_if_continuous(zbuf, ud, vd, Zd, zd, ub, vb, Zb, zb, uc, vc, Zc, zc, tan_max, inv_f, abs_tol)
+
+
+@numba.njit(cache=True, inline="always")
+def _tri_if_continuous(zbuf, ur, vr, Zr, zr, up, vp, Zp, zp, uq, vq, Zq, zq, tan_max, inv_f, abs_tol):
+    """Rasterise the triangle (r, p, q) unless an edge spans a depth jump: r-p and r-q are grid edges
+    (1 px in the depth image), p-q the quad diagonal (sqrt(2) px); ``z*`` are depth-camera depths."""
+    if _edge_ok(zr, zp, 1.0, tan_max, inv_f, abs_tol) and _edge_ok(zr, zq, 1.0, tan_max, inv_f, abs_tol) \
+            and _edge_ok(zp, zq, math.sqrt(2.0), tan_max, inv_f, abs_tol):
+        _raster_tri(zbuf, ur, vr, 1.0 / Zr, up, vp, 1.0 / Zp, uq, vq, 1.0 / Zq)
 
 
 @dataclass(frozen=True)
