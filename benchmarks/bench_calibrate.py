@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
-from gtforge.calibrate import CalibrateParams, PoseObs, PoseReport, calibrate_observations, detect_pose, \
+from gtforge.calibrate import CalibrateParams, PoseReport, calibrate_observations, detect_pose, \
     robust_initial_extrinsic
-from gtforge.geometry import invert_T, pose_difference
+from gtforge.geometry import invert_T, pose_difference, transform_points
 from gtforge.synthetic import (OBJ_BOARD, BoardSpec, PlaneObject, Scene, _table, default_rig, finish_image,
                                random_board_pose, render_image)
 
@@ -57,7 +57,6 @@ def main():
             if o is None:
                 continue
             X = board.corners_board()
-            from gtforge.geometry import transform_points
             cerr.append(np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech @ T_mb, X)) - o.zed_uv, axis=1))
             obs.append(o)
             reps.append(r)

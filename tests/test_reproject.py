@@ -68,7 +68,7 @@ def test_mesh_fills_holes_of_a_sparse_depth_camera(fruit_cap):
     rig, cap = fruit_cap
     # the same scene seen by a depth camera 3x sparser than before: splatting leaves holes, mesh does not
     sparse = rig.mech.scaled(1 / 3)
-    from gtforge.synthetic import Scene, lit_mask, raycast_depth
+    from gtforge.synthetic import lit_mask, raycast_depth
 
     rng = np.random.default_rng(21)
     scene = random_fruit_scene(rng, rig, 21)

@@ -1,5 +1,4 @@
 """The generator's truth is exact: corners agree with OpenCV detections, disparity is f*B/Z."""
-import cv2
 import numpy as np
 import pytest
 

@@ -208,8 +208,7 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
     try:
         session = _cached_session(session_dir)
         calib = _cached_calibration(calib_path)
-        rig = calib.rig
-        _check_rig_matches_session(rig, session, calib_path)
+        rig = calib.rig  # checked against the session by build_dataset before any worker starts
         cap = session.load_capture(cap_dir)
         t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
