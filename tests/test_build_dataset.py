@@ -120,7 +120,7 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
     out = tmp_path / "ds"
     s = build_dataset(sess, true_calibration, out, workers=1)
     assert s.built == ["000", "002"] and list(s.failures) == ["001"]
-    assert "--depth-unit m" in s.failures["001"]
+    assert "depth_unit: m" in s.failures["001"] and "session.yaml" in s.failures["001"]
     assert not (out / "scenes" / "001").exists()
     assert "001" in json.loads((out / "manifest.json").read_text())["failures"]
     with pytest.raises(InputError, match="001"):
@@ -130,7 +130,8 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
     from gtforge.cli import app
 
     r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out), "--workers", "1"])
-    assert r.exit_code == 1 and "FAILED 001" in r.output and "unchanged 2" in r.output
+    assert r.exit_code == 1 and "failed 1 (001;" in r.output and "unchanged 2" in r.output
+    assert r.output.count("median 0.7") == 1  # the reason is reported once
 
 
 def test_crop_and_ply(session_dir, true_calibration, tmp_path):

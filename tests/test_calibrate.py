@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from gtforge.calibrate import (CalibrateParams, CalibrationFile, calibrate, calibrate_observations, detect_pose,
-                               write_calibration_report)
+from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate, calibrate_observations, detect_pose
 from gtforge.errors import InputError
 from gtforge.geometry import pose_difference
 from gtforge.io.captures import open_session
+from gtforge.reports.calibration import write_calibration_report
 
 
 def test_calibration_recovers_the_true_extrinsic(calibration, T_true):

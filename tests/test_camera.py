@@ -9,7 +9,7 @@ from gtforge.geometry import T_from_rotvec, invert_T, transform_points
 def cam(dist=(0.0,) * 5):
     # non-square image, fx != fy, off-centre principal point
     return PinholeCamera(width_px=640, height_px=360, fx_px=500.0, fy_px=470.0, cx_px=301.7, cy_px=190.2,
-                         dist_k1_k2_p1_p2_k3=list(dist))
+                         dist_coeffs=list(dist))
 
 
 @pytest.mark.parametrize("dist", [(0.0,) * 5, (-0.12, 0.09, 0.001, -0.0007, -0.02)])

@@ -9,7 +9,7 @@ from gtforge.cli import app
 from gtforge.errors import InputError
 from gtforge.evaluate import EvalReport, compare, evaluate
 from gtforge.io.formats import read_image, read_pfm, write_kitti_disparity, write_pfm
-from gtforge.models import SGBM, OnnxModel, PredictionFolder
+from gtforge.predictors import SGBM, OnnxModel, PredictionFolder
 from gtforge.training import StereoDataset
 
 
@@ -62,7 +62,7 @@ def test_onnx_model_end_to_end_through_the_cli(dataset, tmp_path):
 
 def test_six_channel_onnx_and_resize(dataset, tmp_path):
     ds, _ = dataset
-    from gtforge.models import InputConvention
+    from gtforge.predictors import InputConvention
 
     m = OnnxModel(constant_onnx(tmp_path / "c6.onnx", 20.0, six_channels=True),
                   InputConvention(fit="resize", resize_wh=(320, 192)))

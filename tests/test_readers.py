@@ -26,7 +26,7 @@ def test_zed_conf_rectification_gives_positive_disparity(tmp_path):
     p = write_zed_conf(tmp_path / "SN12345.conf", CONF)
     calib = read_zed_conf(p, 2208)
     assert calib.resolution == "2K" and calib.left.height_px == 1242
-    assert calib.left.dist_k1_k2_p1_p2_k3[0] == pytest.approx(-0.0412)
+    assert calib.left.dist_coeffs[0] == pytest.approx(-0.0412)
     rect = calib.rectification()
     assert rect.stereo.baseline_mm == pytest.approx(63.02, rel=2e-3)
     assert rect.stereo.left.width_px == 2208
@@ -82,7 +82,7 @@ def test_ros_and_opencv_yaml(tmp_path):
     (tmp_path / "ros.yaml").write_text(yaml.safe_dump(ros))
     c = load_camera(tmp_path / "ros.yaml")
     assert (c.width_px, c.fx_px, c.fy_px, c.cx_px) == (640, 700.0, 705.0, 319.5)
-    assert c.dist_k1_k2_p1_p2_k3 == D
+    assert c.dist_coeffs == D
     fs = cv2.FileStorage(str(tmp_path / "cv.yaml"), cv2.FILE_STORAGE_WRITE)
     fs.write("camera_matrix", np.array(K).reshape(3, 3))
     fs.write("distortion_coefficients", np.array(D).reshape(1, 5))
@@ -124,7 +124,7 @@ def test_depth_readers(tmp_path):
     assert out.dtype == np.float32 and np.isnan(out[0, 0]) and np.isnan(out[1, 1]) and out[2, 2] == 650.0
     # metres refused with a hint, converted on request
     write_tiff_float(tmp_path / "m.tiff", d / 1000.0)
-    with pytest.raises(InputError, match="--depth-unit m"):
+    with pytest.raises(InputError, match="depth_unit: m. in the session.s session.yaml"):
         read_depth(tmp_path / "m.tiff")
     assert read_depth(tmp_path / "m.tiff", depth_unit="m")[2, 2] == pytest.approx(650.0)
     # 16-bit PNG with a scale

@@ -4,7 +4,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from gtforge.models import InputConvention, TorchScriptModel  # noqa: E402
+from gtforge.predictors import InputConvention, TorchScriptModel  # noqa: E402
 from gtforge.training import sgra_loss, sgra_loss_torch  # noqa: E402
 
 

@@ -8,8 +8,8 @@ import logging
 import os
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -20,12 +20,13 @@ from pydantic import Field
 import gtforge
 from gtforge.calibrate import CalibrationFile
 from gtforge.camera import RectifiedStereo, Rig
-from gtforge.errors import InputError
+from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import fit_plane_robust
 from gtforge.io.atomic import atomic_write_text
 from gtforge.io.formats import write_image, write_kitti_disparity, write_pfm, write_ply, write_tiff_float
-from gtforge.models_base import GTModel, VersionedFile
+from gtforge.schema import GTModel, VersionedFile
 from gtforge.reproject import ReprojectParams, reproject_to_zed
+from gtforge.scheduling import run_tasks
 
 log = logging.getLogger("gtforge.build_dataset")
 
@@ -105,6 +106,7 @@ class BuildSummary:
     failures: dict[str, str]
     out_dir: Path
     time_s: float
+    splits: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -180,7 +182,8 @@ def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp: n
 # ---- one scene ------------------------------------------------------------------------------
 def build_scene_arrays(depth_mech_mm: np.ndarray, rig: Rig, params: BuildParams, user_mask: np.ndarray | None = None):
     """Ground-truth depth/disparity/occlusion in the ZED-left image, region labels and the fruit mask."""
-    sd = reproject_to_zed(depth_mech_mm, rig.mech, rig.T, rig.zed, params.reproject_params(), params.occlusion_rel_tol)
+    sd = reproject_to_zed(depth_mech_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed, params.reproject_params(),
+                          params.occlusion_rel_tol)
     region, fruit = fruit_regions(sd.depth_mm, rig.zed, params, user_mask)
     return sd, region, fruit
 
@@ -198,13 +201,13 @@ def _crop_window(fruit: np.ndarray, crop_wh: tuple[int, int]) -> tuple[int, int,
     return x0, y0, cw, ch
 
 
-def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_sha: str, out_dir: str,
+def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: str, calib_sha: str, out_dir: str,
                     params_json: str) -> tuple[str, str | None, dict | None]:
-    """Worker: build one scene into ``scenes/<id>/`` atomically. Returns (id, error or None, meta dict)."""
+    """Worker: build capture ``capture_dir`` into ``scenes/<sid>/`` atomically.
+    Returns (sid, error or None, meta dict)."""
     t0 = time.perf_counter()
     params = BuildParams.model_validate_json(params_json)
     cap_dir = Path(capture_dir)
-    sid = cap_dir.name
     try:
         session = _cached_session(session_dir)
         calib = _cached_calibration(calib_path)
@@ -240,7 +243,8 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
                      calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
                      stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry")
     scenes = Path(out_dir) / "scenes"
-    tmp = scenes / f".tmp-{sid}-{os.getpid()}"
+    token = uuid.uuid4().hex[:12]  # unique across processes and machines (Dask workers share the folder)
+    tmp = scenes / f".tmp-{sid}-{token}"
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
@@ -269,7 +273,7 @@ def build_one_scene(session_dir: str, capture_dir: str, calib_path: str, calib_s
     meta.time_compute_s, meta.time_write_s = t_compute - t_read, t_end - t_compute
     meta.write(tmp / "meta.json")
     final = scenes / sid
-    old = scenes / f".old-{sid}-{os.getpid()}"
+    old = scenes / f".old-{sid}-{token}"
     if final.exists():
         os.replace(final, old)
     os.replace(tmp, final)
@@ -298,7 +302,8 @@ def _cached_calibration(path: str) -> CalibrationFile:
 
 
 def _check_rig_matches_session(rig: Rig, session, calib_path) -> None:
-    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left)):
+    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
+                       ("depth_cam", rig.depth_camera, session.depth_camera)):
         if (a.width_px, a.height_px) != (b.width_px, b.height_px):
             raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
                              f"{a.width_px}x{a.height_px} px", "was this calibration made for another session?")
@@ -384,12 +389,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     _check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
     out = Path(out_dir)
-    (out / "scenes").mkdir(parents=True, exist_ok=True)
-    for stale in (out / "scenes").glob(".tmp-*"):  # left by an interrupted run (kill -9): never a scene
-        shutil.rmtree(stale, ignore_errors=True)
-    for stale in (out / "scenes").glob(".old-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    session.refuse_output_inside_captures(out)
     dirs = session.select("scenes", scenes)
+    (out / "scenes").mkdir(parents=True, exist_ok=True)
+    _remove_stale(out)
     phash = params.output_hash()
     todo, unchanged = [], []
     metas: dict[str, SceneMeta] = {}
@@ -409,41 +412,34 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         todo.append(d)
     failures: dict[str, str] = {}
     built: list[str] = []
-    workers = max(1, workers or os.cpu_count() or 1)
-    args = [(str(Path(session_dir).resolve()), str(d.resolve()), str(calib_path.resolve()), calib_sha,
+    args = [(str(Path(session_dir).resolve()), str(d.absolute()), d.name, str(calib_path.resolve()), calib_sha,
              str(out.resolve()), params.model_dump_json()) for d in todo]
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(TextColumn("build-dataset"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  disable=not progress) as bar:
+                  disable=not (progress and args)) as bar:
         task = bar.add_task("scenes", total=len(args))
 
-        def handle(sid, err, meta):
+        def handle(result):
+            sid, err, meta = result
             bar.advance(task)
             if err:
                 failures[sid] = err
-                log.error("scene %s: %s", sid, err)
+                log.error("scene %s failed: %s", sid, err)
                 if strict:
                     raise InputError(None, f"scene {sid}", "a valid capture (--strict)", "an error", err)
             else:
                 built.append(sid)
                 metas[sid] = SceneMeta.model_validate(meta)
 
-        if workers == 1 or len(args) <= 1:
-            for a in args:
-                handle(*build_one_scene(*a))
-        else:
-            import multiprocessing as mp
-
-            with ProcessPoolExecutor(max_workers=min(workers, len(args)), mp_context=mp.get_context("spawn")) as ex:
-                futs = [ex.submit(build_one_scene, *a) for a in args]
-                try:
-                    for f in as_completed(futs):
-                        handle(*f.result())
-                except InputError:
-                    for f in futs:
-                        f.cancel()
-                    raise
+        try:
+            run_tasks(build_one_scene, args, handle, workers=workers)
+        except (KeyboardInterrupt, Interrupted):
+            _remove_stale(out)
+            _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
+            raise Interrupted(f"interrupted: {len(built)} scene(s) built in this run and complete, "
+                              f"{len(args) - len(built) - len(failures)} not built; rerun the same command to "
+                              f"resume") from None
     ok_ids = sorted(metas)
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
     splits = make_splits(ok_ids, fruit_ids, params)
@@ -452,7 +448,30 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                 (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
             write_scene_views(out, sid, params)
     write_lists(out, splits)
+    _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits)
+    empty = [k for k, v in splits.items() if not v]
+    if empty and ok_ids:
+        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): the list file(s) are empty; add scenes, "
+                    "set fruit_ids in session.yaml, or change --split", ", ".join(empty), len(ok_ids),
+                    len({fruit_ids[s] or s for s in ok_ids}))
+    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits)
+
+
+def _remove_stale(out: Path) -> None:
+    """Temporary scene folders of a run that was killed or interrupted: never scenes, always removed.
+    A replaced scene (``.old-<id>-<pid>``) whose replacement never landed is put back."""
+    for stale in (out / "scenes").glob(".tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    for old in (out / "scenes").glob(".old-*"):
+        sid = old.name[len(".old-"):].rsplit("-", 1)[0]
+        if not (out / "scenes" / sid).exists():
+            os.replace(old, out / "scenes" / sid)
+        else:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
+                    metas: dict[str, SceneMeta], failures: dict[str, str], splits: dict | None = None) -> None:
     Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()), calibration_sha256=calib_sha,
-             session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in ok_ids},
-             failures=failures, splits=splits).write(out / "manifest.json")
-    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0)
+             session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in sorted(metas)},
+             failures=failures, splits=splits or {}).write(out / "manifest.json")

@@ -8,12 +8,12 @@ from __future__ import annotations
 import functools
 import math
 
-import cv2
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
+from gtforge import lens
 from gtforge.geometry import invert_T
-from gtforge.models_base import GTModel, VersionedFile, matrix4_field
+from gtforge.schema import GTModel, VersionedFile, matrix4_field
 
 ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
 
@@ -24,8 +24,17 @@ def _finite(v: float, name: str) -> float:
     return v
 
 
+DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
+
+
 class PinholeCamera(GTModel):
-    """Pinhole camera with OpenCV 5-coefficient distortion ``(k1, k2, p1, p2, k3)``."""
+    """Pinhole camera with OpenCV lens distortion.
+
+    ``dist_coeffs`` in OpenCV's order ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]])``:
+    0, 4, 5, 8 (rational), 12 (thin prism) or 14 (tilted sensor) numbers (docs/conventions.md).
+    Files written before the full lens models carry ``dist_k1_k2_p1_p2_k3``; it is read as ``dist_coeffs``.
+    """
 
     width_px: int = Field(gt=0)
     height_px: int = Field(gt=0)
@@ -33,18 +42,30 @@ class PinholeCamera(GTModel):
     fy_px: float = Field(gt=0)
     cx_px: float
     cy_px: float
-    dist_k1_k2_p1_p2_k3: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    dist_coeffs: list[float] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy_dist(cls, data):
+        if isinstance(data, dict) and "dist_k1_k2_p1_p2_k3" in data:
+            data = dict(data)
+            legacy = data.pop("dist_k1_k2_p1_p2_k3")
+            if "dist_coeffs" in data:
+                raise ValueError("give dist_coeffs or the older dist_k1_k2_p1_p2_k3, not both")
+            data["dist_coeffs"] = legacy
+        return data
 
     @field_validator("fx_px", "fy_px", "cx_px", "cy_px")
     @classmethod
     def _fin(cls, v: float, info) -> float:
         return _finite(v, info.field_name)
 
-    @field_validator("dist_k1_k2_p1_p2_k3")
+    @field_validator("dist_coeffs")
     @classmethod
     def _dist(cls, v: list[float]) -> list[float]:
-        if len(v) != 5:
-            raise ValueError(f"5 coefficients (k1 k2 p1 p2 k3) expected, got {len(v)}")
+        if len(v) not in DIST_LENGTHS:
+            raise ValueError(f"{len(v)} distortion coefficients; OpenCV models have {', '.join(map(str, DIST_LENGTHS))} "
+                             "(k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tau_x tau_y]]]])")
         if not all(math.isfinite(x) for x in v):
             raise ValueError("distortion coefficients must be finite")
         return [float(x) for x in v]
@@ -56,11 +77,12 @@ class PinholeCamera(GTModel):
 
     @property
     def dist(self) -> np.ndarray:
-        return np.array(self.dist_k1_k2_p1_p2_k3, dtype=np.float64)
+        """The coefficients as OpenCV takes them (``cv2.projectPoints`` etc.); ``(0,)`` when undistorted."""
+        return np.array(self.dist_coeffs, dtype=np.float64)
 
     @property
     def has_distortion(self) -> bool:
-        return any(x != 0.0 for x in self.dist_k1_k2_p1_p2_k3)
+        return any(x != 0.0 for x in self.dist_coeffs)
 
     @property
     def size_wh(self) -> tuple[int, int]:
@@ -71,7 +93,7 @@ class PinholeCamera(GTModel):
         K = np.asarray(K, float)
         return cls(width_px=int(width_px), height_px=int(height_px), fx_px=float(K[0, 0]), fy_px=float(K[1, 1]),
                    cx_px=float(K[0, 2]), cy_px=float(K[1, 2]),
-                   dist_k1_k2_p1_p2_k3=[float(x) for x in (np.zeros(5) if dist is None else np.ravel(dist)[:5])])
+                   dist_coeffs=[] if dist is None else [float(x) for x in np.ravel(dist)])
 
     def scaled(self, factor: float) -> "PinholeCamera":
         """The same lens at another resolution (pixel centres stay at integer coordinates)."""
@@ -82,14 +104,8 @@ class PinholeCamera(GTModel):
 
     # ---- projection ------------------------------------------------------------------------
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        """Apply the distortion model to normalised coordinates ``(N, 2)``."""
-        k1, k2, p1, p2, k3 = self.dist_k1_k2_p1_p2_k3
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=1)
+        """Apply the lens model to normalised coordinates ``(N, 2)`` (``gtforge.lens.distort``)."""
+        return lens.distort(xy, self.dist_coeffs)
 
     def project(self, pts_cam: np.ndarray) -> np.ndarray:
         """``(N, 3)`` points in this camera's frame -> ``(N, 2)`` pixels (distortion applied)."""
@@ -100,19 +116,11 @@ class PinholeCamera(GTModel):
         return np.stack([self.fx_px * xy[:, 0] + self.cx_px, self.fy_px * xy[:, 1] + self.cy_px], axis=1)
 
     def undistort_to_normalized(self, uv: np.ndarray) -> np.ndarray:
-        """``(N, 2)`` pixels -> ``(N, 2)`` normalised ``(x, y)`` with ``z = 1`` (distortion removed)."""
+        """``(N, 2)`` pixels -> ``(N, 2)`` normalised ``(x, y)`` with ``z = 1`` (distortion removed;
+        NaN where the lens model has no inverse, far outside its valid field)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        if not self.has_distortion:
-            return np.stack([(uv[:, 0] - self.cx_px) / self.fx_px, (uv[:, 1] - self.cy_px) / self.fy_px], axis=1)
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-        out = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, crit)
-        xy = out.reshape(-1, 2)
-        # one Newton-free polish: fixed-point correction against our own forward model
-        for _ in range(3):
-            err = self.distort_normalized(xy) - np.stack([(uv[:, 0] - self.cx_px) / self.fx_px,
-                                                          (uv[:, 1] - self.cy_px) / self.fy_px], axis=1)
-            xy = xy - err
-        return xy
+        xy_d = np.stack([(uv[:, 0] - self.cx_px) / self.fx_px, (uv[:, 1] - self.cy_px) / self.fy_px], axis=1)
+        return lens.undistort(xy_d, self.dist_coeffs) if self.has_distortion else xy_d
 
     def unproject(self, uv: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
         """``(N, 2)`` pixels and their z-depth (mm) -> ``(N, 3)`` points in the camera frame."""
@@ -192,16 +200,30 @@ class RectifiedStereo(GTModel):
 
 
 class Rig(VersionedFile):
-    """Rectified ZED pair + structured-light ('mech') camera + ``T_zed_from_mech``."""
+    """Rectified ZED pair + structured-light unit + ``T_zed_from_mech``.
+
+    Frames (docs/conventions.md): ``mech`` is the structured-light unit's texture camera (the 2D image the
+    board is found in); ``depth`` is the camera whose pixel grid the depth map is on. For Mech-Eye-style units
+    with one camera they are the same (``depth_cam`` and ``T_mech_from_depth`` absent); for units with a
+    separate depth camera (Mech-Eye API's texture/depth intrinsics, Azure Kinect, Orbbec) every stage that
+    uses the depth composes ``T_zed_from_depth = T_zed_from_mech @ T_mech_from_depth``.
+    """
 
     zed: RectifiedStereo
     mech: PinholeCamera
     T_zed_from_mech: list[list[float]]
+    depth_cam: PinholeCamera | None = None
+    T_mech_from_depth: list[list[float]] | None = None
 
     @field_validator("T_zed_from_mech", mode="before")
     @classmethod
     def _T4(cls, v):
         return matrix4_field(v)
+
+    @field_validator("T_mech_from_depth", mode="before")
+    @classmethod
+    def _T4_opt(cls, v):
+        return None if v is None else matrix4_field(v)
 
     @property
     def T(self) -> np.ndarray:
@@ -210,6 +232,26 @@ class Rig(VersionedFile):
     @property
     def T_mech_from_zed(self) -> np.ndarray:
         return invert_T(self.T)
+
+    @property
+    def depth_camera(self) -> PinholeCamera:
+        """The camera of the depth map's pixel grid (the texture camera when there is one camera)."""
+        return self.depth_cam if self.depth_cam is not None else self.mech
+
+    @property
+    def T_mech_from_depth_or_identity(self) -> np.ndarray:
+        return np.eye(4) if self.T_mech_from_depth is None else np.array(self.T_mech_from_depth)
+
+    @property
+    def T_zed_from_depth(self) -> np.ndarray:
+        return self.T @ self.T_mech_from_depth_or_identity
+
+    @property
+    def separate_depth_camera(self) -> bool:
+        return self.depth_cam is not None or self.T_mech_from_depth is not None
+
+    def with_extrinsic(self, T_zed_from_mech: np.ndarray) -> "Rig":
+        return self.model_copy(update={"T_zed_from_mech": np.asarray(T_zed_from_mech, float).tolist()})
 
 
 class StereoCalibrationFile(VersionedFile):

@@ -6,6 +6,7 @@ exits with 1; unexpected bugs keep their traceback.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import List, Optional
@@ -13,7 +14,7 @@ from typing import List, Optional
 import typer
 from rich.console import Console
 
-from gtforge.errors import InputError
+from gtforge.errors import InputError, Interrupted
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.")
@@ -65,7 +66,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
               captures: Optional[str] = typer.Option(None, help="Comma-separated capture names to use."),
               no_loo: bool = typer.Option(False, help="Skip leave-one-pose-out cross-validation.")) -> None:
     """Solve T_zed_from_mech from checkerboard captures in SESSION/board/."""
-    from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run, write_calibration_report
+    from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run
+    from gtforge.reports.calibration import write_calibration_report
 
     params = CalibrateParams(board=BoardModel(cols=cols, rows=rows, square_size_mm=square_mm), use_depth=use_depth,
                              leave_one_out=not no_loo)
@@ -109,10 +111,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     params = BuildParams(mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
                          max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed)
     s = run(session, calibration, output, params, workers, overwrite, strict, progress=True)
-    out.print(f"built {len(s.built)}, unchanged {len(s.skipped_unchanged)}, failed {len(s.failures)} "
+    failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
+    out.print(f"built {len(s.built)}, unchanged {len(s.skipped_unchanged)}, failed {len(s.failures)}{failed} "
               f"in {s.time_s:.1f} s -> {s.out_dir}")
-    for sid, err in s.failures.items():
-        out.print(f"  FAILED {sid}: {err}")
     if s.failures:
         raise typer.Exit(1)
 
@@ -160,8 +161,9 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
              params_count: Optional[int] = typer.Option(None, help="Parameter count for the table."),
              no_clouds: bool = typer.Option(False, help="Skip the per-scene PLY clouds.")) -> None:
     """Score a model's disparities against the built ground truth, per region."""
-    from gtforge.evaluate import evaluate as run, tables_markdown
-    from gtforge.models import SGBM, InputConvention, OnnxModel, PredictionFolder, TorchScriptModel
+    from gtforge.evaluate import evaluate as run
+    from gtforge.reports.evaluation import tables_markdown
+    from gtforge.predictors import SGBM, InputConvention, OnnxModel, PredictionFolder, TorchScriptModel
 
     chosen = [x for x in (onnx, torchscript, predictions) if x is not None] + ([True] if sgbm else [])
     if len(chosen) != 1:
@@ -219,7 +221,14 @@ def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo
     run_demo(directory, scale=scale, n_board=boards, n_scenes=scenes, seed=seed, say=out.print, status=_status)
 
 
+def _raise_interrupted(signum, frame) -> None:
+    raise Interrupted("interrupted")
+
+
 def main() -> None:
+    # Ctrl-C raises Interrupted (not KeyboardInterrupt, which Click turns into "Aborted!" and exit 1):
+    # stages clean up, say what is complete, and the command exits with 130 like any interrupted program.
+    signal.signal(signal.SIGINT, _raise_interrupted)
     try:
         app(standalone_mode=True)
     except InputError as exc:
@@ -227,6 +236,9 @@ def main() -> None:
 
         console.print(Text.assemble(("error: ", "bold red"), str(exc)), highlight=False, soft_wrap=True)
         sys.exit(2)
+    except Interrupted as exc:
+        console.print(str(exc))
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -8,12 +8,14 @@ from typing import Callable
 import numpy as np
 
 from gtforge.build_dataset import BuildParams, build_dataset
-from gtforge.calibrate import CalibrateParams, calibrate, write_calibration_report
-from gtforge.evaluate import evaluate, tables_markdown
+from gtforge.calibrate import CalibrateParams, calibrate
+from gtforge.evaluate import evaluate
 from gtforge.geometry import pose_difference
 from gtforge.io.formats import read_pfm
-from gtforge.models import SGBM
+from gtforge.predictors import SGBM
 from gtforge.synthetic import SyntheticTruth, generate_session
+from gtforge.reports.calibration import write_calibration_report
+from gtforge.reports.evaluation import tables_markdown
 from gtforge.validate import validate
 
 

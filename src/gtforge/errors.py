@@ -17,11 +17,17 @@ class InputError(ValueError):
         self.expected = expected
         self.actual = actual
         self.hint = hint
-        where = self.file or "<input>"
+        where = self.file or ""
         if field:
-            where += f" [{field}]"
-        msg = f"{where}: expected {expected}, got {actual}"
+            where = f"{where} [{field}]" if where else field
+        msg = f"{where}: expected {expected}, got {actual}" if where else f"expected {expected}, got {actual}"
         if hint:
             msg += f" (hint: {hint})"
         super().__init__(msg.replace("\n", " "))
 
+
+
+class Interrupted(Exception):
+    """Ctrl-C, as the ``gtforge`` command raises it (its SIGINT handler) and as a stage re-raises it after
+    stopping cleanly, with ``str()`` saying what is complete. The CLI prints it and exits with code 130.
+    Library callers get the usual ``KeyboardInterrupt``; stages treat both alike."""

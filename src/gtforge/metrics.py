@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gtforge.models_base import GTModel
+from gtforge.schema import GTModel
 
 BAD_THRESHOLDS_PX = (0.5, 1.0, 2.0, 4.0)
 QUANTILES = (50, 90, 95, 99)

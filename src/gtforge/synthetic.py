@@ -19,7 +19,7 @@ import numpy as np
 from gtforge.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
 from gtforge.io.formats import write_image, write_tiff_float
-from gtforge.models_base import VersionedFile
+from gtforge.schema import VersionedFile
 
 OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
 
@@ -216,7 +216,7 @@ def default_rig(scale: float = 1.0, distance_mm: float = 650.0) -> SyntheticRig:
     both looking down at a table from about ``distance_mm``; ``scale`` shrinks both resolutions."""
     zed_left = PinholeCamera(width_px=2208, height_px=1242, fx_px=1066.0, fy_px=1066.0, cx_px=1112.3, cy_px=615.8)
     mech = PinholeCamera(width_px=1920, height_px=1200, fx_px=1745.0, fy_px=1748.5, cx_px=967.2, cy_px=588.9,
-                         dist_k1_k2_p1_p2_k3=[-0.085, 0.11, 0.0006, -0.0004, -0.03])
+                         dist_coeffs=[-0.085, 0.11, 0.0006, -0.0004, -0.03])
     if scale != 1.0:
         zed_left, mech = zed_left.scaled(scale), mech.scaled(scale)
     zed = RectifiedStereo(left=zed_left, baseline_mm=63.0, doffs_px=0.0)

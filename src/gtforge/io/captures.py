@@ -2,18 +2,19 @@
 and capture folders (docs/capture-layout.md)."""
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import tifffile
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from gtforge.camera import PinholeCamera, RectifiedStereo
 from gtforge.errors import InputError
 from gtforge.io.formats import read_image
-from gtforge.models_base import GTModel, VersionedFile
+from gtforge.schema import GTModel, VersionedFile, matrix4_field
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -54,7 +55,7 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     if suf == ".png":
         if depth_scale_mm is None:
             raise InputError(path, "depth_scale_mm", "a depth scale for 16-bit PNG depth", "none given",
-                             "pass --depth-scale-mm (e.g. 0.1 for 0.1 mm per count)")
+                             "set 'depth_scale_mm' in session.yaml (e.g. 0.1 for 0.1 mm per count)")
         d = a.astype(np.float32) * np.float32(depth_scale_mm)
     else:
         if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
@@ -71,7 +72,7 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
         med = float(np.median(d[valid]))
         if med < 10.0:
             raise InputError(path, field, "depth in mm (median valid value >= 10)", f"median {med:.4g}",
-                             "this looks like metres: pass --depth-unit m to convert")
+                             "this looks like metres: set 'depth_unit: m' in the session's session.yaml")
     if camera is not None:
         camera.check_image_size(d.shape, path, "depth map")
     return d
@@ -138,6 +139,9 @@ class SessionFile(VersionedFile):
     """``session.yaml`` at the root of a capture session (every field optional)."""
 
     mech_intrinsics: str = "mech_intrinsics.yaml"
+    # a depth camera apart from the texture camera (docs/capture-layout.md); absent: one camera
+    depth_intrinsics: str | None = None
+    T_mech_from_depth: list[list[float]] | None = None
     zed_calibration: str = "zed_calibration.yaml"
     zed_right_info: str | None = None
     zed_rectified: bool = True
@@ -148,6 +152,11 @@ class SessionFile(VersionedFile):
     scenes_dir: str = "scenes"
     files: FileNames = Field(default_factory=FileNames)
     fruit_ids: dict[str, str] = Field(default_factory=dict)
+
+    @field_validator("T_mech_from_depth", mode="before")
+    @classmethod
+    def _T4(cls, v):
+        return None if v is None else matrix4_field(v)
 
 
 @dataclass
@@ -172,9 +181,39 @@ class Capture:
 class Session:
     root: Path
     config: SessionFile
-    mech: PinholeCamera
+    mech: PinholeCamera  # the texture camera (2D image)
     zed: RectifiedStereo
     rectification: object | None  # ZedRectification when raw images + SN.conf
+    depth_cam: PinholeCamera | None = None  # the depth map's camera when it is not the texture camera
+    T_mech_from_depth: np.ndarray | None = None
+
+    @property
+    def depth_camera(self) -> PinholeCamera:
+        return self.depth_cam if self.depth_cam is not None else self.mech
+
+    def capture_roots(self) -> list[Path]:
+        """The folders that hold captures (``board/``, ``scenes/``), as named in the session."""
+        return [self.root / self.config.board_dir, self.root / self.config.scenes_dir]
+
+    def refuse_output_inside_captures(self, out: str | Path, option: str = "--output") -> None:
+        """Refuse an output path that lies in, or contains, a capture folder (captures are never written).
+
+        Symlinked captures count with both their name and their target."""
+        out_abs = Path(os.path.abspath(out))
+        out_real = Path(os.path.realpath(out))
+        protected: list[Path] = []
+        for croot in self.capture_roots():
+            if croot.is_dir():
+                protected += [Path(os.path.abspath(croot)), Path(os.path.realpath(croot))]
+                for c in croot.iterdir():
+                    if c.is_dir():
+                        protected += [Path(os.path.abspath(c)), Path(os.path.realpath(c))]
+        for o in {out_abs, out_real}:
+            for p in protected:
+                if o == p or p in o.parents or o in p.parents:
+                    raise InputError(out, option, "a folder outside the session's capture folders",
+                                     f"a path {'inside' if o == p or p in o.parents else 'containing'} {p}",
+                                     "captures are never written; choose a separate output folder")
 
     def capture_dirs(self, kind: Literal["board", "scenes"]) -> list[Path]:
         d = self.root / (self.config.board_dir if kind == "board" else self.config.scenes_dir)
@@ -184,6 +223,15 @@ class Session:
         dirs = sorted(p for p in d.iterdir() if p.is_dir() and not p.name.startswith("."))
         if not dirs:
             raise InputError(d, None, "at least one capture folder", "none")
+        # ids are the names in the session (a symlinked capture keeps its link's name); one capture
+        # reached under two names would be built twice and could land in two splits
+        seen: dict[Path, Path] = {}
+        for p in dirs:
+            real = p.resolve()
+            if real in seen:
+                raise InputError(p, None, "each capture folder once", f"the same capture as {seen[real].name} ({real})",
+                                 "remove the duplicate link")
+            seen[real] = p
         return dirs
 
     def select(self, kind: Literal["board", "scenes"], include: list[str] | None = None,
@@ -214,8 +262,8 @@ class Session:
         folder = Path(folder)
         f = self.config.files
         tex = read_texture(folder / f.mech_texture, self.mech, "mech_texture")
-        depth = read_depth(folder / f.mech_depth, self.config.depth_unit, self.config.depth_scale_mm, self.mech,
-                           "mech_depth")
+        depth = read_depth(folder / f.mech_depth, self.config.depth_unit, self.config.depth_scale_mm,
+                           self.depth_camera, "mech_depth")
         eye_w = self.zed.left.width_px
         verbatim: list[Path | None] = [None, None]
         if (folder / f.zed_left).exists():
@@ -274,6 +322,8 @@ def open_session(root: str | Path) -> Session:
     cfg_path = root / "session.yaml"
     cfg = SessionFile.read(cfg_path) if cfg_path.exists() else SessionFile()
     mech = load_camera(root / cfg.mech_intrinsics)
+    depth_cam = load_camera(root / cfg.depth_intrinsics) if cfg.depth_intrinsics else None
+    T_mech_from_depth = np.array(cfg.T_mech_from_depth) if cfg.T_mech_from_depth is not None else None
     zpath = root / cfg.zed_calibration
     rectification = None
     if zpath.suffix.lower() == ".conf":
@@ -285,7 +335,7 @@ def open_session(root: str | Path) -> Session:
             rectification = None  # SDK-rectified images with the factory conf: only the model is used
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
-    return Session(root, cfg, mech, zed, rectification)
+    return Session(root, cfg, mech, zed, rectification, depth_cam, T_mech_from_depth)
 
 
 def _guess_eye_width(root: Path, cfg: SessionFile) -> int:

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from gtforge.errors import InputError
-from gtforge.models_base import GTModel
+from gtforge.schema import GTModel
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
