@@ -498,3 +498,146 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     from gtforge.io.captures import SessionFile
     SessionFile(fruit_ids=fruit_ids).write(out / "session.yaml")
     return out
+
+# ---- raw (unrectified) ZED and its factory SN.conf -----------------------------------------------
+# A distorted left/right pair with a known stereo extrinsic (R, T: X_right = R @ X_left + T, OpenCV's
+# stereoRectify convention), written as SN<serial>.conf under any of the readings in
+# gtforge.io.cameras.ZED_CONF_READINGS. The truth stays in the rectified frame OpenCV derives from the
+# true (R, T): ``zed`` is that rectified left camera, so truth/ means the same as for a rectified session.
+@dataclass
+class RawZed:
+    """Raw ZED cameras at one factory resolution plus the exact stereo extrinsic."""
+
+    resolution: str  # "2K", "FHD", "HD" or "VGA" (the SN.conf section suffix)
+    left: PinholeCamera  # distorted
+    right: PinholeCamera  # distorted
+    R: np.ndarray  # X_right = R @ X_left + T
+    T_mm: np.ndarray
+
+    def rectified(self) -> tuple[RectifiedStereo, np.ndarray, np.ndarray]:
+        """OpenCV's rectification of the true extrinsic (zero disparity, alpha 0, as gtforge rectifies):
+        ``(stereo, R_rect_from_raw_left, R_rect_from_raw_right)``."""
+        size = self.left.size_wh
+        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(self.left.K, self.left.dist, self.right.K, self.right.dist, size,
+                                                    self.R, self.T_mm.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
+                                                    alpha=0, newImageSize=size)
+        stereo = RectifiedStereo(left=PinholeCamera.from_K(P1[:, :3], *size), baseline_mm=float(-P2[0, 3] / P2[0, 0]),
+                                 doffs_px=float(P2[0, 2] - P1[0, 2]))
+        return stereo, R1, R2
+
+
+def default_raw_zed() -> RawZed:
+    """A ZED-Mini-like pair at VGA (672x376 per eye), barrel distortion, factory-typical misalignment:
+    right camera 63 mm along +x, 0.21 mm down, 0.35 mm back; rotation of a few mrad."""
+    left = PinholeCamera(width_px=672, height_px=376, fx_px=338.6, fy_px=337.9, cx_px=331.7, cy_px=192.4,
+                         dist_coeffs=[-0.168, 0.0231, 0.00031, -0.00022, -0.0018])
+    right = PinholeCamera(width_px=672, height_px=376, fx_px=337.8, fy_px=337.4, cx_px=339.2, cy_px=186.8,
+                          dist_coeffs=[-0.171, 0.0247, -0.00014, 0.00029, -0.0012])
+    R = cv2.Rodrigues(np.array([[0.0031], [-0.0042], [0.0011]]))[0]
+    T = np.array([-63.0, 0.21, -0.35])
+    return RawZed("VGA", left, right, R, T)
+
+
+def zed_conf_values(raw: RawZed, reading: str) -> dict[str, float]:
+    """The STEREO numbers (Baseline, TY, TZ, RX, CV, RZ) that ``reading`` decodes into ``raw``'s exact (R, T):
+    the inverse of ``gtforge.io.cameras.ZedFactoryCalibration.extrinsics``."""
+    from gtforge.io.cameras import check_zed_conf_reading
+
+    check_zed_conf_reading(reading)
+    inv = reading.endswith("+inv-rot")
+    R_conf = raw.R.T if inv else raw.R  # the reading applies Rodrigues(r)^T for "+inv-rot"
+    r = cv2.Rodrigues(R_conf)[0].ravel()
+    T = raw.T_mm
+    t = {"neg-x": np.array([-T[0], T[1], T[2]]), "neg-all": -T, "as-is": T,
+         "right-centre": -raw.R.T @ T}[reading.removesuffix("+inv-rot")]
+    return dict(Baseline=float(t[0]), TY=float(t[1]), TZ=float(t[2]), RX=float(r[0]), CV=float(r[1]), RZ=float(r[2]))
+
+
+def write_raw_zed_conf(path: str | Path, raw: RawZed, reading: str) -> Path:
+    """An SN<serial>.conf whose values encode ``raw`` exactly under ``reading``."""
+    from gtforge.io.cameras import write_zed_conf
+
+    res = raw.resolution
+    v = zed_conf_values(raw, reading)
+    sections = {}
+    for side, cam in (("LEFT", raw.left), ("RIGHT", raw.right)):
+        d = list(cam.dist_coeffs) + [0.0] * (5 - len(cam.dist_coeffs))
+        sections[f"{side}_CAM_{res}"] = dict(fx=cam.fx_px, fy=cam.fy_px, cx=cam.cx_px, cy=cam.cy_px,
+                                             k1=d[0], k2=d[1], p1=d[2], p2=d[3], k3=d[4])
+    sections["STEREO"] = {"Baseline": v["Baseline"], f"TY_{res}": v["TY"], f"TZ_{res}": v["TZ"],
+                          f"CV_{res}": v["CV"], f"RX_{res}": v["RX"], f"RZ_{res}": v["RZ"]}
+    return write_zed_conf(path, sections)
+
+
+def raw_zed_rig(raw: RawZed, distance_mm: float = 650.0) -> SyntheticRig:
+    """``default_rig`` at the raw cameras' resolution with ``zed`` replaced by the true rectified pair
+    (``T_zed_from_world`` and ``T_zed_from_mech`` then refer to the rectified left camera)."""
+    rig = default_rig(raw.left.width_px / 2208.0, distance_mm)
+    stereo, _, _ = raw.rectified()
+    rig.zed = stereo
+    return rig
+
+
+def render_raw_zed_images(scene: Scene, rig: SyntheticRig, raw: RawZed, rng: np.random.Generator,
+                          supersample: int = 3, blur_sigma_px: float = 0.6,
+                          image_noise: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """The raw (distorted, unrectified) left and right images of ``scene``."""
+    _, R1, _ = raw.rectified()
+    T_rawl_from_world = make_T(R1.T, np.zeros(3)) @ rig.T_zed_from_world
+    T_rawr_from_world = make_T(raw.R, raw.T_mm) @ T_rawl_from_world
+    left = finish_image(render_image(scene, raw.left, T_rawl_from_world, supersample), rng, blur_sigma_px, image_noise)
+    right = finish_image(render_image(scene, raw.right, T_rawr_from_world, supersample), rng, blur_sigma_px, image_noise)
+    return left, right
+
+
+class RawZedTruth(VersionedFile):
+    """``truth/raw_zed_truth.yaml``: the exact stereo extrinsic of a raw ZED session and how its conf is written."""
+
+    conf_file: str
+    reading: str  # the reading under which the conf's numbers decode into R, T exactly
+    R_rotvec_rad: list[float]  # X_right = R @ X_left + T
+    T_mm: list[float]
+
+
+def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_board: int = 4, n_scenes: int = 1,
+                             seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.0,
+                             image_noise: float = 1.0, supersample: int = 3, serial: int = 12345,
+                             raw: RawZed | None = None, progress=None) -> Path:
+    """A capture session with raw ZED images (``left.png``/``right.png`` straight off the sensor) and
+    ``SN<serial>.conf`` written under ``reading``; ``session.yaml`` says ``zed_rectified: false``.
+    ``truth/`` as in ``generate_session`` (in the true rectified frame) plus ``raw_zed_truth.yaml``."""
+    from gtforge.io.captures import SessionFile
+
+    raw = raw or default_raw_zed()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    rig = raw_zed_rig(raw)
+    conf = f"SN{serial}.conf"
+    write_raw_zed_conf(out / conf, raw, reading)
+    CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
+    SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
+                   board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
+                   depth_noise_mm=depth_noise_mm).write(out / "truth" / "rig_truth.yaml")
+    RawZedTruth(conf_file=conf, reading=reading, R_rotvec_rad=cv2.Rodrigues(raw.R)[0].ravel().tolist(),
+                T_mm=raw.T_mm.tolist()).write(out / "truth" / "raw_zed_truth.yaml")
+    kw = dict(supersample=supersample, depth_noise_mm=depth_noise_mm, image_noise=image_noise)
+    fruit_ids = {}
+    for i in range(n_board):
+        T = random_board_pose(rng, rig, board)
+        cap = board_capture(f"{i:03d}", rig, board, T, rng, seed + i, **kw)
+        scene = Scene([_table(seed + i), PlaneObject(OBJ_BOARD, T, board.albedo, board.extent_mm())])
+        cap.zed_left, cap.zed_right = render_raw_zed_images(scene, rig, raw, rng, supersample, image_noise=image_noise)
+        write_capture(out / "board" / cap.name, cap, out / "truth")
+        if progress:
+            progress(f"board {cap.name}")
+    for i in range(n_scenes):
+        scene = random_fruit_scene(rng, rig, seed + 100 + i)
+        cap = render_capture(f"{i:03d}", scene, rig, rng, kind="scene", **kw)
+        cap.zed_left, cap.zed_right = render_raw_zed_images(scene, rig, raw, rng, supersample, image_noise=image_noise)
+        write_capture(out / "scenes" / cap.name, cap, out / "truth")
+        fruit_ids[cap.name] = f"fruit{i // 2:02d}"
+        if progress:
+            progress(f"scene {cap.name}")
+    SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids).write(out / "session.yaml")
+    return out

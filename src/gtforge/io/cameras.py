@@ -1,10 +1,10 @@
 """Readers for camera intrinsics: ROS camera_info YAML, OpenCV FileStorage YAML, gtforge YAML,
 and the ZED factory calibration ``SN<serial>.conf`` (with rectification, no ZED SDK needed).
 
-ZED baseline sign (docs/conventions.md): the right camera sits at ``+|Baseline|`` along the left
-camera's x axis. SN.conf ``TY``/``TZ`` are read as the right camera's position offsets (mm) and
-``RX``/``CV``/``RZ`` as the Rodrigues vector of ``R_right_from_left``; OpenCV's ``T`` is then
-``-R @ (|Baseline|, TY, TZ)``.
+ZED SN.conf (docs/conventions.md, "ZED SN.conf"): the published code reads the STEREO section in
+incompatible ways; each reading is named in ``ZED_CONF_READINGS`` and ``ZedFactoryCalibration.extrinsics``
+applies one. ``gtforge calibrate`` chooses it from the board images (``gtforge.rectification``); the
+rectified right camera always sits at ``+baseline_mm`` along the left camera's x axis.
 """
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import configparser
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -148,33 +149,125 @@ def load_zed_rectified(path: str | Path, right_path: str | Path | None = None) -
 
 
 # ---- ZED SN.conf ----------------------------------------------------------------------------
+# How the STEREO numbers of SN<serial>.conf become OpenCV's (R, T) with X_right = R @ X_left + T
+# (cv2.stereoRectify). The published code disagrees (docs/conventions.md, "ZED SN.conf"), so every
+# reading is named here; gtforge calibrate keeps the one whose rectified board corners line up best.
+# B = Baseline (sign as written), TY, TZ = TY_<res>, TZ_<res> (mm), r = (RX, CV, RZ)_<res> (rad).
+ZedConfReading = Literal["neg-x", "neg-all", "as-is", "right-centre",
+                         "neg-x+inv-rot", "neg-all+inv-rot", "as-is+inv-rot", "right-centre+inv-rot"]
+ZED_CONF_READINGS: tuple[str, ...] = get_args(ZedConfReading)
+ZED_CONF_TRANSLATIONS = {
+    "neg-x": "T = (-B, TY, TZ)",
+    "neg-all": "T = -(B, TY, TZ)",
+    "as-is": "T = (B, TY, TZ)",
+    "right-centre": "T = -R @ (B, TY, TZ)  ((B, TY, TZ) = right camera centre in the left frame)",
+}
+# Used where no image can decide (SDK-rectified images, a session opened before calibrate chose):
+# Stereolabs' Python sample and Stereolabs' own SN.conf writer (zed-opencv-calibration) both use it.
+DEFAULT_ZED_CONF_READING: str = "neg-x"
+
+
+def describe_zed_conf_reading(reading: str) -> str:
+    """One line: the formula of ``reading`` (e.g. ``R = Rodrigues(r)^T, T = -(B, TY, TZ)``)."""
+    base, inv = reading.removesuffix("+inv-rot"), reading.endswith("+inv-rot")
+    return f"R = Rodrigues(RX, CV, RZ){'^T' if inv else ''}, {ZED_CONF_TRANSLATIONS[base]}"
+
+
+def check_zed_conf_reading(reading: str, file=None, field: str = "zed_conf_reading") -> str:
+    if reading not in ZED_CONF_READINGS:
+        raise InputError(file, field, f"one of {', '.join(ZED_CONF_READINGS)}", repr(reading),
+                         "see docs/conventions.md, 'ZED SN.conf'")
+    return reading
+
+
+@dataclass
+class StereoRectifyResult:
+    """``cv2.stereoRectify`` (zero disparity, alpha 0) for one reading: rotations raw -> rectified,
+    projection matrices, and the signed baseline ``-P2[0, 3] / P2[0, 0]`` (negative: right camera at -x)."""
+
+    R: np.ndarray
+    T_mm: np.ndarray
+    R_rect_from_raw_left: np.ndarray
+    R_rect_from_raw_right: np.ndarray
+    P_left: np.ndarray
+    P_right: np.ndarray
+
+    @property
+    def baseline_signed_mm(self) -> float:
+        return float(-self.P_right[0, 3] / self.P_right[0, 0])
+
+
 @dataclass
 class ZedFactoryCalibration:
-    """Raw (unrectified) ZED calibration for one resolution, as in SN<serial>.conf."""
+    """Raw (unrectified) ZED calibration for one resolution, as written in SN<serial>.conf.
+
+    The STEREO values are kept as written (``baseline_conf_mm`` keeps its sign); ``extrinsics(reading)``
+    turns them into OpenCV's ``(R, T)``."""
 
     resolution: str
     left: PinholeCamera
     right: PinholeCamera
-    R_right_from_left: np.ndarray
-    t_right_in_left_mm: np.ndarray  # (|Baseline|, TY, TZ)
+    baseline_conf_mm: float  # STEREO Baseline, sign as written
+    ty_mm: float  # TY_<res>
+    tz_mm: float  # TZ_<res>
+    rotvec_conf_rad: np.ndarray  # (RX, CV, RZ)_<res>
     path: Path
 
-    def rectification(self) -> "ZedRectification":
-        size = (self.left.width_px, self.left.height_px)
-        T = -self.R_right_from_left @ self.t_right_in_left_mm
+    @property
+    def size_wh(self) -> tuple[int, int]:
+        return self.left.width_px, self.left.height_px
+
+    def extrinsics(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, T)`` of ``X_right = R @ X_left + T`` (mm) under ``reading`` (``ZED_CONF_READINGS``)."""
+        check_zed_conf_reading(reading)
+        R = cv2.Rodrigues(np.asarray(self.rotvec_conf_rad, np.float64).reshape(3, 1))[0]
+        if reading.endswith("+inv-rot"):
+            R = R.T
+        t = np.array([self.baseline_conf_mm, self.ty_mm, self.tz_mm])
+        base = reading.removesuffix("+inv-rot")
+        T = {"neg-x": np.array([-t[0], t[1], t[2]]), "neg-all": -t, "as-is": t, "right-centre": -R @ t}[base]
+        return R, T
+
+    def stereo_rectify(self, reading: str = DEFAULT_ZED_CONF_READING) -> StereoRectifyResult:
+        R, T = self.extrinsics(reading)
+        size = self.size_wh
         R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(self.left.K, self.left.dist, self.right.K, self.right.dist,
-                                                    size, self.R_right_from_left, T,
-                                                    flags=cv2.CALIB_ZERO_DISPARITY, alpha=0, newImageSize=size)
-        baseline_mm = -P2[0, 3] / P2[0, 0]
+                                                    size, R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
+                                                    alpha=0, newImageSize=size)
+        return StereoRectifyResult(R, T, R1, R2, P1, P2)
+
+    # the default reading's extrinsics, by the names used before readings were explicit
+    @property
+    def R_right_from_left(self) -> np.ndarray:
+        return self.extrinsics()[0]
+
+    @property
+    def t_right_in_left_mm(self) -> np.ndarray:
+        """The right camera's centre in the left camera frame (mm) under the default reading."""
+        R, T = self.extrinsics()
+        return -R.T @ T
+
+    def rectification(self, reading: str = DEFAULT_ZED_CONF_READING) -> ZedRectification:
+        """Rectification maps and the rectified model under ``reading``; refuses a reading that puts the
+        right camera on the left (the rectified pair would have negative disparities)."""
+        sr = self.stereo_rectify(reading)
+        size = self.size_wh
+        baseline_mm = sr.baseline_signed_mm
         if baseline_mm <= 0:
             raise InputError(self.path, "STEREO.Baseline", "a right camera at +x after rectification",
-                             f"baseline {baseline_mm:.3f} mm", "this should not happen; report it")
-        rect = RectifiedStereo(left=PinholeCamera.from_K(P1[:, :3], *size), baseline_mm=float(baseline_mm),
-                               doffs_px=float(P2[0, 2] - P1[0, 2]))
-        maps_l = cv2.initUndistortRectifyMap(self.left.K, self.left.dist, R1, P1[:, :3], size, cv2.CV_32FC1)
-        maps_r = cv2.initUndistortRectifyMap(self.right.K, self.right.dist, R2, P2[:, :3], size, cv2.CV_32FC1)
-        return ZedRectification(stereo=rect, maps_left=maps_l, maps_right=maps_r, R_rect_from_raw_left=R1,
-                                R_rect_from_raw_right=R2, P_left=P1, P_right=P2)
+                             f"baseline {baseline_mm:.3f} mm under the reading '{reading}' ({describe_zed_conf_reading(reading)})",
+                             "choose another zed_conf_reading in session.yaml, or let gtforge calibrate choose it "
+                             "from the board captures (docs/conventions.md)")
+        rect = RectifiedStereo(left=PinholeCamera.from_K(sr.P_left[:, :3], *size), baseline_mm=float(baseline_mm),
+                               doffs_px=float(sr.P_right[0, 2] - sr.P_left[0, 2]))
+        maps_l = cv2.initUndistortRectifyMap(self.left.K, self.left.dist, sr.R_rect_from_raw_left, sr.P_left[:, :3],
+                                             size, cv2.CV_32FC1)
+        maps_r = cv2.initUndistortRectifyMap(self.right.K, self.right.dist, sr.R_rect_from_raw_right,
+                                             sr.P_right[:, :3], size, cv2.CV_32FC1)
+        return ZedRectification(stereo=rect, maps_left=maps_l, maps_right=maps_r,
+                                R_rect_from_raw_left=sr.R_rect_from_raw_left,
+                                R_rect_from_raw_right=sr.R_rect_from_raw_right, P_left=sr.P_left,
+                                P_right=sr.P_right, reading=reading, factory=self)
 
 
 @dataclass
@@ -186,6 +279,8 @@ class ZedRectification:
     R_rect_from_raw_right: np.ndarray
     P_left: np.ndarray
     P_right: np.ndarray
+    reading: str = DEFAULT_ZED_CONF_READING
+    factory: ZedFactoryCalibration | None = None
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
@@ -237,11 +332,13 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
         h = ZED_RES_HEIGHTS[res]
         K = np.array([[vals["fx"], 0, vals["cx"]], [0, vals["fy"], vals["cy"]], [0, 0, 1]])
         cams.append(PinholeCamera.from_K(K, eye_width_px, h, [vals[k] for k in ("k1", "k2", "p1", "p2", "k3")]))
-    baseline = abs(get("STEREO", "Baseline"))
+    baseline = get("STEREO", "Baseline")
+    if abs(baseline) < 1.0:
+        raise InputError(path, "[STEREO] Baseline", "the baseline in mm (e.g. 63 for a ZED Mini)", repr(baseline),
+                         "SN.conf stores millimetres")
     ty, tz = get("STEREO", f"TY_{res}"), get("STEREO", f"TZ_{res}")
     rvec = np.array([get("STEREO", f"RX_{res}"), get("STEREO", f"CV_{res}"), get("STEREO", f"RZ_{res}")])
-    R, _ = cv2.Rodrigues(rvec)
-    return ZedFactoryCalibration(res, cams[0], cams[1], R, np.array([baseline, ty, tz]), path)
+    return ZedFactoryCalibration(res, cams[0], cams[1], float(baseline), float(ty), float(tz), rvec, path)
 
 
 def write_zed_conf(path: str | Path, calib: dict[str, dict[str, float]]) -> Path:

@@ -13,6 +13,7 @@ from pydantic import Field, field_validator
 
 from gtforge.camera import PinholeCamera, RectifiedStereo
 from gtforge.errors import InputError
+from gtforge.io.cameras import ZedConfReading
 from gtforge.io.formats import read_image
 from gtforge.schema import GTModel, VersionedFile, matrix4_field
 
@@ -145,6 +146,9 @@ class SessionFile(VersionedFile):
     zed_calibration: str = "zed_calibration.yaml"
     zed_right_info: str | None = None
     zed_rectified: bool = True
+    # raw ZED images + SN.conf: how the conf's STEREO numbers are read (docs/conventions.md, "ZED SN.conf");
+    # absent: gtforge calibrate chooses it from the board images and records it in the calibration file
+    zed_conf_reading: ZedConfReading | None = None
     depth_unit: Literal["mm", "m"] = "mm"
     depth_scale_mm: float | None = None
     video_frame: int = 0
@@ -312,9 +316,13 @@ def _is_rgb8_png(path: Path) -> bool:
     return len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[24] == 8 and head[25] == 2
 
 
-def open_session(root: str | Path) -> Session:
-    """Read ``session.yaml`` (optional) and the camera files of a capture session."""
-    from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
+def open_session(root: str | Path, zed_conf_reading: str | None = None) -> Session:
+    """Read ``session.yaml`` (optional) and the camera files of a capture session.
+
+    ``zed_conf_reading``: the SN.conf reading a calibration file recorded (``CalibrationFile.zed_conf``);
+    it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
+    (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images."""
+    from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, load_camera, load_zed_rectified, read_zed_conf
 
     root = Path(root)
     if not root.is_dir():
@@ -329,7 +337,12 @@ def open_session(root: str | Path) -> Session:
     if zpath.suffix.lower() == ".conf":
         # raw images: the eye width comes from the first image found
         eye_w = _guess_eye_width(root, cfg)
-        rectification = read_zed_conf(zpath, eye_w).rectification()
+        if zed_conf_reading and cfg.zed_conf_reading and zed_conf_reading != cfg.zed_conf_reading:
+            raise InputError(cfg_path, "zed_conf_reading", f"'{zed_conf_reading}', as the calibration recorded",
+                             f"'{cfg.zed_conf_reading}'", "calibrate again, or set session.yaml back to the reading "
+                             "the calibration was made with")
+        reading = zed_conf_reading or cfg.zed_conf_reading or DEFAULT_ZED_CONF_READING
+        rectification = read_zed_conf(zpath, eye_w).rectification(reading)
         zed = rectification.stereo
         if cfg.zed_rectified:
             rectification = None  # SDK-rectified images with the factory conf: only the model is used
