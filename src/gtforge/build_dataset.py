@@ -11,7 +11,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -23,10 +23,17 @@ from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import fit_plane_robust
 from gtforge.io.atomic import atomic_write_text
-from gtforge.io.formats import write_image, write_kitti_disparity, write_pfm, write_ply, write_tiff_float
-from gtforge.schema import GTModel, VersionedFile
+from gtforge.io.formats import (
+    write_image,
+    write_kitti_disparity,
+    write_pfm,
+    write_ply,
+    write_tiff_float,
+)
 from gtforge.reproject import ReprojectParams, reproject_to_zed
 from gtforge.scheduling import run_tasks
+from gtforge.schema import GTModel, VersionedFile
+from gtforge.verify import SceneVerification, VerifyParams, verify_scene
 
 log = logging.getLogger("gtforge.build_dataset")
 
@@ -53,13 +60,16 @@ class BuildParams(GTModel):
     crop_wh: tuple[int, int] | None = None
     ply: bool = False
     max_disp_px: float = 192.0  # statistics: share of pixels above this (many training repos drop them)
+    verification: bool = True  # per-scene checks of the GT against its own images (gtforge.verify)
+    verify: VerifyParams = Field(default_factory=VerifyParams)
+    quarantine: bool = False  # leave flagged scenes out of the split lists (they stay in scenes/)
 
     def reproject_params(self) -> ReprojectParams:
         return ReprojectParams(self.mode, self.max_slant_deg, self.abs_tol_mm)
 
     def output_hash(self) -> str:
-        """Hash of the parameters that change a scene's files (not the split)."""
-        d = self.model_dump(exclude={"split_train", "split_val", "split_seed"})
+        """Hash of the parameters that change a scene's files (not the split lists)."""
+        d = self.model_dump(exclude={"split_train", "split_val", "split_seed", "quarantine"})
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -73,6 +83,8 @@ class SceneStats(GTModel):
 
 
 class SceneMeta(VersionedFile):
+
+    KIND: ClassVar[str] = "scene meta.json (from gtforge build-dataset)"
     scene: str
     fruit_id: str | None = None
     gtforge_version: str
@@ -86,9 +98,12 @@ class SceneMeta(VersionedFile):
     time_read_s: float = 0.0
     time_compute_s: float = 0.0
     time_write_s: float = 0.0
+    verification: SceneVerification | None = None
 
 
 class Manifest(VersionedFile):
+
+    KIND: ClassVar[str] = "dataset manifest.json (from gtforge build-dataset)"
     gtforge_version: str
     calibration_path: str
     calibration_sha256: str
@@ -97,6 +112,8 @@ class Manifest(VersionedFile):
     scenes: dict[str, SceneMeta]
     failures: dict[str, str] = Field(default_factory=dict)
     splits: dict[str, list[str]] = Field(default_factory=dict)
+    flagged: dict[str, list[str]] = Field(default_factory=dict)  # scene -> why verification flagged it
+    quarantined: list[str] = Field(default_factory=list)  # flagged scenes left out of the split lists
 
 
 @dataclass
@@ -107,6 +124,8 @@ class BuildSummary:
     out_dir: Path
     time_s: float
     splits: dict[str, list[str]] = field(default_factory=dict)
+    flagged: dict[str, list[str]] = field(default_factory=dict)
+    quarantined: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -210,13 +229,19 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     cap_dir = Path(capture_dir)
     try:
         session = _cached_session(session_dir)
-        calib = _cached_calibration(calib_path)
+        calib = _cached_calibration(calib_path, calib_sha)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
         cap = session.load_capture(cap_dir)
         t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
     except InputError as exc:
         return sid, str(exc), None
+    verification = None
+    if params.verification:
+        verification, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left,
+                                              cap.zed_right, cap.mech_texture, rig, params.verify)
+        if verification.status == "flagged" and rendered is not None:
+            write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
     disp = sd.disparity_px
     valid = np.isfinite(disp)
     left, right, depth = cap.zed_left, cap.zed_right, sd.depth_mm
@@ -241,7 +266,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     inputs = {p.name: sha256_file(p) for p in cap.input_files if p.exists()}
     meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
                      calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
-                     stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry")
+                     stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
+                     verification=verification)
     scenes = Path(out_dir) / "scenes"
     token = uuid.uuid4().hex[:12]  # unique across processes and machines (Dask workers share the folder)
     tmp = scenes / f".tmp-{sid}-{token}"
@@ -283,22 +309,99 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     return sid, None, meta.model_dump(mode="json")
 
 
+def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: str,
+                     params_json: str) -> tuple[str, dict]:
+    """Worker for ``gtforge verify``: re-check a built scene against its captures. Returns (sid, SceneVerification)."""
+    from gtforge.io.formats import read_image, read_pfm
+    from gtforge.verify import SceneVerification, VerifyParams
+
+    params = VerifyParams.model_validate_json(params_json)
+    s = Path(dataset_dir) / "scenes" / sid
+    try:
+        session = _cached_session(session_dir)
+        rig = CalibrationFile.read(calib_path).rig
+        meta = SceneMeta.read(s / "meta.json")
+        folder = session.root / session.config.scenes_dir / sid
+        if not folder.is_dir():
+            raise InputError(folder, None, "the capture this scene was built from", "no such folder",
+                             "verification needs the session's captures (pass --session if they moved)")
+        cap = session.load_capture(folder)
+        disp = read_pfm(s / "disp0GT.pfm")
+        mask = read_image(s / "mask0nocc.png")
+        region = read_image(s / "region.png")
+    except InputError as exc:
+        return sid, SceneVerification(status="not verifiable", reasons=[str(exc)]).model_dump(mode="json")
+    H, W = cap.zed_left.shape[:2]
+    if meta.crop_xywh:  # a cropped dataset: put the crop back where it was cut from
+        x0, y0, cw, ch = meta.crop_xywh
+
+        def uncrop(a, fill):
+            full = np.full((H, W), fill, a.dtype)
+            full[y0:y0 + ch, x0:x0 + cw] = a
+            return full
+
+        disp, mask, region = uncrop(disp, np.nan), uncrop(mask, 0), uncrop(region, 0)
+    depth = rig.zed.disparity_to_depth(disp)
+    ver, rendered = verify_scene(depth, disp, mask == 255, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
+                                 params)
+    if ver.status == "flagged" and rendered is not None:
+        write_verification_overlay(Path(dataset_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
+    return sid, ver.model_dump(mode="json")
+
+
+def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: np.ndarray) -> None:
+    """A flagged scene's overlay for verification.html: ZED-left grey in green, the texture rendered through the
+    ground truth in magenta (both locally normalised); aligned structures look grey, a shift shows as colour fringes."""
+    from gtforge.io.formats import to_gray
+    from gtforge.verify import local_normalize
+
+    g = local_normalize(to_gray(zed_left).astype(np.float32), np.ones(zed_left.shape[:2], bool), 3.0)
+
+    def to8(a):
+        return np.clip(128 + 50 * a, 0, 255).astype(np.uint8)
+
+    rgb = np.stack([to8(rendered_norm), to8(g), to8(rendered_norm)], axis=2)
+    rgb[rendered_norm == 0] = np.stack([to8(g)] * 3, axis=2)[rendered_norm == 0] // 2
+    scale = min(1.0, 1280 / rgb.shape[1])
+    if scale < 1.0:
+        rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    write_image(path, rgb)
+
+
+# Per worker process. A Dask worker (or this process with workers=1) lives across builds: an entry is
+# reloaded when its files changed (session: their size and mtime; calibration: its sha256).
 _SESSION_CACHE: dict = {}
 
 
 def _cached_session(session_dir: str):
     from gtforge.io.captures import open_session
 
-    if session_dir not in _SESSION_CACHE:
-        _SESSION_CACHE[session_dir] = open_session(session_dir)
-    return _SESSION_CACHE[session_dir]
+    hit = _SESSION_CACHE.get(session_dir)
+    if hit is None or hit[1] != _session_stamp(hit[0]):
+        session = open_session(session_dir)
+        hit = _SESSION_CACHE[session_dir] = (session, _session_stamp(session))
+    return hit[0]
 
 
-def _cached_calibration(path: str) -> CalibrationFile:
+def _session_stamp(session) -> tuple:
+    c = session.config
+    stamp = []
+    for name in ("session.yaml", c.mech_intrinsics, c.depth_intrinsics, c.zed_calibration, c.zed_right_info):
+        if name:
+            try:
+                st = (session.root / name).stat()
+                stamp.append((name, st.st_size, st.st_mtime_ns))
+            except OSError:
+                stamp.append((name, None, None))
+    return tuple(stamp)
+
+
+def _cached_calibration(path: str, sha256: str) -> CalibrationFile:
     key = ("calib", path)
-    if key not in _SESSION_CACHE:
-        _SESSION_CACHE[key] = CalibrationFile.read(path)
-    return _SESSION_CACHE[key]
+    hit = _SESSION_CACHE.get(key)
+    if hit is None or hit[1] != sha256:
+        hit = _SESSION_CACHE[key] = (CalibrationFile.read(path), sha256)
+    return hit[0]
 
 
 def _check_rig_matches_session(rig: Rig, session, calib_path) -> None:
@@ -375,8 +478,10 @@ def write_lists(out: Path, splits: dict[str, list[str]]) -> None:
 # ---- the stage --------------------------------------------------------------------------------
 def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str | Path,
                   params: BuildParams | None = None, workers: int | None = None, overwrite: bool = False,
-                  strict: bool = False, scenes: list[str] | None = None, progress: bool = False) -> BuildSummary:
-    """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md."""
+                  strict: bool = False, scenes: list[str] | None = None, progress: bool = False,
+                  scheduler: str | None = None) -> BuildSummary:
+    """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.
+    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md)."""
     from gtforge.io.captures import open_session
 
     t0 = time.perf_counter()
@@ -414,7 +519,13 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     built: list[str] = []
     args = [(str(Path(session_dir).resolve()), str(d.absolute()), d.name, str(calib_path.resolve()), calib_sha,
              str(out.resolve()), params.model_dump_json()) for d in todo]
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
 
     with Progress(TextColumn("build-dataset"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                   disable=not (progress and args)) as bar:
@@ -433,28 +544,61 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                 metas[sid] = SceneMeta.model_validate(meta)
 
         try:
-            run_tasks(build_one_scene, args, handle, workers=workers)
+            run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler,
+                      lost_result=lambda a, reason: (a[2], reason, None))
         except (KeyboardInterrupt, Interrupted):
             _remove_stale(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
             raise Interrupted(f"interrupted: {len(built)} scene(s) built in this run and complete, "
                               f"{len(args) - len(built) - len(failures)} not built; rerun the same command to "
                               f"resume") from None
+    _remove_stale(out)  # left by a worker process that died mid-scene (its scene was run again elsewhere)
     ok_ids = sorted(metas)
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
-    splits = make_splits(ok_ids, fruit_ids, params)
+    flagged = {s: metas[s].verification.reasons for s in ok_ids
+               if metas[s].verification is not None and metas[s].verification.status == "flagged"}
+    quarantined = sorted(flagged) if params.quarantine else []
+    splits = final_splits(ok_ids, fruit_ids, params, quarantined)
+    if params.verification:
+        _write_verification(out, params, metas)
     for sid in unchanged:  # views of scenes built by an earlier run with other view options
         if (params.kitti and not (out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png").exists()) or \
                 (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
             write_scene_views(out, sid, params)
     write_lists(out, splits)
-    _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits)
+    _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
+    if flagged:
+        log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
+                    ", left out of the split lists (--quarantine)" if quarantined else "",
+                    "; ".join(f"{k}: {v[0]}" + (f" (+{len(v) - 1} more)" if len(v) > 1 else "")
+                              for k, v in list(flagged.items())[:5]) + (" ..." if len(flagged) > 5 else ""),
+                    out / "verification.html")
     empty = [k for k, v in splits.items() if not v]
     if empty and ok_ids:
         log.warning("split(s) %s came out empty (%d scene(s), %d fruit): the list file(s) are empty; add scenes, "
                     "set fruit_ids in session.yaml, or change --split", ", ".join(empty), len(ok_ids),
                     len({fruit_ids[s] or s for s in ok_ids}))
-    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits)
+    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
+                        quarantined)
+
+
+def final_splits(ok_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams,
+                 quarantined: list[str]) -> dict[str, list[str]]:
+    """The split lists: every built scene split by fruit, then quarantined scenes taken out (so a scene's split never
+    depends on which other scenes were flagged)."""
+    q = set(quarantined)
+    return {k: [s for s in v if s not in q] for k, v in make_splits(ok_ids, fruit_ids, params).items()}
+
+
+def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneMeta"]) -> None:
+    from gtforge.verify import VerificationReport, write_verification_report
+
+    scenes = {s: m.verification for s, m in sorted(metas.items()) if m.verification is not None}
+    for s, v in scenes.items():  # overlays of scenes no longer flagged
+        if v.status != "flagged":
+            (out / "verification" / f"{s}_overlay.jpg").unlink(missing_ok=True)
+    write_verification_report(VerificationReport(dataset_dir=str(out.resolve()), params=params.verify, scenes=scenes),
+                              out)
 
 
 def _remove_stale(out: Path) -> None:
@@ -471,7 +615,9 @@ def _remove_stale(out: Path) -> None:
 
 
 def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
-                    metas: dict[str, SceneMeta], failures: dict[str, str], splits: dict | None = None) -> None:
+                    metas: dict[str, SceneMeta], failures: dict[str, str], splits: dict | None = None,
+                    flagged: dict | None = None, quarantined: list | None = None) -> None:
     Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()), calibration_sha256=calib_sha,
              session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in sorted(metas)},
-             failures=failures, splits=splits or {}).write(out / "manifest.json")
+             failures=failures, splits=splits or {}, flagged=flagged or {},
+             quarantined=quarantined or []).write(out / "manifest.json")

@@ -14,7 +14,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable, ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -27,10 +27,13 @@ from gtforge.board import Detection, check_board_spec, detect_corners
 from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.errors import InputError
 from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
+from gtforge.rectification import RectificationQuality, ZedConfChoice
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
 
 log = logging.getLogger("gtforge.calibrate")
+
+LOO_WARN_PX = 0.3  # verdict WARN when the leave-one-pose-out transfer error exceeds this
 
 
 class BoardModel(GTModel):
@@ -52,6 +55,11 @@ class CalibrateParams(GTModel):
     blur_sharpness_px: float = 4.0  # flag poses whose edge width exceeds this
     min_poses: int = 3
     leave_one_out: bool = True
+    # the board's squares measured in the depth must match square_size_mm within this (%); 0 switches it off
+    square_check_pct: float = Field(3.0, ge=0)
+    # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
+    methods_agree_deg: float = 0.1
+    methods_agree_mm: float = 1.0
 
 
 class PoseReport(GTModel):
@@ -81,6 +89,8 @@ class MethodResult(GTModel):
 class CalibrationFile(VersionedFile):
     """Output of ``gtforge calibrate``; ``rig`` is what every later stage uses."""
 
+    KIND: ClassVar[str] = "gtforge calibration file (from gtforge calibrate)"
+
     rig: Rig
     board: BoardModel
     method: Literal["reprojection", "depth"] = "reprojection"
@@ -97,6 +107,17 @@ class CalibrationFile(VersionedFile):
     poses: list[PoseReport]
     methods: list[MethodResult] = Field(default_factory=list)
     residuals_by_region_px: dict[str, float] = Field(default_factory=dict)
+    # Full covariance of the written extrinsic, parameterised as a left perturbation:
+    # T_zed_from_mech = [exp(omega) R | t + delta_t] with omega (rad, 3) then delta_t (mm, 3); rows/columns in
+    # that order (omega_x, omega_y, omega_z, t_x, t_y, t_z). sigma_* above are the square roots of its diagonal.
+    cov_extrinsic_rad_mm: list[list[float]] | None = None
+    square_size_measured_mm: float | None = None  # from the depth camera's view of the board (median over poses)
+    verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
+    verdict_reasons: list[str] = Field(default_factory=list)
+    # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
+    # the conf reading chosen from the board images (gtforge.rectification; later stages rectify with it)
+    rectification: RectificationQuality | None = None
+    zed_conf: ZedConfChoice | None = None
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
     _residuals: dict = PrivateAttr(default_factory=dict)
@@ -225,11 +246,20 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
 
 
 # ---- depth-based corners ----------------------------------------------------------------------
-def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec) -> np.ndarray | None:
-    """3D corners (mech frame): corner rays intersected with a robust plane fit of the board's depth."""
+def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, depth_cam: PinholeCamera | None = None,
+                             T_mech_from_depth: np.ndarray | None = None) -> np.ndarray | None:
+    """3D corners (mech frame) measured by the depth camera: a robust plane through the board's depth, intersected
+    with the texture camera's corner rays. The board's area in the depth image comes from the texture camera's PnP
+    pose mapped into the depth camera (the same camera, and the detected corners, when there is one camera)."""
     if o.depth_mm is None:
         return None
-    hull = cv2.convexHull(o.mech_uv.astype(np.float32)).reshape(-1, 2)
+    depth_cam = depth_cam or mech
+    T_md = np.eye(4) if T_mech_from_depth is None else np.asarray(T_mech_from_depth, float)
+    X_depth = transform_points(invert_T(T_md) @ o.T_mech_from_board, board.corners_board())
+    uv_depth = depth_cam.project(X_depth)
+    if not np.all(np.isfinite(uv_depth)):
+        return None
+    hull = cv2.convexHull(uv_depth.astype(np.float32)).reshape(-1, 2)
     centre = hull.mean(0)
     hull = centre + 0.92 * (hull - centre)  # stay off the board edge
     mask = np.zeros(o.depth_mm.shape, np.uint8)
@@ -237,14 +267,22 @@ def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec) 
     v, u = np.nonzero((mask > 0) & np.isfinite(o.depth_mm))
     if len(v) < 50:
         return None
-    rays = mech.ray_grid()[v, u]
+    rays = depth_cam.ray_grid()[v, u]
     z = o.depth_mm[v, u].astype(np.float64)
-    pts = np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1)
+    pts = transform_points(T_md, np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1))
     n, c, _ = fit_plane_robust(pts, threshold_mm=1.0)
     xy = mech.undistort_to_normalized(o.mech_uv)
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     t = c / (d @ n)
     return d * t[:, None]
+
+
+def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec) -> float:
+    """Median distance between neighbouring corners of one pose (mm)."""
+    g = corners_mech.reshape(board.rows, board.cols, 3)
+    d = np.concatenate([np.linalg.norm(np.diff(g, axis=1), axis=2).ravel(),
+                        np.linalg.norm(np.diff(g, axis=0), axis=2).ravel()])
+    return float(np.median(d))
 
 
 # ---- main entry -------------------------------------------------------------------------------
@@ -283,8 +321,10 @@ def transfer_error(o: PoseObs, T_zed_from_mech: np.ndarray, zed_cam: PinholeCame
 
 def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: PinholeCamera,
                            zed: RectifiedStereo, params: CalibrateParams,
-                           progress: Callable[[str], None] | None = None) -> CalibrationFile:
-    """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place."""
+                           progress: Callable[[str], None] | None = None, depth_cam: PinholeCamera | None = None,
+                           T_mech_from_depth: np.ndarray | None = None) -> CalibrationFile:
+    """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place.
+    ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera."""
     t0 = time.perf_counter()
     board = params.board.spec()
     if len(obs) < params.min_poses:
@@ -303,6 +343,23 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
     if len(used) < params.min_poses:
         raise InputError(None, "captures", f"at least {params.min_poses} consistent poses", f"{len(used)}",
                          "the per-pose estimates disagree; check the board size and the image pairing")
+    # the depth camera's own view of each board: its square size, and the --use-depth solve
+    corners_depth = {}
+    for o in used:
+        X = board_corners_from_depth(o, mech, board, depth_cam, T_mech_from_depth)
+        if X is not None and np.all(np.isfinite(X)):
+            corners_depth[o.name] = X
+    square_measured = None
+    if len(corners_depth) >= 2:
+        square_measured = float(np.median([measured_square_size_mm(X, board) for X in corners_depth.values()]))
+        dev_pct = (square_measured / board.square_size_mm - 1.0) * 100.0
+        if params.square_check_pct and abs(dev_pct) > params.square_check_pct:
+            raise InputError(None, "--square-mm", f"the board's square size as the depth camera measures it "
+                             f"(within {params.square_check_pct:g} %)",
+                             f"{board.square_size_mm:g} mm declared, {square_measured:.2f} mm measured in the depth "
+                             f"of {len(corners_depth)} poses ({dev_pct:+.1f} %)",
+                             f"pass --square-mm {square_measured:.1f} if that is the board; if the board is right, the "
+                             "depth is off (depth_unit / depth_scale_mm in session.yaml)")
     if progress:
         progress("joint refinement")
     ref = joint_refine(used, mech, zed.left, board, T0, params.huber_px)
@@ -321,8 +378,6 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
             region_res.setdefault(f"{['top', 'middle', 'bottom'][gy[k]]}-{['left', 'centre', 'right'][gx[k]]}", []).append(en)
     allres = np.concatenate(allres)
     cov = ref.cov_extrinsic
-    sig_r = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0, None)))
-    sig_t = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
     loo_means, loo_maxs = [], []
     if params.leave_one_out and len(used) > params.min_poses:
         for i, o in enumerate(used):
@@ -340,61 +395,108 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
     methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
                             rms_zed_px=_rms(ref.res_zed))]
     method = "reprojection"
+    verdict_reasons: list[str] = []
+    fail = False
     if params.use_depth:
-        T_d, rms_d = _depth_method(used, mech, zed, board, T_final)
+        T_d, rms_d, cov_d = _depth_method(used, corners_depth, zed, T_final)
         if T_d is not None:
             dr, dt = pose_difference(T_final, T_d)
             methods.append(MethodResult(method="depth", T_zed_from_mech=T_d.tolist(), rms_zed_px=rms_d,
                                         rot_diff_to_primary_deg=dr, trans_diff_to_primary_mm=dt))
+            sr = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+            st = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+            lim_deg, lim_mm = max(params.methods_agree_deg, 5 * sr), max(params.methods_agree_mm, 5 * st)
+            if dr > lim_deg or dt > lim_mm:
+                fail = True
+                verdict_reasons.append(
+                    f"--use-depth: the depth method differs from the reprojection method by {dr:.3f} deg / {dt:.2f} mm "
+                    f"(allowed {lim_deg:.3f} deg / {lim_mm:.2f} mm): the depth's scale or bias, or the board size, "
+                    "is off")
             T_final, method = T_d, "depth"
-    rig = Rig(zed=zed, mech=mech, T_zed_from_mech=T_final)
+            if cov_d is not None:
+                cov = cov_d
+        else:
+            verdict_reasons.append("--use-depth: fewer than 2 poses with board depth; the reprojection method was used")
+    sig_r = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0, None)))
+    sig_t = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
+    n_bad = sum(r.status != "used" for r in reports)
+    if n_bad:
+        verdict_reasons.append(f"{n_bad} capture(s) skipped or rejected as outliers (see poses)")
+    if any(r.blurred for r in reports if r.status == "used"):
+        verdict_reasons.append("some used poses are blurred")
+    if len(used) < 6:
+        verdict_reasons.append(f"only {len(used)} poses: 6 or more give a better-constrained extrinsic")
+    loo_mean = float(np.mean(loo_means)) if loo_means else None
+    if loo_mean is not None and loo_mean > LOO_WARN_PX:
+        verdict_reasons.append(f"leave-one-out transfer {loo_mean:.3f} px > {LOO_WARN_PX} px")
+    rig = Rig(zed=zed, mech=mech, T_zed_from_mech=T_final, depth_cam=depth_cam,
+              T_mech_from_depth=None if T_mech_from_depth is None else np.asarray(T_mech_from_depth).tolist())
     result = CalibrationFile(
         rig=rig, board=params.board, method=method, captures_used=[o.name for o in used],
         rms_px=float(np.sqrt(np.mean(allres ** 2))), max_px=float(allres.max()),
         sigma_rot_xyz_deg=sig_r.tolist(), sigma_trans_xyz_mm=sig_t.tolist(),
         sigma_rot_deg=float(np.sqrt(np.sum(sig_r ** 2))), sigma_trans_mm=float(np.sqrt(np.sum(sig_t ** 2))),
-        loo_transfer_mean_px=float(np.mean(loo_means)) if loo_means else None,
+        loo_transfer_mean_px=loo_mean,
         loo_transfer_max_px=float(np.max(loo_maxs)) if loo_maxs else None,
         poses=sorted(reports, key=lambda r: -(r.max_px or 0.0)),
-        methods=methods, residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
+        methods=methods, cov_extrinsic_rad_mm=cov.tolist() if np.all(np.isfinite(cov)) else None,
+        square_size_measured_mm=square_measured,
+        verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
+        residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
         time_s=time.perf_counter() - t0)
     result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result
 
 
-def _depth_method(used: list[PoseObs], mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
-                  T_init: np.ndarray) -> tuple[np.ndarray | None, float]:
-    P3, P2 = [], []
-    for o in used:
-        X = board_corners_from_depth(o, mech, board)
-        if X is not None:
-            P3.append(X)
-            P2.append(o.zed_uv)
+def _depth_method(used: list[PoseObs], corners_depth: dict[str, np.ndarray], zed: RectifiedStereo,
+                  T_init: np.ndarray) -> tuple[np.ndarray | None, float, np.ndarray | None]:
+    """3D-2D solve: the depth camera's board corners (mech frame) against the ZED detections, all poses at once.
+    Returns (T_zed_from_mech, RMS px, 6x6 covariance in the CalibrationFile parameterisation)."""
+    P3 = [corners_depth[o.name] for o in used if o.name in corners_depth]
+    P2 = [o.zed_uv for o in used if o.name in corners_depth]
     if len(P3) < 2:
         log.warning("--use-depth: fewer than 2 poses with board depth; depth method skipped")
-        return None, float("nan")
+        return None, float("nan"), None
     P3, P2 = np.concatenate(P3), np.concatenate(P2)
-    rvec = cv2.Rodrigues(T_init[:3, :3])[0]
-    tvec = T_init[:3, 3].reshape(3, 1).copy()
-    rvec, tvec = cv2.solvePnPRefineLM(P3.reshape(-1, 1, 3), P2.reshape(-1, 1, 2), zed.left.K, None, rvec, tvec,
-                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-12))
-    T = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
-    res = zed.left.project(transform_points(T, P3)) - P2
-    return T, _rms(res)
+
+    def residuals(x):
+        return (zed.left.project(transform_points(_perturbed(T_init, x), P3)) - P2).ravel()
+
+    sol = least_squares(residuals, np.zeros(6), method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    T = _perturbed(T_init, sol.x)
+    res = sol.fun.reshape(-1, 2)
+    # re-linearise at the solution so the covariance is in the parameterisation around the written T
+    J = least_squares(lambda x: (zed.left.project(transform_points(_perturbed(T, x), P3)) - P2).ravel(),
+                      np.zeros(6), max_nfev=1, method="lm").jac
+    s2 = float(np.sum(res ** 2) / max(res.size - 6, 1))
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = None
+    return T, _rms(res), cov
 
 
 def calibrate(session_dir: str | Path, out_path: str | Path | None = None, params: CalibrateParams | None = None,
               captures: list[str] | None = None, exclude: list[str] | None = None,
               progress: Callable[[str], None] | None = None) -> CalibrationFile:
-    """Calibrate from a capture session's ``board/`` captures; writes ``out_path`` (YAML) when given."""
+    """Calibrate from a capture session's ``board/`` captures; writes ``out_path`` (YAML) when given
+    (an existing folder, or a path ending in ``/``, gets ``calibration.yaml`` inside it)."""
     from gtforge.io.captures import open_session
 
     params = params or CalibrateParams()
     board = params.board.spec()
     check_board_spec(board)
     session = open_session(session_dir)
+    if out_path is not None:
+        out_path = calibration_output_path(out_path)
+        session.refuse_output_inside_captures(out_path)
     dirs = session.select("board", captures, exclude)
+    from gtforge.rectification import RectificationMeter, rectified_by, settle_zed_conf_reading
+
+    # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)
+    session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress)
+    meter = RectificationMeter(board, session.zed.left, rectified_by(session))
     obs, reports = [], []
     for k, d in enumerate(dirs):
         if progress:
@@ -405,9 +507,24 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         reports.append(rep)
         if o is not None:
             obs.append(o)
-    result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress)
+            meter.add(d.name, cap.zed_right, left_uv=o.zed_uv)
+    result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress, session.depth_cam,
+                                    session.T_mech_from_depth)
     result.session_dir = str(Path(session_dir).resolve())
+    result.zed_conf, result.rectification = zed_conf, meter.result()
+    stereo_warnings = (zed_conf.warnings if zed_conf else []) + (result.rectification.warnings if result.rectification else [])
+    if stereo_warnings:
+        result.verdict_reasons = result.verdict_reasons + stereo_warnings
+        result.verdict = "WARN" if result.verdict == "PASS" else result.verdict
     if out_path is not None:
         result.write(out_path)
     return result
 
+
+
+def calibration_output_path(out_path: str | Path) -> Path:
+    """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
+    p = Path(out_path)
+    if p.is_dir() or str(out_path).endswith(("/", "\\")):
+        return p / "calibration.yaml"
+    return p

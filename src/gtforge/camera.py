@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import ClassVar
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -209,6 +210,8 @@ class Rig(VersionedFile):
     uses the depth composes ``T_zed_from_depth = T_zed_from_mech @ T_mech_from_depth``.
     """
 
+    KIND: ClassVar[str] = "rig description (cameras + T_zed_from_mech)"
+
     zed: RectifiedStereo
     mech: PinholeCamera
     T_zed_from_mech: list[list[float]]
@@ -257,10 +260,14 @@ class Rig(VersionedFile):
 class StereoCalibrationFile(VersionedFile):
     """gtforge's own YAML for a rectified ZED pair."""
 
+    KIND: ClassVar[str] = "gtforge ZED calibration file"
+
     zed: RectifiedStereo
 
 
 class CameraFile(VersionedFile):
     """gtforge's own YAML for a single camera."""
+
+    KIND: ClassVar[str] = "gtforge camera file"
 
     camera: PinholeCamera

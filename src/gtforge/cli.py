@@ -13,10 +13,71 @@ from typing import List, Optional
 
 import typer
 from rich.console import Console
+from typer.core import TyperArgument, TyperCommand, TyperGroup
 
 from gtforge.errors import InputError, Interrupted
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+
+def _plain_metavars(params: list) -> None:
+    """Help and usage show ``SESSION``/``PATH``, never typer's ``{session}``/``<path>``/``<bool>``/``<list[Path]>``:
+    arguments get their upper-case name, flags no value placeholder, other options their type's name
+    (click parameters, duck-typed: typer may vendor its own click)."""
+    for p in params:
+        if p.metavar is not None:
+            continue
+        if p.param_type_name == "argument":
+            p.metavar = (p.name or "").upper()
+            if type(p) is TyperArgument:
+                p.__class__ = _Argument
+        elif p.param_type_name == "option":
+            p.metavar = "" if getattr(p, "is_flag", False) else _type_name(p)
+
+
+def _type_name(p) -> str:
+    """``TEXT``/``INTEGER``/``FLOAT``/``PATH`` for an option without a metavar."""
+    t = getattr(p, "type", None)  # click's parameter type (typer < 0.20 and click itself)
+    name = getattr(t, "name", None) if t is not None else None
+    if name is None and hasattr(p, "display_type"):  # newer typer: "<int>", "<path>", ...
+        name = str(p.display_type(None) or "value").strip("<>")
+    name = str(name or "value").upper()
+    return {"STR": "TEXT", "INT": "INTEGER"}.get(name, name)
+
+
+class _Argument(TyperArgument):
+    def display_type_rich(self, ctx):  # the name column already shows the metavar; no "<path>"/"<list[Path]>"
+        return None
+
+
+class _Command(TyperCommand):
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        return [piece.replace("{", "").replace("}", "") for piece in super().collect_usage_pieces(ctx)]
+
+    def get_help_option(self, ctx):
+        opt = super().get_help_option(ctx)
+        if opt is not None:
+            _plain_metavars([opt])
+        return opt
+
+
+class _Group(TyperGroup):
+    """Applies ``_plain_metavars`` to every command (present and future) and to the group's own options."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _plain_metavars(self.params)
+        for cmd in self.commands.values():
+            if type(cmd) is TyperCommand:
+                cmd.__class__ = _Command
+            _plain_metavars(cmd.params)
+
+    def get_help_option(self, ctx):
+        opt = super().get_help_option(ctx)
+        if opt is not None:
+            _plain_metavars([opt])
+        return opt
+
+
+app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.")
 console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 out = Console(soft_wrap=True, highlight=False, markup=False)
@@ -39,6 +100,11 @@ def _status(msg: str) -> None:
         console.print(msg, style="dim")
 
 
+def _progress_lines(msg: str) -> None:
+    """Progress that also goes to logs and pipes (one plain line each, on stderr): for long silent work."""
+    console.print(msg, style="dim" if console.is_terminal else None)
+
+
 def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
     if not text:
         return None
@@ -49,30 +115,44 @@ def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
         raise InputError(None, name, "WIDTHxHEIGHT, e.g. 736x528", repr(text)) from None
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        import gtforge
+
+        out.print(f"gtforge {gtforge.__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Show info messages.")) -> None:
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Show info messages."),
+          version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the gtforge version and exit.")) -> None:
     _setup_logging(verbose)
 
 
 @app.command()
 def calibrate(session: Path = typer.Argument(..., help="Capture session folder (docs/capture-layout.md)."),
-              output: Path = typer.Option(Path("calibration.yaml"), "--output", "-o", help="Calibration YAML to write."),
-              report_dir: Optional[Path] = typer.Option(None, help="Report folder (default: beside the output)."),
+              output: str = typer.Option("calibration.yaml", "--output", "-o", metavar="PATH",
+                                         help="Calibration YAML to write (a folder: calibration.yaml inside it)."),
+              report_dir: Optional[Path] = typer.Option(None, metavar="DIR",
+                                                        help="Report folder (default: OUTPUT's name + _report, beside it)."),
               cols: int = typer.Option(12, help="Inner corners along a row."),
               rows: int = typer.Option(9, help="Inner corners along a column."),
               square_mm: float = typer.Option(20.0, help="Square size (mm)."),
-              use_depth: bool = typer.Option(False, help="Also solve 3D-2D through the depth camera's board "
-                                                         "measurement, use it, and report both methods."),
-              captures: Optional[str] = typer.Option(None, help="Comma-separated capture names to use."),
-              no_loo: bool = typer.Option(False, help="Skip leave-one-pose-out cross-validation.")) -> None:
+              use_depth: bool = typer.Option(False, "--use-depth", help="Also solve 3D-2D through the depth camera's "
+                                             "board measurement, use it, and report both methods."),
+              captures: Optional[str] = typer.Option(None, metavar="NAMES",
+                                                     help="Comma-separated capture names to use (default: all)."),
+              loo: bool = typer.Option(True, "--loo/--no-loo",
+                                       help="Leave-one-pose-out cross-validation (--no-loo saves time).")) -> None:
     """Solve T_zed_from_mech from checkerboard captures in SESSION/board/."""
-    from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run
+    from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run, calibration_output_path
     from gtforge.reports.calibration import write_calibration_report
 
     params = CalibrateParams(board=BoardModel(cols=cols, rows=rows, square_size_mm=square_mm), use_depth=use_depth,
-                             leave_one_out=not no_loo)
-    res = run(session, None, params, captures.split(",") if captures else None, progress=_status)
-    res.write(output)
+                             leave_one_out=loo)
+    output = calibration_output_path(output)
+    res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
     rep = write_calibration_report(res, report_dir or output.parent / (output.stem + "_report"))
     n_used = len(res.captures_used)
     n_bad = sum(p.status != "used" for p in res.poses)
@@ -82,23 +162,46 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     for m in res.methods[1:]:
         out.print(f"method {m.method}: RMS {m.rms_zed_px:.3f} px, differs by {m.rot_diff_to_primary_deg:.4f} deg / "
                   f"{m.trans_diff_to_primary_mm:.3f} mm")
+    if res.square_size_measured_mm is not None:
+        out.print(f"board squares measured in the depth: {res.square_size_measured_mm:.2f} mm "
+                  f"(declared {res.board.square_size_mm:g} mm)")
+    from gtforge.rectification import summary_lines
+
+    for line in summary_lines(res.rectification, res.zed_conf):
+        out.print(line)
     out.print(f"wrote {output} and {rep}")
+    out.print(f"verdict: {res.verdict}" + "".join(f"\n  - {r}" for r in res.verdict_reasons))
+    if res.verdict == "FAIL":
+        raise typer.Exit(1)
 
 
 @app.command("build-dataset")
 def build_dataset(session: Path = typer.Argument(..., help="Capture session folder."),
-                  calibration: Path = typer.Option(..., "--calibration", "-c", help="From gtforge calibrate."),
-                  output: Path = typer.Option(..., "--output", "-o", help="Dataset folder."),
+                  calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
+                                                   help="Calibration YAML from gtforge calibrate."),
+                  output: Path = typer.Option(..., "--output", "-o", metavar="DIR", help="Dataset folder."),
                   mode: str = typer.Option("mesh", help="mesh (default) or splat."),
                   workers: Optional[int] = typer.Option(None, help="Parallel scenes (default: all cores)."),
-                  overwrite: bool = typer.Option(False, help="Rebuild every scene."),
-                  strict: bool = typer.Option(False, help="Stop at the first bad scene."),
+                  scheduler: Optional[str] = typer.Option(
+                      None, metavar="ADDRESS", help="Run the scenes on a Dask cluster, e.g. tcp://HOST:8786 (needs "
+                      "gtforge\\[dask]; session, calibration and output on a filesystem the workers share; "
+                      "docs/cluster.md)."),
+                  overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild every scene."),
+                  strict: bool = typer.Option(False, "--strict", help="Stop at the first bad scene."),
                   crop: Optional[str] = typer.Option(None, help="Crop around the fruit, e.g. 736x528."),
-                  ply: bool = typer.Option(False, help="Write a PLY point cloud per scene."),
+                  ply: bool = typer.Option(False, "--ply", help="Write a PLY point cloud per scene."),
                   erosion_px: int = typer.Option(15, help="Fruit centre = fruit mask eroded by this."),
                   max_slant_deg: float = typer.Option(85.0, help="mesh: reject triangles steeper than this."),
-                  split: str = typer.Option("0.8,0.1", help="train,val ratios (test gets the rest)."),
-                  seed: int = typer.Option(0, help="Split seed.")) -> None:
+                  split: str = typer.Option("0.8,0.1", metavar="TRAIN,VAL",
+                                            help="train,val ratios (test gets the rest); scenes of one fruit stay "
+                                                 "in one split."),
+                  seed: int = typer.Option(0, help="Split seed."),
+                  verification: bool = typer.Option(True, "--verify/--no-verify",
+                                                    help="Check every scene's ground truth against its own images "
+                                                         "(texture alignment, stereo consistency; verification.html)."),
+                  quarantine: bool = typer.Option(False, "--quarantine",
+                                                  help="Leave scenes that verification flags out of the split lists "
+                                                       "(they stay in scenes/).")) -> None:
     """Build disparity ground truth for SESSION/scenes/ into OUTPUT (docs/dataset-format.md)."""
     from gtforge.build_dataset import BuildParams, build_dataset as run
 
@@ -109,58 +212,144 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     if mode not in ("mesh", "splat"):
         raise InputError(None, "--mode", "mesh or splat", repr(mode))
     params = BuildParams(mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
-                         max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed)
-    s = run(session, calibration, output, params, workers, overwrite, strict, progress=True)
+                         max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
+                         verification=verification, quarantine=quarantine)
+    s = run(session, calibration, output, params, workers, overwrite, strict, progress=True, scheduler=scheduler)
     failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
     out.print(f"built {len(s.built)}, unchanged {len(s.skipped_unchanged)}, failed {len(s.failures)}{failed} "
               f"in {s.time_s:.1f} s -> {s.out_dir}")
+    if verification:
+        q = " (left out of the split lists: --quarantine)" if s.quarantined else ""
+        out.print(f"verification: {len(s.flagged)} scene(s) flagged{q}"
+                  + (": " + ", ".join(s.flagged) if s.flagged else "") + f"; see {s.out_dir / 'verification.html'}")
     if s.failures:
+        raise typer.Exit(1)
+
+
+@app.command()
+def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge build-dataset."),
+           session: Optional[Path] = typer.Option(None, metavar="DIR",
+                                                  help="The capture session, if it moved since the build "
+                                                       "(default: the one manifest.json names)."),
+           scenes: Optional[str] = typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: all)."),
+           workers: Optional[int] = typer.Option(None, help="Parallel scenes (default: all cores)."),
+           scheduler: Optional[str] = typer.Option(None, metavar="ADDRESS",
+                                                   help="Run on a Dask cluster (docs/cluster.md)."),
+           quarantine: bool = typer.Option(False, "--quarantine",
+                                           help="Rewrite the split lists without the flagged scenes."),
+           max_shift_px: Optional[float] = typer.Option(None, help="Texture shift threshold (px; default 0.25)."),
+           max_disparity_bias_px: Optional[float] = typer.Option(None, help="Disparity bias threshold (px; "
+                                                                            "default 0.1).")) -> None:
+    """Check an existing dataset's ground truth against its captures (verification.json/.html); exit 1 if any
+    scene is flagged."""
+    from gtforge.build_dataset import Manifest
+    from gtforge.verify import verify_dataset
+
+    params = None
+    if max_shift_px is not None or max_disparity_bias_px is not None:
+        base = Manifest.read(dataset / "manifest.json").params.verify
+        params = base.model_copy(update={k: v for k, v in (("max_shift_px", max_shift_px),
+                                                           ("max_disparity_bias_px", max_disparity_bias_px))
+                                         if v is not None})
+    rep = verify_dataset(dataset, params, scenes.split(",") if scenes else None, session, workers, scheduler,
+                         quarantine, _status)
+    n_nv = sum(v.status == "not verifiable" for v in rep.scenes.values())
+    flagged = rep.flagged
+    out.print(f"verified {len(rep.scenes)} scene(s): {len(flagged)} flagged, {n_nv} not verifiable; "
+              f"report: {dataset / 'verification.html'}")
+    for sid, reasons in flagged.items():
+        out.print(f"  {sid}: " + "; ".join(reasons))
+    for sid, v in rep.scenes.items():
+        if v.status == "not verifiable":
+            out.print(f"  {sid}: not verifiable: " + "; ".join(v.reasons))
+    if flagged:
         raise typer.Exit(1)
 
 
 @app.command()
 def validate(session: Path = typer.Argument(..., help="Capture session folder (board/ captures)."),
              calibration: Optional[Path] = typer.Option(None, "--calibration", "-c",
+                                                        metavar="FILE",
                                                         help="Calibration YAML (not needed with --holdout)."),
-             output: Path = typer.Option(Path("validation"), "--output", "-o", help="Report folder."),
+             output: Path = typer.Option(Path("validation"), "--output", "-o", metavar="DIR", help="Report folder."),
              holdout: int = typer.Option(0, help="Calibrate without the last K board captures (written to "
                                                  "OUTPUT/holdout_calibration.yaml) and validate on them."),
-             captures: Optional[str] = typer.Option(None, help="Comma-separated capture names to validate on."),
-             cols: int = typer.Option(12), rows: int = typer.Option(9), square_mm: float = typer.Option(20.0),
-             xy_threshold_px: float = typer.Option(0.3), z_threshold_pct: float = typer.Option(0.05)) -> None:
+             captures: Optional[str] = typer.Option(None, metavar="NAMES",
+                                                    help="Comma-separated capture names to validate on."),
+             cols: Optional[int] = typer.Option(None, help="Inner corners along a row (default: the calibration's board)."),
+             rows: Optional[int] = typer.Option(None, help="Inner corners along a column (default: the calibration's)."),
+             square_mm: Optional[float] = typer.Option(None, help="Square size, mm (default: the calibration's)."),
+             xy_threshold_px: float = typer.Option(0.3, help="PASS when the mean XY error is at most this (px)."),
+             z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%).")) -> None:
     """XY reprojection (px) and Z geometric (%) accuracy; exit code 1 on FAIL."""
     from gtforge.calibrate import BoardModel
     from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams, validate as run
 
-    params = ValidateParams(board=BoardModel(cols=cols, rows=rows, square_size_mm=square_mm),
-                            xy_threshold_px=xy_threshold_px, z_threshold_pct=z_threshold_pct)
+    board = None
+    if cols is not None or rows is not None or square_mm is not None:
+        if calibration is not None and not holdout:
+            from gtforge.calibrate import CalibrationFile
+
+            base = CalibrationFile.read(calibration).board
+        else:
+            base = BoardModel()
+        board = base.model_copy(update={k: v for k, v in (("cols", cols), ("rows", rows), ("square_size_mm", square_mm))
+                                        if v is not None})
+    params = ValidateParams(board=board, xy_threshold_px=xy_threshold_px, z_threshold_pct=z_threshold_pct)
     rep = run(session, calibration, output, params, captures.split(",") if captures else None, holdout, _status)
     out.print(f"XY reprojection: mean {rep.xy_mean_px:.3f} px (median {rep.xy_median_px:.3f}, max {rep.xy_max_px:.3f}); "
               f"published {REFERENCE_XY_PX} px; threshold {xy_threshold_px} -> {'PASS' if rep.pass_xy else 'FAIL'}")
+    out.print(f"  corner detectors' noise floor {rep.xy_noise_floor_px:.3f} px; with it removed (board models): "
+              f"{rep.xy_model_mean_px:.3f} px")
     out.print(f"Z geometric: mean {rep.z_error_mean_pct:.4f} % (max {rep.z_error_max_pct:.4f}); published "
               f"{REFERENCE_Z_PCT} %; threshold {z_threshold_pct} -> {'PASS' if rep.pass_z else 'FAIL'}")
+    from gtforge.rectification import summary_lines
+
+    for line in summary_lines(rep.rectification):
+        out.print(line)
     out.print(f"report: {output / 'validation.html'}")
     if not rep.passed:
         raise typer.Exit(1)
 
 
+_MODEL = "Model (exactly one is required)"
+_NET = "Network input (--onnx, --torchscript)"
+
+
 @app.command()
 def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build-dataset."),
-             output: Path = typer.Option(Path("evaluation"), "--output", "-o"),
-             onnx: Optional[Path] = typer.Option(None, help="ONNX model (inputs: left, right NCHW)."),
-             torchscript: Optional[Path] = typer.Option(None, help="TorchScript (.pt) or torch.export (.pt2) model (needs torch)."),
-             predictions: Optional[Path] = typer.Option(None, help="Folder of predicted disparities."),
-             sgbm: bool = typer.Option(False, help="OpenCV SGBM baseline."),
-             name: Optional[str] = typer.Option(None, help="Model name in the tables."),
-             split: Optional[str] = typer.Option(None, help="train/val/test (default: every scene)."),
-             max_disp: Optional[float] = typer.Option(None, help="Only score GT below this disparity."),
-             channels: str = typer.Option("RGB", help="RGB or BGR."),
-             normalize: str = typer.Option("imagenet", help="imagenet, 0-255 or 0-1."),
-             fit: str = typer.Option("pad", help="pad (to a multiple of 32, crop back) or resize."),
-             resize: Optional[str] = typer.Option(None, help="Network input WxH with --fit resize."),
-             params_count: Optional[int] = typer.Option(None, help="Parameter count for the table."),
-             no_clouds: bool = typer.Option(False, help="Skip the per-scene PLY clouds.")) -> None:
-    """Score a model's disparities against the built ground truth, per region."""
+             output: Path = typer.Option(Path("evaluation"), "--output", "-o", metavar="DIR",
+                                         help="Folder for results.json/.md/.csv/.html and heatmaps/."),
+             onnx: Optional[Path] = typer.Option(None, metavar="FILE", rich_help_panel=_MODEL,
+                                                 help="ONNX model (inputs: left, right NCHW, or one N x 6 x H x W)."),
+             torchscript: Optional[Path] = typer.Option(None, metavar="FILE", rich_help_panel=_MODEL,
+                                                        help="TorchScript (.pt) or torch.export (.pt2) model (needs torch)."),
+             predictions: Optional[Path] = typer.Option(None, metavar="DIR", rich_help_panel=_MODEL,
+                                                        help="Folder of predicted disparities, one file per scene id: "
+                                                             "<id>.pfm, <id>.npy, <id>.png or <id>_10.png (KITTI), "
+                                                             "<id>/disp0.pfm (docs/metrics.md)."),
+             sgbm: bool = typer.Option(False, "--sgbm", rich_help_panel=_MODEL, help="OpenCV SGBM baseline."),
+             name: Optional[str] = typer.Option(None, help="Model name in the tables (default: the file's name)."),
+             split: Optional[str] = typer.Option(None, metavar="train|val|test",
+                                                 help="Score one split list (default: every scene)."),
+             max_disp: Optional[float] = typer.Option(None, metavar="PX", help="Only score GT below this disparity (px)."),
+             max_gt_sigma: Optional[float] = typer.Option(
+                 None, metavar="PX", help="Only score GT pixels whose ground-truth sigma (disp0GT_sigma.pfm) is below "
+                 "this (px); the tables count the pixels left out."),
+             channels: str = typer.Option("RGB", metavar="RGB|BGR", rich_help_panel=_NET, help="Channel order."),
+             normalize: str = typer.Option("imagenet", metavar="imagenet|0-255|0-1", rich_help_panel=_NET,
+                                           help="Input scaling."),
+             fit: str = typer.Option("pad", metavar="pad|resize", rich_help_panel=_NET,
+                                     help="pad (to a multiple of 32, crop back) or resize."),
+             resize: Optional[str] = typer.Option(None, metavar="WxH", rich_help_panel=_NET,
+                                                  help="Network input size with --fit resize."),
+             params_count: Optional[int] = typer.Option(None, metavar="N", help="Parameter count for the table."),
+             clouds: bool = typer.Option(False, "--clouds/--no-clouds",
+                                         help="Also write a PLY point cloud per scene, coloured by depth error.")) -> None:
+    """Score a model's disparities against the built ground truth, per region.
+
+    Exactly one model option is required: --onnx, --torchscript, --predictions or --sgbm.
+    Exit code 1 when some scenes could not be scored (listed first and last), 2 on bad input."""
     from gtforge.evaluate import evaluate as run
     from gtforge.reports.evaluation import tables_markdown
     from gtforge.predictors import SGBM, InputConvention, OnnxModel, PredictionFolder, TorchScriptModel
@@ -182,7 +371,7 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
         pred = PredictionFolder(predictions, name)
     else:
         pred = SGBM(name=name or "SGBM")
-    rep = run(dataset, pred, output, split, max_disp, not no_clouds, params_count, _status)
+    rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma)
     out.print(tables_markdown([rep]))
     out.print(f"median warm inference {rep.time_ms_median:.1f} ms/frame ({rep.provider}); results in {output}")
     if rep.missing:
@@ -192,29 +381,38 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
 
 @app.command()
 def compare(results: List[Path] = typer.Argument(..., help="results.json files from gtforge evaluate."),
-            output: Path = typer.Option(Path("comparison"), "--output", "-o")) -> None:
-    """Put several evaluated models side by side in one table."""
+            output: Path = typer.Option(Path("comparison"), "--output", "-o", metavar="DIR",
+                                        help="Folder for comparison.md/.csv/.html.")) -> None:
+    """Put several evaluated models side by side in one table (warns when they are not comparable)."""
     from gtforge.evaluate import compare as run
 
-    out.print(run(results, output))
+    table, _ = run(results, output)
+    out.print(table)
+    out.print(f"wrote {output / 'comparison.html'} (and .md, .csv)")
 
 
 @app.command()
 def synth(output: Path = typer.Argument(..., help="Folder for the synthetic session."),
-          boards: int = typer.Option(8), scenes: int = typer.Option(3), scale: float = typer.Option(0.5),
-          seed: int = typer.Option(0), depth_noise_mm: float = typer.Option(0.03)) -> None:
+          boards: int = typer.Option(8, metavar="N", help="Checkerboard captures."),
+          scenes: int = typer.Option(3, metavar="N", help="Fruit scene captures."),
+          scale: float = typer.Option(0.5, help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
+          seed: int = typer.Option(0, help="Random seed (the same seed renders the same session)."),
+          depth_noise_mm: float = typer.Option(0.03, metavar="MM",
+                                               help="Gaussian noise added to the structured-light depth (mm).")) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     from gtforge.synthetic import generate_session
 
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
-                     progress=_status)
+                     progress=_progress_lines)
     out.print(f"wrote {output}")
 
 
 @app.command()
 def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo writes everything."),
          scale: float = typer.Option(0.5, help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
-         boards: int = typer.Option(8), scenes: int = typer.Option(4), seed: int = typer.Option(0)) -> None:
+         boards: int = typer.Option(8, metavar="N", help="Checkerboard captures (the last 2 are held out for validate)."),
+         scenes: int = typer.Option(4, metavar="N", help="Fruit scene captures."),
+         seed: int = typer.Option(0, help="Random seed.")) -> None:
     """Generate a synthetic session and run calibrate -> build-dataset -> validate -> evaluate."""
     from gtforge.demo import run_demo
 

@@ -23,6 +23,7 @@ class VersionedFile(GTModel):
     """A top-level file model. Subclasses set ``SCHEMA_VERSION``."""
 
     SCHEMA_VERSION: ClassVar[int] = 1
+    KIND: ClassVar[str] = "gtforge file"  # what a person calls this file, in error messages
     schema_version: int = 1
 
     @field_validator("schema_version")
@@ -47,7 +48,7 @@ class VersionedFile(GTModel):
     def read(cls: type[M], path: str | Path) -> M:
         path = Path(path)
         if not path.is_file():
-            raise InputError(path, None, f"a {cls.__name__} file", "no such file", "check the path")
+            raise InputError(path, None, f"a {cls.KIND}", "no such file", "check the path")
         text = path.read_text()
         try:
             data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
@@ -59,11 +60,11 @@ class VersionedFile(GTModel):
     @classmethod
     def from_dict(cls: type[M], data: Any, path: str | Path | None = None) -> M:
         if not isinstance(data, dict):
-            raise InputError(path, None, f"a mapping for {cls.__name__}", type(data).__name__)
+            raise InputError(path, None, f"a {cls.KIND} (a YAML/JSON mapping)", type(data).__name__)
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise pydantic_to_input_error(exc, path, cls.__name__) from None
+            raise pydantic_to_input_error(exc, path, cls.KIND) from None
 
 
 def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what: str) -> InputError:

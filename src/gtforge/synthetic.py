@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -200,15 +201,31 @@ class Scene:
 # ---- the rig ---------------------------------------------------------------------------------
 @dataclass
 class SyntheticRig:
+    """``mech`` is the structured-light unit's texture camera; ``depth_cam`` (with ``T_mech_from_depth``) its depth
+    camera when the two differ (None: one camera). The projector sits at ``p_projector_in_mech_mm`` in the depth
+    camera's frame (the texture camera's when there is one camera)."""
+
     mech: PinholeCamera
     zed: RectifiedStereo
     T_zed_from_mech: np.ndarray
     p_projector_in_mech_mm: np.ndarray = field(default_factory=lambda: np.array([-70.0, 0.0, 0.0]))
     T_zed_from_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    depth_cam: PinholeCamera | None = None
+    T_mech_from_depth: np.ndarray | None = None
 
     @property
     def T_mech_from_world(self) -> np.ndarray:
         return invert_T(self.T_zed_from_mech) @ self.T_zed_from_world
+
+    @property
+    def depth_camera(self) -> PinholeCamera:
+        return self.depth_cam if self.depth_cam is not None else self.mech
+
+    @property
+    def T_depth_from_world(self) -> np.ndarray:
+        if self.T_mech_from_depth is None:
+            return self.T_mech_from_world
+        return invert_T(self.T_mech_from_depth) @ self.T_mech_from_world
 
 
 def default_rig(scale: float = 1.0, distance_mm: float = 650.0) -> SyntheticRig:
@@ -224,6 +241,19 @@ def default_rig(scale: float = 1.0, distance_mm: float = 650.0) -> SyntheticRig:
     T_zed_from_mech = T_from_rotvec(np.radians([1.2, -6.0, 0.7]), [115.0, 18.0, 4.0])
     T_zed_from_world = look_at_T_cam_from_world([-40.0, -330.0, distance_mm], [-40.0, 0.0, 0.0], up_world=(0, 1, 0))
     return SyntheticRig(mech, zed, T_zed_from_mech, T_zed_from_world=T_zed_from_world)
+
+
+def two_camera_rig(scale: float = 1.0, distance_mm: float = 650.0) -> SyntheticRig:
+    """``default_rig`` whose structured-light unit has a separate depth camera (as the Mech-Eye API reports, or an
+    Azure Kinect / Orbbec): 1280x1024, its own lens, 45 mm beside the texture camera and turned by about 1 degree."""
+    rig = default_rig(scale, distance_mm)
+    depth_cam = PinholeCamera(width_px=1280, height_px=1024, fx_px=1180.0, fy_px=1176.5, cx_px=645.3, cy_px=508.1,
+                              dist_coeffs=[-0.061, 0.093, -0.0004, 0.0007, -0.021])
+    if scale != 1.0:
+        depth_cam = depth_cam.scaled(scale)
+    rig.depth_cam = depth_cam
+    rig.T_mech_from_depth = T_from_rotvec(np.radians([0.35, -0.9, 0.4]), [-45.0, 6.0, 2.5])
+    return rig
 
 
 # ---- rendering ---------------------------------------------------------------------------------
@@ -296,7 +326,7 @@ def _visible_from(scene: Scene, origin: np.ndarray, p: np.ndarray, rel_tol: floa
 
 
 def lit_mask(scene: Scene, rig: SyntheticRig, p_world: np.ndarray) -> np.ndarray:
-    p_proj_world = transform_points(invert_T(rig.T_mech_from_world), rig.p_projector_in_mech_mm[None])[0]
+    p_proj_world = transform_points(invert_T(rig.T_depth_from_world), rig.p_projector_in_mech_mm[None])[0]
     return _visible_from(scene, p_proj_world, p_world)
 
 
@@ -333,16 +363,21 @@ def _table(seed: int) -> PlaneObject:
 
 def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Generator, *, kind: str,
                    supersample: int = 3, depth_noise_mm: float = 0.0, image_noise: float = 1.5,
-                   blur_sigma_px: float = 0.6) -> SyntheticCapture:
+                   blur_sigma_px: float = 0.6, zed_scene: Scene | None = None) -> SyntheticCapture:
+    """Render one capture. ``zed_scene``: the scene as the ZED saw it when it differs from what the structured-light
+    unit captured (an object that moved between the two captures); the ZED truth follows ``zed_scene``."""
     zed = rig.zed
+    zed_scene = zed_scene or scene
     T_zedr_from_world = zed.T_zedr_from_zed @ rig.T_zed_from_world
     T_mech_from_world = rig.T_mech_from_world
-    left = finish_image(render_image(scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px, image_noise)
-    right = finish_image(render_image(scene, zed.right, T_zedr_from_world, supersample), rng, blur_sigma_px, image_noise)
+    left = finish_image(render_image(zed_scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px,
+                        image_noise)
+    right = finish_image(render_image(zed_scene, zed.right, T_zedr_from_world, supersample), rng, blur_sigma_px,
+                         image_noise)
     tex = finish_image(render_image(scene, rig.mech, T_mech_from_world, supersample), rng, blur_sigma_px,
                        image_noise, gray=True)
-    # structured-light depth at mech pixel centres, with projector shadows
-    z_m, ids_m, p_m = raycast_depth(scene, rig.mech, T_mech_from_world)
+    # structured-light depth at the depth camera's pixel centres, with projector shadows
+    z_m, ids_m, p_m = raycast_depth(scene, rig.depth_camera, rig.T_depth_from_world)
     hit = np.isfinite(z_m)
     lit = np.zeros_like(hit)
     lit[hit] = lit_mask(scene, rig, p_m[hit])
@@ -350,20 +385,21 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     if depth_noise_mm > 0:
         depth = depth + rng.normal(0, depth_noise_mm, depth.shape)
     # ZED-left truth
-    z_z, ids_z, p_z = raycast_depth(scene, zed.left, rig.T_zed_from_world)
+    z_z, ids_z, p_z = raycast_depth(zed_scene, zed.left, rig.T_zed_from_world)
     hit_z = np.isfinite(z_z)
     zdepth = np.where(hit_z, z_z, np.nan).astype(np.float32)
     disp = zed.depth_to_disparity(np.where(hit_z, z_z, np.nan))
     seen = np.zeros(hit_z.shape, bool)
     pts = p_z[hit_z]
-    p_mech = transform_points(T_mech_from_world, pts)
-    uv = rig.mech.project(p_mech)
-    inside = (p_mech[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= rig.mech.width_px - 1) & \
-             (uv[:, 1] >= 0) & (uv[:, 1] <= rig.mech.height_px - 1)
-    mech_centre = invert_T(T_mech_from_world)[:3, 3]
+    cam = rig.depth_camera
+    p_cam = transform_points(rig.T_depth_from_world, pts)
+    uv = cam.project(p_cam)
+    inside = (p_cam[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width_px - 1) & \
+             (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height_px - 1)
+    depth_centre = invert_T(rig.T_depth_from_world)[:3, 3]
     ok = inside.copy()
-    ok[inside] = _visible_from(scene, mech_centre, pts[inside])
-    ok[ok] = lit_mask(scene, rig, pts[ok])
+    ok[inside] = _visible_from(zed_scene, depth_centre, pts[inside])
+    ok[ok] = lit_mask(zed_scene, rig, pts[ok])
     seen[hit_z] = ok
     return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
                             ids_z == OBJ_FRUIT)
@@ -391,8 +427,11 @@ def random_board_pose(rng: np.random.Generator, rig: SyntheticRig, board: BoardS
         T = make_T(R, np.zeros(3))
         T[:3, 3] = c_world - R @ centre_b
         ok = True
-        for cam, T_cam_from_world in ((rig.mech, rig.T_mech_from_world), (rig.zed.left, rig.T_zed_from_world),
-                                      (rig.zed.right, rig.zed.T_zedr_from_zed @ rig.T_zed_from_world)):
+        views = [(rig.mech, rig.T_mech_from_world), (rig.zed.left, rig.T_zed_from_world),
+                 (rig.zed.right, rig.zed.T_zedr_from_zed @ rig.T_zed_from_world)]
+        if rig.depth_cam is not None:
+            views.append((rig.depth_cam, rig.T_depth_from_world))
+        for cam, T_cam_from_world in views:
             pc = transform_points(T_cam_from_world @ T, outline)
             if np.any(pc[:, 2] <= 0):
                 ok = False
@@ -438,9 +477,25 @@ def random_fruit_scene(rng: np.random.Generator, rig: SyntheticRig, seed: int) -
     return Scene([_table(seed), fruit])
 
 
+def moved_fruit(scene: Scene, delta_mm) -> Scene:
+    """The same scene with every fruit displaced by ``delta_mm`` (world frame, mm): a fruit that rolled between the
+    structured-light capture and the ZED capture. Its texture moves with it."""
+    objs = []
+    for o in scene.objects:
+        if isinstance(o, SpheroidObject):
+            m = SpheroidObject.__new__(SpheroidObject)
+            m.__dict__.update(o.__dict__)
+            m.c = o.c + np.asarray(delta_mm, float)
+            o = m
+        objs.append(o)
+    return Scene(objs)
+
+
 # ---- session writer --------------------------------------------------------------------------
 class SyntheticTruth(VersionedFile):
     """``truth/rig_truth.yaml``: what the synthetic generator knows exactly."""
+
+    KIND: ClassVar[str] = "synthetic truth file (truth/rig_truth.yaml)"
 
     T_zed_from_mech: list[list[float]]
     p_projector_in_mech_mm: list[float]
@@ -449,9 +504,10 @@ class SyntheticTruth(VersionedFile):
     square_size_mm: float
     seed: int
     depth_noise_mm: float
+    T_mech_from_depth: list[list[float]] | None = None  # two-camera rigs only
 
 
-def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path) -> None:
+def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_motion_mm=(0.0, 0.0, 0.0)) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     write_image(folder / "2DImage.png", cap.mech_texture)
     write_tiff_float(folder / "DepthMap.tiff", cap.mech_depth_mm)
@@ -464,22 +520,30 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path) -> None:
                      corners_zed_uv=cap.corners_zed_uv)
     np.savez_compressed(truth_dir / f"{cap.kind}_{cap.name}.npz", zed_depth_mm=cap.zed_depth_mm,
                         zed_disparity_px=cap.zed_disparity_px, seen_by_mech=cap.seen_by_mech,
-                        fruit_mask=cap.fruit_mask, **extra)
+                        fruit_mask=cap.fruit_mask, fruit_motion_mm=np.asarray(fruit_motion_mm, float), **extra)
 
 
 def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3, scale: float = 0.5,
                      seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.03,
-                     image_noise: float = 1.5, supersample: int = 3, progress=None) -> Path:
-    """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``."""
+                     image_noise: float = 1.5, supersample: int = 3, two_camera: bool = False,
+                     fruit_motion_mm: dict[int, tuple[float, float, float]] | None = None, progress=None) -> Path:
+    """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``.
+
+    ``two_camera``: the structured-light unit has a separate depth camera (``two_camera_rig``); the session names it
+    (``depth_intrinsics``, ``T_mech_from_depth``). ``fruit_motion_mm``: scene index -> the fruit's displacement
+    (world mm) between the structured-light capture and the ZED capture (truth follows the ZED)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    rig = default_rig(scale)
+    rig = two_camera_rig(scale) if two_camera else default_rig(scale)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
     StereoCalibrationFile(zed=rig.zed).write(out / "zed_calibration.yaml")
+    T_md = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
+    if two_camera:
+        CameraFile(camera=rig.depth_cam).write(out / "depth_intrinsics.yaml")
     SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
                    board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
-                   depth_noise_mm=depth_noise_mm).write(out / "truth" / "rig_truth.yaml")
+                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_md).write(out / "truth" / "rig_truth.yaml")
     kw = dict(supersample=supersample, depth_noise_mm=depth_noise_mm, image_noise=image_noise)
     fruit_ids = {}
     for i in range(n_board):
@@ -488,16 +552,21 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         write_capture(out / "board" / cap.name, cap, out / "truth")
         if progress:
             progress(f"board {cap.name}")
+    motions = fruit_motion_mm or {}
     for i in range(n_scenes):
         scene = random_fruit_scene(rng, rig, seed + 100 + i)
-        cap = render_capture(f"{i:03d}", scene, rig, rng, kind="scene", **kw)
-        write_capture(out / "scenes" / cap.name, cap, out / "truth")
+        motion = np.asarray(motions.get(i, (0.0, 0.0, 0.0)), float)
+        zed_scene = moved_fruit(scene, motion) if np.any(motion) else None
+        cap = render_capture(f"{i:03d}", scene, rig, rng, kind="scene", zed_scene=zed_scene, **kw)
+        write_capture(out / "scenes" / cap.name, cap, out / "truth", motion)
         fruit_ids[cap.name] = f"fruit{i // 2:02d}"
         if progress:
             progress(f"scene {cap.name}")
     from gtforge.io.captures import SessionFile
-    SessionFile(fruit_ids=fruit_ids).write(out / "session.yaml")
+    extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
+    SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
+
 
 # ---- raw (unrectified) ZED and its factory SN.conf -----------------------------------------------
 # A distorted left/right pair with a known stereo extrinsic (R, T: X_right = R @ X_left + T, OpenCV's

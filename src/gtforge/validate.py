@@ -11,19 +11,20 @@ from __future__ import annotations
 import itertools
 import logging
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ClassVar
 
 import cv2
 import numpy as np
 from pydantic import Field
 
 from gtforge.board import check_board_spec, detect_corners
-from gtforge.calibrate import BoardModel, CalibrateParams, CalibrationFile, calibrate
+from gtforge.calibrate import BoardModel, CalibrateParams, CalibrationFile, calibrate, solve_pnp
 from gtforge.camera import PinholeCamera, Rig
 from gtforge.errors import InputError
-from gtforge.geometry import fit_plane, fit_plane_robust, transform_points
-from gtforge.schema import GTModel, VersionedFile
+from gtforge.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
+from gtforge.rectification import RectificationMeter, RectificationQuality, rectified_by
 from gtforge.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
 
 log = logging.getLogger("gtforge.validate")
@@ -33,7 +34,7 @@ REFERENCE_Z_PCT = 0.08
 
 
 class ValidateParams(GTModel):
-    board: BoardModel = Field(default_factory=BoardModel)
+    board: BoardModel | None = None  # None: the board stored in the calibration file
     xy_threshold_px: float = 0.3
     z_threshold_pct: float = 0.05
     corner_radius_px: int = 8  # depth patch radius for the per-corner plane fit
@@ -49,6 +50,11 @@ class PoseValidation(GTModel):
     xy_median_px: float
     xy_rms_px: float
     xy_max_px: float
+    # the corner detectors' own noise, and XY with it removed (corners predicted by per-pose board models)
+    xy_noise_floor_px: float
+    xy_model_mean_px: float
+    detector_rms_mech_px: float
+    detector_rms_zed_px: float
     z_diagonal_calc_mm: float
     z_diagonal_true_mm: float
     z_error_pct: float  # corners from a homography fit of all detected ZED corners
@@ -60,6 +66,8 @@ class PoseValidation(GTModel):
 
 
 class ValidationReport(VersionedFile):
+
+    KIND: ClassVar[str] = "validation report (validation.json from gtforge validate)"
     calibration_path: str
     session_dir: str
     thresholds: dict[str, float]
@@ -68,10 +76,13 @@ class ValidationReport(VersionedFile):
     xy_median_px: float
     xy_rms_px: float
     xy_max_px: float
+    xy_noise_floor_px: float  # mean XY error the two corner detectors' noise alone would give
+    xy_model_mean_px: float  # XY with both detections replaced by per-pose board models (noise removed)
     z_error_mean_pct: float
     z_error_max_pct: float
     flatness_rms_mm: float
     scale_error_pct: float
+    board: BoardModel
     pass_xy: bool
     pass_z: bool
     passed: bool
@@ -79,25 +90,41 @@ class ValidationReport(VersionedFile):
     skipped: dict[str, str] = Field(default_factory=dict)
     poses: list[PoseValidation]
     corner_errors: list[list[float]] = Field(default_factory=list)  # (u_zed, v_zed, du, dv) per corner
+    # vertical disparity of the board corners in both rectified ZED images (gtforge.rectification)
+    rectification: RectificationQuality | None = None
 
 
 def corners_3d_from_depth(corners_uv: np.ndarray, depth_mm: np.ndarray, cam: PinholeCamera,
-                          radius_px: int = 8) -> np.ndarray:
-    """Sub-pixel, NaN-tolerant depth at each corner: a plane through the depth patch around it,
-    intersected with the corner's ray. ``(N, 3)`` mm in the camera frame (NaN where the patch is empty)."""
-    rays = cam.ray_grid()
+                          radius_px: int = 8, depth_cam: PinholeCamera | None = None,
+                          T_cam_from_depth: np.ndarray | None = None,
+                          approx_cam: np.ndarray | None = None) -> np.ndarray:
+    """Sub-pixel, NaN-tolerant 3-D corners measured by the depth camera: a plane through the depth patch around
+    each corner, intersected with the corner's ray in ``cam``. ``(N, 3)`` mm in ``cam``'s frame (NaN where the patch
+    is empty). With a separate depth camera (``depth_cam``, ``T_cam_from_depth``) the patch is found by mapping
+    ``approx_cam`` (``(N, 3)`` approximate corners in ``cam``'s frame, e.g. from PnP) into the depth image."""
+    depth_cam = depth_cam or cam
+    T = np.eye(4) if T_cam_from_depth is None else np.asarray(T_cam_from_depth, float)
+    if depth_cam is cam and T_cam_from_depth is None:
+        centres = np.asarray(corners_uv, float)
+    else:
+        centres = depth_cam.project(transform_points(invert_T(T), approx_cam))
+    rays = depth_cam.ray_grid()
     H, W = depth_mm.shape
     xy = cam.undistort_to_normalized(corners_uv)
     out = np.full((len(corners_uv), 3), np.nan)
-    for k, (u, v) in enumerate(corners_uv):
+    for k, (u, v) in enumerate(centres):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
         u0, u1 = max(int(round(u)) - radius_px, 0), min(int(round(u)) + radius_px + 1, W)
         v0, v1 = max(int(round(v)) - radius_px, 0), min(int(round(v)) + radius_px + 1, H)
+        if u0 >= u1 or v0 >= v1:
+            continue
         z = depth_mm[v0:v1, u0:u1].astype(np.float64)
         ok = np.isfinite(z)
         if ok.sum() < 6:
             continue
         r = rays[v0:v1, u0:u1][ok]
-        pts = np.stack([r[:, 0] * z[ok], r[:, 1] * z[ok], z[ok]], axis=1)
+        pts = transform_points(T, np.stack([r[:, 0] * z[ok], r[:, 1] * z[ok], z[ok]], axis=1))
         n, c, _ = fit_plane_robust(pts, threshold_mm=1.0, iterations=30)
         d = np.array([xy[k, 0], xy[k, 1], 1.0])
         out[k] = d * (c / (d @ n))
@@ -128,22 +155,42 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     dz = detect_corners(zed_left, board)
     if dm is None or dz is None:
         return None, None, "board not found in the " + ("structured-light" if dm is None else "ZED") + " image"
-    # XY
-    P_mech = corners_3d_from_depth(dm.corners_uv, depth_mech_mm, rig.mech, params.corner_radius_px)
+    X = board.corners_board()
+    # per-pose board models fitted to all detected corners: PnP (with the lens model) in the texture camera,
+    # a homography in the rectified ZED (exact for a planar board); their residuals are the detectors' noise
+    T_mech_from_board = solve_pnp(X, dm.corners_uv, rig.mech)
+    uv_mech_fit = rig.mech.project(transform_points(T_mech_from_board, X))
+    Hb, _ = cv2.findHomography(X[:, :2], dz.corners_uv, 0)
+    uv_fit = cv2.perspectiveTransform(X[:, :2].reshape(-1, 1, 2), Hb).reshape(-1, 2)
+    N = len(X)
+    rms_m = float(np.sqrt(np.sum((dm.corners_uv - uv_mech_fit) ** 2) / max(2 * N - 6, 1)))  # per axis, dof-corrected
+    rms_z = float(np.sqrt(np.sum((dz.corners_uv - uv_fit) ** 2) / max(2 * N - 8, 1)))
+    approx = transform_points(T_mech_from_board, X)
+
+    # XY: texture-camera corners lifted to 3-D by the depth camera, mapped into the ZED-left image
+    def lift_mech(uv):
+        return corners_3d_from_depth(uv, depth_mech_mm, rig.mech, params.corner_radius_px, rig.depth_cam,
+                                     rig.T_mech_from_depth_or_identity if rig.separate_depth_camera else None, approx)
+
+    P_mech = lift_mech(dm.corners_uv)
     ok = np.all(np.isfinite(P_mech), axis=1)
     if ok.sum() < 4:
         return None, None, "no depth around the board corners"
     p_proj = rig.zed.left.project(transform_points(rig.T, P_mech[ok]))
     diff = p_proj - dz.corners_uv[ok]
     e = np.linalg.norm(diff, axis=1)
+    # the same with both detections replaced by their board models: what remains is ground-truth error
+    P_model = lift_mech(uv_mech_fit)
+    okm = np.all(np.isfinite(P_model), axis=1)
+    e_model = np.linalg.norm(rig.zed.left.project(transform_points(rig.T, P_model[okm])) - uv_fit[okm], axis=1)
+    # noise floor: the mean XY error detector noise alone gives (2-D Gaussian: mean = sigma * sqrt(pi / 2)), the
+    # texture camera's noise scaled into ZED pixels by the ratio of the board's corner spacings
+    spacing_m = np.median(np.linalg.norm(np.diff(uv_mech_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
+    spacing_z = np.median(np.linalg.norm(np.diff(uv_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
+    floor = float(np.sqrt(np.pi / 2) * np.hypot(rms_m * spacing_z / spacing_m, rms_z))
     # Z: generated ZED-left depth at the detected ZED corners
-    depth_zed = project_depth_to_camera(depth_mech_mm, rig.mech, rig.T, rig.zed.left,
+    depth_zed = project_depth_to_camera(depth_mech_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
                                         ReprojectParams(params.mode, params.max_slant_deg))
-    X = board.corners_board()
-    # The rectified ZED maps the planar board by an exact homography: fitting it to all detected
-    # corners removes most detector noise before the depth is read (the raw-corner figure is kept too).
-    Hb, _ = cv2.findHomography(X[:, :2], dz.corners_uv, 0)
-    uv_fit = cv2.perspectiveTransform(X[:, :2].reshape(-1, 1, 2), Hb).reshape(-1, 2)
 
     def lift(uv):
         z = bilinear_valid(depth_zed, uv)
@@ -170,6 +217,8 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     pv = PoseValidation(capture=name, used_for_calibration=used_for_calibration, n_corners=int(ok.sum()),
                         xy_mean_px=float(e.mean()), xy_median_px=float(np.median(e)),
                         xy_rms_px=float(np.sqrt(np.mean(e ** 2))), xy_max_px=float(e.max()),
+                        xy_noise_floor_px=floor, xy_model_mean_px=float(e_model.mean()) if e_model.size else float("nan"),
+                        detector_rms_mech_px=rms_m, detector_rms_zed_px=rms_z,
                         z_diagonal_calc_mm=D_calc, z_diagonal_true_mm=D_true,
                         z_error_pct=abs(D_calc - D_true) / D_true * 100 if np.isfinite(D_calc) else float("nan"),
                         z_error_raw_corners_pct=abs(D_raw - D_true) / D_true * 100 if np.isfinite(D_raw) else float("nan"),
@@ -189,9 +238,11 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     from gtforge.io.captures import open_session
 
     params = params or ValidateParams()
-    board = params.board.spec()
-    check_board_spec(board)
+    if params.board is not None:
+        check_board_spec(params.board.spec())
     session = open_session(session_dir)
+    if out_dir is not None:
+        session.refuse_output_inside_captures(out_dir)
     dirs = session.select("board", captures)
     if holdout:
         if holdout > len(dirs) - 3:
@@ -199,13 +250,20 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
                              str(holdout))
         held = [d.name for d in dirs[-holdout:]]
         calib_path = Path(out_dir or ".") / "holdout_calibration.yaml"
-        calib = calibrate(session_dir, calib_path, CalibrateParams(board=params.board), exclude=held, progress=progress)
+        calib = calibrate(session_dir, calib_path, CalibrateParams(board=params.board or BoardModel()), exclude=held,
+                          progress=progress)
         dirs = dirs[-holdout:]
     elif calibration is None:
         raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none")
     else:
         calib_path = Path(calibration)
         calib = CalibrationFile.read(calib_path)
+    board_model = params.board or calib.board  # the calibration's board unless overridden
+    board = board_model.spec()
+    check_board_spec(board)
+    if getattr(calib, "zed_conf", None) is not None:  # raw ZED images + SN.conf: rectify as the calibration did
+        session = open_session(session_dir, zed_conf_reading=calib.zed_conf.reading)
+    meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session))
     warnings = []
     used = set(calib.captures_used)
     overlap = [d.name for d in dirs if d.name in used]
@@ -222,6 +280,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         cap = session.load_capture(d, need_right=False)
         pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.mech_depth_mm, cap.zed_left, calib.rig, board, params,
                                      d.name in used)
+        meter.add(d.name, cap.zed_right, left_image=cap.zed_left)
         if err:
             skipped[d.name] = err
             log.warning("capture %s: %s; skipped", d.name, err)
@@ -236,6 +295,8 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     zerr = np.array([p.z_error_pct for p in poses])
     xy_mean = float(e.mean())
     z_mean = float(np.nanmean(zerr))
+    rect = meter.result()
+    warnings += rect.warnings if rect is not None else []
     rep = ValidationReport(
         calibration_path=str(calib_path), session_dir=str(session_dir),
         thresholds={"xy_px": params.xy_threshold_px, "z_pct": params.z_threshold_pct},
@@ -245,7 +306,10 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         scale_error_pct=float(np.mean([p.scale_error_pct for p in poses])),
         pass_xy=xy_mean <= params.xy_threshold_px, pass_z=z_mean <= params.z_threshold_pct,
         passed=xy_mean <= params.xy_threshold_px and z_mean <= params.z_threshold_pct,
-        warnings=warnings, skipped=skipped, poses=poses, corner_errors=allv.tolist())
+        xy_noise_floor_px=float(np.mean([p.xy_noise_floor_px for p in poses])),
+        xy_model_mean_px=float(np.average([p.xy_model_mean_px for p in poses], weights=[p.n_corners for p in poses])),
+        board=board_model, warnings=warnings, skipped=skipped, poses=poses, corner_errors=allv.tolist(),
+        rectification=rect)
     if out_dir is not None:
         from gtforge.reports.validation import write_validation_report
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import tifffile
@@ -139,10 +139,15 @@ class FileNames(GTModel):
 class SessionFile(VersionedFile):
     """``session.yaml`` at the root of a capture session (every field optional)."""
 
+    KIND: ClassVar[str] = "session.yaml"
+
     mech_intrinsics: str = "mech_intrinsics.yaml"
     # a depth camera apart from the texture camera (docs/capture-layout.md); absent: one camera
     depth_intrinsics: str | None = None
     T_mech_from_depth: list[list[float]] | None = None
+    # with mech_intrinsics an Azure Kinect calibration.json: the modes the captures were recorded in (docs/cameras.md)
+    kinect_depth_mode: Literal["NFOV_2X2BINNED", "NFOV_UNBINNED", "WFOV_2X2BINNED", "WFOV_UNBINNED"] | None = None
+    kinect_color_mode: Literal["720P", "1080P", "1440P", "1536P", "2160P", "3072P"] | None = None
     zed_calibration: str = "zed_calibration.yaml"
     zed_right_info: str | None = None
     zed_rectified: bool = True
@@ -323,15 +328,24 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None) -> Sessi
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images."""
     from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, load_camera, load_zed_rectified, read_zed_conf
+    from gtforge.io.vendors import load_structured_light_cameras
 
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, None, "a capture session folder", "no such folder", "see docs/capture-layout.md")
     cfg_path = root / "session.yaml"
     cfg = SessionFile.read(cfg_path) if cfg_path.exists() else SessionFile()
-    mech = load_camera(root / cfg.mech_intrinsics)
-    depth_cam = load_camera(root / cfg.depth_intrinsics) if cfg.depth_intrinsics else None
-    T_mech_from_depth = np.array(cfg.T_mech_from_depth) if cfg.T_mech_from_depth is not None else None
+    # a vendor file may hold both cameras (Kinect calibration.json, Mech-Eye API YAML): docs/cameras.md
+    cams = load_structured_light_cameras(root / cfg.mech_intrinsics, depth_mode=cfg.kinect_depth_mode,
+                                         color_mode=cfg.kinect_color_mode)
+    mech, depth_cam, T_mech_from_depth = cams
+    if depth_cam is not None and (cfg.depth_intrinsics or cfg.T_mech_from_depth is not None):
+        raise InputError(cfg_path, "depth_intrinsics/T_mech_from_depth", "no separate depth camera when "
+                         f"mech_intrinsics ({cfg.mech_intrinsics}) already holds one", "both",
+                         "remove depth_intrinsics and T_mech_from_depth from session.yaml")
+    if depth_cam is None:
+        depth_cam = load_camera(root / cfg.depth_intrinsics) if cfg.depth_intrinsics else None
+        T_mech_from_depth = np.array(cfg.T_mech_from_depth) if cfg.T_mech_from_depth is not None else None
     zpath = root / cfg.zed_calibration
     rectification = None
     if zpath.suffix.lower() == ".conf":

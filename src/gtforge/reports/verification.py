@@ -1,0 +1,96 @@
+"""``verification.html``: every scene's checks of its ground truth against its own images, worst first."""
+from __future__ import annotations
+
+import datetime
+import html
+from pathlib import Path
+
+import numpy as np
+
+import gtforge
+from gtforge.reports.html import fig_to_img_tag, table, write_html
+from gtforge.verify import SceneVerification, VerificationReport
+
+
+def _f(v, fmt="{:+.3f}"):
+    return "-" if v is None else fmt.format(v)
+
+
+def _sort_key(item):
+    sid, v = item
+    order = {"flagged": 0, "not verifiable": 1, "ok": 2}[v.status]
+    w = v.worst_shift_px
+    return order, -(w if np.isfinite(w) else 0.0), sid
+
+
+def _shift_map(sid: str, v: SceneVerification) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.array([[np.nan if x is None else x for x in row] for row in v.texture_tiles], float)
+    if not len(t) or not np.isfinite(t[:, 2]).any():
+        return ""
+    fig, ax = plt.subplots(figsize=(5.2, 3.4))
+    ok = np.isfinite(t[:, 2])
+    mag = np.hypot(t[ok, 2], t[ok, 3])
+    scale = 0.08 * (t[:, 0].max() * 2) / max(float(mag.max()), 0.05)
+    ax.quiver(t[ok, 0], t[ok, 1], t[ok, 2] * scale, t[ok, 3] * scale, mag, angles="xy", scale_units="xy", scale=1,
+              cmap="viridis", width=0.006)
+    for (x, y, dx, dy) in t[ok]:
+        ax.annotate(f"{np.hypot(dx, dy):.2f}", (x, y), fontsize=7, ha="center", va="bottom")
+    W, H = t[:, 0].max() * 2 * len(np.unique(t[:, 0])) / max(len(np.unique(t[:, 0])) * 2 - 1, 1), t[:, 1].max() * 2
+    ax.set_xlim(0, W)
+    ax.set_ylim(H, 0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u (ZED-left px)")
+    ax.set_ylabel("v (px)")
+    ax.set_title(f"{sid}: texture shift per tile (px, arrows scaled; labels = |shift|)", fontsize=9)
+    return fig_to_img_tag(fig, "520px")
+
+
+def write_verification_html(rep: VerificationReport, out: Path) -> Path:
+    p = rep.params
+    items = sorted(rep.scenes.items(), key=_sort_key)
+    n_flag = sum(v.status == "flagged" for v in rep.scenes.values())
+    n_nv = sum(v.status == "not verifiable" for v in rep.scenes.values())
+    head = (f"<p>{len(rep.scenes)} scene(s): <b class='{'fail' if n_flag else 'pass'}'>{n_flag} flagged</b>, "
+            f"{n_nv} not verifiable, {len(rep.scenes) - n_flag - n_nv} ok. gtforge {gtforge.__version__}, "
+            f"{datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}, dataset {html.escape(rep.dataset_dir)}.</p>"
+            "<p>Texture shift = where the ZED-left image shows a structure minus where the ground truth puts it "
+            "(the structured-light texture rendered through the GT geometry, both locally normalised, aligned by "
+            "Lucas-Kanade). Correlation: normalised cross-correlation after alignment. Stereo: the disparity bias "
+            "and vertical offset that best explain ZED-right warped through the GT disparity; bad-match = share of "
+            "textured pixels whose match is clearly better within +-1 px than at the GT (docs/pipeline.md).</p>")
+    thresholds = table(["threshold", "value"], [
+        ["texture shift, whole area or fruit (px)", p.max_shift_px], ["texture correlation, at least", p.min_correlation],
+        ["stereo disparity bias, any region (px)", p.max_disparity_bias_px],
+        ["stereo vertical misalignment (px)", p.max_vertical_px], ["bad matches (% of textured pixels)", p.max_bad_match_pct]])
+    rows = []
+    for sid, v in items:
+        st = v.stereo.get("all")
+        sf = v.stereo.get("fruit")
+        rows.append([sid, v.status.upper() if v.status == "flagged" else v.status, _f(v.texture_all.dx_px) + " / " + _f(v.texture_all.dy_px),
+                     _f(v.texture_fruit.dx_px) + " / " + _f(v.texture_fruit.dy_px),
+                     _f(v.texture_all.correlation, "{:.2f}") + " / " + _f(v.texture_fruit.correlation, "{:.2f}"),
+                     _f(st.disparity_bias_px if st else None) + " / " + _f(sf.disparity_bias_px if sf else None),
+                     _f(st.vertical_px if st else None), _f(st.bad_match_pct if st else None, "{:.1f}"),
+                     "; ".join(v.reasons)])
+    body = table(["scene", "status", "shift all dx / dy (px)", "shift fruit dx / dy (px)", "correlation all / fruit",
+                  "disparity bias all / fruit (px)", "vertical (px)", "bad matches (%)", "reasons"], rows)
+    flagged_parts = []
+    for sid, v in items:
+        if v.status != "flagged":
+            continue
+        overlay = out / "verification" / f"{sid}_overlay.jpg"
+        img = (f"<a href='verification/{sid}_overlay.jpg'><img style='max-width:640px' "
+               f"src='verification/{sid}_overlay.jpg'/></a>") if overlay.exists() else ""
+        flagged_parts.append(f"<h3>{html.escape(sid)}</h3><p>{html.escape('; '.join(v.reasons))}</p>"
+                             f"<div style='display:flex;gap:12px;align-items:flex-start'>{_shift_map(sid, v)}{img}</div>"
+                             "<p class='note'>Overlay: ZED-left (green) and the texture rendered through the ground "
+                             "truth (magenta), both locally normalised; where they agree the image is grey, a shift "
+                             "shows as green/magenta fringes.</p>")
+    return write_html(out / "verification.html", "gtforge verification", [
+        ("Summary", head + thresholds), ("Per scene, worst first", body),
+        ("Flagged scenes", "".join(flagged_parts) or "<p>none</p>")])

@@ -1,0 +1,165 @@
+"""Per-scene verification against exact truth: texture alignment and stereo consistency (gtforge.verify)."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from gtforge.build_dataset import BuildParams, Manifest, build_dataset, build_scene_arrays
+from gtforge.calibrate import CalibrationFile
+from gtforge.geometry import T_from_rotvec, transform_points
+from gtforge.io.captures import open_session
+from gtforge.verify import VerificationReport, VerifyParams, verify_dataset, verify_scene
+
+
+@pytest.fixture(scope="module")
+def moved_session(tmp_path_factory):
+    """Two fruit scenes whose fruit rolled between the structured-light and the ZED capture (0.5 mm in the table
+    plane), same rig as the shared session (0.4x)."""
+    from gtforge.synthetic import generate_session
+
+    d = tmp_path_factory.mktemp("moved")
+    generate_session(d, n_board=0, n_scenes=2, scale=0.4, seed=21, depth_noise_mm=0.03, image_noise=1.5,
+                     fruit_motion_mm={0: (0.5, 0.0, 0.0), 1: (0.3, -0.4, 0.0)})
+    return d
+
+
+def _verify(session_dir, sid, rig, params=None):
+    s = open_session(session_dir)
+    cap = s.load_capture(s.root / "scenes" / sid)
+    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), None)
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
+                          cap.mech_texture, rig, params)
+    return ver, sd, cap
+
+
+def test_exact_extrinsic_scenes_verify_at_zero(dataset):
+    out, summary = dataset
+    rep = VerificationReport.read(out / "verification.json")
+    assert sorted(rep.scenes) == ["000", "001", "002"]
+    for sid, v in rep.scenes.items():
+        assert v.status == "ok", (sid, v.reasons)
+        for e in (v.texture_all, v.texture_fruit):  # issue target: within 0.05 px of zero on every scene
+            assert e.magnitude_px < 0.05, (sid, e)
+            assert e.correlation > 0.9 and e.n_pixels > 1000
+        for region in ("all", "fruit", "background"):
+            st = v.stereo[region]
+            assert abs(st.disparity_bias_px) < 0.03 and abs(st.vertical_px) < 0.03, (sid, region, st)
+        assert v.stereo["all"].bad_match_pct < 1.0
+    man = Manifest.read(out / "manifest.json")
+    assert man.flagged == {} and man.scenes["000"].verification.status == "ok"
+    html = (out / "verification.html").read_text()
+    assert "0 flagged" in html and "Per scene, worst first" in html
+
+
+def test_moved_fruit_is_flagged_with_the_right_shift(moved_session, true_calibration, tmp_path):
+    rig = CalibrationFile.read(true_calibration).rig
+    for sid, motion in (("000", (0.5, 0.0, 0.0)), ("001", (0.3, -0.4, 0.0))):
+        ver, sd, _ = _verify(moved_session, sid, rig)
+        assert ver.status == "flagged" and any("fruit" in r for r in ver.reasons), ver.reasons
+        # expected image shift of the fruit: project its surface points before and after the move
+        tr = np.load(moved_session / "truth" / f"scene_{sid}.npz")
+        fruit = tr["fruit_mask"] & np.isfinite(sd.depth_mm)
+        v, u = np.nonzero(fruit)
+        cam = rig.zed.left
+        z = tr["zed_depth_mm"][v, u].astype(float)
+        P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
+        from gtforge.synthetic import SyntheticTruth, default_rig
+
+        T_zed_from_world = default_rig(0.4).T_zed_from_world
+        back = cam.project(P - T_zed_from_world[:3, :3] @ np.array(motion))  # where GT (pre-move) puts them
+        expect = (np.stack([u, v], 1) - back).mean(0)  # ZED position minus GT position
+        got = np.array([ver.texture_fruit.dx_px, ver.texture_fruit.dy_px])
+        assert np.linalg.norm(got - expect) < 0.08, (sid, got, expect)
+        assert ver.texture_all.magnitude_px < 0.1  # the table did not move
+        assert ver.texture_tiles and len(ver.texture_tiles) == 12  # shift map for flagged scenes
+
+
+def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibration, T_true):
+    base = CalibrationFile.read(true_calibration).rig
+    for axis in ([0.0, 0.05, 0.0], [0.05, 0.0, 0.0]):
+        T_wrong = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T_true
+        rig = base.with_extrinsic(T_wrong)
+        ver, sd, _ = _verify(session_dir, "001", rig)
+        v, u = np.nonzero(np.isfinite(sd.depth_mm))
+        cam = rig.zed.left
+        z = sd.depth_mm[v, u].astype(float)
+        P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
+        predicted = (cam.project(transform_points(T_true @ np.linalg.inv(T_wrong), P)) - np.stack([u, v], 1)).mean(0)
+        got = np.array([ver.texture_all.dx_px, ver.texture_all.dy_px])
+        assert np.linalg.norm(predicted) > 0.3  # 0.05 deg at f = 426 px
+        assert np.linalg.norm(got - predicted) < 0.05, (axis, got, predicted)  # issue target
+
+
+def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibration):
+    rig = CalibrationFile.read(true_calibration).rig
+    s = open_session(session_dir)
+    a = s.load_capture(s.root / "scenes" / "000")
+    b = s.load_capture(s.root / "scenes" / "002")
+    sd, region, _ = build_scene_arrays(a.mech_depth_mm, rig, BuildParams(), None)
+    # the ZED pair of another scene: the texture no longer matches at all
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, b.zed_left, b.zed_right,
+                          a.mech_texture, rig)
+    assert ver.status == "flagged" and any("correlation" in r for r in ver.reasons), ver.reasons
+    # a disparity ground truth biased by 0.3 px: the stereo check measures it
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px + 0.3, sd.nonoccluded, region, a.zed_left, a.zed_right,
+                          a.mech_texture, rig)
+    assert ver.stereo["all"].disparity_bias_px == pytest.approx(-0.3, abs=0.03)
+    assert ver.status == "flagged" and any("disparity bias" in r for r in ver.reasons)
+    # a right image 0.4 px lower than the rectification says
+    import cv2
+
+    M = np.float32([[1, 0, 0], [0, 1, 0.4]])
+    right_low = cv2.warpAffine(a.zed_right, M, a.zed_right.shape[1::-1], flags=cv2.INTER_CUBIC,
+                               borderMode=cv2.BORDER_REPLICATE)
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, a.zed_left, right_low,
+                          a.mech_texture, rig)
+    assert ver.stereo["all"].vertical_px == pytest.approx(0.4, abs=0.05)
+    assert any("vertical" in r for r in ver.reasons)
+    # no texture contrast: not verifiable, with the reason
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, a.zed_left, a.zed_right,
+                          np.full_like(a.mech_texture, 90), rig)
+    assert ver.status == "not verifiable" and "blank" in ver.reasons[0]
+
+
+def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, true_calibration, tmp_path):
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+
+    # a session of one clean and two moved scenes
+    sess = tmp_path / "sess"
+    shutil.copytree(moved_session, sess)
+    shutil.copytree(session_dir / "scenes" / "002", sess / "scenes" / "clean")
+    out = tmp_path / "ds"
+    r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out),
+                                 "--workers", "1", "--quarantine", "--split", "1.0,0.0"])
+    assert r.exit_code == 0, r.output
+    assert "verification: 2 scene(s) flagged (left out of the split lists: --quarantine): 000, 001" in r.output
+    man = Manifest.read(out / "manifest.json")
+    assert sorted(man.flagged) == ["000", "001"] and man.quarantined == ["000", "001"]
+    assert (out / "filenames" / "train.txt").read_text().split()[0] == "scenes/clean/im0.png"
+    assert (out / "scenes" / "000" / "disp0GT.pfm").exists()  # quarantined, never deleted
+    assert (out / "verification" / "000_overlay.jpg").exists() and not (out / "verification" / "clean_overlay.jpg").exists()
+    html = (out / "verification.html").read_text()
+    assert "2 flagged" in html and "verification/000_overlay.jpg" in html and html.index("000") < html.index("clean")
+    # verify an existing dataset again: same verdicts, exit 1 because scenes are flagged; without --quarantine the
+    # lists get every scene back
+    r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1"])
+    assert r.exit_code == 1 and "2 flagged" in r.output
+    assert len((out / "filenames" / "train.txt").read_text().split("\n")) == 4
+    assert json.loads((out / "manifest.json").read_text())["quarantined"] == []
+    # a looser threshold lets them through
+    r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1", "--max-shift-px", "2"])
+    assert r.exit_code == 0 and "0 flagged" in r.output
+    # the captures moved away: a per-scene reason, no traceback; a missing session: one-line error, exit 2
+    shutil.rmtree(sess / "scenes" / "clean")
+    rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
+    assert rep.scenes["clean"].status == "not verifiable" and "no such folder" in rep.scenes["clean"].reasons[0]
+    shutil.rmtree(sess)
+    from gtforge.errors import InputError
+
+    r = CliRunner().invoke(app, ["verify", str(out)])
+    assert isinstance(r.exception, InputError) and "session_dir" in str(r.exception)  # main() prints it, exit 2
+    with pytest.raises(InputError, match="session_dir.*no such folder.*--session"):
+        verify_dataset(out)
