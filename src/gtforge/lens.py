@@ -1,6 +1,6 @@
 """OpenCV lens distortion: every model ``cv2.projectPoints`` knows, forward and inverse.
 
-Coefficients in OpenCV's order (docs/conventions.md, "Lens distortion")::
+Coefficients in OpenCV's order (docs/conventions.md, "Lens distortion"; docs/cameras.md)::
 
     (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]])
 
@@ -15,15 +15,29 @@ Forward (normalised ``(x, y)`` -> distorted normalised), exactly as OpenCV::
     y'' = y radial + p1 (r2 + 2 y^2) + 2 p2 x y + s3 r2 + s4 r2^2
     (x_d, y_d) = dehomogenise(M_tilt(tau_x, tau_y) @ (x'', y'', 1))
 
-The inverse is a damped Newton solve with the analytic Jacobian, started from OpenCV's fixed-point estimate
-and, where that fails, from the distorted point itself; it converges near the image corners of strong
-rational lenses where the plain fixed-point iteration (``cv2.undistortPoints``) diverges.
+Inverse (:func:`undistort`): the tilt is a homography and is undone exactly; the rest is solved per point by a
+damped Newton iteration (analytic Jacobian, step halving until the residual drops), compiled with numba and run in
+parallel. It starts at ``(x'', y'')`` itself; where that does not reach a valid solution it starts again from the
+exact root of the radial part alone on the lens's monotonic branch (safeguarded 1-D Newton). A solution counts
+only when its residual is below :data:`ACCEPT_TOL` and it lies inside :func:`valid_radius`, the radius up to which
+the radial map ``r -> r * radial(r)`` still increases: beyond it the model folds back, and a "solution" there is
+a second pre-image, not the ray the pixel saw. Elsewhere the result is NaN. Unlike the plain fixed-point iteration
+of ``cv2.undistortPoints``, this converges near the image corners of strong rational lenses.
 """
 from __future__ import annotations
 
+import functools
+import math
+
+import numba
 import numpy as np
 
+# numba: prefer OpenMP (as gtforge.reproject; TBB builds on Debian are often too old)
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
 N_COEFFS = 14
+ACCEPT_TOL = 1e-12  # normalised residual below which an inverse counts as solved (~1e-9 px at f = 1000 px)
+_R_SCAN_MAX = 100.0  # normalised radius up to which valid_radius looks for the fold (89.4 deg off-axis)
 
 
 def full_coeffs(dist) -> np.ndarray:
@@ -45,7 +59,7 @@ def tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
 
 
 def distort(xy: np.ndarray, dist) -> np.ndarray:
-    """Normalised ``(N, 2)`` -> distorted normalised ``(N, 2)``."""
+    """Normalised ``(N, 2)`` -> distorted normalised ``(N, 2)`` (equals ``cv2.projectPoints``)."""
     return _distort_and_jacobian(np.asarray(xy, np.float64).reshape(-1, 2), full_coeffs(dist), False)[0]
 
 
@@ -93,75 +107,187 @@ def _distort_and_jacobian(xy: np.ndarray, d: np.ndarray, jac: bool):
     return out, J
 
 
-def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-14) -> np.ndarray:
-    """Distorted normalised ``(N, 2)`` -> undistorted normalised ``(N, 2)`` (NaN where no solution was found).
+# ---- validity: where the radial map is still one-to-one ---------------------------------------
+def _radial_slope(r: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """d/dr of ``r * radial(r^2)``, and the radial numerator and denominator, at radii ``r``."""
+    k1, k2, k3, k4, k5, k6 = d[0], d[1], d[4], d[5], d[6], d[7]
+    r2 = r * r
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    radial = num / den
+    drad_dr2 = (dnum * den - num * dden) / (den * den)
+    return radial + 2 * r2 * drad_dr2, num, den
 
-    Damped Newton on ``distort(x) = xy_d`` with backtracking; a point is solved when its residual is below
-    ``1e-12`` (normalised; about 1e-9 px for f = 1000 px).
+
+@functools.lru_cache(maxsize=64)
+def _valid_radius_cached(radial_coeffs: tuple[float, ...]) -> float:
+    d = np.zeros(N_COEFFS)
+    d[[0, 1, 4, 5, 6, 7]] = radial_coeffs  # k1 k2 k3 k4 k5 k6
+    r = np.linspace(0.0, _R_SCAN_MAX, 400_001)  # 2.5e-4 steps
+
+    def bad(rr):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            slope, num, den = _radial_slope(rr, d)
+        return ~((slope > 0) & (num > 0) & (den > 0))
+
+    b = bad(r)
+    if not b.any():
+        return math.inf
+    i = int(np.argmax(b))  # first bad sample; r[i - 1] is good (r = 0 always is)
+    lo, hi = float(r[i - 1]), float(r[i])
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if bad(np.array([mid]))[0]:
+            hi = mid
+        else:
+            lo = mid
+    return lo
+
+
+def valid_radius(dist) -> float:
+    """The normalised radius up to which the radial part of the lens model is one-to-one (``inf`` if it never
+    folds back within 89.4 deg of the axis): the first radius where ``d/dr (r * radial(r))`` reaches 0 or where
+    the rational denominator or numerator reaches 0. Inverse solutions beyond it are refused (NaN)."""
+    d = full_coeffs(dist)
+    return _valid_radius_cached(tuple(float(x) for x in d[[0, 1, 4, 5, 6, 7]].tolist()))
+
+
+# ---- inverse ----------------------------------------------------------------------------------
+@numba.njit(cache=True, inline="always")
+def _g_and_J(x, y, d):
+    """Radial + tangential + thin prism (no tilt) and its Jacobian at one point."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], \
+        d[8], d[9], d[10], d[11]
+    r2 = x * x + y * y
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    gx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r2 * r2
+    gy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r2 * r2
+    dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+    drad = (dnum * den - num * dden) / (den * den)
+    sx = s1 + 2.0 * s2 * r2
+    sy = s3 + 2.0 * s4 * r2
+    j00 = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x + 2.0 * x * sx
+    j01 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y + 2.0 * y * sx
+    j10 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y + 2.0 * x * sy
+    j11 = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x + 2.0 * y * sy
+    return gx, gy, j00, j01, j10, j11
+
+
+@numba.njit(cache=True)
+def _newton(x, y, tx, ty, d, max_iter, stop2):
+    """Damped Newton on g(x, y) = (tx, ty) from (x, y). Returns (x, y, residual^2, det J at the end)."""
+    gx, gy, j00, j01, j10, j11 = _g_and_J(x, y, d)
+    rx, ry = gx - tx, gy - ty
+    c = rx * rx + ry * ry
+    for _ in range(max_iter):
+        if not c > stop2:  # converged (or NaN, which no step improves)
+            break
+        det = j00 * j11 - j01 * j10
+        if det == 0.0 or not math.isfinite(det):
+            break
+        sx = (j11 * rx - j01 * ry) / det
+        sy = (-j10 * rx + j00 * ry) / det
+        lam = 1.0
+        accepted = False
+        for _h in range(40):
+            xn, yn = x - lam * sx, y - lam * sy
+            gxn, gyn, a00, a01, a10, a11 = _g_and_J(xn, yn, d)
+            rxn, ryn = gxn - tx, gyn - ty
+            cn = rxn * rxn + ryn * ryn
+            if cn < c:
+                x, y, rx, ry, c = xn, yn, rxn, ryn, cn
+                j00, j01, j10, j11 = a00, a01, a10, a11
+                accepted = True
+                break
+            lam *= 0.5
+        if not accepted:  # no step lowers the residual: at machine precision, or trapped
+            break
+    return x, y, c, j00 * j11 - j01 * j10
+
+
+@numba.njit(cache=True)
+def _radial_root(rd, d, r_hi, f_hi):
+    """The r in [0, r_hi] with r * radial(r) = rd on the monotonic branch (safeguarded Newton + bisection)."""
+    if not rd < f_hi:
+        return np.nan
+    k1, k2, k3, k4, k5, k6 = d[0], d[1], d[4], d[5], d[6], d[7]
+    lo, hi = 0.0, r_hi
+    r = rd if rd < r_hi else 0.5 * r_hi
+    for _ in range(200):
+        r2 = r * r
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        f = r * num / den - rd
+        if f > 0.0:
+            hi = r
+        else:
+            lo = r
+        if hi - lo < 1e-15 * (1.0 + hi):
+            break
+        fp = num / den + 2.0 * r2 * (dnum * den - num * dden) / (den * den)
+        rn = r - f / fp if fp > 0.0 else -1.0
+        r = rn if lo < rn < hi else 0.5 * (lo + hi)
+    return r
+
+
+@numba.njit(parallel=True, cache=True)
+def _undistort_kernel(xy_d, d, Minv, tilted, r_valid2, r_hi, f_hi, max_iter, stop2, accept2, out):
+    n = xy_d.shape[0]
+    for i in numba.prange(n):
+        xd, yd = xy_d[i, 0], xy_d[i, 1]
+        if tilted:  # undo the sensor tilt exactly: (x'', y'') = dehomogenise(M^-1 (x_d, y_d, 1))
+            hx = Minv[0, 0] * xd + Minv[0, 1] * yd + Minv[0, 2]
+            hy = Minv[1, 0] * xd + Minv[1, 1] * yd + Minv[1, 2]
+            hw = Minv[2, 0] * xd + Minv[2, 1] * yd + Minv[2, 2]
+            tx, ty = hx / hw, hy / hw
+        else:
+            tx, ty = xd, yd
+        out[i, 0] = np.nan
+        out[i, 1] = np.nan
+        if not (math.isfinite(tx) and math.isfinite(ty)):
+            continue
+        # start 1: the distorted point itself
+        x, y, c, det = _newton(tx, ty, tx, ty, d, max_iter, stop2)
+        if c <= accept2 and det > 0.0 and x * x + y * y < r_valid2:
+            out[i, 0] = x
+            out[i, 1] = y
+            continue
+        # start 2: the radial part's root on the monotonic branch, in the direction of (x'', y'')
+        rd = math.sqrt(tx * tx + ty * ty)
+        r = _radial_root(rd, d, r_hi, f_hi)
+        if not math.isfinite(r):
+            continue
+        s = r / rd if rd > 0.0 else 0.0
+        x, y, c, det = _newton(tx * s, ty * s, tx, ty, d, max_iter, stop2)
+        if c <= accept2 and det > 0.0 and x * x + y * y < r_valid2:
+            out[i, 0] = x
+            out[i, 1] = y
+
+
+def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15) -> np.ndarray:
+    """Distorted normalised ``(N, 2)`` -> undistorted normalised ``(N, 2)``.
+
+    NaN where no valid solution exists (outside :func:`valid_radius`, or residual above :data:`ACCEPT_TOL`).
+    ``iterations``: Newton iterations per start; ``tol``: the residual (normalised) at which a point stops.
     """
-    import cv2
-
-    target = np.asarray(xy_d, np.float64).reshape(-1, 2)
+    target = np.ascontiguousarray(np.asarray(xy_d, np.float64).reshape(-1, 2))
     d = full_coeffs(dist)
     if not np.any(d):
         return target.copy()
-    # first start: OpenCV's fixed-point estimate (fast, right almost everywhere), polished by Newton
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-14)
-    x0 = cv2.undistortPointsIter(target.reshape(-1, 1, 2), np.eye(3), d, None, None, crit).reshape(-1, 2)
-    x0[~np.isfinite(x0)] = target[~np.isfinite(x0)]
-    x = _newton(x0, target, d, iterations, tol)
-    res = np.linalg.norm(distort(x, d) - target, axis=1)
-    bad = ~(res < 1e-12)
-    if bad.any():  # where the fixed point diverged (strong rational lenses near the corners): start at xy_d
-        x1 = _newton(target[bad].copy(), target[bad], d, iterations, tol)
-        res1 = np.linalg.norm(distort(x1, d) - target[bad], axis=1)
-        better = res1 < res[bad]
-        idx = np.nonzero(bad)[0][better]
-        x[idx] = x1[better]
-        res[idx] = res1[better]
-    x[~(res < 1e-10)] = np.nan
-    return x
-
-
-def _newton(x: np.ndarray, target: np.ndarray, d: np.ndarray, iterations: int, tol: float) -> np.ndarray:
-    f, J = _distort_and_jacobian(x, d, True)
-    r = f - target
-    cost = np.einsum("ij,ij->i", r, r)
-    active = np.ones(len(x), bool)
-    for _ in range(iterations):
-        active &= cost > tol * tol
-        if not active.any():
-            break
-        a = np.nonzero(active)[0]
-        Ja, ra = J[a], r[a]
-        det = Ja[:, 0, 0] * Ja[:, 1, 1] - Ja[:, 0, 1] * Ja[:, 1, 0]
-        ok = np.abs(det) > 1e-300
-        det = np.where(ok, det, 1.0)
-        step = np.stack([(Ja[:, 1, 1] * ra[:, 0] - Ja[:, 0, 1] * ra[:, 1]) / det,
-                         (-Ja[:, 1, 0] * ra[:, 0] + Ja[:, 0, 0] * ra[:, 1]) / det], axis=1)
-        step[~ok] = ra[~ok]  # singular Jacobian: a fixed-point step
-        # backtracking: halve the step until the residual drops (at most 30 halvings)
-        lam = np.ones(len(a))
-        pending = np.ones(len(a), bool)
-        xa_new = x[a].copy()
-        fa_new = f[a].copy()
-        Ja_new = J[a].copy()
-        ca_new = cost[a].copy()
-        for _ in range(30):
-            p = np.nonzero(pending)[0]
-            if not len(p):
-                break
-            xt = x[a[p]] - lam[p, None] * step[p]
-            ft, Jt = _distort_and_jacobian(xt, d, True)
-            rt = ft - target[a[p]]
-            ct = np.einsum("ij,ij->i", rt, rt)
-            acc = ct < cost[a[p]]
-            q = p[acc]
-            xa_new[q], fa_new[q], Ja_new[q], ca_new[q] = xt[acc], ft[acc], Jt[acc], ct[acc]
-            pending[q] = False
-            lam[p[~acc]] *= 0.5
-        stuck = pending  # no step decreased the residual: converged to machine precision or trapped
-        x[a], f[a], J[a], cost[a] = xa_new, fa_new, Ja_new, ca_new
-        r[a] = fa_new - target[a]
-        active[a[stuck]] = False
-    return x
+    tilted = bool(d[12] != 0.0 or d[13] != 0.0)
+    Minv = np.linalg.inv(tilt_matrix(d[12], d[13])) if tilted else np.eye(3)
+    r_valid = valid_radius(d)
+    r_hi = min(r_valid, _R_SCAN_MAX)
+    _, num, den = _radial_slope(np.array([r_hi]), d)
+    f_hi = float(r_hi * num[0] / den[0])  # the largest distorted radius of the monotonic branch
+    out = np.empty_like(target)
+    _undistort_kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol,
+                      ACCEPT_TOL * ACCEPT_TOL, out)
+    return out
