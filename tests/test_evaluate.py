@@ -1,3 +1,6 @@
+import json
+import os
+import shutil
 import subprocess
 import sys
 
@@ -94,9 +97,80 @@ def test_sgbm_baseline_is_plausible(dataset, tmp_path):
     assert rep.pooled["fruit"].depth_mae_mm is not None and 0 < rep.pooled["fruit"].depth_mae_mm < 20
     assert len(list((tmp_path / "clouds").glob("*.ply"))) == 3
     html = (tmp_path / "results.html").read_text()
-    assert "Per scene, worst first" in html and html.count("data:image/png;base64") == 6
-    table = compare([tmp_path / "results.json", tmp_path / "results.json"], tmp_path / "cmp")
-    assert table.count("| SGBM | all |") == 2
+    assert "Per scene, worst EPE first" in html and html.count("data:image/jpeg;base64") == 6
+    # the same model name twice: compare says so, labels the rows with the folder, and writes an HTML table
+    (tmp_path / "b").mkdir()
+    shutil.copy(tmp_path / "results.json", tmp_path / "b" / "results.json")
+    table, warnings = compare([tmp_path / "results.json", tmp_path / "b" / "results.json"], tmp_path / "cmp")
+    assert len(warnings) == 1 and "model name 'SGBM' is used by 2 results" in warnings[0]
+    assert table.count("| SGBM [b] | all |") == 1 and table.count(f"| SGBM [{tmp_path.name}] | all |") == 1
+    chtml = (tmp_path / "cmp" / "comparison.html").read_text()
+    assert "model name &#x27;SGBM&#x27; is used by 2 results" in chtml and chtml.count("<td>SGBM [b]</td>") == 5
+
+
+def test_results_html_is_small_with_colour_bars_and_header(dataset, tmp_path):
+    """Issue 11 item 10: previews (JPEG, with colour bars) link full-size maps; header; depth-MAE note; no clouds."""
+    ds, _ = dataset
+    rep = evaluate(ds, SGBM(), tmp_path)
+    assert not (tmp_path / "clouds").exists()  # point clouds only with write_clouds / --clouds
+    html = (tmp_path / "results.html").read_text()
+    assert len(html.encode()) < 400_000, len(html.encode())  # 883x497 maps inlined would be > 1.5 MB
+    assert "data:image/png" not in html
+    for sid in rep.scenes:
+        for kind in ("disp_error", "depth_error"):
+            assert f'href="heatmaps/{sid}_{kind}.png"' in html
+    import gtforge
+
+    assert f"<th>gtforge version</th><td>{gtforge.__version__}</td>" in html
+    assert f"<th>dataset</th><td>{ds.resolve()}</td>" in html and "StereoSGBM" in html
+    assert "Depth MAE is computed on the fruit regions only" in html
+    # the full-size map: pixel-aligned turbo colours on top, a colour bar strip below
+    from gtforge.reports.evaluation import heatmap_rgb
+
+    s = ds / "scenes" / rep.scenes[0]
+    gt = read_pfm(s / "disp0GT.pfm")
+    full = read_image(tmp_path / "heatmaps" / f"{rep.scenes[0]}_disp_error.png")
+    H, W = gt.shape
+    assert full.shape[0] > H + 40 and full.shape[1] == W
+    from gtforge.evaluate import SceneCalib
+
+    cal = SceneCalib(s / "calib.txt")
+    pred = SGBM().predict(rep.scenes[0], read_image(s / "im0.png"), read_image(s / "im1.png"), cal.ndisp, cal.vmin)
+    err = np.where((read_image(s / "mask0nocc.png") > 0) & np.isfinite(gt), np.abs(pred - gt), np.nan)
+    np.testing.assert_array_equal(full[:H], heatmap_rgb(err, 2.0))
+    strip = full[H:]
+    assert (strip == 255).all(axis=2).mean() > 0.5 and strip.std() > 20  # white background with the bar and ticks
+
+
+def _constant_offset_predictions(ds, folder, offset_px, scenes=None):
+    folder.mkdir()
+    for s in sorted((ds / "scenes").iterdir()):
+        if scenes is None or s.name in scenes:
+            write_pfm(folder / f"{s.name}.pfm", read_pfm(s / "disp0GT.pfm") + offset_px)
+    return folder
+
+
+def test_depth_error_map_is_scaled_to_the_data(dataset, tmp_path):
+    """Issue 11 item 10: the fruit depth-error map's scale follows the errors (not a fixed 0-1 mm, solid red)."""
+    from gtforge.evaluate import SceneCalib, nice_ceil
+
+    ds, _ = dataset
+    preds = _constant_offset_predictions(ds, tmp_path / "p", 0.5)
+    rep = evaluate(ds, PredictionFolder(preds), tmp_path / "ev")
+    for sr in rep.per_scene:
+        s = ds / "scenes" / sr.scene
+        gt = read_pfm(s / "disp0GT.pfm")
+        cal = SceneCalib(s / "calib.txt")
+        fruit = (read_image(s / "region.png") >= 2) & (read_image(s / "mask0nocc.png") > 0) & np.isfinite(gt)
+        zerr = np.abs(cal.depth(gt[fruit] + 0.5) - cal.depth(gt[fruit]))
+        assert sr.depth_error_map_max_mm == nice_ceil(float(np.percentile(zerr, 95)))
+        assert sr.depth_error_map_max_mm >= float(np.percentile(zerr, 95))
+        assert sr.metrics["fruit"].depth_mae_mm == pytest.approx(float(zerr.mean()), rel=1e-5)
+        # at most ~5 % of the fruit saturates the colour scale
+        assert np.mean(zerr > sr.depth_error_map_max_mm) <= 0.05
+    html = (tmp_path / "ev" / "results.html").read_text()
+    top = rep.per_scene[0].depth_error_map_max_mm
+    assert f"fruit depth error, scale 0\u2013{top:g} mm" in html
 
 
 def test_prediction_folder_with_missing_and_wrong_size(dataset, tmp_path):
@@ -108,11 +182,125 @@ def test_prediction_folder_with_missing_and_wrong_size(dataset, tmp_path):
     write_kitti_disparity(preds / "001_10.png", np.ones((10, 10), np.float32))  # wrong size
     rep = evaluate(ds, PredictionFolder(preds), tmp_path / "ev")
     assert rep.scenes == ["000"] and set(rep.missing) == {"001", "002"}
-    assert "883x497" in rep.missing["001"] and "missing" in rep.missing["002"]
+    assert "883x497" in rep.missing["001"] and "no prediction file (002.pfm" in rep.missing["002"]
     assert rep.pooled["all"].epe_px == pytest.approx(0.25, abs=1e-5)
+    assert "2 scene(s) excluded" in (tmp_path / "ev" / "results.html").read_text()
+
+
+def test_partial_predictions_are_reported_first_and_exit_nonzero(dataset, tmp_path):
+    """Issue 11 item 9: predictions for only some scenes -> said before any table, exit code 1."""
+    ds, _ = dataset
+    preds = _constant_offset_predictions(ds, tmp_path / "preds", 0.25, scenes={"000"})
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
     r = subprocess.run([sys.executable, "-m", "gtforge.cli", "evaluate", str(ds), "--predictions", str(preds),
-                        "-o", str(tmp_path / "ev2"), "--no-clouds"], capture_output=True, text=True)
-    assert r.returncode == 1 and "2 scene(s) excluded" in r.stdout and "Traceback" not in r.stderr
+                        "-o", str(tmp_path / "ev")], capture_output=False, stdout=subprocess.PIPE,
+                       stderr=subprocess.STDOUT, text=True, env=env)
+    assert r.returncode == 1, r.stdout
+    first = r.stdout.index("no prediction for 2 of 3 scene(s)")
+    assert first < r.stdout.index("| model | region |")
+    assert "001, 002" in r.stdout[first:first + 400] and "exit with code 1" in r.stdout[first:first + 400]
+    assert "2 scene(s) excluded" in r.stdout and "Traceback" not in r.stdout
+    # none at all: a one-line input error naming the expected files
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match=r"a prediction per scene named <id>\.pfm.*none for the 3 scene\(s\)"):
+        evaluate(ds, PredictionFolder(empty), tmp_path / "ev2")
+
+
+def test_empty_split_says_why(dataset, tmp_path):
+    """Issue 11 item 9: `evaluate --split val` on a split that came out empty says why (exit 2, one line)."""
+    ds, summary = dataset
+    empty = [k for k, v in summary.splits.items() if not v]
+    assert empty, summary.splits  # 3 scenes of 2 fruit at 0.8/0.1: one split gets nothing
+    r = CliRunner().invoke(app, ["evaluate", str(ds), "--sgbm", "--split", empty[0], "-o", str(tmp_path / "ev")])
+    assert r.exit_code != 0
+    with pytest.raises(InputError) as exc:
+        evaluate(ds, SGBM(), tmp_path / "ev", split=empty[0])
+    msg = str(exc.value)
+    assert "\n" not in msg and f"at least one scene in the '{empty[0]}' split, got an empty list" in msg
+    counts = ", ".join(f"{k} {len(v)}" for k, v in summary.splits.items())
+    assert f"into {counts}" in msg and "evaluate without --split" in msg
+
+
+def _dataset_copy_with_sigma(ds, dst):
+    """The test dataset plus a sigma map per scene: 0.1 px on the left half, 1.0 px on the right, +inf without GT."""
+    shutil.copytree(ds, dst)  # files, not links: the sigma maps written below stay in the copy
+    for s in sorted((dst / "scenes").iterdir()):
+        gt = read_pfm(s / "disp0GT.pfm")
+        sigma = np.full(gt.shape, 0.1, np.float32)
+        sigma[:, gt.shape[1] // 2:] = 1.0
+        sigma[~np.isfinite(gt)] = np.inf
+        write_pfm(s / "disp0GT_sigma.pfm", sigma)
+    return dst
+
+
+def test_max_gt_sigma_scores_only_certain_pixels(dataset, tmp_path):
+    """Issue 10 consumer: --max-gt-sigma PX leaves out GT pixels whose sigma is not below PX and counts them."""
+    ds0, _ = dataset
+    old = tmp_path / "old"  # a dataset from before build-dataset wrote sigma maps
+    shutil.copytree(ds0, old)
+    for f in old.glob("scenes/*/disp0GT_sigma.pfm"):
+        f.unlink()
+    with pytest.raises(InputError, match=r"disp0GT_sigma\.pfm.*none in 3 of 3 scene\(s\).*hint: rebuild"):
+        evaluate(old, SGBM(), None, max_gt_sigma_px=0.5)
+    ds = _dataset_copy_with_sigma(ds0, tmp_path / "ds")
+    preds = tmp_path / "preds"
+    preds.mkdir()
+    expect = {r: [0, 0] for r in ("all", "fruit")}  # scored, left out
+    for s in sorted((ds / "scenes").iterdir()):
+        gt = read_pfm(s / "disp0GT.pfm")
+        half = gt.shape[1] // 2
+        pred = gt + 0.25
+        pred[:, half:] = gt[:, half:] + 3.0  # uncertain half: badly predicted, must not count
+        write_pfm(preds / f"{s.name}.pfm", pred)
+        ok = (read_image(s / "mask0nocc.png") > 0) & np.isfinite(gt)
+        fruit = ok & (read_image(s / "region.png") >= 2)
+        for r, m in (("all", ok), ("fruit", fruit)):
+            expect[r][0] += int(m[:, :half].sum())
+            expect[r][1] += int(m[:, half:].sum())
+    r = CliRunner().invoke(app, ["evaluate", str(ds), "--predictions", str(preds), "--max-gt-sigma", "0.5",
+                                 "-o", str(tmp_path / "ev")])
+    assert r.exit_code == 0, r.output
+    rep = EvalReport.read(tmp_path / "ev" / "results.json")
+    assert rep.max_gt_sigma_px == 0.5
+    for reg in ("all", "fruit"):
+        m = rep.pooled[reg]
+        assert (m.n_gt, m.n_gt_sigma_left_out) == tuple(expect[reg])
+        assert m.epe_px == pytest.approx(0.25, abs=1e-5) and m.bad_1_0_pct == 0.0
+    assert sum(s.metrics["all"].n_gt_sigma_left_out for s in rep.per_scene) == expect["all"][1]
+    md = (tmp_path / "ev" / "results.md").read_text()
+    share = 100.0 * expect["all"][1] / sum(expect["all"])
+    assert "GT left out by sigma" in md and f"| {expect['all'][1]} ({share:.1f} %) |" in md
+    csv_rows = (tmp_path / "ev" / "results.csv").read_text().splitlines()
+    assert csv_rows[0].split(",")[3] == "GT left out by sigma (pixels)"
+    assert csv_rows[1].split(",")[3] == str(expect["all"][1])
+    # without the limit every GT pixel counts, and nothing is left out
+    rep_all = evaluate(ds, PredictionFolder(preds), None)
+    assert rep_all.pooled["all"].n_gt == sum(expect["all"]) and rep_all.pooled["all"].n_gt_sigma_left_out == 0
+    # compare: the same predictions scored with and without the limit are not comparable
+    rep_all.model = "unlimited"
+    rep_all.write(tmp_path / "all.json")
+    _, warnings = compare([tmp_path / "ev" / "results.json", tmp_path / "all.json"], tmp_path / "cmp")
+    assert len(warnings) == 1 and "different scoring limits" in warnings[0]
+
+
+def test_compare_warns_about_different_datasets(dataset, tmp_path):
+    """Issue 11 item 9: compare warns when results come from different datasets (and prints it on the CLI)."""
+    ds0, _ = dataset
+    ds = tmp_path / "ds"
+    shutil.copytree(ds0, ds)
+    man = json.loads((ds / "manifest.json").read_text())
+    man["params"]["erosion_px"] = 9  # as if rebuilt with other parameters
+    (ds / "manifest.json").write_text(json.dumps(man))
+    preds = _constant_offset_predictions(ds0, tmp_path / "p", 0.25)
+    evaluate(ds0, PredictionFolder(preds, "a"), tmp_path / "a")
+    evaluate(ds, PredictionFolder(preds, "b"), tmp_path / "b")
+    r = CliRunner().invoke(app, ["compare", str(tmp_path / "a" / "results.json"), str(tmp_path / "b" / "results.json"),
+                                 "-o", str(tmp_path / "cmp")])
+    assert r.exit_code == 0, r.output
+    assert "the results come from different datasets (manifest.json differs)" in r.output
+    assert (tmp_path / "cmp" / "comparison.html").is_file() and (tmp_path / "cmp" / "comparison.csv").is_file()
+    assert "> warning: the results come from different datasets" in (tmp_path / "cmp" / "comparison.md").read_text()
 
 
 def test_loader_yields_training_arrays(dataset):

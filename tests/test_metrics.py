@@ -59,3 +59,21 @@ def test_sgra_loss_by_hand():
     l_res = (1.4 * 0.0 + 1.0 * 0.125 + 0.8 * 2.5) / 3.2
     assert weighted_smooth_l1(init, gt, w) == pytest.approx(l_init)
     assert sgra_loss(init, resid, gt, w, gamma1=0.3, gamma2=1.0) == pytest.approx(0.3 * l_init + l_res)
+
+
+def test_max_gt_sigma_by_hand():
+    gt = np.array([[1.0, 2.0, np.nan, 4.0], [5.0, 6.0, 7.0, 8.0]])
+    pred = np.array([[1.5, 2.0, 3.0, 9.0], [5.25, np.nan, 7.0, 8.0]])
+    sigma = np.array([[0.1, 0.2, np.nan, 0.9], [0.3, 0.05, np.nan, 0.5]])
+    # GT pixels: 7. sigma < 0.5 keeps (0,0) (0,1) (1,0) (1,1); left out: (0,3) 0.9, (1,2) no sigma, (1,3) 0.5 (not below)
+    m = disparity_metrics(pred, gt, gt_sigma_px=sigma, max_gt_sigma_px=0.5)
+    assert (m.n_gt, m.n_gt_sigma_left_out, m.n_valid) == (4, 3, 3)
+    assert m.epe_px == pytest.approx((0.5 + 0.0 + 0.25) / 3) and m.coverage_pct == pytest.approx(75.0)
+    region = np.array([[True, False, True, True], [False, False, True, True]])
+    r = disparity_metrics(pred, gt, region, gt_sigma_px=sigma, max_gt_sigma_px=0.5)
+    assert (r.n_gt, r.n_gt_sigma_left_out) == (1, 3)
+    # without the limit nothing is left out; per-image means add the counts up
+    assert disparity_metrics(pred, gt).n_gt_sigma_left_out == 0
+    assert mean_of([m, r]).n_gt_sigma_left_out == 6
+    with pytest.raises(ValueError, match="gt_sigma_px"):
+        disparity_metrics(pred, gt, max_gt_sigma_px=0.5)

@@ -277,3 +277,20 @@ def test_session_reads_side_by_side_video(tmp_path):
     (tmp_path / "session.yaml").write_text("schema_version: 1\nvideo_frame: 2\n")
     cap = open_session(tmp_path).load_capture(c)
     assert cap.zed_left.shape == (10, 20, 3) and abs(float(cap.zed_right.mean()) - 180) < 15
+
+
+def test_ros_rational_polynomial_keeps_all_eight_coefficients(tmp_path):
+    D = [0.41, -0.02, 0.0003, -0.0002, 0.003, 0.78, 0.09, -0.01]
+    ros = dict(image_width=640, image_height=576, distortion_model="rational_polynomial",
+               camera_matrix=dict(rows=3, cols=3, data=[504.1, 0, 321.2, 0, 504.3, 330.7, 0, 0, 1]),
+               distortion_coefficients=dict(rows=1, cols=8, data=D))
+    (tmp_path / "k.yaml").write_text(yaml.safe_dump(ros))
+    cam = load_camera(tmp_path / "k.yaml")
+    assert cam.dist_coeffs == D
+    X = np.array([[0.31, -0.22, 1.0]])
+    uv = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cam.K, np.array(D))[0].reshape(-1, 2)
+    np.testing.assert_allclose(cam.project(X), uv, atol=1e-9)
+    ros["distortion_coefficients"]["data"] = D[:6]
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(ros))
+    with pytest.raises(InputError, match=r"distortion_coefficients.*got 6"):
+        load_camera(tmp_path / "bad.yaml")

@@ -17,6 +17,11 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+try:
+    import fcntl  # scene writer locks (POSIX); without it stale folders are removed unconditionally
+except ImportError:  # pragma: no cover
+    fcntl = None
+
 import gtforge
 from gtforge.calibrate import CalibrationFile
 from gtforge.camera import RectifiedStereo, Rig
@@ -26,6 +31,7 @@ from gtforge.io.atomic import atomic_write_text
 from gtforge.io.formats import (
     write_image,
     write_kitti_disparity,
+    write_label_png,
     write_pfm,
     write_ply,
     write_tiff_float,
@@ -33,6 +39,7 @@ from gtforge.io.formats import (
 from gtforge.reproject import ReprojectParams, reproject_to_zed
 from gtforge.scheduling import run_tasks
 from gtforge.schema import GTModel, VersionedFile
+from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats
 from gtforge.verify import SceneVerification, VerifyParams, verify_scene
 
 log = logging.getLogger("gtforge.build_dataset")
@@ -61,6 +68,8 @@ class BuildParams(GTModel):
     ply: bool = False
     max_disp_px: float = 192.0  # statistics: share of pixels above this (many training repos drop them)
     verification: bool = True  # per-scene checks of the GT against its own images (gtforge.verify)
+    sigma: bool = True  # disp0GT_sigma.pfm: per-pixel 1-sigma GT uncertainty (gtforge.uncertainty)
+    uncertainty: UncertaintyParams = Field(default_factory=UncertaintyParams)
     verify: VerifyParams = Field(default_factory=VerifyParams)
     quarantine: bool = False  # leave flagged scenes out of the split lists (they stay in scenes/)
 
@@ -82,6 +91,14 @@ class SceneStats(GTModel):
     over_max_disp_pct: float
 
 
+class InputStamp(GTModel):
+    """An input file's size and modification time when its SHA-256 was taken (meta.json)."""
+
+    size_bytes: int
+    mtime_ns: int
+    hashed_at_ns: int
+
+
 class SceneMeta(VersionedFile):
 
     KIND: ClassVar[str] = "scene meta.json (from gtforge build-dataset)"
@@ -91,6 +108,7 @@ class SceneMeta(VersionedFile):
     calibration_sha256: str
     params_hash: str
     input_sha256: dict[str, str]
+    input_stamps: dict[str, InputStamp] = Field(default_factory=dict)  # resume fast path (inputs_unchanged)
     stats: SceneStats
     crop_xywh: list[int] | None = None
     fruit_mask_source: Literal["geometry", "user"] = "geometry"
@@ -99,6 +117,8 @@ class SceneMeta(VersionedFile):
     time_compute_s: float = 0.0
     time_write_s: float = 0.0
     verification: SceneVerification | None = None
+    sigma: dict[str, SigmaStats] | None = None  # GT uncertainty per region: all, fruit, fruit_centre, ...
+    sigma_extrinsic_included: bool = False  # False: the calibration file had no covariance (older gtforge)
 
 
 class Manifest(VersionedFile):
@@ -133,11 +153,47 @@ class BuildSummary:
 
 
 def sha256_file(path: Path) -> str:
+    """SHA-256 of a file, read in 1 MiB chunks (about 2.5 GB/s here with the CPU's SHA instructions:
+    benchmarks/RESULTS.md)."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+# A recorded size + mtime is trusted only when the file was last modified this long before it was hashed:
+# a file rewritten within the filesystem's timestamp granularity of the hash could keep both (as git's
+# "racily clean" entries).
+STAMP_MARGIN_NS = 2_000_000_000
+
+
+def hash_inputs(paths: list[Path]) -> tuple[dict[str, str], dict[str, "InputStamp"]]:
+    """SHA-256 of each input, and its size + mtime taken just before hashing (for ``inputs_unchanged``)."""
+    hashes, stamps = {}, {}
+    for p in paths:
+        st = p.stat()
+        now_ns = time.time_ns()
+        hashes[p.name] = sha256_file(p)
+        stamps[p.name] = InputStamp(size_bytes=st.st_size, mtime_ns=st.st_mtime_ns, hashed_at_ns=now_ns)
+    return hashes, stamps
+
+
+def inputs_unchanged(meta: "SceneMeta", paths: list[Path]) -> bool:
+    """Resume check: the same input files with the same contents as when ``meta``'s scene was built.
+    A file whose size and mtime equal the recorded ones (and was not modified within ``STAMP_MARGIN_NS``
+    of being hashed) counts as unchanged without reading it; any other file is hashed and compared."""
+    if {p.name for p in paths} != set(meta.input_sha256):
+        return False
+    for p in paths:
+        st = p.stat()
+        s = meta.input_stamps.get(p.name)
+        if s is not None and s.size_bytes == st.st_size and s.mtime_ns == st.st_mtime_ns \
+                and s.mtime_ns < s.hashed_at_ns - STAMP_MARGIN_NS:
+            continue
+        if sha256_file(p) != meta.input_sha256[p.name]:
+            return False
+    return True
 
 
 # ---- regions --------------------------------------------------------------------------------
@@ -202,7 +258,7 @@ def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp: n
 def build_scene_arrays(depth_mech_mm: np.ndarray, rig: Rig, params: BuildParams, user_mask: np.ndarray | None = None):
     """Ground-truth depth/disparity/occlusion in the ZED-left image, region labels and the fruit mask."""
     sd = reproject_to_zed(depth_mech_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed, params.reproject_params(),
-                          params.occlusion_rel_tol)
+                          params.occlusion_rel_tol, left_span=params.sigma and params.mode == "mesh")
     region, fruit = fruit_regions(sd.depth_mm, rig.zed, params, user_mask)
     return sd, region, fruit
 
@@ -228,8 +284,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     params = BuildParams.model_validate_json(params_json)
     cap_dir = Path(capture_dir)
     try:
-        session = _cached_session(session_dir)
         calib = _cached_calibration(calib_path, calib_sha)
+        session = _cached_session(session_dir, calib.zed_conf_reading)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
         cap = session.load_capture(cap_dir)
         t_read = time.perf_counter()
@@ -242,6 +298,11 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                                               cap.zed_right, cap.mech_texture, rig, params.verify)
         if verification.status == "flagged" and rendered is not None:
             write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
+    sigma = None
+    if params.sigma:
+        shift = verification.texture_all.magnitude_px if verification is not None else None
+        sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm, params.uncertainty,
+                                sd.span_mm, shift)
     disp = sd.disparity_px
     valid = np.isfinite(disp)
     left, right, depth = cap.zed_left, cap.zed_right, sd.depth_mm
@@ -251,6 +312,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         x0, y0, cw, ch = _crop_window(fruit, params.crop_wh)
         sl = (slice(y0, y0 + ch), slice(x0, x0 + cw))
         left, right, depth, disp, region, fruit = left[sl], right[sl], depth[sl], disp[sl], region[sl], fruit[sl]
+        sigma = sigma[sl] if sigma is not None else None
         noc = sd.nonoccluded[sl]
         valid = valid[sl]
         crop, cx_shift, cy_shift = [x0, y0, cw, ch], float(x0), float(y0)
@@ -263,50 +325,81 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                        disp_max_px=float(finite.max()) if finite.size else None,
                        over_max_disp_pct=100.0 * float((finite > params.max_disp_px).mean()) if finite.size else 0.0)
     t_compute = time.perf_counter()
-    inputs = {p.name: sha256_file(p) for p in cap.input_files if p.exists()}
+    inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()])
     meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
                      calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
+                     input_stamps=stamps,
                      stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
-                     verification=verification)
+                     verification=verification,
+                     sigma=None if sigma is None else region_sigma_stats(sigma, region),
+                     sigma_extrinsic_included=sigma is not None and calib.cov_extrinsic_rad_mm is not None)
     scenes = Path(out_dir) / "scenes"
     token = uuid.uuid4().hex[:12]  # unique across processes and machines (Dask workers share the folder)
     tmp = scenes / f".tmp-{sid}-{token}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    mask = np.zeros(disp.shape, np.uint8)
-    mask[valid] = 128
-    mask[noc] = 255
-    for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
-        if src is not None and crop is None:
-            shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
-        else:
-            write_image(tmp / name, img)
-    write_pfm(tmp / "disp0GT.pfm", disp)
-    write_image(tmp / "mask0nocc.png", mask)
-    write_image(tmp / "region.png", region)
-    write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params))
-    write_tiff_float(tmp / "depth0.tiff", depth)
-    atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp, cx_shift, cy_shift))
-    if params.ply:
-        v, u = np.nonzero(valid)
-        K = rig.zed.left
-        z = depth[v, u].astype(np.float64)
-        pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
-        write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
-    t_end = time.perf_counter()
-    meta.time_s, meta.time_read_s = t_end - t0, t_read - t0
-    meta.time_compute_s, meta.time_write_s = t_compute - t_read, t_end - t_compute
-    meta.write(tmp / "meta.json")
-    final = scenes / sid
-    old = scenes / f".old-{sid}-{token}"
-    if final.exists():
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old.exists():
-        shutil.rmtree(old, ignore_errors=True)
+    lock = _lock_writer(scenes, sid, token)  # held until the scene is in place (see _remove_stale)
+    try:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+        mask = np.zeros(disp.shape, np.uint8)
+        mask[valid] = 128
+        mask[noc] = 255
+        for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
+            if src is not None and crop is None:
+                shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
+            else:
+                write_image(tmp / name, img)
+        write_pfm(tmp / "disp0GT.pfm", disp)
+        if sigma is not None:
+            write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
+            write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
+        write_label_png(tmp / "mask0nocc.png", mask)
+        write_label_png(tmp / "region.png", region)
+        write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params), compression="zlib")  # 4 values: tiny
+        write_tiff_float(tmp / "depth0.tiff", depth)
+        atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp, cx_shift, cy_shift))
+        if params.ply:
+            v, u = np.nonzero(valid)
+            K = rig.zed.left
+            z = depth[v, u].astype(np.float64)
+            pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
+            write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
+        t_end = time.perf_counter()
+        meta.time_s, meta.time_read_s = t_end - t0, t_read - t0
+        meta.time_compute_s, meta.time_write_s = t_compute - t_read, t_end - t_compute
+        meta.write(tmp / "meta.json")
+        final = scenes / sid
+        old = scenes / f".old-{sid}-{token}"
+        if final.exists():
+            os.replace(final, old)
+        os.replace(tmp, final)
+        if old.exists():
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        _unlock_writer(scenes, sid, token, lock)
     write_scene_views(Path(out_dir), sid, params, disp, noc)
     return sid, None, meta.model_dump(mode="json")
+
+
+def region_sigma_stats(sigma: np.ndarray, region: np.ndarray) -> dict[str, SigmaStats]:
+    masks = {"all": region > REGION_NONE, "fruit": region >= REGION_CENTRE, "fruit_centre": region == REGION_CENTRE,
+             "fruit_edge": region == REGION_EDGE, "background": region == REGION_BG}
+    return {k: sigma_stats(sigma, m) for k, m in masks.items()}
+
+
+def write_sigma_thumbnail(path: Path, sigma: np.ndarray, vmax_px: float = 0.1) -> None:
+    """A small heat map of a scene's GT sigma for build_report.html (turbo, 0 to ``vmax_px``; black: no GT)."""
+    import matplotlib
+
+    s = sigma
+    scale = min(1.0, 640 / s.shape[1])
+    if scale < 1.0:
+        s = cv2.resize(np.where(np.isfinite(s), s, np.nan).astype(np.float32), None, fx=scale, fy=scale,
+                       interpolation=cv2.INTER_NEAREST)
+    rgb = (matplotlib.colormaps["turbo"](np.clip(np.nan_to_num(s, nan=0.0, posinf=0.0) / vmax_px, 0, 1))[..., :3]
+           * 255).astype(np.uint8)
+    rgb[~np.isfinite(s)] = 0
+    write_image(path, rgb)
 
 
 def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: str,
@@ -318,8 +411,9 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
     params = VerifyParams.model_validate_json(params_json)
     s = Path(dataset_dir) / "scenes" / sid
     try:
-        session = _cached_session(session_dir)
-        rig = CalibrationFile.read(calib_path).rig
+        calib = CalibrationFile.read(calib_path)
+        session = _cached_session(session_dir, calib.zed_conf_reading)
+        rig = calib.rig
         meta = SceneMeta.read(s / "meta.json")
         folder = session.root / session.config.scenes_dir / sid
         if not folder.is_dir():
@@ -373,13 +467,15 @@ def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: 
 _SESSION_CACHE: dict = {}
 
 
-def _cached_session(session_dir: str):
+def _cached_session(session_dir: str, zed_conf_reading: str | None = None):
+    """The session, opened with the SN.conf reading the calibration recorded (raw ZED images are rectified with it)."""
     from gtforge.io.captures import open_session
 
-    hit = _SESSION_CACHE.get(session_dir)
+    key = (session_dir, zed_conf_reading)
+    hit = _SESSION_CACHE.get(key)
     if hit is None or hit[1] != _session_stamp(hit[0]):
-        session = open_session(session_dir)
-        hit = _SESSION_CACHE[session_dir] = (session, _session_stamp(session))
+        session = open_session(session_dir, zed_conf_reading=zed_conf_reading)
+        hit = _SESSION_CACHE[key] = (session, _session_stamp(session))
     return hit[0]
 
 
@@ -488,9 +584,9 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     params = params or BuildParams()
     if not 0 <= params.split_train + params.split_val <= 1:
         raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")
-    session = open_session(session_dir)
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
+    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
     _check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
     out = Path(out_dir)
@@ -507,8 +603,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             try:
                 m = SceneMeta.read(meta_path)
                 files = [p for p in session.capture_files(d) if p.exists()]
-                if m.params_hash == phash and m.calibration_sha256 == calib_sha and \
-                        m.input_sha256 == {p.name: sha256_file(p) for p in files}:
+                if m.params_hash == phash and m.calibration_sha256 == calib_sha and inputs_unchanged(m, files):
                     unchanged.append(d.name)
                     metas[d.name] = m
                     continue
@@ -567,6 +662,9 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             write_scene_views(out, sid, params)
     write_lists(out, splits)
     _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
+    from gtforge.reports.build import write_build_report
+
+    write_build_report(Manifest.read(out / "manifest.json"), out)
     if flagged:
         log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
                     ", left out of the split lists (--quarantine)" if quarantined else "",
@@ -603,15 +701,57 @@ def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneM
 
 def _remove_stale(out: Path) -> None:
     """Temporary scene folders of a run that was killed or interrupted: never scenes, always removed.
-    A replaced scene (``.old-<id>-<pid>``) whose replacement never landed is put back."""
-    for stale in (out / "scenes").glob(".tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    for old in (out / "scenes").glob(".old-*"):
+    A replaced scene (``.old-<id>-<token>``) whose replacement never landed is put back. Folders whose writer
+    still runs (its ``.lock-<id>-<token>`` is held: a Dask task cancelled by Ctrl-C, which runs to its end) are
+    left alone: removing files under a live writer could let it rename a partial folder into place."""
+    scenes = out / "scenes"
+    for stale in scenes.glob(".tmp-*"):
+        if not _writer_alive(scenes, stale.name):
+            shutil.rmtree(stale, ignore_errors=True)
+    for old in scenes.glob(".old-*"):
+        if _writer_alive(scenes, old.name):
+            continue
         sid = old.name[len(".old-"):].rsplit("-", 1)[0]
-        if not (out / "scenes" / sid).exists():
-            os.replace(old, out / "scenes" / sid)
+        if not (scenes / sid).exists():
+            os.replace(old, scenes / sid)
         else:
             shutil.rmtree(old, ignore_errors=True)
+    for lock in scenes.glob(".lock-*"):
+        if not _writer_alive(scenes, lock.name):
+            lock.unlink(missing_ok=True)
+
+
+def _lock_writer(scenes: Path, sid: str, token: str) -> int | None:
+    """Take ``scenes/.lock-<sid>-<token>`` (flock; released by the kernel if this process dies)."""
+    if fcntl is None:
+        return None
+    scenes.mkdir(parents=True, exist_ok=True)
+    fd = os.open(scenes / f".lock-{sid}-{token}", os.O_CREAT | os.O_RDWR, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return fd
+
+
+def _unlock_writer(scenes: Path, sid: str, token: str, fd: int | None) -> None:
+    if fd is not None:
+        (scenes / f".lock-{sid}-{token}").unlink(missing_ok=True)
+        os.close(fd)
+
+
+def _writer_alive(scenes: Path, name: str) -> bool:
+    """Whether the process writing hidden entry ``name`` (``.tmp-``/``.old-``/``.lock-<sid>-<token>``) holds its lock."""
+    if fcntl is None:
+        return False
+    try:
+        fd = os.open(scenes / (".lock-" + name.split("-", 1)[1]), os.O_RDWR)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
 
 
 def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,

@@ -86,6 +86,33 @@ class MethodResult(GTModel):
     trans_diff_to_primary_mm: float = 0.0
 
 
+class SceneRefinement(GTModel):
+    scene: str
+    status: Literal["used", "excluded", "not usable"]
+    reason: str = ""
+    n_points: int = 0
+    shift_before_px: float | None = None  # |texture shift| (whole area) with the starting calibration
+    shift_after_px: float | None = None  # with the refined calibration
+    fruit_shift_after_px: float | None = None
+    heldout_shift_px: float | None = None  # refined WITHOUT this scene, measured on it (cross-validation)
+
+
+class RefinementInfo(GTModel):
+    """Provenance of a refined calibration (stored in the calibration file)."""
+
+    refined_from: str  # the starting calibration file
+    method: str = "scene texture alignment (direct photometric, Huber IRLS)"
+    scenes_used: list[str]
+    scenes_excluded: dict[str, str] = Field(default_factory=dict)
+    change_rot_deg: float
+    change_trans_mm: float
+    heldout_shift_before_mean_px: float | None = None
+    heldout_shift_after_mean_px: float | None = None
+    sigma_jackknife_rot_deg: float | None = None
+    sigma_jackknife_trans_mm: float | None = None
+    scenes: list[SceneRefinement] = Field(default_factory=list)
+
+
 class CalibrationFile(VersionedFile):
     """Output of ``gtforge calibrate``; ``rig`` is what every later stage uses."""
 
@@ -114,6 +141,12 @@ class CalibrationFile(VersionedFile):
     square_size_measured_mm: float | None = None  # from the depth camera's view of the board (median over poses)
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
+    refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
+
+    @property
+    def zed_conf_reading(self) -> str | None:
+        """The SN.conf reading later stages rectify raw ZED images with (None: not a raw + SN.conf session)."""
+        return self.zed_conf.reading if self.zed_conf is not None else None
     # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
     # the conf reading chosen from the board images (gtforge.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None

@@ -267,6 +267,39 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
 
 
 @app.command()
+def refine(session: Path = typer.Argument(..., help="Capture session folder (its scenes/ captures are used)."),
+           calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
+                                            help="The board calibration to start from (gtforge calibrate)."),
+           output: str = typer.Option("refined.yaml", "--output", "-o", metavar="PATH",
+                                      help="Refined calibration YAML to write (never the input file)."),
+           scenes: Optional[str] = typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: all)."),
+           loo: bool = typer.Option(True, "--loo/--no-loo",
+                                    help="Hold each scene out in turn and measure it (cross-validation).")) -> None:
+    """Refine T_zed_from_mech from the scenes' texture alignment; writes a normal calibration file whose
+    'refinement' says it was refined and from which scenes."""
+    from gtforge.refine import RefineParams, refine as run
+
+    res = run(session, calibration, output, RefineParams(leave_one_out=loo), scenes.split(",") if scenes else None,
+              progress=_status)
+    info = res.refinement
+    out.print(f"refined over {len(info.scenes_used)} scene(s); excluded {len(info.scenes_excluded)}"
+              + "".join(f"\n  {k}: {v}" for k, v in info.scenes_excluded.items()))
+    out.print(f"the extrinsic moved by {info.change_rot_deg:.4f} deg / {info.change_trans_mm:.3f} mm; "
+              f"1-sigma now {res.sigma_rot_deg:.4f} deg / {res.sigma_trans_mm:.3f} mm")
+    for r in info.scenes:
+        out.print(f"  scene {r.scene}: |texture shift| {r.shift_before_px if r.shift_before_px is not None else float('nan'):.3f}"
+                  f" -> {r.shift_after_px if r.shift_after_px is not None else float('nan'):.3f} px"
+                  + (f" (held out: {r.heldout_shift_px:.3f} px)" if r.heldout_shift_px is not None else "")
+                  + f" [{r.status}]")
+    if info.heldout_shift_after_mean_px is not None:
+        out.print(f"cross-validation: held-out scenes {info.heldout_shift_before_mean_px:.3f} -> "
+                  f"{info.heldout_shift_after_mean_px:.3f} px mean |texture shift|")
+    from gtforge.calibrate import calibration_output_path
+
+    out.print(f"wrote {calibration_output_path(output)}")
+
+
+@app.command()
 def validate(session: Path = typer.Argument(..., help="Capture session folder (board/ captures)."),
              calibration: Optional[Path] = typer.Option(None, "--calibration", "-c",
                                                         metavar="FILE",

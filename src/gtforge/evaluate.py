@@ -1,24 +1,37 @@
 """Stage 4: score a stereo model's disparities against the built ground truth, per region."""
 from __future__ import annotations
 
+import datetime
+import hashlib
+import json
 import logging
 import re
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ClassVar
 
 import numpy as np
 from pydantic import Field
 
 from gtforge.errors import InputError
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
-from gtforge.metrics import Accumulator, Metrics, mean_of, metrics_from_errors, region_errors
+from gtforge.metrics import (
+    Accumulator,
+    Metrics,
+    mean_of,
+    metrics_from_errors,
+    region_errors,
+)
+from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
 from gtforge.schema import VersionedFile
-from gtforge.predictors import Predictor, timed_predict
 
 log = logging.getLogger("gtforge.evaluate")
 
 REGIONS = ("all", "nonoccluded", "fruit", "fruit_edge", "fruit_centre", "background")
 TABLE_REGIONS = ("all", "fruit", "fruit_edge", "fruit_centre")
+DEPTH_REGIONS = ("fruit", "fruit_edge", "fruit_centre")  # regions whose depth error (mm) is scored
+SIGMA_FILE = "disp0GT_sigma.pfm"  # per-pixel ground-truth sigma (px, +inf = no GT), written by build-dataset
+DISP_ERROR_MAP_MAX_PX = 2.0  # colour scale of the disparity error maps (the Bad-2.0 threshold; same for every scene)
+DEPTH_ERROR_MAP_PERCENTILE = 95.0  # the fruit depth-error map's scale: this percentile of the scene's errors, rounded up
 
 
 class SceneCalib:
@@ -49,18 +62,30 @@ def region_masks(region: np.ndarray, nocc: np.ndarray) -> dict[str, np.ndarray]:
 
 
 class SceneResult(VersionedFile):
+
+    KIND: ClassVar[str] = "per-scene evaluation result"
     scene: str
     time_ms: float
     metrics: dict[str, Metrics]
+    disp_error_map_max_px: float | None = None  # top of the colour scale of heatmaps/<scene>_disp_error.png
+    depth_error_map_max_mm: float | None = None  # top of the colour scale of heatmaps/<scene>_depth_error.png
 
 
 class EvalReport(VersionedFile):
+
+    KIND: ClassVar[str] = "evaluation result (results.json from gtforge evaluate)"
     model: str
     provider: str
     dataset_dir: str
     scenes: list[str]
     missing: dict[str, str] = Field(default_factory=dict)
+    model_source: str = ""  # the model file / prediction folder (absolute), or a description of a built-in one
+    gtforge_version: str = ""
+    created: str = ""  # local time with UTC offset, ISO 8601
+    dataset_manifest_sha256: str | None = None  # identifies the dataset (compare warns when results differ)
+    split: str | None = None
     max_disp_px: float | None = None
+    max_gt_sigma_px: float | None = None
     time_ms_median: float | None = None
     params_count: int | None = None
     pooled: dict[str, Metrics]
@@ -69,39 +94,98 @@ class EvalReport(VersionedFile):
 
 
 def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
+    """Scene ids of a dataset (``scenes/``), or of one split list (``filenames/<split>.txt``)."""
     if split:
         lst = dataset_dir / "filenames" / f"{split}.txt"
         if not lst.is_file():
             raise InputError(lst, None, f"a '{split}' list", "no such file", "splits: train, val, test")
-        return [l.split()[0].split("/")[1] for l in lst.read_text().splitlines() if l.strip()]
+        ids = [l.split()[0].split("/")[1] for l in lst.read_text().splitlines() if l.strip()]
+        if not ids:
+            raise InputError(lst, None, f"at least one scene in the '{split}' split", "an empty list",
+                             _empty_split_hint(dataset_dir, split))
+        return ids
     sc = dataset_dir / "scenes"
     if not sc.is_dir():
         raise InputError(dataset_dir, "scenes/", "a dataset built by gtforge build-dataset", "no scenes/ folder")
     return sorted(p.name for p in sc.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-def _heatmap(err: np.ndarray, vmax: float) -> np.ndarray:
-    import matplotlib
+def _empty_split_hint(dataset_dir: Path, split: str) -> str:
+    """Why a split list is empty, from what build-dataset recorded in manifest.json."""
+    tail = "rebuild with other --split ratios or more scenes/fruit, or evaluate without --split"
+    try:
+        man = json.loads((dataset_dir / "manifest.json").read_text())
+        splits, scenes = man["splits"], man["scenes"]
+        fruit = {(m.get("fruit_id") or f"scene:{sid}") for sid, m in scenes.items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return f"build-dataset put no scene into '{split}'; {tail}"
+    counts = ", ".join(f"{k} {len(v)}" for k, v in splits.items())
+    return (f"build-dataset split {len(scenes)} scene(s) of {len(fruit)} fruit group(s) into {counts} (all scenes "
+            f"of one fruit stay in one split, so a small dataset leaves some splits empty); {tail}")
 
-    cmap = matplotlib.colormaps["turbo"]
-    rgb = (cmap(np.clip(np.nan_to_num(err, nan=0) / vmax, 0, 1))[..., :3] * 255).astype(np.uint8)
-    rgb[~np.isfinite(err)] = 0
-    return rgb
+
+def _manifest_sha256(dataset_dir: Path) -> str | None:
+    p = dataset_dir / "manifest.json"
+    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
+
+
+def _check_sigma_maps(ds: Path, ids: list[str]) -> None:
+    absent = [sid for sid in ids if not (ds / "scenes" / sid / SIGMA_FILE).is_file()]
+    if absent:
+        raise InputError(ds / "scenes" / absent[0] / SIGMA_FILE, None,
+                         f"a ground-truth sigma map in every scene ({SIGMA_FILE}, float32 px)",
+                         f"none in {len(absent)} of {len(ids)} scene(s)",
+                         "rebuild the dataset with a gtforge whose build-dataset writes it "
+                         "(build-dataset ... --overwrite), or drop --max-gt-sigma")
+
+
+def nice_ceil(x: float) -> float:
+    """The smallest of 1, 2, 2.5, 5 x 10^k that is >= ``x`` (a readable colour-scale top)."""
+    if not np.isfinite(x) or x <= 0:
+        return 1.0
+    k = np.floor(np.log10(x))
+    for m in (1.0, 2.0, 2.5, 5.0, 10.0):
+        v = float(m * 10 ** k)
+        if v >= x * (1 - 1e-9):
+            return v
+    return float(10 ** (k + 1))
 
 
 def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path | None = None, split: str | None = None,
-             max_disp_px: float | None = None, write_clouds: bool = True, params_count: int | None = None,
-             progress: Callable[[str], None] | None = None) -> EvalReport:
-    """Evaluate ``predictor`` on every scene (or a split) of a built dataset."""
+             max_disp_px: float | None = None, write_clouds: bool = False, params_count: int | None = None,
+             progress: Callable[[str], None] | None = None, max_gt_sigma_px: float | None = None) -> EvalReport:
+    """Evaluate ``predictor`` on every scene (or a split) of a built dataset.
+
+    ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
+    in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
+    any scoring and listed in ``EvalReport.missing``."""
     ds = Path(dataset_dir)
     ids = list_scenes(ds, split)
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none")
+    if max_gt_sigma_px is not None:
+        if not max_gt_sigma_px > 0:
+            raise InputError(None, "--max-gt-sigma", "a sigma limit > 0 px", str(max_gt_sigma_px))
+        _check_sigma_maps(ds, ids)
     out = Path(out_dir) if out_dir else None
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
+    absent = [sid for sid in ids if predictor.find(sid) is None] if hasattr(predictor, "find") else []
+    if absent:
+        where = getattr(predictor, "folder", "")
+        if len(absent) == len(ids):
+            raise InputError(where, None, f"a prediction per scene named {PREDICTION_NAMES}",
+                             f"none for the {len(ids)} scene(s) ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})",
+                             "name each file after its scene id (docs/metrics.md, 'Predictions')")
+        log.warning("no prediction for %d of %d scene(s) in %s (%s%s; expected %s): scoring the other %d, "
+                    "and the command will exit with code 1", len(absent), len(ids), where, ", ".join(absent[:8]),
+                    ", ..." if len(absent) > 8 else "", PREDICTION_NAMES, len(ids) - len(absent))
+        for sid in absent:
+            missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"
     warmed = False
     for k, sid in enumerate(ids):
+        if sid in missing:
+            continue
         if progress:
             progress(f"{predictor.name}: scene {sid} ({k + 1}/{len(ids)})")
         s = ds / "scenes" / sid
@@ -110,6 +194,12 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             gt = read_pfm(s / "disp0GT.pfm")
             masks = region_masks(read_image(s / "region.png"), read_image(s / "mask0nocc.png"))
             cal = SceneCalib(s / "calib.txt")
+            sigma = None
+            if max_gt_sigma_px is not None:
+                sigma = read_pfm(s / SIGMA_FILE)
+                if sigma.shape != gt.shape:
+                    raise InputError(s / SIGMA_FILE, "size", f"{gt.shape[1]}x{gt.shape[0]} px (disp0GT.pfm)",
+                                     f"{sigma.shape[1]}x{sigma.shape[0]} px")
             if not warmed and not hasattr(predictor, "find"):
                 predictor.predict(sid, left, right, cal.ndisp, cal.vmin)  # warm-up (not timed)
                 warmed = True
@@ -123,27 +213,24 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         times.append(ms)
         res = {}
         for r, m in masks.items():
-            err, n_gt, derr = region_errors(pred, gt, m, max_disp_px, cal.depth if r.startswith("fruit") else None)
-            res[r] = metrics_from_errors(err, n_gt, derr)
-            pooled[r].add(err, n_gt, derr)
-        per_scene.append(SceneResult(scene=sid, time_ms=ms, metrics=res))
+            re_ = region_errors(pred, gt, m, max_disp_px, cal.depth if r in DEPTH_REGIONS else None, sigma,
+                                max_gt_sigma_px)
+            res[r] = metrics_from_errors(*re_)
+            pooled[r].add(*re_)
+        scene = SceneResult(scene=sid, time_ms=ms, metrics=res)
         if out is not None:
-            err = np.where(masks["all"] & np.isfinite(gt), np.abs(pred - gt), np.nan)
-            write_image(out / "heatmaps" / f"{sid}_disp_error.png", _heatmap(err, 2.0))
-            zerr = np.where(masks["fruit"], np.abs(cal.depth(pred) - cal.depth(gt)), np.nan)
-            write_image(out / "heatmaps" / f"{sid}_depth_error.png", _heatmap(zerr, 1.0))
-            if write_clouds:
-                v, u = np.nonzero(masks["fruit"] & np.isfinite(gt) & np.isfinite(pred))
-                if len(v):
-                    zp = cal.depth(pred[v, u])
-                    pts = np.stack([(u - cal.cx_px) / cal.f_px * zp, (v - cal.cy_px) / cal.f_px * zp, zp], axis=1)
-                    e = np.clip(np.abs(zp - cal.depth(gt[v, u])), 0, 1.0)  # blue 0 mm -> red >= 1 mm
-                    write_ply(out / "clouds" / f"{sid}_depth_error.ply", pts, np.stack([e, np.zeros_like(e), 1 - e], axis=1))
+            _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px, write_clouds)
+        per_scene.append(scene)
     if not per_scene:
         raise InputError(ds, "scenes", "at least one scene with a prediction", "none",
                          "; ".join(f"{k}: {v}" for k, v in list(missing.items())[:3]))
-    rep = EvalReport(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds),
+    import gtforge
+
+    rep = EvalReport(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds.resolve()),
                      scenes=[s.scene for s in per_scene], missing=missing, max_disp_px=max_disp_px,
+                     model_source=getattr(predictor, "source", ""), gtforge_version=gtforge.__version__,
+                     created=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+                     dataset_manifest_sha256=_manifest_sha256(ds), split=split, max_gt_sigma_px=max_gt_sigma_px,
                      time_ms_median=float(np.median(times)) if times else None, params_count=params_count,
                      pooled={r: a.result() for r, a in pooled.items()},
                      per_image_mean={r: mean_of([s.metrics[r] for s in per_scene]) for r in REGIONS},
@@ -157,10 +244,59 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     return rep
 
 
-def compare(result_files: list[str | Path], out_dir: str | Path) -> str:
-    """Several ``results.json`` side by side in one table (``comparison.md``/``.csv``)."""
-    from gtforge.reports.evaluation import tables_markdown, write_tables
+def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray, gt: np.ndarray,
+                      masks: dict[str, np.ndarray], cal: SceneCalib, sigma: np.ndarray | None,
+                      max_gt_sigma_px: float | None, max_disp_px: float | None, write_clouds: bool) -> None:
+    """``heatmaps/<id>_{disp,depth}_error.png`` (full size, colour bar below) + small previews for results.html,
+    and with ``write_clouds`` the fruit points coloured by depth error. Only scored pixels are coloured."""
+    from gtforge.io.atomic import atomic_write_bytes
+    from gtforge.reports.evaluation import error_map_images, preview_jpeg
 
-    reports = [EvalReport.read(p) for p in result_files]
-    write_tables(reports, Path(out_dir), "comparison")
-    return tables_markdown(reports)
+    scored = masks["all"] & np.isfinite(gt)
+    if max_disp_px is not None:
+        scored &= gt < max_disp_px
+    if sigma is not None:
+        with np.errstate(invalid="ignore"):
+            scored &= sigma < max_gt_sigma_px
+    err = np.where(scored, np.abs(pred - gt), np.nan)
+    scene.disp_error_map_max_px = DISP_ERROR_MAP_MAX_PX
+    full, preview = error_map_images(err, DISP_ERROR_MAP_MAX_PX, "|disparity error| (px)")
+    write_image(out / "heatmaps" / f"{sid}_disp_error.png", full)
+    atomic_write_bytes(out / "heatmaps" / "preview" / f"{sid}_disp_error.jpg", preview_jpeg(preview))
+    fruit = scored & masks["fruit"]
+    with np.errstate(invalid="ignore"):
+        zerr = np.where(fruit, np.abs(cal.depth(pred) - cal.depth(gt)), np.nan)
+    finite = zerr[np.isfinite(zerr)]
+    if finite.size == 0:
+        return
+    zmax = nice_ceil(float(np.percentile(finite, DEPTH_ERROR_MAP_PERCENTILE)))
+    scene.depth_error_map_max_mm = zmax
+    full, preview = error_map_images(zerr, zmax, "|depth error| (mm)")
+    write_image(out / "heatmaps" / f"{sid}_depth_error.png", full)
+    atomic_write_bytes(out / "heatmaps" / "preview" / f"{sid}_depth_error.jpg", preview_jpeg(preview))
+    if write_clouds:
+        v, u = np.nonzero(np.isfinite(zerr))
+        zp = cal.depth(pred[v, u])
+        pts = np.stack([(u - cal.cx_px) / cal.f_px * zp, (v - cal.cy_px) / cal.f_px * zp, zp], axis=1)
+        e = np.clip(zerr[v, u] / zmax, 0, 1.0)  # blue 0 mm -> red at the map's scale top
+        write_ply(out / "clouds" / f"{sid}_depth_error.ply", pts, np.stack([e, np.zeros_like(e), 1 - e], axis=1))
+
+
+def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, list[str]]:
+    """Several ``results.json`` side by side (``comparison.md``/``.csv``/``.html``).
+
+    Returns the Markdown table and the warnings: results from different datasets, scene sets or scoring
+    limits, and model names used by more than one result (their rows are then labelled with the folder)."""
+    from gtforge.reports.evaluation import comparison_warnings, row_labels, tables_markdown, write_comparison_html, \
+        write_tables
+
+    files = [Path(p) for p in result_files]
+    reports = [EvalReport.read(p) for p in files]
+    warnings = comparison_warnings(reports, files)
+    for w in warnings:
+        log.warning(w)
+    labels = row_labels(reports, files)
+    out = Path(out_dir)
+    write_tables(reports, out, "comparison", labels=labels, warnings=warnings)
+    write_comparison_html(reports, files, labels, warnings, out / "comparison.html")
+    return tables_markdown(reports, labels=labels, warnings=warnings), warnings

@@ -13,6 +13,10 @@ import numpy as np
 from gtforge.errors import InputError
 from gtforge.schema import GTModel
 
+# the files PredictionFolder looks for, in this order (docs/metrics.md, "Predictions")
+PREDICTION_CANDIDATES = ("<id>.pfm", "<id>.npy", "<id>.png", "<id>_10.png", "<id>/disp0.pfm", "<id>/disp0GT.pfm")
+PREDICTION_NAMES = "<id>.pfm, <id>.npy, <id>.png (KITTI uint16), <id>_10.png, <id>/disp0.pfm or <id>/disp0GT.pfm"
+
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 
@@ -39,7 +43,8 @@ class InputConvention(GTModel):
 
 
 class Predictor(Protocol):
-    name: str
+    name: str  # the model's name in tables
+    source: str  # where it comes from (a file or folder path), shown in report headers
 
     def predict(self, scene_id: str, left: np.ndarray, right: np.ndarray, ndisp: int, vmin: int) -> np.ndarray: ...
 
@@ -96,6 +101,7 @@ class OnnxModel:
             raise InputError(self.path, "inputs", "two NCHW inputs (left, right) or one N x 6 x H x W input", desc,
                              "export the model with left and right image inputs")
         self.name = name or self.path.stem
+        self.source = str(self.path.resolve())
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
         l, info = _fit(self.conv, left)
@@ -134,6 +140,7 @@ class TorchScriptModel:
                              f"{type(exc).__name__}: {str(exc)[:100]}") from None
         self.conv = convention or InputConvention()
         self.name = name or Path(path).stem
+        self.source = str(path.resolve())
         self.provider = self.device
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
@@ -156,6 +163,7 @@ class SGBM:
     def __init__(self, block_size: int = 5, name: str = "SGBM"):
         self.block_size = block_size
         self.name = name
+        self.source = f"OpenCV {cv2.__version__} StereoSGBM (3-way, block size {block_size})"
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
         bs = self.block_size
@@ -170,7 +178,9 @@ class SGBM:
 
 
 class PredictionFolder:
-    """Predicted disparities on disk: ``<id>.pfm``, ``<id>.png``/``<id>_10.png`` (KITTI x256) or ``<id>.npy``."""
+    """Predicted disparities on disk, one file per scene id (``PREDICTION_CANDIDATES``, first found wins):
+    ``<id>.pfm`` (inf/NaN invalid), ``<id>.npy`` (NaN/<=0 invalid), ``<id>.png``/``<id>_10.png`` (KITTI uint16
+    x256, 0 invalid), or ``<id>/disp0.pfm`` / ``<id>/disp0GT.pfm`` (Middlebury/ETH3D folders)."""
 
     provider = "files"
 
@@ -179,11 +189,11 @@ class PredictionFolder:
         if not self.folder.is_dir():
             raise InputError(self.folder, None, "a folder of predicted disparities", "no such folder")
         self.name = name or self.folder.name
+        self.source = str(self.folder.resolve())
 
     def find(self, scene_id: str) -> Path | None:
-        for cand in (f"{scene_id}.pfm", f"{scene_id}.npy", f"{scene_id}.png", f"{scene_id}_10.png",
-                     f"{scene_id}/disp0.pfm", f"{scene_id}/disp0GT.pfm"):
-            p = self.folder / cand
+        for cand in PREDICTION_CANDIDATES:
+            p = self.folder / cand.replace("<id>", scene_id)
             if p.is_file():
                 return p
         return None
@@ -193,7 +203,8 @@ class PredictionFolder:
 
         p = self.find(scene_id)
         if p is None:
-            raise InputError(self.folder, scene_id, f"a prediction {scene_id}.pfm/.png/.npy", "missing")
+            raise InputError(self.folder, scene_id, f"a prediction ({PREDICTION_NAMES.replace('<id>', scene_id)})",
+                             "missing")
         if p.suffix == ".pfm":
             d = read_pfm(p)
         elif p.suffix == ".png":

@@ -19,7 +19,8 @@ from gtforge.io.formats import read_image, read_pfm
 
 class StereoDataset:
     """Scenes of a built dataset as numpy dicts: left, right (H, W, 3 uint8), disparity (float32, NaN
-    invalid), valid (bool), weight (float32 SGRA weights)."""
+    invalid), valid (bool), weight (float32 SGRA weights), sigma (float32 1-sigma GT uncertainty in px, +inf where
+    there is no ground truth; None for datasets built without it)."""
 
     def __init__(self, root: str | Path, split: str | None = "train"):
         self.root = Path(root)
@@ -39,8 +40,12 @@ class StereoDataset:
         l, r, d = (self.root / p for p in self.items[i])
         disp = read_pfm(d)
         w = tifffile.imread(d.parent / "weight.tiff").astype(np.float32)
+        sigma = None
+        if (d.parent / "disp0GT_sigma.pfm").is_file():
+            sigma = read_pfm(d.parent / "disp0GT_sigma.pfm")
+            sigma[~np.isfinite(sigma)] = np.inf  # the file's +inf (no GT) reads as NaN: keep it +inf
         return {"left": read_image(l), "right": read_image(r), "disparity": disp, "valid": np.isfinite(disp),
-                "weight": w, "scene": d.parent.name}
+                "weight": w, "sigma": sigma, "scene": d.parent.name}
 
     def __iter__(self) -> Iterator[dict]:
         for i in range(len(self)):
@@ -50,6 +55,15 @@ class StereoDataset:
 def smooth_l1(x: np.ndarray, beta: float = 1.0) -> np.ndarray:
     ax = np.abs(x)
     return np.where(ax < beta, 0.5 * ax * ax / beta, ax - 0.5 * beta)
+
+
+def sigma_confidence(sigma_px: np.ndarray, sigma_ref_px: float = 0.1) -> np.ndarray:
+    """Confidence of each GT pixel from its sigma: ``sigma_ref^2 / (sigma_ref^2 + sigma^2)`` (inverse-variance
+    weighting with a floor): 1 for a certain label, 0.5 at ``sigma_ref``, 0 where there is no GT (sigma +inf)."""
+    s = np.asarray(sigma_px, np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        c = sigma_ref_px ** 2 / (sigma_ref_px ** 2 + s * s)
+    return np.where(np.isfinite(s), c, 0.0).astype(np.float32)
 
 
 def weighted_smooth_l1(pred: np.ndarray, gt: np.ndarray, weight: np.ndarray, valid: np.ndarray | None = None) -> float:
@@ -62,15 +76,24 @@ def weighted_smooth_l1(pred: np.ndarray, gt: np.ndarray, weight: np.ndarray, val
 
 
 def sgra_loss(pred_init: np.ndarray, pred_resid: np.ndarray, gt: np.ndarray, weight: np.ndarray,
-              gamma1: float = 0.3, gamma2: float = 1.0, valid: np.ndarray | None = None) -> float:
-    """Numpy reference of the SGRA loss (``gamma1 * L_init + gamma2 * L_resid``)."""
+              gamma1: float = 0.3, gamma2: float = 1.0, valid: np.ndarray | None = None,
+              confidence: np.ndarray | None = None) -> float:
+    """Numpy reference of the SGRA loss (``gamma1 * L_init + gamma2 * L_resid``). ``confidence`` (e.g.
+    ``sigma_confidence(sample["sigma"])``) multiplies the SGRA weights: uncertain labels count less."""
+    if confidence is not None:
+        weight = weight * confidence
     return gamma1 * weighted_smooth_l1(pred_init, gt, weight, valid) + gamma2 * weighted_smooth_l1(pred_resid, gt, weight, valid)
 
 
-def sgra_loss_torch(pred_init, pred_resid, gt, weight, gamma1: float = 0.3, gamma2: float = 1.0, valid=None):
-    """The same loss for torch tensors (needs torch); NaN ground truth is masked out."""
+def sgra_loss_torch(pred_init, pred_resid, gt, weight, gamma1: float = 0.3, gamma2: float = 1.0, valid=None,
+                    confidence=None):
+    """The same loss for torch tensors (needs torch); NaN ground truth is masked out; ``confidence`` as in
+    ``sgra_loss``."""
     import torch
     import torch.nn.functional as F
+
+    if confidence is not None:
+        weight = weight * confidence
 
     def term(pred):
         m = torch.isfinite(gt) & (weight > 0)

@@ -12,7 +12,8 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
   content changed (not just shifted).
 * **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
   Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
-  (``left(u, v) ~ right(u - d - b, v + dy)``), per region. A textured pixel's match is "clearly worse" when the
+  (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
+  ``gtforge.rectification`` reports it for board corners), per region. A textured pixel's match is "clearly worse" when the
   5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps of 0.5 px) by
   more than ``bad_match_ratio``; their share is reported.
 
@@ -36,6 +37,7 @@ from gtforge.camera import Rig
 from gtforge.errors import InputError
 from gtforge.geometry import transform_points
 from gtforge.io.formats import to_gray
+from gtforge.rectification import VERTICAL_WARN_PX
 from gtforge.schema import GTModel, VersionedFile
 
 log = logging.getLogger("gtforge.verify")
@@ -49,7 +51,8 @@ class VerifyParams(GTModel):
     max_shift_px: float = Field(0.25, gt=0)  # |texture shift| over the fruit or the whole valid area
     min_correlation: float = Field(0.5, ge=-1, le=1)  # normalised cross-correlation after alignment
     max_disparity_bias_px: float = Field(0.1, gt=0)  # |stereo disparity bias| in any region
-    max_vertical_px: float = Field(0.15, gt=0)  # |vertical misalignment| over the whole area (rectification)
+    # |vertical disparity v_left - v_right| over the whole area; the board figure's threshold
+    max_vertical_px: float = Field(VERTICAL_WARN_PX, gt=0)
     max_bad_match_pct: float = Field(10.0, gt=0)  # share of textured pixels with a clearly worse match at the GT
     bad_match_ratio: float = Field(1.5, gt=1)  # "clearly worse": cost at GT > ratio * best cost within +-1 px
     norm_sigma_px: float = Field(3.0, gt=0)  # Gaussian window of the local normalisation
@@ -122,7 +125,7 @@ def local_normalize(img: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.nd
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 
-def _support(mask: np.ndarray, radius_px: int) -> np.ndarray:
+def interior_mask(mask: np.ndarray, radius_px: int) -> np.ndarray:
     """Mask pixels whose whole ``radius_px`` neighbourhood is in the mask (normalisation and gradients are exact)."""
     k = 2 * radius_px + 1
     return cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
@@ -203,7 +206,7 @@ def _cubic_at(img, x, y, out):
         out[k] = acc
 
 
-def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Cubic samples of ``img`` at the points ``(x, y)`` (exact sub-pixel positions: ``cv2.remap`` rounds them to
     1/32 px, the size of the shifts measured here)."""
     out = np.empty(len(x))
@@ -251,13 +254,13 @@ class ShiftAligner:
             except np.linalg.LinAlgError:
                 return ShiftEstimate(n_pixels=n)
             for _ in range(iterations):
-                step = pinv @ (_sample(coeffs, uf + d[0], vf + d[1]) - rv)
+                step = pinv @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv)
                 d -= step[:2]  # inverse composition of a translation
                 if np.abs(d).max() > 20:  # diverged: nothing to align
                     return ShiftEstimate(n_pixels=n)
                 if np.abs(step[:2]).max() < tol_px:
                     break
-        w = _sample(self.levels[-1][3], uf + d[0], vf + d[1])
+        w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
         rv = self.ref[v, u].astype(np.float64)
         a, b = rv - rv.mean(), w - w.mean()
         zncc = float((a @ b) / np.sqrt((a @ a) * (b @ b))) if (a @ a) > 0 and (b @ b) > 0 else None
@@ -269,7 +272,7 @@ def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixel
     return ShiftAligner(ref, img).align(mask, min_pixels)
 
 
-def _textured(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
+def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
     gx = cv2.Sobel(norm_img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = cv2.Sobel(norm_img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
     return np.hypot(gx, gy) > thresh
@@ -282,11 +285,11 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
     """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used)."""
     rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm)
     r = int(np.ceil(2 * params.norm_sigma_px))
-    ok_support = _support(ok, r)
+    ok_support = interior_mask(ok, r)
     n_rend = local_normalize(rend, ok, params.norm_sigma_px)
     gray = to_gray(zed_left).astype(np.float32)
     n_zed = local_normalize(gray, np.ones(gray.shape, bool), params.norm_sigma_px)
-    use = ok_support & _textured(n_rend) & smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
+    use = ok_support & textured_mask(n_rend) & smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
     fruit = use & ((region == REGION_CENTRE) | (region == REGION_EDGE))
     aligner = ShiftAligner(n_rend, n_zed)
     e_all = aligner.align(use, params.min_pixels)
@@ -321,8 +324,8 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     d = np.where(ok, disparity_px, 0).astype(np.float32)
     gx_grid, gy_grid = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
-    base = _support(ok, 2) & (gx_grid - d > 3) & (gx_grid - d < W - 4) & (gy_grid > 3) & (gy_grid < H - 4)
-    use = base & _textured(nl) & smooth_depth_mask(disparity_px)
+    base = interior_mask(ok, 2) & (gx_grid - d > 3) & (gx_grid - d < W - 4) & (gy_grid > 3) & (gy_grid < H - 4)
+    use = base & textured_mask(nl) & smooth_depth_mask(disparity_px)
     regions = {"all": use, "fruit": use & ((region == REGION_CENTRE) | (region == REGION_EDGE)),
                "background": use & (region == REGION_BG)}
     gxr = cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
@@ -351,9 +354,9 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         lv = nl[v, u].astype(np.float64)
         xr, yr = u - d[v, u].astype(np.float64), v.astype(np.float64)
         for _ in range(20):
-            w = _sample(cr, xr - b, yr + dy)
-            wx = _sample(gxr, xr - b, yr + dy)
-            wy = _sample(gyr, xr - b, yr + dy)
+            w = sample_cubic(cr, xr - b, yr + dy)
+            wx = sample_cubic(gxr, xr - b, yr + dy)
+            wy = sample_cubic(gyr, xr - b, yr + dy)
             # right(u - d - b, v + dy): d/db = -gx, d/d(dy) = +gy
             A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
             step = np.linalg.solve(A.T @ A, -(A.T @ (w - lv)))
@@ -363,7 +366,8 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         if max(abs(b), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
             continue
-        out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(dy),
+        # vertical disparity v_left - v_right, as gtforge.rectification reports it for board corners
+        out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
                                    bad_match_pct=float(100.0 * worse[m].mean()), n_pixels=n)
     return out
 

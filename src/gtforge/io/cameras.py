@@ -59,6 +59,25 @@ def _matrix(data: dict, keys: tuple[str, ...], shape: tuple[int, int], path: Pat
     return None
 
 
+def _distortion(data: dict, path: Path) -> np.ndarray:
+    """Every OpenCV lens model: ROS plumb_bob (5) and rational_polynomial (8), OpenCV's 4/5/8/12/14 coefficients."""
+    from gtforge.camera import DIST_LENGTHS
+
+    for k in ("distortion_coefficients", "D", "d"):
+        if k in data:
+            v = data[k]
+            if isinstance(v, dict):
+                v = v.get("data")
+            a = np.zeros(0) if v is None else np.asarray(v, dtype=np.float64).reshape(-1)
+            if a.size not in DIST_LENGTHS:
+                raise InputError(path, k, f"{'/'.join(map(str, DIST_LENGTHS[1:]))} distortion coefficients "
+                                 "(OpenCV order: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]])", f"{a.size}")
+            if not np.all(np.isfinite(a)):
+                raise InputError(path, k, "finite numbers", "NaN/inf", "the calibration export is broken")
+            return a
+    return np.zeros(0)
+
+
 def _size(data: dict, path: Path) -> tuple[int, int]:
     w = data.get("image_width", data.get("width"))
     h = data.get("image_height", data.get("height"))
@@ -91,8 +110,7 @@ def _camera_from_dict(data: dict, path: Path, rectified: bool) -> PinholeCamera:
         K, dist = P[:, :3], np.zeros(5)
     else:
         K = _matrix(data, ("camera_matrix", "K", "k"), (3, 3), path)
-        d = _matrix(data, ("distortion_coefficients", "D", "d"), (1, 5), path, required=False)
-        dist = np.zeros(5) if d is None else d.reshape(5)
+        dist = _distortion(data, path)
         if rectified and np.any(dist != 0):
             raise InputError(path, "distortion_coefficients", "zeros for a rectified camera", str(dist.tolist()),
                              "pass the rectified (projection) matrix, or use SN.conf with raw images")

@@ -1,76 +1,225 @@
-"""``calibration_report.html`` / ``.json``: what ``gtforge calibrate`` found, for a person to read."""
+"""``calibration_report.html`` / ``.json``: what ``gtforge calibrate`` found, for a person to read.
+
+The page is the list ``SECTIONS``: each entry maps the calibration to a :class:`~gtforge.reports.html.Section`
+(or ``None`` to leave it out). A new section is one function appended to the list.
+
+Which solve each figure describes: ``calibrate`` always runs the joint reprojection solve (both cameras); its
+residuals give the histogram, the region table, the arrows and the leave-one-out figures. With ``--use-depth``
+the depth method's extrinsic is the one written; the summary shows that method's RMS in the ZED image, and its
+sigmas when the file carries the written extrinsic's covariance (``cov_extrinsic_rad_mm``).
+"""
 from __future__ import annotations
 
+import html
+import json
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from gtforge.calibrate import CalibrationFile
+from gtforge.calibrate import CalibrationFile, MethodResult
+from gtforge.reports.html import Raw, Section, fig_to_img_tag, note, standard_header, table, write_html
+
+METHOD_TEXT = {
+    "reprojection": "reprojection: joint refinement of every corner's reprojection in both cameras",
+    "depth": "depth: the depth camera's 3-D board corners, one 3D-to-2D solve into the ZED-left image",
+}
+ARROW_LENGTH_FRAC = 0.05  # the 95th-percentile residual is drawn this long (share of the image width), every view
+REGION_ROWS = ("top", "middle", "bottom")
+REGION_COLS = ("left", "centre", "right")
 
 
-def write_calibration_report(calib: CalibrationFile, out_dir: str | Path) -> Path:
-    """``calibration_report.json`` + self-contained ``calibration_report.html``: residual vectors per view,
-    residual histogram, errors by image region, worst poses first, sigmas and cross-validation."""
-    import json
+def _method(calib: CalibrationFile, name: str) -> MethodResult | None:
+    return next((m for m in calib.methods if m.method == name), None)
 
+
+def written_rms_zed_px(calib: CalibrationFile) -> float | None:
+    """RMS (px) in the ZED-left image of the method whose extrinsic was written."""
+    m = _method(calib, calib.method)
+    if m is not None:
+        return m.rms_zed_px
+    if calib._residuals:
+        r = np.concatenate([v["res_zed"] for v in calib._residuals.values()])
+        return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+    return None
+
+
+def sigma_method(calib: CalibrationFile) -> str:
+    """The solve the 1-sigma figures come from: the written one when the file has its covariance."""
+    return calib.method if getattr(calib, "cov_extrinsic_rad_mm", None) is not None else "reprojection"
+
+
+def _matrix(T) -> Raw:
+    rows = ["  ".join(f"{x:+.6f}" if j < 3 else f"{x:+10.3f}" for j, x in enumerate(r)) for r in np.asarray(T)]
+    return Raw("<pre style='margin:0;text-align:left'>" + "\n".join(rows) + "</pre>")
+
+
+# ---- sections -----------------------------------------------------------------------------------
+def verdict_section(calib: CalibrationFile) -> Section | None:
+    verdict = getattr(calib, "verdict", None)
+    if verdict is None:
+        return None
+    reasons = list(getattr(calib, "verdict_reasons", []) or [])
+    body = "".join(f'<p class="{"fail" if verdict == "FAIL" else "warn"}">{html.escape(r)}</p>' for r in reasons) if reasons else \
+        "<p>No warning from calibrate's checks.</p>"
+    body += note("Criteria: docs/pipeline.md (calibrate, 'Verdict'). The figures below say how well the extrinsic "
+                 "fits these captures; `gtforge validate` on captures not used here says how good the ground truth is.")
+    return Section(f"Verdict: {verdict}", body, status=verdict.lower())
+
+
+def summary_section(calib: CalibrationFile) -> Section:
+    n_skip = sum(p.status == "skipped" for p in calib.poses)
+    n_out = sum(p.status == "outlier" for p in calib.poses)
+    sm = sigma_method(calib)
+    loo = "\u2013 (not run)" if calib.loo_transfer_mean_px is None else \
+        f"{calib.loo_transfer_mean_px:.3f} / {calib.loo_transfer_max_px:.3f}"
+    b = calib.board
+    rows = [
+        ["calibration written", METHOD_TEXT.get(calib.method, calib.method)],
+        ["RMS residual in the ZED-left image, written calibration (px)", written_rms_zed_px(calib)],
+        [f"1-sigma rotation x / y / z (deg), {sm} solve", " / ".join(f"{v:.4f}" for v in calib.sigma_rot_xyz_deg)],
+        [f"1-sigma translation x / y / z (mm), {sm} solve", " / ".join(f"{v:.3f}" for v in calib.sigma_trans_xyz_mm)],
+        ["leave-one-pose-out transfer mean / max (px), reprojection solve", loo],
+        ["poses used / skipped / outliers", f"{len(calib.captures_used)} / {n_skip} / {n_out}"],
+        ["board (inner corners, square)", f"{b.cols} x {b.rows}, {b.square_size_mm:g} mm"],
+    ]
+    measured = getattr(calib, "square_size_measured_mm", None)
+    if measured is not None:
+        rows.append(["square size measured in the depth (mm)", measured])
+    rows.append(["T_zed_from_mech written (rotation | translation mm)", _matrix(calib.rig.T)])
+    body = table(["quantity", "value"], rows, fmt="{:.4f}", cls="kv")
+    if calib.method != "reprojection":
+        body += note(f"The extrinsic written is the {calib.method} method's; the residual figures below (histogram, "
+                     "regions, arrows) and the leave-one-out figures come from the reprojection solve, which is "
+                     "always run (see 'Methods side by side' for how far apart the two are).")
+    return Section("Summary", body)
+
+
+def reprojection_section(calib: CalibrationFile) -> Section:
+    rep = _method(calib, "reprojection")
+    rows = [["RMS residual, both cameras (px)", calib.rms_px],
+            ["RMS residual, ZED-left image (px)", rep.rms_zed_px if rep else None],
+            ["worst corner residual, both cameras (px)", calib.max_px]]
+    if calib.method != "reprojection" and len(calib.methods) > 1:
+        m = _method(calib, calib.method)
+        rows.append(["differs from the written calibration by (deg / mm)",
+                     f"{m.rot_diff_to_primary_deg:.4f} / {m.trans_diff_to_primary_mm:.3f}"])
+    written = " (the calibration written)" if calib.method == "reprojection" else ""
+    return Section(f"Reprojection solve{written}", table(["quantity", "value"], rows, fmt="{:.4f}"))
+
+
+def methods_section(calib: CalibrationFile) -> Section | None:
+    if len(calib.methods) < 2:
+        return None
+    rows = [[m.method, "yes" if m.method == calib.method else "no", m.rms_zed_px, m.rot_diff_to_primary_deg,
+             m.trans_diff_to_primary_mm] for m in calib.methods]
+    return Section("Methods side by side", table(
+        ["method", "written", "RMS ZED-left (px)", "rotation vs reprojection (deg)", "translation vs reprojection (mm)"],
+        rows, fmt=[None, None, "{:.4f}", "{:.4f}", "{:.3f}"]))
+
+
+def poses_section(calib: CalibrationFile) -> Section:
+    rows = [[p.capture, p.status, p.reason or "", p.rms_mech_px, p.rms_zed_px, p.max_px, p.loo_transfer_mean_px,
+             p.loo_transfer_max_px, p.sharpness_mech_px, p.sharpness_zed_px, "yes" if p.blurred else "no"]
+            for p in calib.poses]
+    head = ["capture", "status", "reason", "RMS mech (px)", "RMS ZED (px)", "max (px)", "LOO mean (px)", "LOO max (px)",
+            "edge width mech (px)", "edge width ZED (px)", "blurred"]
+    return Section("Poses, worst first", table(head, rows, fmt=[None, None, None] + ["{:.3f}"] * 5 + ["{:.2f}"] * 2)
+                   + note("RMS/max: residuals of the reprojection solve. LOO: the pose's corners transferred by the "
+                          "extrinsic solved without it. Edge width: cv2.estimateChessboardSharpness (blurred above "
+                          "4 px). \u2013: not computed for that pose (skipped, an outlier, or LOO not run)."))
+
+
+def histogram_section(calib: CalibrationFile) -> Section | None:
+    if not calib._residuals:
+        return None
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rm = np.concatenate([np.linalg.norm(v["res_mech"], axis=1) for v in calib._residuals.values()])
+    rz = np.concatenate([np.linalg.norm(v["res_zed"], axis=1) for v in calib._residuals.values()])
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    bins = np.linspace(0, max(rm.max(), rz.max()) * 1.02, 50)
+    ax.hist(rm, bins=bins, histtype="step", lw=1.5, label=f"structured-light texture (RMS {np.sqrt(np.mean(rm**2)):.3f})")
+    ax.hist(rz, bins=bins, histtype="step", lw=1.5, label=f"ZED left (RMS {np.sqrt(np.mean(rz**2)):.3f})")
+    ax.set_xlabel("corner residual (px)")
+    ax.set_ylabel("corners")
+    ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
+    return Section("Residual histogram (reprojection solve)", fig_to_img_tag(fig, "70%", alt="residual histogram"))
+
+
+def regions_section(calib: CalibrationFile) -> Section | None:
+    r = calib.residuals_by_region_px
+    if not r:
+        return None
+    rows = [[row] + [r.get(f"{row}-{col}") for col in REGION_COLS] for row in REGION_ROWS]
+    return Section("Residual by ZED-left image region", table(
+        ["", *REGION_COLS], rows, fmt="{:.3f}",
+        caption="RMS (px) of the ZED-left residuals of the reprojection solve, by third of the image; "
+                "\u2013: no corner there."))
+
+
+def vectors_section(calib: CalibrationFile) -> Section | None:
+    if not calib._residuals:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gtforge.evaluate import nice_ceil
+
+    names = [p.capture for p in calib.poses if p.capture in calib._residuals]
+    W, H = calib.rig.zed.left.width_px, calib.rig.zed.left.height_px
+    allz = np.concatenate([np.linalg.norm(calib._residuals[n]["res_zed"], axis=1) for n in names])
+    key_px = nice_ceil(float(np.percentile(allz, 95)))
+    scale = ARROW_LENGTH_FRAC * W / key_px  # image px drawn per px of residual, the same in every view
+    ncol = min(3, len(names))
+    nrow = int(np.ceil(len(names) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5.0 * ncol, (5.0 * H / W + 0.9) * nrow), squeeze=False)
+    q = None
+    for ax, name in zip(axes.ravel(), names):
+        r = calib._residuals[name]
+        e = np.linalg.norm(r["res_zed"], axis=1)
+        q = ax.quiver(r["zed_uv"][:, 0], r["zed_uv"][:, 1], r["res_zed"][:, 0] * scale, r["res_zed"][:, 1] * scale,
+                      e, cmap="viridis", clim=(0, key_px), angles="xy", scale_units="xy", scale=1, width=0.004)
+        ax.set_xlim(0, W)
+        ax.set_ylim(H, 0)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name}: RMS {np.sqrt(np.mean(e ** 2)):.3f} px, max {e.max():.3f} px", fontsize=9)
+        ax.set_xlabel("u (px)", fontsize=8)
+        ax.set_ylabel("v (px)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.quiverkey(q, 0.80, 0.06, key_px * scale, f"{key_px:g} px", coordinates="axes", labelpos="W",
+                     fontproperties={"size": 8})
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    fig.tight_layout()
+    body = note(f"Arrows: residual of each ZED-left corner (reprojection solve), drawn {scale:.0f} times longer than "
+                f"it is, the same in every view; the key arrow at the bottom right of each view is {key_px:g} px. "
+                "Colour: residual length (px). Axes: ZED-left image pixels.")
+    return Section("ZED-left residual vectors per view", body + fig_to_img_tag(fig, dpi=80, alt="residual vectors"))
+
+
+SectionBuilder = Callable[[CalibrationFile], "Section | None"]
+SECTIONS: list[SectionBuilder] = [verdict_section, summary_section, reprojection_section, methods_section,
+                                  poses_section, histogram_section, regions_section, vectors_section]
+
+
+def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,
+                             sections: list[SectionBuilder] | None = None) -> Path:
+    """``calibration_report.json`` (the calibration + per-corner residuals) and a self-contained
+    ``calibration_report.html`` built from ``sections`` (default ``SECTIONS``)."""
     from gtforge.io.atomic import atomic_write_text
-    from gtforge.reports.html import fig_to_img_tag, table, write_html
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = calib.model_dump(mode="json")
     data["residuals"] = {k: {kk: np.asarray(vv).tolist() for kk, vv in v.items()} for k, v in calib._residuals.items()}
     atomic_write_text(out / "calibration_report.json", json.dumps(data, indent=1))
-    sections = []
-    T = calib.rig.T
-    summary = table(["quantity", "value"], [
-        ["method", calib.method], ["poses used", len(calib.captures_used)],
-        ["poses skipped / outliers", sum(p.status != "used" for p in calib.poses)],
-        ["RMS residual (px)", calib.rms_px], ["worst residual (px)", calib.max_px],
-        ["sigma rotation x/y/z (deg)", " / ".join(f"{v:.4f}" for v in calib.sigma_rot_xyz_deg)],
-        ["sigma translation x/y/z (mm)", " / ".join(f"{v:.3f}" for v in calib.sigma_trans_xyz_mm)],
-        ["leave-one-out transfer mean / max (px)",
-         "-" if calib.loo_transfer_mean_px is None else f"{calib.loo_transfer_mean_px:.3f} / {calib.loo_transfer_max_px:.3f}"],
-        ["T_zed_from_mech", "<br>".join(" ".join(f"{x:+.6f}" for x in row) for row in T)],
-    ])
-    sections.append(("Summary", summary.replace("&lt;br&gt;", "<br>")))
-    if len(calib.methods) > 1:
-        sections.append(("Methods side by side", table(["method", "RMS ZED (px)", "rot diff (deg)", "trans diff (mm)"],
-                         [[m.method, m.rms_zed_px, m.rot_diff_to_primary_deg, m.trans_diff_to_primary_mm] for m in calib.methods])))
-    rows = [[p.capture, p.status, p.reason, p.rms_mech_px, p.rms_zed_px, p.max_px, p.loo_transfer_mean_px,
-             p.sharpness_mech_px, p.sharpness_zed_px, "yes" if p.blurred else ""] for p in calib.poses]
-    sections.append(("Poses, worst first", table(["capture", "status", "reason", "RMS mech", "RMS ZED", "max", "LOO mean",
-                                                  "edge mech", "edge ZED", "blurred"], rows)))
-    if calib._residuals:
-        allr = np.concatenate([np.linalg.norm(np.concatenate([v["res_mech"], v["res_zed"]]), axis=1)
-                               for v in calib._residuals.values()])
-        fig, ax = plt.subplots(figsize=(6, 3.2))
-        ax.hist(allr, bins=50)
-        ax.set_xlabel("corner residual (px)")
-        ax.set_ylabel("count")
-        sections.append(("Residual histogram", fig_to_img_tag(fig, "60%")))
-        sections.append(("Residual by ZED image region (RMS px)", table(["region", "RMS (px)"],
-                                                                           sorted(calib.residuals_by_region_px.items()))))
-        names = [p.capture for p in calib.poses if p.capture in calib._residuals]
-        ncol = 4
-        nrow = int(np.ceil(len(names) / ncol))
-        fig, axes = plt.subplots(nrow, ncol, figsize=(16, 3.2 * nrow), squeeze=False)
-        W, H = calib.rig.zed.left.width_px, calib.rig.zed.left.height_px
-        for ax, name in zip(axes.ravel(), names):
-            r = calib._residuals[name]
-            sc = 0.04 * W / max(float(np.abs(r["res_zed"]).max()), 1e-6)
-            ax.quiver(r["zed_uv"][:, 0], r["zed_uv"][:, 1], r["res_zed"][:, 0] * sc, r["res_zed"][:, 1] * sc,
-                      angles="xy", scale_units="xy", scale=1, width=0.004)
-            ax.set_xlim(0, W)
-            ax.set_ylim(H, 0)
-            ax.set_title(f"{name}: max {np.linalg.norm(r['res_zed'], axis=1).max():.3f} px", fontsize=9)
-            ax.set_aspect("equal")
-        for ax in axes.ravel()[len(names):]:
-            ax.axis("off")
-        sections.append(("ZED-left residual vectors per view (arrows scaled per view)", fig_to_img_tag(fig)))
-    return write_html(out / "calibration_report.html", "gtforge calibration report", sections)
+    built = [s for s in (f(calib) for f in (sections or SECTIONS)) if s is not None]
+    header = standard_header(("session", calib.session_dir or None), ("method written", calib.method),
+                             ("solve time (s)", f"{calib.time_s:.1f}"))
+    return write_html(out / "calibration_report.html", "gtforge calibration report", built, header=header)

@@ -1,0 +1,167 @@
+"""Per-pixel ground-truth uncertainty: a 1-sigma disparity error bar for every GT pixel (``disp0GT_sigma.pfm``).
+
+A GT disparity at ZED-left pixel ``u`` is the disparity of the surface point the reprojection put there. An error
+moves that point: by ``delta_X`` in the ZED frame. The label at ``u`` then changes by the point's own disparity change
+minus the GT's slope times the point's image motion::
+
+    delta_d(u) = (dd/dX - grad_d(u) . du/dX) . delta_X        (d = f*B/Z - doffs, du/dX: the pinhole Jacobian)
+
+so surfaces steep in disparity (silhouettes, grazing table) react to lateral errors and flat ones do not. Sources,
+independent, added in quadrature (docs/dataset-format.md, "disp0GT_sigma.pfm"):
+
+1. **Extrinsic**: ``delta_X = -[X - t]x omega + delta_t`` for the calibration's left perturbation
+   ``T_zed_from_mech = [exp(omega) R | t + delta_t]``; ``sigma^2 = J C J^T`` with each pixel's own 1x6 Jacobian and the
+   calibration's 6x6 covariance ``cov_extrinsic_rad_mm``.
+2. **Depth noise**: the structured-light depth along the depth camera's ray, ``sigma_z = a + b * Z_m^2`` (mm, Z in m;
+   ``DepthNoiseModel``), ``delta_X = (X - c_depth) / z_depth * delta_z``; the mesh interpolates three noisy samples,
+   which divides the noise by sqrt(2) in the mean square over a triangle.
+3. **Mesh interpolation**: the pixel lies inside a triangle of the depth grid whose vertices span ``span_mm`` in depth;
+   a triangle interpolates linearly, and on a surface curved with radius ``R`` (``curvature_radius_mm``, 50 mm: half a
+   melon's) the chord misses the surface by about ``span^2 / (8 R)``: ``sigma = f*B/Z^2 * span^2 / (8 R)``. Negligible
+   on the fruit's top, it grows where triangles are steep: silhouettes and grazing surfaces.
+4. **Verification** (optional): a scene whose texture is off by ``s`` px gets ``|grad_d| * s`` of lateral uncertainty.
+"""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from pydantic import Field
+
+from gtforge.camera import Rig
+from gtforge.schema import GTModel
+
+
+class DepthNoiseModel(GTModel):
+    """1-sigma structured-light depth noise along the depth camera's z: ``a_mm + b_mm_per_m2 * (Z / 1000 mm)^2``.
+
+    Default: Mech-Eye PRO S, rated 0.05 mm at 1 m (Mech-Mind's data sheet, Z repeatability), growing with Z^2 as
+    triangulation noise does. Set it for your camera (``--depth-noise-a-mm``, ``--depth-noise-b-mm-per-m2``)."""
+
+    a_mm: float = Field(0.0, ge=0)
+    b_mm_per_m2: float = Field(0.05, ge=0)
+
+    def sigma_mm(self, z_mm: np.ndarray) -> np.ndarray:
+        return self.a_mm + self.b_mm_per_m2 * (np.asarray(z_mm, np.float64) / 1000.0) ** 2
+
+
+class UncertaintyParams(GTModel):
+    depth_noise: DepthNoiseModel = Field(default_factory=DepthNoiseModel)
+    # a triangle of the depth grid interpolates its surface linearly; on a surface curved with radius R the chord is off
+    # by about L^2 / (8 R) (L: the triangle's 3-D extent, dominated by its depth span where the surface is steep)
+    curvature_radius_mm: float = Field(50.0, gt=0)
+    use_verification: bool = True  # add the scene's measured texture shift as lateral uncertainty
+
+
+@numba.njit(cache=True)
+def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px,
+                  out):
+    H, W = disp.shape
+    for v in range(H):
+        for u in range(W):
+            d = disp[v, u]
+            Z = depth[v, u]
+            if not (math.isfinite(d) and math.isfinite(Z) and Z > 0):
+                out[v, u] = np.inf
+                continue
+            # GT slope (px/px): central difference where both neighbours exist, else one-sided
+            gx = 0.0
+            l = disp[v, u - 1] if u > 0 else np.nan
+            r = disp[v, u + 1] if u < W - 1 else np.nan
+            if math.isfinite(l) and math.isfinite(r):
+                gx = 0.5 * (r - l)
+            elif math.isfinite(r):
+                gx = r - d
+            elif math.isfinite(l):
+                gx = d - l
+            gy = 0.0
+            up = disp[v - 1, u] if v > 0 else np.nan
+            dn = disp[v + 1, u] if v < H - 1 else np.nan
+            if math.isfinite(up) and math.isfinite(dn):
+                gy = 0.5 * (dn - up)
+            elif math.isfinite(dn):
+                gy = dn - d
+            elif math.isfinite(up):
+                gy = d - up
+            X = (u - cx) / fx * Z
+            Y = (v - cy) / fy * Z
+            # a = dd/dX - g . du/dX  (row vector)
+            fb = fx * B
+            ax = -gx * fx / Z
+            ay = -gy * fy / Z
+            az = -fb / (Z * Z) + gx * fx * X / (Z * Z) + gy * fy * Y / (Z * Z)
+            # extrinsic: dX/domega = -[P]x with P = X - t, dX/ddt = I  ->  J = [P x a, a]
+            px, py, pz = X - t[0], Y - t[1], Z - t[2]
+            J0 = py * az - pz * ay
+            J1 = pz * ax - px * az
+            J2 = px * ay - py * ax
+            J = (J0, J1, J2, ax, ay, az)
+            var = 0.0
+            for i in range(6):
+                s = 0.0
+                for j in range(6):
+                    s += cov[i, j] * J[j]
+                var += J[i] * s
+            # depth noise along the depth camera's ray: dX/dz_d = (X - c) / z_d, z_d = the point's depth-camera z
+            rx, ry, rz = X - c_depth[0], Y - c_depth[1], Z - c_depth[2]
+            zd = rx * axis_depth[0] + ry * axis_depth[1] + rz * axis_depth[2]
+            # the mesh interpolates three noisy vertices: sqrt(sum w_i^2) of the noise, 1/sqrt(2) in the mean square
+            # over a triangle (uniform barycentric weights: E[sum w_i^2] = 1/2)
+            sz = (a_mm + b_mm * (zd / 1000.0) ** 2) * 0.7071067811865476
+            dn_ = (ax * rx + ay * ry + az * rz) / zd * sz
+            var += dn_ * dn_
+            # mesh interpolation: the chord of a surface curved with radius R, over the triangle's depth span
+            sp = span[v, u]
+            if math.isfinite(sp):
+                m = fb / (Z * Z) * sp * sp / (8.0 * radius_mm)
+                var += m * m
+            # verification: the measured texture shift as lateral uncertainty
+            lat = math.sqrt(gx * gx + gy * gy) * shift_px
+            var += lat * lat
+            out[v, u] = math.sqrt(var)
+
+
+def disparity_sigma(disparity_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, cov_extrinsic_rad_mm,
+                    params: UncertaintyParams | None = None, span_mm: np.ndarray | None = None,
+                    texture_shift_px: float | None = None) -> np.ndarray:
+    """``(H, W)`` float32 1-sigma disparity uncertainty (px) of a GT disparity map, +inf where there is no GT.
+
+    ``disparity_px``/``depth_mm``: the ZED-left GT (uncropped, ``(H, W)``). ``cov_extrinsic_rad_mm``: the calibration's
+    6x6 covariance (None: the extrinsic is taken as exact). ``span_mm``: the winning triangle's depth span per pixel
+    (``reproject.project_depth_to_camera(..., return_span=True)``; None: no mesh term). ``texture_shift_px``: the
+    scene's measured texture shift (verification), added as lateral uncertainty."""
+    params = params or UncertaintyParams()
+    cam = rig.zed.left
+    disp = np.ascontiguousarray(disparity_px, np.float64)
+    depth = np.ascontiguousarray(depth_mm, np.float64)
+    if disp.shape != depth.shape:
+        raise ValueError(f"{disp.shape=} but expected {depth.shape} (the depth's shape)")
+    cov = np.zeros((6, 6)) if cov_extrinsic_rad_mm is None else np.asarray(cov_extrinsic_rad_mm, np.float64)
+    if cov.shape != (6, 6):
+        raise ValueError(f"{cov.shape=} but expected (6, 6)")
+    span = np.full(disp.shape, np.nan) if span_mm is None else np.ascontiguousarray(span_mm, np.float64)
+    T_zd = rig.T_zed_from_depth
+    c_depth, axis_depth = T_zd[:3, 3], T_zd[:3, 2]  # the depth camera's centre and optical axis in the ZED frame
+    shift = float(texture_shift_px) if (params.use_verification and texture_shift_px is not None
+                                        and math.isfinite(texture_shift_px)) else 0.0
+    out = np.empty(disp.shape, np.float64)
+    _sigma_kernel(disp, depth, span, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px, rig.zed.baseline_mm, cov,
+                  np.ascontiguousarray(rig.T[:3, 3]), np.ascontiguousarray(c_depth), np.ascontiguousarray(axis_depth),
+                  params.depth_noise.a_mm,
+                  params.depth_noise.b_mm_per_m2, params.curvature_radius_mm, shift, out)
+    return out.astype(np.float32)
+
+
+class SigmaStats(GTModel):
+    median_px: float | None
+    p95_px: float | None
+    over_0_1_px_pct: float | None  # share of GT pixels with sigma above 0.1 px
+
+
+def sigma_stats(sigma_px: np.ndarray, mask: np.ndarray) -> SigmaStats:
+    s = sigma_px[mask & np.isfinite(sigma_px)]
+    if not s.size:
+        return SigmaStats(median_px=None, p95_px=None, over_0_1_px_pct=None)
+    return SigmaStats(median_px=float(np.median(s)), p95_px=float(np.percentile(s, 95)),
+                      over_0_1_px_pct=float(100.0 * np.mean(s > 0.1)))

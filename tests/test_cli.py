@@ -1,0 +1,70 @@
+"""The ``gtforge`` command line (issue 11 item 13): help, usage and errors read as plain words."""
+import re
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+import gtforge
+from gtforge.cli import app
+
+LEAKS = re.compile(r"<bool>|<path>|<int>|<float>|<str>|<list\[|\{[a-z_]+\}|--no-no-")
+
+
+def _commands():
+    group = typer.main.get_command(app)
+    return group, sorted(group.commands)
+
+
+def test_every_help_page_is_free_of_type_leaks_and_every_option_has_help():
+    group, names = _commands()
+    assert {"calibrate", "build-dataset", "validate", "evaluate", "compare", "synth", "demo"} <= set(names)
+    runner = CliRunner()
+    for args in [["--help"]] + [[n, "--help"] for n in names]:
+        r = runner.invoke(app, args, env={"COLUMNS": "200"})
+        assert r.exit_code == 0, (args, r.output)
+        assert not LEAKS.search(r.output), (args, LEAKS.search(r.output).group(0))
+    for n in names:
+        for p in group.commands[n].params:
+            assert p.help, f"gtforge {n}: {p.name} has no help text"
+            assert "--no-no-" not in " ".join(getattr(p, "secondary_opts", []))
+
+
+def test_usage_errors_name_arguments_plainly():
+    r = CliRunner().invoke(app, ["calibrate"], env={"COLUMNS": "200"})
+    assert r.exit_code == 2
+    assert "Usage: root calibrate [OPTIONS] SESSION" in r.output and "Missing argument 'SESSION'" in r.output
+    assert not LEAKS.search(r.output)
+    r = CliRunner().invoke(app, ["compare"], env={"COLUMNS": "200"})
+    assert "RESULTS..." in r.output and not LEAKS.search(r.output)
+
+
+def test_version():
+    r = CliRunner().invoke(app, ["--version"])
+    assert r.exit_code == 0 and r.output.strip() == f"gtforge {gtforge.__version__}"
+
+
+def test_evaluate_help_says_a_model_option_is_required(tmp_path):
+    r = CliRunner().invoke(app, ["evaluate", "--help"], env={"COLUMNS": "200"})
+    assert "Exactly one model option is required: --onnx, --torchscript, --predictions or --sgbm." in r.output
+    assert "Model (exactly one is required)" in r.output
+    from gtforge.errors import InputError
+
+    with pytest.raises(InputError, match="exactly one of --onnx, --torchscript, --predictions, --sgbm, got 0 given"):
+        CliRunner().invoke(app, ["evaluate", str(tmp_path)], catch_exceptions=False)
+
+
+def test_flags_are_named_positively():
+    group, _ = _commands()
+    opts = {n: {o for p in c.params for o in [*getattr(p, "opts", []), *getattr(p, "secondary_opts", [])]}
+            for n, c in group.commands.items()}
+    assert {"--loo", "--no-loo"} <= opts["calibrate"] and "--no-no-loo" not in opts["calibrate"]
+    assert {"--clouds", "--no-clouds"} <= opts["evaluate"] and "--no-no-clouds" not in opts["evaluate"]
+    assert "--max-gt-sigma" in opts["evaluate"]
+
+
+def test_synth_prints_progress_off_terminal(tmp_path):
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--boards", "1", "--scenes", "1", "--scale", "0.1"])
+    assert r.exit_code == 0, r.output
+    lines = r.output.splitlines()
+    assert lines[:2] == ["board 000", "scene 000"] and lines[-1] == f"wrote {tmp_path / 's'}"

@@ -1,0 +1,110 @@
+"""The calibration and validation reports (issue 11 items 11-12): content checked in the HTML, no browser needed."""
+import re
+
+import numpy as np
+import pytest
+
+from gtforge.calibrate import CalibrateParams, calibrate
+from gtforge.reports import calibration as calib_report
+from gtforge.reports import validation as val_report
+from gtforge.reports.html import MISSING, Section, fmt_value, table
+from gtforge.validate import validate
+
+
+def _cells(html: str) -> list[str]:
+    return re.findall(r"<td>(.*?)</td>", html, flags=re.S)
+
+
+def _row(html: str, label: str) -> list[str]:
+    m = re.search(r"<tr><td>" + re.escape(label) + r"</td>(.*?)</tr>", html, flags=re.S)
+    assert m, label
+    return re.findall(r"<td>(.*?)</td>", m.group(1), flags=re.S)
+
+
+@pytest.fixture(scope="module")
+def depth_calibration(session_dir, tmp_path_factory):
+    """A --use-depth calibration on four poses (the depth method's extrinsic is the one written)."""
+    out = tmp_path_factory.mktemp("calib_depth")
+    res = calibrate(session_dir, out / "calibration.yaml", CalibrateParams(use_depth=True),
+                    captures=["000", "002", "004", "006"])
+    return res, calib_report.write_calibration_report(res, out / "report").read_text()
+
+
+def test_cells_never_print_none_or_nan():
+    html = table(["a", "b", "c"], [[None, float("nan"), 1.23456]], fmt=[None, None, "{:.2f}"])
+    assert _cells(html) == [MISSING, MISSING, "1.23"]
+    assert fmt_value(np.float32(np.inf)) == MISSING and fmt_value(3) == "3"
+
+
+def test_calibration_summary_describes_the_written_calibration(depth_calibration):
+    res, html = depth_calibration
+    assert res.method == "depth" and [m.method for m in res.methods] == ["reprojection", "depth"]
+    depth = res.methods[1]
+    # the written method's RMS in the ZED image, not the reprojection solve's RMS over both cameras
+    assert _row(html, "RMS residual in the ZED-left image, written calibration (px)") == [f"{depth.rms_zed_px:.4f}"]
+    assert _row(html, "RMS residual, both cameras (px)") == [f"{res.rms_px:.4f}"]
+    assert "calibration written" in html and "depth: the depth camera&#x27;s 3-D board corners" in html
+    # which solve the sigmas and the leave-one-out figures describe
+    sm = calib_report.sigma_method(res)
+    assert _row(html, f"1-sigma rotation x / y / z (deg), {sm} solve") == [
+        " / ".join(f"{v:.4f}" for v in res.sigma_rot_xyz_deg)]
+    assert _row(html, "leave-one-pose-out transfer mean / max (px), reprojection solve") == [
+        f"{res.loo_transfer_mean_px:.3f} / {res.loo_transfer_max_px:.3f}"]
+    # the written matrix is the depth method's
+    assert f"{depth.T_zed_from_mech[0][3]:+10.3f}" in html
+
+
+def test_calibration_report_verdict_units_and_no_none(depth_calibration):
+    res, html = depth_calibration
+    assert f'<h2 class="{res.verdict.lower()}">Verdict: {res.verdict}</h2>' in html
+    for r in res.verdict_reasons:  # four poses: at least "only 4 poses" is a reason to warn
+        assert r.replace("'", "&#x27;") in html
+    assert res.verdict_reasons and res.verdict in ("WARN", "FAIL")
+    assert "None" not in "".join(_cells(html)) and "nan" not in "".join(_cells(html))
+    heads = re.search(r"<h2>Poses, worst first</h2><table><thead><tr>(.*?)</tr>", html).group(1)
+    heads = re.findall(r"<th>(.*?)</th>", heads)
+    unitless = {"capture", "status", "reason", "blurred"}
+    assert all(h in unitless or h.endswith("(px)") for h in heads), heads
+    assert "key arrow" in html and "ZED-left residual vectors per view" in html
+    assert re.search(r"<h2>Residual histogram \(reprojection solve\)</h2><img [^>]*src=\"data:image/png;base64,", html)
+    assert re.search(r"<h2>ZED-left residual vectors per view</h2><p class=\"note\">[^<]*</p><img [^>]*src=\"data:image/png", html)
+
+
+def test_calibration_report_is_a_list_of_sections(calibration, tmp_path):
+    _, res = calibration
+
+    def extra(c):
+        return Section("Rectification quality", f"<p>{len(c.captures_used)} poses</p>", status="warn")
+
+    html = calib_report.write_calibration_report(res, tmp_path, sections=[*calib_report.SECTIONS, extra]).read_text()
+    assert html.index("Verdict:") < html.index("<h2>Summary</h2>") < html.index("Rectification quality")
+    assert f'<h2 class="warn">Rectification quality</h2><p>{len(res.captures_used)} poses</p>' in html
+    # the reprojection method was written: the summary's RMS is the reprojection solve's ZED RMS
+    assert res.method == "reprojection"
+    assert _row(html, "RMS residual in the ZED-left image, written calibration (px)") == [
+        f"{res.methods[0].rms_zed_px:.4f}"]
+    assert "Reprojection solve (the calibration written)" in html
+
+
+def test_validation_report(session_dir, true_calibration, tmp_path):
+    rep = validate(session_dir, true_calibration, tmp_path, captures=["001", "005"])
+    html = (tmp_path / "validation.html").read_text()
+    assert '<h2 class="pass">Verdict: PASS</h2>' in html
+    assert "Li et al., MI-ACVNet (MDPI, 2026)" in html
+    # per-pose means against the thresholds, and the field-of-view plot: two figures
+    for heading in ("Per pose against the thresholds", "Where in the field of view"):
+        assert re.search(f"<h2>{heading}</h2><img [^>]*src=\"data:image/png;base64,", html), heading
+    for p in rep.poses:  # D calc / D true to 0.01 mm
+        row = _row(html, p.capture)
+        assert row[6] == f"{p.z_diagonal_calc_mm:.2f}" and row[7] == f"{p.z_diagonal_true_mm:.2f}"
+    assert "None" not in "".join(_cells(html))
+    # a FAIL is coloured too
+    rep2 = rep.model_copy(update={"passed": False, "pass_xy": False})
+    out = val_report.write_validation_report(rep2, tmp_path / "fail", session_zed_camera(session_dir))
+    assert '<h2 class="fail">Verdict: FAIL</h2>' in out.read_text()
+
+
+def session_zed_camera(session_dir):
+    from gtforge.io.captures import open_session
+
+    return open_session(session_dir).zed.left
