@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from gtforge.build_dataset import BuildParams, Manifest, build_dataset, build_scene_arrays
+from gtforge.build_dataset import BuildParams, Manifest, build_scene_arrays
 from gtforge.calibrate import CalibrationFile
 from gtforge.geometry import T_from_rotvec, transform_points
 from gtforge.io.captures import open_session
@@ -64,7 +64,7 @@ def test_moved_fruit_is_flagged_with_the_right_shift(moved_session, true_calibra
         cam = rig.zed.left
         z = tr["zed_depth_mm"][v, u].astype(float)
         P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
-        from gtforge.synthetic import SyntheticTruth, default_rig
+        from gtforge.synthetic import default_rig
 
         T_zed_from_world = default_rig(0.4).T_zed_from_world
         back = cam.project(P - T_zed_from_world[:3, :3] @ np.array(motion))  # where GT (pre-move) puts them
