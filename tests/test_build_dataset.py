@@ -50,6 +50,23 @@ def test_dataset_matches_exact_truth(session_dir, dataset):
         assert np.nanmax(np.abs(k - gt)) <= 0.5 / 256 + 1e-6
         noc = read_kitti_disparity(out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png")
         np.testing.assert_array_equal(np.isfinite(noc), mask == 255)
+        # the right view's ground truth (Middlebury disp1 / KITTI disp_occ_1), against its own exact truth
+        gt1 = read_pfm(s / "disp1GT.pfm")
+        seen1, ok1 = tr["seen_by_mech_right"], np.isfinite(gt1)
+        assert ok1[seen1].mean() >= 0.995
+        err1 = np.abs(gt1 - tr["zed_right_disparity_px"])
+        assert np.mean(err1[seen1 & ok1]) < 0.01 and np.mean(err1[ok1] > 1.0) < 0.0005
+        mask1 = read_image(s / "mask1nocc.png")
+        np.testing.assert_array_equal(mask1 > 0, ok1)
+        assert 0 < (mask1 == 128).sum() < 0.2 * ok1.sum()  # some right pixels are hidden from the left camera
+        k1 = read_kitti_disparity(out / "kitti" / "training" / "disp_occ_1" / f"{sid}_10.png")
+        np.testing.assert_array_equal(np.isfinite(k1), ok1)
+        assert np.nanmax(np.abs(k1 - gt1)) <= 0.5 / 256 + 1e-6
+        # a right pixel's match u + d lands on the left pixel whose own disparity is the same (non-occluded)
+        v, u = np.nonzero(mask1 == 255)
+        ul = np.round(u + gt1[v, u]).astype(int)
+        inside = ul < gt.shape[1]
+        assert np.nanmedian(np.abs(gt[v[inside], ul[inside]] - gt1[v[inside], u[inside]])) < 0.05
         assert (out / "eth3d" / "two_view_training" / sid / "im0.png").exists()
         assert (out / "eth3d" / "two_view_training_gt" / sid / "disp0GT.pfm").exists()
 
@@ -164,10 +181,50 @@ def test_kill_9_leaves_no_half_written_scene(session_dir, true_calibration, tmp_
     os.killpg(p.pid, signal.SIGKILL)  # mid-run, right after the first scene landed
     p.wait()
     files = {"im0.png", "im1.png", "disp0GT.pfm", "mask0nocc.png", "region.png", "weight.tiff", "depth0.tiff",
-             "calib.txt", "meta.json"}
+             "calib.txt", "meta.json", "disp1GT.pfm", "mask1nocc.png", "disp0GT_sigma.pfm"}
     for d in (out / "scenes").iterdir():
         if not d.name.startswith("."):
             assert {f.name for f in d.iterdir()} == files  # every visible scene is complete
     s = build_dataset(session_dir, true_calibration, out, workers=1)
     assert sorted(s.built + s.skipped_unchanged) == ["000", "001", "002"] and s.skipped_unchanged
     assert not list((out / "scenes").glob(".*"))
+
+
+def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibration, tmp_path, monkeypatch):
+    import time
+    from pathlib import Path
+
+    import gtforge.build_dataset as bd
+
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    cap = sess / "scenes" / "000"
+    old_s = time.time() - 3600
+    for f in cap.iterdir():
+        os.utime(f, (old_s, old_s))
+    os.utime(cap / "right.png")  # modified just now: hashed within the timestamp margin
+    out = tmp_path / "ds"
+    assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
+    meta = bd.SceneMeta.read(out / "scenes" / "000" / "meta.json")
+    assert set(meta.input_stamps) == set(meta.input_sha256) == {"2DImage.png", "DepthMap.tiff", "left.png",
+                                                                 "right.png"}
+    assert meta.input_stamps["left.png"].size_bytes == (cap / "left.png").stat().st_size
+    hashed = []
+    real = bd.sha256_file
+    monkeypatch.setattr(bd, "sha256_file", lambda p: hashed.append(Path(p).name) or real(p))
+    s = build_dataset(sess, true_calibration, out, scenes=["000"], workers=1)
+    assert s.skipped_unchanged == ["000"]
+    # size + mtime trusted for the old files; the one modified near its hash is read again
+    assert sorted(hashed) == ["calibration.yaml", "right.png"]
+    # touched, same content: hashed, still unchanged
+    hashed.clear()
+    os.utime(cap / "left.png")
+    assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).skipped_unchanged == ["000"]
+    assert "left.png" in hashed and "DepthMap.tiff" not in hashed
+    # new content: rebuilt
+    (cap / "2DImage.png").write_bytes((cap / "2DImage.png").read_bytes())  # same bytes, new mtime
+    d = read_image(cap / "left.png")
+    from gtforge.io.formats import write_image
+
+    write_image(cap / "left.png", 255 - d)
+    assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).built == ["000"]

@@ -36,7 +36,7 @@ from gtforge.io.formats import (
     write_ply,
     write_tiff_float,
 )
-from gtforge.reproject import ReprojectParams, reproject_to_zed
+from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
 from gtforge.scheduling import run_tasks
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats
@@ -69,6 +69,7 @@ class BuildParams(GTModel):
     max_disp_px: float = 192.0  # statistics: share of pixels above this (many training repos drop them)
     verification: bool = True  # per-scene checks of the GT against its own images (gtforge.verify)
     sigma: bool = True  # disp0GT_sigma.pfm: per-pixel 1-sigma GT uncertainty (gtforge.uncertainty)
+    right_gt: bool = True  # disp1GT.pfm + mask1nocc.png (+ KITTI disp_occ_1/disp_noc_1): the right view's GT
     uncertainty: UncertaintyParams = Field(default_factory=UncertaintyParams)
     verify: VerifyParams = Field(default_factory=VerifyParams)
     quarantine: bool = False  # leave flagged scenes out of the split lists (they stay in scenes/)
@@ -306,6 +307,9 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     disp = sd.disparity_px
     valid = np.isfinite(disp)
     left, right, depth = cap.zed_left, cap.zed_right, sd.depth_mm
+    disp1 = noc1 = None
+    if params.right_gt:
+        disp1, noc1 = right_view_disparity(sd.depth_mm, sd.depth_right_mm, rig.zed, params.occlusion_rel_tol)
     crop = None
     cx_shift = cy_shift = 0.0
     if params.crop_wh:
@@ -313,6 +317,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         sl = (slice(y0, y0 + ch), slice(x0, x0 + cw))
         left, right, depth, disp, region, fruit = left[sl], right[sl], depth[sl], disp[sl], region[sl], fruit[sl]
         sigma = sigma[sl] if sigma is not None else None
+        if disp1 is not None:
+            disp1, noc1 = disp1[sl], noc1[sl]
         noc = sd.nonoccluded[sl]
         valid = valid[sl]
         crop, cx_shift, cy_shift = [x0, y0, cw, ch], float(x0), float(y0)
@@ -341,15 +347,16 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir(parents=True)
-        mask = np.zeros(disp.shape, np.uint8)
-        mask[valid] = 128
-        mask[noc] = 255
+        mask = occlusion_mask(disp, noc)
         for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
             if src is not None and crop is None:
                 shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
             else:
                 write_image(tmp / name, img)
         write_pfm(tmp / "disp0GT.pfm", disp)
+        if disp1 is not None:
+            write_pfm(tmp / "disp1GT.pfm", disp1)
+            write_label_png(tmp / "mask1nocc.png", occlusion_mask(disp1, noc1))
         if sigma is not None:
             write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
             write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
@@ -377,7 +384,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             shutil.rmtree(old, ignore_errors=True)
     finally:
         _unlock_writer(scenes, sid, token, lock)
-    write_scene_views(Path(out_dir), sid, params, disp, noc)
+    write_scene_views(Path(out_dir), sid, params, disp, noc, disp1, noc1)
     return sid, None, meta.model_dump(mode="json")
 
 
@@ -540,9 +547,18 @@ def _link(src: Path, dst: Path) -> None:
     os.replace(tmp, dst)
 
 
+def occlusion_mask(disp: np.ndarray, nonoccluded: np.ndarray) -> np.ndarray:
+    """``mask?nocc.png`` values: 255 non-occluded, 128 occluded in the other view, 0 no ground truth."""
+    mask = np.zeros(disp.shape, np.uint8)
+    mask[np.isfinite(disp)] = 128
+    mask[nonoccluded] = 255
+    return mask
+
+
 def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray | None = None,
-                      noc: np.ndarray | None = None) -> None:
-    """KITTI and ETH3D views of one built scene (links where possible). ``disp``/``noc`` save re-reading."""
+                      noc: np.ndarray | None = None, disp1: np.ndarray | None = None,
+                      noc1: np.ndarray | None = None) -> None:
+    """KITTI and ETH3D views of one built scene (links where possible). The arrays save re-reading."""
     from gtforge.io.formats import read_image, read_pfm
 
     s = out / "scenes" / sid
@@ -555,6 +571,12 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
             noc = read_image(s / "mask0nocc.png") == 255
         write_kitti_disparity(k / "disp_occ_0" / f"{sid}_10.png", disp)
         write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", np.where(noc, disp, np.nan))
+        if disp1 is None and (s / "disp1GT.pfm").exists():
+            disp1 = read_pfm(s / "disp1GT.pfm")
+            noc1 = read_image(s / "mask1nocc.png") == 255
+        if disp1 is not None:  # KITTI's right-view GT, as OpenStereo's RETURN_RIGHT_DISP reads it
+            write_kitti_disparity(k / "disp_occ_1" / f"{sid}_10.png", disp1)
+            write_kitti_disparity(k / "disp_noc_1" / f"{sid}_10.png", np.where(noc1, disp1, np.nan))
     if params.eth3d:
         e = out / "eth3d"
         for f in ("im0.png", "im1.png", "calib.txt"):

@@ -343,6 +343,8 @@ class SyntheticCapture:
     zed_disparity_px: np.ndarray  # exact f*B/Z - doffs, NaN where nothing is hit
     seen_by_mech: np.ndarray  # bool: ZED-left pixels whose surface point the depth camera measured
     fruit_mask: np.ndarray  # bool, ZED-left
+    zed_right_disparity_px: np.ndarray | None = None  # exact disparity at ZED-right pixel centres (match: u + d)
+    seen_by_mech_right: np.ndarray | None = None  # ZED-right pixels whose surface point the depth camera measured
     T_mech_from_board: np.ndarray | None = None
     corners_mech_uv: np.ndarray | None = None
     corners_zed_uv: np.ndarray | None = None
@@ -389,8 +391,21 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     hit_z = np.isfinite(z_z)
     zdepth = np.where(hit_z, z_z, np.nan).astype(np.float32)
     disp = zed.depth_to_disparity(np.where(hit_z, z_z, np.nan))
-    seen = np.zeros(hit_z.shape, bool)
-    pts = p_z[hit_z]
+    seen = _seen_by_depth_camera(zed_scene, rig, p_z, hit_z)
+    # ZED-right truth (Middlebury's disp1: the match of right pixel u is left pixel u + d)
+    z_r, _, p_r = raycast_depth(zed_scene, zed.right, T_zedr_from_world)
+    hit_r = np.isfinite(z_r)
+    disp_r = zed.depth_to_disparity(np.where(hit_r, z_r, np.nan))
+    seen_r = _seen_by_depth_camera(zed_scene, rig, p_r, hit_r)
+    return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
+                            ids_z == OBJ_FRUIT, disp_r, seen_r)
+
+
+def _seen_by_depth_camera(scene: Scene, rig: SyntheticRig, p_world: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """Which of the (hit) image pixels' surface points the structured-light unit measured: inside the depth camera's
+    image, visible from it and lit by the projector."""
+    seen = np.zeros(hit.shape, bool)
+    pts = p_world[hit]
     cam = rig.depth_camera
     p_cam = transform_points(rig.T_depth_from_world, pts)
     uv = cam.project(p_cam)
@@ -398,11 +413,10 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
              (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height_px - 1)
     depth_centre = invert_T(rig.T_depth_from_world)[:3, 3]
     ok = inside.copy()
-    ok[inside] = _visible_from(zed_scene, depth_centre, pts[inside])
-    ok[ok] = lit_mask(zed_scene, rig, pts[ok])
-    seen[hit_z] = ok
-    return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
-                            ids_z == OBJ_FRUIT)
+    ok[inside] = _visible_from(scene, depth_centre, pts[inside])
+    ok[ok] = lit_mask(scene, rig, pts[ok])
+    seen[hit] = ok
+    return seen
 
 
 def random_board_pose(rng: np.random.Generator, rig: SyntheticRig, board: BoardSpec, margin_px: float = 12.0,
@@ -518,6 +532,8 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
     if cap.T_mech_from_board is not None:
         extra = dict(T_mech_from_board=cap.T_mech_from_board, corners_mech_uv=cap.corners_mech_uv,
                      corners_zed_uv=cap.corners_zed_uv)
+    if cap.zed_right_disparity_px is not None:
+        extra.update(zed_right_disparity_px=cap.zed_right_disparity_px, seen_by_mech_right=cap.seen_by_mech_right)
     np.savez_compressed(truth_dir / f"{cap.kind}_{cap.name}.npz", zed_depth_mm=cap.zed_depth_mm,
                         zed_disparity_px=cap.zed_disparity_px, seen_by_mech=cap.seen_by_mech,
                         fruit_mask=cap.fruit_mask, fruit_motion_mm=np.asarray(fruit_motion_mm, float), **extra)
