@@ -1,77 +1,98 @@
-"""End-to-end build-dataset throughput at full resolution (ZED 2K, Mech-Eye-like 1920x1200 depth).
+"""build-dataset end to end against the plain Open3D script a user would write, on the same scenes, in one run.
 
-Renders a few distinct fruit scenes once, replicates them (hard links) to N scene folders, then builds the
-dataset with the default outputs (mesh, masks, regions, weights, KITTI + ETH3D views, lists, manifest).
-Prints scenes/s with --workers 2 against --workers 1 on the same scenes (the baseline), and the share of
-worker time spent reading inputs, computing, and writing outputs (from each scene's meta.json).
+Renders a few distinct full-resolution fruit scenes (ZED 2K 2208x1242, 1920x1200 depth; benchmarks/
+fullres_session.py), hard-links them to N scene folders, then runs, each as its own process from a cold
+start (imports included), one after the other:
 
-    python benchmarks/bench_build_dataset.py [--scenes 100] [--distinct 4] [--workdir /tmp/gtforge_bench]
+* baseline: ``benchmarks/baseline_open3d_script.py`` (tifffile + OpenCV + Open3D, one process; writes
+  im0/im1, PFM, KITTI PNG);
+* ``gtforge build-dataset`` with the default options and ``--workers`` = cores (mesh, occlusion mask,
+  regions, weights, depth TIFF, KITTI + ETH3D views, verification, hashes for resume, atomic writes);
+* ``gtforge build-dataset --no-verify`` (the same without the per-scene verification);
+* a resume of the default build (nothing to rebuild: the inputs' size + mtime checks).
+
+Prints scenes/s, the ratio to the baseline, and the projected time for 808 scenes at the measured rate.
+``--write`` puts the table into benchmarks/RESULTS.md (section ``bench_build_dataset``).
+
+    python benchmarks/bench_build_dataset.py [--scenes 100] [--distinct 4] [--write] [--workdir /tmp/gtforge_bench]
 """
 from __future__ import annotations
 
 import argparse
+import datetime
 import os
+import resource
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
-import numpy as np
+from fullres_session import machine_line, make_session, update_results
 
-from gtforge.build_dataset import Manifest, build_dataset
-from gtforge.calibrate import BoardModel, CalibrationFile
-from gtforge.camera import CameraFile, Rig, StereoCalibrationFile
-from gtforge.synthetic import default_rig, random_fruit_scene, render_capture, write_capture
+HERE = Path(__file__).resolve().parent
+TARGET_SCENES = 808
+
+
+def timed(cmd: list[str]) -> tuple[float, float]:
+    """(wall s, CPU s of the process and everything it started)."""
+    c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    dt = time.perf_counter() - t
+    c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if r.returncode not in (0, 1):  # 1: build-dataset finished, some scene failed or was flagged
+        sys.exit(f"failed ({r.returncode}): {' '.join(cmd)}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
+    return dt, (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", type=int, default=100)
     ap.add_argument("--distinct", type=int, default=4)
-    ap.add_argument("--baseline-scenes", type=int, default=20, help="scenes built with 1 worker for the ratio")
-    ap.add_argument("--workdir", default="/tmp/gtforge_bench_build")
+    ap.add_argument("--workers", type=int, default=None, help="gtforge --workers (default: cores)")
+    ap.add_argument("--workdir", default="/tmp/gtforge_bench")
+    ap.add_argument("--write", action="store_true", help="write the table into benchmarks/RESULTS.md")
     args = ap.parse_args()
+    from gtforge.scheduling import cpu_count
+
+    workers = args.workers or cpu_count()
     wd = Path(args.workdir)
-    shutil.rmtree(wd, ignore_errors=True)
-    sess = wd / "session"
-    rig = default_rig(1.0)
-    CameraFile(camera=rig.mech).write(sess / "mech_intrinsics.yaml")
-    StereoCalibrationFile(zed=rig.zed).write(sess / "zed_calibration.yaml")
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(0)
-    for i in range(args.distinct):
-        cap = render_capture(f"{i:03d}", random_fruit_scene(rng, rig, i), rig, rng, kind="scene", supersample=1,
-                             depth_noise_mm=0.05)
-        write_capture(wd / "src" / cap.name, cap, wd / "truth")
-        print(f"\rrendered {i + 1}/{args.distinct} distinct scenes ({time.perf_counter() - t0:.0f} s)", end="", flush=True)
-    print()
-    for k in range(args.scenes):
-        src = wd / "src" / f"{k % args.distinct:03d}"
-        dst = sess / "scenes" / f"{k:03d}"
-        dst.mkdir(parents=True)
-        for f in src.iterdir():
-            os.link(f, dst / f.name)
-    calib = CalibrationFile(rig=Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech), board=BoardModel(),
-                            captures_used=[], rms_px=0.0, max_px=0.0, sigma_rot_xyz_deg=[0, 0, 0],
-                            sigma_trans_xyz_mm=[0, 0, 0], sigma_rot_deg=0.0, sigma_trans_mm=0.0, poses=[])
-    calib.write(wd / "calibration.yaml")
-    nb = min(args.baseline_scenes, args.scenes)
-    base = build_dataset(sess, wd / "calibration.yaml", wd / "ds1", workers=1,
-                         scenes=[f"{k:03d}" for k in range(nb)])
-    rate1 = len(base.built) / base.time_s
-    s = build_dataset(sess, wd / "calibration.yaml", wd / "ds2", workers=2, progress=True)
-    rate2 = len(s.built) / s.time_s
-    m = Manifest.read(wd / "ds2" / "manifest.json")
-    rd = sum(x.time_read_s for x in m.scenes.values())
-    cp = sum(x.time_compute_s for x in m.scenes.values())
-    wr = sum(x.time_write_s for x in m.scenes.values())
-    tot = rd + cp + wr
-    print(f"scenes: {len(s.built)} built, {len(s.failures)} failed; {os.cpu_count()} cores")
-    print(f"workers=1 (baseline): {rate1:.2f} scenes/s over {nb} scenes")
-    print(f"workers=2           : {rate2:.2f} scenes/s over {len(s.built)} scenes  ({rate2 / rate1:.2f}x the baseline)")
-    print(f"worker time: read inputs {rd / tot * 100:.0f} %, compute {cp / tot * 100:.0f} %, "
-          f"write outputs (+hashing) {wr / tot * 100:.0f} %; views/lists/manifest in the main process: "
-          f"{s.time_s - tot / 2:.1f} s of {s.time_s:.1f} s wall")
+    sess, calib = make_session(wd, args.scenes, args.distinct)
+    machine = machine_line()
+    exe = Path(sys.executable).with_name("gtforge")  # the console script beside this interpreter
+    gtforge_cli = [str(exe)] if exe.exists() else [sys.executable, "-c", "from gtforge.cli import main; main()"]
+    outs = {k: wd / f"out_{k}" for k in ("baseline", "gtforge", "noverify")}
+    for o in outs.values():
+        shutil.rmtree(o, ignore_errors=True)
+    n = args.scenes
+    runs = []
+    t = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib), str(outs["baseline"])])
+    runs.append(("baseline: plain Open3D script (one process)", *t))
+    build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
+    t = timed(build + ["-o", str(outs["gtforge"])])
+    runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)", *t))
+    t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"])
+    runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
+    t_resume, _ = timed(build + ["-o", str(outs["gtforge"])])
+    base_rate = n / runs[0][1]
+    lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes {n} "
+             f"--distinct {args.distinct}`: {machine}; {n} full-resolution scenes ({args.distinct} distinct renders "
+             f"hard-linked), each run a fresh process (imports included), one after the other.",
+             "",
+             f"| run | wall s | scenes/s | vs baseline | {TARGET_SCENES} scenes at this rate | CPU s per scene |",
+             "|---|---|---|---|---|---|"]
+    for name, t, cpu in runs:
+        rate = n / t
+        lines.append(f"| {name} | {t:.1f} | {rate:.2f} | {rate / base_rate:.2f}x | "
+                     f"{TARGET_SCENES / rate / 60:.1f} min | {cpu / n:.3f} |")
+    lines.append(f"| resume of the default build (nothing to rebuild) | {t_resume:.1f} | | | | |")
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        print("written to", update_results("bench_build_dataset", text))
 
 
 if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
     main()

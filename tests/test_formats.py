@@ -70,3 +70,34 @@ def test_atomic_write_keeps_original_on_failure(tmp_path):
             raise RuntimeError("crash mid-write")
     assert target.read_text() == "old"
     assert os.listdir(tmp_path) == ["f.txt"]
+
+
+def test_label_png_and_kitti_quantisation(tmp_path):
+    from gtforge.io.formats import write_label_png
+
+    lab = (np.arange(37 * 53) % 4).astype(np.uint8).reshape(37, 53)
+    np.testing.assert_array_equal(read_image(write_label_png(tmp_path / "r.png", lab)), lab)
+    q = (np.arange(37 * 53) * 41 % 65536).astype(np.uint16).reshape(37, 53)
+    np.testing.assert_array_equal(read_image(write_label_png(tmp_path / "q.png", q), expect="uint16"), q)
+    with pytest.raises(ValueError):
+        write_label_png(tmp_path / "x.png", np.zeros((4, 5, 3), np.uint8))
+    # round(d * 256) half to even, 1 for a valid d that rounds to 0, 65535 at most, 0 for NaN / inf / < 0
+    d = np.array([[0.001, 1.5 / 256, 2.5 / 256, 10.0, 300.0], [np.nan, np.inf, -0.5, 0.0, 100.123]], np.float32)
+    import cv2
+
+    raw = cv2.imread(str(write_kitti_disparity(tmp_path / "k.png", d)), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(raw, [[1, 2, 2, 2560, 65535], [0, 0, 0, 1, round(100.123 * 256)]])
+    back = read_kitti_disparity(tmp_path / "k.png")
+    assert np.isnan(back[1, :3]).all() and back[0, 3] == 10.0
+
+
+def test_float_tiff_compression_round_trip(tmp_path):
+    import tifffile
+
+    a = np.linspace(300, 900, 30 * 20, dtype=np.float32).reshape(30, 20)
+    a[3, 4] = np.nan
+    for comp, tag in (("none", 1), ("zlib", 8)):
+        p = write_tiff_float(tmp_path / f"{comp}.tiff", a, compression=comp)
+        with tifffile.TiffFile(p) as t:
+            assert t.pages[0].compression == tag
+        np.testing.assert_array_equal(tifffile.imread(p), a)

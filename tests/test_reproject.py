@@ -99,3 +99,73 @@ def test_nonoccluded_mask_marks_right_view_occlusions():
     # the wall just left of the box is hidden from the right camera by (12.6 - 6.3) = 6.3 px
     assert occ[35:45, 44:49].all()
     assert not occ[35:45, 55:65].any() and not occ[35:45, 75:100].any()
+
+
+def test_mesh_span_is_the_winning_triangles_z_range():
+    # a plane whose depth changes along x only, seen by the same camera shifted by a fraction of a pixel:
+    # every target pixel centre lies inside a quad of columns (c, c+1) with c = u - 1, and both triangles
+    # of that quad have corners in both columns, so span = z(column u) - z(column u - 1)
+    mech = PinholeCamera(width_px=64, height_px=48, fx_px=80.0, fy_px=75.0, cx_px=31.3, cy_px=22.8)
+    cam = mech.model_copy(update=dict(cx_px=mech.cx_px + 0.37, cy_px=mech.cy_px + 0.41))
+    v, u = np.mgrid[0:48, 0:64]
+    x = (u - mech.cx_px) / mech.fx_px
+    depth = (600.0 / (1 - 0.8 * x)).astype(np.float32)
+    z, span = project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(max_slant_deg=89), return_span=True)
+    np.testing.assert_array_equal(np.isfinite(span), np.isfinite(z))
+    ok = np.isfinite(z)
+    assert ok[1:-1, 1:-1].all()
+    expected = np.full(z.shape, np.nan)
+    expected[:, 1:] = depth[0, 1:].astype(np.float64) - depth[0, :-1]
+    np.testing.assert_allclose(span[ok], expected[ok], rtol=1e-5)
+    # the same depth without the span
+    np.testing.assert_array_equal(project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(max_slant_deg=89)), z)
+    with pytest.raises(ValueError, match="mesh"):
+        project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(mode="splat"), return_span=True)
+
+
+def test_result_does_not_depend_on_the_thread_count(fruit_cap):
+    # one thread rasterises straight into the image; several rasterise row chunks into windows and merge
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has one thread here")
+    rig, cap = fruit_cap
+    before = numba.get_num_threads()
+    out = {}
+    try:
+        for n in (1, 2):
+            numba.set_num_threads(n)
+            out[n] = [project_depth_to_camera(cap.mech_depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed.left,
+                                              ReprojectParams(mode="mesh"), return_span=True),
+                      project_depth_to_camera(cap.mech_depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed.left,
+                                              ReprojectParams(mode="splat"))]
+    finally:
+        numba.set_num_threads(before)
+    (z1, s1), p1 = out[1]
+    (z2, s2), p2 = out[2]
+    assert np.isfinite(z1).mean() > 0.2 and np.isfinite(p1).mean() > 0.2
+    np.testing.assert_array_equal(z1, z2)
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(p1, p2)
+
+
+def test_fused_disparity_and_occlusion_match_their_definitions():
+    # reproject_to_zed computes disparity and the non-occluded mask in one pass; they must equal
+    # RectifiedStereo.depth_to_disparity and nonoccluded_mask (here with doffs and real occlusions)
+    from gtforge.reproject import disparity_and_nonoccluded, nonoccluded_mask
+
+    cam = PinholeCamera(width_px=150, height_px=90, fx_px=110.0, fy_px=104.0, cx_px=71.2, cy_px=47.9)
+    zed = RectifiedStereo(left=cam, baseline_mm=63.0, doffs_px=2.5)
+    rng = np.random.default_rng(5)
+    depth = np.full((90, 150), 900.0, np.float32) + rng.normal(0, 2, (90, 150)).astype(np.float32)
+    depth[20:60, 40:80] = 400.0
+    depth[rng.random((90, 150)) < 0.05] = np.nan
+    sd = reproject_to_zed(depth, cam, T_from_rotvec([0.0, 0.01, 0.0], [-20.0, 0.0, 0.0]), zed)
+    disp_ref = zed.depth_to_disparity(sd.depth_mm)
+    noc_ref = nonoccluded_mask(sd.depth_mm, disp_ref, sd.depth_right_mm)
+    np.testing.assert_array_equal(sd.disparity_px, disp_ref)
+    np.testing.assert_array_equal(sd.nonoccluded, noc_ref)
+    assert (np.isfinite(disp_ref) & ~noc_ref).sum() > 100  # there are occlusions to get right
+    d2, n2 = disparity_and_nonoccluded(sd.depth_mm, sd.depth_right_mm, zed, 0.05, 2.0)
+    np.testing.assert_array_equal(d2, disp_ref)
+    np.testing.assert_array_equal(n2, nonoccluded_mask(sd.depth_mm, disp_ref, sd.depth_right_mm, 0.05, 2.0))

@@ -1,0 +1,185 @@
+"""Where one full-resolution scene's time goes in build-dataset (ZED 2K 2208x1242, 1920x1200 depth).
+
+Times every step a build worker runs, each alone on the same inputs (median of --repeat runs, wall and
+this thread's CPU time), next to the whole worker call (``build_one_scene``, default options, views
+included). Threads: what a build worker gets with ``--workers`` = cores (``scheduling.threads_per_worker``),
+unless --threads. Writes the table into benchmarks/RESULTS.md (section ``profile_scene``) with --write.
+
+    python benchmarks/profile_scene.py [--repeat 5] [--threads N] [--write] [--workdir /tmp/gtforge_bench]
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import shutil
+import statistics
+import time
+from pathlib import Path
+
+from fullres_session import machine_line, make_session, update_results
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None, help="numba/OpenCV threads (default: a build worker's)")
+    ap.add_argument("--workdir", default="/tmp/gtforge_bench")
+    ap.add_argument("--write", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    args = ap.parse_args()
+
+    from gtforge.scheduling import cpu_count, limit_threads, threads_per_worker
+
+    n_threads = args.threads or threads_per_worker(cpu_count())
+    limit_threads(n_threads)
+    import numpy as np
+
+    from gtforge import build_dataset as bd
+    from gtforge.calibrate import CalibrationFile
+    from gtforge.io.captures import open_session, read_depth, read_texture
+    from gtforge.io.formats import read_image, write_kitti_disparity, write_pfm, write_tiff_float
+    from gtforge.reproject import project_depth_to_camera
+
+    try:
+        from gtforge.reproject import disparity_and_nonoccluded
+    except ImportError:  # older gtforge: two numpy steps
+        from gtforge.reproject import nonoccluded_mask
+
+        def disparity_and_nonoccluded(dl, dr, zed, rel_tol):
+            d = zed.depth_to_disparity(dl)
+            return d, nonoccluded_mask(dl, d, dr, rel_tol)
+
+    wd = Path(args.workdir)
+    sess_dir, calib_path = make_session(wd, 1, 1)
+    session = open_session(sess_dir)
+    rig = CalibrationFile.read(calib_path).rig
+    params = bd.BuildParams()
+    rp = params.reproject_params()
+    cap_dir = sess_dir / "scenes" / "0000"
+    f = session.config.files
+    cap = session.load_capture(cap_dir)
+    zed = rig.zed
+    out = wd / "profile_out"
+    shutil.rmtree(out, ignore_errors=True)
+    (out / "scenes").mkdir(parents=True)
+    tmp = out / "scenes" / ".tmp-profile"
+    tmp.mkdir()
+
+    rows: list[tuple[str, str, float, float]] = []  # (group, step, wall ms, cpu ms)
+
+    def measure(group, name, fn):
+        fn()  # warm-up: numba compile, caches
+        wall, cpu = [], []
+        for _ in range(args.repeat):
+            t, c = time.perf_counter(), time.thread_time()
+            fn()
+            cpu.append(time.thread_time() - c)
+            wall.append(time.perf_counter() - t)
+        rows.append((group, name, statistics.median(wall) * 1e3, statistics.median(cpu) * 1e3))
+        return fn()
+
+    # ---- read
+    depth_in = measure("read", f"depth {f.mech_depth} (float32 TIFF)", lambda: read_depth(cap_dir / f.mech_depth))
+    measure("read", f"texture {f.mech_texture}", lambda: read_texture(cap_dir / f.mech_texture))
+    measure("read", f"ZED left {f.zed_left} (decode)", lambda: read_image(cap_dir / f.zed_left))
+    measure("read", f"ZED right {f.zed_right} (decode)", lambda: read_image(cap_dir / f.zed_right))
+    # ---- compute
+    T_l = rig.T_zed_from_depth
+    T_r = zed.T_zedr_from_zed @ T_l
+    depth_l = measure("compute", f"reproject left ({rp.mode})",
+                      lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp))
+    if rp.mode == "mesh":
+        measure("compute", "reproject left + span_mm",
+                lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp, return_span=True))
+    depth_r = measure("compute", f"reproject right ({rp.mode}, occlusion test)",
+                      lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_r, zed.right, rp))
+    disp, noc = measure("compute", "disparity + occlusion (non-occluded mask)",
+                        lambda: disparity_and_nonoccluded(depth_l, depth_r, zed, params.occlusion_rel_tol))
+    region, fruit = measure("compute", "regions (table plane, fruit, erosion)",
+                            lambda: bd.fruit_regions(depth_l, zed, params, cap.fruit_mask))
+    weight = measure("compute", "SGRA weights", lambda: bd.sgra_weights(region, params))
+    if getattr(params, "verification", False):
+        from gtforge.verify import verify_scene
+
+        measure("compute", "verification (texture alignment + stereo consistency)",
+                lambda: verify_scene(depth_l, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
+                                     params.verify))
+    # ---- hashing
+    files = [p for p in cap.input_files if p.exists()]
+    size_mb = sum(p.stat().st_size for p in files) / 1e6
+    measure("hash", f"sha256 of the inputs ({len(files)} files, {size_mb:.0f} MB)",
+            lambda: [bd.sha256_file(p) for p in files])
+    # ---- write
+    valid = np.isfinite(disp)
+    mask = np.zeros(disp.shape, np.uint8)
+    mask[valid] = 128
+    mask[noc] = 255
+    measure("write", "im0.png + im1.png (copies of the input PNGs)",
+            lambda: [shutil.copyfile(cap_dir / n, tmp / o) for n, o in ((f.zed_left, "im0.png"), (f.zed_right, "im1.png"))])
+    measure("write", "disp0GT.pfm", lambda: write_pfm(tmp / "disp0GT.pfm", disp))
+    png_writer = getattr(__import__("gtforge.io.formats", fromlist=["x"]), "write_label_png", None)
+    if png_writer is None:  # older gtforge
+        from gtforge.io.formats import write_image as png_writer
+    measure("write", "mask0nocc.png", lambda: png_writer(tmp / "mask0nocc.png", mask))
+    measure("write", "region.png", lambda: png_writer(tmp / "region.png", region))
+    if "compression" in write_tiff_float.__code__.co_varnames:
+        measure("write", "weight.tiff (zlib level 1)", lambda: write_tiff_float(tmp / "weight.tiff", weight, "zlib"))
+        measure("write", "depth0.tiff (uncompressed)", lambda: write_tiff_float(tmp / "depth0.tiff", depth_l))
+    else:
+        measure("write", "weight.tiff", lambda: write_tiff_float(tmp / "weight.tiff", weight))
+        measure("write", "depth0.tiff", lambda: write_tiff_float(tmp / "depth0.tiff", depth_l))
+    measure("write", "KITTI disp_occ_0 + disp_noc_0 (uint16 PNG)",
+            lambda: (write_kitti_disparity(tmp / "occ.png", disp),
+                     write_kitti_disparity(tmp / "noc.png", np.where(noc, disp, np.nan))))
+    measure("write", "calib.txt", lambda: bd.atomic_write_text(
+        tmp / "calib.txt", bd.middlebury_calib_text(zed, disp.shape[1], disp.shape[0], disp)))
+
+    def links():
+        for view in ("kitti", "eth3d"):
+            shutil.rmtree(out / view, ignore_errors=True)
+        for name in ("im0.png", "im1.png", "calib.txt", "disp0GT.pfm", "mask0nocc.png"):
+            bd._link(tmp / name, out / "eth3d" / "x" / name)
+        for name in ("im0.png", "im1.png"):
+            bd._link(tmp / name, out / "kitti" / name)
+
+    measure("write", "view links (KITTI + ETH3D hard links)", links)
+
+    # ---- the whole worker call
+    args_scene = (str(sess_dir.resolve()), str(cap_dir.resolve()), "0000", str(calib_path.resolve()),
+                  bd.sha256_file(calib_path), str(out.resolve()), params.model_dump_json())
+
+    def whole():
+        r = bd.build_one_scene(*args_scene)
+        if r[1]:
+            raise RuntimeError(r[1])
+
+    measure("total", "build_one_scene (the worker's whole call, default options)", whole)
+
+    total = rows[-1][2]
+    total_cpu = rows[-1][3]
+    parts = [r for r in rows if r[0] != "total"]
+    lines = [f"Measured {datetime.date.today()} with `python benchmarks/profile_scene.py --repeat {args.repeat}"
+             f"{' --threads ' + str(args.threads) if args.threads else ''}`: {machine_line()}, "
+             f"{n_threads} numba/OpenCV thread(s) (a build worker's share with --workers = cores); median of "
+             f"{args.repeat}; CPU = this thread's CPU time.",
+             "",
+             "| group | step | ms | CPU ms | share of the worker call |",
+             "|---|---|---|---|---|"]
+    for g, name, ms, cms in parts:
+        lines.append(f"| {g} | {name} | {ms:.1f} | {cms:.1f} | {100 * ms / total:.0f} % |")
+    s_ms, s_cpu = sum(r[2] for r in parts), sum(r[3] for r in parts)
+    lines.append(f"| | **sum of the steps** | **{s_ms:.0f}** | **{s_cpu:.0f}** | {100 * s_ms / total:.0f} % |")
+    lines.append(f"| total | **{rows[-1][1]}** | **{total:.0f}** | **{total_cpu:.0f}** | 100 % |")
+    lines.append("")
+    lines.append(f"Not in the steps: pydantic meta/manifest, stats, masks, the atomic renames "
+                 f"(whole call minus the steps: {total - s_ms:+.0f} ms).")
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        print("written to", update_results("profile_scene", text))
+    shutil.rmtree(out, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONHASHSEED", "0")
+    main()
