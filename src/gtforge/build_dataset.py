@@ -748,8 +748,14 @@ def _lock_writer(scenes: Path, sid: str, token: str) -> int | None:
     if fcntl is None:
         return None
     scenes.mkdir(parents=True, exist_ok=True)
-    fd = os.open(scenes / f".lock-{sid}-{token}", os.O_CREAT | os.O_RDWR, 0o644)
-    fcntl.flock(fd, fcntl.LOCK_EX)
+    path = scenes / f".lock-{sid}-{token}"
+    fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError:  # a filesystem without locks: write unlocked, as without fcntl
+        os.close(fd)
+        path.unlink(missing_ok=True)
+        return None
     return fd
 
 
@@ -771,6 +777,8 @@ def _writer_alive(scenes: Path, name: str) -> bool:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         return True
+    except OSError:  # a filesystem without locks: cannot tell, treat as stale (as without fcntl)
+        return False
     finally:
         os.close(fd)
     return False

@@ -1,21 +1,38 @@
-"""Where per-scene work runs: in this process, on a local process pool, or (later) on a Dask cluster.
+"""Where per-scene work runs: in this process, on a local process pool, or on a Dask cluster.
 
 Every task is an independent call ``fn(*args)`` that writes its own outputs atomically and returns a
 small picklable result; the caller's ``on_result`` runs in this process, in completion order.
 
 Threads x processes: each local worker process gets ``max(1, cores // workers)`` numba threads, so the
-pool never runs more compute threads than cores (a busy core slows numba's parallel loops 2-3x).
+pool never runs more compute threads than cores (a busy core slows numba's parallel loops 2-3x). On a
+Dask cluster each task gets ``max(1, cores // threads)``, where ``threads`` counts the task threads of
+every worker on that host.
 
 Ctrl-C (SIGINT): workers ignore it; this process cancels queued tasks, terminates the workers at once
 (a scene being written stays a hidden temporary folder, never a visible scene) and re-raises
-``KeyboardInterrupt`` for the CLI to report and exit with 130.
+``KeyboardInterrupt`` for the CLI to report and exit with 130. On a Dask cluster the tasks are cancelled
+on the scheduler; a task already running on a worker cannot be stopped and finishes there (its scene
+lands complete, or not at all).
+
+Dask (``scheduler="tcp://HOST:PORT"``, docs/cluster.md): ``fn`` and its arguments are pickled to the
+workers, so every path in them must be absolute and valid on the workers (a shared filesystem). A task
+whose worker process dies is run again on another worker by Dask; when
+``distributed.scheduler.allowed-failures`` + 1 workers (default 3 + 1, set on the scheduler) have died
+running it, Dask gives up with ``KilledWorker`` and the task is handed to ``lost_result`` (build-dataset
+lists that scene as failed) instead of stopping the whole run.
 """
 from __future__ import annotations
 
 import os
 import signal
+import uuid
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
+
+from gtforge.errors import InputError
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 
 def cpu_count() -> int:
@@ -36,15 +53,20 @@ def _init_worker(n_threads: int) -> None:
 
 
 def limit_threads(n_threads: int) -> None:
-    """Cap numba's and OpenCV's thread pools in this process (before or after numba was imported)."""
+    """Cap numba's and OpenCV's thread pools in this process (before or after numba was imported).
+
+    Once numba is imported, NUMBA_NUM_THREADS must keep the value numba read: numba re-reads the environment
+    before each compilation and refuses a change once its threads run (a Dask worker imports numba with
+    gtforge, before its first task). The cap is then ``numba.set_num_threads`` (per calling thread)."""
     import sys
 
-    os.environ["NUMBA_NUM_THREADS"] = str(n_threads)
-    os.environ["OMP_NUM_THREADS"] = str(n_threads)
     if "numba" in sys.modules:
         import numba
 
         numba.set_num_threads(min(n_threads, numba.config.NUMBA_NUM_THREADS))
+    else:
+        os.environ["NUMBA_NUM_THREADS"] = str(n_threads)
+        os.environ["OMP_NUM_THREADS"] = str(n_threads)
     try:
         import cv2
 
@@ -54,13 +76,27 @@ def limit_threads(n_threads: int) -> None:
 
 
 def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Callable[[Any], None], *,
-              workers: int | None = None) -> None:
+              workers: int | None = None, scheduler: str | None = None,
+              lost_result: Callable[[tuple, str], Any] | None = None) -> None:
     """Run ``fn(*args)`` for every ``args`` in ``arg_list`` and pass each return value to ``on_result``.
 
-    ``workers``: local processes (default: one per core); 1 runs in this process. An exception raised
-    by ``on_result`` cancels the remaining tasks and propagates.
+    ``workers``: local processes (default: one per core); 1 runs in this process. ``scheduler``: the
+    address of a Dask scheduler (``tcp://HOST:PORT``); the cluster's workers run the tasks (``workers``
+    must then be None). ``lost_result(args, reason)``: the result to pass on for a task that Dask gave up
+    on because its workers kept dying (without it, ``KilledWorker`` propagates). An exception raised by
+    ``fn`` or ``on_result`` cancels the remaining tasks and propagates.
     """
+    if scheduler and workers is not None:
+        raise InputError(None, "--workers", "no local worker count with --scheduler (the cluster's workers "
+                         "run the tasks)", str(workers), "drop --workers, or drop --scheduler to run locally")
     if not arg_list:
+        return
+    if scheduler:
+        client = connect_scheduler(scheduler)
+        try:
+            _run_on_cluster(client, fn, arg_list, on_result, lost_result)
+        finally:
+            client.close(timeout=10)
         return
     workers = max(1, min(workers or cpu_count(), len(arg_list)))
     if workers == 1:
@@ -95,3 +131,100 @@ def _terminate(ex: ProcessPoolExecutor) -> None:
             p.terminate()
     for p in procs:
         p.join(timeout=5)
+
+
+# ---- Dask --------------------------------------------------------------------------------------
+def connect_scheduler(address: str, timeout_s: float | None = None) -> Client:
+    """A ``distributed.Client`` on the scheduler at ``address`` with at least one worker running this
+    gtforge version; one-line ``InputError`` otherwise (dask missing, unreachable, no or foreign workers).
+
+    ``timeout_s`` (connecting, then waiting for a first worker): default Dask's
+    ``distributed.comm.timeouts.connect`` (30 s; env ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT=10s``)."""
+    try:
+        import dask
+        from dask.utils import parse_timedelta
+        from distributed import Client
+    except ImportError:
+        raise InputError(None, "--scheduler", "dask.distributed installed", "it is not installed",
+                         "pip install 'gtforge[dask]'") from None
+    import gtforge
+
+    if timeout_s is None:
+        timeout_s = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), "s")
+    hint = "start one with 'dask scheduler' and workers with 'dask worker ADDRESS' (docs/cluster.md)"
+    try:
+        client = Client(address, timeout=timeout_s, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise InputError(None, "--scheduler", "a reachable Dask scheduler",
+                         f"no connection to {address} within {timeout_s:g} s ({type(exc).__name__})", hint) from None
+    except ValueError as exc:
+        raise InputError(None, "--scheduler", "a Dask scheduler address such as tcp://HOST:8786", repr(address),
+                         str(exc).splitlines()[0]) from None
+    try:
+        try:
+            client.wait_for_workers(1, timeout=timeout_s)
+        except TimeoutError:
+            raise InputError(None, "--scheduler", f"at least one worker on the scheduler at {address}",
+                             f"none within {timeout_s:g} s", hint) from None
+        found = client.get_versions(check=False, packages=["gtforge"])["workers"]
+        have = {w: v.get("packages", {}).get("gtforge") for w, v in found.items()}
+        wrong = {w: v for w, v in have.items() if v != gtforge.__version__}
+        if wrong:
+            w, v = sorted(wrong.items())[0]
+            raise InputError(None, "--scheduler", f"gtforge {gtforge.__version__} on every worker of {address}",
+                             f"{'no gtforge' if v is None else 'gtforge ' + v} on {w} ({len(wrong)} of {len(found)} "
+                             f"worker(s))", "install this gtforge (with the 'dask' extra) in the workers' Python")
+    except BaseException:
+        client.close(timeout=10)
+        raise
+    return client
+
+
+def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[tuple],
+                    on_result: Callable[[Any], None], lost_result: Callable[[tuple, str], Any] | None) -> None:
+    from distributed import KilledWorker, as_completed
+    from distributed.comm import get_address_host
+
+    threads_by_host: dict[str, int] = {}
+    for address, n in client.nthreads().items():
+        host = get_address_host(address)
+        threads_by_host[host] = threads_by_host.get(host, 0) + n
+    token = uuid.uuid4().hex[:8]  # keys unique to this run (another client may run the same scenes)
+    name = getattr(fn, "__name__", "task")
+    pending = {client.submit(_run_on_worker, fn, args, threads_by_host, key=f"gtforge-{name}-{i}-{token}",
+                             pure=False): args for i, args in enumerate(arg_list)}
+    try:
+        for f in as_completed(list(pending), loop=client.loop):
+            args = pending.pop(f)
+            if f.status == "error" and lost_result is not None:
+                exc = f.exception()
+                if isinstance(exc, KilledWorker):
+                    last = getattr(exc.last_worker, "address", exc.last_worker)
+                    on_result(lost_result(args, f"the Dask worker running it died, {exc.allowed_failures + 1} "
+                                                f"time(s) on different workers (KilledWorker; last {last}): out of "
+                                                f"memory? see the workers' logs"))
+                    continue
+            elif f.status == "cancelled" and lost_result is not None:
+                on_result(lost_result(args, "cancelled on the Dask cluster (scheduler restarted or connection lost)"))
+                continue
+            result = f.result()  # re-raises the task's own exception, with its remote traceback
+            f.release()
+            on_result(result)
+    except BaseException:
+        if pending:
+            try:
+                client.cancel(list(pending), force=True)
+            except Exception:  # the scheduler is gone too: nothing left to cancel
+                pass
+        raise
+
+
+def _run_on_worker(fn: Callable[..., Any], args: tuple, threads_by_host: dict[str, int]) -> Any:
+    """On a Dask worker: share the host's cores among the task threads of every worker on it, then run."""
+    from distributed import get_worker
+    from distributed.comm import get_address_host
+
+    worker = get_worker()
+    n_tasks = threads_by_host.get(get_address_host(worker.address), worker.state.nthreads)
+    limit_threads(max(1, cpu_count() // n_tasks))
+    return fn(*args)
