@@ -203,9 +203,18 @@ def vectors_section(calib: CalibrationFile) -> Section | None:
     return Section("ZED-left residual vectors per view", body + fig_to_img_tag(fig, dpi=80, alt="residual vectors"))
 
 
+def rectification_section(calib: CalibrationFile) -> Section | None:
+    """Vertical disparity of the board corners in both rectified ZED images; the SN.conf reading chosen."""
+    from gtforge.reports.rectification import rectification_section as build
+
+    z = calib.rig.zed.left
+    return build(getattr(calib, "rectification", None), getattr(calib, "zed_conf", None), z.width_px, z.height_px)
+
+
 SectionBuilder = Callable[[CalibrationFile], "Section | None"]
 SECTIONS: list[SectionBuilder] = [verdict_section, summary_section, reprojection_section, methods_section,
-                                  poses_section, histogram_section, regions_section, vectors_section]
+                                  poses_section, histogram_section, regions_section, vectors_section,
+                                  rectification_section]
 
 
 def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,

@@ -139,9 +139,16 @@ def skipped_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
     return Section("Skipped captures", body)
 
 
+def rectification_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
+    """Vertical disparity of the board corners in both rectified ZED images."""
+    from gtforge.reports.rectification import rectification_section as build
+
+    return build(getattr(rep, "rectification", None), None, zed_cam.width_px, zed_cam.height_px)
+
+
 SectionBuilder = Callable[[ValidationReport, PinholeCamera], "Section | None"]
 SECTIONS: list[SectionBuilder] = [verdict_section, per_pose_section, field_of_view_section, poses_section,
-                                  skipped_section]
+                                  skipped_section, rectification_section]
 
 
 def write_validation_report(rep: ValidationReport, out: Path, zed_cam: PinholeCamera,

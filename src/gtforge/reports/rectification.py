@@ -1,0 +1,75 @@
+"""The "ZED rectification" report section (calibration and validation pages): vertical disparity of the
+board corners in the two rectified ZED images and, for raw images + SN.conf, the conf reading chosen."""
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from gtforge.rectification import COLS, ROWS, RectificationQuality, ZedConfChoice
+from gtforge.reports.html import Section, fig_to_img_tag, note, table
+
+
+def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice | None,
+                          width_px: int, height_px: int) -> Section | None:
+    """``None`` when nothing was measured (no right image with the board in it, no SN.conf choice)."""
+    if q is None and choice is None:
+        return None
+    warnings = (choice.warnings if choice else []) + (q.warnings if q else [])
+    body = "".join(f'<p class="warn">{html.escape(w)}</p>' for w in warnings)
+    if q is not None:
+        o = q.overall
+        body += table(["vertical disparity v_left - v_right (px)", "value"], [
+            ["corners (poses)", f"{o.n_points} ({len(q.poses)})"],
+            ["mean |.|, homography-fitted corners", o.fit_mean_abs_px], ["max |.|, homography-fitted", o.fit_max_abs_px],
+            ["mean |.|, detected corners", o.mean_abs_px], ["max |.|, detected corners", o.max_abs_px],
+            ["signed mean", o.mean_px], ["threshold (fitted mean)", q.threshold_px]], fmt="{:.3f}", cls="kv")
+        body += note(f"Images rectified by {q.rectified_by}. Each board corner found in both rectified images; "
+                     "'homography-fitted': each image's corners replaced by a homography fitted to all of them (the "
+                     "rectification's own error, detector noise averaged out). A well-rectified pair stays below a "
+                     "few hundredths of a pixel.")
+        rows = [[p.capture, p.fit_mean_abs_px, p.fit_max_abs_px, p.mean_abs_px, p.max_abs_px, p.mean_px,
+                 p.disparity_median_px] for p in q.poses]
+        body += table(["capture", "fitted mean |.|", "fitted max |.|", "detected mean |.|", "detected max |.|",
+                       "signed mean", "median disparity"], rows, fmt=[None] + ["{:.3f}"] * 5 + ["{:.1f}"],
+                      caption="Per pose, worst first (px).")
+        reg = [[r] + [q.by_region_left[f"{r}-{c}"].mean_px if f"{r}-{c}" in q.by_region_left else None for c in COLS]
+               for r in ROWS]
+        body += table(["", *COLS], reg, fmt="{:+.3f}",
+                      caption="Signed mean vertical disparity (px) of the detected corners by third of the rectified "
+                              "left image; \u2013: no corner there.")
+        if q.skipped:
+            body += table(["capture", "not measured because"], sorted(q.skipped.items()))
+        if len(q._points):
+            body += _scatter(q._points, width_px, height_px)
+    if choice is not None:
+        body += f"<p>SN.conf <code>{html.escape(choice.conf_file)}</code> ({html.escape(choice.resolution)}) read as " \
+                f"<b>{html.escape(choice.reading)}</b>: {html.escape(choice.formula)}; chosen by {choice.chosen_by}.</p>"
+        if choice.candidates:
+            rows = [[c.reading, "yes" if c.eligible else "no (right camera at -x)", c.vertical.fit_mean_abs_px,
+                     c.vertical.mean_abs_px, c.vertical.max_abs_px, c.formula] for c in choice.candidates]
+            body += table(["reading", "eligible", "fitted mean |.| (px)", "detected mean |.| (px)",
+                           "detected max |.| (px)", "formula"], rows, fmt=[None, None, "{:.3f}", "{:.3f}", "{:.3f}", None],
+                          caption=f"Every reading of the conf, scored on the raw board corners of "
+                                  f"{len(choice.captures)} captures (best first; docs/conventions.md, 'ZED SN.conf').")
+    status = "warn" if warnings else None
+    return Section("ZED rectification: vertical disparity", body, status=status)
+
+
+def _scatter(points: np.ndarray, width_px: int, height_px: int) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lim = max(float(np.percentile(np.abs(points[:, 2]), 98)), 0.05)
+    fig, ax = plt.subplots(figsize=(7, 7 * height_px / width_px + 0.6))
+    sc = ax.scatter(points[:, 0], points[:, 1], c=points[:, 2], s=10, cmap="coolwarm", vmin=-lim, vmax=lim)
+    ax.set_xlim(0, width_px)
+    ax.set_ylim(height_px, 0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    fig.colorbar(sc, ax=ax, label="v_left - v_right (px)", shrink=0.8)
+    return fig_to_img_tag(fig, "70%", dpi=90, alt="vertical disparity over the image") + note(
+        "Each detected corner at its place in the rectified left image, coloured by its vertical disparity.")

@@ -1,0 +1,197 @@
+"""A user's captures are sacred, outputs are normal files, Ctrl-C stops cleanly, wrong settings are caught.
+Each test reproduces a fault a new user met (issue 11) through the command line."""
+import hashlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import tifffile
+
+from gtforge.calibrate import CalibrationFile
+
+
+def gtforge(*args, umask=None, timeout=600):
+    """Run the real command (``main()``: exit codes and one-line errors as a user sees them)."""
+    def pre():
+        if umask is not None:
+            os.umask(umask)
+    return subprocess.run([sys.executable, "-m", "gtforge.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, preexec_fn=pre)
+
+
+def tree_digest(root):
+    h = {}
+    for dirpath, _, files in os.walk(root):
+        for f in files:
+            p = os.path.join(dirpath, f)
+            h[os.path.relpath(p, root)] = hashlib.sha256(open(p, "rb").read()).hexdigest()
+    return h
+
+
+def one_line_error(r):
+    lines = [l for l in r.stderr.splitlines() if l.strip()]
+    return len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr
+
+
+def test_build_refuses_outputs_in_or_around_the_captures(session_dir, true_calibration, tmp_path):
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    before = tree_digest(sess)
+    for out in (sess, sess / "scenes", sess / "scenes" / "000", sess / "scenes" / "000" / "gt", sess / "board" / "x"):
+        r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "1")
+        assert r.returncode == 2 and one_line_error(r), (out, r.stderr)
+        assert "--output" in r.stderr and "capture" in r.stderr
+    assert tree_digest(sess) == before  # nothing written, nothing replaced
+    # a symlinked capture's target counts too
+    (tmp_path / "link_target").symlink_to(sess / "scenes" / "001")
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", tmp_path / "link_target" / "ds")
+    assert r.returncode == 2 and one_line_error(r)
+    # validate and calibrate refuse the same way
+    r = gtforge("validate", sess, "-c", true_calibration, "-o", sess / "board")
+    assert r.returncode == 2 and one_line_error(r)
+    r = gtforge("calibrate", sess, "-o", sess / "board" / "000" / "calib.yaml")
+    assert r.returncode == 2 and one_line_error(r)
+    assert tree_digest(sess) == before
+
+
+def test_symlinked_scenes_keep_their_names(session_dir, true_calibration, tmp_path):
+    """Sessions assembled from several capture days by links: ids come from the link names, never the targets."""
+    day0, day1 = tmp_path / "day0", tmp_path / "day1"
+    for day in (day0, day1):
+        shutil.copytree(session_dir / "scenes" / "000", day / "000")
+    sess = tmp_path / "sess"
+    sess.mkdir()
+    for f in ("mech_intrinsics.yaml", "zed_calibration.yaml"):
+        shutil.copy(session_dir / f, sess / f)
+    (sess / "scenes").mkdir()
+    (sess / "scenes" / "r0_000").symlink_to(day0 / "000")
+    (sess / "scenes" / "r1_000").symlink_to(day1 / "000")
+    out = tmp_path / "ds"
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "2", "--no-verify")
+    assert r.returncode == 0, r.stderr
+    assert "built 2" in r.stdout
+    assert sorted(p.name for p in (out / "scenes").iterdir()) == ["r0_000", "r1_000"]
+    assert not (out / "scenes" / "000").exists()
+    # one capture reached under two names would be built twice: refused
+    (sess / "scenes" / "again").symlink_to(day0 / "000")
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", tmp_path / "ds2")
+    assert r.returncode == 2 and one_line_error(r) and "same capture" in r.stderr
+
+
+def test_ctrl_c_stops_the_build_promptly(session_dir, true_calibration, tmp_path):
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    for i in range(3, 14):  # enough queued scenes that the run cannot finish by itself in the test's time
+        shutil.copytree(session_dir / "scenes" / f"{i % 3:03d}", sess / "scenes" / f"{i:03d}")
+    out = tmp_path / "ds"
+    p = subprocess.Popen([sys.executable, "-m", "gtforge.cli", "build-dataset", str(sess), "-c", str(true_calibration),
+                          "-o", str(out), "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
+        time.sleep(0.1)
+    assert list((out / "scenes").glob("*/meta.json")), "no scene landed"
+    t = time.time()
+    os.killpg(p.pid, signal.SIGINT)  # a terminal's Ctrl-C reaches the whole process group
+    stdout, stderr = p.communicate(timeout=60)
+    stopped_s = time.time() - t
+    assert p.returncode == 130, (p.returncode, stderr[-2000:])
+    assert stopped_s < 10, stopped_s  # the issue: within a couple of seconds (10 allows a loaded CI machine)
+    assert "interrupted:" in stderr and "rerun the same command to resume" in stderr and "Traceback" not in stderr
+    names = [d.name for d in (out / "scenes").iterdir()]
+    assert not [n for n in names if n.startswith(".")]  # no half-written scene left behind
+    for n in names:
+        assert (out / "scenes" / n / "meta.json").exists()
+    assert len(names) < 14
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "2", "--no-verify")
+    assert r.returncode == 0 and "failed 0" in r.stdout  # the rerun resumes
+
+
+@pytest.mark.parametrize("umask,mode", [(0o022, 0o644), (0o027, 0o640)])
+def test_outputs_follow_the_umask(session_dir, true_calibration, tmp_path, umask, mode):
+    out = tmp_path / "ds"
+    r = gtforge("build-dataset", session_dir, "-c", true_calibration, "-o", out, "--workers", "1", "--no-verify",
+                umask=umask)
+    assert r.returncode == 0, r.stderr
+    files = [os.path.join(d, f) for d, _, fs in os.walk(out) for f in fs]
+    assert len(files) > 20
+    for f in files:
+        assert os.stat(f).st_mode & 0o777 == mode, (f, oct(os.stat(f).st_mode))
+    r = gtforge("validate", session_dir, "-c", true_calibration, "-o", tmp_path / "val", "--captures", "000",
+                umask=umask)
+    assert os.stat(tmp_path / "val" / "validation.html").st_mode & 0o777 == mode
+
+
+def test_calibrate_into_a_folder_and_wrong_square_size(session_dir, tmp_path):
+    (tmp_path / "calib").mkdir()
+    r = gtforge("calibrate", session_dir, "-o", f"{tmp_path / 'calib'}/", "--no-loo", "--captures", "000,001,002,003")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "calib" / "calibration.yaml").is_file()
+    assert "board squares measured in the depth: 20.00 mm (declared 20 mm)" in r.stdout
+    # a folder that does not exist yet, given with a trailing slash
+    r = gtforge("calibrate", session_dir, "-o", f"{tmp_path / 'new'}/", "--no-loo", "--captures", "000,001,002,003")
+    assert r.returncode == 0 and (tmp_path / "new" / "calibration.yaml").is_file()
+    # 25 mm declared for a 20 mm board: caught from the depth camera's view of the board
+    r = gtforge("calibrate", session_dir, "-o", tmp_path / "wrong.yaml", "--no-loo", "--square-mm", "25")
+    assert r.returncode == 2 and one_line_error(r)
+    assert "25 mm declared, 20.00 mm measured" in r.stderr and "--square-mm 20.0" in r.stderr
+    assert not (tmp_path / "wrong.yaml").exists()
+
+
+def test_use_depth_disagreement_fails_loudly(session_dir, tmp_path):
+    """A depth camera 1.5 % off in scale: the squares still pass the 3 % check, but the depth solve disagrees with
+    the reprojection solve by millimetres; the calibration is written and the command exits 1 with a FAIL verdict."""
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    for d in (sess / "board").iterdir():
+        f = d / "DepthMap.tiff"
+        tifffile.imwrite(f, (tifffile.imread(f) * 1.015).astype(np.float32))
+    r = gtforge("calibrate", sess, "-o", tmp_path / "c.yaml", "--no-loo", "--use-depth")
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "verdict: FAIL" in r.stdout and "depth method differs" in r.stdout
+    c = CalibrationFile.read(tmp_path / "c.yaml")
+    assert c.verdict == "FAIL" and c.methods[1].trans_diff_to_primary_mm > 1.0  # allowed: max(1 mm, 5 sigma)
+
+
+def test_validate_uses_the_calibrations_board(session_dir, true_calibration, tmp_path):
+    c = CalibrationFile.read(true_calibration)
+    c.board = c.board.model_copy(update={"square_size_mm": 25.0})  # as if calibrated with --square-mm 25
+    c.write(tmp_path / "c25.yaml")
+    r = gtforge("validate", session_dir, "-c", tmp_path / "c25.yaml", "-o", tmp_path / "v1", "--captures", "000,001")
+    assert r.returncode == 1 and "Z geometric" in r.stdout  # the 25 mm board's diagonal is 25 % off
+    r = gtforge("validate", session_dir, "-c", tmp_path / "c25.yaml", "-o", tmp_path / "v2", "--captures", "000,001",
+                "--square-mm", "20")
+    assert r.returncode == 0, r.stdout
+
+
+def test_errors_name_real_options_and_files(session_dir, true_calibration, tmp_path):
+    # metres: the hint names session.yaml's depth_unit (there is no --depth-unit option)
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    f = sess / "scenes" / "001" / "DepthMap.tiff"
+    tifffile.imwrite(f, (tifffile.imread(f) / 1000).astype(np.float32))
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", tmp_path / "ds", "--workers", "1", "--no-verify")
+    assert r.returncode == 1
+    out = r.stdout + r.stderr
+    assert "depth_unit: m" in out and "session.yaml" in out and "--depth-unit" not in out
+    assert out.count("median 0.") == 1  # the failed scene is reported once
+    # a file that is not a calibration: named by what it is for, no class names, no <input>
+    (tmp_path / "x.yaml").write_text("hello: 1\n")
+    r = gtforge("build-dataset", sess, "-c", tmp_path / "x.yaml", "-o", tmp_path / "ds2")
+    assert r.returncode == 2 and one_line_error(r)
+    assert "gtforge calibration file" in r.stderr and "CalibrationFile" not in r.stderr and "<input>" not in r.stderr
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", tmp_path / "ds3", "--split", "nonsense")
+    assert r.returncode == 2 and "<input>" not in r.stderr and "--split" in r.stderr
+
+
+def test_empty_splits_are_reported(session_dir, true_calibration, tmp_path):
+    r = gtforge("build-dataset", session_dir, "-c", true_calibration, "-o", tmp_path / "ds", "--workers", "1",
+                "--no-verify", "--split", "0.5,0.5")
+    assert r.returncode == 0
+    assert "came out empty" in r.stderr and "fruit_ids" in r.stderr  # 3 scenes, 2 fruit: test is empty
+    assert (tmp_path / "ds" / "filenames" / "test.txt").read_text() == ""
