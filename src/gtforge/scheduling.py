@@ -214,7 +214,7 @@ def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[t
         if pending:
             try:
                 client.cancel(list(pending), force=True)
-            except Exception:  # the scheduler is gone too: nothing left to cancel
+            except OSError:  # the scheduler is gone too (CommClosedError, timeout): nothing left to cancel
                 pass
         raise
 
