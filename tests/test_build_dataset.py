@@ -120,6 +120,11 @@ def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibrati
     write_image(sess / "scenes" / "001" / "left.png", 255 - d)
     s3 = build_dataset(sess, true_calibration, out, scenes=["000", "001"], workers=1)
     assert s3.built == ["001"] and s3.skipped_unchanged == ["000"]
+    # only the split changed: no scene is rebuilt, the lists are rewritten
+    s3b = build_dataset(sess, true_calibration, out, BuildParams(split_train=0.5, split_val=0.5, split_seed=4),
+                        scenes=["000", "001"], workers=1)
+    assert s3b.built == [] and s3b.skipped_unchanged == ["000", "001"]
+    assert Manifest.read(out / "manifest.json").params.split_seed == 4
     # parameters changed: everything rebuilt; --overwrite forces
     s4 = build_dataset(sess, true_calibration, out, BuildParams(erosion_px=9), scenes=["000", "001"], workers=2)
     assert s4.built == ["000", "001"]

@@ -195,3 +195,33 @@ def test_empty_splits_are_reported(session_dir, true_calibration, tmp_path):
     assert r.returncode == 0
     assert "came out empty" in r.stderr and "fruit_ids" in r.stderr  # 3 scenes, 2 fruit: test is empty
     assert (tmp_path / "ds" / "filenames" / "test.txt").read_text() == ""
+
+
+def test_a_dying_local_worker_lists_its_scenes_as_failed(session_dir, true_calibration, tmp_path):
+    """A pool process killed mid-build (out of memory, say): the scenes it took down are listed as failed, the
+    others land, the command exits 1, and the rerun builds the rest."""
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    for i in range(3, 8):
+        shutil.copytree(session_dir / "scenes" / f"{i % 3:03d}", sess / "scenes" / f"{i:03d}")
+    out = tmp_path / "ds"
+    p = subprocess.Popen([sys.executable, "-m", "gtforge.cli", "build-dataset", str(sess), "-c", str(true_calibration),
+                          "-o", str(out), "--workers", "2", "--no-verify"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
+        time.sleep(0.1)
+    kids = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True, text=True).stdout.split()
+    workers = [k for k in kids if "spawn_main" in open(f"/proc/{k}/cmdline").read().replace("\0", " ")
+               and "resource_tracker" not in open(f"/proc/{k}/cmdline").read()]
+    assert workers, kids
+    os.kill(int(workers[0]), signal.SIGKILL)
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 1, stderr[-2000:]
+    assert "a worker process died" in stderr and "Traceback" not in stderr
+    man = __import__("json").loads((out / "manifest.json").read_text())
+    assert man["failures"] and all("worker process died" in v for v in man["failures"].values())
+    assert not [d for d in (out / "scenes").iterdir() if d.name.startswith(".")]
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "2", "--no-verify")
+    assert r.returncode == 0 and "failed 0" in r.stdout
+    assert len(list((out / "scenes").glob("*/meta.json"))) == 8

@@ -7,59 +7,87 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.build_dataset import BuildParams, build_dataset
+from gtforge.build_dataset import BuildParams, Manifest, build_dataset
 from gtforge.calibrate import CalibrateParams, calibrate
 from gtforge.evaluate import evaluate
 from gtforge.geometry import pose_difference
 from gtforge.io.formats import read_pfm
 from gtforge.predictors import SGBM
+from gtforge.refine import RefineParams, refine
 from gtforge.synthetic import SyntheticTruth, generate_session
 from gtforge.reports.calibration import write_calibration_report
 from gtforge.reports.evaluation import tables_markdown
 from gtforge.validate import validate
 
 
-def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scenes: int = 4, seed: int = 0,
+def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scenes: int = 5, seed: int = 0,
              holdout: int = 2, say: Callable[[str], None] = print, status: Callable[[str], None] = print) -> dict:
+    """The chain on a synthetic session whose last scene's fruit rolled 0.6 mm between the structured-light and the
+    ZED capture (verification should flag it, refinement leave it out)."""
     d = Path(directory)
     t0 = time.perf_counter()
     session = d / "session"
-    say(f"[1/5] rendering a synthetic session ({n_board} board poses, {n_scenes} fruit scenes, scale {scale}) -> {session}")
-    generate_session(session, n_board=n_board, n_scenes=n_scenes, scale=scale, seed=seed, progress=status)
+    rolled = f"{n_scenes - 1:03d}" if n_scenes >= 4 else None
+    say(f"[1/6] rendering a synthetic session ({n_board} board poses, {n_scenes} fruit scenes, scale {scale}"
+        + (f"; in scene {rolled} the fruit rolls 0.6 mm between the two captures" if rolled else "") + f") -> {session}")
+    generate_session(session, n_board=n_board, n_scenes=n_scenes, scale=scale, seed=seed, progress=status,
+                     fruit_motion_mm={n_scenes - 1: (0.6, 0.2, 0.0)} if rolled else None)
     truth = SyntheticTruth.read(session / "truth" / "rig_truth.yaml")
     T_true = np.array(truth.T_zed_from_mech)
 
     boards = sorted(p.name for p in (session / "board").iterdir())
     held = boards[-holdout:] if holdout else []
-    say(f"[2/5] calibrate on {len(boards) - len(held)} poses (holding out {', '.join(held) or 'none'})")
+    say(f"[2/6] calibrate on {len(boards) - len(held)} poses (holding out {', '.join(held) or 'none'})")
     calib_path = d / "calibration.yaml"
     cal = calibrate(session, calib_path, CalibrateParams(use_depth=True), exclude=held, progress=status)
     write_calibration_report(cal, d / "calibration_report")
     rot_err, tr_err = pose_difference(cal.rig.T, T_true)
     say(f"      RMS {cal.rms_px:.3f} px; sigma {cal.sigma_rot_deg:.4f} deg / {cal.sigma_trans_mm:.3f} mm; "
-        f"vs truth: {rot_err:.4f} deg / {tr_err:.3f} mm")
+        f"vs truth: {rot_err:.4f} deg / {tr_err:.3f} mm; verdict {cal.verdict}")
 
-    say("[3/5] validate on the held-out poses")
+    say("[3/6] validate on the held-out poses")
     val = validate(session, calib_path, d / "validation", captures=held or None, progress=status)
-    say(f"      XY {val.xy_mean_px:.3f} px (published 0.56), Z {val.z_error_mean_pct:.4f} % (published 0.08) -> "
+    say(f"      XY {val.xy_mean_px:.3f} px (detectors' noise floor {val.xy_noise_floor_px:.3f}, without it "
+        f"{val.xy_model_mean_px:.3f}; published 0.56), Z {val.z_error_mean_pct:.4f} % (published 0.08) -> "
         f"{'PASS' if val.passed else 'FAIL'}")
 
-    say("[4/5] build the dataset")
+    used_calib = calib_path
+    ref_err = (None, None)
+    if n_scenes >= 4:
+        say("[4/6] refine the extrinsic from the scenes' texture alignment")
+        refined_path = d / "refined.yaml"
+        ref = refine(session, calib_path, refined_path, RefineParams(leave_one_out=False), progress=status)
+        ref_err = pose_difference(ref.rig.T, T_true)
+        say(f"      used {', '.join(ref.refinement.scenes_used)}; left out "
+            f"{', '.join(ref.refinement.scenes_excluded) or 'none'}; vs truth: {ref_err[0]:.4f} deg / "
+            f"{ref_err[1]:.3f} mm (board calibration: {rot_err:.4f} deg / {tr_err:.3f} mm)")
+        used_calib = refined_path
+    else:
+        say("[4/6] refinement skipped (it needs at least 4 scenes here)")
+
+    say(f"[5/6] build the dataset with {used_calib.name} (verification and per-pixel sigma included)")
     ds = d / "dataset"
-    summ = build_dataset(session, calib_path, ds, BuildParams(ply=True), progress=True)
+    summ = build_dataset(session, used_calib, ds, BuildParams(ply=True), progress=True)
     epes = []
     for sid in summ.built + summ.skipped_unchanged:
+        if sid == rolled:  # its ground truth is wrong by construction: the fruit moved
+            continue
         tr = np.load(session / "truth" / f"scene_{sid}.npz")
         gt = read_pfm(ds / "scenes" / sid / "disp0GT.pfm")
         seen = tr["seen_by_mech"] & np.isfinite(gt)
         epes.append(float(np.mean(np.abs(gt[seen] - tr["zed_disparity_px"][seen]))))
-    say(f"      {len(summ.built)} scenes built; ground-truth disparity vs exact truth: EPE {np.mean(epes):.4f} px")
+    sig = [m.sigma["all"].median_px for m in Manifest.read(ds / "manifest.json").scenes.values() if m.sigma]
+    say(f"      {len(summ.built)} scenes built; ground-truth disparity vs exact truth (unmoved scenes): EPE "
+        f"{np.mean(epes):.4f} px; median GT sigma {np.median(sig):.4f} px; verification flagged "
+        f"{', '.join(summ.flagged) or 'none'}")
 
-    say("[5/5] evaluate the SGBM baseline against the ground truth")
+    say("[6/6] evaluate the SGBM baseline against the ground truth")
     ev = evaluate(ds, SGBM(), d / "evaluation", progress=status)
     say(tables_markdown([ev]))
     say(f"done in {time.perf_counter() - t0:.0f} s. Open:\n"
         f"  {d / 'calibration_report' / 'calibration_report.html'}\n  {d / 'validation' / 'validation.html'}\n"
-        f"  {ds / 'manifest.json'}  (dataset: {ds})\n  {d / 'evaluation' / 'results.html'} (and results.md/.csv/.json)")
-    return {"rot_err_deg": rot_err, "trans_err_mm": tr_err, "xy_px": val.xy_mean_px, "z_pct": val.z_error_mean_pct,
-            "gt_epe_px": float(np.mean(epes)), "sgbm_epe_px": ev.pooled["all"].epe_px}
+        f"  {ds / 'verification.html'}\n  {ds / 'build_report.html'}  (dataset: {ds})\n"
+        f"  {d / 'evaluation' / 'results.html'} (and results.md/.csv/.json)")
+    return {"rot_err_deg": rot_err, "trans_err_mm": tr_err, "refined_rot_err_deg": ref_err[0],
+            "refined_trans_err_mm": ref_err[1], "xy_px": val.xy_mean_px, "z_pct": val.z_error_mean_pct,
+            "gt_epe_px": float(np.mean(epes)), "flagged": sorted(summ.flagged), "sgbm_epe_px": ev.pooled["all"].epe_px}

@@ -27,6 +27,7 @@ import os
 import signal
 import uuid
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from gtforge.errors import InputError
@@ -75,6 +76,9 @@ def limit_threads(n_threads: int) -> None:
         pass
 
 
+LOST_REASON = "a worker process died while running it (out of memory? killed?); rerun to build it"
+
+
 def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Callable[[Any], None], *,
               workers: int | None = None, scheduler: str | None = None,
               lost_result: Callable[[tuple, str], Any] | None = None) -> None:
@@ -82,8 +86,9 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
 
     ``workers``: local processes (default: one per core); 1 runs in this process. ``scheduler``: the
     address of a Dask scheduler (``tcp://HOST:PORT``); the cluster's workers run the tasks (``workers``
-    must then be None). ``lost_result(args, reason)``: the result to pass on for a task that Dask gave up
-    on because its workers kept dying (without it, ``KilledWorker`` propagates). An exception raised by
+    must then be None). ``lost_result(args, reason)``: the result to pass on for a task lost with its worker:
+    one Dask gave up on because its workers kept dying, or one a local pool process took down when it died
+    (without it, ``KilledWorker`` / ``BrokenProcessPool`` propagates). An exception raised by
     ``fn`` or ``on_result`` cancels the remaining tasks and propagates.
     """
     if scheduler and workers is not None:
@@ -109,11 +114,30 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
                              initargs=(threads_per_worker(workers),))
     pending = set()
     try:
-        pending = {ex.submit(fn, *args) for args in arg_list}
+        futs = {ex.submit(fn, *args): args for args in arg_list}
+        pending = set(futs)
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for f in done:
-                on_result(f.result())
+            broken = False
+            for f in sorted(done, key=lambda g: g.exception() is not None):
+                if broken:
+                    on_result(lost_result(futs[f], LOST_REASON))
+                    continue
+                try:
+                    res = f.result()
+                except BrokenProcessPool:
+                    # a worker process died (killed, out of memory): the pool is gone with every task it still
+                    # held; report those as failed (the caller lists them) rather than crash the run
+                    if lost_result is None:
+                        raise
+                    broken = True
+                    on_result(lost_result(futs[f], LOST_REASON))
+                    continue
+                on_result(res)
+            if broken:
+                for f in pending:
+                    on_result(lost_result(futs[f], LOST_REASON))
+                pending = set()
     except BaseException:
         for f in pending:
             f.cancel()

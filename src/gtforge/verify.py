@@ -263,7 +263,9 @@ class ShiftAligner:
         w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
         rv = self.ref[v, u].astype(np.float64)
         a, b = rv - rv.mean(), w - w.mean()
-        zncc = float((a @ b) / np.sqrt((a @ a) * (b @ b))) if (a @ a) > 0 and (b @ b) > 0 else None
+        # plain sums, not BLAS dot products: the same digits whatever the thread count (builds are byte-identical)
+        saa, sbb, sab = float(np.sum(a * a)), float(np.sum(b * b)), float(np.sum(a * b))
+        zncc = sab / np.sqrt(saa * sbb) if saa > 0 and sbb > 0 else None
         return ShiftEstimate(dx_px=float(d[0]), dy_px=float(d[1]), correlation=zncc, n_pixels=n)
 
 
@@ -500,7 +502,9 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
         if progress:
             progress(f"verified {sid} ({len(results)}/{len(args)}): {results[sid].status}")
 
-    run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler)
+    run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler,
+              lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
+                                             .model_dump(mode="json")))
     old = {}
     rep_path = ds / "verification.json"
     if rep_path.is_file():
