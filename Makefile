@@ -17,9 +17,11 @@ demo: $(STAMP)  ## set up, then run calibrate -> build-dataset -> validate -> ev
 test: $(STAMP)  ## set up, then run the test suite
 	$(PY) -m pytest
 
-bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same run)
+bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same run; tables in benchmarks/RESULTS.md)
 	$(PY) benchmarks/bench_reproject.py
 	$(PY) benchmarks/bench_calibrate.py
+	$(PY) benchmarks/bench_encodings.py
+	$(PY) benchmarks/profile_scene.py
 	$(PY) benchmarks/bench_build_dataset.py
 
 clean:

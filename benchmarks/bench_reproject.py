@@ -8,12 +8,15 @@ by another process (a Python spin loop), methods interleaved round-robin, median
 gtforge runs with all of numba's threads (the benchmark's setting) and with one thread (what a build
 worker gets with --workers = cores). ``--write`` puts the table into benchmarks/RESULTS.md.
 
-    python benchmarks/bench_reproject.py [--repeat 15] [--write]
+    python benchmarks/bench_reproject.py [--repeat 15] [--against e1dbf65] [--write]
+
+``--against REV`` adds the kernels of ``src/gtforge/reproject.py`` at git revision REV (before/after).
 """
 from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import statistics
 import subprocess
 import sys
@@ -38,22 +41,45 @@ def scene_depth(rig):
     return np.where(hit & lit, z, np.nan).astype(np.float32)
 
 
+def module_at_revision(rev: str):
+    """gtforge/reproject.py as it was at git revision ``rev``, imported as a separate module."""
+    import importlib.util
+    import tempfile
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/reproject.py"], capture_output=True, text=True,
+                         check=True).stdout
+    path = os.path.join(tempfile.mkdtemp(), f"reproject_{rev}.py")
+    with open(path, "w") as f:
+        f.write(src)
+    spec = importlib.util.spec_from_file_location(f"reproject_{rev}", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def interleaved(methods: dict, repeat: int) -> dict:
+    """Median wall ms and median process CPU ms (all threads) of each method, methods run round-robin."""
     for fn in methods.values():
         fn()  # warm-up (numba compile / cache load, Open3D first call)
-    times = {k: [] for k in methods}
+    wall = {k: [] for k in methods}
+    cpu = {k: [] for k in methods}
     for _ in range(repeat):
         for k, fn in methods.items():
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             fn()
-            times[k].append(time.perf_counter() - t)
-    return {k: statistics.median(v) * 1e3 for k, v in times.items()}
+            cpu[k].append(time.process_time() - c)
+            wall[k].append(time.perf_counter() - t)
+    return {k: (statistics.median(wall[k]) * 1e3, statistics.median(cpu[k]) * 1e3) for k in methods}
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--write", action="store_true")
+    ap.add_argument("--against", default=None, help="also time reproject.py at this git revision")
+    ap.add_argument("--open3d-only", action="store_true", help=argparse.SUPPRESS)  # the 1-thread Open3D child
     args = ap.parse_args()
     rig = default_rig(1.0)
     depth = scene_depth(rig)
@@ -82,6 +108,7 @@ def main():
         return run
 
     mesh, splat = ReprojectParams(mode="mesh"), ReprojectParams(mode="splat")
+    base = "Open3D + cv2.remap undistortion (baseline)"
     methods = {
         "Open3D + cv2.remap undistortion (baseline)": lambda: o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)),
         "Open3D alone (no undistortion)": lambda: o3d_project(depth0),
@@ -92,6 +119,21 @@ def main():
         "gtforge splat (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T, cam, splat)),
         "gtforge mesh (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T, cam, mesh)),
     }
+    if args.against:
+        old = module_at_revision(args.against)
+        methods[f"gtforge mesh @{args.against} ({n_threads} threads)"] = lambda: old.project_depth_to_camera(
+            depth, mech, T, cam, old.ReprojectParams(mode="mesh"))
+        methods[f"gtforge mesh @{args.against} (1 thread)"] = with_threads(1, lambda: old.project_depth_to_camera(
+            depth, mech, T, cam, old.ReprojectParams(mode="mesh")))
+        methods[f"gtforge splat @{args.against} ({n_threads} threads)"] = lambda: old.project_depth_to_camera(
+            depth, mech, T, cam, old.ReprojectParams(mode="splat"))
+    if args.open3d_only:  # run by the parent with OMP_NUM_THREADS=1 (Open3D reads it when it loads)
+        r = interleaved({"o": methods[base]}, args.repeat)["o"]
+        print(f"{r[0]} {r[1]}")
+        return
+    child = subprocess.run([sys.executable, __file__, "--open3d-only", "--repeat", str(args.repeat)],
+                           env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, check=True)
+    o3d_1 = tuple(float(x) for x in child.stdout.split()[-2:])
     results = {"quiet": interleaved(methods, args.repeat)}
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
@@ -100,22 +142,24 @@ def main():
     finally:
         busy.kill()
         busy.wait()
-    base = "Open3D + cv2.remap undistortion (baseline)"
     o = o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)).as_tensor().numpy()[..., 0]
     s = project_depth_to_camera(depth, mech, T, cam, splat)
     m = project_depth_to_camera(depth, mech, T, cam, mesh)
-    import os
 
-    lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_reproject.py --repeat {args.repeat}`: "
+    cmd = f"python benchmarks/bench_reproject.py --repeat {args.repeat}" + (f" --against {args.against}" if args.against else "")
+    lines = [f"Measured {datetime.date.today()} with `{cmd}`: "
              f"{len(os.sched_getaffinity(0))} cores, load average {os.getloadavg()[0]:.2f} at the end; "
              f"{mech.width_px}x{mech.height_px} depth ({np.isfinite(depth).mean() * 100:.1f} % valid) -> "
              f"{cam.width_px}x{cam.height_px}; medians of {args.repeat}, methods interleaved.",
              "",
-             "| method | ms (machine as it is) | speed-up | ms (one core busy) | speed-up |",
-             "|---|---|---|---|---|"]
+             "| method | ms | CPU ms (all threads) | speed-up | ms, one core busy | speed-up, one core busy |",
+             "|---|---|---|---|---|---|"]
     q, b = results["quiet"], results["one core busy"]
     for k in methods:
-        lines.append(f"| {k} | {q[k]:.1f} | {q[base] / q[k]:.1f}x | {b[k]:.1f} | {b[base] / b[k]:.1f}x |")
+        lines.append(f"| {k} | {q[k][0]:.1f} | {q[k][1]:.1f} | {q[base][0] / q[k][0]:.1f}x | {b[k][0]:.1f} | "
+                     f"{b[base][0] / b[k][0]:.1f}x |")
+    lines.append(f"| Open3D + cv2.remap, OMP_NUM_THREADS=1 (separate process, same repeats) | {o3d_1[0]:.1f} | "
+                 f"{o3d_1[1]:.1f} | {q[base][0] / o3d_1[0]:.1f}x | | |")
     lines.append("")
     lines.append(f"Pixels with depth: Open3D {np.mean(o > 0) * 100:.1f} %, splat {np.isfinite(s).mean() * 100:.1f} %, "
                  f"mesh {np.isfinite(m).mean() * 100:.1f} %.")

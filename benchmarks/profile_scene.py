@@ -86,16 +86,17 @@ def main():
     # ---- compute
     T_l = rig.T_zed_from_depth
     T_r = zed.T_zedr_from_zed @ T_l
-    depth_l = measure("compute", f"reproject left ({rp.mode})",
-                      lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp))
-    if rp.mode == "mesh":
-        measure("compute", "reproject left + span_mm",
-                lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp, return_span=True))
+    if getattr(params, "sigma", False) and rp.mode == "mesh":  # the build asks for the span (sigma maps)
+        depth_l, depth_span = measure("compute", "reproject left (mesh, with span_mm)", lambda: project_depth_to_camera(
+            depth_in, rig.depth_camera, T_l, zed.left, rp, return_span=True))
+    else:
+        depth_l = measure("compute", f"reproject left ({rp.mode})",
+                          lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp))
     depth_r = measure("compute", f"reproject right ({rp.mode}, occlusion test)",
                       lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_r, zed.right, rp))
     disp, noc = measure("compute", "disparity + occlusion (non-occluded mask)",
                         lambda: disparity_and_nonoccluded(depth_l, depth_r, zed, params.occlusion_rel_tol))
-    region, fruit = measure("compute", "regions (table plane, fruit, erosion)",
+    region, _ = measure("compute", "regions (table plane, fruit, erosion)",
                             lambda: bd.fruit_regions(depth_l, zed, params, cap.fruit_mask))
     weight = measure("compute", "SGRA weights", lambda: bd.sgra_weights(region, params))
     if getattr(params, "verification", False):
@@ -104,6 +105,18 @@ def main():
         measure("compute", "verification (texture alignment + stereo consistency)",
                 lambda: verify_scene(depth_l, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
                                      params.verify))
+    if getattr(params, "sigma", False):
+        from gtforge.uncertainty import disparity_sigma
+
+        calib = CalibrationFile.read(calib_path)
+        sigma = measure("compute", "GT sigma map (disp0GT_sigma)",
+                        lambda: disparity_sigma(disp, depth_l, rig, calib.cov_extrinsic_rad_mm, params.uncertainty,
+                                                depth_span, None))
+    if getattr(params, "right_gt", False):
+        from gtforge.reproject import right_view_disparity
+
+        disp1, noc1 = measure("compute", "right-view disparity + occlusion (disp1GT)",
+                              lambda: right_view_disparity(depth_l, depth_r, zed, params.occlusion_rel_tol))
     # ---- hashing
     files = [p for p in cap.input_files if p.exists()]
     size_mb = sum(p.stat().st_size for p in files) / 1e6
@@ -131,6 +144,14 @@ def main():
     measure("write", "KITTI disp_occ_0 + disp_noc_0 (uint16 PNG)",
             lambda: (write_kitti_disparity(tmp / "occ.png", disp),
                      write_kitti_disparity(tmp / "noc.png", np.where(noc, disp, np.nan))))
+    if getattr(params, "right_gt", False):
+        measure("write", "disp1GT.pfm + mask1nocc.png + KITTI disp_occ_1 + disp_noc_1",
+                lambda: (write_pfm(tmp / "disp1GT.pfm", disp1), png_writer(tmp / "mask1nocc.png", bd.occlusion_mask(disp1, noc1)),
+                         write_kitti_disparity(tmp / "occ1.png", disp1),
+                         write_kitti_disparity(tmp / "noc1.png", np.where(noc1, disp1, np.nan))))
+    if getattr(params, "sigma", False):
+        measure("write", "disp0GT_sigma.pfm + sigma thumbnail JPG",
+                lambda: (write_pfm(tmp / "disp0GT_sigma.pfm", sigma), bd.write_sigma_thumbnail(tmp / "sigma.jpg", sigma)))
     measure("write", "calib.txt", lambda: bd.atomic_write_text(
         tmp / "calib.txt", bd.middlebury_calib_text(zed, disp.shape[1], disp.shape[0], disp)))
 

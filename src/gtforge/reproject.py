@@ -42,9 +42,10 @@ _EPS = 1e-9  # pixel-centre tolerance (px): a centre on a triangle's edge belong
 
 @functools.lru_cache(maxsize=4)
 def _ray_planes(cam_json: str) -> tuple[np.ndarray, np.ndarray]:
-    """The camera's ray grid (normalised x, y of every pixel centre) as two contiguous planes."""
+    """The camera's ray grid (normalised x, y of every pixel centre) as two contiguous float32 planes: half the
+    memory traffic of float64 for a rounding error below 3e-8 (5e-5 px in the depth camera), far below any noise."""
     rays = PinholeCamera.model_validate_json(cam_json).ray_grid()
-    rx, ry = np.ascontiguousarray(rays[..., 0]), np.ascontiguousarray(rays[..., 1])
+    rx, ry = np.ascontiguousarray(rays[..., 0], np.float32), np.ascontiguousarray(rays[..., 1], np.float32)
     rx.setflags(write=False)
     ry.setflags(write=False)
     return rx, ry
