@@ -5,8 +5,10 @@ Baseline (what a careful user writes): ``cv2.remap`` of the depth through the le
 (nearest neighbour; maps computed once, outside the timing), then Open3D ``create_from_depth_image`` +
 ``project_to_depth_image``. Measured on the machine as it is ("quiet") and again with one core kept busy
 by another process (a Python spin loop), methods interleaved round-robin, medians of --repeat.
-gtforge runs with all of numba's threads (the benchmark's setting) and with one thread (what a build
-worker gets with --workers = cores). ``--write`` puts the table into benchmarks/RESULTS.md.
+gtforge runs with its defaults (numba's threads; one thread rasterises below reproject.MIN_PARALLEL_THREADS),
+with one thread (what a build worker gets with --workers = cores) and with the windowed multi-thread path
+forced. OMP_WAIT_POLICY=PASSIVE (set here unless given) keeps the two OpenMP runtimes in this process
+(Open3D's, numba's) from spinning against each other. ``--write`` puts the table into benchmarks/RESULTS.md.
 
     python benchmarks/bench_reproject.py [--repeat 15] [--against e1dbf65] [--write]
 
@@ -14,9 +16,14 @@ worker gets with --workers = cores). ``--write`` puts the table into benchmarks/
 """
 from __future__ import annotations
 
+import os
+
+# Open3D's and numba's OpenMP runtimes live in this one process: with the default wait policy the threads of
+# the one that ran last spin on the cores while the other runs (it made Open3D up to 2x slower here).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import argparse
 import datetime
-import os
 import statistics
 import subprocess
 import sys
@@ -27,6 +34,7 @@ import numba
 import numpy as np
 import open3d as o3d
 
+from gtforge import reproject
 from gtforge.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.synthetic import default_rig, lit_mask, random_fruit_scene, raycast_depth
 
@@ -112,13 +120,27 @@ def main():
     methods = {
         "Open3D + cv2.remap undistortion (baseline)": lambda: o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)),
         "Open3D alone (no undistortion)": lambda: o3d_project(depth0),
-        f"gtforge splat ({n_threads} threads)": lambda: project_depth_to_camera(depth, mech, T, cam, splat),
-        f"gtforge mesh ({n_threads} threads)": lambda: project_depth_to_camera(depth, mech, T, cam, mesh),
-        f"gtforge mesh + span_mm ({n_threads} threads)": lambda: project_depth_to_camera(depth, mech, T, cam, mesh,
-                                                                                          return_span=True),
+        f"gtforge splat (default: {n_threads} numba threads)": lambda: project_depth_to_camera(depth, mech, T, cam,
+                                                                                                splat),
+        f"gtforge mesh (default: {n_threads} numba threads)": lambda: project_depth_to_camera(depth, mech, T, cam,
+                                                                                               mesh),
+        f"gtforge mesh + span_mm (default: {n_threads} numba threads)": lambda: project_depth_to_camera(
+            depth, mech, T, cam, mesh, return_span=True),
         "gtforge splat (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T, cam, splat)),
         "gtforge mesh (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T, cam, mesh)),
     }
+    if n_threads >= 2:  # the windowed multi-thread path, used from reproject.MIN_PARALLEL_THREADS threads on
+        def windowed(params):
+            def run():
+                before = reproject.MIN_PARALLEL_THREADS
+                reproject.MIN_PARALLEL_THREADS = 2
+                try:
+                    return project_depth_to_camera(depth, mech, T, cam, params)
+                finally:
+                    reproject.MIN_PARALLEL_THREADS = before
+            return run
+        methods[f"gtforge splat, windowed path ({n_threads} threads)"] = windowed(splat)
+        methods[f"gtforge mesh, windowed path ({n_threads} threads)"] = windowed(mesh)
     if args.against:
         old = module_at_revision(args.against)
         methods[f"gtforge mesh @{args.against} ({n_threads} threads)"] = lambda: old.project_depth_to_camera(

@@ -38,6 +38,11 @@ Mode = Literal["mesh", "splat"]
 # would keep the compiler from vectorising the row loops (3x slower projection).
 _JIT = {"cache": True, "error_model": "numpy"}
 _EPS = 1e-9  # pixel-centre tolerance (px): a centre on a triangle's edge belongs to it
+# Below this many numba threads one thread rasterises straight into the image. Measured on 2 cores
+# (benchmarks/RESULTS.md): 2 threads gain 1.3x for mesh and lose 2x for splat on an idle machine (a second
+# projection pass, the windows, the merge), and with one core busy both lose 1.5-2x (each parallel region
+# waits for the thread that shares the busy core).
+MIN_PARALLEL_THREADS = 3
 
 
 @functools.lru_cache(maxsize=4)
@@ -332,7 +337,8 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
 
     ``return_span`` (mesh only): also return ``span_mm`` ``(H, W)`` float32: for the triangle that won the
     z-buffer at each pixel, max - min of its three vertices' Z in ``cam`` (mm); NaN where no triangle.
-    Uses ``numba.get_num_threads()`` threads; the result is the same for any number."""
+    Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS``; the result is the
+    same for any number."""
     depth = np.asarray(depth_mech_mm)
     if depth.shape != (mech.height_px, mech.width_px):
         raise ValueError(f"{depth.shape=} but expected {(mech.height_px, mech.width_px)} from the mech intrinsics")
@@ -353,7 +359,7 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
     k2 = k1 * math.sqrt(2.0)  # the quad diagonal
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
-    if n_threads == 1 or Hm < 8:
+    if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
         out = np.full((H, W), np.nan, np.float32)
         span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
         if mesh:
@@ -363,7 +369,7 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
             _splat_rows(out, 0, depth, rx, ry, R, t, fx, fy, cx, cy, 0, Hm)
         return (out, span) if return_span else out
     n_rows = Hm - 1 if mesh else Hm  # quad rows (mesh) or point rows (splat)
-    n_chunks = min(4 * n_threads, n_rows)
+    n_chunks = min(4 * n_threads, 32, n_rows)  # arena: n_chunks image-sized slots, mostly never touched
     rows = np.linspace(0, n_rows, n_chunks + 1).round().astype(np.int64)
     wlo = np.empty(n_chunks, np.int64)
     whi = np.empty(n_chunks, np.int64)
