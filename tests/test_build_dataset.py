@@ -91,6 +91,37 @@ def test_manifest_and_lists(dataset):
     assert where["000"] == where["001"]
 
 
+def test_split_views_for_training_repositories(dataset):
+    """views/<split>/: the folder layouts RAFT-Stereo / IGEV-Stereo read from a fixed root, as relative links."""
+    out, _ = dataset
+    m = Manifest.read(out / "manifest.json")
+    for split, ids in m.splits.items():
+        v = out / "views" / split
+        if not ids:
+            assert not v.exists()
+            continue
+        midd = v / "Middlebury" / "MiddEval3"
+        assert (midd / "official_train.txt").read_text().split() == ids
+        for sid in ids:
+            for res in "FHQ":
+                link = midd / f"training{res}" / sid
+                assert link.is_symlink() and not os.path.isabs(os.readlink(link))
+                assert (link / "disp0GT.pfm").resolve() == (out / "scenes" / sid / "disp0GT.pfm").resolve()
+            y14 = v / "Middlebury" / "2014" / sid
+            assert (y14 / "im1E.png").read_bytes() == (out / "scenes" / sid / "im1.png").read_bytes()
+            np.testing.assert_array_equal(read_pfm(y14 / "disp0.pfm"), read_pfm(out / "scenes" / sid / "disp0GT.pfm"))
+            assert (v / "ETH3D" / "two_view_training_gt" / sid / "mask0nocc.png").exists()
+            for kind in ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1"):
+                assert (v / "KITTI" / "training" / kind / f"{sid}_10.png").exists()
+    # the dataset stays relocatable: every link is relative and resolves after a move
+    moved = out.parent / (out.name + "_moved")
+    shutil.copytree(out, moved, symlinks=True)
+    split = next(k for k, ids in m.splits.items() if ids)
+    sid = m.splits[split][0]
+    assert (moved / "views" / split / "Middlebury" / "2014" / sid / "im0.png").resolve().is_relative_to(moved)
+    shutil.rmtree(moved)
+
+
 def test_splits_group_by_fruit():
     ids = [f"{i:03d}" for i in range(20)]
     fruit = {s: f"f{int(s) // 4}" for s in ids}

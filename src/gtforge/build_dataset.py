@@ -585,6 +585,56 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
             _link(s / f, e / "two_view_training_gt" / sid / f)
 
 
+def write_split_views(out: Path, splits: dict[str, list[str]], params: BuildParams) -> Path:
+    """``OUT/views/<split>/``: each split in the folder layouts training repositories read from a fixed root, as
+    relative symlinks into ``scenes/``, ``kitti/`` and ``eth3d/`` (nothing copied; the dataset stays relocatable):
+
+    * ``Middlebury/MiddEval3/official_train.txt`` + ``training{F,H,Q}/<id>`` (RAFT-Stereo ``middlebury_F/H/Q``; IGEV-Stereo
+      reads ``trainingH`` for the names; gtforge has one resolution, so F, H and Q are the same scenes);
+    * ``Middlebury/2014/<id>/{im0,im1,im1E,im1L}.png, disp0.pfm, calib.txt`` (RAFT-Stereo ``middlebury_2014``; im1E and
+      im1L, the 2014 dataset's other exposure and lighting, are im1);
+    * ``ETH3D/two_view_training{,_gt}/<id>`` and ``KITTI/training/<kind>/<id>_10.png`` (RAFT-Stereo, IGEV-Stereo).
+
+    A split with no scene gets no folder. The tree is built beside ``views/`` (same depth, so the relative links are the
+    same) and swapped in by rename."""
+    views = out / "views"
+    tmp = out / f".views-{uuid.uuid4().hex[:12]}"
+    tmp.mkdir()
+
+    def link(target: Path, at: Path) -> None:
+        at.parent.mkdir(parents=True, exist_ok=True)
+        os.symlink(os.path.relpath(target, at.parent), at)
+
+    for split, ids in splits.items():
+        if not ids:
+            continue
+        root = tmp / split
+        midd = root / "Middlebury" / "MiddEval3"
+        midd.mkdir(parents=True)
+        atomic_write_text(midd / "official_train.txt", "\n".join(ids) + "\n")
+        for sid in ids:
+            scene = out / "scenes" / sid
+            for res in "FHQ":
+                link(scene, midd / f"training{res}" / sid)
+            for name, src in (("im0.png", "im0.png"), ("im1.png", "im1.png"), ("im1E.png", "im1.png"),
+                              ("im1L.png", "im1.png"), ("disp0.pfm", "disp0GT.pfm"), ("calib.txt", "calib.txt")):
+                link(scene / src, root / "Middlebury" / "2014" / sid / name)
+            if params.eth3d:
+                for kind in ("two_view_training", "two_view_training_gt"):
+                    link(out / "eth3d" / kind / sid, root / "ETH3D" / kind / sid)
+            if params.kitti:
+                for kind in ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1"):
+                    f = out / "kitti" / "training" / kind / f"{sid}_10.png"
+                    if f.exists():
+                        link(f, root / "KITTI" / "training" / kind / f"{sid}_10.png")
+    old = out / f".views-old-{uuid.uuid4().hex[:12]}"
+    if views.exists():
+        os.replace(views, old)
+    os.replace(tmp, views)
+    shutil.rmtree(old, ignore_errors=True)
+    return views
+
+
 def write_lists(out: Path, splits: dict[str, list[str]]) -> None:
     for split, ids in splits.items():
         lines = [f"scenes/{s}/im0.png scenes/{s}/im1.png scenes/{s}/disp0GT.pfm" for s in ids]
@@ -683,6 +733,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                 (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
             write_scene_views(out, sid, params)
     write_lists(out, splits)
+    write_split_views(out, splits, params)
     _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
     from gtforge.reports.build import write_build_report
 
@@ -741,6 +792,8 @@ def _remove_stale(out: Path) -> None:
     for lock in scenes.glob(".lock-*"):
         if not _writer_alive(scenes, lock.name):
             lock.unlink(missing_ok=True)
+    for stale in out.glob(".views-*"):  # a views/ tree being built or swapped when the run stopped
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 def _lock_writer(scenes: Path, sid: str, token: str) -> int | None:

@@ -105,14 +105,19 @@ def _progress_lines(msg: str) -> None:
     console.print(msg, style="dim" if console.is_terminal else None)
 
 
+CROP_PRESETS = {"kitti": (1242, 375)}  # KITTI 2015's image size: Fast-ACVNet's KITTI loader trains and validates it
+
+
 def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
     if not text:
         return None
+    if text.lower() in CROP_PRESETS:
+        return CROP_PRESETS[text.lower()]
     try:
         w, h = (int(x) for x in text.lower().split("x"))
         return w, h
     except ValueError:
-        raise InputError(None, name, "WIDTHxHEIGHT, e.g. 736x528", repr(text)) from None
+        raise InputError(None, name, "WIDTHxHEIGHT (e.g. 1088x376) or a preset (kitti = 1242x375)", repr(text)) from None
 
 
 def _print_version(value: bool) -> None:
@@ -188,7 +193,7 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                       "docs/cluster.md)."),
                   overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild every scene."),
                   strict: bool = typer.Option(False, "--strict", help="Stop at the first bad scene."),
-                  crop: Optional[str] = typer.Option(None, help="Crop around the fruit, e.g. 736x528."),
+                  crop: Optional[str] = typer.Option(None, metavar="WxH", help="Crop around the fruit: WIDTHxHEIGHT, or kitti (1242x375, what Fast-ACVNet's KITTI loader accepts)."),
                   ply: bool = typer.Option(False, "--ply", help="Write a PLY point cloud per scene."),
                   erosion_px: int = typer.Option(15, help="Fruit centre = fruit mask eroded by this."),
                   max_slant_deg: float = typer.Option(85.0, help="mesh: reject triangles steeper than this."),

@@ -471,7 +471,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     """Re-run the checks on an existing dataset (its manifest names the session and calibration); writes
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
     flagged scenes out of the split lists)."""
-    from gtforge.build_dataset import Manifest, final_splits, verify_one_scene, write_lists
+    from gtforge.build_dataset import Manifest, final_splits, verify_one_scene, write_lists, write_split_views
     from gtforge.scheduling import run_tasks
 
     ds = Path(dataset_dir)
@@ -516,5 +516,6 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     man.splits = final_splits(sorted(man.scenes), {s: m.fruit_id for s, m in man.scenes.items()}, man.params,
                               man.quarantined)
     write_lists(ds, man.splits)
+    write_split_views(ds, man.splits, man.params)
     man.write(man_path)
     return rep
