@@ -21,13 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from gtforge.build_dataset import BuildParams, build_one_scene, build_scene_arrays
-from gtforge.calibrate import (BoardModel, CalibrateParams, CalibrationFile, _perturbed, calibrate_observations,
+from gtforge.calibrate import (BoardModel, CalibrateParams, CalibrationFile, calibrate_observations,
                                detect_pose)
 from gtforge.camera import Rig
 from gtforge.io.captures import open_session
-from gtforge.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.synthetic import SyntheticTruth, generate_session
-from gtforge.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma
+from gtforge.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma, draw_ground_truth
 
 
 def main():
@@ -82,7 +81,6 @@ def main():
 
     print("\n## 2. coverage at full resolution (20 draws x 2 scenes; depth noise 0.05 mm)")
     up = UncertaintyParams(depth_noise=DepthNoiseModel(a_mm=0.05, b_mm_per_m2=0.0))
-    L = np.linalg.cholesky(C)
     rng = np.random.default_rng(1)
     pooled = {2: [], 3: [], 1: []}
     for sid in ("000", "001"):
@@ -90,12 +88,7 @@ def main():
         cap = s.load_capture(full / "scenes" / sid)
         _, region, _ = build_scene_arrays(cap.mech_depth_mm, calib.rig, BuildParams())
         for _ in range(20):
-            rig = calib.rig.with_extrinsic(_perturbed(T, L @ rng.standard_normal(6)))
-            dep = cap.mech_depth_mm + rng.normal(0, 0.05, cap.mech_depth_mm.shape).astype(np.float32)
-            depth, span = project_depth_to_camera(dep, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
-                                                  ReprojectParams(), return_span=True)
-            disp = rig.zed.depth_to_disparity(depth)
-            sig = disparity_sigma(disp, depth, rig, C, up, span)
+            disp, sig = draw_ground_truth(cap.mech_depth_mm, calib.rig, C, 0.05, rng, up)
             err = np.abs(disp - tr["zed_disparity_px"])
             ok = tr["seen_by_mech"] & np.isfinite(disp)
             for lab in pooled:

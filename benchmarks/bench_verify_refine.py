@@ -24,11 +24,11 @@ import numpy as np
 from gtforge.build_dataset import BuildParams, build_scene_arrays
 from gtforge.calibrate import BoardModel, CalibrationFile
 from gtforge.camera import Rig
-from gtforge.geometry import T_from_rotvec, pose_difference, transform_points
+from gtforge.geometry import T_from_rotvec, pose_difference
 from gtforge.io.captures import open_session
 from gtforge.refine import RefineParams, refine
 from gtforge.synthetic import SyntheticTruth, generate_session
-from gtforge.verify import verify_scene
+from gtforge.verify import predicted_shift, verify_scene
 
 
 def session(workdir: Path, n: int) -> Path:
@@ -102,11 +102,7 @@ def main():
         Tw = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T
         rw = rig.with_extrinsic(Tw)
         ver, sd = verify(caps[ids[0]], rw)
-        v, u = np.nonzero(np.isfinite(sd.depth_mm))
-        c = rw.zed.left
-        z = sd.depth_mm[v, u].astype(float)
-        P = np.stack([(u - c.cx_px) / c.fx_px * z, (v - c.cy_px) / c.fy_px * z, z], axis=1)
-        pred = (c.project(transform_points(T @ np.linalg.inv(Tw), P)) - np.stack([u, v], 1)).mean(0)
+        pred = predicted_shift(sd.depth_mm, rw, T)
         got = np.array([ver.texture_all.dx_px, ver.texture_all.dy_px])
         print(f"0.05 deg about {'xyz'[int(np.argmax(axis))]}: predicted ({pred[0]:+.3f}, {pred[1]:+.3f}) px, measured "
               f"({got[0]:+.3f}, {got[1]:+.3f}) px, difference {np.linalg.norm(got - pred):.4f} px (target <= 0.05)")

@@ -3,12 +3,11 @@ import numpy as np
 import pytest
 
 from gtforge.build_dataset import BuildParams, SceneMeta, build_scene_arrays
-from gtforge.calibrate import CalibrateParams, CalibrationFile, PoseObs, PoseReport, _perturbed, calibrate_observations
+from gtforge.calibrate import CalibrateParams, CalibrationFile, PoseObs, PoseReport, calibrate_observations
 from gtforge.geometry import transform_points
 from gtforge.io.captures import open_session
 from gtforge.io.formats import read_pfm
-from gtforge.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma
+from gtforge.uncertainty import DepthNoiseModel, UncertaintyParams, draw_ground_truth
 
 
 def test_calibration_covariance_matches_the_spread_of_errors():
@@ -47,7 +46,6 @@ def test_calibration_covariance_matches_the_spread_of_errors():
 def _coverage(session_dir, calibration, T_true, draws, noise_mm, cov_scale=1.0):
     calib = CalibrationFile.read(calibration)
     C = np.array(calib.cov_extrinsic_rad_mm) * cov_scale
-    L = np.linalg.cholesky(C)
     rig0 = calib.rig.with_extrinsic(T_true)
     up = UncertaintyParams(depth_noise=DepthNoiseModel(a_mm=noise_mm, b_mm_per_m2=0.0))
     s = open_session(session_dir)
@@ -58,12 +56,7 @@ def _coverage(session_dir, calibration, T_true, draws, noise_mm, cov_scale=1.0):
         cap = s.load_capture(s.root / "scenes" / sid)
         _, region, _ = build_scene_arrays(cap.mech_depth_mm, rig0, BuildParams())
         for _ in range(draws):
-            rig = rig0.with_extrinsic(_perturbed(T_true, L @ rng.standard_normal(6)))
-            depth_in = cap.mech_depth_mm + rng.normal(0, noise_mm, cap.mech_depth_mm.shape).astype(np.float32)
-            depth, span = project_depth_to_camera(depth_in, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
-                                                  ReprojectParams(), return_span=True)
-            disp = rig.zed.depth_to_disparity(depth)
-            sig = disparity_sigma(disp, depth, rig, C, up, span)
+            disp, sig = draw_ground_truth(cap.mech_depth_mm, rig0, C, noise_mm, rng, up)
             err = np.abs(disp - tr["zed_disparity_px"])
             ok = tr["seen_by_mech"] & np.isfinite(disp)
             for lab in pooled:

@@ -7,9 +7,9 @@ import pytest
 
 from gtforge.build_dataset import BuildParams, Manifest, build_scene_arrays
 from gtforge.calibrate import CalibrationFile
-from gtforge.geometry import T_from_rotvec, transform_points
+from gtforge.geometry import T_from_rotvec
 from gtforge.io.captures import open_session
-from gtforge.verify import VerificationReport, VerifyParams, verify_dataset, verify_scene
+from gtforge.verify import VerificationReport, VerifyParams, predicted_shift, verify_dataset, verify_scene
 
 
 @pytest.fixture(scope="module")
@@ -81,11 +81,7 @@ def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibrat
         T_wrong = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T_true
         rig = base.with_extrinsic(T_wrong)
         ver, sd, _ = _verify(session_dir, "001", rig)
-        v, u = np.nonzero(np.isfinite(sd.depth_mm))
-        cam = rig.zed.left
-        z = sd.depth_mm[v, u].astype(float)
-        P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
-        predicted = (cam.project(transform_points(T_true @ np.linalg.inv(T_wrong), P)) - np.stack([u, v], 1)).mean(0)
+        predicted = predicted_shift(sd.depth_mm, rig, T_true)
         got = np.array([ver.texture_all.dx_px, ver.texture_all.dy_px])
         assert np.linalg.norm(predicted) > 0.3  # 0.05 deg at f = 426 px
         assert np.linalg.norm(got - predicted) < 0.05, (axis, got, predicted)  # issue target

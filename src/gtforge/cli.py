@@ -193,7 +193,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                       "docs/cluster.md)."),
                   overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild every scene."),
                   strict: bool = typer.Option(False, "--strict", help="Stop at the first bad scene."),
-                  crop: Optional[str] = typer.Option(None, metavar="WxH", help="Crop around the fruit: WIDTHxHEIGHT, or kitti (1242x375, what Fast-ACVNet's KITTI loader accepts)."),
+                  crop: Optional[str] = typer.Option(
+                      None, metavar="WxH", help="Crop around the fruit: WIDTHxHEIGHT, or kitti (1242x375, the size "
+                      "Fast-ACVNet's KITTI loader trains and validates)."),
                   ply: bool = typer.Option(False, "--ply", help="Write a PLY point cloud per scene."),
                   erosion_px: int = typer.Option(15, help="Fruit centre = fruit mask eroded by this."),
                   max_slant_deg: float = typer.Option(85.0, help="mesh: reject triangles steeper than this."),

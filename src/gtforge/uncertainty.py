@@ -165,3 +165,21 @@ def sigma_stats(sigma_px: np.ndarray, mask: np.ndarray) -> SigmaStats:
         return SigmaStats(median_px=None, p95_px=None, over_0_1_px_pct=None)
     return SigmaStats(median_px=float(np.median(s)), p95_px=float(np.percentile(s, 95)),
                       over_0_1_px_pct=float(100.0 * np.mean(s > 0.1)))
+
+
+def draw_ground_truth(depth_mech_mm: np.ndarray, rig: Rig, cov_extrinsic_rad_mm, depth_noise_mm: float,
+                      rng: np.random.Generator, params: UncertaintyParams | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """One draw of the errors the sigma map describes: the extrinsic perturbed by a sample of its covariance, the
+    depth map by Gaussian noise; the ground truth built from them (mesh) and its sigma map. ``(disparity, sigma)``
+    ZED-left arrays, for checking coverage against exact truth (tests, benchmarks)."""
+    from gtforge.calibrate import _perturbed
+    from gtforge.reproject import ReprojectParams, project_depth_to_camera
+
+    C = np.asarray(cov_extrinsic_rad_mm, np.float64)
+    drawn = rig.with_extrinsic(_perturbed(rig.T, np.linalg.cholesky(C) @ rng.standard_normal(6)))
+    noisy = depth_mech_mm + rng.normal(0, depth_noise_mm, depth_mech_mm.shape).astype(np.float32)
+    depth, span = project_depth_to_camera(noisy, drawn.depth_camera, drawn.T_zed_from_depth, drawn.zed.left,
+                                          ReprojectParams(), return_span=True)
+    disp = drawn.zed.depth_to_disparity(depth)
+    return disp, disparity_sigma(disp, depth, drawn, C, params, span)

@@ -456,6 +456,18 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
                              texture_fruit=e_fruit, texture_tiles=tiles, stereo=stereo), n_rend
 
 
+def predicted_shift(depth_zed_mm: np.ndarray, rig: Rig, T_zed_from_mech_true: np.ndarray) -> np.ndarray:
+    """The texture shift ``(dx, dy)`` px an extrinsic error predicts: ground truth built with ``rig`` (``depth_zed_mm``),
+    the true extrinsic ``T_zed_from_mech_true``; the mean over GT pixels of where the truth puts each GT point minus
+    where the GT puts it (the sign of ``ShiftEstimate``)."""
+    v, u = np.nonzero(np.isfinite(depth_zed_mm))
+    cam = rig.zed.left
+    z = depth_zed_mm[v, u].astype(np.float64)
+    P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
+    moved = transform_points(T_zed_from_mech_true @ rig.T_mech_from_zed, P)
+    return (cam.project(moved) - np.stack([u, v], axis=1)).mean(axis=0)
+
+
 def write_verification_report(report: VerificationReport, out_dir: str | Path) -> Path:
     """``verification.json`` + ``verification.html`` in ``out_dir``."""
     from gtforge.reports.verification import write_verification_html
