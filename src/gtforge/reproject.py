@@ -100,20 +100,21 @@ def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
     nearest pixel (rounded, never truncated), nearest depth wins."""
     Hb, W = buf.shape
     Wm = depth.shape[1]
-    U = np.empty(Wm)
-    V = np.empty(Wm)
-    IZ = np.empty(Wm)
     idx = np.empty(Wm, np.int64)
     Z = np.empty(Wm, np.float32)
     flat = buf.reshape(-1)
     for r in range(r0, r1):
-        _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, U, V, IZ)
-        for c in range(Wm):  # vectorised: target pixel index (-1 outside) and depth
-            ui = np.floor(U[c] + 0.5)
-            vi = np.floor(V[c] + 0.5) - y_off
-            ok = (IZ[c] > 0.0) & (ui >= 0.0) & (ui < W) & (vi >= 0.0) & (vi < Hb)
+        for c in range(Wm):  # vectorised: project (as _project_row), target pixel index (-1: none) and depth
+            z = np.float64(depth[r, c])
+            x = rx[r, c] * z
+            y = ry[r, c] * z
+            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+            inv = 1.0 / Zc
+            ui = np.floor(fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx + 0.5)
+            vi = np.floor(fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy + 0.5) - y_off
+            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0) & (ui >= 0.0) & (ui < W) & (vi >= 0.0) & (vi < Hb)
             idx[c] = np.int64(vi * W + ui) if ok else -1
-            Z[c] = np.float32(1.0 / IZ[c])
+            Z[c] = np.float32(Zc)
         for c in range(Wm):
             i = idx[c]
             if i >= 0 and not (flat[i] <= Z[c]):  # empty (NaN) or farther
