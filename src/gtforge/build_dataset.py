@@ -456,7 +456,7 @@ def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: 
     from gtforge.io.formats import to_gray
     from gtforge.verify import local_normalize
 
-    g = local_normalize(to_gray(zed_left).astype(np.float32), np.ones(zed_left.shape[:2], bool), 3.0)
+    g = local_normalize(to_gray(zed_left).astype(np.float32), None, 3.0)
 
     def to8(a):
         return np.clip(128 + 50 * a, 0, 255).astype(np.uint8)

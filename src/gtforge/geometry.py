@@ -76,20 +76,21 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
     if n_pts < 3:
         raise ValueError(f"fit_plane_robust needs >= 3 points, got {n_pts}")
     rng = rng or np.random.default_rng(0)
-    best = None
-    best_count = -1
-    for _ in range(iterations):
-        idx = rng.choice(n_pts, 3, replace=False)
-        a, b, c = pts[idx]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-12:
-            continue
-        n /= norm
-        inl = np.abs(pts @ n - n @ a) < threshold_mm
-        cnt = int(inl.sum())
-        if cnt > best_count:
-            best_count, best = cnt, inl
+    # every hypothesis at once (three distinct points each), scored in blocks against all points
+    idx = np.stack([rng.choice(n_pts, 3, replace=False) for _ in range(iterations)])
+    a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norm = np.linalg.norm(normals, axis=1)
+    ok = norm > 1e-12
+    normals, a = normals[ok] / norm[ok, None], a[ok]
+    offsets = np.einsum("ij,ij->i", normals, a)
+    best, best_count = None, -1
+    for k in range(0, len(normals), 64):
+        inl = np.abs(pts @ normals[k:k + 64].T - offsets[k:k + 64]) < threshold_mm  # (n_pts, <= 64)
+        counts = inl.sum(axis=0)
+        j = int(np.argmax(counts))  # the first of the best in this block, as the loop over hypotheses kept it
+        if counts[j] > best_count:
+            best_count, best = int(counts[j]), inl[:, j].copy()
     if best is None or best_count < 3:
         best = np.ones(n_pts, bool)
     for _ in range(3):

@@ -110,18 +110,23 @@ class VerificationReport(VersionedFile):
 
 
 # ---- image helpers ------------------------------------------------------------------------------
-def local_normalize(img: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
+def local_normalize(img: np.ndarray, mask: np.ndarray | None, sigma_px: float) -> np.ndarray:
     """Zero local mean, unit local standard deviation within a Gaussian window, using only ``mask`` pixels
-    (normalised convolution); 0 outside the mask. Removes gain, offset and slow shading differences."""
-    m = mask.astype(np.float32)
-    x = np.where(mask, img, 0).astype(np.float32)
+    (normalised convolution; ``None``: every pixel); 0 outside the mask. Removes gain, offset and slow shading
+    differences."""
     k = (0, 0)
-    w = cv2.GaussianBlur(m, k, sigma_px)
+    x = np.asarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = cv2.GaussianBlur(x, k, sigma_px) / w
-        var = cv2.GaussianBlur(x * x, k, sigma_px) / w - mean * mean
+        if mask is None:  # the weights are all 1: no normalisation by them
+            mean = cv2.GaussianBlur(x, k, sigma_px)
+            var = cv2.GaussianBlur(x * x, k, sigma_px) - mean * mean
+        else:
+            w = cv2.GaussianBlur(mask.astype(np.float32), k, sigma_px)
+            mean = cv2.GaussianBlur(x, k, sigma_px) / w
+            var = cv2.GaussianBlur(x * x, k, sigma_px) / w - mean * mean
         out = (x - mean) / np.sqrt(np.maximum(var, 1e-6) + 1.0)  # +1 (grey level^2): flat areas stay near 0
-    out[~mask | ~(w > 0.5)] = 0.0
+    if mask is not None:
+        out[~mask | ~(w > 0.5)] = 0.0
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 
@@ -282,7 +287,7 @@ def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
 
 # ---- the checks -----------------------------------------------------------------------------------
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
-                      rig: Rig, params: VerifyParams, tiles: bool = True
+                      rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None
                       ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
     """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used)."""
     rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm)
@@ -290,7 +295,7 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
     ok_support = interior_mask(ok, r)
     n_rend = local_normalize(rend, ok, params.norm_sigma_px)
     gray = to_gray(zed_left).astype(np.float32)
-    n_zed = local_normalize(gray, np.ones(gray.shape, bool), params.norm_sigma_px)
+    n_zed = left_norm if left_norm is not None else local_normalize(gray, None, params.norm_sigma_px)
     use = ok_support & textured_mask(n_rend) & smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
     fruit = use & ((region == REGION_CENTRE) | (region == REGION_EDGE))
     aligner = ShiftAligner(n_rend, n_zed)
@@ -314,14 +319,13 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
 
 
 def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
-                       region: np.ndarray, params: VerifyParams) -> dict[str, StereoEstimate]:
+                       region: np.ndarray, params: VerifyParams, left_norm: np.ndarray | None = None
+                       ) -> dict[str, StereoEstimate]:
     """Disparity bias, vertical offset and the share of clearly worse matches, per region (all, fruit, background)."""
     H, W = disparity_px.shape
-    gl = to_gray(zed_left).astype(np.float32)
-    gr = to_gray(zed_right).astype(np.float32)
-    full = np.ones((H, W), bool)
-    nl = local_normalize(gl, full, params.norm_sigma_px)
-    nr = local_normalize(gr, full, params.norm_sigma_px)
+    nl = left_norm if left_norm is not None else \
+        local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
+    nr = local_normalize(to_gray(zed_right).astype(np.float32), None, params.norm_sigma_px)
     ok = nonoccluded & np.isfinite(disparity_px)
     d = np.where(ok, disparity_px, 0).astype(np.float32)
     gx_grid, gy_grid = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
@@ -385,11 +389,11 @@ def _reduce(f: int, depth, disp, noc, region, left, right, rig: Rig):
     H, W = depth.shape
     h, w = H // f, W // f
 
-    def blocks(a):
-        return a[:h * f, :w * f].reshape(h, f, w, f, *a.shape[2:])
+    def area(a):  # the mean of each f x f block (NaN if any pixel of it is NaN)
+        return cv2.resize(np.ascontiguousarray(a[:h * f, :w * f]), (w, h), interpolation=cv2.INTER_AREA)
 
-    depth_r = blocks(depth.astype(np.float64)).mean(axis=(1, 3)).astype(np.float32)  # NaN where any is invalid
-    noc_r = blocks(noc).all(axis=(1, 3))
+    depth_r = area(depth.astype(np.float32))
+    noc_r = area(noc.astype(np.float32)) == 1.0
     region_r = np.ascontiguousarray(region[:h * f:f, :w * f:f])
     left_r = cv2.resize(left[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA)
     right_r = None if right is None else cv2.resize(right[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA)
@@ -415,8 +419,10 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     if f > 1:
         depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig = _reduce(
             f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
-    e_all, e_fruit, tile_shifts, n_rend, _ = texture_alignment(depth_zed_mm, region, zed_left, texture, rig, params)
-    stereo = stereo_consistency(zed_left, zed_right, disparity_px, nonoccluded, region, params) \
+    left_norm = local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)  # shared by both
+    e_all, e_fruit, tile_shifts, n_rend, _ = texture_alignment(depth_zed_mm, region, zed_left, texture, rig, params,
+                                                               left_norm)
+    stereo = stereo_consistency(zed_left, zed_right, disparity_px, nonoccluded, region, params, left_norm) \
         if zed_right is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
