@@ -10,9 +10,12 @@ from gtforge.io.formats import read_pfm
 from gtforge.uncertainty import DepthNoiseModel, UncertaintyParams, draw_ground_truth
 
 
-def test_calibration_covariance_matches_the_spread_of_errors():
+@pytest.mark.parametrize("loo", [False, True])
+def test_calibration_covariance_matches_the_spread_of_errors(loo):
     """Many calibrations of the same rig with fresh corner noise: the normalised squared error of the extrinsic,
-    averaged, is about 6 (6 parameters) when the reported covariance is right."""
+    averaged, is about 6 (6 parameters) when the reported covariance is right. With leave-one-out on, the
+    covariance may be scaled up by the jackknife spread (never down): it stays within the target here, where the
+    corner noise is independent (rendered boards need the scaling: benchmarks/bench_uncertainty.py)."""
     from gtforge.calibrate import solve_pnp
     from gtforge.synthetic import BoardSpec, default_rig, random_board_pose
 
@@ -32,8 +35,9 @@ def test_calibration_covariance_matches_the_spread_of_errors():
             uv_z = rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_wb, X)) + noise.normal(0, 0.08, (len(X), 2))
             obs.append(PoseObs(f"{i:03d}", uv_m, uv_z, solve_pnp(X, uv_m, rig.mech), solve_pnp(X, uv_z, rig.zed.left)))
             reps.append(PoseReport(capture=f"{i:03d}", status="used"))
-        res = calibrate_observations(obs, reps, rig.mech, rig.zed, CalibrateParams(leave_one_out=False,
+        res = calibrate_observations(obs, reps, rig.mech, rig.zed, CalibrateParams(leave_one_out=loo,
                                                                                     square_check_pct=0))
+        assert (res.cov_jackknife_scale is not None) == loo and (res.cov_jackknife_scale or 1.0) >= 1.0
         C = np.array(res.cov_extrinsic_rad_mm)
         from scipy.spatial.transform import Rotation
 

@@ -39,7 +39,7 @@ from gtforge.io.formats import (
 from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
 from gtforge.scheduling import run_tasks
 from gtforge.schema import GTModel, VersionedFile
-from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats
+from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
 from gtforge.verify import SceneVerification, VerifyParams, verify_scene
 
 log = logging.getLogger("gtforge.build_dataset")
@@ -389,24 +389,22 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
 
 
 def region_sigma_stats(sigma: np.ndarray, region: np.ndarray) -> dict[str, SigmaStats]:
-    masks = {"all": region > REGION_NONE, "fruit": region >= REGION_CENTRE, "fruit_centre": region == REGION_CENTRE,
-             "fruit_edge": region == REGION_EDGE, "background": region == REGION_BG}
-    return {k: sigma_stats(sigma, m) for k, m in masks.items()}
+    """Sigma statistics for all GT pixels, the fruit, its centre and edge, and the background (one pass)."""
+    return sigma_stats_by_label(sigma, region, {
+        "all": (REGION_BG, REGION_CENTRE, REGION_EDGE), "fruit": (REGION_CENTRE, REGION_EDGE),
+        "fruit_centre": (REGION_CENTRE,), "fruit_edge": (REGION_EDGE,), "background": (REGION_BG,)})
 
 
 def write_sigma_thumbnail(path: Path, sigma: np.ndarray, vmax_px: float = 0.1) -> None:
     """A small heat map of a scene's GT sigma for build_report.html (turbo, 0 to ``vmax_px``; black: no GT)."""
-    import matplotlib
-
-    s = sigma
+    s = np.where(np.isfinite(sigma), sigma, np.nan).astype(np.float32)
     scale = min(1.0, 640 / s.shape[1])
     if scale < 1.0:
-        s = cv2.resize(np.where(np.isfinite(s), s, np.nan).astype(np.float32), None, fx=scale, fy=scale,
-                       interpolation=cv2.INTER_NEAREST)
-    rgb = (matplotlib.colormaps["turbo"](np.clip(np.nan_to_num(s, nan=0.0, posinf=0.0) / vmax_px, 0, 1))[..., :3]
-           * 255).astype(np.uint8)
-    rgb[~np.isfinite(s)] = 0
-    write_image(path, rgb)
+        s = cv2.resize(s, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    grey = np.round(np.clip(np.nan_to_num(s, nan=0.0) / vmax_px, 0, 1) * 255).astype(np.uint8)
+    bgr = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)
+    bgr[~np.isfinite(s)] = 0
+    write_image(path, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
 
 
 def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: str,
