@@ -68,9 +68,10 @@ def render(chain: Chain) -> tuple[np.ndarray, np.ndarray, PinholeCamera]:
     return z, undistorted, pinhole
 
 
-def depth_edges(z: np.ndarray, half_depth_px: tuple[float, float]) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """Foreground contours of a rendered depth map as ``(axis, (N, 2) (u, v), (N,) depth mm)`` groups, axis 0 =
-    across x (edges between horizontal neighbours), 1 = across y.
+def depth_edges(z: np.ndarray, half_depth_px: tuple[float, float]) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Foreground contours of a rendered depth map as ``(axis, side, (N, 2) (u, v), (N,) depth mm)`` groups, axis
+    0 = across x (edges between horizontal neighbours), 1 = across y; side +1: the farther surface lies towards +u
+    (or +v), i.e. the foreground's right (lower) silhouette, -1: its left (upper) one.
 
     An edge sits between a valid pixel and its neighbour towards a surface at least ``JUMP_RATIO`` farther, found
     across at most ``GAP_PX`` unrendered pixels (what the colour camera sees behind an object and the depth camera
@@ -95,13 +96,14 @@ def depth_edges(z: np.ndarray, half_depth_px: tuple[float, float]) -> list[tuple
             z_fg = zz[r, c]
             c = c + direction * (0.5 + half_depth_px[axis])
             uv = np.column_stack([c, r]) if axis == 0 else np.column_stack([r, c])
-            out.append((axis, uv.astype(np.float64), z_fg.astype(np.float64)))
+            out.append((axis, direction, uv.astype(np.float64), z_fg.astype(np.float64)))
     return out
 
 
 @dataclass
 class EdgeSamples:
     axis: np.ndarray  # (N,) 0: an x edge, 1: a y edge
+    side: np.ndarray  # (N,) +1: the foreground's right (x edges) or lower (y edges) silhouette, -1: left / upper
     depth_mm: np.ndarray  # (N,) depth of the foreground side
     strength: np.ndarray  # (N, 2R+1, 2R+1) colour edge strength with the colour image shifted by [dy + R, dx + R]
 
@@ -115,8 +117,8 @@ def edge_samples(chain: Chain, R: int = SEARCH_PX) -> EdgeSamples:
             cv2.GaussianBlur(np.abs(np.diff(grey, axis=0)), (0, 0), 1.0))  # at (u, v + 0.5)
     ratio = (pinhole.fx_px / chain.depth_cam.fx_px, pinhole.fy_px / chain.depth_cam.fy_px)
     H, W = z.shape
-    axes, depths, strengths = [], [], []
-    for axis, uv, z_fg in depth_edges(z, (0.5 * ratio[0], 0.5 * ratio[1])):
+    axes, sides, depths, strengths = [], [], [], []
+    for axis, side, uv, z_fg in depth_edges(z, (0.5 * ratio[0], 0.5 * ratio[1])):
         m = R + 2
         keep = (uv[:, 0] > m) & (uv[:, 0] < W - m) & (uv[:, 1] > m) & (uv[:, 1] < H - m)
         uv, z_fg = uv[keep], z_fg[keep]
@@ -128,9 +130,11 @@ def edge_samples(chain: Chain, R: int = SEARCH_PX) -> EdgeSamples:
                 st[:, dy + R, dx + R] = cv2.remap(grad[axis], x.astype(np.float32)[:, None],
                                                   y.astype(np.float32)[:, None], cv2.INTER_LINEAR)[:, 0]
         axes.append(np.full(len(uv), axis))
+        sides.append(np.full(len(uv), side))
         depths.append(z_fg)
         strengths.append(st)
-    return EdgeSamples(np.concatenate(axes), np.concatenate(depths), np.concatenate(strengths))
+    return EdgeSamples(np.concatenate(axes), np.concatenate(sides), np.concatenate(depths),
+                       np.concatenate(strengths))
 
 
 def _parabola(f0, f1, f2) -> float:
@@ -209,6 +213,21 @@ def test_depth_edges_land_on_colour_edges():
     assert n_far > 50 and -3.2 < near_x < -2.0 and -3.2 < far_x < -2.0  # measured -2.86 and -2.27
 
 
+def test_horizontal_offset_is_a_shift_not_a_silhouette_effect():
+    """Both silhouettes of the foreground move left together. An effect at the depth edges themselves (flying pixels
+    removed, a blurred or dilated depth silhouette, the two cameras seeing a round object's contour from 32 mm
+    apart) moves the left and the right silhouette in opposite directions; a rotation of the colour camera against
+    the depth camera (calibration, or the device moving between the two exposures) moves them together. Wider
+    search (+-6 px): the near right silhouettes peak at -4 px."""
+    e = edge_samples(chains()["correct"], R=6)
+    right_x, n_right = offset_1d(e, 0, e.side == 1, R=6)
+    left_x, n_left = offset_1d(e, 0, e.side == -1, R=6)
+    assert n_right > 100 and n_left > 200  # measured 149 and 297
+    assert -3.4 < right_x < -2.0 and -3.4 < left_x < -2.0  # measured -2.86 and -2.40
+    # the common shift -2.63 px; the depth silhouette is 0.46 px wider than the colour one (0.23 px a side)
+    assert abs(right_x - left_x) < 1.0
+
+
 def test_wrong_transform_direction_is_detected():
     good, bad = measured("correct"), measured("inverse T")
     # with T_depth_from_color in place of T_color_from_depth no shift within +-4 px puts the depth edges on
@@ -245,7 +264,7 @@ def write_overlay(path: Path) -> None:
     tint = np.isfinite(z)
     out[~tint] = (out[~tint] * 0.45).astype(np.uint8)  # where no depth landed: darker
     ratio = (pinhole.fx_px / chain.depth_cam.fx_px, pinhole.fy_px / chain.depth_cam.fy_px)
-    for _, uv in depth_edges(z, (0.5 * ratio[0], 0.5 * ratio[1])):
+    for _, _, uv, _ in depth_edges(z, (0.5 * ratio[0], 0.5 * ratio[1])):
         u = np.clip(np.round(uv[:, 0]).astype(int), 0, z.shape[1] - 1)
         v = np.clip(np.round(uv[:, 1]).astype(int), 0, z.shape[0] - 1)
         out[v, u] = (255, 0, 0)
@@ -268,6 +287,12 @@ def report() -> None:
         for axis in (0, 1):
             off, n = offset_1d(e, axis, sel)
             print(f"  {'xy'[axis]} edges {what:18s}: {off:+.2f} px ({n} edges)")
+    e = edge_samples(chains()["correct"], R=6)
+    print("correct chain, x edges by silhouette side (1-D peaks, +-6 px searched):")
+    for what, side in (("right silhouettes", 1), ("left silhouettes", -1)):
+        for depth, sel in (("all", e.depth_mm > 0), ("< 500 mm", e.depth_mm < 500), (">= 500 mm", e.depth_mm >= 500)):
+            off, n = offset_1d(e, 0, (e.side == side) & sel, R=6)
+            print(f"  {what:17s} {depth:9s}: {off:+.2f} px ({n} edges)")
 
 
 if __name__ == "__main__":
