@@ -163,6 +163,31 @@ def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibrati
                          workers=1).built == ["000"]
 
 
+def test_no_verify_build_skips_the_image_decode_and_writes_the_same_files(session_dir, true_calibration, dataset,
+                                                                         tmp_path):
+    """--no-verify: the ZED PNGs and the texture are checked from their headers, not decoded (nothing else reads
+    their pixels); every file that does not depend on verification is byte-identical to the default build's, and a
+    truncated ZED image is still refused."""
+    out = tmp_path / "ds"
+    s = build_dataset(session_dir, true_calibration, out, BuildParams(verification=False), scenes=["000"], workers=1)
+    assert s.built == ["000"]
+    ref = dataset[0] / "scenes" / "000"
+    for name in ("im0.png", "im1.png", "disp0GT.pfm", "disp1GT.pfm", "mask0nocc.png", "mask1nocc.png", "region.png",
+                 "weight.tiff", "depth0.tiff", "calib.txt"):
+        assert (out / "scenes" / "000" / name).read_bytes() == (ref / name).read_bytes(), name
+    meta = json.loads((out / "scenes" / "000" / "meta.json").read_text())
+    assert meta["verification"] is None
+    # a ZED image cut short is refused exactly as a decoding build refuses it
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    right = sess / "scenes" / "001" / "right.png"
+    right.write_bytes(right.read_bytes()[:-5000])
+    s2 = build_dataset(sess, true_calibration, tmp_path / "ds2", BuildParams(verification=False), scenes=["001"],
+                       workers=1)
+    assert s2.built == [] and list(s2.failures) == ["001"]
+    assert "right.png [zed_right]: expected a readable image" in s2.failures["001"]
+
+
 def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, tmp_path):
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)

@@ -193,6 +193,43 @@ def test_session_image_size_mismatch(tmp_path):
         open_session(tmp_path).load_capture(c)
 
 
+def _truncate(p):
+    p.write_bytes(p.read_bytes()[:60])
+
+
+def test_capture_without_decoding_checks_the_headers(tmp_path):
+    """decode_images=False (build-dataset --no-verify): complete PNGs of the right size and type are not decoded
+    (arrays None, the ZED files marked for verbatim copying); every defect falls back to decoding, so the error is
+    the one a decoding load gives."""
+    c = _mini_session(tmp_path)
+    s = open_session(tmp_path)
+    cap = s.load_capture(c, decode_images=False)
+    assert cap.mech_texture is None and cap.zed_left is None and cap.zed_right is None
+    assert cap.zed_left_file == c / "left.png" and cap.zed_right_file == c / "right.png"
+    assert cap.mech_depth_mm.shape == (12, 16)
+    full = s.load_capture(c)
+    assert full.zed_left.shape == (10, 20, 3) and full.zed_left_file == c / "left.png"
+    # a grey ZED PNG is decoded (and expanded to RGB), so it is not copied verbatim
+    write_image(c / "right.png", np.zeros((10, 20), np.uint8))
+    cap = s.load_capture(c, decode_images=False)
+    assert cap.zed_right.shape == (10, 20, 3) and cap.zed_right_file is None
+    write_image(c / "right.png", np.zeros((10, 20, 3), np.uint8))
+    for name, defect, match in (
+            ("left.png", "truncated", r"left\.png \[zed_left\]: expected a readable image"),
+            ("right.png", "size", r"right\.png \[size\]: expected 20x10 px.*got 22x10 px"),
+            ("2DImage.png", "truncated", r"2DImage\.png \[mech_texture\]: expected a readable image"),
+            ("2DImage.png", "size", r"2DImage\.png \[size\]: expected 16x12 px")):
+        good = (c / name).read_bytes()
+        if defect == "truncated":
+            _truncate(c / name)  # the image data cut off: the header still looks right
+        else:
+            write_image(c / name, np.zeros((10, 22, 3) if name != "2DImage.png" else (12, 17), np.uint8))
+        for decode in (True, False):
+            with pytest.raises(InputError, match=match):
+                s.load_capture(c, decode_images=decode)
+        (c / name).write_bytes(good)
+
+
 def test_cli_bad_input_is_one_line_exit_2(tmp_path):
     c = _mini_session(tmp_path)
     write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 0.6, np.float32))  # metres
@@ -203,10 +240,6 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path):
     assert "Traceback" not in r.stderr
     lines = [l for l in r.stderr.splitlines() if l.strip()]
     assert len(lines) == 1 and "nowhere" in lines[0] and "no such folder" in lines[0]
-
-
-def _truncate(p):
-    p.write_bytes(p.read_bytes()[:60])
 
 
 @pytest.mark.parametrize("defect, expect", [

@@ -288,7 +288,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         calib = _cached_calibration(calib_path, calib_sha)
         session = _cached_session(session_dir, calib.zed_conf_reading)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
-        cap = session.load_capture(cap_dir)
+        # image content is needed by verification, a crop (re-encoded im0/im1) and the PLY's colours only
+        cap = session.load_capture(cap_dir, decode_images=params.verification or bool(params.crop_wh) or params.ply)
         t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
     except InputError as exc:

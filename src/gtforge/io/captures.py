@@ -170,13 +170,16 @@ class SessionFile(VersionedFile):
 
 @dataclass
 class Capture:
-    """One capture: structured-light texture + depth, rectified ZED left/right (RGB uint8)."""
+    """One capture: structured-light texture + depth, rectified ZED left/right (RGB uint8).
+
+    ``mech_texture``, ``zed_left`` and ``zed_right`` are None when the capture was loaded with
+    ``decode_images=False`` and the files passed the header checks (see ``Session.load_capture``)."""
 
     name: str
     folder: Path
-    mech_texture: np.ndarray
+    mech_texture: np.ndarray | None
     mech_depth_mm: np.ndarray
-    zed_left: np.ndarray
+    zed_left: np.ndarray | None
     zed_right: np.ndarray | None
     fruit_mask: np.ndarray | None = None
     fruit_id: str | None = None
@@ -267,39 +270,55 @@ class Session:
             out.append(folder / f.fruit_mask)
         return out
 
-    def load_capture(self, folder: str | Path, need_right: bool = True) -> Capture:
+    def load_capture(self, folder: str | Path, need_right: bool = True, decode_images: bool = True) -> Capture:
+        """Read one capture folder. ``decode_images=False`` (a build that copies the ZED PNGs and uses no image
+        content): the texture and separate ZED left/right files that are complete PNGs (IEND present) of the
+        right size and type, without rectification, are checked from their headers and not decoded; their
+        arrays are then None. Anything else is decoded as usual, so every error stays the same."""
         folder = Path(folder)
         f = self.config.files
-        tex = read_texture(folder / f.mech_texture, self.mech, "mech_texture")
+        tex_path = folder / f.mech_texture
+        tex_size = self.mech.width_px, self.mech.height_px
+        tex = None if not decode_images and _png_checks_out(tex_path, tex_size, (0, 2)) else read_texture(
+            tex_path, self.mech, "mech_texture")
         depth = read_depth(folder / f.mech_depth, self.config.depth_unit, self.config.depth_scale_mm,
                            self.depth_camera, "mech_depth")
         eye_w = self.zed.left.width_px
         verbatim: list[Path | None] = [None, None]
-        if (folder / f.zed_left).exists():
+        zed_files = folder / f.zed_left, folder / f.zed_right
+        eye_size = self.zed.left.width_px, self.zed.left.height_px
+        if not decode_images and self.rectification is None and all(
+                _png_checks_out(p, eye_size, (2,)) for p in zed_files):
+            left = right = None
+            verbatim = list(zed_files)
+        elif (folder / f.zed_left).exists():
             left = read_image(folder / f.zed_left, expect="uint8", field="zed_left")
             right = read_image(folder / f.zed_right, expect="uint8", field="zed_right") if need_right or (
                 folder / f.zed_right).exists() else None
-            src = folder / f.zed_left
+            src = src_right = folder / f.zed_left
+            if right is not None:
+                src_right = folder / f.zed_right
             verbatim = [p if _is_rgb8_png(p) else None for p in (folder / f.zed_left, folder / f.zed_right)]
         elif (folder / f.zed_side_by_side).exists():
-            src = folder / f.zed_side_by_side
+            src = src_right = folder / f.zed_side_by_side
             left, right = split_side_by_side(read_image(src, expect="uint8", field="zed_side_by_side"), eye_w, src)
         elif (folder / f.zed_video).exists():
-            src = folder / f.zed_video
+            src = src_right = folder / f.zed_video
             left, right = split_side_by_side(read_video_frame(src, self.config.video_frame), eye_w, src)
         else:
             raise InputError(folder, "zed images", f"{f.zed_left}+{f.zed_right}, {f.zed_side_by_side} or {f.zed_video}",
                              "none of them", "see docs/capture-layout.md")
-        if left.ndim == 2:
-            left = np.repeat(left[..., None], 3, axis=2)
-        if right is not None and right.ndim == 2:
-            right = np.repeat(right[..., None], 3, axis=2)
-        self.zed.left.check_image_size(left.shape, src, "ZED left image")
-        if right is not None:
-            self.zed.left.check_image_size(right.shape, src, "ZED right image")
-        if self.rectification is not None and right is not None:
-            left, right = self.rectification.rectify(left, right)
-            verbatim = [None, None]
+        if left is not None:
+            if left.ndim == 2:
+                left = np.repeat(left[..., None], 3, axis=2)
+            if right is not None and right.ndim == 2:
+                right = np.repeat(right[..., None], 3, axis=2)
+            self.zed.left.check_image_size(left.shape, src, "ZED left image")
+            if right is not None:
+                self.zed.left.check_image_size(right.shape, src_right, "ZED right image")
+            if self.rectification is not None and right is not None:
+                left, right = self.rectification.rectify(left, right)
+                verbatim = [None, None]
         mask = None
         if (folder / f.fruit_mask).exists():
             mask = read_image(folder / f.fruit_mask, field="fruit_mask")
@@ -319,6 +338,26 @@ def _is_rgb8_png(path: Path) -> bool:
     except OSError:
         return False
     return len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[24] == 8 and head[25] == 2
+
+
+_PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[int, ...]) -> bool:
+    """True when ``path`` is an 8-bit PNG of ``size_wh`` with one of ``colour_types`` (0 grey, 2 RGB) that ends
+    with its IEND chunk (not truncated), read from its first 26 and last 12 bytes. False for anything else,
+    including unreadable files: the caller then decodes the file and reports what is wrong."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+            fh.seek(-12, os.SEEK_END)
+            tail = fh.read(12)
+    except OSError:
+        return False
+    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or tail != _PNG_IEND:
+        return False
+    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return (w, h) == tuple(size_wh) and head[24] == 8 and head[25] in colour_types
 
 
 def open_session(root: str | Path, zed_conf_reading: str | None = None) -> Session:
