@@ -289,3 +289,28 @@ def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibrati
 
     write_image(cap / "left.png", 255 - d)
     assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
+
+
+def test_fruit_centre_equals_the_full_image_erosion():
+    """fruit_regions erodes only the fruit's bounding box (plus the element's radius): the centre must equal
+    OpenCV's erosion of the whole mask, also for fruit touching the image border."""
+    import cv2
+
+    from gtforge.build_dataset import REGION_CENTRE, REGION_EDGE, fruit_regions
+
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:60, 0:80]
+    n_nonempty = 0
+    for _ in range(150):
+        f = np.zeros((60, 80), bool)
+        for _ in range(rng.integers(0, 4)):
+            cy, cx, ry, rx = rng.integers(-5, 65), rng.integers(-5, 85), rng.integers(2, 20), rng.integers(2, 20)
+            f |= ((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 < 1
+        k = 2 * int(rng.integers(1, 9)) + 1
+        full = cv2.erode(f.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
+        region, fruit = fruit_regions(np.full((60, 80), 500.0, np.float32), None,
+                                      BuildParams(erosion_px=(k - 1) // 2), user_mask=f)
+        np.testing.assert_array_equal(region == REGION_CENTRE, full)
+        np.testing.assert_array_equal(region == REGION_EDGE, f & ~full)
+        n_nonempty += full.any()
+    assert n_nonempty > 50  # measured 98: most masks keep a centre
