@@ -237,8 +237,13 @@ def test_kill_9_leaves_no_half_written_scene(session_dir, true_calibration, tmp_
            "-o", str(out), "--workers", "1"]
     p = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 60
-    while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
+
+    def landed():  # pathlib's "*" also matches the hidden .tmp-<id>-<token> folder a scene is written in
+        return [m for m in (out / "scenes").glob("*/meta.json") if not m.parent.name.startswith(".")]
+
+    while time.time() < deadline and not landed():
         time.sleep(0.05)
+    assert landed(), "no scene landed within 60 s"
     os.killpg(p.pid, signal.SIGKILL)  # mid-run, right after the first scene landed
     p.wait()
     files = {"im0.png", "im1.png", "disp0GT.pfm", "mask0nocc.png", "region.png", "weight.tiff", "depth0.tiff",
