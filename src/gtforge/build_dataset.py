@@ -23,11 +23,12 @@ except ImportError:  # pragma: no cover
     fcntl = None
 
 import gtforge
-from gtforge.calibrate import CalibrationFile
+from gtforge.calibrate import CalibrationFile, check_rig_matches_session
 from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import fit_plane_robust
 from gtforge.io.atomic import atomic_write_text
+from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
     write_image,
     write_kitti_disparity,
@@ -195,6 +196,13 @@ def inputs_unchanged(meta: "SceneMeta", paths: list[Path]) -> bool:
         if sha256_file(p) != meta.input_sha256[p.name]:
             return False
     return True
+
+
+def scene_files(params: BuildParams) -> list[str]:
+    """The files build_one_scene writes into a scene folder with these parameters."""
+    return (["im0.png", "im1.png", "disp0GT.pfm", "mask0nocc.png", "region.png", "weight.tiff", "depth0.tiff",
+             "calib.txt", "meta.json"] + (["disp1GT.pfm", "mask1nocc.png"] if params.right_gt else [])
+            + (["disp0GT_sigma.pfm"] if params.sigma else []) + (["cloud.ply"] if params.ply else []))
 
 
 # ---- regions --------------------------------------------------------------------------------
@@ -514,14 +522,6 @@ def _cached_calibration(path: str, sha256: str) -> CalibrationFile:
     return hit[0]
 
 
-def _check_rig_matches_session(rig: Rig, session, calib_path) -> None:
-    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
-                       ("depth_cam", rig.depth_camera, session.depth_camera)):
-        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
-            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
-                             f"{a.width_px}x{a.height_px} px", "was this calibration made for another session?")
-
-
 # ---- splits and views -------------------------------------------------------------------------
 def make_splits(scene_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams) -> dict[str, list[str]]:
     """Split by fruit: all scenes of one fruit land in the same split. Deterministic by ``split_seed``."""
@@ -666,15 +666,24 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
     session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
-    _check_rig_matches_session(calib.rig, session, calib_path)
+    check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
-    out = Path(out_dir)
+    out = require_output_folder(out_dir, "--output")
     session.refuse_output_inside_captures(out)
+    if params.crop_wh and (params.crop_wh[0] > session.zed.left.width_px
+                           or params.crop_wh[1] > session.zed.left.height_px):
+        raise InputError(None, "--crop", f"at most the ZED image size, {session.zed.left.width_px}x"
+                         f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
     dirs = session.select("scenes", scenes)
+    if scheduler:
+        from gtforge.scheduling import check_scheduler_address
+
+        check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     _remove_stale(out)
     phash = params.output_hash()
     todo, unchanged = [], []
+    expected = scene_files(params)
     metas: dict[str, SceneMeta] = {}
     for d in dirs:
         meta_path = out / "scenes" / d.name / "meta.json"
@@ -682,7 +691,9 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             try:
                 m = SceneMeta.read(meta_path)
                 files = [p for p in session.capture_files(d) if p.exists()]
-                if m.params_hash == phash and m.calibration_sha256 == calib_sha and inputs_unchanged(m, files):
+                complete = all((meta_path.parent / name).is_file() for name in expected)  # none deleted since
+                if (m.params_hash == phash and m.calibration_sha256 == calib_sha and complete
+                        and inputs_unchanged(m, files)):
                     unchanged.append(d.name)
                     metas[d.name] = m
                     continue

@@ -118,6 +118,15 @@ class CalibrationFile(VersionedFile):
 
     KIND: ClassVar[str] = "gtforge calibration file (from gtforge calibrate)"
 
+    @classmethod
+    def read(cls, path: str | Path) -> "CalibrationFile":
+        """Read a calibration file; a folder holding ``calibration.yaml`` (what ``calibrate -o DIR/`` writes) means
+        that file."""
+        p = Path(path)
+        if p.is_dir() and (p / "calibration.yaml").is_file():
+            p = p / "calibration.yaml"
+        return super().read(p)
+
     rig: Rig
     board: BoardModel
     method: Literal["reprojection", "depth"] = "reprojection"
@@ -580,6 +589,17 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         result.write(out_path)
     return result
 
+
+
+def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
+                              hint: str = "was this calibration made for another session?") -> None:
+    """The calibration's cameras have the session's image sizes (a calibration of another rig or resolution would
+    otherwise fail deep inside a stage)."""
+    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
+                       ("depth_cam", rig.depth_camera, session.depth_camera)):
+        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
+            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
+                             f"{a.width_px}x{a.height_px} px", hint)
 
 
 def calibration_output_path(out_path: str | Path) -> Path:

@@ -120,6 +120,20 @@ def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
         raise InputError(None, name, "WIDTHxHEIGHT (e.g. 1088x376) or a preset (kitti = 1242x375)", repr(text)) from None
 
 
+def _options(model, **values):
+    """Build a parameter model from command-line options; a value the model refuses is a one-line error naming the
+    option (``--max-shift-px: expected ... > 0, got -1.0``)."""
+    from pydantic import ValidationError
+
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        name = "--" + str(err.get("loc", ("value",))[-1]).replace("_", "-")
+        raise InputError(None, name, err.get("msg", "a valid value").replace("Input should be ", "a value "),
+                         repr(err.get("input"))) from None
+
+
 def _print_version(value: bool) -> None:
     if value:
         import gtforge
@@ -154,8 +168,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run, calibration_output_path
     from gtforge.reports.calibration import write_calibration_report
 
-    params = CalibrateParams(board=BoardModel(cols=cols, rows=rows, square_size_mm=square_mm), use_depth=use_depth,
-                             leave_one_out=loo)
+    params = _options(CalibrateParams, board=_options(BoardModel, cols=cols, rows=rows, square_size_mm=square_mm),
+                      use_depth=use_depth, leave_one_out=loo)
     output = calibration_output_path(output)
     res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
     rep = write_calibration_report(res, report_dir or output.parent / (output.stem + "_report"))
@@ -186,7 +200,7 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                                                    help="Calibration YAML from gtforge calibrate."),
                   output: Path = typer.Option(..., "--output", "-o", metavar="DIR", help="Dataset folder."),
                   mode: str = typer.Option("mesh", help="mesh (default) or splat."),
-                  workers: Optional[int] = typer.Option(None, help="Parallel scenes (default: all cores)."),
+                  workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores)."),
                   scheduler: Optional[str] = typer.Option(
                       None, metavar="ADDRESS", help="Run the scenes on a Dask cluster, e.g. tcp://HOST:8786 (needs "
                       "gtforge\\[dask]; session, calibration and output on a filesystem the workers share; "
@@ -218,9 +232,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
         raise InputError(None, "--split", "two ratios 'train,val' such as 0.8,0.1", repr(split)) from None
     if mode not in ("mesh", "splat"):
         raise InputError(None, "--mode", "mesh or splat", repr(mode))
-    params = BuildParams(mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
-                         max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
-                         verification=verification, quarantine=quarantine)
+    params = _options(BuildParams, mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
+                      max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
+                      verification=verification, quarantine=quarantine)
     s = run(session, calibration, output, params, workers, overwrite, strict, progress=True, scheduler=scheduler)
     failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
     out.print(f"built {len(s.built)}, unchanged {len(s.skipped_unchanged)}, failed {len(s.failures)}{failed} "
@@ -239,7 +253,7 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
                                                   help="The capture session, if it moved since the build "
                                                        "(default: the one manifest.json names)."),
            scenes: Optional[str] = typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: all)."),
-           workers: Optional[int] = typer.Option(None, help="Parallel scenes (default: all cores)."),
+           workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores)."),
            scheduler: Optional[str] = typer.Option(None, metavar="ADDRESS",
                                                    help="Run on a Dask cluster (docs/cluster.md)."),
            quarantine: bool = typer.Option(False, "--quarantine",
@@ -248,16 +262,15 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
            max_disparity_bias_px: Optional[float] = typer.Option(None, help="Disparity bias threshold (px; "
                                                                             "default 0.1).")) -> None:
     """Check an existing dataset's ground truth against its captures (verification.json/.html); exit 1 if any
-    scene is flagged."""
+    scene is flagged or could not be verified."""
     from gtforge.build_dataset import Manifest
     from gtforge.verify import verify_dataset
 
     params = None
     if max_shift_px is not None or max_disparity_bias_px is not None:
         base = Manifest.read(dataset / "manifest.json").params.verify
-        params = base.model_copy(update={k: v for k, v in (("max_shift_px", max_shift_px),
-                                                           ("max_disparity_bias_px", max_disparity_bias_px))
-                                         if v is not None})
+        params = _options(type(base), **{**base.model_dump(), **{k: v for k, v in (
+            ("max_shift_px", max_shift_px), ("max_disparity_bias_px", max_disparity_bias_px)) if v is not None}})
     rep = verify_dataset(dataset, params, scenes.split(",") if scenes else None, session, workers, scheduler,
                          quarantine, _status)
     n_nv = sum(v.status == "not verifiable" for v in rep.scenes.values())
@@ -269,7 +282,7 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
     for sid, v in rep.scenes.items():
         if v.status == "not verifiable":
             out.print(f"  {sid}: not verifiable: " + "; ".join(v.reasons))
-    if flagged:
+    if flagged or n_nv:
         raise typer.Exit(1)
 
 
@@ -312,7 +325,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
                                                         metavar="FILE",
                                                         help="Calibration YAML (not needed with --holdout)."),
              output: Path = typer.Option(Path("validation"), "--output", "-o", metavar="DIR", help="Report folder."),
-             holdout: int = typer.Option(0, help="Calibrate without the last K board captures (written to "
+             holdout: int = typer.Option(0, min=0, help="Calibrate without the last K board captures (written to "
                                                  "OUTPUT/holdout_calibration.yaml) and validate on them."),
              captures: Optional[str] = typer.Option(None, metavar="NAMES",
                                                     help="Comma-separated capture names to validate on."),
@@ -333,9 +346,9 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
             base = CalibrationFile.read(calibration).board
         else:
             base = BoardModel()
-        board = base.model_copy(update={k: v for k, v in (("cols", cols), ("rows", rows), ("square_size_mm", square_mm))
-                                        if v is not None})
-    params = ValidateParams(board=board, xy_threshold_px=xy_threshold_px, z_threshold_pct=z_threshold_pct)
+        board = _options(BoardModel, **{**base.model_dump(), **{k: v for k, v in (
+            ("cols", cols), ("rows", rows), ("square_size_mm", square_mm)) if v is not None}})
+    params = _options(ValidateParams, board=board, xy_threshold_px=xy_threshold_px, z_threshold_pct=z_threshold_pct)
     rep = run(session, calibration, output, params, captures.split(",") if captures else None, holdout, _status)
     out.print(f"XY reprojection: mean {rep.xy_mean_px:.3f} px (median {rep.xy_median_px:.3f}, max {rep.xy_max_px:.3f}); "
               f"published {REFERENCE_XY_PX} px; threshold {xy_threshold_px} -> {'PASS' if rep.pass_xy else 'FAIL'}")
@@ -433,15 +446,19 @@ def compare(results: List[Path] = typer.Argument(..., help="results.json files f
 
 @app.command()
 def synth(output: Path = typer.Argument(..., help="Folder for the synthetic session."),
-          boards: int = typer.Option(8, metavar="N", help="Checkerboard captures."),
-          scenes: int = typer.Option(3, metavar="N", help="Fruit scene captures."),
-          scale: float = typer.Option(0.5, help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
+          boards: int = typer.Option(8, metavar="N", min=0, help="Checkerboard captures."),
+          scenes: int = typer.Option(3, metavar="N", min=0, help="Fruit scene captures."),
+          scale: float = typer.Option(0.5, min=0.1, max=2.0,
+                                      help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
           seed: int = typer.Option(0, help="Random seed (the same seed renders the same session)."),
-          depth_noise_mm: float = typer.Option(0.03, metavar="MM",
+          depth_noise_mm: float = typer.Option(0.03, metavar="MM", min=0.0,
                                                help="Gaussian noise added to the structured-light depth (mm).")) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
+    from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
 
+    require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
+                                "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
                      progress=_progress_lines)
     out.print(f"wrote {output}")
@@ -449,8 +466,10 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
 
 @app.command()
 def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo writes everything."),
-         scale: float = typer.Option(0.5, help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
-         boards: int = typer.Option(8, metavar="N", help="Checkerboard captures (the last 2 are held out for validate)."),
+         scale: float = typer.Option(0.5, min=0.1, max=2.0,
+                                     help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
+         boards: int = typer.Option(8, metavar="N", min=5,
+                                    help="Checkerboard captures (the last 2 are held out for validate)."),
          scenes: int = typer.Option(5, metavar="N", help="Fruit scene captures (in the last, the fruit rolls 0.6 mm "
                                                          "between the two captures; 4 or more also run refine)."),
          seed: int = typer.Option(0, help="Random seed.")) -> None:
@@ -462,7 +481,9 @@ def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo
 
 
 def _raise_interrupted(signum, frame) -> None:
-    raise Interrupted("interrupted")
+    # a stage that catches it says what is complete; this text is what the user sees otherwise
+    raise Interrupted("interrupted: every file already written is complete (gtforge writes each one whole); rerun "
+                      "the same command to finish")
 
 
 def main() -> None:

@@ -15,6 +15,7 @@ from gtforge.io.formats import read_pfm
 from gtforge.predictors import SGBM
 from gtforge.refine import RefineParams, refine
 from gtforge.synthetic import SyntheticTruth, generate_session
+from gtforge.io.outputs import require_new_or_empty_folder
 from gtforge.reports.calibration import write_calibration_report
 from gtforge.reports.evaluation import tables_markdown
 from gtforge.validate import validate
@@ -24,7 +25,8 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
              holdout: int = 2, say: Callable[[str], None] = print, status: Callable[[str], None] = print) -> dict:
     """The chain on a synthetic session whose last scene's fruit rolled 0.6 mm between the structured-light and the
     ZED capture (verification should flag it, refinement leave it out)."""
-    d = Path(directory)
+    d = require_new_or_empty_folder(directory, "DIRECTORY", "the demo writes a new session and its outputs there; "
+                                    "choose a new folder", reusable_if="session/truth/rig_truth.yaml")
     t0 = time.perf_counter()
     session = d / "session"
     rolled = f"{n_scenes - 1:03d}" if n_scenes >= 4 else None

@@ -5,6 +5,7 @@ import datetime
 import hashlib
 import json
 import logging
+import os
 import re
 from pathlib import Path
 from typing import Callable, ClassVar
@@ -14,6 +15,7 @@ from pydantic import Field
 
 from gtforge.errors import InputError
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
+from gtforge.io.outputs import require_output_folder
 from gtforge.metrics import (
     Accumulator,
     Metrics,
@@ -110,6 +112,21 @@ def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
     return sorted(p.name for p in sc.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
+DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verification", "report")  # build-dataset's
+
+
+def _refuse_output_in_dataset(out: Path, ds: Path) -> None:
+    """Results go to a folder of their own: not the dataset folder itself nor any folder build-dataset writes
+    (a new subfolder of the dataset, e.g. DATASET/evaluation, is fine)."""
+    o = Path(os.path.realpath(out))
+    d = Path(os.path.realpath(ds))
+    inside = [f for f in DATASET_FOLDERS if o == d / f or (d / f) in o.parents]
+    if o == d or inside:
+        raise InputError(out, "--output", "a folder of its own (for example DATASET/evaluation or ./evaluation)",
+                         "the dataset folder itself" if o == d else f"a path inside the dataset's {inside[0]}/",
+                         "evaluate never writes into the dataset's own folders")
+
+
 def _empty_split_hint(dataset_dir: Path, split: str) -> str:
     """Why a split list is empty, from what build-dataset recorded in manifest.json."""
     tail = "rebuild with other --split ratios or more scenes/fruit, or evaluate without --split"
@@ -160,14 +177,22 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
     any scoring and listed in ``EvalReport.missing``."""
     ds = Path(dataset_dir)
+    if not (ds / "manifest.json").is_file():
+        raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
+                         "evaluate the OUT folder of build-dataset, not a capture session")
     ids = list_scenes(ds, split)
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none")
+    if max_disp_px is not None and not max_disp_px > 0:
+        raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:
         if not max_gt_sigma_px > 0:
             raise InputError(None, "--max-gt-sigma", "a sigma limit > 0 px", str(max_gt_sigma_px))
         _check_sigma_maps(ds, ids)
-    out = Path(out_dir) if out_dir else None
+    out = None
+    if out_dir:
+        out = require_output_folder(out_dir, "--output")
+        _refuse_output_in_dataset(out, ds)
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
     absent = [sid for sid in ids if predictor.find(sid) is None] if hasattr(predictor, "find") else []

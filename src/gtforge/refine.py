@@ -27,7 +27,8 @@ import numpy as np
 from pydantic import Field
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays
-from gtforge.calibrate import CalibrationFile, RefinementInfo, SceneRefinement, calibration_output_path
+from gtforge.calibrate import (CalibrationFile, RefinementInfo, SceneRefinement, calibration_output_path,
+                               check_rig_matches_session)
 from gtforge.camera import Rig
 from gtforge.errors import InputError
 from gtforge.geometry import pose_difference, transform_points
@@ -164,6 +165,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
     session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
+    check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
         out_path = calibration_output_path(out_path)
         session.refuse_output_inside_captures(out_path)

@@ -158,6 +158,36 @@ def _terminate(ex: ProcessPoolExecutor) -> None:
 
 
 # ---- Dask --------------------------------------------------------------------------------------
+def check_scheduler_address(address: str) -> None:
+    """Fail fast, before anything is written or a client is made, on an address that cannot work: a TCP-like
+    address without a port, or a host name that does not resolve (Dask would try for its whole timeout)."""
+    try:
+        from distributed.comm import parse_address
+        from distributed.comm.addressing import parse_host_port
+    except ImportError:
+        raise InputError(None, "--scheduler", "dask.distributed installed", "it is not installed",
+                         "pip install 'gtforge[dask]'") from None
+    example = "a Dask scheduler address such as tcp://HOST:8786"
+    try:
+        scheme, loc = parse_address(address)
+    except ValueError as exc:
+        raise InputError(None, "--scheduler", example, repr(address), str(exc).splitlines()[0]) from None
+    if scheme not in ("tcp", "tls", "ws", "wss"):
+        return
+    try:
+        host, port = parse_host_port(loc)
+    except ValueError:
+        raise InputError(None, "--scheduler", example, repr(address), "the port is required (dask scheduler "
+                         "prints the address to use, e.g. tcp://10.0.0.5:8786)") from None
+    import socket
+
+    try:
+        socket.getaddrinfo(host, port)
+    except (OSError, UnicodeError) as exc:
+        raise InputError(None, "--scheduler", example + " whose host resolves", repr(address),
+                         f"{host!r} is not a known host ({type(exc).__name__})") from None
+
+
 def connect_scheduler(address: str, timeout_s: float | None = None) -> Client:
     """A ``distributed.Client`` on the scheduler at ``address`` with at least one worker running this
     gtforge version; one-line ``InputError`` otherwise (dask missing, unreachable, no or foreign workers).
@@ -173,6 +203,7 @@ def connect_scheduler(address: str, timeout_s: float | None = None) -> Client:
                          "pip install 'gtforge[dask]'") from None
     import gtforge
 
+    check_scheduler_address(address)
     if timeout_s is None:
         timeout_s = parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), "s")
     hint = "start one with 'dask scheduler' and workers with 'dask worker ADDRESS' (docs/cluster.md)"

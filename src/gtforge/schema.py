@@ -47,6 +47,8 @@ class VersionedFile(GTModel):
     @classmethod
     def read(cls: type[M], path: str | Path) -> M:
         path = Path(path)
+        if path.is_dir():
+            raise InputError(path, None, f"a {cls.KIND}", "a folder", "give the file's path")
         if not path.is_file():
             raise InputError(path, None, f"a {cls.KIND}", "no such file", "check the path")
         text = path.read_text()

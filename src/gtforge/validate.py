@@ -35,8 +35,8 @@ REFERENCE_Z_PCT = 0.08
 
 class ValidateParams(GTModel):
     board: BoardModel | None = None  # None: the board stored in the calibration file
-    xy_threshold_px: float = 0.3
-    z_threshold_pct: float = 0.05
+    xy_threshold_px: float = Field(0.3, gt=0)
+    z_threshold_pct: float = Field(0.05, gt=0)
     corner_radius_px: int = 8  # depth patch radius for the per-corner plane fit
     mode: str = "mesh"
     max_slant_deg: float = 85.0
@@ -246,8 +246,9 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     dirs = session.select("board", captures)
     if holdout:
         if holdout > len(dirs) - 3:
-            raise InputError(session_dir, "holdout", f"at most {len(dirs) - 3} held-out poses (3 must remain to calibrate)",
-                             str(holdout))
+            raise InputError(session_dir, "holdout", f"at most {len(dirs) - 3} held-out poses of {len(dirs)} (3 "
+                             "must remain to calibrate)", str(holdout), "captures where the board is not found do not "
+                             "count among the 3, so fewer may be needed")
         held = [d.name for d in dirs[-holdout:]]
         calib_path = Path(out_dir or ".") / "holdout_calibration.yaml"
         calib = calibrate(session_dir, calib_path, CalibrateParams(board=params.board or BoardModel()), exclude=held,

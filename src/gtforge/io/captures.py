@@ -250,6 +250,13 @@ class Session:
                exclude: list[str] | None = None) -> list[Path]:
         """Capture folders of ``kind``, optionally only ``include`` and never ``exclude`` (by folder name)."""
         dirs = self.capture_dirs(kind)
+        names = {d.name for d in dirs}
+        for given, option in ((include, "--captures" if kind == "board" else "--scenes"), (exclude, "exclude")):
+            unknown = [n for n in (given or []) if n not in names]
+            if unknown:
+                listing = ", ".join(sorted(names)[:8]) + (", ..." if len(names) > 8 else "")
+                raise InputError(dirs[0].parent, option, f"capture names of {kind}/ ({listing})",
+                                 ", ".join(unknown), "names are the capture folders' names")
         if include:
             dirs = [d for d in dirs if d.name in set(include)]
         if exclude:

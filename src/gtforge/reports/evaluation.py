@@ -5,6 +5,7 @@
 """
 from __future__ import annotations
 
+import os
 import csv
 import html
 import io
@@ -230,9 +231,25 @@ def write_eval_html(rep: EvalReport, out: Path, max_scenes: int = MAX_SCENES_SHO
 
 # ---- compare ------------------------------------------------------------------------------------
 def row_labels(reports: list[EvalReport], files: list[Path]) -> list[str]:
-    """Model names, with the result's folder added where two results share a name."""
+    """Model names, with the result's folder added where two results share a name: as many of the folder's trailing
+    path parts as tell those results apart (``SGBM [run1/evaluation]``, ``SGBM [run2/evaluation]``)."""
     names = [r.model for r in reports]
-    return [f"{n} [{f.parent.name or f}]" if names.count(n) > 1 else n for n, f in zip(names, files)]
+    folders = [Path(os.path.abspath(f)).parent.parts for f in files]
+    labels = list(names)
+    for name in set(names):
+        idx = [i for i, n in enumerate(names) if n == name]
+        if len(idx) < 2:
+            continue
+        depth = max(len(folders[i]) for i in idx)
+        for k in range(1, depth + 1):
+            tails = ["/".join(folders[i][-k:]) for i in idx]
+            if len(set(tails)) == len(tails):
+                break
+        else:  # the same folder more than once: numbered
+            tails = [f"{folders[i][-1] if folders[i] else ''} #{j + 1}" for j, i in enumerate(idx)]
+        for i, tail in zip(idx, tails):
+            labels[i] = f"{name} [{tail}]"
+    return labels
 
 
 def comparison_warnings(reports: list[EvalReport], files: list[Path]) -> list[str]:

@@ -1,0 +1,147 @@
+"""Ordinary mistakes found by a newcomer's run-through (round 2), each through the real command: exit 2 and one
+line naming the option or file, nothing written, or the right repair."""
+import json
+import shutil
+import time
+
+import pytest
+import yaml
+
+from gtforge.build_dataset import BuildParams, build_dataset
+from gtforge.reports.evaluation import row_labels
+from test_safety import gtforge, one_line_error, tree_digest
+
+
+def test_synth_and_demo_never_write_into_an_existing_folder(tmp_path, session_dir):
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    before = tree_digest(sess)
+    r = gtforge("synth", sess, "--boards", "1", "--scenes", "0", "--scale", "0.1")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "expected a new or empty folder" in r.stderr and "synth writes a whole new session" in r.stderr
+    r = gtforge("demo", sess)
+    assert r.returncode == 2 and one_line_error(r) and "session/truth/rig_truth.yaml" in r.stderr, r.stderr
+    assert tree_digest(sess) == before
+    r = gtforge("synth", tmp_path / "new", "--scale", "0")
+    assert r.returncode == 2 and "--scale" in r.stderr and not (tmp_path / "new").exists()
+
+
+def _foreign_session(session_dir, tmp_path):
+    """The same captures with a texture camera of another size: the test calibration is not this session's."""
+    sess = tmp_path / "other"
+    shutil.copytree(session_dir, sess)
+    p = sess / "mech_intrinsics.yaml"
+    d = yaml.safe_load(p.read_text())
+    d["camera"]["width_px"] += 2
+    p.write_text(yaml.safe_dump(d))
+    return sess
+
+
+def test_a_calibration_of_another_session_is_one_line(session_dir, true_calibration, dataset, tmp_path):
+    other = _foreign_session(session_dir, tmp_path)
+    for args in (("refine", other, "-c", true_calibration, "-o", tmp_path / "refined.yaml"),
+                 ("build-dataset", other, "-c", true_calibration, "-o", tmp_path / "ds"),
+                 ("verify", dataset[0], "--session", other)):
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args[0], r.stderr)
+        assert "[rig.mech]" in r.stderr and "(the session's camera)" in r.stderr, r.stderr
+    assert not (tmp_path / "refined.yaml").exists() and not (tmp_path / "ds").exists()
+
+
+def test_option_values_are_checked(session_dir, true_calibration, dataset, tmp_path):
+    before = tree_digest(dataset[0])
+    cases = [
+        (("verify", dataset[0], "--max-shift-px", "-1"), "--max-shift-px"),
+        (("evaluate", dataset[0], "--sgbm", "--max-disp", "-5", "-o", tmp_path / "ev"), "--max-disp"),
+        (("validate", session_dir, "-c", true_calibration, "--xy-threshold-px", "-1", "-o", tmp_path / "va"),
+         "--xy-threshold-px"),
+        (("build-dataset", session_dir, "-c", true_calibration, "-o", tmp_path / "ds", "--crop", "5000x300"),
+         "--crop"),
+        (("calibrate", session_dir, "--captures", "000,999", "-o", tmp_path / "c.yaml"), "999"),
+        (("refine", session_dir, "-c", true_calibration, "--scenes", "000,7", "-o", tmp_path / "r.yaml"),
+         "--scenes]: expected capture names of scenes/"),
+    ]
+    for args, needle in cases:
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
+        assert needle in r.stderr, (needle, r.stderr)
+    r = gtforge("build-dataset", session_dir, "-c", true_calibration, "-o", tmp_path / "ds", "--workers", "0")
+    assert r.returncode == 2 and "--workers" in r.stderr  # Click's own range check
+    assert not [p for p in tmp_path.iterdir() if p.name != "c.yaml"] and not (tmp_path / "c.yaml").exists()
+    assert tree_digest(dataset[0]) == before
+
+
+def test_outputs_must_be_folders_of_their_own(session_dir, true_calibration, dataset, tmp_path):
+    before = tree_digest(dataset[0])
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine")
+    for args, needle in (
+            (("build-dataset", session_dir, "-c", true_calibration, "-o", a_file), "expected a folder"),
+            (("evaluate", dataset[0], "--sgbm", "-o", a_file), "expected a folder"),
+            (("evaluate", dataset[0], "--sgbm", "-o", dataset[0] / "scenes" / "000"), "inside the dataset's scenes/"),
+            (("evaluate", dataset[0], "--sgbm", "-o", dataset[0]), "the dataset folder itself"),
+            (("evaluate", session_dir, "--sgbm", "-o", tmp_path / "ev"), "no manifest.json")):
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
+        assert needle in r.stderr, (needle, r.stderr)
+    assert a_file.read_text() == "mine" and tree_digest(dataset[0]) == before
+    assert not (tmp_path / "ev").exists()
+
+
+def test_a_bad_scheduler_address_fails_fast_and_writes_nothing(session_dir, true_calibration, tmp_path):
+    pytest.importorskip("distributed")
+    for address, needle in (("foo", "the port is required"), ("tcp://no-such-host.invalid:8786", "not a known host")):
+        t = time.time()
+        r = gtforge("build-dataset", session_dir, "-c", true_calibration, "-o", tmp_path / "ds", "--scheduler", address)
+        assert r.returncode == 2 and one_line_error(r), r.stderr
+        assert needle in r.stderr and time.time() - t < 30
+    assert not (tmp_path / "ds").exists()
+
+
+def test_calibration_option_takes_the_calibrate_output_folder(session_dir, true_calibration, tmp_path):
+    folder = tmp_path / "calib"
+    folder.mkdir()
+    shutil.copy(true_calibration, folder / "calibration.yaml")
+    r = gtforge("validate", session_dir, "-c", folder, "-o", tmp_path / "va")
+    assert r.returncode == 0 and "XY reprojection" in r.stdout, r.stderr
+    r = gtforge("build-dataset", session_dir, "-c", tmp_path, "-o", tmp_path / "ds2")
+    assert r.returncode == 2 and one_line_error(r) and "got a folder" in r.stderr, r.stderr
+
+
+def test_resume_rebuilds_a_scene_with_a_deleted_file(session_dir, true_calibration, tmp_path):
+    out = tmp_path / "ds"
+    params = BuildParams(verification=False)
+    s = build_dataset(session_dir, true_calibration, out, params, scenes=["000", "001"], workers=1)
+    assert s.built == ["000", "001"]
+    from gtforge.build_dataset import scene_files
+
+    assert sorted(p.name for p in (out / "scenes" / "000").iterdir()) == sorted(scene_files(params))
+    (out / "scenes" / "001" / "disp0GT.pfm").unlink()
+    s = build_dataset(session_dir, true_calibration, out, params, scenes=["000", "001"], workers=1)
+    assert s.built == ["001"] and s.skipped_unchanged == ["000"]
+    assert (out / "scenes" / "001" / "disp0GT.pfm").is_file()
+
+
+def test_verify_exits_1_when_a_scene_cannot_be_verified(session_dir, true_calibration, tmp_path):
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    out = tmp_path / "ds"
+    assert build_dataset(sess, true_calibration, out, BuildParams(verification=False), scenes=["000"],
+                         workers=1).built == ["000"]
+    (out / "scenes" / "000" / "region.png").unlink()
+    r = gtforge("verify", out)
+    assert r.returncode == 1 and "1 not verifiable" in r.stdout, r.stdout + r.stderr
+    assert json.loads((out / "verification.json").read_text())["scenes"]["000"]["status"] == "not verifiable"
+
+
+def test_compare_tells_same_named_results_apart(tmp_path):
+    class R:
+        def __init__(self, model):
+            self.model = model
+
+    labels = row_labels([R("SGBM"), R("SGBM"), R("net")], [tmp_path / "run1" / "evaluation" / "results.json",
+                                                            tmp_path / "run2" / "evaluation" / "results.json",
+                                                            tmp_path / "results.json"])
+    assert labels == ["SGBM [run1/evaluation]", "SGBM [run2/evaluation]", "net"]
+    same = tmp_path / "evaluation" / "results.json"
+    assert row_labels([R("SGBM"), R("SGBM")], [same, same]) == ["SGBM [evaluation #1]", "SGBM [evaluation #2]"]
