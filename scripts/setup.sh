@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Set up gtforge from scratch: the system library Open3D needs, a virtual environment, the package.
+# Set up gtforge from scratch: the system libraries Open3D needs (libusb-1.0-0, libgomp1), a virtual environment,
+# the package.
 # Usage: scripts/setup.sh [VENV_DIR]   (default .venv). Idempotent.
 set -euo pipefail
 VENV="${1:-.venv}"

@@ -84,7 +84,7 @@ class RegionVerticalDisparity(GTModel):
 class RectificationQuality(GTModel):
     """Vertical disparity of the board corners in the rectified ZED images (calibrate, validate)."""
 
-    rectified_by: str  # who rectified the images gtforge measured
+    rectified_by: str  # who rectified the images gtforge measured: reads after "rectified" ("before gtforge, ...")
     overall: VerticalDisparity
     poses: list[PoseVerticalDisparity]  # worst first
     by_region_left: dict[str, RegionVerticalDisparity]  # 3x3 grid of the rectified left image
@@ -193,7 +193,7 @@ class RectificationMeter:
         if overall.fit_mean_abs_px > self.threshold_px:
             warnings.append(f"the rectified ZED pair keeps {overall.fit_mean_abs_px:.3f} px mean vertical disparity on "
                             f"the board corners (threshold {self.threshold_px} px): stereo matching and the ground truth "
-                            f"suffer; check the ZED calibration ({self.rectified_by})")
+                            f"suffer; check the ZED calibration (the images were rectified {self.rectified_by})")
             log.warning(warnings[-1])
         q = RectificationQuality(rectified_by=self.rectified_by, overall=overall,
                                  poses=sorted(self.poses, key=lambda p: -(p.fit_mean_abs_px or 0.0)),
@@ -204,12 +204,13 @@ class RectificationMeter:
 
 
 def rectified_by(session: Session) -> str:
-    """Who rectified the ZED images a session's captures load as."""
+    """Who rectified the ZED images a session's captures load as, worded to follow "rectified" / "rectified:"
+    ("before gtforge, e.g. by the ZED SDK" or "by gtforge, from SN123.conf read as ...")."""
     rect = getattr(session, "rectification", None)
     if rect is not None:
         conf = rect.factory.path.name if getattr(rect, "factory", None) is not None else "SN.conf"
-        return f"gtforge, from {conf} read as '{rect.reading}' ({describe_zed_conf_reading(rect.reading)})"
-    return "before gtforge (images captured rectified, e.g. by the ZED SDK)"
+        return f"by gtforge, from {conf} read as '{rect.reading}': {describe_zed_conf_reading(rect.reading)}"
+    return "before gtforge, e.g. by the ZED SDK"
 
 
 # ---- SN.conf readings -----------------------------------------------------------------------

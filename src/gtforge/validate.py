@@ -267,13 +267,6 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session))
     warnings = []
     used = set(calib.captures_used)
-    overlap = [d.name for d in dirs if d.name in used]
-    if overlap and Path(calib.session_dir or ".").resolve() == Path(session_dir).resolve():
-        warnings.append(f"{len(overlap)} of {len(dirs)} validation captures were also used for calibration "
-                        f"({', '.join(overlap[:5])}{'...' if len(overlap) > 5 else ''}): the result is optimistic; "
-                        "use --holdout K or separate captures")
-        for w in warnings:
-            log.warning(w)
     poses, vecs, skipped = [], [], {}
     for k, d in enumerate(dirs):
         if progress:
@@ -291,6 +284,14 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     if not poses:
         raise InputError(session_dir, "board captures", "at least one capture where both cameras see the board",
                          "none", "check the board size (--cols/--rows) and the capture folders")
+    # counted among the captures validated (a capture skipped here, e.g. no board found, measures nothing)
+    overlap = [p.capture for p in poses if p.capture in used]
+    if overlap and Path(calib.session_dir or ".").resolve() == Path(session_dir).resolve():
+        which = f"all {len(poses)}" if len(overlap) == len(poses) else f"{len(overlap)} of the {len(poses)}"
+        warnings.append(f"{which} captures validated were also used for calibration "
+                        f"({', '.join(overlap[:5])}{'...' if len(overlap) > 5 else ''}): the result is optimistic; "
+                        "use --holdout K or separate captures")
+        log.warning(warnings[-1])
     allv = np.concatenate(vecs)
     e = np.linalg.norm(allv[:, 2:], axis=1)
     zerr = np.array([p.z_error_pct for p in poses])

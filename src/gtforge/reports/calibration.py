@@ -127,7 +127,9 @@ def poses_section(calib: CalibrationFile) -> Section:
     return Section("Poses, worst first", table(head, rows, fmt=[None, None, None] + ["{:.3f}"] * 5 + ["{:.2f}"] * 2)
                    + note("RMS/max: residuals of the reprojection solve. LOO: the pose's corners transferred by the "
                           "extrinsic solved without it. Edge width: cv2.estimateChessboardSharpness (blurred above "
-                          "4 px). \u2013: not computed for that pose (skipped, an outlier, or LOO not run)."))
+                          "4 px); \u2013 there for a used pose: OpenCV could not measure it (it needs the board's "
+                          "squares at least 10 px across in that image: a small or distant board; not counted as "
+                          "blurred). Other \u2013: not computed for that pose (skipped, an outlier, or LOO not run)."))
 
 
 def histogram_section(calib: CalibrationFile) -> Section | None:

@@ -24,7 +24,7 @@ def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice 
             ["mean |.|, homography-fitted corners", o.fit_mean_abs_px], ["max |.|, homography-fitted", o.fit_max_abs_px],
             ["mean |.|, detected corners", o.mean_abs_px], ["max |.|, detected corners", o.max_abs_px],
             ["signed mean", o.mean_px], ["threshold (fitted mean)", q.threshold_px]], fmt="{:.3f}", cls="kv")
-        body += note(f"Images rectified by {q.rectified_by}. Each board corner found in both rectified images; "
+        body += note(f"Images rectified: {q.rectified_by}. Each board corner found in both rectified images; "
                      "'homography-fitted': each image's corners replaced by a homography fitted to all of them (the "
                      "rectification's own error, detector noise averaged out). A well-rectified pair stays below a "
                      "few hundredths of a pixel.")
