@@ -147,7 +147,9 @@ class CalibrationFile(VersionedFile):
     # T_zed_from_mech = [exp(omega) R | t + delta_t] with omega (rad, 3) then delta_t (mm, 3); rows/columns in
     # that order (omega_x, omega_y, omega_z, t_x, t_y, t_z). sigma_* above are the square roots of its diagonal.
     cov_extrinsic_rad_mm: list[list[float]] | None = None
-    cov_jackknife_scale: float | None = None  # the factor the leave-one-pose-out spread scaled it by (>= 1)
+    # the factor the leave-one-out jackknife scaled cov_extrinsic_rad_mm by (>= 1): over board poses (calibrate) or,
+    # in a refined file, over scenes (refine --loo); None: no jackknife was run for this covariance
+    cov_jackknife_scale: float | None = None
     square_size_measured_mm: float | None = None  # from the depth camera's view of the board (median over poses)
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)

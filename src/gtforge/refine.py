@@ -28,7 +28,7 @@ from pydantic import Field
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays
 from gtforge.calibrate import (CalibrationFile, RefinementInfo, SceneRefinement, calibration_output_path,
-                               check_rig_matches_session)
+                               check_rig_matches_session, jackknife_scale)
 from gtforge.camera import Rig
 from gtforge.errors import InputError
 from gtforge.geometry import pose_difference, transform_points
@@ -49,6 +49,9 @@ class RefineParams(GTModel):
     # about 0.001 deg / 0.02 mm on the synthetic scenes at 0.4x: the noise floor of re-building the templates)
     converged_mm: float = 0.03
     min_scenes: int = Field(3, ge=1)
+    # covariance: the scores (J^T w r) are summed over square tiles of the ZED-left image this size before their outer
+    # products (a cluster-robust sandwich), so residuals correlated within a tile are not counted as independent
+    cov_tile_px: int = Field(16, ge=1)
     leave_one_out: bool = True
     verify: VerifyParams = Field(default_factory=VerifyParams)
 
@@ -100,57 +103,103 @@ def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     return scene_points(cap.name, sd.depth_mm, sd.disparity_px, cap.mech_texture, cap.zed_left, rig, params), ver
 
 
+def _scene_system(sp: ScenePoints, T: np.ndarray, rig: Rig, params: RefineParams, tile_px: float | None = None):
+    """One scene's Huber-IRLS normal equations at ``T`` over (omega, delta_t, gain, offset): ``(JTJ 8x8, JTr 8,
+    weighted rss, count, S 8x8)``; ``S`` (only with ``tile_px``) sums the outer products of the score summed over
+    ``tile_px``-square tiles of the ZED-left image (the cluster-robust "meat" of a sandwich covariance)."""
+    cam = rig.zed.left
+    X = transform_points(T, sp.X_mech)
+    Z = X[:, 2]
+    u = cam.fx_px * X[:, 0] / Z + cam.cx_px
+    v = cam.fy_px * X[:, 1] / Z + cam.cy_px
+    r = sample_cubic(sp.zed_norm, u, v) - sp.value
+    # the template's gradient (inverse-compositional style): the estimating equation is then the same as
+    # the verification's, so a refined extrinsic verifies at zero shift (the ZED image's own gradient
+    # converges elsewhere by ~0.02 px where the two images' blur differs)
+    gx, gy = sp.grad[:, 0], sp.grad[:, 1]
+    # d(u, v)/dX
+    du = np.stack([cam.fx_px / Z, np.zeros_like(Z), -cam.fx_px * X[:, 0] / Z ** 2], axis=1)
+    dv = np.stack([np.zeros_like(Z), cam.fy_px / Z, -cam.fy_px * X[:, 1] / Z ** 2], axis=1)
+    dI_dX = gx[:, None] * du + gy[:, None] * dv  # (N, 3)
+    RX = X - T[:3, 3]  # R @ X_mech
+    # X = exp(w) R X_mech + t + dt: dX/dw = -[R X_mech]x, dX/ddt = I
+    dI_dw = np.cross(RX, dI_dX)  # (a . (-[p]x w)) = (p x a) . w
+    J = np.concatenate([dI_dw, dI_dX, -sp.value[:, None], -np.ones((len(r), 1))], axis=1)
+    w = np.where(np.abs(r) <= params.huber, 1.0, params.huber / np.maximum(np.abs(r), 1e-12))
+    Jw = J * w[:, None]
+    S = None
+    if tile_px is not None:
+        psi = Jw * r[:, None]  # each point's score
+        tx = np.floor(u / tile_px).astype(np.int64)
+        ty = np.floor(v / tile_px).astype(np.int64)
+        _, tile = np.unique(ty * (int(sp.zed_norm.shape[1] / tile_px) + 2) + tx, return_inverse=True)
+        g = np.stack([np.bincount(tile.ravel(), weights=psi[:, j]) for j in range(psi.shape[1])], axis=1)
+        S = g.T @ g
+    return Jw.T @ J, Jw.T @ r, float(np.sum(w * r * r)), len(r), S
+
+
+def _assemble(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams, tile_px: float | None = None):
+    n = len(scenes)
+    JTJ = np.zeros((6 + 2 * n, 6 + 2 * n))
+    JTr = np.zeros(6 + 2 * n)
+    S = np.zeros_like(JTJ) if tile_px is not None else None
+    rss, cnt = 0.0, 0
+    for k, sp in enumerate(scenes):
+        A, b, rk, ck, Sk = _scene_system(sp, T, rig, params, tile_px)
+        idx = np.r_[0:6, 6 + 2 * k, 7 + 2 * k]
+        JTJ[np.ix_(idx, idx)] += A
+        JTr[idx] += b
+        if S is not None:
+            S[np.ix_(idx, idx)] += Sk
+        rss += rk
+        cnt += ck
+    return JTJ, JTr, rss, cnt, S
+
+
+def sandwich_covariance(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams,
+                        tile_px: float | None = None) -> np.ndarray:
+    """The extrinsic's 6x6 covariance at the solution ``T``: ``H^-1 S H^-1`` over every parameter (the extrinsic and
+    each scene's gain/offset), ``H = sum J^T w J`` and ``S = sum_tiles g g^T`` with ``g`` the score ``sum J^T w r`` of
+    one ``tile_px`` tile of one scene (``params.cov_tile_px`` by default). It takes the residuals' size and their
+    correlation within a tile from the data (a plain Gauss-Newton ``s^2 H^-1`` assumes independent pixels)."""
+    H, _, _, _, S = _assemble(scenes, T, rig, params, float(tile_px or params.cov_tile_px))
+    Hi = np.linalg.inv(H)
+    C = (Hi @ S @ Hi)[:6, :6]
+    return 0.5 * (C + C.T)
+
+
+def covariance_estimates(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams,
+                         tiles_px: tuple[float, ...] = (1, 4, 16, 64)) -> dict[str, np.ndarray]:
+    """Diagnostics (benchmarks/bench_refine_uncertainty.py): the extrinsic's covariance at ``T`` by the sandwich with
+    several tile sizes, the plain Gauss-Newton ``s^2 H^-1`` and that times the normalisation window's area (the
+    estimator refine used first: one independent sample per window)."""
+    out = {f"sandwich_{tp:g}px": sandwich_covariance(scenes, T, rig, params, tp) for tp in tiles_px}
+    H, _, rss, cnt, _ = _assemble(scenes, T, rig, params)
+    out["gn_iid"] = np.linalg.inv(H)[:6, :6] * rss / max(cnt - len(H), 1)
+    out["gn_window"] = out["gn_iid"] * np.pi * (2 * params.verify.norm_sigma_px) ** 2
+    return out
+
+
 def solve_extrinsic(scenes: list[ScenePoints], T0: np.ndarray, rig: Rig, params: RefineParams
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Newton (Huber IRLS) over the extrinsic and a gain/offset per scene. Returns (T, 6x6 covariance)."""
-    cam = rig.zed.left
+    """Gauss-Newton (Huber IRLS) over the extrinsic and a gain/offset per scene. Returns (T, 6x6 covariance: the
+    tile sandwich of ``sandwich_covariance`` at T)."""
     T = T0.copy()
-    n = len(scenes)
-    H = None
-    s2 = 1.0
     for _ in range(params.iterations):
-        JTJ = np.zeros((6 + 2 * n, 6 + 2 * n))
-        JTr = np.zeros(6 + 2 * n)
-        rss, cnt = 0.0, 0
-        for k, sp in enumerate(scenes):
-            X = transform_points(T, sp.X_mech)
-            Z = X[:, 2]
-            u = cam.fx_px * X[:, 0] / Z + cam.cx_px
-            v = cam.fy_px * X[:, 1] / Z + cam.cy_px
-            r = sample_cubic(sp.zed_norm, u, v) - sp.value
-            # the template's gradient (inverse-compositional style): the estimating equation is then the same as
-            # the verification's, so a refined extrinsic verifies at zero shift (the ZED image's own gradient
-            # converges elsewhere by ~0.02 px where the two images' blur differs)
-            gx, gy = sp.grad[:, 0], sp.grad[:, 1]
-            # d(u, v)/dX
-            du = np.stack([cam.fx_px / Z, np.zeros_like(Z), -cam.fx_px * X[:, 0] / Z ** 2], axis=1)
-            dv = np.stack([np.zeros_like(Z), cam.fy_px / Z, -cam.fy_px * X[:, 1] / Z ** 2], axis=1)
-            dI_dX = gx[:, None] * du + gy[:, None] * dv  # (N, 3)
-            RX = X - T[:3, 3]  # R @ X_mech
-            # X = exp(w) R X_mech + t + dt: dX/dw = -[R X_mech]x, dX/ddt = I
-            dI_dw = np.cross(RX, dI_dX)  # (a . (-[p]x w)) = (p x a) . w
-            J = np.concatenate([dI_dw, dI_dX, -sp.value[:, None], -np.ones((len(r), 1))], axis=1)
-            w = np.where(np.abs(r) <= params.huber, 1.0, params.huber / np.maximum(np.abs(r), 1e-12))
-            idx = list(range(6)) + [6 + 2 * k, 7 + 2 * k]
-            Jw = J * w[:, None]
-            JTJ[np.ix_(idx, idx)] += Jw.T @ J
-            JTr[idx] += Jw.T @ r
-            rss += float(np.sum(w * r * r))
-            cnt += len(r)
+        JTJ, JTr, rss, cnt, _ = _assemble(scenes, T, rig, params)
         try:
             step = -np.linalg.solve(JTJ, JTr)
         except np.linalg.LinAlgError:
             raise InputError(None, "scenes", "scenes whose texture constrains the extrinsic", "a singular system",
                              "add scenes with texture over the whole image") from None
         T = _perturbed(T, step[:6])
-        H = JTJ
-        s2 = rss / max(cnt - len(step), 1)
         if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:6]).max() < 1e-5:
             break
-    # pixel residuals are correlated over the normalisation window: count one independent sample per window area
-    corr = np.pi * (2 * params.verify.norm_sigma_px) ** 2
-    cov = np.linalg.inv(H)[:6, :6] * s2 * corr
-    return T, cov
+    # Not s^2 H^-1 times the normalisation window's area (pi (2 sigma)^2 = 113 px, "one independent sample per
+    # window"): the sampled pixels' residuals are nearly independent, so that made the covariance ~100x too large
+    # (NEES ~0.04 instead of 6 on synthetic truth; benchmarks/bench_refine_uncertainty.py). The sandwich measures the
+    # correlation instead of assuming it.
+    return T, sandwich_covariance(scenes, T, rig, params)
 
 
 def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None = None,
@@ -237,6 +286,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
             held_before.append(reports[s].shift_before_px)
             held_after.append(ver.texture_all.magnitude_px)
     sig_jr = sig_jt = None
+    jack_scale = None  # the refined file's own: not the board calibration's (leave-one-pose-out) factor
     if len(jack) >= 3:
         # jackknife spread of the leave-one-out solutions (captures scene-to-scene error the pixel model cannot)
         xs = np.array([np.concatenate([_rotvec_between(T, Tk), Tk[:3, 3] - T[:3, 3]]) for Tk in jack])
@@ -244,9 +294,11 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
         cj = (n - 1) / n * (xs - xs.mean(0)).T @ (xs - xs.mean(0))
         sig_jr = float(np.degrees(np.sqrt(np.trace(cj[:3, :3]))))
         sig_jt = float(np.sqrt(np.trace(cj[3:, 3:])))
-        # the stored covariance is the Gauss-Newton one, scaled up where the jackknife says it is optimistic
-        ratio = max(1.0, float(np.max(np.diag(cj) / np.maximum(np.diag(cov), 1e-30))))
-        cov = cov * ratio
+        # scaled up (never down) where the leave-one-scene-out spread is larger: the RMS ratio of the six variances,
+        # as calibrate's leave-one-pose-out (the largest ratio of a few scenes' noisy spread over-inflated it)
+        jack_scale = jackknife_scale(T, jack, cov)
+        if jack_scale is not None:
+            cov = cov * jack_scale
     dr, dt = pose_difference(rig0.T, T)
     info = RefinementInfo(refined_from=str(calib_path.resolve()), scenes_used=used,
                           scenes_excluded={s: r.reason for s, r in reports.items() if r.status != "used"},
@@ -258,7 +310,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     sig_r = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0, None)))
     sig_t = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
     out = calib.model_copy(update=dict(
-        rig=rig0.with_extrinsic(T), cov_extrinsic_rad_mm=cov.tolist(), sigma_rot_xyz_deg=sig_r.tolist(),
+        rig=rig0.with_extrinsic(T), cov_extrinsic_rad_mm=cov.tolist(), cov_jackknife_scale=jack_scale,
+        sigma_rot_xyz_deg=sig_r.tolist(),
         sigma_trans_xyz_mm=sig_t.tolist(), sigma_rot_deg=float(np.sqrt(np.sum(sig_r ** 2))),
         sigma_trans_mm=float(np.sqrt(np.sum(sig_t ** 2))), refinement=info,
         time_s=calib.time_s + time.perf_counter() - t0))
