@@ -337,34 +337,38 @@ class Session:
                        self.config.fruit_ids.get(folder.name), self.capture_files(folder), *verbatim)
 
 
-def _is_rgb8_png(path: Path) -> bool:
-    """True for an 8-bit RGB (colour type 2) PNG, read from its IHDR header."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(26)
-    except OSError:
-        return False
-    return len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[24] == 8 and head[25] == 2
-
-
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
-def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[int, ...]) -> bool:
-    """True when ``path`` is an 8-bit PNG of ``size_wh`` with one of ``colour_types`` (0 grey, 2 RGB) that ends
-    with its IEND chunk (not truncated), read from its first 26 and last 12 bytes. False for anything else,
-    including unreadable files: the caller then decodes the file and reports what is wrong."""
+def _png_header(path: Path) -> tuple[int, int, int, int, bool] | None:
+    """``(width, height, bit depth, colour type, ends with IEND)`` of a PNG from its first 26 and last 12 bytes;
+    None when the file cannot be read or is no PNG."""
     try:
         with open(path, "rb") as fh:
             head = fh.read(26)
             fh.seek(-12, os.SEEK_END)
             tail = fh.read(12)
     except OSError:
-        return False
-    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or tail != _PNG_IEND:
-        return False
-    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    return (w, h) == tuple(size_wh) and head[24] == 8 and head[25] in colour_types
+        return None
+    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return (int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"), head[24], head[25],
+            tail == _PNG_IEND)
+
+
+def _is_rgb8_png(path: Path) -> bool:
+    """True for an 8-bit RGB (colour type 2) PNG, read from its IHDR header."""
+    h = _png_header(path)
+    return h is not None and h[2] == 8 and h[3] == 2
+
+
+def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[int, ...]) -> bool:
+    """True when ``path`` is an 8-bit PNG of ``size_wh`` with one of ``colour_types`` (0 grey, 2 RGB) that ends
+    with its IEND chunk (not truncated). False for anything else, including unreadable files: the caller then
+    decodes the file and reports what is wrong."""
+    h = _png_header(path)
+    return h is not None and (h[0], h[1]) == tuple(size_wh) and h[2] == 8 and h[3] in colour_types and h[4]
 
 
 def open_session(root: str | Path, zed_conf_reading: str | None = None) -> Session:
