@@ -54,6 +54,19 @@ class UncertaintyParams(GTModel):
     use_verification: bool = True  # add the scene's measured texture shift as lateral uncertainty
 
 
+@numba.njit(inline="always", cache=True)
+def _slope(before, here, after):
+    """Slope of three neighbouring samples: central difference where both neighbours are finite, else one-sided,
+    else 0."""
+    if math.isfinite(before) and math.isfinite(after):
+        return 0.5 * (after - before)
+    if math.isfinite(after):
+        return after - here
+    if math.isfinite(before):
+        return here - before
+    return 0.0
+
+
 @numba.njit(cache=True)
 def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px,
                   out):
@@ -66,24 +79,8 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
                 out[v, u] = np.inf
                 continue
             # GT slope (px/px): central difference where both neighbours exist, else one-sided
-            gx = 0.0
-            l = disp[v, u - 1] if u > 0 else np.nan
-            r = disp[v, u + 1] if u < W - 1 else np.nan
-            if math.isfinite(l) and math.isfinite(r):
-                gx = 0.5 * (r - l)
-            elif math.isfinite(r):
-                gx = r - d
-            elif math.isfinite(l):
-                gx = d - l
-            gy = 0.0
-            up = disp[v - 1, u] if v > 0 else np.nan
-            dn = disp[v + 1, u] if v < H - 1 else np.nan
-            if math.isfinite(up) and math.isfinite(dn):
-                gy = 0.5 * (dn - up)
-            elif math.isfinite(dn):
-                gy = dn - d
-            elif math.isfinite(up):
-                gy = d - up
+            gx = _slope(disp[v, u - 1] if u > 0 else np.nan, d, disp[v, u + 1] if u < W - 1 else np.nan)
+            gy = _slope(disp[v - 1, u] if v > 0 else np.nan, d, disp[v + 1, u] if v < H - 1 else np.nan)
             X = (u - cx) / fx * Z
             Y = (v - cy) / fy * Z
             # a = dd/dX - g . du/dX  (row vector)
