@@ -49,7 +49,7 @@ def main():
     from gtforge import build_dataset as bd
     from gtforge.calibrate import CalibrationFile
     from gtforge.io.captures import open_session
-    from gtforge.io.formats import LABEL_PNG_PARAMS, _kitti_quantize
+    from gtforge.io.formats import _kitti_quantize, encode_label_png
 
     wd = Path(args.workdir)
     sess, calib = make_session(wd, 1, 1)
@@ -67,33 +67,38 @@ def main():
     r = args.repeat
 
     S, F = cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_FILTER
-    png_settings = [
-        ("OpenCV default (level 1, RLE strategy, adaptive filters; before)", []),
-        ("level 0 (stored)", [cv2.IMWRITE_PNG_COMPRESSION, 0]),
-        ("level 1, default strategy, no filter (**chosen**)", list(LABEL_PNG_PARAMS)),
-        ("level 1, default strategy, sub filter", [cv2.IMWRITE_PNG_COMPRESSION, 1, S, cv2.IMWRITE_PNG_STRATEGY_DEFAULT,
-                                                   F, cv2.IMWRITE_PNG_FILTER_SUB]),
-        ("level 1, default strategy, paeth filter", [cv2.IMWRITE_PNG_COMPRESSION, 1, S, cv2.IMWRITE_PNG_STRATEGY_DEFAULT,
-                                                     F, cv2.IMWRITE_PNG_FILTER_PAETH]),
-        ("level 1, RLE strategy, no filter", [cv2.IMWRITE_PNG_COMPRESSION, 1, S, cv2.IMWRITE_PNG_STRATEGY_RLE,
-                                              F, cv2.IMWRITE_PNG_FILTER_NONE]),
-        ("level 3, default strategy, no filter", [cv2.IMWRITE_PNG_COMPRESSION, 3, S, cv2.IMWRITE_PNG_STRATEGY_DEFAULT,
-                                                  F, cv2.IMWRITE_PNG_FILTER_NONE]),
-        ("level 6, default strategy, adaptive filters", [cv2.IMWRITE_PNG_COMPRESSION, 6]),
+    opencv_settings = [
+        ("OpenCV default (level 1, RLE strategy, adaptive filters; round 1)", []),
+        ("OpenCV level 0 (stored)", [cv2.IMWRITE_PNG_COMPRESSION, 0]),
+        ("OpenCV level 1, default strategy, no filter (until 2026-11-25)",
+         [cv2.IMWRITE_PNG_COMPRESSION, 1, S, cv2.IMWRITE_PNG_STRATEGY_DEFAULT, F, cv2.IMWRITE_PNG_FILTER_NONE]),
+        ("OpenCV level 1, default strategy, sub filter", [cv2.IMWRITE_PNG_COMPRESSION, 1, S,
+                                                          cv2.IMWRITE_PNG_STRATEGY_DEFAULT, F, cv2.IMWRITE_PNG_FILTER_SUB]),
+        ("OpenCV level 1, default strategy, paeth filter", [cv2.IMWRITE_PNG_COMPRESSION, 1, S,
+                                                            cv2.IMWRITE_PNG_STRATEGY_DEFAULT, F,
+                                                            cv2.IMWRITE_PNG_FILTER_PAETH]),
+        ("OpenCV level 1, RLE strategy, no filter", [cv2.IMWRITE_PNG_COMPRESSION, 1, S, cv2.IMWRITE_PNG_STRATEGY_RLE,
+                                                     F, cv2.IMWRITE_PNG_FILTER_NONE]),
+        ("OpenCV level 3, default strategy, no filter", [cv2.IMWRITE_PNG_COMPRESSION, 3, S,
+                                                         cv2.IMWRITE_PNG_STRATEGY_DEFAULT, F, cv2.IMWRITE_PNG_FILTER_NONE]),
+        ("OpenCV level 6, default strategy, adaptive filters", [cv2.IMWRITE_PNG_COMPRESSION, 6]),
     ]
+    # (name, encoder: array -> PNG bytes)
+    png_settings = [(n, lambda a, prm=prm: cv2.imencode(".png", a, prm)[1].tobytes()) for n, prm in opencv_settings]
+    png_settings.append(("zlib-ng level 1, no filter (`encode_label_png`, **chosen**)", encode_label_png))
     lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_encodings.py --repeat {r}`: "
              f"{machine_line()}; one thread, CPU ms (median of {r}); one full-resolution scene's real outputs.",
              "", "Label PNGs (written once, decoded every epoch):", "",
              "| file | PNG settings | encode ms | MB | decode ms (OpenCV) | decode ms (Pillow) |",
              "|---|---|---|---|---|---|"]
     for name, a in (("disp_occ_0 (uint16)", kitti), ("mask0nocc.png", mask), ("region.png", region)):
-        for sname, prm in png_settings:
-            buf = cv2.imencode(".png", a, prm)[1]
+        for sname, encode in png_settings:
+            buf = encode(a)
             p = tmp / "t.png"
-            p.write_bytes(buf.tobytes())
+            p.write_bytes(buf)
             if not np.array_equal(cv2.imread(str(p), cv2.IMREAD_UNCHANGED), a):
                 raise RuntimeError(f"{sname}: PNG round trip changed {name}")
-            lines.append(f"| {name} | {sname} | {cpu_ms(lambda: cv2.imencode('.png', a, prm), r):.1f} | "
+            lines.append(f"| {name} | {sname} | {cpu_ms(lambda: encode(a), r):.1f} | "
                          f"{len(buf) / 1e6:.3f} | {cpu_ms(lambda: cv2.imread(str(p), cv2.IMREAD_UNCHANGED), r):.1f} | "
                          f"{cpu_ms(lambda: np.asarray(Image.open(p)), r):.1f} |")
     lines += ["", "float32 TIFF:", "", "| file | compression | encode ms | MB | decode ms (tifffile) |",

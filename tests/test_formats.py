@@ -75,16 +75,26 @@ def test_atomic_write_keeps_original_on_failure(tmp_path):
 def test_label_png_and_kitti_quantisation(tmp_path):
     from gtforge.io.formats import write_label_png
 
+    import cv2
+    from PIL import Image
+
     lab = (np.arange(37 * 53) % 4).astype(np.uint8).reshape(37, 53)
-    np.testing.assert_array_equal(read_image(write_label_png(tmp_path / "r.png", lab)), lab)
     q = (np.arange(37 * 53) * 41 % 65536).astype(np.uint16).reshape(37, 53)
-    np.testing.assert_array_equal(read_image(write_label_png(tmp_path / "q.png", q), expect="uint16"), q)
-    with pytest.raises(ValueError):
-        write_label_png(tmp_path / "x.png", np.zeros((4, 5, 3), np.uint8))
+    one = np.array([[65535]], np.uint16)
+    # gtforge writes the PNG container itself (zlib-ng deflates): three independent decoders read it back exactly
+    for name, a in (("r.png", lab), ("q.png", q), ("one.png", one), ("col.png", lab[:, :1].copy())):
+        p = write_label_png(tmp_path / name, a)
+        np.testing.assert_array_equal(read_image(p, expect="uint16" if a.dtype == np.uint16 else None), a)
+        np.testing.assert_array_equal(cv2.imread(str(p), cv2.IMREAD_UNCHANGED), a)
+        with Image.open(p) as im:
+            im.verify()  # chunk CRCs and structure
+        with Image.open(p) as im:
+            np.testing.assert_array_equal(np.asarray(im).astype(a.dtype), a)
+    for bad in (np.zeros((4, 5, 3), np.uint8), np.zeros((4, 5), np.float32), np.zeros((0, 5), np.uint8)):
+        with pytest.raises(ValueError):
+            write_label_png(tmp_path / "x.png", bad)
     # round(d * 256) half to even, 1 for a valid d that rounds to 0, 65535 at most, 0 for NaN / inf / < 0
     d = np.array([[0.001, 1.5 / 256, 2.5 / 256, 10.0, 300.0], [np.nan, np.inf, -0.5, 0.0, 100.123]], np.float32)
-    import cv2
-
     raw = cv2.imread(str(write_kitti_disparity(tmp_path / "k.png", d)), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(raw, [[1, 2, 2, 2560, 65535], [0, 0, 0, 1, round(100.123 * 256)]])
     back = read_kitti_disparity(tmp_path / "k.png")
