@@ -104,10 +104,13 @@ def test_label_png_and_kitti_quantisation(tmp_path):
 def test_float_tiff_compression_round_trip(tmp_path):
     import tifffile
 
-    a = np.linspace(300, 900, 30 * 20, dtype=np.float32).reshape(30, 20)
-    a[3, 4] = np.nan
+    import cv2
+
+    a = np.linspace(300, 900, 150 * 20, dtype=np.float32).reshape(150, 20)  # 3 strips of 64 rows when compressed
+    a[3, 4] = a[149, 19] = np.nan
     for comp, tag in (("none", 1), ("zlib", 8)):
         p = write_tiff_float(tmp_path / f"{comp}.tiff", a, compression=comp)
         with tifffile.TiffFile(p) as t:
             assert t.pages[0].compression == tag
         np.testing.assert_array_equal(tifffile.imread(p), a)
+        np.testing.assert_array_equal(cv2.imread(str(p), cv2.IMREAD_UNCHANGED), a)
