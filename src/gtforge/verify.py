@@ -32,6 +32,7 @@ import numba
 import numpy as np
 from pydantic import Field
 
+from gtforge import lens
 from gtforge.camera import Rig
 from gtforge.errors import InputError
 from gtforge.geometry import transform_points
@@ -143,50 +144,65 @@ def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occl
     projected with its lens model and sampled bilinearly. A point the texture camera cannot see (outside its image,
     or hidden behind another GT point by more than ``occlusion_tol_mm``) is left out. ``depth_zed_mm`` may be a
     window of the ZED-left image whose pixel ``[0, 0]`` is the image's pixel ``(u, v) = origin_px``."""
-    H, W = depth_zed_mm.shape
-    cam = rig.zed.left
-    valid = np.isfinite(depth_zed_mm)
-    v, u = np.nonzero(valid)
-    z = depth_zed_mm[v, u].astype(np.float64)
-    P = np.stack([(u + origin_px[0] - cam.cx_px) / cam.fx_px * z, (v + origin_px[1] - cam.cy_px) / cam.fy_px * z, z],
-                 axis=1)
-    Pm = transform_points(rig.T_mech_from_zed, P)
-    uv = rig.mech.project(Pm)
-    tex = np.ascontiguousarray(to_gray(texture))
-    th, tw = tex.shape
-    inside = (Pm[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= tw - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= th - 1)
-    if rig.separate_depth_camera:
-        # the depth camera saw these points; the texture camera may not: z-buffer them in the texture image
-        ui = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, tw - 1)
-        vi = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, th - 1)
-        zbuf = np.full(th * tw, np.inf)
-        np.minimum.at(zbuf, vi[inside] * tw + ui[inside], Pm[inside, 2])
-        inside &= Pm[:, 2] <= zbuf[vi * tw + ui] + occlusion_tol_mm
-    out = np.zeros((H, W), np.float32)
-    ok = np.zeros((H, W), bool)
-    vi, ui = v[inside], u[inside]
-    ok[vi, ui] = True
-    # bilinear at the exact position (cv2.remap would round it to 1/32 px)
-    out[vi, ui] = _bilinear_at(tex, uv[inside, 0], uv[inside, 1])
+    zed, mech = rig.zed.left, rig.mech
+    T = rig.T_mech_from_zed
+    d = lens.full_coeffs(mech.dist_coeffs)
+    tilted = bool(d[12] != 0.0 or d[13] != 0.0)
+    out = np.zeros(depth_zed_mm.shape, np.float32)
+    ok = np.zeros(depth_zed_mm.shape, bool)
+    _render_kernel(np.asarray(depth_zed_mm, np.float32), float(origin_px[0]), float(origin_px[1]),
+                   np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]), np.ascontiguousarray(T[:3, :3]),
+                   np.ascontiguousarray(T[:3, 3]), np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
+                   lens.tilt_matrix(d[12], d[13]), tilted, np.ascontiguousarray(to_gray(texture)),
+                   rig.separate_depth_camera, float(occlusion_tol_mm), out, ok)
     return out, ok
 
 
 @numba.njit(cache=True)
-def _bilinear_at(img, x, y):
-    """Bilinear samples of ``img`` at positions inside it (``0 <= x <= W - 1``, ``0 <= y <= H - 1``)."""
-    H, W = img.shape
-    out = np.empty(x.shape[0], np.float32)
-    for k in range(x.shape[0]):
-        ix = min(int(x[k]), W - 2) if W > 1 else 0
-        iy = min(int(y[k]), H - 2) if H > 1 else 0
-        tx = x[k] - ix
-        ty = y[k] - iy
-        ix1 = min(ix + 1, W - 1)
-        iy1 = min(iy + 1, H - 1)
-        top = (1.0 - tx) * img[iy, ix] + tx * img[iy, ix1]
-        bot = (1.0 - tx) * img[iy1, ix] + tx * img[iy1, ix1]
-        out[k] = (1.0 - ty) * top + ty * bot
-    return out
+def _render_kernel(depth, x0, y0, k_zed, R, t, k_tex, dist, M, tilted, tex, zbuffer, tol_mm, out, ok):
+    """``render_texture``'s loop over the pixels: texture-camera position and depth of each GT pixel (NaN: not seen),
+    the z-buffer of those (only with ``zbuffer``: a separate depth camera), then the bilinear samples."""
+    H, W = depth.shape
+    th, tw = tex.shape
+    pos = np.full((H, W, 3), np.nan)
+    for v in range(H):
+        for u in range(W):
+            z = np.float64(depth[v, u])
+            if not math.isfinite(z):
+                continue
+            X = (u + x0 - k_zed[2]) / k_zed[0] * z
+            Y = (v + y0 - k_zed[3]) / k_zed[1] * z
+            Zm = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * z + t[2]
+            if not Zm > 0:
+                continue
+            Xm = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * z + t[0]
+            Ym = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * z + t[1]
+            xd, yd = lens.distort_point(Xm / Zm, Ym / Zm, dist, M, tilted)
+            ut = k_tex[0] * xd + k_tex[2]
+            vt = k_tex[1] * yd + k_tex[3]
+            if 0 <= ut <= tw - 1 and 0 <= vt <= th - 1:
+                pos[v, u, 0], pos[v, u, 1], pos[v, u, 2] = ut, vt, Zm
+    zbuf = np.full((th, tw) if zbuffer else (1, 1), np.inf)
+    if zbuffer:  # the depth camera saw these points; the texture camera may not: z-buffer them in the texture image
+        for v in range(H):
+            for u in range(W):
+                if math.isfinite(pos[v, u, 2]):
+                    ti, tj = int(np.rint(pos[v, u, 1])), int(np.rint(pos[v, u, 0]))
+                    zbuf[ti, tj] = min(zbuf[ti, tj], pos[v, u, 2])
+    for v in range(H):
+        for u in range(W):
+            ut, vt, Zm = pos[v, u, 0], pos[v, u, 1], pos[v, u, 2]
+            if not math.isfinite(Zm) or (zbuffer and Zm > zbuf[int(np.rint(vt)), int(np.rint(ut))] + tol_mm):
+                continue
+            # bilinear at the exact position (cv2.remap would round it to 1/32 px)
+            i = min(int(ut), tw - 2) if tw > 1 else 0
+            j = min(int(vt), th - 2) if th > 1 else 0
+            fx, fy = ut - i, vt - j
+            i1, j1 = min(i + 1, tw - 1), min(j + 1, th - 1)
+            top = (1.0 - fx) * tex[j, i] + fx * tex[j, i1]
+            bot = (1.0 - fx) * tex[j1, i] + fx * tex[j1, i1]
+            out[v, u] = (1.0 - fy) * top + fy * bot
+            ok[v, u] = True
 
 
 def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px: float = 1.0) -> np.ndarray:
