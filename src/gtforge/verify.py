@@ -269,6 +269,7 @@ class ShiftAligner:
     few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
 
     SIGMAS = (2.0, 0.0)
+    COARSE_TOL_PX = 0.01
 
     def __init__(self, ref: np.ndarray, img: np.ndarray):
         self.ref = ref
@@ -296,20 +297,22 @@ class ShiftAligner:
             v, u = v[keep], u[keep]
         uf, vf = u.astype(np.float64), v.astype(np.float64)
         d = np.zeros(2)
-        for r, gx, gy, coeffs in self.levels:
+        for level, (r, gx, gy, coeffs) in enumerate(self.levels):
+            # the coarse pass only brings the fine one near its solution: a loose tolerance there
+            tol = tol_px if level == len(self.levels) - 1 else self.COARSE_TOL_PX
             rv = r[v, u].astype(np.float64)
             # img(u + d) * (1 + g) + o ~ ref(u): unknowns (step in d, g, o), linearised at the template
-            A = np.stack([gx[v, u], gy[v, u], rv, np.ones_like(rv)], axis=1).astype(np.float64)
+            At = np.stack([gx[v, u], gy[v, u], rv, np.ones_like(rv)]).astype(np.float64)
             try:
-                pinv = np.linalg.solve(A.T @ A, A.T)
+                inv = np.linalg.inv(At @ At.T)
             except np.linalg.LinAlgError:
                 return ShiftEstimate(n_pixels=n)
             for _ in range(iterations):
-                step = pinv @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv)
+                step = inv @ (At @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv))
                 d -= step[:2]  # inverse composition of a translation
                 if np.abs(d).max() > 20:  # diverged: nothing to align
                     return ShiftEstimate(n_pixels=n)
-                if np.abs(step[:2]).max() < tol_px:
+                if np.abs(step[:2]).max() < tol:
                     break
         w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
         rv = self.ref[v, u].astype(np.float64)
@@ -328,7 +331,7 @@ def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixel
 def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
     gx = cv2.Sobel(norm_img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = cv2.Sobel(norm_img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-    return np.hypot(gx, gy) > thresh
+    return cv2.magnitude(gx, gy) > thresh
 
 
 # ---- the checks -----------------------------------------------------------------------------------
@@ -448,7 +451,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
             A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
             step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
             b, dy = b + step[0], dy + step[1]
-            if max(abs(step[0]), abs(step[1])) < 1e-5 or max(abs(b), abs(dy)) > 10:
+            if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b), abs(dy)) > 10:
                 break
         if max(abs(b), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
@@ -523,7 +526,7 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     reasons: list[str] = []
     if texture is None:
         return SceneVerification(status="not verifiable", reasons=["no texture image"]), None
-    if float(to_gray(texture).std()) < 1.0:
+    if float(cv2.meanStdDev(to_gray(texture))[1][0, 0]) < 1.0:
         return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
     f = max(1, int(np.ceil(depth_zed_mm.shape[1] / params.work_width_px)))
     depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
