@@ -418,21 +418,27 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     # the right image, its gradients: one stack, sampled together
     right = np.stack([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
                       cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)])
-    map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    # share of clearly worse matches: 5x5 SAD of the normalised images at GT and at GT +- 0.5, +- 1 px, over the used
+    # pixels' bounding box + 2 px (the SAD window)
+    worse = np.zeros(len(v), bool)  # at the used pixels (v, u)
+    if len(v):
+        sub = (slice(max(int(v.min()) - 2, 0), int(v.max()) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
+        map_x = x_match[sub] - np.float32(window.xr0_px)  # exact: integers subtracted
+        map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape)
+        nl_sub = nl[sub]
+        vs_, us_ = v - sub[0].start, u - sub[1].start
 
-    def warp(a, extra_dx):  # a(x_match - extra_dx, v) on the left arrays' grid
-        return cv2.remap(a, x_match - np.float32(extra_dx) - np.float32(window.xr0_px), map_y, cv2.INTER_CUBIC,
-                         borderMode=cv2.BORDER_REPLICATE)
+        def cost(o):  # at (v, u): the 5x5 SAD of the left image and the right one warped to x_match - o
+            warped = cv2.remap(nr, map_x - np.float32(o), map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            return cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True)[vs_, us_]
 
-    # share of clearly worse matches: 5x5 SAD of the normalised images at GT and at GT +- 0.5, +- 1 px
-    costs = {o: cv2.boxFilter(np.abs(nl - warp(nr, o)), -1, (5, 5), normalize=True) for o in (-1.0, -0.5, 0.0, 0.5, 1.0)}
-    best_other = np.minimum.reduce([costs[o] for o in (-1.0, -0.5, 0.5, 1.0)])
-    worse = costs[0.0] > params.bad_match_ratio * best_other
+        best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
+        worse = cost(0.0) > params.bad_match_ratio * best_other
     # the matches in the right array's pixels
     xr_all = (u + (window.x0_px - window.xr0_px)) - d[v, u].astype(np.float64)
     out = {}
     for name, sel in regions.items():
-        vs, us, xr = (v, u, xr_all) if sel is None else (v[sel], u[sel], xr_all[sel])
+        vs, us, xr, wr = (v, u, xr_all, worse) if sel is None else (v[sel], u[sel], xr_all[sel], worse[sel])
         n = len(vs)
         if n < params.min_pixels:
             out[name] = StereoEstimate(n_pixels=n)
@@ -458,7 +464,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
             continue
         # vertical disparity v_left - v_right, as gtforge.rectification reports it for board corners
         out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
-                                   bad_match_pct=float(100.0 * worse[vs, us].mean()), n_pixels=n)
+                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n)
     return out
 
 
