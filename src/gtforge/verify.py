@@ -518,7 +518,7 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     region_c = np.ascontiguousarray(cut(region, x0, x1)[::f, ::f])
     left_c = _area(cut(left, x0, x1), f)
     right_c = None if right is None else _area(cut(right, xr0, xr1), f)
-    return depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, Window(x0, y0, xr0, w, h)
+    return depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, Window(int(x0), int(y0), int(xr0), w, h)
 
 
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
