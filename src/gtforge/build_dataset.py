@@ -471,7 +471,10 @@ def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: 
     from gtforge.io.formats import to_gray
     from gtforge.verify import local_normalize
 
-    g = local_normalize(to_gray(zed_left).astype(np.float32), None, 3.0)
+    gray = to_gray(zed_left)
+    if gray.shape != rendered_norm.shape:  # verify_scene renders at its work resolution (a factor smaller)
+        gray = cv2.resize(gray, rendered_norm.shape[::-1], interpolation=cv2.INTER_AREA)
+    g = local_normalize(gray.astype(np.float32), None, 3.0)
 
     def to8(a):
         return np.clip(128 + 50 * a, 0, 255).astype(np.uint8)

@@ -107,6 +107,17 @@ def _distort_and_jacobian(xy: np.ndarray, d: np.ndarray, jac: bool):
     return out, J
 
 
+@numba.njit(cache=True, inline="always")
+def distort_point(x, y, d, M, tilted):
+    """``distort`` of one normalised point, for numba code: ``d`` from :func:`full_coeffs`, ``M`` the
+    :func:`tilt_matrix` (used only when ``tilted``)."""
+    gx, gy = _g_and_J(x, y, d)[:2]
+    if not tilted:
+        return gx, gy
+    hw = M[2, 0] * gx + M[2, 1] * gy + M[2, 2]
+    return (M[0, 0] * gx + M[0, 1] * gy + M[0, 2]) / hw, (M[1, 0] * gx + M[1, 1] * gy + M[1, 2]) / hw
+
+
 # ---- validity: where the radial map is still one-to-one ---------------------------------------
 def _radial_slope(r: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """d/dr of ``r * radial(r^2)``, and the radial numerator and denominator, at radii ``r``."""

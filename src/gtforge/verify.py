@@ -25,14 +25,14 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Callable, ClassVar, Literal
+from typing import Callable, ClassVar, Literal, NamedTuple
 
 import cv2
 import numba
 import numpy as np
 from pydantic import Field
-from scipy import ndimage
 
+from gtforge import lens
 from gtforge.camera import Rig
 from gtforge.errors import InputError
 from gtforge.geometry import transform_points
@@ -136,37 +136,73 @@ def interior_mask(mask: np.ndarray, radius_px: int) -> np.ndarray:
     return cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
 
 
-def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray,
-                   occlusion_tol_mm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occlusion_tol_mm: float = 2.0,
+                   origin_px: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """The texture image rendered into the ZED-left view through the GT depth: ``(float32 image, valid mask)``.
 
     Each ZED-left pixel with GT depth is back-projected, moved into the texture camera (``T_mech_from_zed``),
     projected with its lens model and sampled bilinearly. A point the texture camera cannot see (outside its image,
-    or hidden behind another GT point by more than ``occlusion_tol_mm``) is left out."""
-    H, W = depth_zed_mm.shape
-    cam = rig.zed.left
-    valid = np.isfinite(depth_zed_mm)
-    v, u = np.nonzero(valid)
-    z = depth_zed_mm[v, u].astype(np.float64)
-    P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
-    Pm = transform_points(rig.T_mech_from_zed, P)
-    uv = rig.mech.project(Pm)
-    tex = to_gray(texture).astype(np.float32)
-    th, tw = tex.shape
-    inside = (Pm[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= tw - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= th - 1)
-    if rig.separate_depth_camera:
-        # the depth camera saw these points; the texture camera may not: z-buffer them in the texture image
-        ui = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, tw - 1)
-        vi = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, th - 1)
-        zbuf = np.full(th * tw, np.inf)
-        np.minimum.at(zbuf, vi[inside] * tw + ui[inside], Pm[inside, 2])
-        inside &= Pm[:, 2] <= zbuf[vi * tw + ui] + occlusion_tol_mm
-    out = np.zeros((H, W), np.float32)
-    ok = np.zeros((H, W), bool)
-    ok[v[inside], u[inside]] = True
-    # bilinear at the exact position (cv2.remap would round it to 1/32 px)
-    out[v[inside], u[inside]] = ndimage.map_coordinates(tex, [uv[inside, 1], uv[inside, 0]], order=1, mode="nearest")
+    or hidden behind another GT point by more than ``occlusion_tol_mm``) is left out. ``depth_zed_mm`` may be a
+    window of the ZED-left image whose pixel ``[0, 0]`` is the image's pixel ``(u, v) = origin_px``."""
+    zed, mech = rig.zed.left, rig.mech
+    T = rig.T_mech_from_zed
+    d = lens.full_coeffs(mech.dist_coeffs)
+    tilted = bool(d[12] != 0.0 or d[13] != 0.0)
+    out = np.zeros(depth_zed_mm.shape, np.float32)
+    ok = np.zeros(depth_zed_mm.shape, bool)
+    _render_kernel(np.asarray(depth_zed_mm, np.float32), float(origin_px[0]), float(origin_px[1]),
+                   np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]), np.ascontiguousarray(T[:3, :3]),
+                   np.ascontiguousarray(T[:3, 3]), np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
+                   lens.tilt_matrix(d[12], d[13]), tilted, np.ascontiguousarray(to_gray(texture)),
+                   rig.separate_depth_camera, float(occlusion_tol_mm), out, ok)
     return out, ok
+
+
+@numba.njit(cache=True)
+def _render_kernel(depth, x0, y0, k_zed, R, t, k_tex, dist, M, tilted, tex, zbuffer, tol_mm, out, ok):
+    """``render_texture``'s loop over the pixels: texture-camera position and depth of each GT pixel (NaN: not seen),
+    the z-buffer of those (only with ``zbuffer``: a separate depth camera), then the bilinear samples."""
+    H, W = depth.shape
+    th, tw = tex.shape
+    pos = np.full((H, W, 3), np.nan)
+    for v in range(H):
+        for u in range(W):
+            z = np.float64(depth[v, u])
+            if not math.isfinite(z):
+                continue
+            X = (u + x0 - k_zed[2]) / k_zed[0] * z
+            Y = (v + y0 - k_zed[3]) / k_zed[1] * z
+            Zm = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * z + t[2]
+            if not Zm > 0:
+                continue
+            Xm = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * z + t[0]
+            Ym = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * z + t[1]
+            xd, yd = lens.distort_point(Xm / Zm, Ym / Zm, dist, M, tilted)
+            ut = k_tex[0] * xd + k_tex[2]
+            vt = k_tex[1] * yd + k_tex[3]
+            if 0 <= ut <= tw - 1 and 0 <= vt <= th - 1:
+                pos[v, u, 0], pos[v, u, 1], pos[v, u, 2] = ut, vt, Zm
+    zbuf = np.full((th, tw) if zbuffer else (1, 1), np.inf)
+    if zbuffer:  # the depth camera saw these points; the texture camera may not: z-buffer them in the texture image
+        for v in range(H):
+            for u in range(W):
+                if math.isfinite(pos[v, u, 2]):
+                    ti, tj = int(np.rint(pos[v, u, 1])), int(np.rint(pos[v, u, 0]))
+                    zbuf[ti, tj] = min(zbuf[ti, tj], pos[v, u, 2])
+    for v in range(H):
+        for u in range(W):
+            ut, vt, Zm = pos[v, u, 0], pos[v, u, 1], pos[v, u, 2]
+            if not math.isfinite(Zm) or (zbuffer and Zm > zbuf[int(np.rint(vt)), int(np.rint(ut))] + tol_mm):
+                continue
+            # bilinear at the exact position (cv2.remap would round it to 1/32 px)
+            i = min(int(ut), tw - 2) if tw > 1 else 0
+            j = min(int(vt), th - 2) if th > 1 else 0
+            fx, fy = ut - i, vt - j
+            i1, j1 = min(i + 1, tw - 1), min(j + 1, th - 1)
+            top = (1.0 - fx) * tex[j, i] + fx * tex[j, i1]
+            bot = (1.0 - fx) * tex[j1, i] + fx * tex[j1, i1]
+            out[v, u] = (1.0 - fy) * top + fy * bot
+            ok[v, u] = True
 
 
 def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px: float = 1.0) -> np.ndarray:
@@ -179,45 +215,50 @@ def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px
     return (hi - lo) < max_range_px
 
 
-@numba.njit(cache=True, inline="always")
-def _keys(s):
-    s = abs(s)
-    if s <= 1.0:
-        return (1.5 * s - 2.5) * s * s + 1.0
-    if s < 2.0:
-        return ((-0.5 * s + 2.5) * s - 4.0) * s + 2.0
-    return 0.0
-
-
 @numba.njit(cache=True)
-def _cubic_at(img, x, y, out):
-    """Keys cubic convolution (a = -0.5, interpolating) at exact positions; borders replicated."""
-    H, W = img.shape
+def _cubic_at(imgs, x, y, out):
+    """Keys cubic convolution (a = -0.5, interpolating) of each image of the stack ``imgs`` (K, H, W) at exact
+    positions into ``out`` (K, N); borders replicated. A point's 4 + 4 weights are computed once, for every image."""
+    K, H, W = imgs.shape
     for k in range(x.shape[0]):
         fx = math.floor(x[k])
         fy = math.floor(y[k])
-        tx = x[k] - fx
-        ty = y[k] - fy
         ix = int(fx)
         iy = int(fy)
-        acc = 0.0
-        for j in range(4):
-            yy = min(max(iy + j - 1, 0), H - 1)
-            row = 0.0
-            for i in range(4):
-                xx = min(max(ix + i - 1, 0), W - 1)
-                row += _keys(tx - (i - 1)) * img[yy, xx]
-            acc += _keys(ty - (j - 1)) * row
-        out[k] = acc
+        # the Keys kernel at the 4 taps ix - 1 .. ix + 2 (offsets 1 + t, t, 1 - t, 2 - t), as polynomials in t
+        t = x[k] - fx
+        t2 = t * t
+        t3 = t2 * t
+        wx0, wx1, wx2, wx3 = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+                              0.5 * t3 - 0.5 * t2)
+        t = y[k] - fy
+        t2 = t * t
+        t3 = t2 * t
+        wy0, wy1, wy2, wy3 = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+                              0.5 * t3 - 0.5 * t2)
+        if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
+            x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
+        else:
+            x0, x1, x2, x3 = (min(max(ix - 1, 0), W - 1), min(max(ix, 0), W - 1), min(max(ix + 1, 0), W - 1),
+                              min(max(ix + 2, 0), W - 1))
+            y0, y1, y2, y3 = (min(max(iy - 1, 0), H - 1), min(max(iy, 0), H - 1), min(max(iy + 1, 0), H - 1),
+                              min(max(iy + 2, 0), H - 1))
+        for c in range(K):
+            r0 = wx0 * imgs[c, y0, x0] + wx1 * imgs[c, y0, x1] + wx2 * imgs[c, y0, x2] + wx3 * imgs[c, y0, x3]
+            r1 = wx0 * imgs[c, y1, x0] + wx1 * imgs[c, y1, x1] + wx2 * imgs[c, y1, x2] + wx3 * imgs[c, y1, x3]
+            r2 = wx0 * imgs[c, y2, x0] + wx1 * imgs[c, y2, x1] + wx2 * imgs[c, y2, x2] + wx3 * imgs[c, y2, x3]
+            r3 = wx0 * imgs[c, y3, x0] + wx1 * imgs[c, y3, x1] + wx2 * imgs[c, y3, x2] + wx3 * imgs[c, y3, x3]
+            out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
 
 
 def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Cubic samples of ``img`` at the points ``(x, y)`` (exact sub-pixel positions: ``cv2.remap`` rounds them to
-    1/32 px, the size of the shifts measured here)."""
-    out = np.empty(len(x))
-    _cubic_at(np.ascontiguousarray(img, np.float32), np.ascontiguousarray(x, np.float64),
+    """Cubic samples of ``img`` (H, W), or of each image of a stack (K, H, W) -> (K, N), at the points ``(x, y)``
+    (exact sub-pixel positions: ``cv2.remap`` rounds them to 1/32 px, the size of the shifts measured here)."""
+    imgs = np.ascontiguousarray(img, np.float32)
+    out = np.empty((1 if imgs.ndim == 2 else imgs.shape[0], len(x)))
+    _cubic_at(imgs.reshape((-1,) + imgs.shape[-2:]), np.ascontiguousarray(x, np.float64),
               np.ascontiguousarray(y, np.float64), out)
-    return out
+    return out[0] if imgs.ndim == 2 else out
 
 
 class ShiftAligner:
@@ -228,6 +269,7 @@ class ShiftAligner:
     few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
 
     SIGMAS = (2.0, 0.0)
+    COARSE_TOL_PX = 0.01
 
     def __init__(self, ref: np.ndarray, img: np.ndarray):
         self.ref = ref
@@ -241,29 +283,36 @@ class ShiftAligner:
     def align(self, mask: np.ndarray, min_pixels: int = 400, iterations: int = 30, tol_px: float = 1e-4,
               max_points: int = 30000) -> ShiftEstimate:
         """``max_points``: a larger mask is subsampled evenly (the estimate's noise is far below the thresholds)."""
-        n = int(mask.sum())
+        v, u = np.nonzero(mask)
+        return self.align_at(v, u, min_pixels, iterations, tol_px, max_points)
+
+    def align_at(self, v: np.ndarray, u: np.ndarray, min_pixels: int = 400, iterations: int = 30,
+                 tol_px: float = 1e-4, max_points: int = 30000) -> ShiftEstimate:
+        """``align`` over the pixels ``(v, u)`` of a mask, listed in ``np.nonzero``'s (row-major) order."""
+        n = len(v)
         if n < min_pixels:
             return ShiftEstimate(n_pixels=n)
-        v, u = np.nonzero(mask)
         if n > max_points:
             keep = np.linspace(0, n - 1, max_points).round().astype(np.int64)
             v, u = v[keep], u[keep]
         uf, vf = u.astype(np.float64), v.astype(np.float64)
         d = np.zeros(2)
-        for r, gx, gy, coeffs in self.levels:
+        for level, (r, gx, gy, coeffs) in enumerate(self.levels):
+            # the coarse pass only brings the fine one near its solution: a loose tolerance there
+            tol = tol_px if level == len(self.levels) - 1 else self.COARSE_TOL_PX
             rv = r[v, u].astype(np.float64)
             # img(u + d) * (1 + g) + o ~ ref(u): unknowns (step in d, g, o), linearised at the template
-            A = np.stack([gx[v, u], gy[v, u], rv, np.ones_like(rv)], axis=1).astype(np.float64)
+            At = np.stack([gx[v, u], gy[v, u], rv, np.ones_like(rv)]).astype(np.float64)
             try:
-                pinv = np.linalg.solve(A.T @ A, A.T)
+                inv = np.linalg.inv(At @ At.T)
             except np.linalg.LinAlgError:
                 return ShiftEstimate(n_pixels=n)
             for _ in range(iterations):
-                step = pinv @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv)
+                step = inv @ (At @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv))
                 d -= step[:2]  # inverse composition of a translation
                 if np.abs(d).max() > 20:  # diverged: nothing to align
                     return ShiftEstimate(n_pixels=n)
-                if np.abs(step[:2]).max() < tol_px:
+                if np.abs(step[:2]).max() < tol:
                     break
         w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
         rv = self.ref[v, u].astype(np.float64)
@@ -282,99 +331,140 @@ def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixel
 def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
     gx = cv2.Sobel(norm_img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = cv2.Sobel(norm_img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-    return np.hypot(gx, gy) > thresh
+    return cv2.magnitude(gx, gy) > thresh
 
 
 # ---- the checks -----------------------------------------------------------------------------------
+class Window(NamedTuple):
+    """Where the arrays a check is given lie in the (work-resolution) ZED images: the ZED-left arrays' pixel ``[0, 0]``
+    is the image's pixel ``(x0_px, y0_px)``, the ZED-right image's is ``(xr0_px, y0_px)``; the images are
+    ``width_px`` x ``height_px``."""
+
+    x0_px: int
+    y0_px: int
+    xr0_px: int
+    width_px: int
+    height_px: int
+
+
+# Margin (work px) of the window around the ground truth's bounding box: covers the local normalisation (Gaussian
+# sigma 3 px: 12 px), the aligner's 2 px blur (8 px), Sobel and cubic taps (3 px) and shifts of a few px, so that every
+# figure is the one computed on the whole image.
+WINDOW_MARGIN_PX = 32
+
+
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
-                      rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None
+                      rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None
                       ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
-    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used)."""
-    rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm)
+    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used).
+
+    The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's)."""
+    h, w = depth_zed_mm.shape
+    window = window or Window(0, 0, 0, w, h)
+    rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm,
+                              (window.x0_px, window.y0_px))
     r = int(np.ceil(2 * params.norm_sigma_px))
     ok_support = interior_mask(ok, r)
     n_rend = local_normalize(rend, ok, params.norm_sigma_px)
-    gray = to_gray(zed_left).astype(np.float32)
-    n_zed = left_norm if left_norm is not None else local_normalize(gray, None, params.norm_sigma_px)
+    n_zed = left_norm if left_norm is not None else \
+        local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
     use = ok_support & textured_mask(n_rend) & smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
-    fruit = use & ((region == REGION_CENTRE) | (region == REGION_EDGE))
+    v, u = np.nonzero(use)
+    reg = region[v, u]
+    fruit = (reg == REGION_CENTRE) | (reg == REGION_EDGE)
     aligner = ShiftAligner(n_rend, n_zed)
-    e_all = aligner.align(use, params.min_pixels)
-    e_fruit = aligner.align(fruit, params.min_pixels)
+    e_all = aligner.align_at(v, u, params.min_pixels)
+    e_fruit = aligner.align_at(v[fruit], u[fruit], params.min_pixels)
 
     def tile_shifts() -> list[list[float | None]]:
         out = []
-        H, W = gray.shape
+        W, H = window.width_px, window.height_px
+        vi, ui = v + window.y0_px, u + window.x0_px  # image pixels
         nx, ny = params.tiles
         for j in range(ny):
             for i in range(nx):
-                sl = (slice(j * H // ny, (j + 1) * H // ny), slice(i * W // nx, (i + 1) * W // nx))
-                m = np.zeros_like(use)
-                m[sl] = use[sl]
-                e = aligner.align(m, params.min_pixels)
-                out.append([(sl[1].start + sl[1].stop - 1) / 2, (sl[0].start + sl[0].stop - 1) / 2, e.dx_px, e.dy_px])
+                ya, yb, xa, xb = j * H // ny, (j + 1) * H // ny, i * W // nx, (i + 1) * W // nx
+                m = (vi >= ya) & (vi < yb) & (ui >= xa) & (ui < xb)
+                e = aligner.align_at(v[m], u[m], params.min_pixels)
+                out.append([(xa + xb - 1) / 2, (ya + yb - 1) / 2, e.dx_px, e.dy_px])
         return out
 
     return e_all, e_fruit, tile_shifts, n_rend, use
 
 
 def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
-                       region: np.ndarray, params: VerifyParams, left_norm: np.ndarray | None = None
-                       ) -> dict[str, StereoEstimate]:
-    """Disparity bias, vertical offset and the share of clearly worse matches, per region (all, fruit, background)."""
-    H, W = disparity_px.shape
+                       region: np.ndarray, params: VerifyParams, left_norm: np.ndarray | None = None,
+                       window: Window | None = None) -> dict[str, StereoEstimate]:
+    """Disparity bias, vertical offset and the share of clearly worse matches, per region (all, fruit, background).
+
+    The arrays may be a ``window`` of the images (``zed_right`` then covers the same rows and the columns the ground
+    truth's matches fall in)."""
+    h, w = disparity_px.shape
+    window = window or Window(0, 0, 0, w, h)
     nl = left_norm if left_norm is not None else \
         local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
     nr = local_normalize(to_gray(zed_right).astype(np.float32), None, params.norm_sigma_px)
     ok = nonoccluded & np.isfinite(disparity_px)
     d = np.where(ok, disparity_px, 0).astype(np.float32)
-    gx_grid, gy_grid = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    x_match = np.arange(window.x0_px, window.x0_px + w, dtype=np.float32) - d  # image column of the GT match
+    v_img = np.arange(window.y0_px, window.y0_px + h, dtype=np.float32)[:, None]
     # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
-    base = interior_mask(ok, 2) & (gx_grid - d > 3) & (gx_grid - d < W - 4) & (gy_grid > 3) & (gy_grid < H - 4)
+    base = interior_mask(ok, 2) & (x_match > 3) & (x_match < window.width_px - 4) & (v_img > 3) & \
+        (v_img < window.height_px - 4)
     use = base & textured_mask(nl) & smooth_depth_mask(disparity_px)
-    regions = {"all": use, "fruit": use & ((region == REGION_CENTRE) | (region == REGION_EDGE)),
-               "background": use & (region == REGION_BG)}
-    gxr = cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gyr = cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-    cr = nr
+    v, u = np.nonzero(use)
+    reg = region[v, u]
+    regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
+    # the right image, its gradients: one stack, sampled together
+    right = np.stack([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+                      cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)])
+    # share of clearly worse matches: 5x5 SAD of the normalised images at GT and at GT +- 0.5, +- 1 px, over the used
+    # pixels' bounding box + 2 px (the SAD window)
+    worse = np.zeros(len(v), bool)  # at the used pixels (v, u)
+    if len(v):
+        sub = (slice(max(int(v.min()) - 2, 0), int(v.max()) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
+        map_x = x_match[sub] - np.float32(window.xr0_px)  # exact: integers subtracted
+        map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape)
+        nl_sub = nl[sub]
+        vs_, us_ = v - sub[0].start, u - sub[1].start
 
-    def warp(a, extra_dx=0.0, dy=0.0):
-        return cv2.remap(a, gx_grid - d - np.float32(extra_dx), gy_grid + np.float32(dy), cv2.INTER_CUBIC,
-                         borderMode=cv2.BORDER_REPLICATE)
+        def cost(o):  # at (v, u): the 5x5 SAD of the left image and the right one warped to x_match - o
+            warped = cv2.remap(nr, map_x - np.float32(o), map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            return cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True)[vs_, us_]
 
-    # share of clearly worse matches: 5x5 SAD of the normalised images at GT and at GT +- 0.5, +- 1 px
-    costs = {o: cv2.boxFilter(np.abs(nl - warp(nr, o)), -1, (5, 5), normalize=True) for o in (-1.0, -0.5, 0.0, 0.5, 1.0)}
-    best_other = np.minimum.reduce([costs[o] for o in (-1.0, -0.5, 0.5, 1.0)])
-    worse = costs[0.0] > params.bad_match_ratio * best_other
+        best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
+        worse = cost(0.0) > params.bad_match_ratio * best_other
+    # the matches in the right array's pixels
+    xr_all = (u + (window.x0_px - window.xr0_px)) - d[v, u].astype(np.float64)
     out = {}
-    for name, m in regions.items():
-        n = int(m.sum())
+    for name, sel in regions.items():
+        vs, us, xr, wr = (v, u, xr_all, worse) if sel is None else (v[sel], u[sel], xr_all[sel], worse[sel])
+        n = len(vs)
         if n < params.min_pixels:
             out[name] = StereoEstimate(n_pixels=n)
             continue
-        v, u = np.nonzero(m)
         if n > 30000:  # evenly subsampled: the estimate's noise stays far below the thresholds
             keep = np.linspace(0, n - 1, 30000).round().astype(np.int64)
-            v, u = v[keep], u[keep]
+            vk, uk, xr = vs[keep], us[keep], xr[keep]
+        else:
+            vk, uk = vs, us
         b, dy = 0.0, 0.0
-        lv = nl[v, u].astype(np.float64)
-        xr, yr = u - d[v, u].astype(np.float64), v.astype(np.float64)
+        lv = nl[vk, uk].astype(np.float64)
+        yr = vk.astype(np.float64)
         for _ in range(20):
-            w = sample_cubic(cr, xr - b, yr + dy)
-            wx = sample_cubic(gxr, xr - b, yr + dy)
-            wy = sample_cubic(gyr, xr - b, yr + dy)
+            w_, wx, wy = sample_cubic(right, xr - b, yr + dy)
             # right(u - d - b, v + dy): d/db = -gx, d/d(dy) = +gy
             A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
-            step = np.linalg.solve(A.T @ A, -(A.T @ (w - lv)))
+            step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
             b, dy = b + step[0], dy + step[1]
-            if max(abs(step[0]), abs(step[1])) < 1e-5 or max(abs(b), abs(dy)) > 10:
+            if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b), abs(dy)) > 10:
                 break
         if max(abs(b), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
             continue
         # vertical disparity v_left - v_right, as gtforge.rectification reports it for board corners
         out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
-                                   bad_match_pct=float(100.0 * worse[m].mean()), n_pixels=n)
+                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n)
     return out
 
 
@@ -382,48 +472,76 @@ def _scaled_shift(e: ShiftEstimate, f: int) -> ShiftEstimate:
     return e if e.dx_px is None else e.model_copy(update={"dx_px": e.dx_px * f, "dy_px": e.dy_px * f})
 
 
-def _reduce(f: int, depth, disp, noc, region, left, right, rig: Rig):
-    """Everything a factor ``f`` smaller: images by area averaging, depth by the mean of fully valid f x f blocks
-    (the block centre's depth on a locally flat surface), labels by the block's top-left pixel; the ZED camera scaled
-    the same way (pixel centres stay at integer coordinates)."""
+def _area(a: np.ndarray, f: int) -> np.ndarray:
+    """The mean of each f x f block (NaN if any pixel of it is NaN)."""
+    h, w = a.shape[0] // f, a.shape[1] // f
+    return cv2.resize(a[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA) if f > 1 else a
+
+
+def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
+    """The arrays the checks run on: everything a factor ``f`` smaller, in the window around the ground truth
+    (``Window``, margin ``WINDOW_MARGIN_PX``). Images are reduced by area averaging, depth by the mean of fully valid
+    f x f blocks (the block centre's depth on a locally flat surface), labels by the block's top-left pixel; the ZED
+    camera is scaled the same way (pixel centres stay at integer coordinates). Returns ``(depth, disparity,
+    nonoccluded, region, left, right, rig, window)``."""
     H, W = depth.shape
     h, w = H // f, W // f
+    rig_w = rig
+    if f > 1:
+        zed = rig.zed.model_copy(update={"left": rig.zed.left.scaled(1.0 / f).model_copy(update={"width_px": w,
+                                                                                                 "height_px": h}),
+                                         "doffs_px": rig.zed.doffs_px / f})
+        rig_w = rig.model_copy(update={"zed": zed})
+    depth_w = _area(np.asarray(depth, np.float32), f)
+    valid = np.isfinite(depth_w)
+    if f == 1:
+        valid |= np.isfinite(disp)
+    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    m = WINDOW_MARGIN_PX
+    if len(rows):
+        y0, y1, x0, x1 = max(rows[0] - m, 0), min(rows[-1] + 1 + m, h), max(cols[0] - m, 0), min(cols[-1] + 1 + m, w)
+    else:
+        y0, y1, x0, x1 = 0, h, 0, w
+    depth_c = depth_w[y0:y1, x0:x1]
+    disp_c = rig_w.zed.depth_to_disparity(depth_c) if f > 1 else disp[y0:y1, x0:x1]
+    finite = disp_c[np.isfinite(disp_c)]
+    if finite.size:  # the right image: the columns the matches fall in
+        xr0, xr1 = max(x0 - math.ceil(float(finite.max())), 0), min(x1 - math.floor(float(finite.min())), w)
+        xr0, xr1 = min(xr0, w - 1), max(xr1, xr0 + 1)
+    else:
+        xr0, xr1 = x0, x1
 
-    def area(a):  # the mean of each f x f block (NaN if any pixel of it is NaN)
-        return cv2.resize(np.ascontiguousarray(a[:h * f, :w * f]), (w, h), interpolation=cv2.INTER_AREA)
+    def cut(a, xa, xb):  # rows y0:y1, columns xa:xb of the work-resolution image, from a dataset-resolution array
+        return a[y0 * f:y1 * f, xa * f:xb * f]
 
-    depth_r = area(depth.astype(np.float32))
-    noc_r = area(noc.astype(np.float32)) == 1.0
-    region_r = np.ascontiguousarray(region[:h * f:f, :w * f:f])
-    left_r = cv2.resize(left[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA)
-    right_r = None if right is None else cv2.resize(right[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA)
-    zed = rig.zed.model_copy(update={"left": rig.zed.left.scaled(1.0 / f).model_copy(update={"width_px": w,
-                                                                                             "height_px": h}),
-                                     "doffs_px": rig.zed.doffs_px / f})
-    rig_r = rig.model_copy(update={"zed": zed})
-    return depth_r, zed.depth_to_disparity(depth_r), noc_r, region_r, left_r, right_r, rig_r
+    noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
+    region_c = np.ascontiguousarray(cut(region, x0, x1)[::f, ::f])
+    left_c = _area(cut(left, x0, x1), f)
+    right_c = None if right is None else _area(cut(right, xr0, xr1), f)
+    return depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, Window(int(x0), int(y0), int(xr0), w, h)
 
 
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
                  zed_left: np.ndarray, zed_right: np.ndarray | None, texture: np.ndarray | None, rig: Rig,
                  params: VerifyParams | None = None) -> tuple[SceneVerification, np.ndarray | None]:
     """Both checks for one scene (ZED-left arrays at the dataset's resolution, uncropped; see module docstring).
-    Returns the verification and the rendered, normalised texture (for overlays; None when not measured)."""
+    Returns the verification and the rendered, normalised texture (at the work resolution, for overlays; None when not
+    measured). The checks run in the window around the ground truth (``Window``): the same figures as on the whole
+    image, at a fraction of the cost."""
     params = params or VerifyParams()
     reasons: list[str] = []
     if texture is None:
         return SceneVerification(status="not verifiable", reasons=["no texture image"]), None
-    if float(to_gray(texture).std()) < 1.0:
+    if float(cv2.meanStdDev(to_gray(texture))[1][0, 0]) < 1.0:
         return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
     f = max(1, int(np.ceil(depth_zed_mm.shape[1] / params.work_width_px)))
-    if f > 1:
-        depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig = _reduce(
-            f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
-    left_norm = local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)  # shared by both
-    e_all, e_fruit, tile_shifts, n_rend, _ = texture_alignment(depth_zed_mm, region, zed_left, texture, rig, params,
-                                                               left_norm)
-    stereo = stereo_consistency(zed_left, zed_right, disparity_px, nonoccluded, region, params, left_norm) \
-        if zed_right is not None else {}
+    depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
+        f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
+    left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
+    e_all, e_fruit, tile_shifts, n_rend_c, _ = texture_alignment(depth_c, region_c, left_c, texture, rig_w, params,
+                                                                 left_norm, win)
+    stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win) \
+        if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
         stereo = {k: v.model_copy(update={"disparity_bias_px": None if v.disparity_bias_px is None
@@ -458,6 +576,8 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
                            f"ground truth (> {params.max_bad_match_pct} %)")
     # the shift map is for looking at a flagged scene: only computed there
     tiles = tile_shifts() if reasons else []
+    n_rend = np.zeros((win.height_px, win.width_px), np.float32)
+    n_rend[win.y0_px:win.y0_px + n_rend_c.shape[0], win.x0_px:win.x0_px + n_rend_c.shape[1]] = n_rend_c
     return SceneVerification(status="flagged" if reasons else "ok", reasons=reasons, texture_all=e_all,
                              texture_fruit=e_fruit, texture_tiles=tiles, stereo=stereo), n_rend
 
