@@ -75,6 +75,26 @@ def test_moved_fruit_is_flagged_with_the_right_shift(moved_session, true_calibra
         assert ver.texture_tiles and len(ver.texture_tiles) == 12  # shift map for flagged scenes
 
 
+def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_calibration, tmp_path):
+    """At full resolution the checks run at half size: the flagged scene's overlay must still be drawn (it
+    crashed on the shapes before). A work width of 300 px forces a factor 3 on this 883 px wide scene."""
+    import cv2
+
+    from gtforge.build_dataset import write_verification_overlay
+
+    rig = CalibrationFile.read(true_calibration).rig
+    s = open_session(moved_session)
+    cap = s.load_capture(s.root / "scenes" / "000")
+    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), None)
+    ver, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
+                                 cap.mech_texture, rig, VerifyParams(work_width_px=300))
+    assert ver.status == "flagged" and rendered.shape == (sd.depth_mm.shape[0] // 3, sd.depth_mm.shape[1] // 3)
+    assert ver.texture_fruit.magnitude_px > 0.3  # the 0.5 mm roll, measured at a third of the resolution
+    p = tmp_path / "overlay.jpg"
+    write_verification_overlay(p, cap.zed_left, rendered)
+    assert cv2.imread(str(p)).shape[:2] == rendered.shape
+
+
 def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibration, T_true):
     base = CalibrationFile.read(true_calibration).rig
     for axis in ([0.0, 0.05, 0.0], [0.05, 0.0, 0.0]):
