@@ -319,3 +319,80 @@ def test_fruit_centre_equals_the_full_image_erosion():
         np.testing.assert_array_equal(region == REGION_EDGE, f & ~full)
         n_nonempty += full.any()
     assert n_nonempty > 50  # measured 98: most masks keep a centre
+
+
+def test_fit_plane_robust_counts_as_numpy_and_finds_the_plane():
+    """The compiled hypothesis scoring counts the inliers numpy counts; with half the points off the plane the
+    RANSAC + refit still returns it."""
+    from gtforge.geometry import _inlier_counts, fit_plane_robust
+
+    rng = np.random.default_rng(3)
+    n_true = np.array([0.1, -0.45, -0.89])
+    n_true /= np.linalg.norm(n_true)
+    xy = rng.uniform(-400, 400, (4000, 2))
+    z = (-650.0 - n_true[0] * xy[:, 0] - n_true[1] * xy[:, 1]) / n_true[2]
+    pts = np.column_stack([xy, z]) + rng.normal(0, 0.3, (4000, 3))
+    pts[::2, 2] -= rng.uniform(5, 80, 2000)  # half of them above the table
+    normals = rng.normal(size=(50, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    offsets = np.einsum("ij,ij->i", normals, pts[rng.integers(0, 4000, 50)])
+    xyz = np.ascontiguousarray(pts.T)
+    np.testing.assert_array_equal(_inlier_counts(xyz[0], xyz[1], xyz[2], normals, offsets, 3.0),
+                                  (np.abs(pts @ normals.T - offsets) < 3.0).sum(axis=0))
+    n, c, inliers = fit_plane_robust(pts, 3.0, iterations=100, rng=np.random.default_rng(0))
+    if c < 0:
+        n, c = -n, -c
+    assert abs(n @ n_true) > 0.9999 and abs(c - 650.0) < 0.5
+    assert inliers[1::2].mean() > 0.99 and inliers[::2].mean() < 0.05
+
+
+def test_fruit_regions_equal_the_point_cloud_computation():
+    """fruit_regions builds 3-D points for the plane's sample only and works on bounding boxes; the labels must
+    equal the plain computation: every GT pixel's point, its height above the same plane, components of the whole
+    image."""
+    import cv2
+
+    from gtforge.build_dataset import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
+    from gtforge.camera import PinholeCamera, RectifiedStereo
+    from gtforge.geometry import fit_plane_robust
+
+    H, W = 240, 320
+    cam = PinholeCamera(width_px=W, height_px=H, fx_px=300.0, fy_px=300.0, cx_px=161.3, cy_px=118.7)
+    zed = RectifiedStereo(left=cam, baseline_mm=120.0)
+    params = BuildParams(erosion_px=4)
+    rng = np.random.default_rng(2)
+    v, u = np.mgrid[0:H, 0:W]
+    ray_x, ray_y = (u - cam.cx_px) / cam.fx_px, (v - cam.cy_px) / cam.fy_px
+    for trial in range(4):
+        n_t = np.array([rng.normal(0, 0.05), -0.45, -0.89])
+        n_t /= np.linalg.norm(n_t)
+        z = -650.0 / (n_t[0] * ray_x + n_t[1] * ray_y + n_t[2])  # the table: n.p = -650
+        for cu, cv_, r in rng.uniform([60, 60, 15], [260, 180, 45], (3, 3)):  # fruit: bumps towards the camera
+            z -= 3.0 * np.sqrt(np.clip(r ** 2 - (u - cu) ** 2 - (v - cv_) ** 2, 0, None))
+        depth = (z + rng.normal(0, 0.5, z.shape)).astype(np.float32)
+        depth[:rng.integers(0, 40), :] = np.nan  # GT missing at the borders and in a hole
+        depth[:, W - rng.integers(1, 60):] = np.nan
+        depth[100:130, 20:70] = np.nan
+        region, fruit = fruit_regions(depth, zed, params)
+        # the plain computation, with the plane fit_plane_robust gives for the same sample
+        valid = np.isfinite(depth)
+        vv, uu = np.nonzero(valid)
+        pts = np.stack([ray_x[vv, uu] * depth[vv, uu], ray_y[vv, uu] * depth[vv, uu], depth[vv, uu]], axis=1)
+        r_ = np.random.default_rng(0)
+        n, c, _ = fit_plane_robust(pts[r_.choice(len(pts), min(len(pts), 20000), replace=False)],
+                                   params.plane_threshold_mm, iterations=300, rng=r_)
+        if c > 0:
+            n, c = -n, -c
+        fg = np.zeros((H, W), bool)
+        fg[vv, uu] = pts @ n - c > params.fruit_height_mm
+        n_cc, labels, stats, _ = cv2.connectedComponentsWithStats(fg.astype(np.uint8), connectivity=8)
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        keep = np.zeros(n_cc, bool)
+        keep[1:] = (areas >= params.min_component_frac * areas.max()) & (areas >= 50)
+        expected = keep[labels]
+        np.testing.assert_array_equal(fruit, expected)
+        centre = cv2.erode(expected.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))) > 0
+        np.testing.assert_array_equal(region == REGION_CENTRE, centre)
+        np.testing.assert_array_equal(region == REGION_EDGE, expected & ~centre)
+        np.testing.assert_array_equal(region == REGION_BG, valid & ~expected)
+        assert expected.sum() > 1000, trial

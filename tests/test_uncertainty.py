@@ -82,6 +82,31 @@ def test_sigma_map_coverage_per_region(session_dir, calibration, T_true, noise_m
         assert 58 <= one <= 78 and 90 <= two <= 100, (name, one, two)
 
 
+def test_sigma_map_is_the_same_for_float32_and_float64_inputs(session_dir, calibration):
+    """The kernel reads float32 maps without copying them to float64, widening each sample before any arithmetic:
+    the same sigma map as float64 inputs; no covariance is a zero covariance, no span an all-NaN span."""
+    from gtforge.reproject import ReprojectParams, project_depth_to_camera
+    from gtforge.uncertainty import disparity_sigma
+
+    cal = CalibrationFile.read(calibration[0])
+    rig = cal.rig
+    s = open_session(session_dir)
+    cap = s.load_capture(s.root / "scenes" / "000")
+    depth, span = project_depth_to_camera(cap.mech_depth_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
+                                          ReprojectParams(), return_span=True)
+    disp = rig.zed.depth_to_disparity(depth)
+    C = cal.cov_extrinsic_rad_mm
+    assert C is not None
+    sig = disparity_sigma(disp, depth, rig, C, None, span, 0.2)
+    assert sig.dtype == np.float32 and np.isfinite(sig).sum() > 1000
+    wide = [a.astype(np.float64) for a in (disp, depth, span)]
+    np.testing.assert_array_equal(disparity_sigma(*wide[:2], rig, C, None, wide[2], 0.2), sig)
+    np.testing.assert_array_equal(disparity_sigma(disp, depth, rig, None, None, None),
+                                  disparity_sigma(*wide[:2], rig, np.zeros((6, 6)), None, np.full(disp.shape, np.nan)))
+    with pytest.raises(ValueError, match="span"):
+        disparity_sigma(disp, depth, rig, C, None, span[1:])
+
+
 def test_sigma_is_written_and_larger_at_silhouettes(dataset):
     out, summary = dataset
     for sid in summary.built:

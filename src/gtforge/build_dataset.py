@@ -206,6 +206,12 @@ def scene_files(params: BuildParams) -> list[str]:
 
 
 # ---- regions --------------------------------------------------------------------------------
+def _bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """``(y0, y1, x0, x1)`` (ends exclusive) of a 2-D mask's True pixels; None where there are none."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    return (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) else None
+
+
 def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParams,
                   user_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(region labels uint8, fruit mask bool). Fruit from geometry: RANSAC plane of the table in the GT
@@ -214,39 +220,47 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
     if user_mask is not None:
         fruit = user_mask & valid
     else:
-        fruit = np.zeros_like(valid)
-        v, u = np.nonzero(valid)
-        if len(v) >= 100:
-            rays = zed.left.ray_grid()[v, u]
-            z = depth_mm[v, u].astype(np.float64)
-            pts = np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1)
+        fruit = np.zeros(valid.shape, bool)
+        box = _bounding_box(valid)  # the GT's bounding box: the work below is done on it
+        flat = np.flatnonzero(valid[box[0]:box[1], box[2]:box[3]]) if box else ()  # GT pixels, raster order
+        if len(flat) >= 100:
+            y0, y1, x0, x1 = box
+            # the plane from 20000 random GT pixels: only their 3-D points are built
             rng = np.random.default_rng(0)
-            sub = pts[rng.choice(len(pts), min(len(pts), 20000), replace=False)]
+            v, u = np.divmod(flat[rng.choice(len(flat), min(len(flat), 20000), replace=False)], x1 - x0)
+            v, u = v + y0, u + x0
+            cam = zed.left  # rectified: no distortion, the ray of pixel (u, v) is ((u - cx) / fx, (v - cy) / fy, 1)
+            z = depth_mm[v, u].astype(np.float64)
+            sub = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
             n, c, _ = fit_plane_robust(sub, params.plane_threshold_mm, iterations=300, rng=rng)
             if c > 0:  # orient the normal towards the camera (origin): height = n.p - c > 0 in front
                 n, c = -n, -c
-            height = pts @ n - c
-            fg = np.zeros_like(valid)
-            fg[v, u] = height > params.fruit_height_mm
-            n_cc, labels, stats, _ = cv2.connectedComponentsWithStats(fg.astype(np.uint8), connectivity=8)
-            if n_cc > 1:
+            # height n.p - c with p = z * ray, the ray linear in u and v: one broadcast (float64), no point cloud
+            ray_x = (np.arange(x0, x1) - cam.cx_px) / cam.fx_px
+            ray_y = (np.arange(y0, y1) - cam.cy_px) / cam.fy_px
+            n_p = (n[0] * ray_x)[None, :] + (n[1] * ray_y + n[2])[:, None]  # n . ray
+            n_p *= depth_mm[y0:y1, x0:x1]  # n . p (NaN where no GT)
+            fg = (n_p > c + params.fruit_height_mm) & valid[y0:y1, x0:x1]
+            fg_box = _bounding_box(fg)  # connected components on the foreground's bounding box: the same ones
+            if fg_box:
+                fy0, fy1, fx0, fx1 = fg_box
+                n_cc, labels, stats, _ = cv2.connectedComponentsWithStats(
+                    fg[fy0:fy1, fx0:fx1].view(np.uint8), connectivity=8)
                 areas = stats[1:, cv2.CC_STAT_AREA]
                 keep = np.zeros(n_cc, bool)
                 keep[1:] = (areas >= params.min_component_frac * areas.max()) & (areas >= 50)
-                fruit = keep[labels]
-    k = 2 * params.erosion_px + 1
-    centre = np.zeros_like(fruit)
-    rows, cols = np.nonzero(fruit.any(axis=1))[0], np.nonzero(fruit.any(axis=0))[0]
-    if len(rows):  # erode the fruit's bounding box plus the element's radius only: the same result, less work
+                fruit[y0 + fy0:y0 + fy1, x0 + fx0:x0 + fx1] = keep[labels]
+    region = valid.astype(np.uint8) * np.uint8(REGION_BG)  # REGION_NONE (0) where no GT
+    box = _bounding_box(fruit)
+    if box:  # erode and label the fruit's bounding box plus the element's radius only: the same result
+        k = 2 * params.erosion_px + 1
         r = k // 2
-        y0, y1 = max(rows[0] - r, 0), min(rows[-1] + r + 1, fruit.shape[0])
-        x0, x1 = max(cols[0] - r, 0), min(cols[-1] + r + 1, fruit.shape[1])
-        centre[y0:y1, x0:x1] = cv2.erode(fruit[y0:y1, x0:x1].astype(np.uint8),
-                                         cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
-    region = np.full(depth_mm.shape, REGION_NONE, np.uint8)
-    region[valid] = REGION_BG
-    region[fruit & valid] = REGION_EDGE
-    region[centre & valid] = REGION_CENTRE
+        y0, y1 = max(box[0] - r, 0), min(box[1] + r, fruit.shape[0])
+        x0, x1 = max(box[2] - r, 0), min(box[3] + r, fruit.shape[1])
+        f = fruit[y0:y1, x0:x1]  # within the GT
+        centre = cv2.erode(f.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).view(bool)
+        region[y0:y1, x0:x1][f] = REGION_EDGE
+        region[y0:y1, x0:x1][centre] = REGION_CENTRE  # the erosion keeps fruit pixels only
     return region, fruit
 
 

@@ -1,6 +1,7 @@
 """Rigid transforms (4x4 float64, named ``T_dst_from_src``) and small geometry helpers."""
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -65,6 +66,19 @@ def fit_plane(pts: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(n @ centroid)
 
 
+@numba.njit(cache=True)
+def _inlier_counts(x, y, z, normals, offsets, threshold_mm):
+    """For each plane ``k``: how many points ``(x[i], y[i], z[i])`` have ``|n_k . p - c_k| < threshold_mm``."""
+    counts = np.zeros(len(normals), np.int64)
+    for k in range(len(normals)):
+        n0, n1, n2, c = normals[k, 0], normals[k, 1], normals[k, 2], offsets[k]
+        m = 0
+        for i in range(len(x)):
+            m += abs(x[i] * n0 + y[i] * n1 + z[i] * n2 - c) < threshold_mm
+        counts[k] = m
+    return counts
+
+
 def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int = 200,
                      rng: np.random.Generator | None = None) -> tuple[np.ndarray, float, np.ndarray]:
     """RANSAC plane followed by a least-squares refit on the inliers.
@@ -76,7 +90,7 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
     if n_pts < 3:
         raise ValueError(f"fit_plane_robust needs >= 3 points, got {n_pts}")
     rng = rng or np.random.default_rng(0)
-    # every hypothesis at once (three distinct points each), scored in blocks against all points
+    # every hypothesis at once (three distinct points each), all scored against all points in one compiled pass
     idx = np.stack([rng.choice(n_pts, 3, replace=False) for _ in range(iterations)])
     a, b, c = pts[idx[:, 0]], pts[idx[:, 1]], pts[idx[:, 2]]
     normals = np.cross(b - a, c - a)
@@ -84,19 +98,22 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
     ok = norm > 1e-12
     normals, a = normals[ok] / norm[ok, None], a[ok]
     offsets = np.einsum("ij,ij->i", normals, a)
-    best, best_count = None, -1
-    for k in range(0, len(normals), 64):
-        inl = np.abs(pts @ normals[k:k + 64].T - offsets[k:k + 64]) < threshold_mm  # (n_pts, <= 64)
-        counts = inl.sum(axis=0)
-        j = int(np.argmax(counts))  # the first of the best in this block, as the loop over hypotheses kept it
-        if counts[j] > best_count:
-            best_count, best = int(counts[j]), inl[:, j].copy()
-    if best is None or best_count < 3:
+    best = None
+    if len(normals):
+        xyz = np.ascontiguousarray(pts.T)
+        counts = _inlier_counts(xyz[0], xyz[1], xyz[2], normals, offsets, float(threshold_mm))
+        j = int(np.argmax(counts))  # the first of the best hypotheses
+        if counts[j] >= 3:
+            best = np.abs(pts @ normals[j] - offsets[j]) < threshold_mm
+    if best is None:
         best = np.ones(n_pts, bool)
-    for _ in range(3):
-        n, off = fit_plane(pts[best])
-        best = np.abs(pts @ n - off) < threshold_mm
-        if best.sum() < 3:
-            best = np.ones(n_pts, bool)
     n, off = fit_plane(pts[best])
+    for _ in range(3):  # refit on the plane's inliers, three times at most
+        inliers = np.abs(pts @ n - off) < threshold_mm
+        if inliers.sum() < 3:
+            inliers = np.ones(n_pts, bool)
+        if np.array_equal(inliers, best):
+            break  # a fixed point: every further refit returns this plane again
+        best = inliers
+        n, off = fit_plane(pts[best])
     return n, off, best

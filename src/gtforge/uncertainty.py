@@ -70,17 +70,23 @@ def _slope(before, here, after):
 @numba.njit(cache=True)
 def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px,
                   out):
+    """``out[v, u]``: the 1-sigma of pixel ``(v, u)``, +inf where there is no GT. The maps are read as they come
+    (float32 or float64), every sample widened to float64 before any arithmetic; ``span`` of shape ``(0, 0)``: no mesh
+    term; ``cov`` None: no extrinsic term (the same sigma a zero covariance gives)."""
     H, W = disp.shape
+    use_span = span.shape == disp.shape
     for v in range(H):
         for u in range(W):
-            d = disp[v, u]
-            Z = depth[v, u]
+            d = np.float64(disp[v, u])
+            Z = np.float64(depth[v, u])
             if not (math.isfinite(d) and math.isfinite(Z) and Z > 0):
                 out[v, u] = np.inf
                 continue
             # GT slope (px/px): central difference where both neighbours exist, else one-sided
-            gx = _slope(disp[v, u - 1] if u > 0 else np.nan, d, disp[v, u + 1] if u < W - 1 else np.nan)
-            gy = _slope(disp[v - 1, u] if v > 0 else np.nan, d, disp[v + 1, u] if v < H - 1 else np.nan)
+            gx = _slope(np.float64(disp[v, u - 1]) if u > 0 else np.nan, d,
+                        np.float64(disp[v, u + 1]) if u < W - 1 else np.nan)
+            gy = _slope(np.float64(disp[v - 1, u]) if v > 0 else np.nan, d,
+                        np.float64(disp[v + 1, u]) if v < H - 1 else np.nan)
             X = (u - cx) / fx * Z
             Y = (v - cy) / fy * Z
             # a = dd/dX - g . du/dX  (row vector)
@@ -88,18 +94,19 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
             ax = -gx * fx / Z
             ay = -gy * fy / Z
             az = -fb / (Z * Z) + gx * fx * X / (Z * Z) + gy * fy * Y / (Z * Z)
-            # extrinsic: dX/domega = -[P]x with P = X - t, dX/ddt = I  ->  J = [P x a, a]
-            px, py, pz = X - t[0], Y - t[1], Z - t[2]
-            J0 = py * az - pz * ay
-            J1 = pz * ax - px * az
-            J2 = px * ay - py * ax
-            J = (J0, J1, J2, ax, ay, az)
             var = 0.0
-            for i in range(6):
-                s = 0.0
-                for j in range(6):
-                    s += cov[i, j] * J[j]
-                var += J[i] * s
+            if cov is not None:
+                # extrinsic: dX/domega = -[P]x with P = X - t, dX/ddt = I  ->  J = [P x a, a]
+                px, py, pz = X - t[0], Y - t[1], Z - t[2]
+                J0 = py * az - pz * ay
+                J1 = pz * ax - px * az
+                J2 = px * ay - py * ax
+                J = (J0, J1, J2, ax, ay, az)
+                for i in range(6):
+                    s = 0.0
+                    for j in range(6):
+                        s += cov[i, j] * J[j]
+                    var += J[i] * s
             # depth noise along the depth camera's ray: dX/dz_d = (X - c) / z_d, z_d = the point's depth-camera z
             rx, ry, rz = X - c_depth[0], Y - c_depth[1], Z - c_depth[2]
             zd = rx * axis_depth[0] + ry * axis_depth[1] + rz * axis_depth[2]
@@ -109,7 +116,7 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
             dn_ = (ax * rx + ay * ry + az * rz) / zd * sz
             var += dn_ * dn_
             # mesh interpolation: the chord of a surface curved with radius R, over the triangle's depth span
-            sp = span[v, u]
+            sp = np.float64(span[v, u]) if use_span else np.nan
             if math.isfinite(sp):
                 m = fb / (Z * Z) * sp * sp / (8.0 * radius_mm)
                 var += m * m
@@ -117,6 +124,12 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
             lat = math.sqrt(gx * gx + gy * gy) * shift_px
             var += lat * lat
             out[v, u] = math.sqrt(var)
+
+
+def _float_map(a) -> np.ndarray:
+    """A C-contiguous float32 or float64 array (float32 maps as built are not copied; other types become float64)."""
+    a = np.asarray(a)
+    return np.ascontiguousarray(a, a.dtype if a.dtype in (np.float32, np.float64) else np.float64)
 
 
 def disparity_sigma(disparity_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, cov_extrinsic_rad_mm,
@@ -130,24 +143,27 @@ def disparity_sigma(disparity_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, co
     scene's measured texture shift (verification), added as lateral uncertainty."""
     params = params or UncertaintyParams()
     cam = rig.zed.left
-    disp = np.ascontiguousarray(disparity_px, np.float64)
-    depth = np.ascontiguousarray(depth_mm, np.float64)
+    disp, depth = _float_map(disparity_px), _float_map(depth_mm)
     if disp.shape != depth.shape:
         raise ValueError(f"{disp.shape=} but expected {depth.shape} (the depth's shape)")
-    cov = np.zeros((6, 6)) if cov_extrinsic_rad_mm is None else np.asarray(cov_extrinsic_rad_mm, np.float64)
-    if cov.shape != (6, 6):
-        raise ValueError(f"{cov.shape=} but expected (6, 6)")
-    span = np.full(disp.shape, np.nan) if span_mm is None else np.ascontiguousarray(span_mm, np.float64)
+    cov = None
+    if cov_extrinsic_rad_mm is not None:
+        cov = np.asarray(cov_extrinsic_rad_mm, np.float64)
+        if cov.shape != (6, 6):
+            raise ValueError(f"{cov.shape=} but expected (6, 6)")
+    span = np.zeros((0, 0), np.float32) if span_mm is None else _float_map(span_mm)  # (0, 0): no mesh term
+    if span_mm is not None and span.shape != disp.shape:
+        raise ValueError(f"{span.shape=} but expected {disp.shape} (the disparity's shape)")
     T_zd = rig.T_zed_from_depth
     c_depth, axis_depth = T_zd[:3, 3], T_zd[:3, 2]  # the depth camera's centre and optical axis in the ZED frame
     shift = float(texture_shift_px) if (params.use_verification and texture_shift_px is not None
                                         and math.isfinite(texture_shift_px)) else 0.0
-    out = np.empty(disp.shape, np.float64)
+    out = np.empty(disp.shape, np.float32)  # each sigma computed in float64, rounded once on storing
     _sigma_kernel(disp, depth, span, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px, rig.zed.baseline_mm, cov,
                   np.ascontiguousarray(rig.T[:3, 3]), np.ascontiguousarray(c_depth), np.ascontiguousarray(axis_depth),
                   params.depth_noise.a_mm,
                   params.depth_noise.b_mm_per_m2, params.curvature_radius_mm, shift, out)
-    return out.astype(np.float32)
+    return out
 
 
 class SigmaStats(GTModel):
