@@ -66,9 +66,14 @@ def make_session(workdir: str | Path, n_scenes: int, n_distinct: int = 4, log=pr
         for f in src.iterdir():
             if f.name != "done":
                 os.link(f, dst / f.name)
+    # the exact extrinsic, with the uncertainty a good board calibration reports (0.002 deg, 0.02 mm per axis: the
+    # demo's calibrate), so the GT sigma maps include the extrinsic term as they do for a user
+    sig_rot_deg, sig_mm = 0.002, 0.02
+    cov = np.diag([np.radians(sig_rot_deg) ** 2] * 3 + [sig_mm ** 2] * 3)
     calib = CalibrationFile(rig=Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech), board=BoardModel(),
-                            captures_used=[], rms_px=0.0, max_px=0.0, sigma_rot_xyz_deg=[0, 0, 0],
-                            sigma_trans_xyz_mm=[0, 0, 0], sigma_rot_deg=0.0, sigma_trans_mm=0.0, poses=[])
+                            captures_used=[], rms_px=0.0, max_px=0.0, sigma_rot_xyz_deg=[sig_rot_deg] * 3,
+                            sigma_trans_xyz_mm=[sig_mm] * 3, sigma_rot_deg=float(np.sqrt(3) * sig_rot_deg),
+                            sigma_trans_mm=float(np.sqrt(3) * sig_mm), poses=[], cov_extrinsic_rad_mm=cov.tolist())
     calib_path = workdir / "calibration.yaml"
     calib.write(calib_path)
     return sess, calib_path
