@@ -428,11 +428,11 @@ def region_sigma_stats(sigma: np.ndarray, region: np.ndarray) -> dict[str, Sigma
 
 def write_sigma_thumbnail(path: Path, sigma: np.ndarray, vmax_px: float = 0.1) -> None:
     """A small heat map of a scene's GT sigma for build_report.html (turbo, 0 to ``vmax_px``; black: no GT)."""
-    s = np.where(np.isfinite(sigma), sigma, np.nan).astype(np.float32)
+    s = np.asarray(sigma, np.float32)
     scale = min(1.0, 640 / s.shape[1])
-    if scale < 1.0:
+    if scale < 1.0:  # nearest neighbour: the thumbnail's pixels are values of the map (inf stays inf)
         s = cv2.resize(s, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-    grey = np.round(np.clip(np.nan_to_num(s, nan=0.0) / vmax_px, 0, 1) * 255).astype(np.uint8)
+    grey = np.round(np.clip(np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0) / vmax_px, 0, 1) * 255).astype(np.uint8)
     bgr = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)
     bgr[~np.isfinite(s)] = 0
     write_image(path, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
