@@ -145,9 +145,13 @@ class PinholeCamera(GTModel):
 @functools.lru_cache(maxsize=8)
 def _ray_grid_cached(cam_json: str) -> np.ndarray:
     cam = PinholeCamera.model_validate_json(cam_json)
-    v, u = np.mgrid[0:cam.height_px, 0:cam.width_px]
-    uv = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
-    xy = cam.undistort_to_normalized(uv).reshape(cam.height_px, cam.width_px, 2)
+    # undistort_to_normalized of every pixel centre, without the (N, 2) pixel list: the distorted normalised
+    # coordinates are separable in u and v
+    xy = np.empty((cam.height_px, cam.width_px, 2))
+    xy[..., 0] = ((np.arange(cam.width_px, dtype=np.float64) - cam.cx_px) / cam.fx_px)[None, :]
+    xy[..., 1] = ((np.arange(cam.height_px, dtype=np.float64) - cam.cy_px) / cam.fy_px)[:, None]
+    if cam.has_distortion:
+        xy = lens.undistort(xy.reshape(-1, 2), cam.dist_coeffs).reshape(xy.shape)
     xy.setflags(write=False)
     return xy
 
