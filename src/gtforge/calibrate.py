@@ -19,9 +19,6 @@ from typing import Callable, ClassVar, Literal
 import cv2
 import numpy as np
 from pydantic import Field, PrivateAttr
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
-from scipy.spatial.transform import Rotation
 
 from gtforge.board import Detection, check_board_spec, detect_corners
 from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
@@ -30,6 +27,9 @@ from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference
 from gtforge.rectification import RectificationQuality, ZedConfChoice
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
+
+# scipy is imported inside the functions that use it: it adds about 0.4 s to every process start, and the
+# build-dataset workers, which import this module for CalibrationFile, never need it
 
 log = logging.getLogger("gtforge.calibrate")
 
@@ -200,6 +200,7 @@ def robust_initial_extrinsic(Ts: list[np.ndarray], params: CalibrateParams) -> t
     """Rotation mean on SO(3) + translation mean over poses kept by a median/MAD rule.
 
     Returns (T, inlier mask, rotation deviation deg, translation deviation mm)."""
+    from scipy.spatial.transform import Rotation
     Rs = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts]))
     ts = np.stack([T[:3, 3] for T in Ts])
     keep = np.ones(len(Ts), bool)
@@ -230,6 +231,7 @@ def _project_many(cam: PinholeCamera, pts: np.ndarray) -> np.ndarray:
 
 def _perturbed(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
     """``T = [exp(x[:3]) R0 | t0 + x[3:]]`` (small-perturbation parametrisation)."""
+    from scipy.spatial.transform import Rotation
     return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])
 
 
@@ -247,6 +249,8 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
                  T_zed_from_mech0: np.ndarray, huber_px: float = 1.0,
                  T_mech_from_board0: list[np.ndarray] | None = None) -> Refined:
     """Minimise every corner's reprojection error in both cameras over the extrinsic and the board poses."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
     P = len(obs)
     X = board.corners_board()
     N = len(X)
@@ -366,6 +370,7 @@ def jackknife_scale(T: np.ndarray, T_loo: list[np.ndarray], cov: np.ndarray) -> 
     extrinsic averages 10.9 with the Jacobian covariance on rendered boards (correlated detector errors) and 7.6 once
     scaled; with independent corner noise 5.7 unscaled and 4.5 scaled (6 is right). The mean ratio gave 8.5 / 4.7,
     the largest 4.5 / 3.5."""
+    from scipy.spatial.transform import Rotation
     n = len(T_loo)
     if n < 4 or not np.all(np.isfinite(cov)):
         return None
@@ -524,6 +529,7 @@ def _depth_method(used: list[PoseObs], corners_depth: dict[str, np.ndarray], zed
                   T_init: np.ndarray) -> tuple[np.ndarray | None, float, np.ndarray | None]:
     """3D-2D solve: the depth camera's board corners (mech frame) against the ZED detections, all poses at once.
     Returns (T_zed_from_mech, RMS px, 6x6 covariance in the CalibrationFile parameterisation)."""
+    from scipy.optimize import least_squares
     P3 = [corners_depth[o.name] for o in used if o.name in corners_depth]
     P2 = [o.zed_uv for o in used if o.name in corners_depth]
     if len(P3) < 2:

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -15,6 +14,8 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def T_from_rotvec(rotvec_rad: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation  # here, not at import: scipy adds 0.4 s to every process start
+
     return make_T(Rotation.from_rotvec(np.asarray(rotvec_rad, float).reshape(3)).as_matrix(), t_mm)
 
 
