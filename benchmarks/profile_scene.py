@@ -32,6 +32,12 @@ def main():
 
     n_threads = args.threads or threads_per_worker(cpu_count())
     limit_threads(n_threads)
+    try:  # what a local pool worker does at start (gtforge >= issue 12's round 3)
+        from gtforge.scheduling import reuse_freed_memory
+
+        reuse_freed_memory()
+    except ImportError:
+        pass
     import numpy as np
 
     from gtforge import build_dataset as bd
@@ -136,7 +142,7 @@ def main():
     measure("write", "mask0nocc.png", lambda: png_writer(tmp / "mask0nocc.png", mask))
     measure("write", "region.png", lambda: png_writer(tmp / "region.png", region))
     if "compression" in write_tiff_float.__code__.co_varnames:
-        measure("write", "weight.tiff (zlib level 1)", lambda: write_tiff_float(tmp / "weight.tiff", weight, "zlib"))
+        measure("write", "weight.tiff (deflate level 1)", lambda: write_tiff_float(tmp / "weight.tiff", weight, "zlib"))
         measure("write", "depth0.tiff (uncompressed)", lambda: write_tiff_float(tmp / "depth0.tiff", depth_l))
     else:
         measure("write", "weight.tiff", lambda: write_tiff_float(tmp / "weight.tiff", weight))
