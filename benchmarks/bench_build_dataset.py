@@ -69,11 +69,13 @@ def main():
     runs = []
     t = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib), str(outs["baseline"])])
     runs.append(("baseline: plain Open3D script (one process)", *t))
+    shutil.rmtree(outs["baseline"])  # outputs take 20-56 MB a scene: keep only the one the resume row needs
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
     t = timed(build + ["-o", str(outs["gtforge"])])
     runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)", *t))
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"])
     runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
+    shutil.rmtree(outs["noverify"])
     t_resume, _ = timed(build + ["-o", str(outs["gtforge"])])
     base_rate = n / runs[0][1]
     lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes {n} "

@@ -61,7 +61,7 @@ def main():
     mask = np.zeros(region.shape, np.uint8)
     mask[np.isfinite(sd.disparity_px)] = 128
     mask[sd.nonoccluded] = 255
-    kitti = _kitti_quantize(sd.disparity_px)
+    kitti = _kitti_quantize(sd.disparity_px, np.ones(sd.disparity_px.shape, bool))
     tmp = wd / "encodings"
     tmp.mkdir(parents=True, exist_ok=True)
     r = args.repeat

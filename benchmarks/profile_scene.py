@@ -149,12 +149,12 @@ def main():
         measure("write", "depth0.tiff", lambda: write_tiff_float(tmp / "depth0.tiff", depth_l))
     measure("write", "KITTI disp_occ_0 + disp_noc_0 (uint16 PNG)",
             lambda: (write_kitti_disparity(tmp / "occ.png", disp),
-                     write_kitti_disparity(tmp / "noc.png", np.where(noc, disp, np.nan))))
+                     write_kitti_disparity(tmp / "noc.png", disp, noc)))
     if getattr(params, "right_gt", False):
         measure("write", "disp1GT.pfm + mask1nocc.png + KITTI disp_occ_1 + disp_noc_1",
                 lambda: (write_pfm(tmp / "disp1GT.pfm", disp1), png_writer(tmp / "mask1nocc.png", bd.occlusion_mask(disp1, noc1)),
                          write_kitti_disparity(tmp / "occ1.png", disp1),
-                         write_kitti_disparity(tmp / "noc1.png", np.where(noc1, disp1, np.nan))))
+                         write_kitti_disparity(tmp / "noc1.png", disp1, noc1)))
     if getattr(params, "sigma", False):
         measure("write", "disp0GT_sigma.pfm + sigma thumbnail JPG",
                 lambda: (write_pfm(tmp / "disp0GT_sigma.pfm", sigma), bd.write_sigma_thumbnail(tmp / "sigma.jpg", sigma)))

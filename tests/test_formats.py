@@ -10,15 +10,15 @@ from gtforge.io.formats import (read_image, read_kitti_disparity, read_pfm, read
 
 
 def test_pfm_layout_and_invalid(tmp_path):
-    d = np.array([[1.5, np.nan, 3.0], [4.0, 5.0, np.inf]], np.float32)
+    d = np.array([[1.5, np.nan, 3.0], [4.0, -np.inf, np.inf]], np.float32)
     p = write_pfm(tmp_path / "d.pfm", d)
     raw = p.read_bytes()
     assert raw.startswith(b"Pf\n3 2\n-1.0\n")  # negative scale = little-endian
     body = np.frombuffer(raw[len(b"Pf\n3 2\n-1.0\n"):], "<f4").reshape(2, 3)
-    np.testing.assert_array_equal(body[0], [4.0, 5.0, np.inf])  # rows bottom-to-top
+    np.testing.assert_array_equal(body[0], [4.0, np.inf, np.inf])  # rows bottom-to-top; any invalid value: +inf
     assert body[1, 1] == np.inf  # NaN written as +inf
     back = read_pfm(p)
-    np.testing.assert_array_equal(np.isnan(back), [[False, True, False], [False, False, True]])
+    np.testing.assert_array_equal(np.isnan(back), [[False, True, False], [False, True, True]])
     np.testing.assert_array_equal(back[0, [0, 2]], [1.5, 3.0])
 
 
@@ -99,6 +99,12 @@ def test_label_png_and_kitti_quantisation(tmp_path):
     np.testing.assert_array_equal(raw, [[1, 2, 2, 2560, 65535], [0, 0, 0, 1, round(100.123 * 256)]])
     back = read_kitti_disparity(tmp_path / "k.png")
     assert np.isnan(back[1, :3]).all() and back[0, 3] == 10.0
+    # disp_noc: the same values inside the mask, 0 outside it
+    noc = np.array([[True, False, True, True, False], [True, True, False, True, True]])
+    raw_noc = cv2.imread(str(write_kitti_disparity(tmp_path / "n.png", d, noc)), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(raw_noc, np.where(noc, raw, 0))
+    with pytest.raises(ValueError):
+        write_kitti_disparity(tmp_path / "x.png", d, noc[:, :4])
 
 
 def test_float_tiff_compression_round_trip(tmp_path):

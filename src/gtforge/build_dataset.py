@@ -594,13 +594,13 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
             disp = read_pfm(s / "disp0GT.pfm")
             noc = read_image(s / "mask0nocc.png") == 255
         write_kitti_disparity(k / "disp_occ_0" / f"{sid}_10.png", disp)
-        write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", np.where(noc, disp, np.nan))
+        write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", disp, noc)
         if disp1 is None and (s / "disp1GT.pfm").exists():
             disp1 = read_pfm(s / "disp1GT.pfm")
             noc1 = read_image(s / "mask1nocc.png") == 255
         if disp1 is not None:  # KITTI's right-view GT, as OpenStereo's RETURN_RIGHT_DISP reads it
             write_kitti_disparity(k / "disp_occ_1" / f"{sid}_10.png", disp1)
-            write_kitti_disparity(k / "disp_noc_1" / f"{sid}_10.png", np.where(noc1, disp1, np.nan))
+            write_kitti_disparity(k / "disp_noc_1" / f"{sid}_10.png", disp1, noc1)
     if params.eth3d:
         e = out / "eth3d"
         for f in ("im0.png", "im1.png", "calib.txt"):

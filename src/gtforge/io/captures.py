@@ -26,8 +26,8 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     """Depth map -> ``(H, W)`` float32 mm with NaN invalid.
 
     float32 TIFF (Mech-Eye ``DepthMap.tiff``; NaN or 0 invalid), 16-bit PNG (``depth_scale_mm`` mm per
-    count, 0 invalid), ``.npy`` (NaN, 0 or negative invalid). A median valid value below 10 is refused
-    as metres unless ``depth_unit="m"``.
+    count, 0 invalid), ``.npy`` (NaN, 0 or negative invalid). A median valid value below 10 (over every 16th
+    pixel) is refused as metres unless ``depth_unit="m"``.
     """
     path = Path(path)
     if not path.is_file():
@@ -62,15 +62,15 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
         if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
             raise InputError(path, field, "numeric depth", str(a.dtype))
         d = a.astype(np.float32)
-    d[~(d > 0)] = np.nan  # 0, negative, NaN -> invalid
-    d[~np.isfinite(d)] = np.nan
-    valid = np.isfinite(d)
+    valid = (d > 0) & (d < np.inf)
+    d[~valid] = np.nan  # 0, negative, inf, NaN -> invalid
     if not valid.any():
         raise InputError(path, field, "some valid depth", "no valid pixel", "is the scene out of range?")
     if depth_unit == "m":
         d *= 1000.0
     else:
-        med = float(np.median(d[valid]))
+        sample = d[::4, ::4][valid[::4, ::4]]  # every 16th pixel tells metres from mm (the full median: 5 ms)
+        med = float(np.median(sample if sample.size else d[valid]))
         if med < 10.0:
             raise InputError(path, field, "depth in mm (median valid value >= 10)", f"median {med:.4g}",
                              "this looks like metres: set 'depth_unit: m' in the session's session.yaml")
