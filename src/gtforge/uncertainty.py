@@ -188,7 +188,7 @@ def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[
     step = (_LOG_EDGES[-1] - _LOG_EDGES[0]) / nb
     b = np.clip(((np.log10(v) - np.float32(_LOG_EDGES[0])) / np.float32(step)).astype(np.int64), 0, nb - 1)
     hist = np.bincount(lab * nb + b, minlength=n_labels * nb).reshape(n_labels, nb)
-    over = np.bincount(lab, weights=(v > 0.1), minlength=n_labels)
+    over = np.bincount(lab[v > 0.1], minlength=n_labels)  # (weights=v > 0.1 takes 4 ms)
     out = {}
     for name, labs in groups.items():
         labs = [k for k in labs if k < n_labels]
