@@ -26,7 +26,7 @@ import gtforge
 from gtforge.calibrate import CalibrationFile, check_rig_matches_session
 from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
-from gtforge.geometry import fit_plane_robust
+from gtforge.geometry import fit_plane_robust, mask_bounding_box
 from gtforge.io.atomic import atomic_write_text
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
@@ -206,12 +206,6 @@ def scene_files(params: BuildParams) -> list[str]:
 
 
 # ---- regions --------------------------------------------------------------------------------
-def _bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """``(y0, y1, x0, x1)`` (ends exclusive) of a 2-D mask's True pixels; None where there are none."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    return (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) else None
-
-
 def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParams,
                   user_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(region labels uint8, fruit mask bool). Fruit from geometry: RANSAC plane of the table in the GT
@@ -221,7 +215,7 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
         fruit = user_mask & valid
     else:
         fruit = np.zeros(valid.shape, bool)
-        box = _bounding_box(valid)  # the GT's bounding box: the work below is done on it
+        box = mask_bounding_box(valid)  # the GT's bounding box: the work below is done on it
         flat = np.flatnonzero(valid[box[0]:box[1], box[2]:box[3]]) if box else ()  # GT pixels, raster order
         if len(flat) >= 100:
             y0, y1, x0, x1 = box
@@ -241,7 +235,7 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
             n_p = (n[0] * ray_x)[None, :] + (n[1] * ray_y + n[2])[:, None]  # n . ray
             n_p *= depth_mm[y0:y1, x0:x1]  # n . p (NaN where no GT)
             fg = (n_p > c + params.fruit_height_mm) & valid[y0:y1, x0:x1]
-            fg_box = _bounding_box(fg)  # connected components on the foreground's bounding box: the same ones
+            fg_box = mask_bounding_box(fg)  # connected components on the foreground's bounding box: the same ones
             if fg_box:
                 fy0, fy1, fx0, fx1 = fg_box
                 n_cc, labels, stats, _ = cv2.connectedComponentsWithStats(
@@ -251,7 +245,7 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
                 keep[1:] = (areas >= params.min_component_frac * areas.max()) & (areas >= 50)
                 fruit[y0 + fy0:y0 + fy1, x0 + fx0:x0 + fx1] = keep[labels]
     region = valid.astype(np.uint8) * np.uint8(REGION_BG)  # REGION_NONE (0) where no GT
-    box = _bounding_box(fruit)
+    box = mask_bounding_box(fruit)
     if box:  # erode and label the fruit's bounding box plus the element's radius only: the same result
         k = 2 * params.erosion_px + 1
         r = k // 2
@@ -297,9 +291,9 @@ def build_scene_arrays(depth_mech_mm: np.ndarray, rig: Rig, params: BuildParams,
 def _crop_window(fruit: np.ndarray, crop_wh: tuple[int, int]) -> tuple[int, int, int, int]:
     H, W = fruit.shape
     cw, ch = min(crop_wh[0], W), min(crop_wh[1], H)
-    if fruit.any():
-        v, u = np.nonzero(fruit)
-        uc, vc = (u.min() + u.max()) / 2, (v.min() + v.max()) / 2
+    box = mask_bounding_box(fruit)
+    if box:
+        uc, vc = (box[2] + box[3] - 1) / 2, (box[0] + box[1] - 1) / 2
     else:
         uc, vc = W / 2, H / 2
     x0 = int(np.clip(round(uc - cw / 2), 0, W - cw))

@@ -35,7 +35,7 @@ from pydantic import Field
 from gtforge import lens
 from gtforge.camera import Rig
 from gtforge.errors import InputError
-from gtforge.geometry import transform_points
+from gtforge.geometry import mask_bounding_box, transform_points
 from gtforge.io.formats import to_gray
 from gtforge.rectification import VERTICAL_WARN_PX
 from gtforge.schema import GTModel, VersionedFile
@@ -496,10 +496,10 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     valid = np.isfinite(depth_w)
     if f == 1:
         valid |= np.isfinite(disp)
-    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    box = mask_bounding_box(valid)
     m = WINDOW_MARGIN_PX
-    if len(rows):
-        y0, y1, x0, x1 = max(rows[0] - m, 0), min(rows[-1] + 1 + m, h), max(cols[0] - m, 0), min(cols[-1] + 1 + m, w)
+    if box:
+        y0, y1, x0, x1 = max(box[0] - m, 0), min(box[1] + m, h), max(box[2] - m, 0), min(box[3] + m, w)
     else:
         y0, y1, x0, x1 = 0, h, 0, w
     depth_c = depth_w[y0:y1, x0:x1]
