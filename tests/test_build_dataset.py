@@ -426,3 +426,41 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
                                        check=True).stdout) for mode in ("default", "tuned")}
     assert faults["default"] > 5000, faults  # an array of 20 MB is 5120 pages of 4 kB
     assert faults["tuned"] < 1000, faults
+
+
+def test_dask_task_keeps_freed_memory_then_restores_the_workers_setting():
+    """On a Dask worker (started with MALLOC_TRIM_THRESHOLD_=65536, which returns every freed array to the kernel)
+    a gtforge task keeps freed memory while it runs and puts the worker's setting back afterwards."""
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc only")
+    code = """
+import resource
+import numpy as np
+from gtforge.scheduling import _memory_kept_for_task
+
+def faults():
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(10):
+        a = [np.ones(5 << 20, np.float32) for _ in range(3)]  # 3 x 20 MB, every page touched
+        del a
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+a = [np.ones(5 << 20, np.float32) for _ in range(3)]
+del a
+outside = faults()
+with _memory_kept_for_task():
+    a = [np.ones(5 << 20, np.float32) for _ in range(3)]
+    del a
+    inside = faults()
+print(outside, inside, faults())
+"""
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}  # what Dask's nanny sets for its workers
+    outside, inside, after = map(int, subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                                     check=True, env=env).stdout.split())
+    assert outside > 5000 and after > 5000, (outside, after)  # freed arrays faulted in again (15,660 here, both)
+    assert inside < 1000, inside

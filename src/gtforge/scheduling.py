@@ -23,6 +23,7 @@ lists that scene as failed) instead of stopping the whole run.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import uuid
@@ -54,29 +55,57 @@ def _init_worker(n_threads: int) -> None:
     reuse_freed_memory()
 
 
-# glibc's mallopt parameters (malloc.h)
+# glibc's mallopt parameters (malloc.h) and their defaults
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_GLIBC_DEFAULT_THRESHOLD = 128 * 1024
 
 
-def reuse_freed_memory() -> bool:
-    """Let glibc's malloc keep freed memory for the next scene instead of returning it to the kernel.
-
-    A scene allocates and frees dozens of full-image arrays (10-40 MB each). By default glibc maps each anew and
-    the kernel zero-fills its pages on first touch: 10,000-20,000 page faults, about 8 % of a scene's CPU time
-    (benchmarks/RESULTS.md). With these settings arrays up to 32 MB (glibc's upper limit) come from the heap and
-    freed memory stays there, so a worker keeps its peak footprint between scenes. Called in the local pool's
-    worker processes only (they are gtforge's own; a Dask worker manages its memory itself). Returns whether it
-    applied (glibc only)."""
+def _glibc():
+    """The C library, where it is glibc (mallopt, malloc_trim); None elsewhere."""
     import ctypes
     import platform
 
     if platform.libc_ver()[0] != "glibc":
-        return False
+        return None
     try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30))
-    except (OSError, AttributeError):
-        return False
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+
+
+def reuse_freed_memory() -> bool:
+    """Let glibc's malloc keep freed memory for the next array instead of returning it to the kernel.
+
+    A scene allocates and frees dozens of full-image arrays (10-40 MB each). By default glibc maps each anew and
+    the kernel zero-fills its pages on first touch: 10,000-20,000 page faults, about 8 % of a scene's CPU time
+    (benchmarks/RESULTS.md). With these settings arrays up to 32 MB (glibc's upper limit) come from the heap and
+    freed memory stays there, so a local pool worker keeps its peak footprint between scenes. On a Dask worker see
+    ``_memory_kept_for_task``. Returns whether it applied (glibc only)."""
+    libc = _glibc()
+    return libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)) \
+        and bool(libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30))
+
+
+@contextlib.contextmanager
+def _memory_kept_for_task():
+    """``reuse_freed_memory`` for one task on a Dask worker, whose process is shared with other tasks and whose memory
+    Dask watches: the worker's settings are put back afterwards and the freed memory is returned to the kernel
+    (``malloc_trim``). Dask starts workers with MALLOC_TRIM_THRESHOLD_ = 64 kB, which returns every freed array at
+    once: a scene took 1.4-1.6x as long (docs/cluster.md). Another gtforge task running at the same time on the same
+    worker may finish with the worker's settings (slower, not wrong)."""
+    applied = reuse_freed_memory()
+    try:
+        yield
+    finally:
+        if applied:
+            libc = _glibc()
+            for param, env in ((_M_TRIM_THRESHOLD, "MALLOC_TRIM_THRESHOLD_"),
+                               (_M_MMAP_THRESHOLD, "MALLOC_MMAP_THRESHOLD_")):
+                try:
+                    libc.mallopt(param, int(os.environ.get(env, _GLIBC_DEFAULT_THRESHOLD)))
+                except ValueError:
+                    libc.mallopt(param, _GLIBC_DEFAULT_THRESHOLD)
+            libc.malloc_trim(0)
 
 
 def limit_threads(n_threads: int) -> None:
@@ -308,4 +337,5 @@ def _run_on_worker(fn: Callable[..., Any], args: tuple, threads_by_host: dict[st
     worker = get_worker()
     n_tasks = threads_by_host.get(get_address_host(worker.address), worker.state.nthreads)
     limit_threads(max(1, cpu_count() // n_tasks))
-    return fn(*args)
+    with _memory_kept_for_task():
+        return fn(*args)
