@@ -261,6 +261,16 @@ def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out[0] if imgs.ndim == 2 else out
 
 
+# the pixels an estimate uses at most: a larger set is subsampled evenly (the estimate's noise stays far below the
+# thresholds)
+MAX_POINTS = 30000
+
+
+def even_subset(n: int, max_points: int) -> np.ndarray | slice:
+    """Indices of at most ``max_points`` of ``n`` listed items, evenly spread (all of them: ``slice(None)``)."""
+    return np.linspace(0, n - 1, max_points).round().astype(np.int64) if n > max_points else slice(None)
+
+
 class ShiftAligner:
     """Translation ``d`` with ``img(u + d) ~ ref(u)`` over any mask of pixels (both images already normalised).
 
@@ -281,20 +291,19 @@ class ShiftAligner:
                                 cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8), np.ascontiguousarray(i, np.float32)))
 
     def align(self, mask: np.ndarray, min_pixels: int = 400, iterations: int = 30, tol_px: float = 1e-4,
-              max_points: int = 30000) -> ShiftEstimate:
+              max_points: int = MAX_POINTS) -> ShiftEstimate:
         """``max_points``: a larger mask is subsampled evenly (the estimate's noise is far below the thresholds)."""
         v, u = np.nonzero(mask)
         return self.align_at(v, u, min_pixels, iterations, tol_px, max_points)
 
     def align_at(self, v: np.ndarray, u: np.ndarray, min_pixels: int = 400, iterations: int = 30,
-                 tol_px: float = 1e-4, max_points: int = 30000) -> ShiftEstimate:
+                 tol_px: float = 1e-4, max_points: int = MAX_POINTS) -> ShiftEstimate:
         """``align`` over the pixels ``(v, u)`` of a mask, listed in ``np.nonzero``'s (row-major) order."""
         n = len(v)
         if n < min_pixels:
             return ShiftEstimate(n_pixels=n)
-        if n > max_points:
-            keep = np.linspace(0, n - 1, max_points).round().astype(np.int64)
-            v, u = v[keep], u[keep]
+        keep = even_subset(n, max_points)
+        v, u = v[keep], u[keep]
         uf, vf = u.astype(np.float64), v.astype(np.float64)
         d = np.zeros(2)
         for level, (r, gx, gy, coeffs) in enumerate(self.levels):
@@ -443,11 +452,8 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         if n < params.min_pixels:
             out[name] = StereoEstimate(n_pixels=n)
             continue
-        if n > 30000:  # evenly subsampled: the estimate's noise stays far below the thresholds
-            keep = np.linspace(0, n - 1, 30000).round().astype(np.int64)
-            vk, uk, xr = vs[keep], us[keep], xr[keep]
-        else:
-            vk, uk = vs, us
+        keep = even_subset(n, MAX_POINTS)
+        vk, uk, xr = vs[keep], us[keep], xr[keep]
         b, dy = 0.0, 0.0
         lv = nl[vk, uk].astype(np.float64)
         yr = vk.astype(np.float64)
