@@ -185,7 +185,10 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
         if path.suffix.lower() in (".tif", ".tiff"):
             a = tifffile.imread(path)
         else:
-            a = iio.imread(path)
+            data = path.read_bytes()
+            a = decode_png(data) if data[:8] == PNG_SIGNATURE else None
+            if a is None:  # not a PNG, or one of the PNG variants decode_png leaves to imageio
+                a = iio.imread(data, extension=path.suffix or None)
     except Exception as exc:  # imageio raises several types for corrupt data
         raise InputError(path, field, "a readable image", f"a decode error ({type(exc).__name__}: "
                          f"{str(exc).splitlines()[0][:80] if str(exc) else ''})",
@@ -200,6 +203,105 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
     if expect == "uint8" and a.dtype != np.uint8:
         raise InputError(path, field, "an 8-bit image", f"{a.dtype}", "convert it to 8-bit PNG")
     return np.ascontiguousarray(a)
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel (grey, RGB, grey + alpha, RGBA)
+
+
+def decode_png(data: bytes) -> np.ndarray | None:
+    """Decode the common PNG variants: 8-bit grey, grey + alpha, RGB or RGBA and 16-bit grey, not interlaced,
+    without a ``tRNS`` chunk. Returns what imageio returns for them (``(H, W)`` or ``(H, W, C)``, uint8 or native
+    uint16), or None for any other variant (palette, < 8 bits, 16-bit colour, interlaced, tRNS): the caller
+    decodes those with imageio.
+
+    Why not imageio/Pillow or OpenCV for these: they inflate with the system zlib, which took 38 of the 42 ms of
+    decoding a 2208x1242 RGB ZED image here; zlib-ng inflates it in 21 ms, and the row filters are undone in one
+    compiled pass (benchmarks/RESULTS.md, "profile_scene"). Every chunk's CRC, the zlib stream's end and checksum,
+    the data size and each row's filter type are checked: a truncated or corrupt file raises ``ValueError``.
+    """
+    view = memoryview(data)
+    if bytes(view[:8]) != PNG_SIGNATURE:
+        raise ValueError("not a PNG file (bad signature)")
+    pos, header, idat = 8, None, []
+    while True:
+        if pos + 12 > len(view):
+            raise ValueError("truncated PNG: the file ends before its IEND chunk")
+        n, kind = struct.unpack_from(">I4s", view, pos)
+        if pos + 12 + n > len(view):
+            raise ValueError(f"truncated PNG: the {kind!r} chunk runs past the end of the file")
+        body = view[pos + 8:pos + 8 + n]
+        (crc,) = struct.unpack_from(">I", view, pos + 8 + n)
+        if zlib_ng.crc32(body, zlib_ng.crc32(kind)) != crc:
+            raise ValueError(f"corrupt PNG: CRC mismatch in the {kind.decode('latin-1')} chunk")
+        pos += 12 + n
+        if kind == b"IHDR":
+            header = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat.append(body)
+        elif kind == b"tRNS":
+            return None  # transparency imageio turns into alpha
+        elif kind == b"IEND":
+            break
+    if header is None or not idat:
+        raise ValueError("corrupt PNG: no IHDR or no IDAT chunk")
+    w, h, bits, colour, compression, filtering, interlace = header
+    if not (bits == 8 or (bits == 16 and colour == 0)) or colour not in _PNG_CHANNELS or interlace != 0 \
+            or compression != 0 or filtering != 0:
+        return None  # (Pillow, and so imageio, reduces 16-bit colour to 8 bits: left to it, unchanged)
+    ch = _PNG_CHANNELS[colour]
+    bpp = ch * bits // 8  # bytes per pixel: the Sub/Average/Paeth filters' left neighbour
+    size = h * (1 + w * bpp)
+    inflater = zlib_ng.decompressobj()
+    raw = inflater.decompress(b"".join(idat), size)
+    if not inflater.eof or len(raw) != size:
+        raise ValueError(f"corrupt PNG: the image data inflates to {len(raw)} bytes, not {size} "
+                         f"({'truncated' if not inflater.eof else 'wrong size'})")
+    out = np.empty((h, w * bpp), np.uint8)
+    bad_row = _png_unfilter(np.frombuffer(raw, np.uint8), out, bpp)
+    if bad_row >= 0:
+        raise ValueError(f"corrupt PNG: unknown filter type on row {bad_row}")
+    a = out if bits == 8 else out.view(">u2").astype(np.uint16)
+    return a.reshape(h, w) if ch == 1 else a.reshape(h, w, ch)
+
+
+@numba.njit(cache=True, nogil=True)
+def _png_unfilter(raw, out, bpp):
+    """Undo PNG's per-row filters (0 none, 1 Sub, 2 Up, 3 Average, 4 Paeth) from ``raw`` (each row: its filter type,
+    then the filtered bytes) into ``out`` ``(H, row bytes)``. Returns the first row with an unknown filter type, or
+    -1. Bytes left of the row and the row above the first are zeros."""
+    H, n = out.shape
+    zeros = np.zeros(n, np.uint8)
+    for v in range(H):
+        src = raw[v * (n + 1) + 1:(v + 1) * (n + 1)]
+        cur = out[v]
+        up = out[v - 1] if v > 0 else zeros
+        kind = raw[v * (n + 1)]
+        if kind == 0:
+            cur[:] = src
+        elif kind == 1:
+            cur[:bpp] = src[:bpp]
+            for i in range(bpp, n):
+                cur[i] = (np.int32(src[i]) + cur[i - bpp]) & 255
+        elif kind == 2:
+            for i in range(n):
+                cur[i] = (np.int32(src[i]) + up[i]) & 255
+        elif kind == 3:
+            for i in range(bpp):
+                cur[i] = (np.int32(src[i]) + (up[i] >> 1)) & 255
+            for i in range(bpp, n):
+                cur[i] = (np.int32(src[i]) + ((np.int32(cur[i - bpp]) + up[i]) >> 1)) & 255
+        elif kind == 4:
+            for i in range(bpp):  # a = c = 0: the predictor is b
+                cur[i] = (np.int32(src[i]) + up[i]) & 255
+            for i in range(bpp, n):
+                a, b, c = np.int32(cur[i - bpp]), np.int32(up[i]), np.int32(up[i - bpp])
+                pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - 2 * c)
+                pred = a if (pa <= pb and pa <= pc) else (b if pb <= pc else c)
+                cur[i] = (np.int32(src[i]) + pred) & 255
+        else:
+            return v
+    return -1
 
 
 def to_gray(img: np.ndarray) -> np.ndarray:
