@@ -424,13 +424,15 @@ def disparity_and_nonoccluded(depth_l: np.ndarray, depth_r: np.ndarray, zed: Rec
     if depth_l.shape != depth_r.shape:
         raise ValueError(f"{depth_l.shape=} but {depth_r.shape=}")
     return _disparity_nonoccluded(np.ascontiguousarray(depth_l, np.float32), np.ascontiguousarray(depth_r, np.float32),
-                                  zed.f_px * zed.baseline_mm, zed.doffs_px, rel_tol, abs_tol_mm)
+                                  zed.f_px * zed.baseline_mm, zed.doffs_px, rel_tol, abs_tol_mm, False)
 
 
 @numba.njit(**_JIT)
-def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm):
+def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mirrored):
     """``RectifiedStereo.depth_to_disparity`` and ``nonoccluded_mask`` in one pass, with the same arithmetic
-    (the occlusion threshold in float32, as numpy computes it for a float32 depth)."""
+    (the occlusion threshold in float32, as numpy computes it for a float32 depth). ``mirrored``: the same on both
+    images mirrored left-right and the results mirrored back (the right view: ``depth_l`` is then the right view's
+    z-buffer, ``depth_r`` the left's, and the match lies at ``u + d``), without copying any array."""
     H, W = depth_l.shape
     disp = np.empty((H, W), np.float32)
     noc = np.zeros((H, W), np.bool_)
@@ -442,9 +444,11 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm):
             d = np.float32(fB / np.float64(zl) - doffs) if zl > 0.0 else np.float32(np.nan)
             disp[v, u] = d
             if abs(d) < np.inf:
-                ur = u - np.float64(d)
+                ur = (W - 1 - u if mirrored else u) - np.float64(d)  # in the (mirrored) image's columns
                 u0 = min(max(math.floor(min(max(ur, -1.0), W + 0.0)), 0), W - 1)
                 u1 = min(u0 + 1, W - 1)
+                if mirrored:
+                    u0, u1 = W - 1 - u0, W - 1 - u1
                 zr = np.fmin(depth_r[v, u0], depth_r[v, u1])  # NaN only if both are NaN
                 occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zl * keep) - tol))
                 noc[v, u] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
@@ -456,10 +460,10 @@ def right_view_disparity(depth_l: np.ndarray, depth_r: np.ndarray, zed: Rectifie
     """The right view's ground truth (Middlebury ``disp1``): disparity ``f*B/Z_right - doffs`` at ZED-right pixel
     centres, whose match is left pixel ``u + d``, and the mask of right pixels visible in the left image. The same
     computation as the left view's, on the images mirrored left-right (the match then lies at ``u' - d``)."""
-    d, noc = _disparity_nonoccluded(np.ascontiguousarray(depth_r[:, ::-1], np.float32),
-                                    np.ascontiguousarray(depth_l[:, ::-1], np.float32),
-                                    zed.f_px * zed.baseline_mm, zed.doffs_px, rel_tol, abs_tol_mm)
-    return np.ascontiguousarray(d[:, ::-1]), np.ascontiguousarray(noc[:, ::-1])
+    if depth_l.shape != depth_r.shape:
+        raise ValueError(f"{depth_l.shape=} but {depth_r.shape=}")
+    return _disparity_nonoccluded(np.ascontiguousarray(depth_r, np.float32), np.ascontiguousarray(depth_l, np.float32),
+                                  zed.f_px * zed.baseline_mm, zed.doffs_px, rel_tol, abs_tol_mm, True)
 
 
 def nonoccluded_mask(depth_l: np.ndarray, disp: np.ndarray, depth_r: np.ndarray, rel_tol: float = 0.01,

@@ -75,7 +75,18 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
     term; ``cov`` None: no extrinsic term (the same sigma a zero covariance gives)."""
     H, W = disp.shape
     use_span = span.shape == disp.shape
+    has_cov = cov is not None
+    C = np.zeros((6, 6)) if cov is None else cov
+    # J C J^T of a symmetric C written out over its upper triangle, off-diagonal terms doubled (21 products, no loop)
+    c00, c01, c02, c03, c04, c05 = C[0, 0], 2 * C[0, 1], 2 * C[0, 2], 2 * C[0, 3], 2 * C[0, 4], 2 * C[0, 5]
+    c11, c12, c13, c14, c15 = C[1, 1], 2 * C[1, 2], 2 * C[1, 3], 2 * C[1, 4], 2 * C[1, 5]
+    c22, c23, c24, c25 = C[2, 2], 2 * C[2, 3], 2 * C[2, 4], 2 * C[2, 5]
+    c33, c34, c35 = C[3, 3], 2 * C[3, 4], 2 * C[3, 5]
+    c44, c45 = C[4, 4], 2 * C[4, 5]
+    c55 = C[5, 5]
+    fb = fx * B
     for v in range(H):
+        y_over_z = (v - cy) / fy
         for u in range(W):
             d = np.float64(disp[v, u])
             Z = np.float64(depth[v, u])
@@ -88,41 +99,40 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
             gy = _slope(np.float64(disp[v - 1, u]) if v > 0 else np.nan, d,
                         np.float64(disp[v + 1, u]) if v < H - 1 else np.nan)
             X = (u - cx) / fx * Z
-            Y = (v - cy) / fy * Z
+            Y = y_over_z * Z
+            iz = 1.0 / Z
             # a = dd/dX - g . du/dX  (row vector)
-            fb = fx * B
-            ax = -gx * fx / Z
-            ay = -gy * fy / Z
-            az = -fb / (Z * Z) + gx * fx * X / (Z * Z) + gy * fy * Y / (Z * Z)
+            ax = -gx * fx * iz
+            ay = -gy * fy * iz
+            az = (-fb + gx * fx * X + gy * fy * Y) * iz * iz
             var = 0.0
-            if cov is not None:
+            if has_cov:
                 # extrinsic: dX/domega = -[P]x with P = X - t, dX/ddt = I  ->  J = [P x a, a]
                 px, py, pz = X - t[0], Y - t[1], Z - t[2]
                 J0 = py * az - pz * ay
                 J1 = pz * ax - px * az
                 J2 = px * ay - py * ax
-                J = (J0, J1, J2, ax, ay, az)
-                for i in range(6):
-                    s = 0.0
-                    for j in range(6):
-                        s += cov[i, j] * J[j]
-                    var += J[i] * s
+                var = (J0 * (c00 * J0 + c01 * J1 + c02 * J2 + c03 * ax + c04 * ay + c05 * az)
+                       + J1 * (c11 * J1 + c12 * J2 + c13 * ax + c14 * ay + c15 * az)
+                       + J2 * (c22 * J2 + c23 * ax + c24 * ay + c25 * az)
+                       + ax * (c33 * ax + c34 * ay + c35 * az) + ay * (c44 * ay + c45 * az) + az * (c55 * az))
             # depth noise along the depth camera's ray: dX/dz_d = (X - c) / z_d, z_d = the point's depth-camera z
             rx, ry, rz = X - c_depth[0], Y - c_depth[1], Z - c_depth[2]
             zd = rx * axis_depth[0] + ry * axis_depth[1] + rz * axis_depth[2]
             # the mesh interpolates three noisy vertices: sqrt(sum w_i^2) of the noise, 1/sqrt(2) in the mean square
             # over a triangle (uniform barycentric weights: E[sum w_i^2] = 1/2)
-            sz = (a_mm + b_mm * (zd / 1000.0) ** 2) * 0.7071067811865476
+            zd_m = zd * 0.001
+            sz = (a_mm + b_mm * (zd_m * zd_m)) * 0.7071067811865476
             dn_ = (ax * rx + ay * ry + az * rz) / zd * sz
             var += dn_ * dn_
             # mesh interpolation: the chord of a surface curved with radius R, over the triangle's depth span
-            sp = np.float64(span[v, u]) if use_span else np.nan
-            if math.isfinite(sp):
-                m = fb / (Z * Z) * sp * sp / (8.0 * radius_mm)
-                var += m * m
+            if use_span:
+                sp = np.float64(span[v, u])
+                if math.isfinite(sp):
+                    m = fb * iz * iz * sp * sp / (8.0 * radius_mm)
+                    var += m * m
             # verification: the measured texture shift as lateral uncertainty
-            lat = math.sqrt(gx * gx + gy * gy) * shift_px
-            var += lat * lat
+            var += shift_px * shift_px * (gx * gx + gy * gy)
             out[v, u] = math.sqrt(var)
 
 
