@@ -15,7 +15,7 @@ from pydantic import Field, field_validator
 from gtforge.camera import PinholeCamera, RectifiedStereo
 from gtforge.errors import InputError
 from gtforge.io.cameras import ZedConfReading
-from gtforge.io.formats import read_image
+from gtforge.io.formats import PNG_SIGNATURE, read_image
 from gtforge.schema import GTModel, VersionedFile, matrix4_field
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
@@ -357,7 +357,6 @@ class Session:
                        self.config.fruit_ids.get(folder.name), self.capture_files(folder), *verbatim)
 
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
@@ -371,7 +370,7 @@ def _png_header(path: Path) -> tuple[int, int, int, int, bool] | None:
             tail = fh.read(12)
     except OSError:
         return None
-    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+    if len(head) < 26 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
         return None
     return (int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"), head[24], head[25],
             tail == _PNG_IEND)
