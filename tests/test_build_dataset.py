@@ -428,6 +428,61 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
     assert faults["tuned"] < 1000, faults
 
 
+def _resident_pages(path) -> int:
+    """How many of a file's pages are in the page cache (mmap + mincore through ctypes; Linux/glibc)."""
+    import ctypes
+    import mmap
+    import os
+
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    libc.mmap.restype = ctypes.c_void_p
+    libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long]
+    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p]
+    libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    size = os.path.getsize(path)
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        addr = libc.mmap(None, size, mmap.PROT_READ, mmap.MAP_SHARED, fd, 0)
+        assert addr not in (None, ctypes.c_void_p(-1).value), ctypes.get_errno()
+        pages = (size + mmap.PAGESIZE - 1) // mmap.PAGESIZE
+        vec = ctypes.create_string_buffer(pages)
+        assert libc.mincore(addr, size, vec) == 0, ctypes.get_errno()
+        libc.munmap(addr, size)
+        return sum(b & 1 for b in vec.raw)
+    finally:
+        os.close(fd)
+
+
+def test_written_pages_are_released_two_scenes_later(tmp_path):
+    """scheduling.release_written_pages: a scene's files leave the page cache at the call two scenes later (once
+    written back), newer scenes' files stay until then, and contents are untouched."""
+    import os
+    import platform
+
+    from gtforge.scheduling import _WRITTEN_GROUPS, release_written_pages
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("Linux/glibc only (mincore through ctypes)")
+    rng = np.random.default_rng(0)
+    files = {name: rng.integers(0, 255, 4 << 20, dtype=np.uint8).tobytes() for name in "abc"}
+    a, b, c = (tmp_path / f"{name}.bin" for name in "abc")
+    pages = len(files["a"]) // 4096
+    a.write_bytes(files["a"])
+    b.write_bytes(files["b"])
+    assert _resident_pages(a) == pages  # just written: all cached
+    _WRITTEN_GROUPS.clear()
+    release_written_pages([a, tmp_path / "missing.bin"])  # a's writeback starts; a missing file is no error
+    release_written_pages([b])
+    os.sync()  # (two scenes' compute time, in a build)
+    assert _resident_pages(a) == pages and _resident_pages(b) == pages  # not dropped yet
+    c.write_bytes(files["c"])
+    release_written_pages([c])
+    assert _resident_pages(a) == 0  # two calls later: dropped
+    assert _resident_pages(b) == pages  # dropped at the next call
+    assert all((tmp_path / f"{k}.bin").read_bytes() == v for k, v in files.items())
+    assert _WRITTEN_GROUPS == [[str(b)], [str(c)]]
+
+
 def test_dask_task_keeps_freed_memory_then_restores_the_workers_setting():
     """On a Dask worker (started with MALLOC_TRIM_THRESHOLD_=65536, which returns every freed array to the kernel)
     a gtforge task keeps freed memory while it runs and puts the worker's setting back afterwards."""

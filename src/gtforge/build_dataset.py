@@ -38,7 +38,7 @@ from gtforge.io.formats import (
     write_tiff_float,
 )
 from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
-from gtforge.scheduling import run_tasks
+from gtforge.scheduling import release_written_pages, run_tasks
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
 from gtforge.verify import SceneVerification, VerifyParams, verify_scene
@@ -46,6 +46,8 @@ from gtforge.verify import SceneVerification, VerifyParams, verify_scene
 log = logging.getLogger("gtforge.build_dataset")
 
 REGION_NONE, REGION_BG, REGION_CENTRE, REGION_EDGE = 0, 1, 2, 3
+# the KITTI view's disparity folders (its image_2/image_3 are links to the scene's im0/im1)
+KITTI_DISPARITY_DIRS = ("disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1")
 
 
 class BuildParams(GTModel):
@@ -410,6 +412,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     finally:
         _unlock_writer(scenes, sid, token, lock)
     write_scene_views(Path(out_dir), sid, params, disp, noc, disp1, noc1)
+    views = Path(out_dir) / "kitti" / "training"
+    release_written_pages([*(scenes / sid).iterdir(), *(views / d / f"{sid}_10.png" for d in KITTI_DISPARITY_DIRS)])
     return sid, None, meta.model_dump(mode="json")
 
 

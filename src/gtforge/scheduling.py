@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import threading
 import uuid
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -106,6 +107,49 @@ def _memory_kept_for_task():
                 except ValueError:
                     libc.mallopt(param, _GLIBC_DEFAULT_THRESHOLD)
             libc.malloc_trim(0)
+
+
+# the files of ``release_written_pages``'s last two calls, oldest first; the next call drops the first (per process)
+_WRITTEN_GROUPS: list[list[str]] = []
+_WRITTEN_LOCK = threading.Lock()
+
+
+def _fadvise_dontneed(path: str) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def release_written_pages(paths: Sequence[str | os.PathLike]) -> None:
+    """Give the page-cache pages of files this process just wrote back to the kernel once they are on disk,
+    as a streaming writer does (``dd oflag=nocache``): a build writes about 56 MB a full-resolution scene,
+    45 GB for 808 scenes, which would otherwise fill the page cache and push out everything else in it.
+
+    ``POSIX_FADV_DONTNEED`` on ``paths`` starts their writeback (it drops only pages already clean); two calls
+    later, two scenes on, the same advice drops their pages, written by then, and the following scenes' writes
+    reuse them instead of growing the cache into memory never touched. Pages still dirty then stay cached and
+    are written back by the kernel as usual; contents are never affected. On the 2-core project
+    VM, where a page-cache page the guest has not touched before costs the host a fault (about 3 ms/MB against
+    0.3 ms/MB for a reused one), this halved build-dataset's kernel time (benchmarks/RESULTS.md). No-op where
+    ``posix_fadvise`` does not exist."""
+    if not hasattr(os, "posix_fadvise"):
+        return
+    group = [os.fspath(p) for p in paths]
+    with _WRITTEN_LOCK:  # (Dask runs several tasks in one process)
+        older = _WRITTEN_GROUPS[:-1]  # the group before the last: its writeback started a scene ago
+        del _WRITTEN_GROUPS[:-1]
+        _WRITTEN_GROUPS.append(group)
+    for p in (q for g in older for q in g):  # written back by now: dropped
+        _fadvise_dontneed(p)
+    for p in group:  # writeback started
+        _fadvise_dontneed(p)
 
 
 def limit_threads(n_threads: int) -> None:
