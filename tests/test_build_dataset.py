@@ -519,3 +519,29 @@ print(outside, inside, faults())
                                                      check=True, env=env).stdout.split())
     assert outside > 5000 and after > 5000, (outside, after)  # freed arrays faulted in again (15,660 here, both)
     assert inside < 1000, inside
+
+
+def test_occlusion_mask_and_disparity_summary_match_numpy():
+    """The compiled occlusion mask and one-pass statistics give numpy's values exactly (NaN, +-inf, strided crops)."""
+    from gtforge.build_dataset import _disparity_summary, middlebury_calib_text, occlusion_mask
+
+    rng = np.random.default_rng(3)
+    disp = (rng.random((60, 80)) * 250).astype(np.float32)
+    disp[rng.random(disp.shape) < 0.3] = np.nan
+    disp[0, :3] = [np.inf, -np.inf, 193.0]
+    noc = np.isfinite(disp) & (rng.random(disp.shape) < 0.7)
+    for d, n in ((disp, noc), (disp[5:50, 7:70], noc[5:50, 7:70])):  # whole, and a crop (a strided view)
+        expected = np.zeros(d.shape, np.uint8)
+        expected[np.isfinite(d)] = 128
+        expected[n] = 255
+        np.testing.assert_array_equal(occlusion_mask(d, n), expected)
+        finite = d[np.isfinite(d)]
+        assert _disparity_summary(d, 192.0) == (finite.size, finite.min(), finite.max(), int((finite > 192.0).sum()))
+    assert _disparity_summary(np.full((4, 5), np.nan, np.float32), 192.0)[0] == 0
+    from gtforge.camera import PinholeCamera, RectifiedStereo
+
+    zed = RectifiedStereo(left=PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=40.0, cy_px=30.0, width_px=80,
+                                             height_px=60), baseline_mm=63.0)
+    text = middlebury_calib_text(zed, 80, 60, disp)
+    finite = disp[np.isfinite(disp)]
+    assert f"vmin={int(np.floor(finite.min()))}\n" in text and f"vmax={int(np.ceil(finite.max()))}\n" in text

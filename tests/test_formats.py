@@ -154,10 +154,23 @@ def _png_with_filters(a: np.ndarray, kinds: list[int]) -> bytes:
             + chunk(b"IDAT", zlib_ng.compress(b"".join(rows), 6)) + chunk(b"IEND", b""))
 
 
+@pytest.fixture(params=["isal", "zlib_ng"])
+def png_inflate_lib(request, monkeypatch):
+    """decode_png with each inflate backend: ISA-L, and zlib-ng (the fallback where isal has no wheel)."""
+    import gtforge.io.formats as formats
+
+    if request.param == "isal":
+        lib = pytest.importorskip("isal.isal_zlib")
+    else:
+        from zlib_ng import zlib_ng as lib
+    monkeypatch.setattr(formats, "_png_inflate_lib", lib)
+    return request.param
+
+
 @pytest.mark.parametrize("channels", [1, 2, 3, 4])
-def test_decode_png_matches_pillow_for_every_filter(channels):
-    """gtforge's PNG decoder (zlib-ng + compiled unfilter) against Pillow through imageio, on every filter type,
-    each also on the first row (where the row above is zeros) and on noise (where every byte wraps)."""
+def test_decode_png_matches_pillow_for_every_filter(channels, png_inflate_lib):
+    """gtforge's PNG decoder (ISA-L or zlib-ng inflate + compiled unfilter) against Pillow through imageio, on every
+    filter type, each also on the first row (where the row above is zeros) and on noise (where every byte wraps)."""
     import imageio.v3 as iio
 
     from gtforge.io.formats import decode_png
@@ -175,7 +188,7 @@ def test_decode_png_matches_pillow_for_every_filter(channels):
             np.testing.assert_array_equal(got, iio.imread(data))
 
 
-def test_decode_png_16bit_grey_and_the_variants_left_to_imageio(tmp_path):
+def test_decode_png_16bit_grey_and_the_variants_left_to_imageio(tmp_path, png_inflate_lib):
     import cv2
     import imageio.v3 as iio
 
@@ -195,7 +208,7 @@ def test_decode_png_16bit_grey_and_the_variants_left_to_imageio(tmp_path):
     np.testing.assert_array_equal(read_image(tmp_path / "p.png"), iio.imread(tmp_path / "p.png"))
 
 
-def test_decode_png_rejects_corrupt_and_truncated_data(tmp_path):
+def test_decode_png_rejects_corrupt_and_truncated_data(tmp_path, png_inflate_lib):
     from gtforge.io.formats import decode_png
 
     img = (np.arange(40 * 50 * 3) % 253).astype(np.uint8).reshape(40, 50, 3)
@@ -219,6 +232,11 @@ def test_decode_png_rejects_corrupt_and_truncated_data(tmp_path):
               + struct.pack(">I", zlib_ng.crc32(b"IDAT" + body)) + data[idat + 8 + n:])
     with pytest.raises(ValueError, match="unknown filter type on row 3"):
         decode_png(forged)
+    half = data[idat + 4:idat + 4 + n // 2]  # the deflate stream cut in half, in a well-formed chunk
+    cut_stream = (data[:idat - 4] + struct.pack(">I", len(half)) + b"IDAT" + half
+                  + struct.pack(">I", zlib_ng.crc32(b"IDAT" + half)) + data[idat + 8 + n:])
+    with pytest.raises(ValueError, match=r"does not inflate to 6040 bytes \(truncated"):
+        decode_png(cut_stream)
     p = tmp_path / "cut.png"
     p.write_bytes(data[: len(data) - 30])
     with pytest.raises(InputError, match=r"cut\.png.*truncated") as e:

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import ClassVar, Literal
 
 import cv2
+import numba
 import numpy as np
 from pydantic import Field
 
@@ -271,14 +272,33 @@ def sgra_weights(region: np.ndarray, params: BuildParams) -> np.ndarray:
 def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp: np.ndarray,
                           cx_shift: float = 0.0, cy_shift: float = 0.0) -> str:
     f, cx, cy = zed.left.fx_px, zed.left.cx_px - cx_shift, zed.left.cy_px - cy_shift
-    finite = disp[np.isfinite(disp)]
-    vmin = int(np.floor(finite.min())) if finite.size else 0
-    vmax = int(np.ceil(finite.max())) if finite.size else 0
+    n, lo, hi, _ = _disparity_summary(disp, np.inf)
+    vmin = int(np.floor(lo)) if n else 0
+    vmax = int(np.ceil(hi)) if n else 0
     ndisp = int(max(32, 16 * np.ceil((vmax + 1) / 16)))
     return (f"cam0=[{f:.6f} 0 {cx:.6f}; 0 {zed.left.fy_px:.6f} {cy:.6f}; 0 0 1]\n"
             f"cam1=[{f:.6f} 0 {cx + zed.doffs_px:.6f}; 0 {zed.left.fy_px:.6f} {cy:.6f}; 0 0 1]\n"
             f"doffs={zed.doffs_px:.6f}\nbaseline={zed.baseline_mm:.6f}\nwidth={width}\nheight={height}\n"
             f"ndisp={ndisp}\nisint=0\nvmin={vmin}\nvmax={vmax}\ndyavg=0\ndymax=0\n")
+
+
+@numba.njit(cache=True)
+def _disparity_summary(disp, over_px):
+    """(number of finite values, their min, their max, how many exceed ``over_px``) in one pass (numpy's boolean
+    selection and three reductions took 4-5 ms of a 2208x1242 map)."""
+    n, n_over = 0, 0
+    lo, hi = np.inf, -np.inf
+    H, W = disp.shape
+    for v in range(H):
+        for u in range(W):
+            d = disp[v, u]
+            if abs(d) < np.inf:  # finite (NaN compares false)
+                n += 1
+                lo = min(lo, d)
+                hi = max(hi, d)
+                if d > over_px:
+                    n_over += 1
+    return n, lo, hi, n_over
 
 
 # ---- one scene ------------------------------------------------------------------------------
@@ -332,7 +352,6 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm, params.uncertainty,
                                 sd.span_mm, shift)
     disp = sd.disparity_px
-    valid = np.isfinite(disp)
     left, right, depth = cap.zed_left, cap.zed_right, sd.depth_mm
     disp1 = noc1 = None
     if params.right_gt:
@@ -347,16 +366,15 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         if disp1 is not None:
             disp1, noc1 = disp1[sl], noc1[sl]
         noc = sd.nonoccluded[sl]
-        valid = valid[sl]
         crop, cx_shift, cy_shift = [x0, y0, cw, ch], float(x0), float(y0)
     else:
         noc = sd.nonoccluded
-    finite = disp[valid]
-    stats = SceneStats(valid_pct=100.0 * valid.mean(), nonoccluded_pct=100.0 * noc.mean(),
-                       fruit_pct=100.0 * fruit.mean(),
-                       disp_min_px=float(finite.min()) if finite.size else None,
-                       disp_max_px=float(finite.max()) if finite.size else None,
-                       over_max_disp_pct=100.0 * float((finite > params.max_disp_px).mean()) if finite.size else 0.0)
+    n_valid, lo, hi, n_over = _disparity_summary(disp, params.max_disp_px)
+    stats = SceneStats(valid_pct=100.0 * (n_valid / disp.size),
+                       nonoccluded_pct=100.0 * (np.count_nonzero(noc) / noc.size),
+                       fruit_pct=100.0 * (np.count_nonzero(fruit) / fruit.size),
+                       disp_min_px=float(lo) if n_valid else None, disp_max_px=float(hi) if n_valid else None,
+                       over_max_disp_pct=100.0 * (n_over / n_valid) if n_valid else 0.0)
     t_compute = time.perf_counter()
     inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()])
     meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
@@ -393,7 +411,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         write_tiff_float(tmp / "depth0.tiff", depth)
         atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp, cx_shift, cy_shift))
         if params.ply:
-            v, u = np.nonzero(valid)
+            v, u = np.nonzero(np.isfinite(disp))
             K = rig.zed.left
             z = depth[v, u].astype(np.float64)
             pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
@@ -571,9 +589,16 @@ def _link(src: Path, dst: Path) -> None:
 
 def occlusion_mask(disp: np.ndarray, nonoccluded: np.ndarray) -> np.ndarray:
     """``mask?nocc.png`` values: 255 non-occluded, 128 occluded in the other view, 0 no ground truth."""
-    mask = np.zeros(disp.shape, np.uint8)
-    mask[np.isfinite(disp)] = 128
-    mask[nonoccluded] = 255
+    return _occlusion_mask(disp, nonoccluded)
+
+
+@numba.njit(cache=True)
+def _occlusion_mask(disp, nonoccluded):
+    H, W = disp.shape
+    mask = np.empty((H, W), np.uint8)
+    for v in range(H):
+        for u in range(W):
+            mask[v, u] = 255 if nonoccluded[v, u] else (128 if abs(disp[v, u]) < np.inf else 0)
     return mask
 
 
