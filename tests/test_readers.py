@@ -230,6 +230,31 @@ def test_capture_without_decoding_checks_the_headers(tmp_path):
         (c / name).write_bytes(good)
 
 
+def test_capture_records_the_hash_of_the_bytes_it_decoded(tmp_path):
+    """load_capture hashes each file it reads whole as it reads it (Capture.read_records): the SHA-256 and size of
+    exactly those bytes, the mtime from just before. build-dataset's hash_inputs takes them instead of reading
+    the files again, and hashes only the rest (here: the PNGs a --no-verify load left undecoded)."""
+    import hashlib
+
+    from gtforge.build_dataset import hash_inputs
+
+    c = _mini_session(tmp_path)
+    s = open_session(tmp_path)
+    cap = s.load_capture(c)
+    names = {p.name for p in cap.input_files}
+    assert set(cap.read_records) == names == {"2DImage.png", "DepthMap.tiff", "left.png", "right.png"}
+    for name, r in cap.read_records.items():
+        data = (c / name).read_bytes()
+        assert r.sha256 == hashlib.sha256(data).hexdigest() and r.size_bytes == len(data)
+        assert r.mtime_ns == (c / name).stat().st_mtime_ns and r.read_at_ns >= r.mtime_ns
+    lean = s.load_capture(c, decode_images=False)
+    assert set(lean.read_records) == {"DepthMap.tiff"}  # the PNGs passed the header checks: not read
+    for caps in (cap, lean):
+        hashes, stamps = hash_inputs(caps.input_files, caps.read_records)
+        assert hashes == {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in caps.input_files}
+        assert {k: v.size_bytes for k, v in stamps.items()} == {p.name: p.stat().st_size for p in caps.input_files}
+
+
 def test_cli_bad_input_is_one_line_exit_2(tmp_path):
     c = _mini_session(tmp_path)
     write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 0.6, np.float32))  # metres

@@ -11,7 +11,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import cv2
 import numba
@@ -43,6 +43,9 @@ from gtforge.scheduling import release_written_pages, run_tasks
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
 from gtforge.verify import SceneVerification, VerifyParams, verify_scene
+
+if TYPE_CHECKING:
+    from gtforge.io.captures import ReadRecord
 
 log = logging.getLogger("gtforge.build_dataset")
 
@@ -173,10 +176,17 @@ def sha256_file(path: Path) -> str:
 STAMP_MARGIN_NS = 2_000_000_000
 
 
-def hash_inputs(paths: list[Path]) -> tuple[dict[str, str], dict[str, "InputStamp"]]:
-    """SHA-256 of each input, and its size + mtime taken just before hashing (for ``inputs_unchanged``)."""
+def hash_inputs(paths: list[Path], read: dict[str, "ReadRecord"] | None = None
+                ) -> tuple[dict[str, str], dict[str, "InputStamp"]]:
+    """SHA-256 of each input, and its size + mtime taken just before hashing (for ``inputs_unchanged``).
+    ``read``: files the capture reader already hashed as it read them (``Capture.read_records``), by name."""
     hashes, stamps = {}, {}
     for p in paths:
+        r = (read or {}).get(p.name)
+        if r is not None:
+            hashes[p.name] = r.sha256
+            stamps[p.name] = InputStamp(size_bytes=r.size_bytes, mtime_ns=r.mtime_ns, hashed_at_ns=r.read_at_ns)
+            continue
         st = p.stat()
         now_ns = time.time_ns()
         hashes[p.name] = sha256_file(p)
@@ -376,7 +386,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                        disp_min_px=float(lo) if n_valid else None, disp_max_px=float(hi) if n_valid else None,
                        over_max_disp_pct=100.0 * (n_over / n_valid) if n_valid else 0.0)
     t_compute = time.perf_counter()
-    inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()])
+    inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
     meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
                      calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
                      input_stamps=stamps,

@@ -2,7 +2,10 @@
 and capture folders (docs/capture-layout.md)."""
 from __future__ import annotations
 
+import hashlib
+import io
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -23,26 +26,27 @@ DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
 # ---- depth ----------------------------------------------------------------------------------
 def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_scale_mm: float | None = None,
-               camera: PinholeCamera | None = None, field: str = "depth") -> np.ndarray:
+               camera: PinholeCamera | None = None, field: str = "depth", data: bytes | None = None) -> np.ndarray:
     """Depth map -> ``(H, W)`` float32 mm with NaN invalid.
 
     float32 TIFF (Mech-Eye ``DepthMap.tiff``; NaN or 0 invalid), 16-bit PNG (``depth_scale_mm`` mm per
     count, 0 invalid), ``.npy`` (NaN, 0 or negative invalid). A median valid value below 10 (over every 16th
-    pixel) is refused as metres unless ``depth_unit="m"``.
+    pixel) is refused as metres unless ``depth_unit="m"``. ``data``: the file's bytes, already read.
     """
     path = Path(path)
-    if not path.is_file():
+    if data is None and not path.is_file():
         raise InputError(path, field, "a depth map file", "no such file", "check the capture folder / session.yaml")
     suf = path.suffix.lower()
     if suf not in DEPTH_SUFFIXES:
         raise InputError(path, field, f"a depth map ({', '.join(DEPTH_SUFFIXES)})", f"'{suf}'")
     try:
+        source = path if data is None else io.BytesIO(data)
         if suf in (".tif", ".tiff"):
-            a = tifffile.imread(path)
+            a = tifffile.imread(source)
         elif suf == ".npy":
-            a = np.load(path, allow_pickle=False)
+            a = np.load(source, allow_pickle=False)
         else:
-            a = read_image(path, expect="uint16", field=field)
+            a = read_image(path, expect="uint16", field=field, data=data)
     except InputError:
         raise
     except Exception as exc:
@@ -99,8 +103,9 @@ def _depth_mm(a, scale):
     return d, n
 
 
-def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: str = "texture") -> np.ndarray:
-    img = read_image(path, field=field)
+def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: str = "texture",
+                 data: bytes | None = None) -> np.ndarray:
+    img = read_image(path, field=field, data=data)
     if img.dtype == np.uint16:  # some Mech-Eye exports are 16-bit grey
         img = (img / 257.0).round().astype(np.uint8)
     if img.dtype != np.uint8:
@@ -207,6 +212,33 @@ class Capture:
     # set when zed_left / zed_right are exactly an RGB PNG file's pixels (no split, rectification, conversion)
     zed_left_file: Path | None = None
     zed_right_file: Path | None = None
+    # the input files read whole to build the arrays above, by name: the SHA-256 of exactly the bytes decoded
+    read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ReadRecord:
+    """A file as it was read: the SHA-256 of the bytes, and its size and modification time from just before."""
+
+    sha256: str
+    size_bytes: int
+    mtime_ns: int
+    read_at_ns: int
+
+
+def read_recorded(path: Path, records: dict[str, ReadRecord]) -> bytes | None:
+    """The bytes of ``path``, recorded in ``records`` under its name (hashing what is read saves reading the file
+    again to hash it, and the hash is of the very bytes the scene was built from). None when it cannot be read,
+    for the reader to report as usual; not recorded when the file changed size while being read."""
+    try:
+        st = path.stat()
+        read_at_ns = time.time_ns()
+        data = path.read_bytes()
+    except OSError:
+        return None
+    if len(data) == st.st_size:
+        records[path.name] = ReadRecord(hashlib.sha256(data).hexdigest(), st.st_size, st.st_mtime_ns, read_at_ns)
+    return data
 
 
 @dataclass
@@ -304,12 +336,14 @@ class Session:
         arrays are then None. Anything else is decoded as usual, so every error stays the same."""
         folder = Path(folder)
         f = self.config.files
+        records: dict[str, ReadRecord] = {}
         tex_path = folder / f.mech_texture
         tex_size = self.mech.width_px, self.mech.height_px
         tex = None if not decode_images and _png_checks_out(tex_path, tex_size, (0, 2)) else read_texture(
-            tex_path, self.mech, "mech_texture")
-        depth = read_depth(folder / f.mech_depth, self.config.depth_unit, self.config.depth_scale_mm,
-                           self.depth_camera, "mech_depth")
+            tex_path, self.mech, "mech_texture", read_recorded(tex_path, records))
+        depth_path = folder / f.mech_depth
+        depth = read_depth(depth_path, self.config.depth_unit, self.config.depth_scale_mm, self.depth_camera,
+                           "mech_depth", read_recorded(depth_path, records))
         eye_w = self.zed.left.width_px
         verbatim: list[Path | None] = [None, None]
         zed_files = folder / f.zed_left, folder / f.zed_right
@@ -319,8 +353,10 @@ class Session:
             left = right = None
             verbatim = list(zed_files)
         elif (folder / f.zed_left).exists():
-            left = read_image(folder / f.zed_left, expect="uint8", field="zed_left")
-            right = read_image(folder / f.zed_right, expect="uint8", field="zed_right") if need_right or (
+            left = read_image(folder / f.zed_left, expect="uint8", field="zed_left",
+                              data=read_recorded(folder / f.zed_left, records))
+            right = read_image(folder / f.zed_right, expect="uint8", field="zed_right",
+                               data=read_recorded(folder / f.zed_right, records)) if need_right or (
                 folder / f.zed_right).exists() else None
             src = src_right = folder / f.zed_left
             if right is not None:
@@ -328,7 +364,8 @@ class Session:
             verbatim = [p if _is_rgb8_png(p) else None for p in (folder / f.zed_left, folder / f.zed_right)]
         elif (folder / f.zed_side_by_side).exists():
             src = src_right = folder / f.zed_side_by_side
-            left, right = split_side_by_side(read_image(src, expect="uint8", field="zed_side_by_side"), eye_w, src)
+            left, right = split_side_by_side(read_image(src, expect="uint8", field="zed_side_by_side",
+                                                        data=read_recorded(src, records)), eye_w, src)
         elif (folder / f.zed_video).exists():
             src = src_right = folder / f.zed_video
             left, right = split_side_by_side(read_video_frame(src, self.config.video_frame), eye_w, src)
@@ -348,13 +385,14 @@ class Session:
                 verbatim = [None, None]
         mask = None
         if (folder / f.fruit_mask).exists():
-            mask = read_image(folder / f.fruit_mask, field="fruit_mask")
+            mask = read_image(folder / f.fruit_mask, field="fruit_mask",
+                              data=read_recorded(folder / f.fruit_mask, records))
             if mask.ndim == 3:
                 mask = mask[..., 0]
             self.zed.left.check_image_size(mask.shape, folder / f.fruit_mask, "fruit mask")
             mask = mask > 0
         return Capture(folder.name, folder, tex, depth, left, right, mask,
-                       self.config.fruit_ids.get(folder.name), self.capture_files(folder), *verbatim)
+                       self.config.fruit_ids.get(folder.name), self.capture_files(folder), *verbatim, records)
 
 
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"

@@ -15,6 +15,7 @@ Encoder settings were chosen by measurement (benchmarks/RESULTS.md, "Output enco
 """
 from __future__ import annotations
 
+import io
 import re
 import struct
 from pathlib import Path
@@ -176,21 +177,23 @@ def write_image(path: str | Path, img: np.ndarray) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
-def read_image(path: str | Path, expect: str | None = None, field: str | None = None) -> np.ndarray:
+def read_image(path: str | Path, expect: str | None = None, field: str | None = None,
+               data: bytes | None = None) -> np.ndarray:
     """Read PNG/JPG/BMP/TIFF -> RGB ``(H, W, 3)`` uint8, grey ``(H, W)``, or uint16 as stored.
 
-    Truncated or corrupt files raise ``InputError`` (OpenCV would silently return part of the image).
+    ``data``: the file's bytes, already read (``path`` then names it in errors). Truncated or corrupt files raise
+    ``InputError`` (OpenCV would silently return part of the image).
     """
     import imageio.v3 as iio
 
     path = Path(path)
-    if not path.is_file():
+    if data is None and not path.is_file():
         raise InputError(path, field, "an image file", "no such file", "check the capture folder / session.yaml")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
-            a = tifffile.imread(path)
+            a = tifffile.imread(path if data is None else io.BytesIO(data))
         else:
-            data = path.read_bytes()
+            data = path.read_bytes() if data is None else data
             a = decode_png(data) if data[:8] == PNG_SIGNATURE else None
             if a is None:  # not a PNG, or one of the PNG variants decode_png leaves to imageio
                 a = iio.imread(data, extension=path.suffix or None)
