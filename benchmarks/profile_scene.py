@@ -166,7 +166,7 @@ def main():
         measure("write", "disp0GT_sigma.pfm + sigma thumbnail JPG",
                 lambda: (write_pfm(tmp / "disp0GT_sigma.pfm", sigma), bd.write_sigma_thumbnail(tmp / "sigma.jpg", sigma)))
     measure("write", "calib.txt", lambda: bd.atomic_write_text(
-        tmp / "calib.txt", bd.middlebury_calib_text(zed, disp.shape[1], disp.shape[0], disp)))
+        tmp / "calib.txt", bd.middlebury_calib_text(zed, disp.shape[1], disp.shape[0], (np.nanmin(disp), np.nanmax(disp)))))
 
     def links():
         for view in ("kitti", "eth3d"):

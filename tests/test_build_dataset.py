@@ -522,7 +522,8 @@ print(outside, inside, faults())
 
 
 def test_occlusion_mask_and_disparity_summary_match_numpy():
-    """The compiled occlusion mask and one-pass statistics give numpy's values exactly (NaN, +-inf, strided crops)."""
+    """The compiled occlusion mask and one-pass statistics give numpy's values exactly (NaN, +-inf, strided crops);
+    calib.txt's vmin/vmax/ndisp from the range."""
     from gtforge.build_dataset import _disparity_summary, middlebury_calib_text, occlusion_mask
 
     rng = np.random.default_rng(3)
@@ -542,6 +543,6 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
 
     zed = RectifiedStereo(left=PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=40.0, cy_px=30.0, width_px=80,
                                              height_px=60), baseline_mm=63.0)
-    text = middlebury_calib_text(zed, 80, 60, disp)
-    finite = disp[np.isfinite(disp)]
-    assert f"vmin={int(np.floor(finite.min()))}\n" in text and f"vmax={int(np.ceil(finite.max()))}\n" in text
+    text = middlebury_calib_text(zed, 80, 60, (12.5, 193.0))
+    assert "vmin=12\n" in text and "vmax=193\n" in text and "ndisp=208\n" in text
+    assert "vmin=0\n" in middlebury_calib_text(zed, 80, 60, None)

@@ -279,12 +279,12 @@ def sgra_weights(region: np.ndarray, params: BuildParams) -> np.ndarray:
     return w
 
 
-def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp: np.ndarray,
+def middlebury_calib_text(zed: RectifiedStereo, width: int, height: int, disp_range_px: tuple[float, float] | None,
                           cx_shift: float = 0.0, cy_shift: float = 0.0) -> str:
+    """Middlebury's ``calib.txt``; ``disp_range_px``: the GT disparity's (min, max), None without GT."""
     f, cx, cy = zed.left.fx_px, zed.left.cx_px - cx_shift, zed.left.cy_px - cy_shift
-    n, lo, hi, _ = _disparity_summary(disp, np.inf)
-    vmin = int(np.floor(lo)) if n else 0
-    vmax = int(np.ceil(hi)) if n else 0
+    vmin = int(np.floor(disp_range_px[0])) if disp_range_px else 0
+    vmax = int(np.ceil(disp_range_px[1])) if disp_range_px else 0
     ndisp = int(max(32, 16 * np.ceil((vmax + 1) / 16)))
     return (f"cam0=[{f:.6f} 0 {cx:.6f}; 0 {zed.left.fy_px:.6f} {cy:.6f}; 0 0 1]\n"
             f"cam1=[{f:.6f} 0 {cx + zed.doffs_px:.6f}; 0 {zed.left.fy_px:.6f} {cy:.6f}; 0 0 1]\n"
@@ -419,7 +419,9 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         write_label_png(tmp / "region.png", region)
         write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params), compression="zlib")  # 4 values: tiny
         write_tiff_float(tmp / "depth0.tiff", depth)
-        atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp, cx_shift, cy_shift))
+        disp_range = (stats.disp_min_px, stats.disp_max_px) if n_valid else None
+        atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp_range,
+                                                                  cx_shift, cy_shift))
         if params.ply:
             v, u = np.nonzero(np.isfinite(disp))
             K = rig.zed.left
