@@ -207,8 +207,7 @@ def main():
     lines.append("")
     lines.append(f"Not in the steps: pydantic meta/manifest, stats, masks, the atomic renames (whole call minus the "
                  f"steps: {total_cpu - s_cpu:+.0f} CPU ms, {total - s_ms:+.0f} ms of wall). Each write step is timed "
-                 f"alone into page-cache pages the kernel must find; the whole call's writes reuse the pages its "
-                 f"previous calls gave back (scheduling.release_written_pages), so its writes wait less.")
+                 f"alone; the whole call also gives its written pages back (scheduling.release_written_pages).")
     text = "\n".join(lines)
     print(text)
     if args.write:
