@@ -193,6 +193,14 @@ def test_real_frame_reads():
     ours = k.color.project(np.column_stack([rays, np.ones(len(rays))])).reshape(720, 1280, 2)
     m1, m2 = cv2.initUndistortRectifyMap(k.color.K, k.color.dist, None, pinhole.K, (1280, 720), cv2.CV_32FC1)
     assert np.abs(ours[..., 0] - m1).max() < 1e-3 and np.abs(ours[..., 1] - m2).max() < 1e-3
+    # the camera's own 16-bit PNG goes through gtforge's PNG decoder (io.formats.decode_png), not imageio's
+    import imageio.v3 as iio
+
+    from gtforge.io.formats import decode_png
+
+    raw = decode_png((DATA / "depth_nfov_unbinned_mm.png").read_bytes())
+    assert raw is not None and raw.dtype == np.uint16
+    np.testing.assert_array_equal(raw, iio.imread(DATA / "depth_nfov_unbinned_mm.png"))
 
 
 def test_depth_edges_land_on_colour_edges():
