@@ -363,11 +363,13 @@ WINDOW_MARGIN_PX = 32
 
 
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
-                      rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None
+                      rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None,
+                      smooth: np.ndarray | None = None
                       ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
     """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used).
 
-    The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's)."""
+    The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's).
+    ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it."""
     h, w = depth_zed_mm.shape
     window = window or Window(0, 0, 0, w, h)
     rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm,
@@ -377,7 +379,9 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
     n_rend = local_normalize(rend, ok, params.norm_sigma_px)
     n_zed = left_norm if left_norm is not None else \
         local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
-    use = ok_support & textured_mask(n_rend) & smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
+    if smooth is None:
+        smooth = smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
+    use = ok_support & textured_mask(n_rend) & smooth
     v, u = np.nonzero(use)
     reg = region[v, u]
     fruit = (reg == REGION_CENTRE) | (reg == REGION_EDGE)
@@ -403,11 +407,11 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
 
 def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
                        region: np.ndarray, params: VerifyParams, left_norm: np.ndarray | None = None,
-                       window: Window | None = None) -> dict[str, StereoEstimate]:
+                       window: Window | None = None, smooth: np.ndarray | None = None) -> dict[str, StereoEstimate]:
     """Disparity bias, vertical offset and the share of clearly worse matches, per region (all, fruit, background).
 
     The arrays may be a ``window`` of the images (``zed_right`` then covers the same rows and the columns the ground
-    truth's matches fall in)."""
+    truth's matches fall in). ``smooth``: ``smooth_depth_mask(disparity_px)``, if the caller has it."""
     h, w = disparity_px.shape
     window = window or Window(0, 0, 0, w, h)
     nl = left_norm if left_norm is not None else \
@@ -420,7 +424,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
     base = interior_mask(ok, 2) & (x_match > 3) & (x_match < window.width_px - 4) & (v_img > 3) & \
         (v_img < window.height_px - 4)
-    use = base & textured_mask(nl) & smooth_depth_mask(disparity_px)
+    use = base & textured_mask(nl) & (smooth_depth_mask(disparity_px) if smooth is None else smooth)
     v, u = np.nonzero(use)
     reg = region[v, u]
     regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
@@ -544,9 +548,11 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
         f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
     left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
+    # away from depth edges, for both checks (disp_c is the window's GT disparity, as depth_to_disparity gives it)
+    smooth = smooth_depth_mask(disp_c)
     e_all, e_fruit, tile_shifts, n_rend_c, _ = texture_alignment(depth_c, region_c, left_c, texture, rig_w, params,
-                                                                 left_norm, win)
-    stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win) \
+                                                                 left_norm, win, smooth)
+    stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win, smooth) \
         if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
