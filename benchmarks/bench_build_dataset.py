@@ -9,6 +9,7 @@ start (imports included), one after the other:
 * ``gtforge build-dataset`` with the default options and ``--workers`` = cores (mesh, occlusion mask,
   regions, weights, depth TIFF, KITTI + ETH3D views, verification, hashes for resume, atomic writes);
 * ``gtforge build-dataset --no-verify`` (the same without the per-scene verification);
+* ``gtforge build-dataset --no-right-gt`` (verification on, no right-view ground truth);
 * a resume of the default build (nothing to rebuild: the inputs' size + mtime checks).
 
 Prints scenes/s, the ratio to the baseline, and the projected time for 808 scenes at the measured rate.
@@ -75,6 +76,9 @@ def main():
     runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)", *t))
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"])
     runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
+    shutil.rmtree(outs["noverify"])
+    t = timed(build + ["-o", str(outs["noverify"]), "--no-right-gt"])
+    runs.append((f"gtforge build-dataset --workers {workers} --no-right-gt (verification on)", *t))
     shutil.rmtree(outs["noverify"])
     t_resume, _ = timed(build + ["-o", str(outs["gtforge"])])
     base_rate = n / runs[0][1]

@@ -546,3 +546,33 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
     text = middlebury_calib_text(zed, 80, 60, (12.5, 193.0))
     assert "vmin=12\n" in text and "vmax=193\n" in text and "ndisp=208\n" in text
     assert "vmin=0\n" in middlebury_calib_text(zed, 80, 60, None)
+
+
+def test_no_right_gt_rebuild_leaves_no_right_view_file(dataset, session_dir, true_calibration, tmp_path):
+    """`build-dataset --no-right-gt` over a dataset built with the right view's GT: every scene is rebuilt without
+    disp1GT.pfm / mask1nocc.png, the KITTI view keeps no disp_occ_1 / disp_noc_1 file from the earlier build and the
+    split views link none; the left view's files are those of the first build."""
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+
+    out, _ = dataset
+    ds = tmp_path / "ds"
+    shutil.copytree(out, ds, symlinks=True)
+    r = CliRunner().invoke(app, ["build-dataset", str(session_dir), "-c", str(true_calibration), "-o", str(ds),
+                                 "--no-right-gt", "--workers", "1"], env={"COLUMNS": "200"})
+    assert r.exit_code in (0, 1), r.output  # 1: verification flagged a scene (the fixture's moved fruit)
+    m = Manifest.read(ds / "manifest.json")
+    assert m.params.right_gt is False and sorted(m.scenes) == sorted(Manifest.read(out / "manifest.json").scenes)
+    k = ds / "kitti" / "training"
+    for sid in m.scenes:
+        s = ds / "scenes" / sid
+        assert not (s / "disp1GT.pfm").exists() and not (s / "mask1nocc.png").exists()
+        assert (s / "disp0GT.pfm").read_bytes() == (out / "scenes" / sid / "disp0GT.pfm").read_bytes()
+        assert not (k / "disp_occ_1" / f"{sid}_10.png").exists() and not (k / "disp_noc_1" / f"{sid}_10.png").exists()
+        assert (k / "disp_occ_0" / f"{sid}_10.png").read_bytes() == \
+            (out / "kitti" / "training" / "disp_occ_0" / f"{sid}_10.png").read_bytes()
+    for split, ids in m.splits.items():
+        for sid in ids:
+            v = ds / "views" / split / "KITTI" / "training"
+            assert (v / "disp_occ_0" / f"{sid}_10.png").exists() and not (v / "disp_occ_1" / f"{sid}_10.png").exists()

@@ -636,6 +636,9 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
         if disp1 is not None:  # KITTI's right-view GT, as OpenStereo's RETURN_RIGHT_DISP reads it
             write_kitti_disparity(k / "disp_occ_1" / f"{sid}_10.png", disp1)
             write_kitti_disparity(k / "disp_noc_1" / f"{sid}_10.png", disp1, noc1)
+        else:  # built without the right view's GT (--no-right-gt): none from an earlier build stays in the view
+            for d in ("disp_occ_1", "disp_noc_1"):
+                (k / d / f"{sid}_10.png").unlink(missing_ok=True)
     if params.eth3d:
         e = out / "eth3d"
         for f in ("im0.png", "im1.png", "calib.txt"):
