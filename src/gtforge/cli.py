@@ -223,7 +223,7 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                   right_gt: bool = typer.Option(True, "--right-gt/--no-right-gt",
                                                 help="Write the right view's ground truth (disp1GT.pfm, mask1nocc.png, "
                                                      "KITTI disp_occ_1/disp_noc_1: OpenStereo's RETURN_RIGHT_DISP "
-                                                     "configs read it). --no-right-gt builds a scene about 15 % "
+                                                     "configs read it). --no-right-gt builds a scene about 11 % "
                                                      "faster."),
                   quarantine: bool = typer.Option(False, "--quarantine",
                                                   help="Leave scenes that verification flags out of the split lists "
