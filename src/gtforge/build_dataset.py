@@ -442,8 +442,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     finally:
         _unlock_writer(scenes, sid, token, lock)
     write_scene_views(Path(out_dir), sid, params, disp, noc, disp1, noc1)
-    views = Path(out_dir) / "kitti" / "training"
-    release_written_pages([*(scenes / sid).iterdir(), *(views / d / f"{sid}_10.png" for d in KITTI_DISPARITY_DIRS)])
+    kitti = Path(out_dir) / "kitti" / "training"
+    release_written_pages([*(scenes / sid).iterdir(), *(kitti / d / f"{sid}_10.png" for d in KITTI_DISPARITY_DIRS)])
     return sid, None, meta.model_dump(mode="json")
 
 
@@ -685,7 +685,7 @@ def write_split_views(out: Path, splits: dict[str, list[str]], params: BuildPara
                 for kind in ("two_view_training", "two_view_training_gt"):
                     link(out / "eth3d" / kind / sid, root / "ETH3D" / kind / sid)
             if params.kitti:
-                for kind in ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1"):
+                for kind in ("image_2", "image_3", *KITTI_DISPARITY_DIRS):
                     f = out / "kitti" / "training" / kind / f"{sid}_10.png"
                     if f.exists():
                         link(f, root / "KITTI" / "training" / kind / f"{sid}_10.png")
