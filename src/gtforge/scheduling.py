@@ -19,7 +19,9 @@ workers, so every path in them must be absolute and valid on the workers (a shar
 whose worker process dies is run again on another worker by Dask; when
 ``distributed.scheduler.allowed-failures`` + 1 workers (default 3 + 1, set on the scheduler) have died
 running it, Dask gives up with ``KilledWorker`` and the task is handed to ``lost_result`` (build-dataset
-lists that scene as failed) instead of stopping the whole run.
+lists that scene as failed) instead of stopping the whole run. The cluster holds at most as many of the tasks as
+its workers have threads (the next is submitted as one finishes): Dask counts a worker's death against every task
+assigned to it, so tasks queued behind a scene that kills its worker would otherwise fail with it.
 """
 from __future__ import annotations
 
@@ -345,11 +347,27 @@ def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[t
         threads_by_host[host] = threads_by_host.get(host, 0) + n
     token = uuid.uuid4().hex[:8]  # keys unique to this run (another client may run the same scenes)
     name = getattr(fn, "__name__", "task")
-    pending = {client.submit(_run_on_worker, fn, args, threads_by_host, key=f"gtforge-{name}-{i}-{token}",
-                             pure=False): args for i, args in enumerate(arg_list)}
+    todo = list(enumerate(arg_list))[::-1]  # popped from the end: submitted in order
+    pending: dict = {}
+    completed = as_completed(loop=client.loop)
+
+    def submit_more() -> None:
+        # only as many tasks on the cluster as its workers have threads (workers that join get work at the next
+        # refill): Dask counts a worker's death against every task assigned to it, so a scene that kills its worker
+        # must not hold others queued there (they would be listed as failed with it)
+        slots = max(1, sum(client.nthreads().values()))
+        while todo and len(pending) < slots:
+            i, args = todo.pop()
+            f = client.submit(_run_on_worker, fn, args, threads_by_host, key=f"gtforge-{name}-{i}-{token}",
+                              pure=False)
+            pending[f] = args
+            completed.add(f)
+
     try:
-        for f in as_completed(list(pending), loop=client.loop):
+        submit_more()
+        for f in completed:
             args = pending.pop(f)
+            submit_more()
             if f.status == "error" and lost_result is not None:
                 exc = f.exception()
                 if isinstance(exc, KilledWorker):
