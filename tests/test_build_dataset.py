@@ -77,7 +77,7 @@ def test_manifest_and_lists(dataset):
     assert set(m.scenes) == {"000", "001", "002"}
     st = m.scenes["000"].stats
     assert 10 < st.valid_pct < 100 and st.disp_min_px > 0 and st.over_max_disp_pct == 0.0
-    assert set(m.scenes["000"].input_sha256) == {"DepthMap.tiff", "2DImage.png", "left.png", "right.png"}
+    assert set(m.scenes["000"].input_blake3) == {"DepthMap.tiff", "2DImage.png", "left.png", "right.png"}
     listed = []
     for split in ("train", "val", "test"):
         lines = (out / "filenames" / f"{split}.txt").read_text().split("\n")
@@ -272,12 +272,13 @@ def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibrati
     out = tmp_path / "ds"
     assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
     meta = bd.SceneMeta.read(out / "scenes" / "000" / "meta.json")
-    assert set(meta.input_stamps) == set(meta.input_sha256) == {"2DImage.png", "DepthMap.tiff", "left.png",
+    assert set(meta.input_stamps) == set(meta.input_blake3) == {"2DImage.png", "DepthMap.tiff", "left.png",
                                                                  "right.png"}
     assert meta.input_stamps["left.png"].size_bytes == (cap / "left.png").stat().st_size
     hashed = []
-    real = bd.sha256_file
-    monkeypatch.setattr(bd, "sha256_file", lambda p: hashed.append(Path(p).name) or real(p))
+    real_calib, real_input = bd.sha256_file, bd.blake3_file
+    monkeypatch.setattr(bd, "sha256_file", lambda p: hashed.append(Path(p).name) or real_calib(p))
+    monkeypatch.setattr(bd, "blake3_file", lambda p: hashed.append(Path(p).name) or real_input(p))
     s = build_dataset(sess, true_calibration, out, scenes=["000"], workers=1)
     assert s.skipped_unchanged == ["000"]
     # size + mtime trusted for the old files; the one modified near its hash is read again
@@ -294,6 +295,30 @@ def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibrati
 
     write_image(cap / "left.png", 255 - d)
     assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
+
+
+def test_scene_of_an_older_meta_schema_is_rebuilt_and_its_manifest_refused(session_dir, true_calibration, tmp_path):
+    """meta.json schema 1 (gtforge before the inputs' BLAKE3) recorded SHA-256s this gtforge cannot compare: a resume
+    rebuilds that scene instead of trusting it, and reading such a file says which schema it has."""
+    import gtforge.build_dataset as bd
+
+    out = tmp_path / "ds"
+    assert build_dataset(session_dir, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
+    path = out / "scenes" / "000" / "meta.json"
+    meta = json.loads(path.read_text())
+    assert meta["schema_version"] == 2 and len(meta["input_blake3"]["left.png"]) == 64
+    meta["schema_version"] = 1
+    meta["input_sha256"] = meta.pop("input_blake3")
+    path.write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=r"meta\.json.*schema_version 1 is not supported \(this gtforge reads 2\)"):
+        bd.SceneMeta.read(path)
+    assert build_dataset(session_dir, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
+    assert bd.SceneMeta.read(path).schema_version == 2
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["schema_version"] = 1
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match=r"manifest\.json.*schema_version 1 is not supported"):
+        Manifest.read(out / "manifest.json")
 
 
 def test_fruit_centre_equals_the_full_image_erosion():

@@ -232,9 +232,9 @@ def test_capture_without_decoding_checks_the_headers(tmp_path):
 
 def test_capture_records_the_hash_of_the_bytes_it_decoded(tmp_path):
     """load_capture hashes each file it reads whole as it reads it (Capture.read_records): the SHA-256 and size of
-    exactly those bytes, the mtime from just before. build-dataset's hash_inputs takes them instead of reading
+    exactly those bytes (BLAKE3), the mtime from just before. build-dataset's hash_inputs takes them instead of reading
     the files again, and hashes only the rest (here: the PNGs a --no-verify load left undecoded)."""
-    import hashlib
+    import blake3
 
     from gtforge.build_dataset import hash_inputs
 
@@ -245,13 +245,13 @@ def test_capture_records_the_hash_of_the_bytes_it_decoded(tmp_path):
     assert set(cap.read_records) == names == {"2DImage.png", "DepthMap.tiff", "left.png", "right.png"}
     for name, r in cap.read_records.items():
         data = (c / name).read_bytes()
-        assert r.sha256 == hashlib.sha256(data).hexdigest() and r.size_bytes == len(data)
+        assert r.blake3 == blake3.blake3(data).hexdigest() and r.size_bytes == len(data)
         assert r.mtime_ns == (c / name).stat().st_mtime_ns and r.read_at_ns >= r.mtime_ns
     lean = s.load_capture(c, decode_images=False)
     assert set(lean.read_records) == {"DepthMap.tiff"}  # the PNGs passed the header checks: not read
     for caps in (cap, lean):
         hashes, stamps = hash_inputs(caps.input_files, caps.read_records)
-        assert hashes == {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in caps.input_files}
+        assert hashes == {p.name: blake3.blake3(p.read_bytes()).hexdigest() for p in caps.input_files}
         assert {k: v.size_bytes for k, v in stamps.items()} == {p.name: p.stat().st_size for p in caps.input_files}
 
 

@@ -29,6 +29,7 @@ from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import fit_plane_robust, mask_bounding_box
 from gtforge.io.atomic import atomic_write_text
+from gtforge.io.digest import blake3_file
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
     write_image,
@@ -100,7 +101,7 @@ class SceneStats(GTModel):
 
 
 class InputStamp(GTModel):
-    """An input file's size and modification time when its SHA-256 was taken (meta.json)."""
+    """An input file's size and modification time when its BLAKE3 was taken (meta.json)."""
 
     size_bytes: int
     mtime_ns: int
@@ -109,13 +110,15 @@ class InputStamp(GTModel):
 
 class SceneMeta(VersionedFile):
 
+    SCHEMA_VERSION: ClassVar[int] = 2  # 2: the inputs' BLAKE3 (input_blake3) instead of their SHA-256
     KIND: ClassVar[str] = "scene meta.json (from gtforge build-dataset)"
+    schema_version: int = 2
     scene: str
     fruit_id: str | None = None
     gtforge_version: str
     calibration_sha256: str
     params_hash: str
-    input_sha256: dict[str, str]
+    input_blake3: dict[str, str]  # the input files' BLAKE3 (io.digest), by name
     input_stamps: dict[str, InputStamp] = Field(default_factory=dict)  # resume fast path (inputs_unchanged)
     stats: SceneStats
     crop_xywh: list[int] | None = None
@@ -131,7 +134,9 @@ class SceneMeta(VersionedFile):
 
 class Manifest(VersionedFile):
 
+    SCHEMA_VERSION: ClassVar[int] = 2  # 2: scene metas of schema 2
     KIND: ClassVar[str] = "dataset manifest.json (from gtforge build-dataset)"
+    schema_version: int = 2
     gtforge_version: str
     calibration_path: str
     calibration_sha256: str
@@ -161,8 +166,7 @@ class BuildSummary:
 
 
 def sha256_file(path: Path) -> str:
-    """SHA-256 of a file, read in 1 MiB chunks (about 2.5 GB/s here with the CPU's SHA instructions:
-    benchmarks/RESULTS.md)."""
+    """SHA-256 of a file, read in 1 MiB chunks (the calibration file's identity in meta.json and the manifest)."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
@@ -178,18 +182,19 @@ STAMP_MARGIN_NS = 2_000_000_000
 
 def hash_inputs(paths: list[Path], read: dict[str, "ReadRecord"] | None = None
                 ) -> tuple[dict[str, str], dict[str, "InputStamp"]]:
-    """SHA-256 of each input, and its size + mtime taken just before hashing (for ``inputs_unchanged``).
+    """BLAKE3 of each input (``io.digest``), and its size + mtime taken just before hashing (for
+    ``inputs_unchanged``).
     ``read``: files the capture reader already hashed as it read them (``Capture.read_records``), by name."""
     hashes, stamps = {}, {}
     for p in paths:
         r = (read or {}).get(p.name)
         if r is not None:
-            hashes[p.name] = r.sha256
+            hashes[p.name] = r.blake3
             stamps[p.name] = InputStamp(size_bytes=r.size_bytes, mtime_ns=r.mtime_ns, hashed_at_ns=r.read_at_ns)
             continue
         st = p.stat()
         now_ns = time.time_ns()
-        hashes[p.name] = sha256_file(p)
+        hashes[p.name] = blake3_file(p)
         stamps[p.name] = InputStamp(size_bytes=st.st_size, mtime_ns=st.st_mtime_ns, hashed_at_ns=now_ns)
     return hashes, stamps
 
@@ -198,7 +203,7 @@ def inputs_unchanged(meta: "SceneMeta", paths: list[Path]) -> bool:
     """Resume check: the same input files with the same contents as when ``meta``'s scene was built.
     A file whose size and mtime equal the recorded ones (and was not modified within ``STAMP_MARGIN_NS``
     of being hashed) counts as unchanged without reading it; any other file is hashed and compared."""
-    if {p.name for p in paths} != set(meta.input_sha256):
+    if {p.name for p in paths} != set(meta.input_blake3):
         return False
     for p in paths:
         st = p.stat()
@@ -206,7 +211,7 @@ def inputs_unchanged(meta: "SceneMeta", paths: list[Path]) -> bool:
         if s is not None and s.size_bytes == st.st_size and s.mtime_ns == st.st_mtime_ns \
                 and s.mtime_ns < s.hashed_at_ns - STAMP_MARGIN_NS:
             continue
-        if sha256_file(p) != meta.input_sha256[p.name]:
+        if blake3_file(p) != meta.input_blake3[p.name]:
             return False
     return True
 
@@ -388,7 +393,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     t_compute = time.perf_counter()
     inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
     meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
-                     calibration_sha256=calib_sha, params_hash=params.output_hash(), input_sha256=inputs,
+                     calibration_sha256=calib_sha, params_hash=params.output_hash(), input_blake3=inputs,
                      input_stamps=stamps,
                      stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
                      verification=verification,

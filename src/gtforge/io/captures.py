@@ -2,7 +2,6 @@
 and capture folders (docs/capture-layout.md)."""
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 import time
@@ -18,6 +17,7 @@ from pydantic import Field, field_validator
 from gtforge.camera import PinholeCamera, RectifiedStereo
 from gtforge.errors import InputError
 from gtforge.io.cameras import ZedConfReading
+from gtforge.io.digest import blake3_hex
 from gtforge.io.formats import PNG_SIGNATURE, read_image
 from gtforge.schema import GTModel, VersionedFile, matrix4_field
 
@@ -212,15 +212,16 @@ class Capture:
     # set when zed_left / zed_right are exactly an RGB PNG file's pixels (no split, rectification, conversion)
     zed_left_file: Path | None = None
     zed_right_file: Path | None = None
-    # the input files read whole to build the arrays above, by name: the SHA-256 of exactly the bytes decoded
+    # the input files read whole to build the arrays above, by name: the BLAKE3 of exactly the bytes decoded
     read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class ReadRecord:
-    """A file as it was read: the SHA-256 of the bytes, and its size and modification time from just before."""
+    """A file as it was read: the BLAKE3 of the bytes (``io.digest``), and its size and modification time from just
+    before."""
 
-    sha256: str
+    blake3: str
     size_bytes: int
     mtime_ns: int
     read_at_ns: int
@@ -237,7 +238,7 @@ def read_recorded(path: Path, records: dict[str, ReadRecord]) -> bytes | None:
     except OSError:
         return None
     if len(data) == st.st_size:
-        records[path.name] = ReadRecord(hashlib.sha256(data).hexdigest(), st.st_size, st.st_mtime_ns, read_at_ns)
+        records[path.name] = ReadRecord(blake3_hex(data), st.st_size, st.st_mtime_ns, read_at_ns)
     return data
 
 
