@@ -186,6 +186,10 @@ def test_decode_png_matches_pillow_for_every_filter(channels, png_inflate_lib):
             got = decode_png(data)
             np.testing.assert_array_equal(got, img)
             np.testing.assert_array_equal(got, iio.imread(data))
+            for rows in (0, 1, 6, 22, 23, 40):  # the first rows only (all of them from 23 on)
+                part = decode_png(data, rows)
+                assert part.shape == img[:rows].shape
+                np.testing.assert_array_equal(part, img[:rows])
 
 
 def test_decode_png_16bit_grey_and_the_variants_left_to_imageio(tmp_path, png_inflate_lib):
@@ -237,6 +241,12 @@ def test_decode_png_rejects_corrupt_and_truncated_data(tmp_path, png_inflate_lib
                   + struct.pack(">I", zlib_ng.crc32(b"IDAT" + half)) + data[idat + 8 + n:])
     with pytest.raises(ValueError, match=r"does not inflate to 6040 bytes \(truncated"):
         decode_png(cut_stream)
+    # the first rows of the cut stream are there; rows past its end are not
+    np.testing.assert_array_equal(decode_png(cut_stream, 10), img[:10])
+    with pytest.raises(ValueError, match="the image data ends before row 39 \\(truncated\\)"):
+        decode_png(cut_stream, 39)
+    with pytest.raises(ValueError, match="unknown filter type on row 3"):
+        decode_png(forged, 4)
     p = tmp_path / "cut.png"
     p.write_bytes(data[: len(data) - 30])
     with pytest.raises(InputError, match=r"cut\.png.*truncated") as e:

@@ -255,6 +255,30 @@ def test_capture_records_the_hash_of_the_bytes_it_decoded(tmp_path):
         assert {k: v.size_bytes for k, v in stamps.items()} == {p.name: p.stat().st_size for p in caps.input_files}
 
 
+def test_decoded_images_decode_what_load_capture_left_and_only_the_rows_asked(tmp_path):
+    """A build loads a capture without decoding its images, then decodes them once the ground truth says how many ZED
+    rows its verification reads (Session.decoded_images): the texture whole, the ZED images' first rows, with the
+    bytes read recorded as load_capture records them."""
+    import blake3
+
+    c = _mini_session(tmp_path)
+    s = open_session(tmp_path)
+    full = s.load_capture(c)
+    lean = s.load_capture(c, decode_images=False)
+    assert lean.mech_texture is None and lean.zed_left is None and set(lean.read_records) == {"DepthMap.tiff"}
+    tex, left, right = s.decoded_images(lean, zed_rows=4)
+    np.testing.assert_array_equal(tex, full.mech_texture)
+    assert left.shape == (4,) + full.zed_left.shape[1:] and right.shape == left.shape
+    np.testing.assert_array_equal(left, full.zed_left[:4])
+    np.testing.assert_array_equal(right, full.zed_right[:4])
+    assert set(lean.read_records) == {"DepthMap.tiff", "2DImage.png", "left.png", "right.png"}
+    assert lean.read_records["left.png"].blake3 == blake3.blake3((c / "left.png").read_bytes()).hexdigest()
+    _, left, _ = s.decoded_images(lean)  # every row
+    np.testing.assert_array_equal(left, full.zed_left)
+    same = s.decoded_images(full, zed_rows=4)  # decoded already: given as they are
+    assert all(a is b for a, b in zip(same, (full.mech_texture, full.zed_left, full.zed_right)))
+
+
 def test_cli_bad_input_is_one_line_exit_2(tmp_path):
     c = _mini_session(tmp_path)
     write_tiff_float(c / "DepthMap.tiff", np.full((12, 16), 0.6, np.float32))  # metres

@@ -48,6 +48,10 @@ def test_exact_extrinsic_scenes_verify_at_zero(dataset):
         assert v.stereo["all"].bad_match_pct < 1.0
     man = Manifest.read(out / "manifest.json")
     assert man.flagged == {} and man.scenes["000"].verification.status == "ok"
+    # the build decoded the ZED images only down to the rows the checks read: the same figures as the whole images give
+    rig = CalibrationFile.read(man.calibration_path).rig
+    for sid in rep.scenes:
+        assert rep.scenes[sid] == _verify(man.session_dir, sid, rig)[0]
     html = (out / "verification.html").read_text()
     assert "0 flagged" in html and "Per scene, worst first" in html
 
@@ -93,6 +97,36 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
     p = tmp_path / "overlay.jpg"
     write_verification_overlay(p, cap.zed_left, rendered)
     assert cv2.imread(str(p)).shape[:2] == rendered.shape
+
+
+@pytest.mark.parametrize("work_width_px", [1200, 300])
+def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true_calibration, work_width_px):
+    """A build decodes the ZED images only down to zed_rows_used (the window around the GT, at factor 1 and 3 here):
+    images cut there give exactly the figures of the whole images; one row shorter they are refused."""
+    from gtforge.verify import zed_rows_used
+
+    rig = CalibrationFile.read(true_calibration).rig
+    s = open_session(session_dir)
+    cap = s.load_capture(s.root / "scenes" / "001")
+    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), None)
+    depth, disp = sd.depth_mm.copy(), sd.disparity_px.copy()
+    H = depth.shape[0]
+    depth[int(0.7 * H):] = np.nan  # the depth camera sees less than the ZED (the GT ends above its last rows)
+    disp[int(0.7 * H):] = np.nan
+    noc = sd.nonoccluded & np.isfinite(disp)
+    params = VerifyParams(work_width_px=work_width_px)
+    n = zed_rows_used(depth, params)
+    assert int(0.7 * H) < n < H
+    whole, _ = verify_scene(depth, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig, params)
+    cut, _ = verify_scene(depth, disp, noc, region, cap.zed_left[:n], cap.zed_right[:n], cap.mech_texture, rig,
+                          params)
+    assert whole.status == "ok" and whole.texture_all.n_pixels > 1000 and whole.texture_fruit.dx_px is not None
+    assert whole.stereo["all"].n_pixels > 1000
+    assert cut == whole
+    with pytest.raises(ValueError, match=rf"zed_right.shape=\({n - 1}, .* but the checks read its first {n} rows"):
+        verify_scene(depth, disp, noc, region, cap.zed_left, cap.zed_right[:n - 1], cap.mech_texture, rig, params)
+    f = -(-depth.shape[1] // work_width_px)  # the work factor: 1 and 3
+    assert zed_rows_used(np.full_like(depth, np.nan), params) == H // f * f  # no GT: the whole image is the window
 
 
 def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibration, T_true):

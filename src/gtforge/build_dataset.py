@@ -43,7 +43,7 @@ from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disp
 from gtforge.scheduling import release_written_pages, run_tasks
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
-from gtforge.verify import SceneVerification, VerifyParams, verify_scene
+from gtforge.verify import SceneVerification, VerifyParams, verify_scene, zed_rows_used
 
 if TYPE_CHECKING:
     from gtforge.io.captures import ReadRecord
@@ -349,18 +349,26 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         calib = _cached_calibration(calib_path, calib_sha)
         session = _cached_session(session_dir, calib.zed_conf_reading)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
-        # image content is needed by verification, a crop (re-encoded im0/im1) and the PLY's colours only
-        cap = session.load_capture(cap_dir, decode_images=params.verification or bool(params.crop_wh) or params.ply)
+        # image content is needed by verification, a crop (re-encoded im0/im1) and the PLY's colours only; for
+        # verification alone the images are decoded once the ground truth says how many ZED rows the checks read
+        cap = session.load_capture(cap_dir, decode_images=bool(params.crop_wh) or params.ply)
         t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
+        decode_s = 0.0
+        if params.verification:
+            t = time.perf_counter()
+            texture, zed_left, zed_right = session.decoded_images(cap, zed_rows_used(sd.depth_mm, params.verify))
+            decode_s = time.perf_counter() - t
     except InputError as exc:
         return sid, str(exc), None
     verification = None
     if params.verification:
-        verification, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left,
-                                              cap.zed_right, cap.mech_texture, rig, params.verify)
+        verification, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, zed_left,
+                                              zed_right, texture, rig, params.verify)
         if verification.status == "flagged" and rendered is not None:
-            write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
+            if zed_left.shape[0] < sd.depth_mm.shape[0]:  # the overlay shows the whole image
+                zed_left = session.decoded_images(cap)[1]
+            write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", zed_left, rendered)
     sigma = None
     if params.sigma:
         shift = verification.texture_all.magnitude_px if verification is not None else None
@@ -434,8 +442,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
             write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
         t_end = time.perf_counter()
-        meta.time_s, meta.time_read_s = t_end - t0, t_read - t0
-        meta.time_compute_s, meta.time_write_s = t_compute - t_read, t_end - t_compute
+        meta.time_s, meta.time_read_s = t_end - t0, t_read - t0 + decode_s  # (the images decoded for verification)
+        meta.time_compute_s, meta.time_write_s = t_compute - t_read - decode_s, t_end - t_compute
         meta.write(tmp / "meta.json")
         final = scenes / sid
         old = scenes / f".old-{sid}-{token}"

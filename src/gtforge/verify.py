@@ -531,10 +531,40 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     return depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, Window(int(x0), int(y0), int(xr0), w, h)
 
 
+def _work_factor(width_px: int, params: VerifyParams) -> int:
+    """The integer factor the checks reduce the ZED images by (``VerifyParams.work_width_px``)."""
+    return max(1, int(np.ceil(width_px / params.work_width_px)))
+
+
+def zed_rows_used(depth_zed_mm: np.ndarray, params: VerifyParams | None = None) -> int:
+    """How many of the ZED images' rows, from the top, ``verify_scene`` reads for this ground truth: the end of the
+    window around it (``_work_arrays``: the GT's last row, reduced by the work factor, plus ``WINDOW_MARGIN_PX``), at
+    the dataset's resolution. A build decodes the ZED images only that far (``Session.decoded_images``)."""
+    params = params or VerifyParams()
+    H, W = depth_zed_mm.shape
+    f = _work_factor(W, params)
+    end = _rows_with_values(depth_zed_mm)  # every GT pixel lies in rows [0, end)
+    # a work pixel is valid only where its whole f x f block is: the window's rows end at most here
+    return (min(-(-end // f) + WINDOW_MARGIN_PX, H // f) if end else H // f) * f
+
+
+@numba.njit(cache=True)
+def _rows_with_values(a):
+    """1 + the last row of ``a`` holding a finite value (0: none), scanning from the bottom (only the rows below the
+    ground truth are read)."""
+    H, W = a.shape
+    for v in range(H - 1, -1, -1):
+        for u in range(W):
+            if abs(a[v, u]) < np.inf:
+                return v + 1
+    return 0
+
+
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
                  zed_left: np.ndarray, zed_right: np.ndarray | None, texture: np.ndarray | None, rig: Rig,
                  params: VerifyParams | None = None) -> tuple[SceneVerification, np.ndarray | None]:
     """Both checks for one scene (ZED-left arrays at the dataset's resolution, uncropped; see module docstring).
+    ``zed_left`` and ``zed_right`` may hold only their first ``zed_rows_used(depth_zed_mm, params)`` rows.
     Returns the verification and the rendered, normalised texture (at the work resolution, for overlays; None when not
     measured). The checks run in the window around the ground truth (``Window``): the same figures as on the whole
     image, at a fraction of the cost."""
@@ -544,7 +574,11 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         return SceneVerification(status="not verifiable", reasons=["no texture image"]), None
     if float(cv2.meanStdDev(to_gray(texture))[1][0, 0]) < 1.0:
         return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
-    f = max(1, int(np.ceil(depth_zed_mm.shape[1] / params.work_width_px)))
+    f = _work_factor(depth_zed_mm.shape[1], params)
+    for name, img in (("zed_left", zed_left), ("zed_right", zed_right)):
+        if img is not None and img.shape[0] < depth_zed_mm.shape[0] \
+                and img.shape[0] < (need := zed_rows_used(depth_zed_mm, params)):
+            raise ValueError(f"{name}.shape={img.shape} but the checks read its first {need} rows")
     depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
         f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
     left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both

@@ -331,10 +331,11 @@ class Session:
         return out
 
     def load_capture(self, folder: str | Path, need_right: bool = True, decode_images: bool = True) -> Capture:
-        """Read one capture folder. ``decode_images=False`` (a build that copies the ZED PNGs and uses no image
-        content): the texture and separate ZED left/right files that are complete PNGs (IEND present) of the
-        right size and type, without rectification, are checked from their headers and not decoded; their
-        arrays are then None. Anything else is decoded as usual, so every error stays the same."""
+        """Read one capture folder. ``decode_images=False`` (a build: it copies the ZED PNGs, and decodes the images
+        only if its verification reads them, with ``decoded_images``): the texture and separate ZED left/right files
+        that are complete PNGs (IEND present) of the right size and type, without rectification, are checked from
+        their headers and not decoded; their arrays are then None. Anything else is decoded as usual, so every error
+        stays the same."""
         folder = Path(folder)
         f = self.config.files
         records: dict[str, ReadRecord] = {}
@@ -394,6 +395,26 @@ class Session:
             mask = mask > 0
         return Capture(folder.name, folder, tex, depth, left, right, mask,
                        self.config.fruit_ids.get(folder.name), self.capture_files(folder), *verbatim, records)
+
+    def decoded_images(self, cap: Capture, zed_rows: int | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(texture, ZED left, ZED right)`` of a capture, decoding what ``load_capture(decode_images=False)`` left
+        undecoded (read now and recorded in ``cap.read_records``, as load_capture records what it reads; the header
+        checks were done then). ``zed_rows``: only the ZED images' first rows are needed (``verify.zed_rows_used``):
+        an undecoded one is decoded that far only, and its array has that many rows."""
+        f = self.config.files
+        tex = cap.mech_texture
+        if tex is None:
+            path = cap.folder / f.mech_texture
+            tex = read_texture(path, self.mech, "mech_texture", read_recorded(path, cap.read_records))
+        eyes = []
+        for img, path, name in ((cap.zed_left, cap.zed_left_file, "zed_left"),
+                                (cap.zed_right, cap.zed_right_file, "zed_right")):
+            if img is None and path is not None:
+                img = read_image(path, expect="uint8", field=name, data=read_recorded(path, cap.read_records),
+                                 rows=zed_rows)
+            eyes.append(img)
+        return tex, eyes[0], eyes[1]
 
 
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"
