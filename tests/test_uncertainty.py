@@ -142,3 +142,56 @@ def test_loader_and_confidence_weighted_loss(dataset):
     w = sample["weight"]
     assert sgra_loss(pred, pred, gt, w, 0.3, 1.0, confidence=conf) == pytest.approx(
         1.3 * weighted_smooth_l1(pred, gt, w * conf))
+
+
+def test_sigma_stats_by_label_counts_as_numpy_does():
+    """The compiled statistics passes (finite positive values, log-histogram, share above 0.1 px) give the counts of the
+    plain numpy computation, on values at the bin edges, at float32(0.1) itself, below and above the histogram's range,
+    and on NaN, inf, zero and negative values; labels as uint8 and as a bool mask."""
+    from gtforge.uncertainty import _LOG_EDGES, SigmaStats, sigma_stats_by_label
+
+    rng = np.random.default_rng(5)
+    shape = (61, 83)
+    s = (10 ** rng.uniform(-7, 2.5, shape)).astype(np.float32)
+    flat = s.reshape(-1)
+    flat[:200] = (10 ** _LOG_EDGES[rng.integers(0, len(_LOG_EDGES), 200)]).astype(np.float32)  # on bin edges
+    flat[200:260] = np.float32(0.1)
+    flat[260:300] = [np.nan, np.inf, -np.inf, 0.0, -0.5] * 8
+    labels = rng.integers(0, 5, shape).astype(np.uint8)
+    groups = {"all": (1, 2, 3, 4), "two": (2,), "pair": (3, 4), "none": (7,)}
+
+    def numpy_stats(sigma, lab_img, groups):  # the computation before the compiled passes (gtforge <= round 4)
+        ok = np.isfinite(sigma) & (sigma > 0)
+        lab, v = np.asarray(lab_img)[ok].astype(np.int64), sigma[ok]
+        n_labels = int(lab.max()) + 1
+        nb = len(_LOG_EDGES) - 1
+        step = (_LOG_EDGES[-1] - _LOG_EDGES[0]) / nb
+        b = np.clip(((np.log10(v) - np.float32(_LOG_EDGES[0])) / np.float32(step)).astype(np.int64), 0, nb - 1)
+        hist = np.bincount(lab * nb + b, minlength=n_labels * nb).reshape(n_labels, nb)
+        over = np.bincount(lab[v > 0.1], minlength=n_labels)
+        out = {}
+        for name, labs in groups.items():
+            labs = [k for k in labs if k < n_labels]
+            h = hist[labs].sum(axis=0) if labs else np.zeros(nb)
+            n = int(h.sum())
+            if not n:
+                out[name] = SigmaStats(median_px=None, p95_px=None, over_0_1_px_pct=None)
+                continue
+            cdf = np.cumsum(h) / n
+
+            def q(p):
+                i = int(np.searchsorted(cdf, p))
+                lo = cdf[i - 1] if i else 0.0
+                t = (p - lo) / max(cdf[i] - lo, 1e-12)
+                return float(10 ** (_LOG_EDGES[i] + t * (_LOG_EDGES[i + 1] - _LOG_EDGES[i])))
+
+            out[name] = SigmaStats(median_px=q(0.5), p95_px=q(0.95), over_0_1_px_pct=float(100.0 * over[labs].sum() / n))
+        return out
+
+    got = sigma_stats_by_label(s, labels, groups)
+    assert got == numpy_stats(s, labels, groups)
+    assert got["none"].median_px is None and got["all"].over_0_1_px_pct > 0
+    mask = labels > 2
+    assert sigma_stats_by_label(s, mask, {"in": (1,)}) == numpy_stats(s, mask, {"in": (1,)})
+    with pytest.raises(ValueError, match="labels.shape"):
+        sigma_stats_by_label(s, labels[:10], groups)

@@ -190,15 +190,16 @@ def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[
     """Per group of integer labels: median, 95th percentile (from a log-spaced histogram, 1.2 % bins, interpolated
     within the bin) and the exact share above 0.1 px of the finite sigma values. One pass over the image."""
     s = np.asarray(sigma_px, np.float32)
-    ok = np.isfinite(s) & (s > 0)
-    lab = np.asarray(labels)[ok].astype(np.int64)
-    v = s[ok]
+    labels = np.asarray(labels)
+    if labels.shape != s.shape:
+        raise ValueError(f"{labels.shape=} but expected {s.shape} (the sigma map's)")
+    # compiled passes around numpy's log10: 2-3 instead of 10-13 ms on a 2208x1242 map, the same counts
+    v, lab = _finite_positive(s, labels.view(np.uint8) if labels.dtype == bool else labels)
     n_labels = int(lab.max()) + 1 if lab.size else 1
     nb = len(_LOG_EDGES) - 1
     step = (_LOG_EDGES[-1] - _LOG_EDGES[0]) / nb
-    b = np.clip(((np.log10(v) - np.float32(_LOG_EDGES[0])) / np.float32(step)).astype(np.int64), 0, nb - 1)
-    hist = np.bincount(lab * nb + b, minlength=n_labels * nb).reshape(n_labels, nb)
-    over = np.bincount(lab[v > 0.1], minlength=n_labels)  # (weights=v > 0.1 takes 4 ms)
+    hist, over = _log_histogram(np.log10(v), v, lab, np.float32(_LOG_EDGES[0]), np.float32(step), nb, n_labels,
+                                np.float32(0.1))
     out = {}
     for name, labs in groups.items():
         labs = [k for k in labs if k < n_labels]
@@ -218,6 +219,37 @@ def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[
         out[name] = SigmaStats(median_px=q(0.5), p95_px=q(0.95),
                                over_0_1_px_pct=float(100.0 * over[labs].sum() / n))
     return out
+
+
+@numba.njit(cache=True)
+def _finite_positive(s, labels):
+    """The finite values > 0 of ``s`` and their ``labels``, in raster order: one pass."""
+    H, W = s.shape
+    v = np.empty(H * W, np.float32)
+    lab = np.empty(H * W, labels.dtype)
+    n = 0
+    for i in range(H):
+        for j in range(W):
+            x = s[i, j]
+            if x > 0 and x < np.inf:  # (NaN fails both)
+                v[n] = x
+                lab[n] = labels[i, j]
+                n += 1
+    return v[:n], lab[:n]
+
+
+@numba.njit(cache=True)
+def _log_histogram(lg, v, lab, e0, step, nb, n_labels, over):
+    """Per label: counts of ``lg`` in ``nb`` bins of ``step`` from ``e0`` (float32 arithmetic, truncated and clipped
+    as numpy's ``astype(int64)`` and ``clip`` do), and the count of ``v > over`` (float32, as numpy compares)."""
+    hist = np.zeros((n_labels, nb), np.int64)
+    n_over = np.zeros(n_labels, np.int64)
+    for k in range(lg.shape[0]):
+        b = int((lg[k] - e0) / step)
+        hist[lab[k], min(max(b, 0), nb - 1)] += 1
+        if v[k] > over:
+            n_over[lab[k]] += 1
+    return hist, n_over
 
 
 def sigma_stats(sigma_px: np.ndarray, mask: np.ndarray) -> "SigmaStats":
