@@ -38,6 +38,8 @@ def test_dataset_matches_exact_truth(session_dir, dataset):
 
         w = tifffile.imread(s / "weight.tiff")
         np.testing.assert_allclose(np.unique(w), [0.0, 0.8, 1.0, 1.4], rtol=1e-6)
+        # each pixel: its region's weight (none 0, background 0.8, fruit centre 1.0, fruit edge 1.4)
+        np.testing.assert_array_equal(w, np.array([0.0, 0.8, 1.0, 1.4], np.float32)[region])
         depth = tifffile.imread(s / "depth0.tiff")
         assert depth.dtype == np.float32
         np.testing.assert_array_equal(np.isfinite(depth), ok)
