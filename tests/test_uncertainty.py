@@ -121,7 +121,14 @@ def test_sigma_is_written_and_larger_at_silhouettes(dataset):
         assert meta.sigma_extrinsic_included and st["all"].median_px > 0
         # silhouettes and grazing surfaces are less certain than the fruit's top
         assert st["fruit_edge"].p95_px > 2 * st["fruit_centre"].p95_px, st
-        assert (out / "report" / f"{sid}_sigma.jpg").exists()
+        import cv2
+
+        thumb = cv2.imread(str(out / "report" / f"{sid}_sigma.jpg"))  # 640 px wide at most; black where no GT
+        small = cv2.resize(np.isfinite(sig).astype(np.uint8), thumb.shape[1::-1], interpolation=cv2.INTER_NEAREST)
+        far = cv2.erode(1 - small, np.ones((9, 9), np.uint8)).astype(bool)  # well away from the GT (JPEG blurs edges)
+        inside = cv2.erode(small, np.ones((9, 9), np.uint8)).astype(bool)
+        assert far.any() and inside.any()
+        assert thumb[far].max() < 16 and thumb[inside].max(axis=1).mean() > 40  # turbo's darkest is (48, 18, 59)
     html = (out / "build_report.html").read_text()
     assert "sigma fruit edge" in html and "report/000_sigma.jpg" in html and "verification.html" in html
 
