@@ -188,7 +188,7 @@ _LOG_EDGES = np.linspace(-6.0, 2.0, 1601)  # log10(sigma px): 1e-6 .. 100 px, 1.
 def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[str, tuple[int, ...]]
                          ) -> dict[str, "SigmaStats"]:
     """Per group of integer labels: median, 95th percentile (from a log-spaced histogram, 1.2 % bins, interpolated
-    within the bin) and the exact share above 0.1 px of the finite sigma values. One pass over the image."""
+    within the bin) and the exact share above 0.1 px of the finite sigma values: two compiled passes over the image."""
     s = np.asarray(sigma_px, np.float32)
     labels = np.asarray(labels)
     if labels.shape != s.shape:
