@@ -12,10 +12,13 @@ start (imports included), one after the other:
 * ``gtforge build-dataset --no-right-gt`` (verification on, no right-view ground truth);
 * a resume of the default build (nothing to rebuild: the inputs' size + mtime checks).
 
+``--repeat N`` runs the baseline and the default build N times, alternating, and reports each pair's ratio (the
+machine's speed drifts by several per cent between runs; the table then holds the runs with the median wall time).
+
 Prints scenes/s, the ratio to the baseline, and the projected time for 808 scenes at the measured rate.
 ``--write`` puts the table into benchmarks/RESULTS.md (section ``bench_build_dataset``).
 
-    python benchmarks/bench_build_dataset.py [--scenes 100] [--distinct 4] [--write] [--workdir /tmp/gtforge_bench]
+    python benchmarks/bench_build_dataset.py [--scenes 100] [--distinct 4] [--repeat 1] [--write] [--workdir ...]
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ import datetime
 import os
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -53,6 +57,8 @@ def main():
     ap.add_argument("--distinct", type=int, default=4)
     ap.add_argument("--workers", type=int, default=None, help="gtforge --workers (default: cores)")
     ap.add_argument("--workdir", default="/tmp/gtforge_bench")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="run the baseline and the default build this many times, alternating (the table: medians)")
     ap.add_argument("--write", action="store_true", help="write the table into benchmarks/RESULTS.md")
     args = ap.parse_args()
     from gtforge.scheduling import cpu_count
@@ -68,12 +74,23 @@ def main():
         shutil.rmtree(o, ignore_errors=True)
     n = args.scenes
     runs = []
-    t = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib), str(outs["baseline"])])
-    runs.append(("baseline: plain Open3D script (one process)", *t))
-    shutil.rmtree(outs["baseline"])  # outputs take 20-56 MB a scene: keep only the one the resume row needs
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
-    t = timed(build + ["-o", str(outs["gtforge"])])
-    runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)", *t))
+    pairs = []  # (baseline, default) of each repeat: (wall s, CPU s)
+    for i in range(max(1, args.repeat)):
+        b = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib),
+                   str(outs["baseline"])])
+        shutil.rmtree(outs["baseline"])  # outputs take 20-56 MB a scene: keep only the one the resume row needs
+        shutil.rmtree(outs["gtforge"], ignore_errors=True)
+        pairs.append((b, timed(build + ["-o", str(outs["gtforge"])])))
+        print(f"repeat {i + 1}: baseline {b[0]:.1f} s, default build {pairs[-1][1][0]:.1f} s "
+              f"({b[0] / pairs[-1][1][0]:.2f}x)", flush=True)
+
+    def median(ts):  # (wall, CPU) of the run with the median wall time (the faster middle one of an even count)
+        return sorted(ts)[(len(ts) - 1) // 2]
+
+    runs.append(("baseline: plain Open3D script (one process)", *median([p[0] for p in pairs])))
+    runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)",
+                 *median([p[1] for p in pairs])))
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"])
     runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
     shutil.rmtree(outs["noverify"])
@@ -82,9 +99,12 @@ def main():
     shutil.rmtree(outs["noverify"])
     t_resume, _ = timed(build + ["-o", str(outs["gtforge"])])
     base_rate = n / runs[0][1]
+    rep = f" --repeat {args.repeat}" if args.repeat > 1 else ""
     lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes {n} "
-             f"--distinct {args.distinct}`: {machine}; {n} full-resolution scenes ({args.distinct} distinct renders "
-             f"hard-linked), each run a fresh process (imports included), one after the other.",
+             f"--distinct {args.distinct}{rep}`: {machine}; {n} full-resolution scenes ({args.distinct} distinct renders "
+             f"hard-linked), each run a fresh process (imports included), one after the other"
+             + (f"; the baseline and the default build ran {args.repeat} times, alternating (their rows: the run "
+                "with the median wall time)." if args.repeat > 1 else "."),
              "",
              f"| run | wall s | scenes/s | vs baseline | {TARGET_SCENES} scenes at this rate | CPU s per scene |",
              "|---|---|---|---|---|---|"]
@@ -93,6 +113,12 @@ def main():
         lines.append(f"| {name} | {t:.1f} | {rate:.2f} | {rate / base_rate:.2f}x | "
                      f"{TARGET_SCENES / rate / 60:.1f} min | {cpu / n:.3f} |")
     lines.append(f"| resume of the default build (nothing to rebuild) | {t_resume:.1f} | | | | |")
+    if len(pairs) > 1:
+        ratios = sorted(b[0] / g[0] for b, g in pairs)
+        lines += ["", "Each repeat, baseline / default build (s): " + ", ".join(
+            f"{b[0]:.1f} / {g[0]:.1f} ({b[0] / g[0]:.2f}x)" for b, g in pairs)
+            + f"; the default build's ratio {ratios[0]:.2f}-{ratios[-1]:.2f}x, median "
+              f"{statistics.median(ratios):.2f}x."]
     text = "\n".join(lines)
     print(text)
     if args.write:
