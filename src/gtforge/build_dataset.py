@@ -29,7 +29,7 @@ from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import fit_plane_robust, mask_bounding_box
 from gtforge.io.atomic import atomic_write_text
-from gtforge.io.digest import blake3_file
+from gtforge.io.digest import blake3_file, sha256_file
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
     write_image,
@@ -163,15 +163,6 @@ class BuildSummary:
     @property
     def ok(self) -> bool:
         return not self.failures
-
-
-def sha256_file(path: Path) -> str:
-    """SHA-256 of a file, read in 1 MiB chunks (the calibration file's identity in meta.json and the manifest)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 # A recorded size + mtime is trusted only when the file was last modified this long before it was hashed:
