@@ -107,6 +107,62 @@ def test_label_png_and_kitti_quantisation(tmp_path):
         write_kitti_disparity(tmp_path / "x.png", d, noc[:, :4])
 
 
+def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
+    """disp_occ + disp_noc written together (row blocks without an occluded valid pixel deflated once, for both) are
+    the files two write_kitti_disparity calls write, for heights around the block size; three decoders agree."""
+    import cv2
+    from PIL import Image
+
+    from gtforge.io import formats
+
+    rng = np.random.default_rng(3)
+    n = formats.LABEL_PNG_BLOCK_ROWS
+    for h in (1, n - 1, n, n + 1, 3 * n + 5):
+        d = rng.uniform(0, 200, (h, 29)).astype(np.float32)
+        d[rng.random(d.shape) < 0.3] = np.nan
+        noc = np.ones(d.shape, bool)
+        noc[h // 2, 3:9] = False  # occluded pixels in one block only (some of them NaN: not a difference)
+        noc[~np.isfinite(d[:, 0]), 0] = False  # outside the mask where invalid anyway: no difference either
+        po, pn = formats.write_kitti_disparity_pair(tmp_path / "o.png", tmp_path / "n.png", d, noc)
+        so, sn = formats.write_kitti_disparity(tmp_path / "so.png", d), \
+            formats.write_kitti_disparity(tmp_path / "sn.png", d, noc)
+        assert po.read_bytes() == so.read_bytes() and pn.read_bytes() == sn.read_bytes()
+        q = formats._kitti_quantize(d, np.ones(d.shape, bool))
+        for path, want in ((po, q), (pn, np.where(noc, q, 0))):
+            np.testing.assert_array_equal(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), want)
+            np.testing.assert_array_equal(read_image(path, expect="uint16"), want)
+            with Image.open(path) as im:
+                im.verify()
+        _, _, same = formats._kitti_png_rows(d, noc)
+        differs = np.isfinite(d[h // 2, 3:9]).any()
+        np.testing.assert_array_equal(~same, np.arange(h) == h // 2 if differs else np.zeros(h, bool))
+    with pytest.raises(ValueError):
+        formats.write_kitti_disparity_pair(tmp_path / "o.png", tmp_path / "n.png", d, noc[:, :4])
+
+
+def test_label_png_blocks_reused_only_where_rows_are_the_same():
+    """A block of rows deflated alone is the same bytes wherever those rows occur; a reused block stands for rows
+    that are the same, and the stream still decodes to the other image when one row differs."""
+    import zlib
+
+    from gtforge.io import formats
+
+    n = formats.LABEL_PNG_BLOCK_ROWS
+    a = (np.arange((2 * n + 3) * 40) % 251).astype(np.uint8).reshape(2 * n + 3, 40)
+    b = a.copy()
+    b[n + 2, 7] ^= 1  # one byte of the second block
+    rows_a = np.concatenate([np.zeros((a.shape[0], 1), np.uint8), a], axis=1)
+    rows_b = np.concatenate([np.zeros((b.shape[0], 1), np.uint8), b], axis=1)
+    blocks_a = formats._deflate_blocks(rows_a)
+    same = (rows_a == rows_b).all(axis=1)
+    blocks_b = formats._deflate_blocks(rows_b, blocks_a, same)
+    assert [x is y for x, y in zip(blocks_a, blocks_b)] == [True, False, True]
+    for rows, blocks in ((rows_a, blocks_a), (rows_b, blocks_b)):
+        png = formats._png_bytes(rows, 40, rows.shape[0], 8, blocks)
+        assert zlib.decompress(png[png.index(b"IDAT") + 4:-16]) == rows.tobytes()  # (adler-32 checked by zlib)
+        np.testing.assert_array_equal(formats.decode_png(png), rows[:, 1:])
+
+
 def test_float_tiff_compression_round_trip(tmp_path):
     import tifffile
 

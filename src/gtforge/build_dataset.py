@@ -33,7 +33,7 @@ from gtforge.io.digest import blake3_file, sha256_file
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
     write_image,
-    write_kitti_disparity,
+    write_kitti_disparity_pair,
     write_label_png,
     write_pfm,
     write_ply,
@@ -631,14 +631,13 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
         if disp is None:
             disp = read_pfm(s / "disp0GT.pfm")
             noc = read_image(s / "mask0nocc.png") == 255
-        write_kitti_disparity(k / "disp_occ_0" / f"{sid}_10.png", disp)
-        write_kitti_disparity(k / "disp_noc_0" / f"{sid}_10.png", disp, noc)
+        write_kitti_disparity_pair(k / "disp_occ_0" / f"{sid}_10.png", k / "disp_noc_0" / f"{sid}_10.png", disp, noc)
         if disp1 is None and (s / "disp1GT.pfm").exists():
             disp1 = read_pfm(s / "disp1GT.pfm")
             noc1 = read_image(s / "mask1nocc.png") == 255
         if disp1 is not None:  # KITTI's right-view GT, as OpenStereo's RETURN_RIGHT_DISP reads it
-            write_kitti_disparity(k / "disp_occ_1" / f"{sid}_10.png", disp1)
-            write_kitti_disparity(k / "disp_noc_1" / f"{sid}_10.png", disp1, noc1)
+            write_kitti_disparity_pair(k / "disp_occ_1" / f"{sid}_10.png", k / "disp_noc_1" / f"{sid}_10.png", disp1,
+                                       noc1)
         else:  # built without the right view's GT (--no-right-gt): none from an earlier build stays in the view
             for d in ("disp_occ_1", "disp_noc_1"):
                 (k / d / f"{sid}_10.png").unlink(missing_ok=True)

@@ -85,30 +85,78 @@ def read_pfm(path: str | Path) -> np.ndarray:
 
 
 # ---- KITTI ----------------------------------------------------------------------------------
-def write_kitti_disparity(path: str | Path, disp_px: np.ndarray, mask: np.ndarray | None = None) -> Path:
-    """KITTI uint16 PNG: ``round(d*256)``; invalid (NaN, inf, <0) -> 0; a valid value that rounds to 0 -> 1.
-    ``mask``: only these pixels (e.g. the non-occluded ones, for ``disp_noc``); 0 elsewhere."""
+def _kitti_inputs(disp_px: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     d = np.asarray(disp_px)
     if d.ndim != 2:
         raise ValueError(f"{d.shape=} but expected (H, W)")
     if mask is not None and np.shape(mask) != d.shape:
         raise ValueError(f"{np.shape(mask)=} but expected {d.shape} (the disparity's shape)")
     m = np.ones(d.shape, bool) if mask is None else np.ascontiguousarray(mask, bool)
-    return write_png16(path, _kitti_quantize(np.ascontiguousarray(d, dtype=np.float32), m))
+    return np.ascontiguousarray(d, dtype=np.float32), m
+
+
+def write_kitti_disparity(path: str | Path, disp_px: np.ndarray, mask: np.ndarray | None = None) -> Path:
+    """KITTI uint16 PNG: ``round(d*256)``; invalid (NaN, inf, <0) -> 0; a valid value that rounds to 0 -> 1.
+    ``mask``: only these pixels (e.g. the non-occluded ones, for ``disp_noc``); 0 elsewhere."""
+    return write_png16(path, _kitti_quantize(*_kitti_inputs(disp_px, mask)))
+
+
+def write_kitti_disparity_pair(path_occ: str | Path, path_noc: str | Path, disp_px: np.ndarray,
+                               nonoccluded: np.ndarray) -> tuple[Path, Path]:
+    """One view's KITTI ``disp_occ`` (every valid pixel) and ``disp_noc`` (the ``nonoccluded`` ones) PNGs, the same
+    files as two ``write_kitti_disparity`` calls, byte for byte. The two differ only in rows with an occluded valid
+    pixel: each block of ``LABEL_PNG_BLOCK_ROWS`` rows without one is deflated once, for both files."""
+    occ, noc, same = _kitti_png_rows(*_kitti_inputs(disp_px, nonoccluded))
+    h, w = occ.shape[0], (occ.shape[1] - 1) // 2
+    occ_blocks = _deflate_blocks(occ)
+    noc_blocks = _deflate_blocks(noc, occ_blocks, same)
+    return (atomic_write_bytes(path_occ, _png_bytes(occ, w, h, 16, occ_blocks)),
+            atomic_write_bytes(path_noc, _png_bytes(noc, w, h, 16, noc_blocks)))
+
+
+@numba.njit(cache=True, inline="always")
+def _kitti_value(x):
+    """round(x * 256) (half to even, in float64), clipped to 1..65535; 0 where x is invalid (NaN, inf, < 0)."""
+    if x >= 0.0 and x < np.inf:
+        return np.uint16(min(max(np.rint(x * 256.0), 1.0), 65535.0))
+    return np.uint16(0)
 
 
 @numba.njit(cache=True)
 def _kitti_quantize(d, mask):
-    """round(d * 256) (half to even, in float64), clipped to 1..65535; 0 where invalid or outside ``mask``. One pass:
-    the numpy expression of it takes 18 ms on a 2208x1242 image, this 2 ms."""
+    """``_kitti_value`` of every pixel; 0 outside ``mask``. One pass: the numpy expression of it takes 18 ms on a
+    2208x1242 image, this 2 ms."""
     H, W = d.shape
     q = np.zeros((H, W), np.uint16)
     for v in range(H):
         for u in range(W):
-            x = np.float64(d[v, u])
-            if x >= 0.0 and x < np.inf and mask[v, u]:
-                q[v, u] = np.uint16(min(max(np.rint(x * 256.0), 1.0), 65535.0))
+            if mask[v, u]:
+                q[v, u] = _kitti_value(np.float64(d[v, u]))
     return q
+
+
+@numba.njit(cache=True)
+def _kitti_png_rows(d, mask):
+    """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)`` and of
+    ``_kitti_quantize(d, mask)`` in one pass, and whether each row is the same in both."""
+    H, W = d.shape
+    occ = np.empty((H, 1 + 2 * W), np.uint8)
+    noc = np.empty((H, 1 + 2 * W), np.uint8)
+    same = np.ones(H, np.bool_)
+    for v in range(H):
+        occ[v, 0] = 0
+        noc[v, 0] = 0
+        for u in range(W):
+            q = _kitti_value(np.float64(d[v, u]))
+            hi, lo = np.uint8(q >> 8), np.uint8(q & 255)
+            occ[v, 1 + 2 * u], occ[v, 2 + 2 * u] = hi, lo
+            if mask[v, u]:
+                noc[v, 1 + 2 * u], noc[v, 2 + 2 * u] = hi, lo
+            else:
+                noc[v, 1 + 2 * u], noc[v, 2 + 2 * u] = 0, 0
+                if q != 0:
+                    same[v] = False
+    return occ, noc, same
 
 
 def read_kitti_disparity(path: str | Path) -> np.ndarray:
@@ -123,22 +171,50 @@ def write_png16(path: str | Path, a: np.ndarray) -> Path:
     return write_label_png(path, np.asarray(a, np.uint16))
 
 
+# rows of a label PNG deflated together (``_deflate_blocks``): 16 rows of a 2208 px KITTI PNG are 71 kB
+LABEL_PNG_BLOCK_ROWS = 16
+
+
+def _deflate_blocks(rows: np.ndarray, reuse: list[bytes] | None = None, same: np.ndarray | None = None) -> list[bytes]:
+    """PNG image data (``rows``: ``(H, 1 + row bytes)`` uint8, filter bytes included) as raw deflate by zlib-ng at level
+    1, in blocks of ``LABEL_PNG_BLOCK_ROWS`` rows, each compressed on its own and ended by a full flush (byte-aligned,
+    referring to no earlier block): their concatenation is one valid deflate stream, and a block is the same bytes
+    wherever the same rows occur. ``reuse``: another image's blocks, taken as they are for every block whose rows are
+    all ``same`` (a boolean per row)."""
+    n = LABEL_PNG_BLOCK_ROWS
+    out = []
+    for i, v in enumerate(range(0, rows.shape[0], n)):
+        if reuse is not None and same[v:v + n].all():
+            out.append(reuse[i])
+            continue
+        c = zlib_ng.compressobj(1, zlib_ng.DEFLATED, -15)
+        out.append(c.compress(rows[v:v + n]) + c.flush(zlib_ng.Z_FULL_FLUSH))
+    return out
+
+
+def _png_bytes(rows: np.ndarray, w: int, h: int, bit_depth: int, blocks: list[bytes]) -> bytes:
+    """A greyscale PNG: signature, IHDR, one IDAT holding the zlib stream of ``blocks`` (``_deflate_blocks`` of
+    ``rows``), IEND."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
+
+    # zlib header (deflate, 32 kB window, fastest level), the blocks, an empty final block (fixed Huffman codes), Adler-32
+    stream = b"".join((b"\x78\x01", *blocks, b"\x03\x00", struct.pack(">I", zlib_ng.adler32(rows))))
+    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no interlace
+    return b"".join((b"\x89PNG\r\n\x1a\n", chunk(b"IHDR", ihdr), chunk(b"IDAT", stream), chunk(b"IEND", b"")))
+
+
 def encode_label_png(a: np.ndarray) -> bytes:
-    """A single-channel uint8 or uint16 image as PNG bytes: filter type 0 (none) on every row, one IDAT deflated
-    by zlib-ng at level 1 (the label encoding; see the module docstring). Any PNG reader decodes it."""
+    """A single-channel uint8 or uint16 image as PNG bytes: filter type 0 (none) on every row, deflated by zlib-ng at
+    level 1 in blocks of rows (``_deflate_blocks``; the label encoding, see the module docstring). Any PNG reader
+    decodes it."""
     a = np.asarray(a)
     if a.ndim != 2 or a.dtype not in (np.uint8, np.uint16) or 0 in a.shape:
         raise ValueError(f"{a.shape=}, {a.dtype=} but expected a non-empty (H, W) uint8 or uint16 label image")
     h, w = a.shape
     rows = np.zeros((h, 1 + w * a.itemsize), np.uint8)  # column 0: each row's filter type (0: none)
     rows[:, 1:] = a.astype(a.dtype.newbyteorder(">"), copy=False).view(np.uint8).reshape(h, -1)  # PNG is big-endian
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
-
-    ihdr = struct.pack(">IIBBBBB", w, h, 8 * a.itemsize, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no interlace
-    return b"".join((b"\x89PNG\r\n\x1a\n", chunk(b"IHDR", ihdr), chunk(b"IDAT", zlib_ng.compress(rows, 1)),
-                     chunk(b"IEND", b"")))
+    return _png_bytes(rows, w, h, 8 * a.itemsize, _deflate_blocks(rows))
 
 
 def write_label_png(path: str | Path, a: np.ndarray) -> Path:
