@@ -271,6 +271,20 @@ def even_subset(n: int, max_points: int) -> np.ndarray | slice:
     return np.linspace(0, n - 1, max_points).round().astype(np.int64) if n > max_points else slice(None)
 
 
+def pixels_of(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(v, u, flat index)`` of a 2-D mask's pixels in row-major order (``np.nonzero``'s order; flat indices are 4-5x
+    faster to find and to gather with, ``take_at``)."""
+    idx = np.flatnonzero(mask)
+    v, u = np.divmod(idx, mask.shape[1])
+    return v, u, idx
+
+
+def take_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``a[v, u]`` for the flat indices ``idx`` of ``(v, u)`` in a 2-D array (a gather, not numpy's multi-index
+    iterator: 6x faster; an array that is not C-contiguous is copied first)."""
+    return np.ascontiguousarray(a).reshape(-1).take(idx)
+
+
 class ShiftAligner:
     """Translation ``d`` with ``img(u + d) ~ ref(u)`` over any mask of pixels (both images already normalised).
 
@@ -293,7 +307,7 @@ class ShiftAligner:
     def align(self, mask: np.ndarray, min_pixels: int = 400, iterations: int = 30, tol_px: float = 1e-4,
               max_points: int = MAX_POINTS) -> ShiftEstimate:
         """``max_points``: a larger mask is subsampled evenly (the estimate's noise is far below the thresholds)."""
-        v, u = np.nonzero(mask)
+        v, u, _ = pixels_of(mask)
         return self.align_at(v, u, min_pixels, iterations, tol_px, max_points)
 
     def align_at(self, v: np.ndarray, u: np.ndarray, min_pixels: int = 400, iterations: int = 30,
@@ -305,13 +319,14 @@ class ShiftAligner:
         keep = even_subset(n, max_points)
         v, u = v[keep], u[keep]
         uf, vf = u.astype(np.float64), v.astype(np.float64)
+        idx = v * self.ref.shape[1] + u
         d = np.zeros(2)
         for level, (r, gx, gy, coeffs) in enumerate(self.levels):
             # the coarse pass only brings the fine one near its solution: a loose tolerance there
             tol = tol_px if level == len(self.levels) - 1 else self.COARSE_TOL_PX
-            rv = r[v, u].astype(np.float64)
+            rv = take_at(r, idx).astype(np.float64)
             # img(u + d) * (1 + g) + o ~ ref(u): unknowns (step in d, g, o), linearised at the template
-            At = np.stack([gx[v, u], gy[v, u], rv, np.ones_like(rv)]).astype(np.float64)
+            At = np.stack([take_at(gx, idx), take_at(gy, idx), rv, np.ones_like(rv)]).astype(np.float64)
             try:
                 inv = np.linalg.inv(At @ At.T)
             except np.linalg.LinAlgError:
@@ -324,7 +339,7 @@ class ShiftAligner:
                 if np.abs(step[:2]).max() < tol:
                     break
         w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
-        rv = self.ref[v, u].astype(np.float64)
+        rv = take_at(self.ref, idx).astype(np.float64)
         a, b = rv - rv.mean(), w - w.mean()
         # plain sums, not BLAS dot products: the same digits whatever the thread count (builds are byte-identical)
         saa, sbb, sab = float(np.sum(a * a)), float(np.sum(b * b)), float(np.sum(a * b))
@@ -382,8 +397,8 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
     if smooth is None:
         smooth = smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
     use = ok_support & textured_mask(n_rend) & smooth
-    v, u = np.nonzero(use)
-    reg = region[v, u]
+    v, u, idx = pixels_of(use)
+    reg = take_at(region, idx)
     fruit = (reg == REGION_CENTRE) | (reg == REGION_EDGE)
     aligner = ShiftAligner(n_rend, n_zed)
     e_all = aligner.align_at(v, u, params.min_pixels)
@@ -425,8 +440,8 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     base = interior_mask(ok, 2) & (x_match > 3) & (x_match < window.width_px - 4) & (v_img > 3) & \
         (v_img < window.height_px - 4)
     use = base & textured_mask(nl) & (smooth_depth_mask(disparity_px) if smooth is None else smooth)
-    v, u = np.nonzero(use)
-    reg = region[v, u]
+    v, u, idx = pixels_of(use)
+    reg = take_at(region, idx)
     regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
     # the right image, its gradients: one stack, sampled together
     right = np.stack([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
@@ -439,16 +454,16 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         map_x = x_match[sub] - np.float32(window.xr0_px)  # exact: integers subtracted
         map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape)
         nl_sub = nl[sub]
-        vs_, us_ = v - sub[0].start, u - sub[1].start
+        idx_sub = (v - sub[0].start) * map_x.shape[1] + (u - sub[1].start)
 
         def cost(o):  # at (v, u): the 5x5 SAD of the left image and the right one warped to x_match - o
             warped = cv2.remap(nr, map_x - np.float32(o), map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-            return cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True)[vs_, us_]
+            return take_at(cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True), idx_sub)
 
         best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
         worse = cost(0.0) > params.bad_match_ratio * best_other
     # the matches in the right array's pixels
-    xr_all = (u + (window.x0_px - window.xr0_px)) - d[v, u].astype(np.float64)
+    xr_all = (u + (window.x0_px - window.xr0_px)) - take_at(d, idx).astype(np.float64)
     out = {}
     for name, sel in regions.items():
         vs, us, xr, wr = (v, u, xr_all, worse) if sel is None else (v[sel], u[sel], xr_all[sel], worse[sel])
@@ -459,7 +474,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         keep = even_subset(n, MAX_POINTS)
         vk, uk, xr = vs[keep], us[keep], xr[keep]
         b, dy = 0.0, 0.0
-        lv = nl[vk, uk].astype(np.float64)
+        lv = take_at(nl, vk * w + uk).astype(np.float64)
         yr = vk.astype(np.float64)
         for _ in range(20):
             w_, wx, wy = sample_cubic(right, xr - b, yr + dy)
