@@ -197,6 +197,24 @@ def test_empty_splits_are_reported(session_dir, true_calibration, tmp_path):
     assert (tmp_path / "ds" / "filenames" / "test.txt").read_text() == ""
 
 
+def _pool_workers(pid: int) -> list[str]:
+    """The local pool's worker processes of process ``pid``: the children of its fork server (or, where workers are
+    spawned, its own children that run ``spawn_main``)."""
+    def children(k):
+        return subprocess.run(["pgrep", "-P", str(k)], capture_output=True, text=True).stdout.split()
+
+    def cmdline(k):
+        return open(f"/proc/{k}/cmdline").read().replace("\0", " ")
+
+    out = []
+    for k in children(pid):
+        if "forkserver" in cmdline(k):
+            out += children(k)
+        elif "spawn_main" in cmdline(k) and "resource_tracker" not in cmdline(k):
+            out.append(k)
+    return out
+
+
 def test_a_dying_local_worker_lists_its_scenes_as_failed(session_dir, true_calibration, tmp_path):
     """A pool process killed mid-build (out of memory, say): the scenes it took down are listed as failed, the
     others land, the command exits 1, and the rerun builds the rest."""
@@ -211,10 +229,8 @@ def test_a_dying_local_worker_lists_its_scenes_as_failed(session_dir, true_calib
     deadline = time.time() + 300
     while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
         time.sleep(0.1)
-    kids = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True, text=True).stdout.split()
-    workers = [k for k in kids if "spawn_main" in open(f"/proc/{k}/cmdline").read().replace("\0", " ")
-               and "resource_tracker" not in open(f"/proc/{k}/cmdline").read()]
-    assert workers, kids
+    workers = _pool_workers(p.pid)
+    assert workers
     os.kill(int(workers[0]), signal.SIGKILL)
     stdout, stderr = p.communicate(timeout=300)
     assert p.returncode == 1, stderr[-2000:]

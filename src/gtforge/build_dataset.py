@@ -40,7 +40,7 @@ from gtforge.io.formats import (
     write_tiff_float,
 )
 from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
-from gtforge.scheduling import release_written_pages, run_tasks
+from gtforge.scheduling import prestart_pool, release_written_pages, run_tasks
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
 from gtforge.verify import SceneVerification, VerifyParams, verify_scene, zed_rows_used
@@ -732,6 +732,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     from gtforge.io.captures import open_session
 
     t0 = time.perf_counter()
+    prestart_pool(build_one_scene.__module__, workers, scheduler)  # (already started by the CLI)
     params = params or BuildParams()
     if not 0 <= params.split_train + params.split_val <= 1:
         raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")

@@ -229,6 +229,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                                                   help="Leave scenes that verification flags out of the split lists "
                                                        "(they stay in scenes/).")) -> None:
     """Build disparity ground truth for SESSION/scenes/ into OUTPUT (docs/dataset-format.md)."""
+    from gtforge.scheduling import prestart_pool
+
+    prestart_pool("gtforge.build_dataset", workers, scheduler)  # the workers' imports overlap this process's own
     from gtforge.build_dataset import BuildParams, build_dataset as run
 
     try:
@@ -268,6 +271,9 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
                                                                             "default 0.1).")) -> None:
     """Check an existing dataset's ground truth against its captures (verification.json/.html); exit 1 if any
     scene is flagged or could not be verified."""
+    from gtforge.scheduling import prestart_pool
+
+    prestart_pool("gtforge.build_dataset", workers, scheduler)  # (verify_one_scene) the workers' imports overlap ours
     from gtforge.build_dataset import Manifest
     from gtforge.verify import verify_dataset
 

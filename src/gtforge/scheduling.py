@@ -3,6 +3,11 @@
 Every task is an independent call ``fn(*args)`` that writes its own outputs atomically and returns a
 small picklable result; the caller's ``on_result`` runs in this process, in completion order.
 
+Local workers are forked from one fork server (``multiprocessing``'s ``forkserver``, where the platform has it; else
+each is spawned): it imports the task's module, the main script and ``gtforge.pool_preload`` once, so that a worker
+starts in 0.3-0.4 instead of 1.3 s (benchmarks/RESULTS.md). ``prestart_pool`` starts it before the caller's own set-up,
+so that its imports overlap that.
+
 Threads x processes: each local worker process gets ``max(1, cores // workers)`` numba threads, so the
 pool never runs more compute threads than cores (a busy core slows numba's parallel loops 2-3x). On a
 Dask cluster each task gets ``max(1, cores // threads)``, where ``threads`` counts the task threads of
@@ -209,10 +214,9 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         for args in arg_list:
             on_result(fn(*args))
         return
-    import multiprocessing as mp
-
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                             initargs=(threads_per_worker(workers),))
+    n_threads = threads_per_worker(workers)
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(fn.__module__, n_threads),
+                             initializer=_init_worker, initargs=(n_threads,))
     pending = set()
     try:
         futs = {ex.submit(fn, *args): args for args in arg_list}
@@ -245,6 +249,59 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         _terminate(ex)
         raise
     ex.shutdown(wait=True)
+
+
+# this process's fork server, once started: the numba/OpenMP thread count its environment set
+_FORK_SERVER: dict[str, int] = {}
+
+
+def prestart_pool(module: str, workers: int | None = None, scheduler: str | None = None) -> None:
+    """Start the fork server that ``run_tasks`` will fork local workers from (``workers`` processes, tasks from
+    ``module``) now, so that its imports overlap what this process does before it calls ``run_tasks``. Nothing when
+    the tasks will run on a Dask cluster or in this process, or where there is no fork server. The server exits with
+    this process, used or not."""
+    if scheduler or (workers or cpu_count()) < 2:
+        return
+    _pool_context(module, threads_per_worker(workers or cpu_count()))
+
+
+def _pool_context(module: str, n_threads: int):
+    """The ``multiprocessing`` context local workers start with: this process's fork server, started here once with
+    ``__main__``, ``gtforge.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other itself)
+    preloaded and numba/OpenMP limited to ``n_threads`` threads, as ``_init_worker`` limits them in a spawned worker;
+    ``spawn`` where the platform has no fork server, or for another thread count than the server was started with."""
+    import multiprocessing as mp
+
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    started = _FORK_SERVER.get("n_threads")
+    if started is not None:
+        return mp.get_context("forkserver" if started == n_threads else "spawn")
+    from multiprocessing import forkserver
+
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["__main__", "gtforge.pool_preload", module])
+    env = {"NUMBA_NUM_THREADS": str(n_threads), "OMP_NUM_THREADS": str(n_threads)}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)  # the server's environment is this process's when it starts (fork + exec, below)
+    try:
+        # ignored signals stay ignored across exec: the server starts immune to Ctrl-C (as it is once running), so a
+        # Ctrl-C while it imports stops this process with no traceback from the server; workers ignore it too
+        old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: no signal handling here
+        old_sigint = None
+    try:
+        forkserver.ensure_running()
+    finally:
+        if old_sigint is not None:
+            signal.signal(signal.SIGINT, old_sigint)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    _FORK_SERVER["n_threads"] = n_threads
+    return ctx
 
 
 def _terminate(ex: ProcessPoolExecutor) -> None:

@@ -671,8 +671,9 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
     flagged scenes out of the split lists)."""
     from gtforge.build_dataset import Manifest, final_splits, verify_one_scene, write_lists, write_split_views
-    from gtforge.scheduling import run_tasks
+    from gtforge.scheduling import prestart_pool, run_tasks
 
+    prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
     ds = Path(dataset_dir)
     man_path = ds / "manifest.json"
     if not man_path.is_file():

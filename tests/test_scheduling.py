@@ -1,0 +1,60 @@
+"""The local process pool: workers forked from one preloaded fork server, thread limits, the spawn fallback."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+SCRIPT = textwrap.dedent('''
+    import json, os, sys, time
+
+    def facts(_):
+        import numba
+        time.sleep(0.3)  # long enough for both workers to take a task
+        return (os.getpid(), os.getppid(), "gtforge.pool_preload" in sys.modules, "gtforge.build_dataset" in sys.modules,
+                numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"))
+
+    def sigint_ignored(pid):
+        mask = next(int(line.split()[1], 16) for line in open(f"/proc/{pid}/status") if line.startswith("SigIgn:"))
+        return bool(mask & (1 << 1))  # SIGINT is signal 2
+
+    if __name__ == "__main__":
+        from gtforge import scheduling
+        out = {"pid": os.getpid()}
+        scheduling.prestart_pool("gtforge.build_dataset", workers=2)
+        for run in ("first", "second"):
+            res = []
+            scheduling.run_tasks(facts, [(i,) for i in range(4)], res.append, workers=2)
+            out[run] = res
+        out["server_ignores_sigint"] = sigint_ignored(out["first"][0][1])
+        out["threads"] = scheduling.threads_per_worker(2)
+        scheduling.threads_per_worker = lambda workers: out["threads"] + 1  # another thread count: spawned workers
+        res = []
+        scheduling.run_tasks(facts, [(i,) for i in range(2)], res.append, workers=2)
+        out["other_threads"] = res
+        print(json.dumps(out))
+''')
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_local_workers_are_forked_from_one_preloaded_server(tmp_path):
+    script = tmp_path / "pool_facts.py"
+    script.write_text(SCRIPT)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    first, second = out["first"], out["second"]
+    servers = {t[1] for t in first + second}
+    assert len(servers) == 1 and out["pid"] not in servers  # one fork server, reused by the second pool
+    assert len({t[0] for t in first}) == 2  # two workers
+    # preloaded by the server: the worker did not import them (nothing of the task needs gtforge.build_dataset)
+    assert all(t[2] and t[3] for t in first + second)
+    assert all(t[4] == out["threads"] and t[5] == str(out["threads"]) for t in first + second)
+    assert out["server_ignores_sigint"]  # a Ctrl-C while it imports gives no traceback from it
+    # a pool with another thread count than the server was started with: spawned, numba limited as before
+    other = out["other_threads"]
+    assert {t[1] for t in other} == {out["pid"]} and not any(t[2] for t in other)
+    assert all(t[5] == str(out["threads"] + 1) for t in other)
