@@ -15,6 +15,9 @@ start (imports included), one after the other:
 ``--repeat N`` runs the baseline and the default build N times, alternating, and reports each pair's ratio (the
 machine's speed drifts by several per cent between runs; the table then holds the runs with the median wall time).
 
+Before every timed run the earlier runs' outputs are deleted, everything is written to disk and, when run as root,
+the page cache is dropped (``settle``): each run starts from the same state, whichever ran before it.
+
 Prints scenes/s, the ratio to the baseline, and the projected time for 808 scenes at the measured rate.
 ``--write`` puts the table into benchmarks/RESULTS.md (section ``bench_build_dataset``).
 
@@ -51,6 +54,25 @@ def timed(cmd: list[str]) -> tuple[float, float]:
     return dt, (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
 
 
+def settle(*delete: Path) -> bool:
+    """Before each timed run: delete ``delete`` (earlier runs' outputs), write everything to disk and, where this
+    process may (root), drop the page cache, so that every run, baseline or gtforge, starts from the same state.
+    Returns whether the cache was dropped.
+
+    Without it the run right after a deletion pays for it. On the project VM (ext4 without a journal) the kernel
+    skips, for every new file, the inodes deleted in the last minutes (``recently_deleted`` in ext4's inode
+    allocator): after deleting the 13 GB of an earlier build, 1.3 % of the next build's CPU samples were there, and
+    its wall time was 2-3 % longer; and the page cache is full of pages of files that no longer exist."""
+    for d in delete:
+        shutil.rmtree(d, ignore_errors=True)
+    os.sync()
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+        return True
+    except OSError:
+        return False
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", type=int, default=100)
@@ -70,17 +92,17 @@ def main():
     exe = Path(sys.executable).with_name("gtforge")  # the console script beside this interpreter
     gtforge_cli = [str(exe)] if exe.exists() else [sys.executable, "-c", "from gtforge.cli import main; main()"]
     outs = {k: wd / f"out_{k}" for k in ("baseline", "gtforge", "noverify")}
-    for o in outs.values():
-        shutil.rmtree(o, ignore_errors=True)
     n = args.scenes
     runs = []
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
     pairs = []  # (baseline, default) of each repeat: (wall s, CPU s)
+    dropped = []
     for i in range(max(1, args.repeat)):
+        # outputs take 20-56 MB a scene: only the one the resume row needs is kept
+        dropped.append(settle(*outs.values()))
         b = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib),
                    str(outs["baseline"])])
-        shutil.rmtree(outs["baseline"])  # outputs take 20-56 MB a scene: keep only the one the resume row needs
-        shutil.rmtree(outs["gtforge"], ignore_errors=True)
+        dropped.append(settle(outs["baseline"]))
         pairs.append((b, timed(build + ["-o", str(outs["gtforge"])])))
         print(f"repeat {i + 1}: baseline {b[0]:.1f} s, default build {pairs[-1][1][0]:.1f} s "
               f"({b[0] / pairs[-1][1][0]:.2f}x)", flush=True)
@@ -91,18 +113,23 @@ def main():
     runs.append(("baseline: plain Open3D script (one process)", *median([p[0] for p in pairs])))
     runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)",
                  *median([p[1] for p in pairs])))
+    dropped.append(settle())
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"])
     runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
-    shutil.rmtree(outs["noverify"])
+    dropped.append(settle(outs["noverify"]))
     t = timed(build + ["-o", str(outs["noverify"]), "--no-right-gt"])
     runs.append((f"gtforge build-dataset --workers {workers} --no-right-gt (verification on)", *t))
-    shutil.rmtree(outs["noverify"])
+    dropped.append(settle(outs["noverify"]))
     t_resume, _ = timed(build + ["-o", str(outs["gtforge"])])
     base_rate = n / runs[0][1]
     rep = f" --repeat {args.repeat}" if args.repeat > 1 else ""
     lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes {n} "
              f"--distinct {args.distinct}{rep}`: {machine}; {n} full-resolution scenes ({args.distinct} distinct renders "
-             f"hard-linked), each run a fresh process (imports included), one after the other"
+             f"hard-linked), each run a fresh process (imports included), one after the other, each after the "
+             f"earlier runs' outputs were deleted and everything written to disk"
+             + (" and the page cache dropped (`settle`)" if all(dropped) else
+                " (the page cache could not be dropped: not root)" if not any(dropped) else
+                " (the page cache dropped before some runs only)")
              + (f"; the baseline and the default build ran {args.repeat} times, alternating (their rows: the run "
                 "with the median wall time)." if args.repeat > 1 else "."),
              "",
