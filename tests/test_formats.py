@@ -72,6 +72,34 @@ def test_atomic_write_keeps_original_on_failure(tmp_path):
     assert os.listdir(tmp_path) == ["f.txt"]
 
 
+def test_private_folder_writes_final_names_directly(tmp_path, monkeypatch):
+    """In a private folder (a scene's hidden temporary folder) the writers skip the temporary file and rename; beside it
+    and in its subfolders they stay atomic; the files get the same mode either way."""
+    import tempfile
+
+    from gtforge.io.atomic import file_mode, private_folder
+    from gtforge.io.formats import write_label_png
+
+    private = tmp_path / ".tmp-scene"
+    private.mkdir()
+    made = []
+    real_mkstemp = tempfile.mkstemp
+    monkeypatch.setattr(tempfile, "mkstemp", lambda *a, **k: made.append(k["dir"]) or real_mkstemp(*a, **k))
+    a = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    with private_folder(private):
+        write_label_png(private / "m.png", a)
+        write_pfm(private / "d.pfm", a.astype(np.float32))
+        atomic_write_text(private / "calib.txt", "x")
+        write_label_png(private / "sub" / "m.png", a)  # a subfolder: atomic
+        write_label_png(tmp_path / "beside.png", a)  # another folder: atomic
+    assert made == [private / "sub", tmp_path]
+    write_label_png(private / "after.png", a)  # after the context: atomic again
+    assert made[-1] == private
+    np.testing.assert_array_equal(read_image(private / "m.png"), a)
+    assert sorted(os.listdir(private)) == ["after.png", "calib.txt", "d.pfm", "m.png", "sub"]
+    assert all((private / n).stat().st_mode & 0o777 == file_mode() for n in ("m.png", "d.pfm", "after.png"))
+
+
 def test_label_png_and_kitti_quantisation(tmp_path):
     from gtforge.io.formats import write_label_png
 

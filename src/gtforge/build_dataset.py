@@ -28,7 +28,7 @@ from gtforge.calibrate import CalibrationFile, check_rig_matches_session
 from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import fit_plane_robust, mask_bounding_box
-from gtforge.io.atomic import atomic_write_text
+from gtforge.io.atomic import atomic_write_text, private_folder
 from gtforge.io.digest import blake3_file, sha256_file
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
@@ -405,36 +405,37 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir(parents=True)
-        mask = occlusion_mask(disp, noc)
-        for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
-            if src is not None and crop is None:
-                shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
-            else:
-                write_image(tmp / name, img)
-        write_pfm(tmp / "disp0GT.pfm", disp)
-        if disp1 is not None:
-            write_pfm(tmp / "disp1GT.pfm", disp1)
-            write_label_png(tmp / "mask1nocc.png", occlusion_mask(disp1, noc1))
-        if sigma is not None:
-            write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
-            write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
-        write_label_png(tmp / "mask0nocc.png", mask)
-        write_label_png(tmp / "region.png", region)
-        write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params), compression="zlib")  # 4 values: tiny
-        write_tiff_float(tmp / "depth0.tiff", depth)
-        disp_range = (stats.disp_min_px, stats.disp_max_px) if n_valid else None
-        atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp_range,
-                                                                  cx_shift, cy_shift))
-        if params.ply:
-            v, u = np.nonzero(np.isfinite(disp))
-            K = rig.zed.left
-            z = depth[v, u].astype(np.float64)
-            pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
-            write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
-        t_end = time.perf_counter()
-        meta.time_s, meta.time_read_s = t_end - t0, t_read - t0 + decode_s  # (the images decoded for verification)
-        meta.time_compute_s, meta.time_write_s = t_compute - t_read - decode_s, t_end - t_compute
-        meta.write(tmp / "meta.json")
+        with private_folder(tmp):  # renamed into place whole below: no temporary file per file
+            mask = occlusion_mask(disp, noc)
+            for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
+                if src is not None and crop is None:
+                    shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
+                else:
+                    write_image(tmp / name, img)
+            write_pfm(tmp / "disp0GT.pfm", disp)
+            if disp1 is not None:
+                write_pfm(tmp / "disp1GT.pfm", disp1)
+                write_label_png(tmp / "mask1nocc.png", occlusion_mask(disp1, noc1))
+            if sigma is not None:
+                write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
+                write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
+            write_label_png(tmp / "mask0nocc.png", mask)
+            write_label_png(tmp / "region.png", region)
+            write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params), compression="zlib")  # 4 values: tiny
+            write_tiff_float(tmp / "depth0.tiff", depth)
+            disp_range = (stats.disp_min_px, stats.disp_max_px) if n_valid else None
+            atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp_range,
+                                                                      cx_shift, cy_shift))
+            if params.ply:
+                v, u = np.nonzero(np.isfinite(disp))
+                K = rig.zed.left
+                z = depth[v, u].astype(np.float64)
+                pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
+                write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
+            t_end = time.perf_counter()
+            meta.time_s, meta.time_read_s = t_end - t0, t_read - t0 + decode_s  # (the images decoded for verification)
+            meta.time_compute_s, meta.time_write_s = t_compute - t_read - decode_s, t_end - t_compute
+            meta.write(tmp / "meta.json")
         final = scenes / sid
         old = scenes / f".old-{sid}-{token}"
         if final.exists():

@@ -1,4 +1,5 @@
-"""Atomic writes: a temporary file in the destination folder, then ``os.replace``."""
+"""Atomic writes: a temporary file in the destination folder, then ``os.replace``; straight to the final name in a
+``private_folder`` (a folder renamed into place whole once complete, which is the atomic step then)."""
 from __future__ import annotations
 
 import contextlib
@@ -20,10 +21,32 @@ def file_mode() -> int:
     return 0o666 & ~_umask()
 
 
+# folders being filled by ``private_folder`` (absolute or as given; unique names: a lock-free set is enough)
+_PRIVATE_FOLDERS: set[str] = set()
+
+
+@contextlib.contextmanager
+def private_folder(folder: str | Path) -> Iterator[Path]:
+    """Within this context, the atomic writers write files directly in ``folder`` (not in its subfolders) under their
+    final names: ``folder`` is one that nobody reads until the caller renames it into place, complete, and deletes it
+    whole otherwise (a scene's hidden temporary folder), so a temporary file and a rename per file would add nothing
+    (0.09 ms a file)."""
+    key = os.fspath(folder)
+    _PRIVATE_FOLDERS.add(key)
+    try:
+        yield Path(folder)
+    finally:
+        _PRIVATE_FOLDERS.discard(key)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path`` (same suffix); renamed onto ``path`` on success."""
+    """Yield a temporary path beside ``path`` (same suffix); renamed onto ``path`` on success. In a
+    ``private_folder``: ``path`` itself."""
     path = Path(path)
+    if os.fspath(path.parent) in _PRIVATE_FOLDERS:
+        yield path
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.fchmod(fd, file_mode())  # mkstemp makes 0600; outputs are shared like any normal file (umask)
