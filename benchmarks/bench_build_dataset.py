@@ -15,8 +15,9 @@ start (imports included), one after the other:
 ``--repeat N`` runs the baseline and the default build N times, alternating, and reports each pair's ratio (the
 machine's speed drifts by several per cent between runs; the table then holds the runs with the median wall time).
 
-Before every timed run the earlier runs' outputs are deleted, everything is written to disk and, when run as root,
-the page cache is dropped (``settle``): each run starts from the same state, whichever ran before it.
+Before every timed run the earlier runs' outputs are deleted, everything is written to disk, and the run waits until
+``--settle-s`` (65) seconds have passed since the deletion (``settle``): each run starts from the same state,
+whichever ran before it.
 
 Prints scenes/s, the ratio to the baseline, and the projected time for 808 scenes at the measured rate.
 ``--write`` puts the table into benchmarks/RESULTS.md (section ``bench_build_dataset``).
@@ -70,23 +71,26 @@ def timed(cmd: list[str], expect: str | None = None) -> tuple[float, float]:
     return dt, (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
 
 
-def settle(*delete: Path) -> bool:
-    """Before each timed run: delete ``delete`` (earlier runs' outputs), write everything to disk and, where this
-    process may (root), drop the page cache, so that every run, baseline or gtforge, starts from the same state.
-    Returns whether the cache was dropped.
+_LAST_DELETION: list[float] = []  # perf_counter time of settle's last deletion
 
-    Without it the run right after a deletion pays for it. On the project VM (ext4 without a journal) the kernel
-    skips, for every new file, the inodes deleted in the last minutes (``recently_deleted`` in ext4's inode
-    allocator): after deleting the 13 GB of an earlier build, 1.3 % of the next build's CPU samples were there, and
-    its wall time was 2-3 % longer; and the page cache is full of pages of files that no longer exist."""
+
+def settle(*delete: Path, wait_s: float = 65.0) -> None:
+    """Before each timed run: delete ``delete`` (earlier runs' outputs: 6-13 GB), write everything to disk, and wait
+    until ``wait_s`` have passed since the last deletion, so that every run, baseline or gtforge, starts from the same
+    state whichever ran before it.
+
+    The run right after a deletion pays for it otherwise: ext4 without a journal (the project VM's) skips, for every
+    new file, the inodes deleted in the last 60 s (``recently_deleted`` in its inode allocator); after deleting an
+    earlier build's 13 GB, 1.3 % of the next build's CPU samples were there and its wall time was 2-3 % longer.
+    Dropping the page cache instead (as root) removes that but makes the next run read the filesystem's block bitmaps
+    back from disk: 4.7 s of I/O wait in a 31 s build."""
     for d in delete:
-        shutil.rmtree(d, ignore_errors=True)
+        if d.exists():
+            shutil.rmtree(d)
+            _LAST_DELETION[:] = [time.perf_counter()]
     os.sync()
-    try:
-        Path("/proc/sys/vm/drop_caches").write_text("3\n")
-        return True
-    except OSError:
-        return False
+    if _LAST_DELETION:
+        time.sleep(max(0.0, wait_s - (time.perf_counter() - _LAST_DELETION[0])))
 
 
 def main():
@@ -98,6 +102,8 @@ def main():
     ap.add_argument("--repeat", type=int, default=1,
                     help="run the baseline and the default build this many times, alternating (the table: medians)")
     ap.add_argument("--write", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--settle-s", type=float, default=65.0,
+                    help="seconds between deleting an earlier output and the next timed run (see settle)")
     args = ap.parse_args()
     from gtforge.scheduling import cpu_count
 
@@ -113,13 +119,13 @@ def main():
     runs = []
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
     pairs = []  # (baseline, default) of each repeat: (wall s, CPU s)
-    dropped = []
+    wait = {"wait_s": args.settle_s}
     for i in range(max(1, args.repeat)):
         # outputs take 20-56 MB a scene: only the one the resume row needs is kept
-        dropped.append(settle(*outs.values()))
+        settle(*outs.values(), **wait)
         b = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib),
                    str(outs["baseline"])], f"{n} scenes in")
-        dropped.append(settle(outs["baseline"]))
+        settle(outs["baseline"], **wait)
         pairs.append((b, timed(build + ["-o", str(outs["gtforge"])], built)))
         print(f"repeat {i + 1}: baseline {b[0]:.1f} s, default build {pairs[-1][1][0]:.1f} s "
               f"({b[0] / pairs[-1][1][0]:.2f}x)", flush=True)
@@ -130,23 +136,21 @@ def main():
     runs.append(("baseline: plain Open3D script (one process)", *median([p[0] for p in pairs])))
     runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)",
                  *median([p[1] for p in pairs])))
-    dropped.append(settle())
+    settle(**wait)
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"], built)
     runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
-    dropped.append(settle(outs["noverify"]))
+    settle(outs["noverify"], **wait)
     t = timed(build + ["-o", str(outs["noverify"]), "--no-right-gt"], built)
     runs.append((f"gtforge build-dataset --workers {workers} --no-right-gt (verification on)", *t))
-    dropped.append(settle(outs["noverify"]))
+    settle(outs["noverify"], **wait)
     t_resume, _ = timed(build + ["-o", str(outs["gtforge"])], f"unchanged {n},")
     base_rate = n / runs[0][1]
     rep = f" --repeat {args.repeat}" if args.repeat > 1 else ""
     lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes {n} "
              f"--distinct {args.distinct}{rep}`: {machine}; {n} full-resolution scenes ({args.distinct} distinct renders "
              f"hard-linked), each run a fresh process (imports included), one after the other, each after the "
-             f"earlier runs' outputs were deleted and everything written to disk"
-             + (" and the page cache dropped (`settle`)" if all(dropped) else
-                " (the page cache could not be dropped: not root)" if not any(dropped) else
-                " (the page cache dropped before some runs only)")
+             f"earlier runs' outputs were deleted, everything written to disk and {args.settle_s:.0f} s since the "
+             f"deletion (`settle`)"
              + (f"; the baseline and the default build ran {args.repeat} times, alternating (their rows: the run "
                 "with the median wall time)." if args.repeat > 1 else ".")
              + " Machine CPU: the whole machine's busy time during the run (/proc/stat; kernel threads included).",
