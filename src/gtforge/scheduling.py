@@ -4,9 +4,9 @@ Every task is an independent call ``fn(*args)`` that writes its own outputs atom
 small picklable result; the caller's ``on_result`` runs in this process, in completion order.
 
 Local workers are forked from one fork server (``multiprocessing``'s ``forkserver``, where the platform has it; else
-each is spawned): it imports the task's module, the main script and ``gtforge.pool_preload`` once, so that a worker
-starts in 0.3-0.4 instead of 1.3 s (benchmarks/RESULTS.md). ``prestart_pool`` starts it before the caller's own set-up,
-so that its imports overlap that.
+each is spawned): it imports the task's module, the main script and ``gtforge.pool_preload`` once, instead of each
+worker importing them (a 4-scene build with 2 workers: 1.6-1.7 instead of 2.1-2.4 s; benchmarks/RESULTS.md).
+``prestart_pool`` starts it before the caller's own set-up, so that its imports overlap that.
 
 Threads x processes: each local worker process gets ``max(1, cores // workers)`` numba threads, so the
 pool never runs more compute threads than cores (a busy core slows numba's parallel loops 2-3x). On a
