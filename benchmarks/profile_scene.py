@@ -10,6 +10,7 @@ unless --threads. Writes the table into benchmarks/RESULTS.md (section ``profile
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import os
 import shutil
@@ -169,12 +170,13 @@ def main():
         measure("hash", f"sha256 of the inputs ({len(files)} files, {size_mb:.0f} MB)",
                 lambda: [bd.sha256_file(p) for p in files])
     # ---- write
+    writes = contextlib.ExitStack()  # closed once the write steps are done
     try:  # gtforge >= issue 12's round 6: a view's two KITTI files written together (row blocks shared), and the
         # scene's files written straight into its private temporary folder, as the build does
         from gtforge.io.atomic import private_folder
         from gtforge.io.formats import write_kitti_disparity_pair as kitti_pair
 
-        private_folder(tmp).__enter__()
+        writes.enter_context(private_folder(tmp))
     except ImportError:
         def kitti_pair(path_occ, path_noc, d, m):
             return write_kitti_disparity(path_occ, d), write_kitti_disparity(path_noc, d, m)
@@ -219,6 +221,8 @@ def main():
             bd._link(tmp / name, out / "kitti" / name)
 
     measure("write", "view links (KITTI + ETH3D hard links)", links, no_links)
+
+    writes.close()
 
     # ---- the whole worker call
     args_scene = (str(sess_dir.resolve()), str(cap_dir.resolve()), "0000", str(calib_path.resolve()),
