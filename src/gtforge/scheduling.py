@@ -159,6 +159,12 @@ def release_written_pages(paths: Sequence[str | os.PathLike]) -> None:
         _fadvise_dontneed(p)
 
 
+def _thread_environment(n_threads: int) -> dict[str, str]:
+    """The environment that limits numba and OpenMP (OpenBLAS) to ``n_threads`` threads in a process that has not
+    imported them yet."""
+    return {"NUMBA_NUM_THREADS": str(n_threads), "OMP_NUM_THREADS": str(n_threads)}
+
+
 def limit_threads(n_threads: int) -> None:
     """Cap numba's and OpenCV's thread pools in this process (before or after numba was imported).
 
@@ -172,8 +178,7 @@ def limit_threads(n_threads: int) -> None:
 
         numba.set_num_threads(min(n_threads, numba.config.NUMBA_NUM_THREADS))
     else:
-        os.environ["NUMBA_NUM_THREADS"] = str(n_threads)
-        os.environ["OMP_NUM_THREADS"] = str(n_threads)
+        os.environ.update(_thread_environment(n_threads))
     try:
         import cv2
 
@@ -281,7 +286,7 @@ def _pool_context(module: str, n_threads: int):
 
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["__main__", "gtforge.pool_preload", module])
-    env = {"NUMBA_NUM_THREADS": str(n_threads), "OMP_NUM_THREADS": str(n_threads)}
+    env = _thread_environment(n_threads)
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # the server's environment is this process's when it starts (fork + exec, below)
     try:
