@@ -220,7 +220,7 @@ def test_a_dying_local_worker_lists_its_scenes_as_failed(session_dir, true_calib
     others land, the command exits 1, and the rerun builds the rest."""
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)
-    for i in range(3, 8):
+    for i in range(3, 12):
         shutil.copytree(session_dir / "scenes" / f"{i % 3:03d}", sess / "scenes" / f"{i:03d}")
     out = tmp_path / "ds"
     p = subprocess.Popen([sys.executable, "-m", "gtforge.cli", "build-dataset", str(sess), "-c", str(true_calibration),
@@ -228,16 +228,29 @@ def test_a_dying_local_worker_lists_its_scenes_as_failed(session_dir, true_calib
                          stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 300
     while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
-        time.sleep(0.1)
+        time.sleep(0.01)
+    # freeze the pool as soon as a scene has landed, so that scenes are still unbuilt when one worker is killed
+    # (on a fast machine the other scenes could otherwise all land before the kill, and nothing would fail)
     workers = _pool_workers(p.pid)
     assert workers
+    for k in workers:
+        os.kill(int(k), signal.SIGSTOP)
+    landed = len(list((out / "scenes").glob("*/meta.json")))
+    assert 1 <= landed < 12
     os.kill(int(workers[0]), signal.SIGKILL)
+    for k in workers[1:]:
+        os.kill(int(k), signal.SIGCONT)
     stdout, stderr = p.communicate(timeout=300)
     assert p.returncode == 1, stderr[-2000:]
     assert "a worker process died" in stderr and "Traceback" not in stderr
     man = __import__("json").loads((out / "manifest.json").read_text())
     assert man["failures"] and all("worker process died" in v for v in man["failures"].values())
+    # a scene that landed before its worker was killed is built, not failed (its result never came back), views too
+    landed = sorted(m.parent.name for m in (out / "scenes").glob("*/meta.json"))
+    assert len(man["failures"]) + len(landed) == 12 and not set(man["failures"]) & set(landed)
+    assert sorted(man["scenes"]) == landed
+    assert all((out / "kitti" / "training" / "disp_noc_0" / f"{s}_10.png").is_file() for s in landed)
     assert not [d for d in (out / "scenes").iterdir() if d.name.startswith(".")]
     r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "2", "--no-verify")
     assert r.returncode == 0 and "failed 0" in r.stdout
-    assert len(list((out / "scenes").glob("*/meta.json"))) == 8
+    assert len(list((out / "scenes").glob("*/meta.json"))) == 12

@@ -774,8 +774,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             except InputError:
                 pass
         todo.append(d)
+    before = {d.name: _file_stamp(out / "scenes" / d.name / "meta.json") for d in todo}
     failures: dict[str, str] = {}
     built: list[str] = []
+    recovered: list[str] = []  # landed by a worker that died before it reported them
     args = [(str(Path(session_dir).resolve()), str(d.absolute()), d.name, str(calib_path.resolve()), calib_sha,
              str(out.resolve()), params.model_dump_json()) for d in todo]
     from rich.progress import (
@@ -802,9 +804,15 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                 built.append(sid)
                 metas[sid] = SceneMeta.model_validate(meta)
 
+        def lost(a, reason):
+            meta = _landed_meta(out, a[2], before[a[2]], phash, calib_sha, expected)
+            if meta is None:
+                return a[2], reason, None
+            recovered.append(a[2])
+            return a[2], None, meta.model_dump(mode="json")
+
         try:
-            run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler,
-                      lost_result=lambda a, reason: (a[2], reason, None))
+            run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost)
         except (KeyboardInterrupt, Interrupted):
             _remove_stale(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
@@ -821,7 +829,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     splits = final_splits(ok_ids, fruit_ids, params, quarantined)
     if params.verification:
         _write_verification(out, params, metas)
-    for sid in unchanged:  # views of scenes built by an earlier run with other view options
+    for sid in unchanged + recovered:  # views of scenes built earlier with other view options, or left unwritten
         if (params.kitti and not (out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png").exists()) or \
                 (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
             write_scene_views(out, sid, params)
@@ -864,6 +872,32 @@ def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneM
             (out / "verification" / f"{s}_overlay.jpg").unlink(missing_ok=True)
     write_verification_report(VerificationReport(dataset_dir=str(out.resolve()), params=params.verify, scenes=scenes),
                               out)
+
+
+def _file_stamp(path: Path) -> tuple[int, int] | None:
+    """``path``'s (inode, mtime in ns), None if it does not exist: tells a file written since from the one seen."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+def _landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash: str, calib_sha: str,
+                 expected: list[str]) -> "SceneMeta | None":
+    """The meta of scene ``sid`` if a worker of this run landed it whole (a new meta.json, for these parameters and
+    this calibration, with every scene file) and then died before it reported it; else None."""
+    meta_path = out / "scenes" / sid / "meta.json"
+    if _file_stamp(meta_path) in (None, stamp_before):
+        return None
+    try:
+        m = SceneMeta.read(meta_path)
+    except InputError:
+        return None
+    if m.params_hash != phash or m.calibration_sha256 != calib_sha or \
+            not all((meta_path.parent / name).is_file() for name in expected):
+        return None
+    return m
 
 
 def _remove_stale(out: Path, locks: bool = True) -> None:
