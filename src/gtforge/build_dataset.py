@@ -765,9 +765,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             try:
                 m = SceneMeta.read(meta_path)
                 files = [p for p in session.capture_files(d) if p.exists()]
-                complete = all((meta_path.parent / name).is_file() for name in expected)  # none deleted since
-                if (m.params_hash == phash and m.calibration_sha256 == calib_sha and complete
-                        and inputs_unchanged(m, files)):
+                if _built_as_asked(m, meta_path.parent, phash, calib_sha, expected) and inputs_unchanged(m, files):
                     unchanged.append(d.name)
                     metas[d.name] = m
                     continue
@@ -894,10 +892,14 @@ def _landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phas
         m = SceneMeta.read(meta_path)
     except InputError:
         return None
-    if m.params_hash != phash or m.calibration_sha256 != calib_sha or \
-            not all((meta_path.parent / name).is_file() for name in expected):
-        return None
-    return m
+    return m if _built_as_asked(m, meta_path.parent, phash, calib_sha, expected) else None
+
+
+def _built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, expected: list[str]) -> bool:
+    """Whether the scene in ``scene_dir`` (its meta ``m``) was built with these parameters and this calibration and
+    still has every scene file (none deleted since)."""
+    return m.params_hash == phash and m.calibration_sha256 == calib_sha and \
+        all((scene_dir / name).is_file() for name in expected)
 
 
 def _remove_stale(out: Path, locks: bool = True) -> None:
