@@ -648,9 +648,9 @@ def test_a_scene_landed_by_a_worker_that_died_before_reporting_it_is_built(datas
 
     def run_tasks(fn, args, on_result, lost_result=None, **kw):
         def dying(a):
-            if a[2] == "001":  # landed, its views half written, then the worker died
+            if a[2] == "001":  # landed, its views half written (the left view's, not the right's), then it died
                 fn(*a)
-                (kitti / "disp_noc_0" / "001_10.png").unlink()
+                (kitti / "disp_occ_1" / "001_10.png").unlink()
                 (kitti / "disp_noc_1" / "001_10.png").unlink()
             on_result(lost_result(a, LOST_REASON))  # 002: died before its scene landed
 

@@ -827,10 +827,12 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     splits = final_splits(ok_ids, fruit_ids, params, quarantined)
     if params.verification:
         _write_verification(out, params, metas)
-    for sid in unchanged + recovered:  # views of scenes built earlier with other view options, or left unwritten
+    for sid in unchanged:  # views of scenes built by an earlier run with other view options
         if (params.kitti and not (out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png").exists()) or \
                 (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
             write_scene_views(out, sid, params)
+    for sid in recovered:  # its worker died while writing them, or before: any of them may be missing
+        write_scene_views(out, sid, params)
     write_lists(out, splits)
     write_split_views(out, splits, params)
     _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
