@@ -155,7 +155,8 @@ def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
 def test_fused_disparity_and_occlusion_match_their_definitions():
     # reproject_to_zed computes disparity and the non-occluded mask in one pass; they must equal
     # RectifiedStereo.depth_to_disparity and nonoccluded_mask (here with doffs and real occlusions)
-    from gtforge.reproject import disparity_and_nonoccluded, nonoccluded_mask
+    from gtforge.geometry import finite_box
+    from gtforge.reproject import disparity_and_nonoccluded, nonoccluded_mask, right_view_disparity
 
     cam = PinholeCamera(width_px=150, height_px=90, fx_px=110.0, fy_px=104.0, cx_px=71.2, cy_px=47.9)
     zed = RectifiedStereo(left=cam, baseline_mm=63.0, doffs_px=2.5)
@@ -172,3 +173,39 @@ def test_fused_disparity_and_occlusion_match_their_definitions():
     d2, n2 = disparity_and_nonoccluded(sd.depth_mm, sd.depth_right_mm, zed, 0.05, 2.0)
     np.testing.assert_array_equal(d2, disp_ref)
     np.testing.assert_array_equal(n2, nonoccluded_mask(sd.depth_mm, disp_ref, sd.depth_right_mm, 0.05, 2.0))
+    # the pass runs on the ground truth's bounding box only: a depth camera that fills a part of the image (box
+    # inside the image, touching no border) and one whose GT touches the right border, as the definitions give
+    occluded_right = 0
+    for window in ((slice(12, 71), slice(25, 118)), (slice(0, 90), slice(60, 150))):
+        part = np.full_like(depth, np.nan)
+        part[window] = depth[window]
+        sd = reproject_to_zed(part, cam, T_from_rotvec([0.0, 0.01, 0.0], [-20.0, 0.0, 0.0]), zed)
+        box = finite_box(sd.depth_mm)
+        assert 0 < (box[1] - box[0]) * (box[3] - box[2]) < 0.9 * sd.depth_mm.size, box
+        disp_ref = zed.depth_to_disparity(sd.depth_mm)
+        np.testing.assert_array_equal(sd.disparity_px, disp_ref)
+        np.testing.assert_array_equal(sd.nonoccluded, nonoccluded_mask(sd.depth_mm, disp_ref, sd.depth_right_mm))
+        # the right view: the same computation on both images mirrored left-right, mirrored back
+        d1, n1 = right_view_disparity(sd.depth_mm, sd.depth_right_mm, zed)
+        dm, nm = disparity_and_nonoccluded(sd.depth_right_mm[:, ::-1], sd.depth_mm[:, ::-1], zed)
+        np.testing.assert_array_equal(d1, dm[:, ::-1])
+        np.testing.assert_array_equal(n1, nm[:, ::-1])
+        assert np.isfinite(d1).sum() > 1000
+        occluded_right += (np.isfinite(d1) & ~n1).sum()
+    assert occluded_right > 0  # there are right-view occlusions to get right
+
+
+def test_finite_box_is_the_bounding_box_of_the_finite_values():
+    from gtforge.geometry import finite_box, mask_bounding_box
+
+    rng = np.random.default_rng(2)
+    for shape, p in (((40, 70), 0.001), ((40, 70), 0.3), ((1, 9), 0.5), ((9, 1), 0.5)):
+        a = np.full(shape, np.nan, np.float32)
+        a[rng.random(shape) < p] = 1.0
+        a[rng.random(shape) < 0.1] = np.inf  # inf is not finite
+        box = mask_bounding_box(np.isfinite(a))
+        assert finite_box(a) == (box if box else (0, 0, 0, 0)), shape
+    assert finite_box(np.full((5, 6), np.nan)) == (0, 0, 0, 0)
+    a = np.full((5, 6), np.nan)
+    a[4, 5] = -2.0
+    assert finite_box(a) == (4, 5, 5, 6)

@@ -186,3 +186,62 @@ def test_sigma_stats_by_label_counts_as_numpy_does():
     assert st["none"].median_px is None and 0 < st["in"].over_0_1_px_pct < 100
     with pytest.raises(ValueError, match="labels.shape"):
         sigma_stats_by_label(s, labels[:10], {"in": (1,)})
+
+
+def _sigma_reference(d, Z, span, fx, fy, cx, cy, B, C, t, c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px):
+    """The sigma map of the module docstring's formulas in plain numpy (whole arrays, no box, no compiled code)."""
+    d, Z, span = (np.asarray(x, np.float64) for x in (d, Z, span))
+    H, W = d.shape
+    pad = np.pad(d, 1, constant_values=np.nan)
+
+    def slope(before, here, after):
+        fb, fa = np.isfinite(before), np.isfinite(after)
+        return np.where(fb & fa, 0.5 * (after - before), np.where(fa, after - here, np.where(fb, here - before, 0.0)))
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gx, gy = slope(pad[1:-1, :-2], d, pad[1:-1, 2:]), slope(pad[:-2, 1:-1], d, pad[2:, 1:-1])
+        X, Y = (np.arange(W)[None] - cx) / fx * Z, (np.arange(H)[:, None] - cy) / fy * Z
+        a = np.stack([-gx * fx / Z, -gy * fy / Z, (-fx * B + gx * fx * X + gy * fy * Y) / Z ** 2], axis=-1)
+        P = np.stack([X, Y, Z], axis=-1)
+        J = np.concatenate([np.cross(P - t, a), a], axis=-1)
+        var = np.einsum("...i,ij,...j->...", J, C, J)
+        r = P - c_depth
+        zd = r @ axis_depth
+        var += ((a * r).sum(axis=-1) / zd * (a_mm + b_mm * (zd / 1000) ** 2) / np.sqrt(2)) ** 2
+        var += np.where(np.isfinite(span), (fx * B / Z ** 2 * span ** 2 / (8 * radius_mm)) ** 2, 0.0)
+        var += shift_px ** 2 * (gx ** 2 + gy ** 2)
+        out = np.sqrt(var)
+    out[~(np.isfinite(d) & np.isfinite(Z) & (Z > 0))] = np.inf
+    return out
+
+
+def test_sigma_kernel_matches_the_formulas_on_and_off_the_image_borders():
+    """The compiled kernel (the GT's bounding box only, branch-free rows, the image's first and last columns apart)
+    gives the docstring's formulas computed in numpy: GT inside the image, GT touching every border, holes, one-sided
+    and missing slopes, NaN spans, no covariance."""
+    from gtforge.uncertainty import _sigma_kernel
+
+    rng = np.random.default_rng(11)
+    H, W = 37, 53
+    fx, fy, cx, cy, B = 100.0, 101.0, 26.3, 18.2, 63.0
+    A = rng.normal(size=(6, 6))
+    C = A @ A.T * 1e-6
+    t, c_depth = np.array([-20.0, 1.0, 2.0]), np.array([40.0, -3.0, 5.0])
+    axis = np.array([0.05, -0.02, 1.0]) / np.linalg.norm([0.05, -0.02, 1.0])
+    Z = (700 + 80 * np.sin(np.arange(W) / 7.0)[None] + 60 * np.cos(np.arange(H) / 5.0)[:, None]).astype(np.float32)
+    span = rng.uniform(0, 3, (H, W)).astype(np.float32)
+    span[rng.random((H, W)) < 0.2] = np.nan
+    for window in ((slice(0, H), slice(0, W)), (slice(6, 30), slice(9, 41)), (slice(0, 12), slice(40, W))):
+        depth = np.full((H, W), np.nan, np.float32)
+        depth[window] = Z[window]
+        depth[rng.random((H, W)) < 0.1] = np.nan  # holes: one-sided and missing slopes
+        depth[window][0, 0] = -5.0  # a negative depth: no GT there
+        disp = (fx * B / depth).astype(np.float32)
+        for cov, sp, shift in ((C, span, 0.2), (None, np.full((H, W), np.nan, np.float32), 0.0)):
+            out = np.empty((H, W), np.float32)
+            _sigma_kernel(disp, depth, sp, fx, fy, cx, cy, B, cov, t, c_depth, axis, 0.01, 0.05, 50.0, shift, out)
+            ref = _sigma_reference(disp, depth, sp, fx, fy, cx, cy, B, np.zeros((6, 6)) if cov is None else cov, t,
+                                   c_depth, axis, 0.01, 0.05, 50.0, shift)
+            np.testing.assert_array_equal(np.isinf(out), np.isinf(ref))
+            assert np.isfinite(out).sum() > 100
+            np.testing.assert_allclose(out[np.isfinite(out)], ref[np.isfinite(ref)], rtol=2e-6)

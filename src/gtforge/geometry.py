@@ -19,6 +19,37 @@ def mask_bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
     return (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1) if len(rows) else None
 
 
+@numba.njit(cache=True)
+def finite_box(a):
+    """``(y0, y1, x0, x1)`` (ends exclusive) of a 2-D float array's finite values; ``(0, 0, 0, 0)`` where there are
+    none. The image-sized passes of a build run on this box only: a depth camera narrower than the ZED fills about a
+    third of its image (the benchmark's scenes: 37 % of 2208x1242). Two passes without branches (about 0.5 ms at
+    2208x1242)."""
+    H, W = a.shape
+    y0, y1 = H, 0
+    for v in range(H):
+        n = 0
+        row = a[v]
+        for u in range(W):
+            n += abs(row[u]) < np.inf  # (NaN compares false)
+        if n:
+            y0 = min(y0, v)
+            y1 = v + 1
+    if y1 == 0:
+        return 0, 0, 0, 0
+    cols = np.zeros(W, np.uint8)
+    for v in range(y0, y1):
+        row = a[v]
+        for u in range(W):
+            cols[u] |= abs(row[u]) < np.inf
+    x0, x1 = 0, W
+    while cols[x0] == 0:
+        x0 += 1
+    while cols[x1 - 1] == 0:
+        x1 -= 1
+    return y0, y1, x0, x1
+
+
 def T_from_rotvec(rotvec_rad: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation  # here, not at import: scipy adds 0.4 s to every process start
 

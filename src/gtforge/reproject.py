@@ -31,6 +31,7 @@ import numpy as np
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 from gtforge.camera import PinholeCamera, RectifiedStereo
+from gtforge.geometry import finite_box
 
 Mode = Literal["mesh", "splat"]
 
@@ -439,24 +440,33 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
     keep = np.float32(1 - rel_tol)
     tol = np.float32(abs_tol_mm)
     nan32 = np.float32(np.nan)
-    for v in range(H):
-        zrow, drow = depth_l[v], disp[v]
-        for u in range(W):  # no branch, so the compiler vectorises the divisions (4.3 instead of 6.2 ms a call)
-            zl = zrow[u]
+    y0, y1, x0, x1 = finite_box(depth_l)  # no depth outside it: no disparity, nothing non-occluded
+    disp[:y0] = nan32
+    disp[y1:] = nan32
+    for v in range(y0, y1):
+        drow, rrow = disp[v], depth_r[v]
+        drow[:x0] = nan32
+        drow[x1:] = nan32
+        # the box's columns as slices from index 0: plain loads and stores (a column index the compiler cannot prove
+        # non-negative would make them gathers)
+        zs, ds, ns = depth_l[v, x0:x1], drow[x0:x1], noc[v, x0:x1]
+        for i in range(x1 - x0):  # no branch, so the compiler vectorises the divisions (4.3 instead of 6.2 ms a call)
+            zl = zs[i]
             q = np.float32(fB / np.float64(zl) - doffs)
-            drow[u] = q if zl > 0.0 else nan32
-        for u in range(W):
-            d = drow[u]
+            ds[i] = q if zl > 0.0 else nan32
+        for i in range(x1 - x0):
+            d = ds[i]
             if abs(d) < np.inf:
-                zl = zrow[u]
+                zl = zs[i]
+                u = x0 + i
                 ur = (W - 1 - u if mirrored else u) - np.float64(d)  # in the (mirrored) image's columns
                 u0 = min(max(math.floor(min(max(ur, -1.0), W + 0.0)), 0), W - 1)
                 u1 = min(u0 + 1, W - 1)
                 if mirrored:
                     u0, u1 = W - 1 - u0, W - 1 - u1
-                zr = np.fmin(depth_r[v, u0], depth_r[v, u1])  # NaN only if both are NaN
+                zr = np.fmin(rrow[u0], rrow[u1])  # NaN only if both are NaN
                 occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zl * keep) - tol))
-                noc[v, u] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
+                ns[i] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
     return disp, noc
 
 

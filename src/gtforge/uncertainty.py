@@ -30,6 +30,7 @@ import numpy as np
 from pydantic import Field
 
 from gtforge.camera import Rig
+from gtforge.geometry import finite_box
 from gtforge.schema import GTModel
 
 
@@ -55,16 +56,91 @@ class UncertaintyParams(GTModel):
 
 
 @numba.njit(inline="always", cache=True)
+def _finite(x):
+    return abs(x) < np.inf  # (NaN compares false)
+
+
+@numba.njit(inline="always", cache=True)
 def _slope(before, here, after):
     """Slope of three neighbouring samples: central difference where both neighbours are finite, else one-sided,
-    else 0."""
-    if math.isfinite(before) and math.isfinite(after):
-        return 0.5 * (after - before)
-    if math.isfinite(after):
-        return after - here
-    if math.isfinite(before):
-        return here - before
-    return 0.0
+    else 0 (selects, no branches: the row loop vectorises)."""
+    fb, fa = _finite(before), _finite(after)
+    one_sided = (after - here) if fa else ((here - before) if fb else 0.0)
+    return 0.5 * (after - before) if (fb and fa) else one_sided
+
+
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _sigma_px(d, left, right, above, below, Z, sp, X_over_Z, y_over_z, has_cov, cc, fx, fy, fb, t, c_depth,
+              axis_depth, a_mm, b_mm, radius_mm, shift_px):
+    """The 1-sigma of one pixel: GT disparity ``d`` and its four neighbours (NaN: none), depth ``Z``, the winning
+    triangle's span ``sp`` (NaN: no mesh term); +inf where there is no GT. Every term is computed and an invalid pixel
+    replaced at the end, with selects for branches: a row of calls vectorises (the same arithmetic, the same values).
+    ``t``, ``c_depth``, ``axis_depth``: 3-tuples (arrays here would be reference-counted at every pixel)."""
+    c00, c01, c02, c03, c04, c05, c11, c12, c13, c14, c15, c22, c23, c24, c25, c33, c34, c35, c44, c45, c55 = cc
+    d = np.float64(d)
+    Z = np.float64(Z)
+    ok = _finite(d) & _finite(Z) & (Z > 0)
+    # GT slope (px/px): central difference where both neighbours exist, else one-sided
+    gx = _slope(np.float64(left), d, np.float64(right))
+    gy = _slope(np.float64(above), d, np.float64(below))
+    X = X_over_Z * Z
+    Y = y_over_z * Z
+    iz = 1.0 / Z
+    # a = dd/dX - g . du/dX  (row vector)
+    ax = -gx * fx * iz
+    ay = -gy * fy * iz
+    az = (-fb + gx * fx * X + gy * fy * Y) * iz * iz
+    var = 0.0
+    if has_cov:  # (the same for every pixel: taken out of the loop by the compiler)
+        # extrinsic: dX/domega = -[P]x with P = X - t, dX/ddt = I  ->  J = [P x a, a]
+        px, py, pz = X - t[0], Y - t[1], Z - t[2]
+        J0 = py * az - pz * ay
+        J1 = pz * ax - px * az
+        J2 = px * ay - py * ax
+        var = (J0 * (c00 * J0 + c01 * J1 + c02 * J2 + c03 * ax + c04 * ay + c05 * az)
+               + J1 * (c11 * J1 + c12 * J2 + c13 * ax + c14 * ay + c15 * az)
+               + J2 * (c22 * J2 + c23 * ax + c24 * ay + c25 * az)
+               + ax * (c33 * ax + c34 * ay + c35 * az) + ay * (c44 * ay + c45 * az) + az * (c55 * az))
+    # depth noise along the depth camera's ray: dX/dz_d = (X - c) / z_d, z_d = the point's depth-camera z
+    rx, ry, rz = X - c_depth[0], Y - c_depth[1], Z - c_depth[2]
+    zd = rx * axis_depth[0] + ry * axis_depth[1] + rz * axis_depth[2]
+    # the mesh interpolates three noisy vertices: sqrt(sum w_i^2) of the noise, 1/sqrt(2) in the mean square
+    # over a triangle (uniform barycentric weights: E[sum w_i^2] = 1/2)
+    zd_m = zd * 0.001
+    sz = (a_mm + b_mm * (zd_m * zd_m)) * 0.7071067811865476
+    dn_ = (ax * rx + ay * ry + az * rz) / zd * sz
+    var += dn_ * dn_
+    # mesh interpolation: the chord of a surface curved with radius R, over the triangle's depth span
+    sp = np.float64(sp)
+    m = fb * iz * iz * sp * sp / (8.0 * radius_mm)
+    var += m * m if _finite(sp) else 0.0
+    # verification: the measured texture shift as lateral uncertainty
+    var += shift_px * shift_px * (gx * gx + gy * gy)
+    return math.sqrt(var) if ok else np.inf
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _sigma_row(above, row, below, z_row, span_row, has_cov, cc, x_over_z, y_over_z, fx, fy, fb, t, c_depth,
+               axis_depth, a_mm, b_mm, radius_mm, shift_px, x0, x1, out):
+    """``_sigma_px`` on columns ``x0:x1`` of one row (``above``/``below``: the neighbouring rows, NaN beyond the
+    image; ``span_row`` NaN: no mesh term). The image's first and last columns apart, so that the loop's loads are all
+    in bounds and it vectorises."""
+    W = row.shape[0]
+    nan = np.nan
+    t, c_depth, axis_depth = (t[0], t[1], t[2]), (c_depth[0], c_depth[1], c_depth[2]), \
+        (axis_depth[0], axis_depth[1], axis_depth[2])
+    lo, hi = max(x0, 1), max(min(x1, W - 1), 1)
+    # the loop over slices from index 0: plain loads (indices that could be negative would make them gathers)
+    here, left, right, up, down = row[lo:hi], row[lo - 1:hi - 1], row[lo + 1:hi + 1], above[lo:hi], below[lo:hi]
+    z, sp, xz, o = z_row[lo:hi], span_row[lo:hi], x_over_z[lo:hi], out[lo:hi]
+    for i in range(hi - lo):
+        o[i] = _sigma_px(here[i], left[i], right[i], up[i], down[i], z[i], sp[i], xz[i], y_over_z, has_cov, cc, fx, fy,
+                         fb, t, c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px)
+    for u in (0, W - 1):
+        if x0 <= u < x1:
+            out[u] = _sigma_px(row[u], row[u - 1] if u > 0 else nan, row[u + 1] if u < W - 1 else nan, above[u],
+                               below[u], z_row[u], span_row[u], x_over_z[u], y_over_z, has_cov, cc, fx, fy, fb, t,
+                               c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px)
 
 
 @numba.njit(cache=True)
@@ -72,71 +148,34 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
                   out):
     """``out[v, u]``: the 1-sigma of pixel ``(v, u)``, +inf where there is no GT. The maps are read as they come
     (float32 or float64), every sample widened to float64 before any arithmetic; ``span`` of shape ``(0, 0)``: no mesh
-    term; ``cov`` None: no extrinsic term (the same sigma a zero covariance gives)."""
+    term; ``cov`` None: no extrinsic term (the same sigma a zero covariance gives). Computed on the GT's bounding box
+    only (``finite_box``), +inf around it."""
     H, W = disp.shape
     use_span = span.shape == disp.shape
     has_cov = cov is not None
     C = np.zeros((6, 6)) if cov is None else cov
     # J C J^T of a symmetric C written out over its upper triangle, off-diagonal terms doubled (21 products, no loop)
-    c00, c01, c02, c03, c04, c05 = C[0, 0], 2 * C[0, 1], 2 * C[0, 2], 2 * C[0, 3], 2 * C[0, 4], 2 * C[0, 5]
-    c11, c12, c13, c14, c15 = C[1, 1], 2 * C[1, 2], 2 * C[1, 3], 2 * C[1, 4], 2 * C[1, 5]
-    c22, c23, c24, c25 = C[2, 2], 2 * C[2, 3], 2 * C[2, 4], 2 * C[2, 5]
-    c33, c34, c35 = C[3, 3], 2 * C[3, 4], 2 * C[3, 5]
-    c44, c45 = C[4, 4], 2 * C[4, 5]
-    c55 = C[5, 5]
+    cc = (C[0, 0], 2 * C[0, 1], 2 * C[0, 2], 2 * C[0, 3], 2 * C[0, 4], 2 * C[0, 5],
+          C[1, 1], 2 * C[1, 2], 2 * C[1, 3], 2 * C[1, 4], 2 * C[1, 5],
+          C[2, 2], 2 * C[2, 3], 2 * C[2, 4], 2 * C[2, 5],
+          C[3, 3], 2 * C[3, 4], 2 * C[3, 5],
+          C[4, 4], 2 * C[4, 5],
+          C[5, 5])
     fb = fx * B
     x_over_z = np.empty(W)  # (u - cx) / fx of each column, divided once (the same value: 12.7 instead of 14.9 ms)
     for u in range(W):
         x_over_z[u] = (u - cx) / fx
-    for v in range(H):
-        y_over_z = (v - cy) / fy
-        for u in range(W):
-            d = np.float64(disp[v, u])
-            Z = np.float64(depth[v, u])
-            if not (math.isfinite(d) and math.isfinite(Z) and Z > 0):
-                out[v, u] = np.inf
-                continue
-            # GT slope (px/px): central difference where both neighbours exist, else one-sided
-            gx = _slope(np.float64(disp[v, u - 1]) if u > 0 else np.nan, d,
-                        np.float64(disp[v, u + 1]) if u < W - 1 else np.nan)
-            gy = _slope(np.float64(disp[v - 1, u]) if v > 0 else np.nan, d,
-                        np.float64(disp[v + 1, u]) if v < H - 1 else np.nan)
-            X = x_over_z[u] * Z
-            Y = y_over_z * Z
-            iz = 1.0 / Z
-            # a = dd/dX - g . du/dX  (row vector)
-            ax = -gx * fx * iz
-            ay = -gy * fy * iz
-            az = (-fb + gx * fx * X + gy * fy * Y) * iz * iz
-            var = 0.0
-            if has_cov:
-                # extrinsic: dX/domega = -[P]x with P = X - t, dX/ddt = I  ->  J = [P x a, a]
-                px, py, pz = X - t[0], Y - t[1], Z - t[2]
-                J0 = py * az - pz * ay
-                J1 = pz * ax - px * az
-                J2 = px * ay - py * ax
-                var = (J0 * (c00 * J0 + c01 * J1 + c02 * J2 + c03 * ax + c04 * ay + c05 * az)
-                       + J1 * (c11 * J1 + c12 * J2 + c13 * ax + c14 * ay + c15 * az)
-                       + J2 * (c22 * J2 + c23 * ax + c24 * ay + c25 * az)
-                       + ax * (c33 * ax + c34 * ay + c35 * az) + ay * (c44 * ay + c45 * az) + az * (c55 * az))
-            # depth noise along the depth camera's ray: dX/dz_d = (X - c) / z_d, z_d = the point's depth-camera z
-            rx, ry, rz = X - c_depth[0], Y - c_depth[1], Z - c_depth[2]
-            zd = rx * axis_depth[0] + ry * axis_depth[1] + rz * axis_depth[2]
-            # the mesh interpolates three noisy vertices: sqrt(sum w_i^2) of the noise, 1/sqrt(2) in the mean square
-            # over a triangle (uniform barycentric weights: E[sum w_i^2] = 1/2)
-            zd_m = zd * 0.001
-            sz = (a_mm + b_mm * (zd_m * zd_m)) * 0.7071067811865476
-            dn_ = (ax * rx + ay * ry + az * rz) / zd * sz
-            var += dn_ * dn_
-            # mesh interpolation: the chord of a surface curved with radius R, over the triangle's depth span
-            if use_span:
-                sp = np.float64(span[v, u])
-                if math.isfinite(sp):
-                    m = fb * iz * iz * sp * sp / (8.0 * radius_mm)
-                    var += m * m
-            # verification: the measured texture shift as lateral uncertainty
-            var += shift_px * shift_px * (gx * gx + gy * gy)
-            out[v, u] = math.sqrt(var)
+    y0, y1, x0, x1 = finite_box(disp)  # no GT outside it
+    out[:y0] = np.inf
+    out[y1:] = np.inf
+    nan_row = np.full(W, np.nan, disp.dtype)
+    no_span = np.full(W, np.nan, span.dtype)
+    for v in range(y0, y1):
+        out[v, :x0] = np.inf
+        out[v, x1:] = np.inf
+        _sigma_row(disp[v - 1] if v > 0 else nan_row, disp[v], disp[v + 1] if v < H - 1 else nan_row, depth[v],
+                   span[v] if use_span else no_span, has_cov, cc, x_over_z, (v - cy) / fy, fx, fy, fb, t,
+                   c_depth, axis_depth, a_mm, b_mm, radius_mm, shift_px, x0, x1, out[v])
 
 
 def _float_map(a) -> np.ndarray:
@@ -226,13 +265,14 @@ def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[
 
 @numba.njit(cache=True)
 def _finite_positive(s, labels):
-    """The finite values > 0 of ``s`` and their ``labels``, in raster order: one pass."""
+    """The finite values > 0 of ``s`` and their ``labels``, in raster order: one pass over their bounding box."""
     H, W = s.shape
     v = np.empty(H * W, np.float32)
     lab = np.empty(H * W, labels.dtype)
     n = 0
-    for i in range(H):
-        for j in range(W):
+    y0, y1, x0, x1 = finite_box(s)  # none outside it
+    for i in range(y0, y1):
+        for j in range(x0, x1):
             x = s[i, j]
             if x > 0 and x < np.inf:  # (NaN fails both)
                 v[n] = x
