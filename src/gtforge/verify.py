@@ -35,7 +35,7 @@ from pydantic import Field
 from gtforge import lens
 from gtforge.camera import Rig
 from gtforge.errors import InputError
-from gtforge.geometry import mask_bounding_box, transform_points
+from gtforge.geometry import finite_box, mask_bounding_box, transform_points
 from gtforge.io.formats import to_gray
 from gtforge.rectification import VERTICAL_WARN_PX
 from gtforge.schema import GTModel, VersionedFile
@@ -158,40 +158,41 @@ def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occl
     return out, ok
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _render_kernel(depth, x0, y0, k_zed, R, t, k_tex, dist, M, tilted, tex, zbuffer, tol_mm, out, ok):
-    """``render_texture``'s loop over the pixels: texture-camera position and depth of each GT pixel (NaN: not seen),
-    the z-buffer of those (only with ``zbuffer``: a separate depth camera), then the bilinear samples."""
+    """``render_texture``'s loop over the pixels: texture-camera position and depth of each GT pixel (depth NaN: not
+    seen), the z-buffer of those (only with ``zbuffer``: a separate depth camera), then the bilinear samples."""
     H, W = depth.shape
     th, tw = tex.shape
-    pos = np.full((H, W, 3), np.nan)
+    # the positions as three planes, every pixel computed and the unseen ones marked by a NaN depth at the end: no
+    # branch in the loop, so the compiler vectorises it (the same arithmetic, the same positions)
+    pu, pv, pz = np.empty((H, W)), np.empty((H, W)), np.empty((H, W))
     for v in range(H):
+        ru, rv, rz, drow = pu[v], pv[v], pz[v], depth[v]
         for u in range(W):
-            z = np.float64(depth[v, u])
-            if not math.isfinite(z):
-                continue
+            z = np.float64(drow[u])
             X = (u + x0 - k_zed[2]) / k_zed[0] * z
             Y = (v + y0 - k_zed[3]) / k_zed[1] * z
             Zm = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * z + t[2]
-            if not Zm > 0:
-                continue
             Xm = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * z + t[0]
             Ym = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * z + t[1]
             xd, yd = lens.distort_point(Xm / Zm, Ym / Zm, dist, M, tilted)
             ut = k_tex[0] * xd + k_tex[2]
             vt = k_tex[1] * yd + k_tex[3]
-            if 0 <= ut <= tw - 1 and 0 <= vt <= th - 1:
-                pos[v, u, 0], pos[v, u, 1], pos[v, u, 2] = ut, vt, Zm
+            seen = (abs(z) < np.inf) & (Zm > 0) & (ut >= 0) & (ut <= tw - 1) & (vt >= 0) & (vt <= th - 1)
+            ru[u] = ut
+            rv[u] = vt
+            rz[u] = Zm if seen else np.nan
     zbuf = np.full((th, tw) if zbuffer else (1, 1), np.inf)
     if zbuffer:  # the depth camera saw these points; the texture camera may not: z-buffer them in the texture image
         for v in range(H):
             for u in range(W):
-                if math.isfinite(pos[v, u, 2]):
-                    ti, tj = int(np.rint(pos[v, u, 1])), int(np.rint(pos[v, u, 0]))
-                    zbuf[ti, tj] = min(zbuf[ti, tj], pos[v, u, 2])
+                if math.isfinite(pz[v, u]):
+                    ti, tj = int(np.rint(pv[v, u])), int(np.rint(pu[v, u]))
+                    zbuf[ti, tj] = min(zbuf[ti, tj], pz[v, u])
     for v in range(H):
         for u in range(W):
-            ut, vt, Zm = pos[v, u, 0], pos[v, u, 1], pos[v, u, 2]
+            ut, vt, Zm = pu[v, u], pv[v, u], pz[v, u]
             if not math.isfinite(Zm) or (zbuffer and Zm > zbuf[int(np.rint(vt)), int(np.rint(ut))] + tol_mm):
                 continue
             # bilinear at the exact position (cv2.remap would round it to 1/32 px)
@@ -517,7 +518,14 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
                                                                                                  "height_px": h}),
                                          "doffs_px": rig.zed.doffs_px / f})
         rig_w = rig.model_copy(update={"zed": zed})
-    depth_w = _area(np.asarray(depth, np.float32), f)
+    depth = np.asarray(depth, np.float32)
+    # only the block rows of the GT's rows (no valid block above or below them), each whole: OpenCV's vectorised
+    # averages depend on where a row's columns start, so a column crop could change a value's last bit
+    gy0, gy1 = finite_box(depth)[:2]
+    depth_w = np.full((h, w), np.nan, np.float32)
+    by0, by1 = gy0 // f, min(-(-gy1 // f), h)
+    if by1 > by0:
+        depth_w[by0:by1] = _area(depth[by0 * f:by1 * f], f)
     valid = np.isfinite(depth_w)
     if f == 1:
         valid |= np.isfinite(disp)
