@@ -177,96 +177,148 @@ def _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi, up, vp, wp, uq, vq, w
 
 
 @numba.njit(**_JIT)
+def _quad_flags(zt, zbr, Wt, Wb, k1, k2, abs_tol, F):
+    """Which triangles of each quad ``a b / c d`` between two grid rows are drawn, from the depth-camera depths
+    (``zt``, ``zbr``) and the corners' validity (``Wt``, ``Wb`` = 1/Z, 0 where invalid): ``F[c]`` bit 0 the first
+    triangle, bit 1 the second, bit 2 the split along a-d, bit 3 all four corners valid. The same for every target
+    camera with the same z axis (the rectified ZED's two views): computed once for both (``_mesh_rows_stereo``).
+    Branch-free so that it vectorises."""
+    for c in range(zt.shape[0] - 1):
+        za, zb, zc, zd = np.float64(zt[c]), np.float64(zt[c + 1]), np.float64(zbr[c]), np.float64(zbr[c + 1])
+        fa, fb, fc, fd = Wt[c] > 0.0, Wt[c + 1] > 0.0, Wb[c] > 0.0, Wb[c + 1] > 0.0
+        e_ab, e_cd = _edge_ok(za, zb, k1, abs_tol), _edge_ok(zc, zd, k1, abs_tol)
+        e_ac, e_bd = _edge_ok(za, zc, k1, abs_tol), _edge_ok(zb, zd, k1, abs_tol)
+        # split along the diagonal with the smaller depth change: a-d gives (b, a, d) and (c, a, d),
+        # b-c gives (a, b, c) and (d, b, c); a triangle is drawn when none of its edges is a jump
+        ad = fa & fd & (~(fb & fc) | (abs(za - zd) <= abs(zb - zc)))
+        e_ad, e_bc = _edge_ok(za, zd, k2, abs_tol), _edge_ok(zb, zc, k2, abs_tol)
+        t1 = (ad & e_ad & fb & e_ab & e_bd) | (~ad & fb & fc & e_bc & fa & e_ab & e_ac)
+        t2 = (ad & e_ad & fc & e_ac & e_cd) | (~ad & fb & fc & e_bc & fd & e_bd & e_cd)
+        all4 = fa & fb & fc & fd
+        F[c] = np.uint8(t1) | (np.uint8(t2) << 1) | (np.uint8(ad) << 2) | (np.uint8(all4) << 3)
+
+
+@numba.njit(**_JIT)
+def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, Wb, F, Q, S, cand):
+    """Rasterise the quads between two projected grid rows (``_project_row``'s U, V, 1/Z of the top and bottom row)
+    whose triangles ``F`` (``_quad_flags``) says are drawn, into target rows ``y_lo..y_hi`` of ``buf`` (row ``y``
+    stored at ``y - y_off``; NaN = empty); ``sbuf`` (when ``want_span``): the winning triangle's vertex Z range (mm).
+    ``Q``, ``S``, ``cand``: work rows."""
+    W = buf.shape[1]
+    ylo, yhi, umax_f = np.float64(y_lo), np.float64(y_hi), W - 1.0
+    Wm = Ut.shape[0]
+    # every quad at once (vectorised: no branches, no bool arrays)
+    for c in range(Wm - 1):
+        fl = F[c]
+        t1, t2, ad, all4 = (fl & 1) != 0, (fl & 2) != 0, (fl & 4) != 0, (fl & 8) != 0
+        ua, ub, uc, ud = Ut[c], Ut[c + 1], Ub[c], Ub[c + 1]
+        va, vb, vc, vd = Vt[c], Vt[c + 1], Vb[c], Vb[c + 1]
+        wa, wb, wc, wd = Wt[c], Wt[c + 1], Wb[c], Wb[c + 1]
+        px = np.ceil(min(min(ua, ub), min(uc, ud)) - _EPS)
+        py = np.ceil(min(min(va, vb), min(vc, vd)) - _EPS)
+        nu = np.floor(max(max(ua, ub), max(uc, ud)) + _EPS) - px  # pixel centres in the box, minus one
+        nv = np.floor(max(max(va, vb), max(vc, vd)) + _EPS) - py
+        single = (nu == 0.0) & (nv == 0.0) & (px >= 0.0) & (px <= umax_f) & (py >= ylo) & (py <= yhi)
+        up, vp, wp = (ua, va, wa) if ad else (ub, vb, wb)  # diagonal p-q, apexes r1 (of t1) and r2
+        uq, vq, wq = (ud, vd, wd) if ad else (uc, vc, wc)
+        u1, v1, w1 = (ub, vb, wb) if ad else (ua, va, wa)
+        u2, v2, w2 = (uc, vc, wc) if ad else (ud, vd, wd)
+        dqu, dqv = uq - up, vq - vp
+        a1 = dqu * (v1 - vp) - dqv * (u1 - up)
+        a2 = dqu * (v2 - vp) - dqv * (u2 - up)
+        ok1 = t1 & (abs(a1) >= 1e-12)
+        ok2 = t2 & (abs(a2) >= 1e-12)
+        er = dqu * (py - vp) - dqv * (px - up)
+        use1 = ok1 & ((er * a1 >= 0.0) | ~ok2)
+        ur = u1 if use1 else u2
+        vr = v1 if use1 else v2
+        wr = w1 if use1 else w2
+        a = a1 if use1 else a2
+        s = 1.0 if a > 0.0 else -1.0
+        tol = -_EPS * abs(a)
+        eq = (up - ur) * (py - vr) - (vp - vr) * (px - ur)
+        ep = a - er - eq
+        z = a / (er * wr + eq * wq + ep * wp)
+        hit = single & (ok1 | ok2) & (s * er >= tol) & (s * eq >= tol) & (s * ep >= tol) & (z > 0.0)
+        general = (t1 | t2) & ((all4 & ~single & (nu >= 0.0) & (nv >= 0.0)) | ~all4)
+        Q[0, c] = 1.0 if hit else (2.0 if general else 0.0)
+        Q[1, c] = px
+        Q[2, c] = py
+        Q[3, c] = z
+        Q[4, c] = (1.0 if t1 else 0.0) + (2.0 if t2 else 0.0) + (4.0 if ad else 0.0)
+        if want_span:
+            S[c] = 1.0 / min(min(wr, wp), wq) - 1.0 / max(max(wr, wp), wq)
+    n = 0
+    for c in range(Wm - 1):  # compact the quads with work (branch-free)
+        cand[n] = c
+        n += Q[0, c] != 0.0
+    for i in range(n):
+        c = cand[i]
+        if Q[0, c] == 1.0:
+            px, b = int(Q[1, c]), int(Q[2, c]) - y_off
+            zf = np.float32(Q[3, c])
+            if not (buf[b, px] <= zf):  # empty (NaN) or farther
+                buf[b, px] = zf
+                if want_span:
+                    sbuf[b, px] = S[c]
+        else:  # several pixel centres in the box, or a quad with three valid corners
+            fl = int(Q[4, c])
+            ad, c1 = (fl & 4) != 0, c + 1
+            _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi,
+                          Ut[c] if ad else Ut[c1], Vt[c] if ad else Vt[c1], Wt[c] if ad else Wt[c1],
+                          Ub[c1] if ad else Ub[c], Vb[c1] if ad else Vb[c], Wb[c1] if ad else Wb[c],
+                          Ut[c1] if ad else Ut[c], Vt[c1] if ad else Vt[c], Wt[c1] if ad else Wt[c], (fl & 1) != 0,
+                          Ub[c] if ad else Ub[c1], Vb[c] if ad else Vb[c1], Wb[c] if ad else Wb[c1], (fl & 2) != 0)
+
+
+@numba.njit(**_JIT)
 def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol,
                r0, r1):
     """Triangles of the quads between grid rows ``r`` and ``r + 1`` for ``r0 <= r < r1``, rasterised into
     target rows ``y_lo..y_hi`` of ``buf`` (row ``y`` stored at ``y - y_off``; NaN = empty). ``sbuf``
     (when ``want_span``): the winning triangle's vertex Z range (mm)."""
     Wm = depth.shape[1]
-    W = buf.shape[1]
     P = np.empty((2, 3, Wm))  # two row slots: u, v, 1/Z
     Q = np.empty((5, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), px, py, z, triangle flags
     S = np.empty(Wm)  # per quad: span of the hit pixel's triangle
+    F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
     _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r0, P[0, 0], P[0, 1], P[0, 2])
-    ylo, yhi, umax_f = np.float64(y_lo), np.float64(y_hi), W - 1.0
     for r in range(r0, r1):
         a_ = (r - r0) & 1
         b_ = 1 - a_
         _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
-        zt, zbr = depth[r], depth[r + 1]
-        Ut, Vt, Wt, Ub, Vb, Wb = P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1], P[b_, 2]
-        # every quad a b / c d at once (vectorised: no branches, no bool arrays)
-        for c in range(Wm - 1):
-            za, zb, zc, zd = np.float64(zt[c]), np.float64(zt[c + 1]), np.float64(zbr[c]), np.float64(zbr[c + 1])
-            ua, ub, uc, ud = Ut[c], Ut[c + 1], Ub[c], Ub[c + 1]
-            va, vb, vc, vd = Vt[c], Vt[c + 1], Vb[c], Vb[c + 1]
-            wa, wb, wc, wd = Wt[c], Wt[c + 1], Wb[c], Wb[c + 1]
-            fa, fb, fc, fd = wa > 0.0, wb > 0.0, wc > 0.0, wd > 0.0
-            e_ab, e_cd = _edge_ok(za, zb, k1, abs_tol), _edge_ok(zc, zd, k1, abs_tol)
-            e_ac, e_bd = _edge_ok(za, zc, k1, abs_tol), _edge_ok(zb, zd, k1, abs_tol)
-            # split along the diagonal with the smaller depth change: a-d gives (b, a, d) and (c, a, d),
-            # b-c gives (a, b, c) and (d, b, c); a triangle is drawn when none of its edges is a jump
-            ad = fa & fd & (~(fb & fc) | (abs(za - zd) <= abs(zb - zc)))
-            e_ad, e_bc = _edge_ok(za, zd, k2, abs_tol), _edge_ok(zb, zc, k2, abs_tol)
-            t1 = (ad & e_ad & fb & e_ab & e_bd) | (~ad & fb & fc & e_bc & fa & e_ab & e_ac)
-            t2 = (ad & e_ad & fc & e_ac & e_cd) | (~ad & fb & fc & e_bc & fd & e_bd & e_cd)
-            all4 = fa & fb & fc & fd
-            px = np.ceil(min(min(ua, ub), min(uc, ud)) - _EPS)
-            py = np.ceil(min(min(va, vb), min(vc, vd)) - _EPS)
-            nu = np.floor(max(max(ua, ub), max(uc, ud)) + _EPS) - px  # pixel centres in the box, minus one
-            nv = np.floor(max(max(va, vb), max(vc, vd)) + _EPS) - py
-            single = (nu == 0.0) & (nv == 0.0) & (px >= 0.0) & (px <= umax_f) & (py >= ylo) & (py <= yhi)
-            up, vp, wp = (ua, va, wa) if ad else (ub, vb, wb)  # diagonal p-q, apexes r1 (of t1) and r2
-            uq, vq, wq = (ud, vd, wd) if ad else (uc, vc, wc)
-            u1, v1, w1 = (ub, vb, wb) if ad else (ua, va, wa)
-            u2, v2, w2 = (uc, vc, wc) if ad else (ud, vd, wd)
-            dqu, dqv = uq - up, vq - vp
-            a1 = dqu * (v1 - vp) - dqv * (u1 - up)
-            a2 = dqu * (v2 - vp) - dqv * (u2 - up)
-            ok1 = t1 & (abs(a1) >= 1e-12)
-            ok2 = t2 & (abs(a2) >= 1e-12)
-            er = dqu * (py - vp) - dqv * (px - up)
-            use1 = ok1 & ((er * a1 >= 0.0) | ~ok2)
-            ur = u1 if use1 else u2
-            vr = v1 if use1 else v2
-            wr = w1 if use1 else w2
-            a = a1 if use1 else a2
-            s = 1.0 if a > 0.0 else -1.0
-            tol = -_EPS * abs(a)
-            eq = (up - ur) * (py - vr) - (vp - vr) * (px - ur)
-            ep = a - er - eq
-            z = a / (er * wr + eq * wq + ep * wp)
-            hit = single & (ok1 | ok2) & (s * er >= tol) & (s * eq >= tol) & (s * ep >= tol) & (z > 0.0)
-            general = (t1 | t2) & ((all4 & ~single & (nu >= 0.0) & (nv >= 0.0)) | ~all4)
-            Q[0, c] = 1.0 if hit else (2.0 if general else 0.0)
-            Q[1, c] = px
-            Q[2, c] = py
-            Q[3, c] = z
-            Q[4, c] = (1.0 if t1 else 0.0) + (2.0 if t2 else 0.0) + (4.0 if ad else 0.0)
-            if want_span:
-                S[c] = 1.0 / min(min(wr, wp), wq) - 1.0 / max(max(wr, wp), wq)
-        n = 0
-        for c in range(Wm - 1):  # compact the quads with work (branch-free)
-            cand[n] = c
-            n += Q[0, c] != 0.0
-        for i in range(n):
-            c = cand[i]
-            if Q[0, c] == 1.0:
-                px, b = int(Q[1, c]), int(Q[2, c]) - y_off
-                zf = np.float32(Q[3, c])
-                if not (buf[b, px] <= zf):  # empty (NaN) or farther
-                    buf[b, px] = zf
-                    if want_span:
-                        sbuf[b, px] = S[c]
-            else:  # several pixel centres in the box, or a quad with three valid corners
-                fl = int(Q[4, c])
-                ad, c1 = (fl & 4) != 0, c + 1
-                _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi,
-                              Ut[c] if ad else Ut[c1], Vt[c] if ad else Vt[c1], Wt[c] if ad else Wt[c1],
-                              Ub[c1] if ad else Ub[c], Vb[c1] if ad else Vb[c], Wb[c1] if ad else Wb[c],
-                              Ut[c1] if ad else Ut[c], Vt[c1] if ad else Vt[c], Wt[c1] if ad else Wt[c], (fl & 1) != 0,
-                              Ub[c] if ad else Ub[c1], Vb[c] if ad else Vb[c1], Wb[c] if ad else Wb[c1], (fl & 2) != 0)
+        _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
+        _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
+                      P[b_, 2], F, Q, S, cand)
+
+
+@numba.njit(**_JIT)
+def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, cx, cy, t_r, cx_r, k1, k2, abs_tol):
+    """``_mesh_rows`` over the whole grid into two cameras that differ only by a translation along x and their cx
+    (the rectified ZED's left, ``buf``/``sbuf``, and right, ``buf_r``, no span): their 1/Z is the same, so is which
+    triangles are drawn (``_quad_flags``, computed once for both). The same images as two ``_mesh_rows`` calls."""
+    Hm, Wm = depth.shape
+    H = buf.shape[0]
+    P = np.empty((2, 3, Wm))
+    Pr = np.empty((2, 2, Wm))  # the right view's u, v (its 1/Z is P's)
+    Q = np.empty((5, Wm))
+    S = np.empty(Wm)
+    F = np.empty(Wm, np.uint8)
+    cand = np.empty(Wm, np.int64)
+    scratch = np.empty(Wm)
+    _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, 0, P[0, 0], P[0, 1], P[0, 2])
+    _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, 0, Pr[0, 0], Pr[0, 1], scratch)
+    for r in range(Hm - 1):
+        a_ = r & 1
+        b_ = 1 - a_
+        _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
+        _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, r + 1, Pr[b_, 0], Pr[b_, 1], scratch)
+        _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
+        _raster_quads(buf, sbuf, want_span, 0, 0, H - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
+                      P[b_, 2], F, Q, S, cand)
+        _raster_quads(buf_r, sbuf, False, 0, 0, H - 1, Pr[a_, 0], Pr[a_, 1], P[a_, 2], Pr[b_, 0], Pr[b_, 1],
+                      P[b_, 2], F, Q, S, cand)
 
 
 # ---- several threads: chunks of grid rows, each into its own window of target rows ------------
@@ -357,8 +409,7 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
     rx, ry = _ray_planes(mech.model_dump_json())
     H, W = cam.height_px, cam.width_px
     fx, fy, cx, cy = cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px
-    k1 = 0.5 * math.tan(math.radians(params.max_slant_deg)) / (0.5 * (mech.fx_px + mech.fy_px))  # 1 px edge
-    k2 = k1 * math.sqrt(2.0)  # the quad diagonal
+    k1, k2 = _slant_bounds(mech, params)
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
@@ -393,6 +444,35 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
     return (out, span) if return_span else out
 
 
+def _slant_bounds(mech: PinholeCamera, params: ReprojectParams) -> tuple[float, float]:
+    """``_edge_ok``'s ``k`` for a grid edge (1 px) and for a quad's diagonal."""
+    k1 = 0.5 * math.tan(math.radians(params.max_slant_deg)) / (0.5 * (mech.fx_px + mech.fy_px))  # 1 px edge
+    return k1, k1 * math.sqrt(2.0)  # the quad diagonal
+
+
+def _project_depth_to_stereo(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_zed_from_mech: np.ndarray,
+                             T_zedr_from_mech: np.ndarray, zed: RectifiedStereo, params: ReprojectParams,
+                             return_span: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """``project_depth_to_camera`` (mesh, one thread) into the rectified ZED's left and right cameras in one pass:
+    ``(depth_left, span_left or None, depth_right)``, the same arrays as the two calls. The views differ only by the
+    baseline along x and cx (``doffs``): the same 1/Z, so the same drawn triangles, decided once."""
+    depth = np.ascontiguousarray(depth_mech_mm, dtype=np.float32)
+    T, Tr = np.asarray(T_zed_from_mech, np.float64), np.asarray(T_zedr_from_mech, np.float64)
+    R, t, t_r = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), np.ascontiguousarray(Tr[:3, 3])
+    if not (np.array_equal(Tr[:3, :3], R) and np.array_equal(Tr[1:3, 3], t[1:3])):
+        raise ValueError("the right camera must differ from the left by a translation along x only (rectified)")
+    rx, ry = _ray_planes(mech.model_dump_json())
+    cam, cam_r = zed.left, zed.right
+    H, W = cam.height_px, cam.width_px
+    k1, k2 = _slant_bounds(mech, params)
+    out = np.full((H, W), np.nan, np.float32)
+    out_r = np.full((H, W), np.nan, np.float32)
+    span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
+    _mesh_rows_stereo(out, span, return_span, out_r, depth, rx, ry, R, t, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px,
+                      t_r, cam_r.cx_px, k1, k2, params.abs_tol_mm)
+    return out, (span if return_span else None), out_r
+
+
 @dataclass
 class StereoDepth:
     depth_mm: np.ndarray  # ZED-left z-depth, float32, NaN invalid
@@ -409,11 +489,19 @@ def reproject_to_zed(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_zed_from_
     """ZED-left depth, disparity ``d = f*B/Z - doffs`` and the non-occluded mask (right-view z-buffer).
     ``left_span`` (mesh): also the left view's ``span_mm``."""
     span = None
-    if left_span:
-        depth_l, span = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params, return_span=True)
+    T_zedr_from_mech = zed.T_zedr_from_zed @ T_zed_from_mech
+    if params.mode == "mesh" and numba.get_num_threads() < MIN_PARALLEL_THREADS and np.shape(depth_mech_mm)[0] >= 8 \
+            and not zed.left.has_distortion and np.shape(depth_mech_mm) == (mech.height_px, mech.width_px):
+        # one thread (a build worker): both views in one pass over the grid, the same images as the two calls below
+        depth_l, span, depth_r = _project_depth_to_stereo(depth_mech_mm, mech, T_zed_from_mech, T_zedr_from_mech, zed,
+                                                          params, left_span)
     else:
-        depth_l = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params)
-    depth_r = project_depth_to_camera(depth_mech_mm, mech, zed.T_zedr_from_zed @ T_zed_from_mech, zed.right, params)
+        if left_span:
+            depth_l, span = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params,
+                                                    return_span=True)
+        else:
+            depth_l = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params)
+        depth_r = project_depth_to_camera(depth_mech_mm, mech, T_zedr_from_mech, zed.right, params)
     disp, noc = disparity_and_nonoccluded(depth_l, depth_r, zed, occlusion_rel_tol, occlusion_abs_tol_mm)
     return StereoDepth(depth_l, disp, depth_r, noc, span)
 
