@@ -213,3 +213,39 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     assert isinstance(r.exception, InputError) and "session_dir" in str(r.exception)  # main() prints it, exit 2
     with pytest.raises(InputError, match="session_dir.*no such folder.*--session"):
         verify_dataset(out)
+
+
+def test_local_normalize_is_the_numpy_expression():
+    """The compiled pass after the blurs gives the numpy expression's float32 values exactly: with and without a mask,
+    with NaN and inf in the image, flat areas and a mask whose weights fall to 0 (division by zero)."""
+    import cv2
+
+    from gtforge.verify import local_normalize
+
+    def reference(img, mask, sigma_px):  # gtforge's numpy implementation before the compiled pass
+        k = (0, 0)
+        x = np.asarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            if mask is None:
+                mean = cv2.GaussianBlur(x, k, sigma_px)
+                var = cv2.GaussianBlur(x * x, k, sigma_px) - mean * mean
+            else:
+                w = cv2.GaussianBlur(mask.astype(np.float32), k, sigma_px)
+                mean = cv2.GaussianBlur(x, k, sigma_px) / w
+                var = cv2.GaussianBlur(x * x, k, sigma_px) / w - mean * mean
+            out = (x - mean) / np.sqrt(np.maximum(var, 1e-6) + 1.0)
+        if mask is not None:
+            out[~mask | ~(w > 0.5)] = 0.0
+        return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
+    rng = np.random.default_rng(4)
+    img = (rng.random((90, 130)) * 255).astype(np.float32)
+    img[:, :20] = 17.0  # flat: the variance floor
+    img[40, 50], img[41, 51] = np.nan, np.inf
+    mask = rng.random(img.shape) > 0.3
+    mask[60:, :] = False  # no weight at all far from the mask: 0 / 0
+    for m in (None, mask):
+        for sigma in (1.0, 3.0):
+            got, ref = local_normalize(img, m, sigma), reference(img, m, sigma)
+            assert got.dtype == np.float32 and np.abs(got).max() > 1.0
+            np.testing.assert_array_equal(got, ref)

@@ -115,19 +115,37 @@ def local_normalize(img: np.ndarray, mask: np.ndarray | None, sigma_px: float) -
     (normalised convolution; ``None``: every pixel); 0 outside the mask. Removes gain, offset and slow shading
     differences."""
     k = (0, 0)
-    x = np.asarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if mask is None:  # the weights are all 1: no normalisation by them
-            mean = cv2.GaussianBlur(x, k, sigma_px)
-            var = cv2.GaussianBlur(x * x, k, sigma_px) - mean * mean
-        else:
-            w = cv2.GaussianBlur(mask.astype(np.float32), k, sigma_px)
-            mean = cv2.GaussianBlur(x, k, sigma_px) / w
-            var = cv2.GaussianBlur(x * x, k, sigma_px) / w - mean * mean
-        out = (x - mean) / np.sqrt(np.maximum(var, 1e-6) + 1.0)  # +1 (grey level^2): flat areas stay near 0
-    if mask is not None:
-        out[~mask | ~(w > 0.5)] = 0.0
-    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    x = np.ascontiguousarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
+    if mask is None:  # the weights are all 1: no normalisation by them
+        w, m = np.ones((1, 1), np.float32), np.ones((1, 1), np.bool_)
+    else:
+        m = np.ascontiguousarray(mask, np.bool_)
+        w = cv2.GaussianBlur(m.astype(np.float32), k, sigma_px)
+    out = np.empty(x.shape, np.float32)
+    _normalized(x, cv2.GaussianBlur(x, k, sigma_px), cv2.GaussianBlur(x * x, k, sigma_px), w, m, mask is not None,
+                out)
+    return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _normalized(x, blur_x, blur_xx, w, mask, weighted, out):
+    """``local_normalize``'s arithmetic after its blurs, in one pass with numpy's float32 operations in numpy's order:
+    mean = blur(x) [/ w], var = blur(x^2) [/ w] - mean^2, (x - mean) / sqrt(max(var, 1e-6) + 1) (+1 grey level^2: flat
+    areas stay near 0), 0 outside the mask (or where w <= 0.5) and where not finite (the same values as the numpy
+    expression it replaces, which took 2 ms of a 700x460 image in a dozen passes)."""
+    H, W = x.shape
+    eps, one, half = np.float32(1e-6), np.float32(1.0), np.float32(0.5)
+    for v in range(H):
+        for u in range(W):
+            mean, sq = blur_x[v, u], blur_xx[v, u]
+            if weighted:
+                mean, sq = mean / w[v, u], sq / w[v, u]
+            var = sq - mean * mean
+            var = var if (var >= eps) | (var != var) else eps  # np.maximum: NaN stays NaN
+            o = (x[v, u] - mean) / np.sqrt(var + one)
+            if weighted and not (mask[v, u] and w[v, u] > half):
+                o = np.float32(0.0)
+            out[v, u] = o if abs(o) < np.inf else np.float32(0.0)  # (NaN compares false)
 
 
 def interior_mask(mask: np.ndarray, radius_px: int) -> np.ndarray:
