@@ -28,7 +28,7 @@ from gtforge.calibrate import CalibrationFile, check_rig_matches_session
 from gtforge.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
 from gtforge.geometry import finite_box, fit_plane_robust, mask_bounding_box
-from gtforge.io.atomic import atomic_write_text, private_folder
+from gtforge.io.atomic import atomic_copy_file, atomic_write_text, private_folder
 from gtforge.io.digest import blake3_file, sha256_file
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
@@ -39,6 +39,7 @@ from gtforge.io.formats import (
     write_ply,
     write_tiff_float,
 )
+from gtforge.io.unbuffered import background_writes
 from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
 from gtforge.scheduling import prestart_pool, release_written_pages, run_tasks
 from gtforge.schema import GTModel, VersionedFile
@@ -406,11 +407,13 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir(parents=True)
-        with private_folder(tmp):  # renamed into place whole below: no temporary file per file
+        # renamed into place whole below: no temporary file per file; the large files are written from this process's
+        # writer thread while the next ones are encoded, all of them complete when the inner context exits
+        with private_folder(tmp), background_writes():
             mask = occlusion_mask(disp, noc)
             for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
                 if src is not None and crop is None:
-                    shutil.copyfile(src, tmp / name)  # the input is already this RGB PNG: no re-encode
+                    atomic_copy_file(src, tmp / name)  # the input is already this RGB PNG: no re-encode
                 else:
                     write_image(tmp / name, img)
             write_pfm(tmp / "disp0GT.pfm", disp)
@@ -446,7 +449,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             shutil.rmtree(old, ignore_errors=True)
     finally:
         _unlock_writer(scenes, sid, token, lock)
-    write_scene_views(Path(out_dir), sid, params, disp, noc, disp1, noc1)
+    with background_writes():
+        write_scene_views(Path(out_dir), sid, params, disp, noc, disp1, noc1)
     kitti = Path(out_dir) / "kitti" / "training"
     release_written_pages([*(scenes / sid).iterdir(), *(kitti / d / f"{sid}_10.png" for d in KITTI_DISPARITY_DIRS)])
     return sid, None, meta.model_dump(mode="json")

@@ -1,12 +1,16 @@
 """Atomic writes: a temporary file in the destination folder, then ``os.replace``; straight to the final name in a
-``private_folder`` (a folder renamed into place whole once complete, which is the atomic step then)."""
+``private_folder`` (a folder renamed into place whole once complete, which is the atomic step then). Large files are
+written past the page cache, and inside ``unbuffered.background_writes`` from a writer thread (``io.unbuffered``)."""
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
+
+from gtforge.io.unbuffered import MIN_DIRECT_BYTES, AlignedBuffer, aligned_buffer, buffer_of, run_or_queue, write_file
 
 
 def _umask() -> int:
@@ -39,12 +43,16 @@ def private_folder(folder: str | Path) -> Iterator[Path]:
         _PRIVATE_FOLDERS.discard(key)
 
 
+def _in_private_folder(path: Path) -> bool:
+    return os.fspath(path.parent) in _PRIVATE_FOLDERS
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, private: bool | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same suffix); renamed onto ``path`` on success. In a
-    ``private_folder``: ``path`` itself."""
+    ``private_folder`` (``private``: whether it is, decided by the caller): ``path`` itself."""
     path = Path(path)
-    if os.fspath(path.parent) in _PRIVATE_FOLDERS:
+    if _in_private_folder(path) if private is None else private:
         yield path
         return
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -62,9 +70,41 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    if len(data) >= MIN_DIRECT_BYTES:
+        return atomic_write_buffer(path, buffer_of(data))
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
+
+
+def atomic_write_buffer(path: str | Path, buf: AlignedBuffer) -> Path:
+    """Write ``buf``'s bytes to ``path`` atomically, past the page cache (``unbuffered.write_file``); inside
+    ``unbuffered.background_writes``, from the writer thread (do not change ``buf`` afterwards)."""
+    path = Path(path)
+    private = _in_private_folder(path)  # decided now: the folder's context may have ended when the job runs
+
+    def job():
+        with atomic_path(path, private) as tmp:
+            write_file(tmp, buf)
+
+    run_or_queue(job)
+    return path
+
+
+def atomic_copy_file(src: str | Path, dst: str | Path) -> Path:
+    """A copy of the file ``src`` at ``dst``, written atomically and past the page cache (``atomic_write_buffer``;
+    ``shutil.copyfile`` sends it through the page cache)."""
+    with open(src, "rb", buffering=0) as f:
+        size = os.fstat(f.fileno()).st_size
+        buf = aligned_buffer(size)
+        n = f.readinto(buf.padded)  # (one byte more than the size fits, if the file grew)
+        while n < len(buf.padded) and (k := f.readinto(buf.padded[n:])):
+            n += k
+        if n != size or f.read(1):  # the file changed size while being read: copied as it is now
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(src, tmp)
+            return Path(dst)
+    return atomic_write_buffer(dst, buf)
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
