@@ -353,80 +353,54 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             decode_s = time.perf_counter() - t
     except InputError as exc:
         return sid, str(exc), None
-    verification = None
-    if params.verification:
-        verification, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, zed_left,
-                                              zed_right, texture, rig, params.verify)
-        if verification.status == "flagged" and rendered is not None:
-            if zed_left.shape[0] < sd.depth_mm.shape[0]:  # the overlay shows the whole image
-                zed_left = session.decoded_images(cap)[1]
-            write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", zed_left, rendered)
-    sigma = None
-    if params.sigma:
-        shift = verification.texture_all.magnitude_px if verification is not None else None
-        sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm, params.uncertainty,
-                                sd.span_mm, shift)
-    disp = sd.disparity_px
-    left, right, depth = cap.zed_left, cap.zed_right, sd.depth_mm
+    disp, depth, noc, region_uncropped = sd.disparity_px, sd.depth_mm, sd.nonoccluded, region
+    left, right = cap.zed_left, cap.zed_right
     disp1 = noc1 = None
     if params.right_gt:
         disp1, noc1 = right_view_disparity(sd.depth_mm, sd.depth_right_mm, rig.zed, params.occlusion_rel_tol)
-    crop = None
+    crop, sl = None, (slice(None), slice(None))
     cx_shift = cy_shift = 0.0
     if params.crop_wh:
         x0, y0, cw, ch = _crop_window(fruit, params.crop_wh)
         sl = (slice(y0, y0 + ch), slice(x0, x0 + cw))
-        left, right, depth, disp, region, fruit = left[sl], right[sl], depth[sl], disp[sl], region[sl], fruit[sl]
-        sigma = sigma[sl] if sigma is not None else None
+        left, right, depth, disp, region, fruit, noc = (left[sl], right[sl], depth[sl], disp[sl], region[sl], fruit[sl],
+                                                        noc[sl])
         if disp1 is not None:
             disp1, noc1 = disp1[sl], noc1[sl]
-        noc = sd.nonoccluded[sl]
         crop, cx_shift, cy_shift = [x0, y0, cw, ch], float(x0), float(y0)
-    else:
-        noc = sd.nonoccluded
     n_valid, lo, hi, n_over = _disparity_summary(disp, params.max_disp_px)
     stats = SceneStats(valid_pct=100.0 * (n_valid / disp.size),
                        nonoccluded_pct=100.0 * (np.count_nonzero(noc) / noc.size),
                        fruit_pct=100.0 * (np.count_nonzero(fruit) / fruit.size),
                        disp_min_px=float(lo) if n_valid else None, disp_max_px=float(hi) if n_valid else None,
                        over_max_disp_pct=100.0 * (n_over / n_valid) if n_valid else 0.0)
-    t_compute = time.perf_counter()
-    inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
-    meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
-                     calibration_sha256=calib_sha, params_hash=params.output_hash(), input_blake3=inputs,
-                     input_stamps=stamps,
-                     stats=stats, crop_xywh=crop, fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
-                     verification=verification,
-                     sigma=None if sigma is None else region_sigma_stats(sigma, region),
-                     sigma_extrinsic_included=sigma is not None and calib.cov_extrinsic_rad_mm is not None)
     scenes = Path(out_dir) / "scenes"
     token = uuid.uuid4().hex[:12]  # unique across processes and machines (Dask workers share the folder)
     tmp = scenes / f".tmp-{sid}-{token}"
     lock = _lock_writer(scenes, sid, token)  # held until the scene is in place (see _remove_stale)
+    write_s = 0.0
     try:
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir(parents=True)
-        # renamed into place whole below: no temporary file per file; the large files are written from this process's
-        # writer thread while the next ones are encoded, all of them complete when the inner context exits
+        # renamed into place whole below: no temporary file per file. The files that do not depend on the
+        # verification are written first: the large ones go from this process's writer thread while the verification
+        # runs; all of them are complete when the inner context exits
         with private_folder(tmp), background_writes():
-            mask = occlusion_mask(disp, noc)
+            t = time.perf_counter()
             for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
                 if src is not None and crop is None:
                     atomic_copy_file(src, tmp / name)  # the input is already this RGB PNG: no re-encode
                 else:
                     write_image(tmp / name, img)
+            write_tiff_float(tmp / "depth0.tiff", depth)
             write_pfm(tmp / "disp0GT.pfm", disp)
             if disp1 is not None:
                 write_pfm(tmp / "disp1GT.pfm", disp1)
                 write_label_png(tmp / "mask1nocc.png", occlusion_mask(disp1, noc1))
-            if sigma is not None:
-                write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
-                write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
-            write_label_png(tmp / "mask0nocc.png", mask)
+            write_label_png(tmp / "mask0nocc.png", occlusion_mask(disp, noc))
             write_label_png(tmp / "region.png", region)
             write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params), compression="zlib")  # 4 values: tiny
-            write_tiff_float(tmp / "depth0.tiff", depth)
             disp_range = (stats.disp_min_px, stats.disp_max_px) if n_valid else None
             atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp_range,
                                                                       cx_shift, cy_shift))
@@ -436,9 +410,36 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 z = depth[v, u].astype(np.float64)
                 pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
                 write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
+            write_s += time.perf_counter() - t
+            verification = None
+            if params.verification:  # on the whole (uncropped) images
+                verification, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region_uncropped,
+                                                      zed_left, zed_right, texture, rig, params.verify)
+                if verification.status == "flagged" and rendered is not None:
+                    if zed_left.shape[0] < sd.depth_mm.shape[0]:  # the overlay shows the whole image
+                        zed_left = session.decoded_images(cap)[1]
+                    write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", zed_left,
+                                               rendered)
+            sigma = None
+            if params.sigma:
+                shift = verification.texture_all.magnitude_px if verification is not None else None
+                sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm,
+                                        params.uncertainty, sd.span_mm, shift)[sl]
+                t = time.perf_counter()
+                write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
+                write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
+                write_s += time.perf_counter() - t
+            inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
+            meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
+                             calibration_sha256=calib_sha, params_hash=params.output_hash(), input_blake3=inputs,
+                             input_stamps=stamps, stats=stats, crop_xywh=crop,
+                             fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
+                             verification=verification,
+                             sigma=None if sigma is None else region_sigma_stats(sigma, region),
+                             sigma_extrinsic_included=sigma is not None and calib.cov_extrinsic_rad_mm is not None)
             t_end = time.perf_counter()
             meta.time_s, meta.time_read_s = t_end - t0, t_read - t0 + decode_s  # (the images decoded for verification)
-            meta.time_compute_s, meta.time_write_s = t_compute - t_read - decode_s, t_end - t_compute
+            meta.time_compute_s, meta.time_write_s = t_end - t_read - decode_s - write_s, write_s
             meta.write(tmp / "meta.json")
         final = scenes / sid
         old = scenes / f".old-{sid}-{token}"
@@ -447,6 +448,9 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         os.replace(tmp, final)
         if old.exists():
             shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # (its writes have ended: background_writes waited for them)
+        raise
     finally:
         _unlock_writer(scenes, sid, token, lock)
     with background_writes():
