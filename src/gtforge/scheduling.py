@@ -137,7 +137,9 @@ def _fadvise_dontneed(path: str) -> None:
 def release_written_pages(paths: Sequence[str | os.PathLike]) -> None:
     """Give the page-cache pages of files this process just wrote back to the kernel once they are on disk,
     as a streaming writer does (``dd oflag=nocache``): a build writes about 56 MB a full-resolution scene,
-    45 GB for 808 scenes, which would otherwise fill the page cache and push out everything else in it.
+    45 GB for 808 scenes, which would otherwise fill the page cache and push out everything else in it. (Its large
+    files bypass the page cache where the filesystem allows, ``io.unbuffered``: this is for the rest, and for
+    filesystems without ``O_DIRECT``.)
 
     ``POSIX_FADV_DONTNEED`` on ``paths`` starts their writeback (it drops only pages already clean); two calls
     later, two scenes on, the same advice drops their pages, written by then, and the following scenes' writes
