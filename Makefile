@@ -21,6 +21,7 @@ bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same ru
 	$(PY) benchmarks/bench_reproject.py
 	$(PY) benchmarks/bench_calibrate.py
 	$(PY) benchmarks/bench_encodings.py
+	$(PY) benchmarks/bench_writes.py
 	$(PY) benchmarks/profile_scene.py
 	$(PY) benchmarks/bench_build_dataset.py
 
