@@ -24,15 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from bench_build_dataset import machine_busy_s
+
 from gtforge.io import unbuffered
 from gtforge.io.unbuffered import buffer_of, write_file
 from gtforge.scheduling import release_written_pages
-
-
-def machine_busy_s() -> float:
-    with open("/proc/stat") as f:
-        t = list(map(int, f.readline().split()[1:8]))
-    return (sum(t) - t[3] - t[4]) / os.sysconf("SC_CLK_TCK")  # all but idle and iowait
 
 
 def main():
