@@ -46,10 +46,9 @@ def main():
     T = np.array(SyntheticTruth.read(full / "truth" / "rig_truth.yaml").T_zed_from_mech)
     s = open_session(full)
     # a board calibration's covariance at full resolution, roughly: 0.002 deg / 0.02 mm per axis
-    C = np.diag([np.radians(0.002) ** 2] * 3 + [0.02 ** 2] * 3)
-    calib = CalibrationFile(rig=Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T), board=BoardModel(), captures_used=[],
-                            rms_px=0.0, max_px=0.0, sigma_rot_xyz_deg=[0.002] * 3, sigma_trans_xyz_mm=[0.02] * 3,
-                            sigma_rot_deg=0.0035, sigma_trans_mm=0.035, poses=[], cov_extrinsic_rad_mm=C.tolist())
+    calib = CalibrationFile.known_extrinsic(Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T), sigma_rot_deg=0.002,
+                                            sigma_trans_mm=0.02)
+    C = np.array(calib.cov_extrinsic_rad_mm)
     calib.write(wd / "calib.yaml")
     sha = "bench"
 

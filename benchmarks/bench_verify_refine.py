@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays
-from gtforge.calibrate import BoardModel, CalibrationFile
+from gtforge.calibrate import CalibrationFile
 from gtforge.camera import Rig
 from gtforge.geometry import T_from_rotvec, pose_difference
 from gtforge.io.captures import open_session
@@ -45,9 +45,7 @@ def session(workdir: Path, n: int) -> Path:
 
 def calib_file(d: Path, T: np.ndarray, path: Path) -> Path:
     s = open_session(d)
-    CalibrationFile(rig=Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T), board=BoardModel(), captures_used=[],
-                    rms_px=0.0, max_px=0.0, sigma_rot_xyz_deg=[0, 0, 0], sigma_trans_xyz_mm=[0, 0, 0],
-                    sigma_rot_deg=0.0, sigma_trans_mm=0.0, poses=[]).write(path)
+    CalibrationFile.known_extrinsic(Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T)).write(path)
     return path
 
 

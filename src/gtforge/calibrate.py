@@ -127,6 +127,19 @@ class CalibrationFile(VersionedFile):
             p = p / "calibration.yaml"
         return super().read(p)
 
+    @classmethod
+    def known_extrinsic(cls, rig: Rig, sigma_rot_deg: float = 0.0, sigma_trans_mm: float = 0.0) -> "CalibrationFile":
+        """A calibration file for a rig whose extrinsic is known (synthetic truth, benchmarks), reported with
+        ``sigma_rot_deg`` / ``sigma_trans_mm`` per axis (the covariance's diagonal, independent axes; no covariance
+        when both are 0)."""
+        cov = None
+        if sigma_rot_deg or sigma_trans_mm:
+            cov = np.diag([np.radians(sigma_rot_deg) ** 2] * 3 + [sigma_trans_mm ** 2] * 3).tolist()
+        return cls(rig=rig, board=BoardModel(), captures_used=[], rms_px=0.0, max_px=0.0,
+                   sigma_rot_xyz_deg=[sigma_rot_deg] * 3, sigma_trans_xyz_mm=[sigma_trans_mm] * 3,
+                   sigma_rot_deg=float(np.sqrt(3) * sigma_rot_deg), sigma_trans_mm=float(np.sqrt(3) * sigma_trans_mm),
+                   poses=[], cov_extrinsic_rad_mm=cov)
+
     rig: Rig
     board: BoardModel
     method: Literal["reprojection", "depth"] = "reprojection"
