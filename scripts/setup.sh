@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up gtforge from scratch: the system libraries Open3D needs (libusb-1.0-0, libgomp1), a virtual environment,
-# the package.
+# the package, with its numba kernels compiled.
 # Usage: scripts/setup.sh [VENV_DIR]   (default .venv). Idempotent.
 set -euo pipefail
 VENV="${1:-.venv}"
@@ -27,4 +27,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip
 "$VENV/bin/python" -m pip install -q -e ".[test]"
+# numba compiles each kernel on its first call after an install and caches it: do it once here, not in every worker
+# of the first build (gtforge/precompile.py)
+"$VENV/bin/python" -m gtforge.precompile
 "$VENV/bin/python" -c "import open3d, cv2, numba, gtforge; print('setup: ok (gtforge', gtforge.__version__, ', OpenCV', cv2.__version__, ', Open3D', open3d.__version__ + ')')"

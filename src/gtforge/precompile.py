@@ -1,0 +1,64 @@
+"""Compile the numba kernels a build uses into numba's on-disk cache, before the first real build.
+
+numba compiles a kernel on its first call after an install or a change of its source, and caches the machine code
+beside the source (``__pycache__``; numba's own cache folder where that is read-only). With a cold cache, the first
+``build-dataset`` pays for it in every worker process at once: an 8-scene full-resolution build took 26.8 s instead of
+2.4 s (benchmarks/RESULTS.md). ``make setup`` (scripts/setup.sh) runs ``python -m gtforge.precompile`` once after
+installing; every later process loads the kernels from the cache.
+
+It builds one small synthetic scene (default options: verification, sigma map, right view) in this process, once
+with one numba thread (the kernels a build worker runs when ``--workers`` = cores) and once with every core (the
+parallel ones an in-process build runs), into a temporary folder it removes.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def compile_kernels(scale: float = 0.25) -> float:
+    """Build one synthetic scene at ``scale`` (of the ZED Mini's 2208x1242) with one thread and with every core, so
+    that numba compiles and caches each kernel the build runs. Returns the seconds it took."""
+    import numba
+
+    import gtforge.pool_preload  # noqa: F401  (its kernel: what a local pool's fork server loads)
+    from gtforge.build_dataset import build_dataset
+    from gtforge.calibrate import CalibrationFile
+    from gtforge.camera import Rig
+    from gtforge.io.captures import open_session
+    from gtforge.scheduling import cpu_count, limit_threads
+    from gtforge.synthetic import SyntheticTruth, generate_session
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="gtforge-precompile-") as tmp:
+        session_dir = generate_session(Path(tmp) / "session", n_board=0, n_scenes=1, scale=scale, supersample=1)
+        session = open_session(session_dir)
+        truth = SyntheticTruth.read(session_dir / "truth" / "rig_truth.yaml")
+        rig = Rig(zed=session.zed, mech=session.mech, T_zed_from_mech=truth.T_zed_from_mech)
+        calib_path = Path(tmp) / "calibration.yaml"
+        CalibrationFile.known_extrinsic(rig, sigma_rot_deg=0.002, sigma_trans_mm=0.02).write(calib_path)
+        threads, logger = numba.get_num_threads(), logging.getLogger("gtforge")
+        level = logger.level
+        logger.setLevel(logging.ERROR)  # one scene: the build warns that its val and test splits are empty
+        try:
+            for n in sorted({1, min(cpu_count(), numba.config.NUMBA_NUM_THREADS)}):
+                limit_threads(n)
+                build_dataset(session_dir, calib_path, Path(tmp) / f"dataset_{n}", workers=1)
+        finally:
+            limit_threads(threads)
+            logger.setLevel(level)
+    return time.perf_counter() - t0
+
+
+def main() -> int:
+    print("gtforge: compiling the build's kernels into numba's cache (once after an install; about half a minute)",
+          flush=True)
+    print(f"gtforge: kernels compiled and cached in {compile_kernels():.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
