@@ -8,6 +8,7 @@ start (imports included), one after the other:
   im0/im1, PFM, KITTI PNG);
 * ``gtforge build-dataset`` with the default options and ``--workers`` = cores (mesh, occlusion mask,
   regions, weights, depth TIFF, KITTI + ETH3D views, verification, hashes for resume, atomic writes);
+* the baseline again, pinned to one core (Open3D's projection runs fastest on one: see bench_reproject.py);
 * ``gtforge build-dataset --no-verify`` (the same without the per-scene verification);
 * ``gtforge build-dataset --no-right-gt`` (verification on, no right-view ground truth);
 * a resume of the default build (nothing to rebuild: the inputs' size + mtime checks).
@@ -54,14 +55,16 @@ def machine_busy_s() -> float | None:
     return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
 
 
-def timed(cmd: list[str], expect: str | None = None) -> tuple[float, float]:
+def timed(cmd: list[str], expect: str | None = None, one_core: bool = False) -> tuple[float, float]:
     """(wall s, CPU s). The CPU is the whole machine's busy time during the run (``machine_busy_s``; the machine is
     otherwise idle): gtforge's workers are children of its fork server, which the command's own resource usage does not
     count, and the kernel's writeback threads work for both tools. Without /proc/stat: the command and the children it
-    waited for. ``expect``: a text its output must hold (such as ``built 240,``: no scene failed)."""
+    waited for. ``expect``: a text its output must hold (such as ``built 240,``: no scene failed). ``one_core``: the
+    command runs pinned to one core (``sched_setaffinity``, as ``taskset -c`` does)."""
+    pin = (lambda: os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})) if one_core else None
     c0, b0 = resource.getrusage(resource.RUSAGE_CHILDREN), machine_busy_s()
     t = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, preexec_fn=pin)
     dt = time.perf_counter() - t
     c1, b1 = resource.getrusage(resource.RUSAGE_CHILDREN), machine_busy_s()
     if r.returncode not in (0, 1) or (expect and expect not in r.stdout):  # 1: a scene failed or was flagged
@@ -93,6 +96,28 @@ def settle(*delete: Path, wait_s: float = 65.0) -> None:
         time.sleep(max(0.0, wait_s - (time.perf_counter() - _LAST_DELETION[0])))
 
 
+def warm_up(workdir: Path, n_distinct: int, calib: Path, gtforge_cli: list[str], workers: int) -> str:
+    """Before the timed runs: build the distinct renders twice and run the baseline on them once, untimed in the
+    table. numba compiles gtforge's kernels on their first call after an install or a change of their source and
+    caches them (``__pycache__``); that one-time cost belongs to no repeat (the first repeat of a fresh clone's run
+    took 46.7 s against 28.3-32.3 s for the others). Returns a line with both builds' times: the first one's extra is
+    what a first build after installing pays once (``make setup`` compiles the kernels, so after it both are alike)."""
+    small, _ = make_session(workdir, n_distinct, n_distinct, log=lambda *_: None)
+    out = workdir / "out_warmup"
+    times = []
+    for _ in range(2):
+        settle(out, wait_s=0.0)
+        times.append(timed(gtforge_cli + ["build-dataset", str(small), "-c", str(calib), "--workers", str(workers),
+                                          "-o", str(out)], f"built {n_distinct}, unchanged 0, failed 0")[0])
+    settle(out, wait_s=0.0)
+    timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(small), str(calib), str(out)],
+          f"{n_distinct} scenes in")
+    settle(out, wait_s=0.0)
+    return (f"Warm-up before the timed runs (not in the table): two builds of the {n_distinct} distinct scenes, "
+            f"{times[0]:.1f} s then {times[1]:.1f} s (the first includes numba compiling any kernel it had not "
+            f"cached), and one baseline run on them.")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", type=int, default=100)
@@ -118,13 +143,15 @@ def main():
     built = f"built {n}, unchanged 0, failed 0"  # what a complete build prints
     runs = []
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
+    baseline = [sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib)]
     pairs = []  # (baseline, default) of each repeat: (wall s, CPU s)
     wait = {"wait_s": args.settle_s}
+    warmup = warm_up(wd, args.distinct, calib, gtforge_cli, workers)
+    print(warmup, flush=True)
     for i in range(max(1, args.repeat)):
         # outputs take 20-56 MB a scene: only the one the resume row needs is kept
         settle(*outs.values(), **wait)
-        b = timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib),
-                   str(outs["baseline"])], f"{n} scenes in")
+        b = timed(baseline + [str(outs["baseline"])], f"{n} scenes in")
         settle(outs["baseline"], **wait)
         pairs.append((b, timed(build + ["-o", str(outs["gtforge"])], built)))
         print(f"repeat {i + 1}: baseline {b[0]:.1f} s, default build {pairs[-1][1][0]:.1f} s "
@@ -137,6 +164,9 @@ def main():
     runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)",
                  *median([p[1] for p in pairs])))
     settle(**wait)
+    pinned = timed(baseline + [str(outs["baseline"])], f"{n} scenes in", one_core=True)
+    runs.append(("the same script pinned to one core (Open3D's projection at its fastest)", *pinned))
+    settle(outs["baseline"], **wait)
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"], built)
     runs.append((f"gtforge build-dataset --workers {workers} --no-verify", *t))
     settle(outs["noverify"], **wait)
@@ -168,6 +198,11 @@ def main():
             f"{b[0]:.1f} / {g[0]:.1f} ({b[0] / g[0]:.2f}x)" for b, g in pairs)
             + f"; the default build's ratio {ratios[0]:.2f}-{ratios[-1]:.2f}x, median "
               f"{statistics.median(ratios):.2f}x."]
+    lines += ["", f"Against the script pinned to one core ({pinned[0]:.1f} s: Open3D's `project_to_depth_image` "
+              "serialises its z-buffer updates in an OpenMP critical section, so its second thread only adds lock "
+              f"contention): the default build (median run) {pinned[0] / runs[1][1]:.2f}x, each repeat "
+              + ", ".join(f"{pinned[0] / g[0]:.2f}x" for _, g in pairs) + "."]
+    lines += ["", warmup]
     text = "\n".join(lines)
     print(text)
     if args.write:

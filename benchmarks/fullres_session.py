@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gtforge.calibrate import BoardModel, CalibrationFile
+from gtforge.calibrate import CalibrationFile
 from gtforge.camera import CameraFile, Rig, StereoCalibrationFile
 from gtforge.synthetic import default_rig, random_fruit_scene, render_capture, write_capture
 
@@ -68,12 +68,8 @@ def make_session(workdir: str | Path, n_scenes: int, n_distinct: int = 4, log=pr
                 os.link(f, dst / f.name)
     # the exact extrinsic, with the uncertainty a good board calibration reports (0.002 deg, 0.02 mm per axis: the
     # demo's calibrate), so the GT sigma maps include the extrinsic term as they do for a user
-    sig_rot_deg, sig_mm = 0.002, 0.02
-    cov = np.diag([np.radians(sig_rot_deg) ** 2] * 3 + [sig_mm ** 2] * 3)
-    calib = CalibrationFile(rig=Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech), board=BoardModel(),
-                            captures_used=[], rms_px=0.0, max_px=0.0, sigma_rot_xyz_deg=[sig_rot_deg] * 3,
-                            sigma_trans_xyz_mm=[sig_mm] * 3, sigma_rot_deg=float(np.sqrt(3) * sig_rot_deg),
-                            sigma_trans_mm=float(np.sqrt(3) * sig_mm), poses=[], cov_extrinsic_rad_mm=cov.tolist())
+    calib = CalibrationFile.known_extrinsic(Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech),
+                                            sigma_rot_deg=0.002, sigma_trans_mm=0.02)
     calib_path = workdir / "calibration.yaml"
     calib.write(calib_path)
     return sess, calib_path
@@ -84,7 +80,20 @@ def machine_line() -> str:
     from gtforge.scheduling import cpu_count
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return f"{cpu_count()} cores, load average {load:.2f} at start"
+    return f"{cpu_count()} cores ({cpu_line()}), load average {load:.2f} at start"
+
+
+def cpu_line() -> str:
+    """The processor as /proc/cpuinfo names it, with its family (AMD: 25 = Zen 3/4, 26 = Zen 5) and whether it has
+    AVX-512: the compiled kernels ran 2.3x slower on an AVX2-only VM than on an AVX-512 one (RESULTS.md, round 9)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text().split("\n\n", 1)[0]
+    except OSError:
+        return "processor unknown"
+    fields = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in info.splitlines() if ":" in line)}
+    get = lambda k: fields.get(k, "")  # noqa: E731
+    simd = "AVX-512" if "avx512f" in get("flags").split() else "AVX2" if "avx2" in get("flags").split() else "no AVX2"
+    return f"{get('model name') or 'processor unknown'}, family {get('cpu family') or '?'}, {simd}"
 
 
 def update_results(section: str, text: str, path: Path | None = None) -> Path:
