@@ -91,9 +91,9 @@ def cpu_line() -> str:
     except OSError:
         return "processor unknown"
     fields = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in info.splitlines() if ":" in line)}
-    get = lambda k: fields.get(k, "")  # noqa: E731
-    simd = "AVX-512" if "avx512f" in get("flags").split() else "AVX2" if "avx2" in get("flags").split() else "no AVX2"
-    return f"{get('model name') or 'processor unknown'}, family {get('cpu family') or '?'}, {simd}"
+    flags = fields.get("flags", "").split()
+    simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
+    return f"{fields.get('model name') or 'processor unknown'}, family {fields.get('cpu family') or '?'}, {simd}"
 
 
 def update_results(section: str, text: str, path: Path | None = None) -> Path:
