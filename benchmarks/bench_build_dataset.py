@@ -38,7 +38,7 @@ import sys
 import time
 from pathlib import Path
 
-from fullres_session import machine_line, make_session, update_results
+from fullres_session import machine_line, make_session, pin_to_one_core, update_results
 
 HERE = Path(__file__).resolve().parent
 TARGET_SCENES = 808
@@ -61,10 +61,9 @@ def timed(cmd: list[str], expect: str | None = None, one_core: bool = False) -> 
     count, and the kernel's writeback threads work for both tools. Without /proc/stat: the command and the children it
     waited for. ``expect``: a text its output must hold (such as ``built 240,``: no scene failed). ``one_core``: the
     command runs pinned to one core (``sched_setaffinity``, as ``taskset -c`` does)."""
-    pin = (lambda: os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})) if one_core else None
     c0, b0 = resource.getrusage(resource.RUSAGE_CHILDREN), machine_busy_s()
     t = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True, preexec_fn=pin)
+    r = subprocess.run(cmd, capture_output=True, text=True, preexec_fn=pin_to_one_core if one_core else None)
     dt = time.perf_counter() - t
     c1, b1 = resource.getrusage(resource.RUSAGE_CHILDREN), machine_busy_s()
     if r.returncode not in (0, 1) or (expect and expect not in r.stdout):  # 1: a scene failed or was flagged
@@ -96,6 +95,11 @@ def settle(*delete: Path, wait_s: float = 65.0) -> None:
         time.sleep(max(0.0, wait_s - (time.perf_counter() - _LAST_DELETION[0])))
 
 
+def baseline_command(session: Path, calib: Path, out: Path) -> list[str]:
+    """The plain Open3D script (the baseline) on ``session``, writing into ``out``."""
+    return [sys.executable, str(HERE / "baseline_open3d_script.py"), str(session), str(calib), str(out)]
+
+
 def warm_up(workdir: Path, n_distinct: int, calib: Path, gtforge_cli: list[str], workers: int) -> str:
     """Before the timed runs: build the distinct renders twice and run the baseline on them once, untimed in the
     table. numba compiles gtforge's kernels on their first call after an install or a change of their source and
@@ -110,8 +114,7 @@ def warm_up(workdir: Path, n_distinct: int, calib: Path, gtforge_cli: list[str],
         times.append(timed(gtforge_cli + ["build-dataset", str(small), "-c", str(calib), "--workers", str(workers),
                                           "-o", str(out)], f"built {n_distinct}, unchanged 0, failed 0")[0])
     settle(out, wait_s=0.0)
-    timed([sys.executable, str(HERE / "baseline_open3d_script.py"), str(small), str(calib), str(out)],
-          f"{n_distinct} scenes in")
+    timed(baseline_command(small, calib, out), f"{n_distinct} scenes in")
     settle(out, wait_s=0.0)
     return (f"Warm-up before the timed runs (not in the table): two builds of the {n_distinct} distinct scenes, "
             f"{times[0]:.1f} s then {times[1]:.1f} s (the first includes numba compiling any kernel it had not "
@@ -143,7 +146,6 @@ def main():
     built = f"built {n}, unchanged 0, failed 0"  # what a complete build prints
     runs = []
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]
-    baseline = [sys.executable, str(HERE / "baseline_open3d_script.py"), str(sess), str(calib)]
     pairs = []  # (baseline, default) of each repeat: (wall s, CPU s)
     wait = {"wait_s": args.settle_s}
     warmup = warm_up(wd, args.distinct, calib, gtforge_cli, workers)
@@ -151,7 +153,7 @@ def main():
     for i in range(max(1, args.repeat)):
         # outputs take 20-56 MB a scene: only the one the resume row needs is kept
         settle(*outs.values(), **wait)
-        b = timed(baseline + [str(outs["baseline"])], f"{n} scenes in")
+        b = timed(baseline_command(sess, calib, outs["baseline"]), f"{n} scenes in")
         settle(outs["baseline"], **wait)
         pairs.append((b, timed(build + ["-o", str(outs["gtforge"])], built)))
         print(f"repeat {i + 1}: baseline {b[0]:.1f} s, default build {pairs[-1][1][0]:.1f} s "
@@ -164,7 +166,7 @@ def main():
     runs.append((f"gtforge build-dataset --workers {workers} (default: verification on)",
                  *median([p[1] for p in pairs])))
     settle(**wait)
-    pinned = timed(baseline + [str(outs["baseline"])], f"{n} scenes in", one_core=True)
+    pinned = timed(baseline_command(sess, calib, outs["baseline"]), f"{n} scenes in", one_core=True)
     runs.append(("the same script pinned to one core (Open3D's projection at its fastest)", *pinned))
     settle(outs["baseline"], **wait)
     t = timed(build + ["-o", str(outs["noverify"]), "--no-verify"], built)

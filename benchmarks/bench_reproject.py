@@ -156,12 +156,15 @@ def main():
             depth, mech, T, cam, old.ReprojectParams(mode="mesh")))
         methods[f"gtforge splat @{args.against} ({n_threads} threads)"] = lambda: old.project_depth_to_camera(
             depth, mech, T, cam, old.ReprojectParams(mode="splat"))
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from fullres_session import pin_to_one_core, update_results
+
     if args.open3d_only:  # run by the parent pinned to one core (Open3D's OpenMP sizes its loops by the affinity)
         r = interleaved({"o": methods[base]}, args.repeat)["o"]
         print(f"{r[0]} {r[1]}")
         return
     child = subprocess.run([sys.executable, __file__, "--open3d-only", "--repeat", str(args.repeat)],
-                           preexec_fn=lambda: os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}),
+                           preexec_fn=pin_to_one_core,
                            capture_output=True, text=True, check=True)
     o3d_1 = tuple(float(x) for x in child.stdout.split()[-2:])
     results = {"quiet": interleaved(methods, args.repeat)}
@@ -201,9 +204,6 @@ def main():
     text = "\n".join(lines)
     print(text)
     if args.write:
-        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-        from fullres_session import update_results
-
         print("written to", update_results("bench_reproject", text))
 
 

@@ -83,6 +83,12 @@ def machine_line() -> str:
     return f"{cpu_count()} cores ({cpu_line()}), load average {load:.2f} at start"
 
 
+def pin_to_one_core() -> None:
+    """Restrict this process (and what it starts) to one of the cores it may use, as ``taskset -c`` does; a
+    ``preexec_fn`` for the Open3D baselines, whose projection runs fastest on one core (bench_reproject.py)."""
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
 def cpu_line() -> str:
     """The processor as /proc/cpuinfo names it, with its family (AMD: 25 = Zen 3/4, 26 = Zen 5) and whether it has
     AVX-512: the compiled kernels ran 2.3x slower on an AVX2-only VM than on an AVX-512 one (RESULTS.md, round 9)."""
