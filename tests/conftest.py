@@ -1,6 +1,8 @@
 """Shared fixtures: one small synthetic session rendered once per test run (exact truth beside it)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -48,3 +50,15 @@ def dataset(session_dir, true_calibration, tmp_path_factory):
     out = tmp_path_factory.mktemp("dataset")
     summary = build_dataset(session_dir, true_calibration, out, workers=1)
     return out, summary
+
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def shared_data(name: str) -> Path:
+    """A folder of real sensor data in ``../shared/data`` (beside the clone, as CI lays it out); the test skips,
+    naming the folder, where it is absent."""
+    path = SHARED_DATA / name
+    if not path.is_dir():
+        pytest.skip(f"real data {path} is absent (CI lays ../shared/data beside the clone)")
+    return path
