@@ -17,8 +17,9 @@ CONF = {
     "RIGHT_CAM_2K": dict(fx=1067.0, fy=1066.9, cx=1104.9, cy=620.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002, k3=-0.0049),
     "LEFT_CAM_HD": dict(fx=533.0, fy=532.9, cx=640.2, cy=357.6, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002, k3=-0.0051),
     "RIGHT_CAM_HD": dict(fx=533.5, fy=533.4, cx=636.4, cy=360.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002, k3=-0.0049),
-    "STEREO": dict(Baseline=63.02, TY_2K=0.31, TZ_2K=-0.22, CV_2K=0.0021, RX_2K=-0.0013, RZ_2K=0.0007,
-                   TY_HD=0.31, TZ_HD=-0.22, CV_HD=0.0021, RX_HD=-0.0013, RZ_HD=0.0007),
+    # the vendor's layout: TY, TZ once; the rotation per resolution
+    "STEREO": dict(Baseline=63.02, TY=0.31, TZ=-0.22, CV_2K=0.0021, RX_2K=-0.0013, RZ_2K=0.0007,
+                   CV_HD=0.0021, RX_HD=-0.0013, RZ_HD=0.0007),
 }
 
 
@@ -49,12 +50,41 @@ def test_zed_conf_rectification_gives_positive_disparity(tmp_path):
 
 def test_zed_conf_missing_key(tmp_path):
     bad = {k: dict(v) for k, v in CONF.items()}
-    del bad["STEREO"]["TY_2K"]
+    del bad["STEREO"]["TY"]
     p = write_zed_conf(tmp_path / "SN1.conf", bad)
     with pytest.raises(InputError) as e:
         read_zed_conf(p, 2208)
     msg = str(e.value)
-    assert "SN1.conf" in msg and "TY_2K" in msg and "missing" in msg and "\n" not in msg
+    assert "SN1.conf" in msg and "[[STEREO] TY]" in msg and "missing" in msg and "\n" not in msg
+
+
+def test_zed_conf_suffixed_translation_and_missing_k3(tmp_path):
+    """Files written by other tools hold TY_<res>, TZ_<res>: those win over the plain keys. A section without k3
+    reads it as 0 and says so."""
+    conf = {k: dict(v) for k, v in CONF.items()}
+    conf["STEREO"].update(TY_2K=0.52, TZ_2K=-0.61)
+    del conf["LEFT_CAM_HD"]["k3"]
+    p = write_zed_conf(tmp_path / "SN2.conf", conf)
+    c2k, chd = read_zed_conf(p, 2208), read_zed_conf(p, 1280)
+    assert (c2k.ty_mm, c2k.tz_mm) == (0.52, -0.61) and (chd.ty_mm, chd.tz_mm) == (0.31, -0.22)
+    assert c2k.notes == () and chd.notes == ("[LEFT_CAM_HD] has no k3: read as 0",)
+    assert chd.left.dist_coeffs[4] == 0.0 and chd.right.dist_coeffs[4] == pytest.approx(-0.0049)
+
+
+def test_real_factory_conf(tmp_path):
+    """A real unit's factory file (ZED Mini SN10027514, ../shared/data): TY/TZ once, HD and FHD sections."""
+    from conftest import shared_data
+
+    path = shared_data("zed-mini-raw-pair") / "SN10027514.conf"
+    hd, fhd = read_zed_conf(path, 1280), read_zed_conf(path, 1920)
+    assert (hd.resolution, fhd.resolution) == ("HD", "FHD")
+    assert (hd.baseline_conf_mm, hd.ty_mm, hd.tz_mm) == (63.0226, 0.00302386, -0.0360835)
+    np.testing.assert_array_equal(hd.rotvec_conf_rad, [0.00300136, 0.000189208, -0.000855091])
+    assert (hd.left.fx_px, hd.left.cx_px, hd.right.cy_px, fhd.left.fx_px) == (700.21, 650.413, 350.501, 1400.42)
+    rect = hd.rectification()
+    assert rect.stereo.baseline_mm == pytest.approx(63.02, abs=0.01) and rect.stereo.left.width_px == 1280
+    with pytest.raises(InputError, match="LEFT_CAM_2K.*missing"):
+        read_zed_conf(path, 2208)
 
 
 def test_zed_conf_unknown_resolution(tmp_path):

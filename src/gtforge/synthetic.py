@@ -649,7 +649,8 @@ def write_raw_zed_conf(path: str | Path, raw: RawZed, reading: str) -> Path:
         d = list(cam.dist_coeffs) + [0.0] * (5 - len(cam.dist_coeffs))
         sections[f"{side}_CAM_{res}"] = dict(fx=cam.fx_px, fy=cam.fy_px, cx=cam.cx_px, cy=cam.cy_px,
                                              k1=d[0], k2=d[1], p1=d[2], p2=d[3], k3=d[4])
-    sections["STEREO"] = {"Baseline": v["Baseline"], f"TY_{res}": v["TY"], f"TZ_{res}": v["TZ"],
+    # the vendor's layout: TY and TZ once for every resolution, the rotation per resolution
+    sections["STEREO"] = {"Baseline": v["Baseline"], "TY": v["TY"], "TZ": v["TZ"],
                           f"CV_{res}": v["CV"], f"RX_{res}": v["RX"], f"RZ_{res}": v["RZ"]}
     return write_zed_conf(path, sections)
 

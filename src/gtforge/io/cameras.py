@@ -9,6 +9,7 @@ rectified right camera always sits at ``+baseline_mm`` along the left camera's x
 from __future__ import annotations
 
 import configparser
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,8 @@ import yaml
 
 from gtforge.camera import ZED_EYE_WIDTHS, CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.errors import InputError
+
+log = logging.getLogger("gtforge.io.cameras")
 
 ZED_RES_HEIGHTS = {"2K": 1242, "FHD": 1080, "HD": 720, "VGA": 376}
 
@@ -230,6 +233,7 @@ class ZedFactoryCalibration:
     tz_mm: float  # TZ_<res>
     rotvec_conf_rad: np.ndarray  # (RX, CV, RZ)_<res>
     path: Path
+    notes: tuple[str, ...] = ()  # how the file was read where it left something out (a missing k3 read as 0)
 
     @property
     def size_wh(self) -> tuple[int, int]:
@@ -343,10 +347,17 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
             raise InputError(path, f"[{section}] {key}", "a finite number", repr(raw), "the conf file is corrupt")
         return val
 
-    cams = []
+    def has(section: str, key: str) -> bool:
+        return section in sections and key.lower() in cp[sections[section]]
+
+    cams, notes = [], []
     for side in ("LEFT", "RIGHT"):
         sec = f"{side}_CAM_{res}"
-        vals = {k: get(sec, k) for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")}
+        vals = {k: get(sec, k) for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")}
+        # some factory files carry no k3 (the published numbers of many units stop at p2): 0 is OpenCV's default
+        vals["k3"] = get(sec, "k3") if has(sec, "k3") else 0.0
+        if not has(sec, "k3"):
+            notes.append(f"[{sec}] has no k3: read as 0")
         h = ZED_RES_HEIGHTS[res]
         K = np.array([[vals["fx"], 0, vals["cx"]], [0, vals["fy"], vals["cy"]], [0, 0, 1]])
         cams.append(PinholeCamera.from_K(K, eye_width_px, h, [vals[k] for k in ("k1", "k2", "p1", "p2", "k3")]))
@@ -354,9 +365,13 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
     if abs(baseline) < 1.0:
         raise InputError(path, "[STEREO] Baseline", "the baseline in mm (e.g. 63 for a ZED Mini)", repr(baseline),
                          "SN.conf stores millimetres")
-    ty, tz = get("STEREO", f"TY_{res}"), get("STEREO", f"TZ_{res}")
+    # real factory files hold TY and TZ once for every resolution; older tools wrote TY_<res>, TZ_<res> (kept where
+    # a file has them)
+    ty, tz = (get("STEREO", f"{k}_{res}") if has("STEREO", f"{k}_{res}") else get("STEREO", k) for k in ("TY", "TZ"))
     rvec = np.array([get("STEREO", f"RX_{res}"), get("STEREO", f"CV_{res}"), get("STEREO", f"RZ_{res}")])
-    return ZedFactoryCalibration(res, cams[0], cams[1], float(baseline), float(ty), float(tz), rvec, path)
+    for n in notes:
+        log.info("%s: %s", path.name, n)
+    return ZedFactoryCalibration(res, cams[0], cams[1], float(baseline), float(ty), float(tz), rvec, path, tuple(notes))
 
 
 def write_zed_conf(path: str | Path, calib: dict[str, dict[str, float]]) -> Path:
@@ -366,6 +381,6 @@ def write_zed_conf(path: str | Path, calib: dict[str, dict[str, float]]) -> Path
     lines = []
     for sec, kv in calib.items():
         lines.append(f"[{sec}]")
-        lines += [f"{k} = {v!r}" if isinstance(v, float) else f"{k} = {v}" for k, v in kv.items()]
+        lines += [f"{k}={v!r}" if isinstance(v, float) else f"{k}={v}" for k, v in kv.items()]  # the vendor's k=v
         lines.append("")
     return atomic_write_text(path, "\n".join(lines))
