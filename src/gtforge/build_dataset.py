@@ -339,7 +339,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     cap_dir = Path(capture_dir)
     try:
         calib = _cached_calibration(calib_path, calib_sha)
-        session = _cached_session(session_dir, calib.zed_conf_reading)
+        session = _cached_session(session_dir, calib)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
         # image content is needed by verification, a crop (re-encoded im0/im1) and the PLY's colours only; for
         # verification alone the images are decoded once the ground truth says how many ZED rows the checks read
@@ -489,7 +489,7 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
     s = Path(dataset_dir) / "scenes" / sid
     try:
         calib = CalibrationFile.read(calib_path)
-        session = _cached_session(session_dir, calib.zed_conf_reading)
+        session = _cached_session(session_dir, calib)
         rig = calib.rig
         meta = SceneMeta.read(s / "meta.json")
         folder = session.root / session.config.scenes_dir / sid
@@ -547,14 +547,14 @@ def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: 
 _SESSION_CACHE: dict = {}
 
 
-def _cached_session(session_dir: str, zed_conf_reading: str | None = None):
-    """The session, opened with the SN.conf reading the calibration recorded (raw ZED images are rectified with it)."""
-    from gtforge.io.captures import open_session
-
-    key = (session_dir, zed_conf_reading)
+def _cached_session(session_dir: str, calib: CalibrationFile):
+    """The session as ``calib`` sees it (``CalibrationFile.open_session``: the SN.conf reading and the ZED
+    self-rectification it recorded)."""
+    corr = calib.zed_right_correction
+    key = (session_dir, calib.zed_conf_reading, corr.model_dump_json() if corr is not None else None)
     hit = _SESSION_CACHE.get(key)
     if hit is None or hit[1] != _session_stamp(hit[0]):
-        session = open_session(session_dir, zed_conf_reading=zed_conf_reading)
+        session = calib.open_session(session_dir)
         hit = _SESSION_CACHE[key] = (session, _session_stamp(session))
     return hit[0]
 
@@ -739,7 +739,6 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                   scheduler: str | None = None) -> BuildSummary:
     """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.
     ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md)."""
-    from gtforge.io.captures import open_session
 
     t0 = time.perf_counter()
     prestart_pool(build_one_scene.__module__, workers, scheduler)  # (already started by the CLI)
@@ -748,7 +747,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
-    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
+    session = calib.open_session(session_dir)
     check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
     out = require_output_folder(out_dir, "--output")

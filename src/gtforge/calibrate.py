@@ -25,6 +25,7 @@ from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.errors import InputError
 from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
 from gtforge.rectification import RectificationQuality, ZedConfChoice
+from gtforge.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification, self_rectify
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
 
@@ -60,6 +61,8 @@ class CalibrateParams(GTModel):
     # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
     methods_agree_deg: float = 0.1
     methods_agree_mm: float = 1.0
+    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.selfcal)
+    self_rectify: bool = True
 
 
 class PoseReport(GTModel):
@@ -172,10 +175,26 @@ class CalibrationFile(VersionedFile):
     def zed_conf_reading(self) -> str | None:
         """The SN.conf reading later stages rectify raw ZED images with (None: not a raw + SN.conf session)."""
         return self.zed_conf.reading if self.zed_conf is not None else None
+
+    @property
+    def zed_right_correction(self) -> ZedRightCorrection | None:
+        """The right camera's correction later stages rectify with (None: none was applied)."""
+        s = self.zed_self_rectification
+        return s.correction if s is not None and s.status == "applied" else None
+
+    def open_session(self, session_dir: str | Path):
+        """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading and
+        the self-rectification's correction."""
+        from gtforge.io.captures import open_session
+
+        return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
+                            zed_right_correction=self.zed_right_correction)
     # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
     # the conf reading chosen from the board images (gtforge.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None
     zed_conf: ZedConfChoice | None = None
+    # the ZED pair's self-rectification (gtforge.selfcal): when applied, every later stage rectifies with its correction
+    zed_self_rectification: ZedSelfRectification | None = None
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
     _residuals: dict = PrivateAttr(default_factory=dict)
@@ -586,6 +605,15 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
 
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)
     session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress)
+    selfcal = None
+    if params.self_rectify:
+        # every capture with both images: the scenes' texture constrains the rows as well as the boards
+        scene_root = session.root / session.config.scenes_dir
+        scene_dirs = session.capture_dirs("scenes") if scene_root.is_dir() and any(scene_root.iterdir()) else []
+        selfcal = self_rectify(session, dirs + scene_dirs, SelfRectifyParams(), progress)
+        if selfcal.correction is not None:
+            session = open_session(session_dir, zed_conf_reading=zed_conf.reading if zed_conf else None,
+                                   zed_right_correction=selfcal.correction)
     meter = RectificationMeter(board, session.zed.left, rectified_by(session))
     obs, reports = [], []
     for k, d in enumerate(dirs):
@@ -602,7 +630,10 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
                                     session.T_mech_from_depth)
     result.session_dir = str(Path(session_dir).resolve())
     result.zed_conf, result.rectification = zed_conf, meter.result()
+    result.zed_self_rectification = selfcal
     stereo_warnings = (zed_conf.warnings if zed_conf else []) + (result.rectification.warnings if result.rectification else [])
+    if selfcal is not None and selfcal.status == "not determined":
+        stereo_warnings.append(selfcal.summary_line())
     if stereo_warnings:
         result.verdict_reasons = result.verdict_reasons + stereo_warnings
         result.verdict = "WARN" if result.verdict == "PASS" else result.verdict

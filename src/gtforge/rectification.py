@@ -207,10 +207,12 @@ def rectified_by(session: Session) -> str:
     """Who rectified the ZED images a session's captures load as, worded to follow "rectified" / "rectified:"
     ("before gtforge, e.g. by the ZED SDK" or "by gtforge, from SN123.conf read as ...")."""
     rect = getattr(session, "rectification", None)
-    if rect is not None:
-        conf = rect.factory.path.name if getattr(rect, "factory", None) is not None else "SN.conf"
-        return f"by gtforge, from {conf} read as '{rect.reading}': {describe_zed_conf_reading(rect.reading)}"
-    return "before gtforge, e.g. by the ZED SDK"
+    corrected = "" if getattr(rect, "correction", None) is None else \
+        ", the right camera corrected by gtforge's self-rectification"
+    if rect is not None and getattr(rect, "factory", None) is not None:
+        return (f"by gtforge, from {rect.factory.path.name} read as '{rect.reading}': "
+                f"{describe_zed_conf_reading(rect.reading)}{corrected}")
+    return "before gtforge, e.g. by the ZED SDK" + corrected
 
 
 # ---- SN.conf readings -----------------------------------------------------------------------

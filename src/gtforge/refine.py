@@ -207,13 +207,12 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
            progress: Callable[[str], None] | None = None) -> CalibrationFile:
     """Refine a calibration's extrinsic from a session's scene captures; writes ``out_path`` when given. The result is
     a normal calibration file whose ``refinement`` says where it came from."""
-    from gtforge.io.captures import open_session
 
     t0 = time.perf_counter()
     params = params or RefineParams()
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
-    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
+    session = calib.open_session(session_dir)
     check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
         out_path = calibration_output_path(out_path)

@@ -212,6 +212,9 @@ class SyntheticRig:
     T_zed_from_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     depth_cam: PinholeCamera | None = None
     T_mech_from_depth: np.ndarray | None = None
+    # the real right ZED camera turned about its own centre against the rectified model the files describe (a factory
+    # rectification's residual, corrected by gtforge.selfcal): rotation vector (rad) of the image-only error
+    zed_right_rotation_error_rad: np.ndarray | None = None
 
     @property
     def T_mech_from_world(self) -> np.ndarray:
@@ -374,7 +377,11 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     T_mech_from_world = rig.T_mech_from_world
     left = finish_image(render_image(zed_scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px,
                         image_noise)
-    right = finish_image(render_image(zed_scene, zed.right, T_zedr_from_world, supersample), rng, blur_sigma_px,
+    T_zedr_image_from_world = T_zedr_from_world
+    if rig.zed_right_rotation_error_rad is not None:  # the right image from the real (turned) camera; truth unchanged
+        R_err = cv2.Rodrigues(np.asarray(rig.zed_right_rotation_error_rad, np.float64).reshape(3, 1))[0]
+        T_zedr_image_from_world = make_T(R_err, np.zeros(3)) @ T_zedr_from_world
+    right = finish_image(render_image(zed_scene, zed.right, T_zedr_image_from_world, supersample), rng, blur_sigma_px,
                          image_noise)
     tex = finish_image(render_image(scene, rig.mech, T_mech_from_world, supersample), rng, blur_sigma_px,
                        image_noise, gray=True)
@@ -542,8 +549,13 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
 def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3, scale: float = 0.5,
                      seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.03,
                      image_noise: float = 1.5, supersample: int = 3, two_camera: bool = False,
-                     fruit_motion_mm: dict[int, tuple[float, float, float]] | None = None, progress=None) -> Path:
+                     fruit_motion_mm: dict[int, tuple[float, float, float]] | None = None,
+                     zed_right_rotation_error_rad: tuple[float, float, float] | None = None, progress=None) -> Path:
     """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``.
+
+    ``zed_right_rotation_error_rad``: the right ZED image is rendered from a camera turned by this rotation vector
+    against the rectified model in ``zed_calibration.yaml`` (a factory rectification's residual; the truth stays the
+    model's).
 
     ``two_camera``: the structured-light unit has a separate depth camera (``two_camera_rig``); the session names it
     (``depth_intrinsics``, ``T_mech_from_depth``). ``fruit_motion_mm``: scene index -> the fruit's displacement
@@ -552,6 +564,8 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     rig = two_camera_rig(scale) if two_camera else default_rig(scale)
+    if zed_right_rotation_error_rad is not None:
+        rig.zed_right_rotation_error_rad = np.asarray(zed_right_rotation_error_rad, np.float64)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
     StereoCalibrationFile(zed=rig.zed).write(out / "zed_calibration.yaml")
     T_md = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
@@ -688,7 +702,8 @@ class RawZedTruth(VersionedFile):
 def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_board: int = 4, n_scenes: int = 1,
                              seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.0,
                              image_noise: float = 1.0, supersample: int = 3, serial: int = 12345,
-                             raw: RawZed | None = None, progress=None) -> Path:
+                             raw: RawZed | None = None, conf_rotation_error_rad: tuple[float, float, float] | None = None,
+                             progress=None) -> Path:
     """A capture session with raw ZED images (``left.png``/``right.png`` straight off the sensor) and
     ``SN<serial>.conf`` written under ``reading``; ``session.yaml`` says ``zed_rectified: false``.
     ``truth/`` as in ``generate_session`` (in the true rectified frame) plus ``raw_zed_truth.yaml``."""
@@ -700,7 +715,13 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
     rng = np.random.default_rng(seed)
     rig = raw_zed_rig(raw)
     conf = f"SN{serial}.conf"
-    write_raw_zed_conf(out / conf, raw, reading)
+    # conf_rotation_error_rad: the factory file describes a right camera turned by this much (about its own centre)
+    # against the one that took the images
+    conf_raw = raw
+    if conf_rotation_error_rad is not None:  # X_right' = R_err @ X_right = R_err @ R @ X_left + R_err @ T
+        R_err = cv2.Rodrigues(np.asarray(conf_rotation_error_rad, np.float64).reshape(3, 1))[0]
+        conf_raw = RawZed(raw.resolution, raw.left, raw.right, R_err @ raw.R, R_err @ raw.T_mm)
+    write_raw_zed_conf(out / conf, conf_raw, reading)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
     SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
                    board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,

@@ -262,8 +262,9 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     board_model = params.board or calib.board  # the calibration's board unless overridden
     board = board_model.spec()
     check_board_spec(board)
-    if getattr(calib, "zed_conf", None) is not None:  # raw ZED images + SN.conf: rectify as the calibration did
-        session = open_session(session_dir, zed_conf_reading=calib.zed_conf.reading)
+    # raw ZED images + SN.conf, a self-rectified ZED: rectify as the calibration did
+    if calib.zed_conf is not None or calib.zed_right_correction is not None:
+        session = calib.open_session(session_dir)
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session))
     warnings = []
     used = set(calib.captures_used)

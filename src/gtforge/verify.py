@@ -715,10 +715,9 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
         raise InputError(man_path, "calibration_path", "the calibration file the dataset was built from",
                          f"{calib} (no such file)", "restore it; verification needs the rig it was built with")
     from gtforge.calibrate import CalibrationFile, check_rig_matches_session
-    from gtforge.io.captures import open_session
 
     cal = CalibrationFile.read(calib)
-    check_rig_matches_session(cal.rig, open_session(sess, zed_conf_reading=cal.zed_conf_reading), calib,
+    check_rig_matches_session(cal.rig, cal.open_session(sess), calib,
                               f"is {sess} the session this dataset was built from?")
     params = params or man.params.verify
     ids = sorted(scenes or man.scenes)

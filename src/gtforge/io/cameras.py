@@ -303,6 +303,7 @@ class ZedRectification:
     P_right: np.ndarray
     reading: str = DEFAULT_ZED_CONF_READING
     factory: ZedFactoryCalibration | None = None
+    correction: object | None = None  # gtforge.selfcal.ZedRightCorrection folded into the right maps
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),

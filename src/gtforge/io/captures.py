@@ -248,7 +248,9 @@ class Session:
     config: SessionFile
     mech: PinholeCamera  # the texture camera (2D image)
     zed: RectifiedStereo
-    rectification: object | None  # ZedRectification when raw images + SN.conf
+    # ZedRectification when raw images + SN.conf; gtforge.selfcal.RightImageCorrection for images rectified before
+    # gtforge with a self-rectification applied; None: the images are used as they are
+    rectification: object | None
     depth_cam: PinholeCamera | None = None  # the depth map's camera when it is not the texture camera
     T_mech_from_depth: np.ndarray | None = None
 
@@ -450,12 +452,15 @@ def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[in
     return h is not None and (h[0], h[1]) == tuple(size_wh) and h[2] == 8 and h[3] in colour_types and h[4]
 
 
-def open_session(root: str | Path, zed_conf_reading: str | None = None) -> Session:
+def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_right_correction=None) -> Session:
     """Read ``session.yaml`` (optional) and the camera files of a capture session.
 
     ``zed_conf_reading``: the SN.conf reading a calibration file recorded (``CalibrationFile.zed_conf``);
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
-    (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images."""
+    (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
+    ``zed_right_correction``: the right camera's correction a calibration file recorded
+    (``gtforge.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to the
+    right image of images rectified before gtforge."""
     from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, load_camera, load_zed_rectified, read_zed_conf
     from gtforge.io.vendors import load_structured_light_cameras
 
@@ -491,6 +496,11 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None) -> Sessi
             rectification = None  # SDK-rectified images with the factory conf: only the model is used
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
+    if zed_right_correction is not None:
+        from gtforge.selfcal import RightImageCorrection, corrected_rectification
+
+        rectification = corrected_rectification(rectification, zed_right_correction) if rectification is not None \
+            else RightImageCorrection(zed_right_correction, zed)
     return Session(root, cfg, mech, zed, rectification, depth_cam, T_mech_from_depth)
 
 
