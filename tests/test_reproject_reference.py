@@ -4,8 +4,9 @@ Bit for bit, NaN where NaN: on small synthetic scenes from the generator (a dist
 target, one sparser than it, noisy depth under a strict slant bound, an undistorted depth camera, both ZED views of the
 one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/test_real_reprojection.py uses it).
 A speed change that moves any depth by one bit, or draws one pixel more or less, fails here (docs/pipeline.md,
-"Speed work never changes results"). The windowed multi-thread path is held to the one-thread path by
-tests/test_real_reprojection.py (and tests/test_reproject.py); one thread is compared here.
+"Speed work never changes results"). One numba thread throughout: the windowed multi-thread path is forced onto it
+once here (its chunks, windows and merge), and tests/test_real_reprojection.py holds a real four-thread run to the
+one-thread image.
 """
 from __future__ import annotations
 
@@ -128,3 +129,14 @@ def test_the_comparison_catches_float32_rays(monkeypatch):
     ref = project_depth_reference(z0, cam0, T, cam1, MESH)
     differ = ~((fast == ref) | (np.isnan(fast) & np.isnan(ref)))
     assert differ.sum() > 1000 and np.isnan(fast).sum() > np.isnan(ref).sum()  # the float32 rays lost pixels
+
+
+def test_windowed_path_on_one_thread(monkeypatch):
+    """The windowed path (chunks of grid rows rasterised into windows of target rows, merged by a per-pixel minimum)
+    forced on the one thread here: the same images as the reference, span_mm included (the merge keeps the first
+    window's span among equal depths, as the reference keeps the first quad's)."""
+    monkeypatch.setattr(reproject, "MIN_PARALLEL_THREADS", 1)
+    rig, depth = small_scene()
+    check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="windowed synthetic")
+    z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
+    check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="windowed Middlebury Motorcycle")

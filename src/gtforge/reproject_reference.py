@@ -36,11 +36,12 @@ from gtforge.camera import PinholeCamera
 from gtforge.reproject import _EPS as PIXEL_CENTRE_TOL
 from gtforge.reproject import ReprojectParams
 
+_DEFAULT = ReprojectParams()  # the kernels' defaults
 QUAD_ROWS_PER_BLOCK = 64  # mesh: grid rows handled at once (bounds the memory of the per-quad arrays)
 
 
 def project_depth_reference(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_cam_from_depth: np.ndarray,
-                            cam: PinholeCamera, params: ReprojectParams = ReprojectParams(), *,
+                            cam: PinholeCamera, params: ReprojectParams = _DEFAULT, *,
                             return_span: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The same arguments and results as ``reproject.project_depth_to_camera``: depth ``(Hm, Wm)`` float32 mm
     (NaN invalid) seen by ``depth_cam`` (its lens model included) -> z-depth ``(H, W)`` float32 mm in the undistorted
