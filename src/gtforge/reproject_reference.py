@@ -15,7 +15,10 @@ Everything is float64 until the depth is stored, which is float32 as in the kern
   diagonal, the other when only that one is drawn), so no centre is drawn twice by the two halves of one quad.
   The depth at the centre is 1 / (1/Z interpolated barycentrically), exact for planar surfaces. The nearest depth
   wins; ``span_mm`` is the winning triangle's max - min vertex Z; between equal float32 depths the first quad in
-  grid order (row by row) wins, as in the kernels' sequential z-buffer.
+  grid order (row by row) wins, as in the kernels' sequential z-buffer. Such ties are the rule, not the exception,
+  where the target shares the depth camera's rows (a rectified pair): every pixel centre then lies on the edge two
+  quads share and both draw it (Middlebury Motorcycle: 302,843 of 311,222 pixels tied, 220,180 of them with a
+  different span).
 
 The arithmetic of every float64 expression is written in the same order as in the kernels (a different but equally
 exact order would move the last bit of some depths): the reference defines it, and the kernels must match it bit for
