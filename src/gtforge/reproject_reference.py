@@ -170,15 +170,19 @@ def _mesh_block(z, u, v, w, valid, k_edge, k_diag, abs_tol_mm, cam: PinholeCamer
     (up, uq, u1, u2), (vp, vq, v1, v2), (wp, wq, w1, w2) = pick(u), pick(v), pick(w)
 
     # candidate pixel centres: those in the box of the quad's drawn triangles (widened by the tolerance), in the image
-    def box(lo_or_hi, p, q, r1, r2):
-        fill = np.inf if lo_or_hi is np.minimum else -np.inf
-        return lo_or_hi(lo_or_hi(p, q), lo_or_hi(np.where(t1, r1, fill), np.where(t2, r2, fill)))
+    def drawn_vertices(p, q, r1, r2, fill):  # the apex of a triangle not drawn replaced by fill
+        return [p, q, np.where(t1, r1, fill), np.where(t2, r2, fill)]
 
     H, W = cam.height_px, cam.width_px
-    u_min = np.maximum(np.ceil(box(np.minimum, up, uq, u1, u2) - PIXEL_CENTRE_TOL), 0).astype(np.int64)
-    u_max = np.minimum(np.floor(box(np.maximum, up, uq, u1, u2) + PIXEL_CENTRE_TOL), W - 1).astype(np.int64)
-    v_min = np.maximum(np.ceil(box(np.minimum, vp, vq, v1, v2) - PIXEL_CENTRE_TOL), 0).astype(np.int64)
-    v_max = np.minimum(np.floor(box(np.maximum, vp, vq, v1, v2) + PIXEL_CENTRE_TOL), H - 1).astype(np.int64)
+    lo_u = np.minimum.reduce(drawn_vertices(up, uq, u1, u2, np.inf))
+    hi_u = np.maximum.reduce(drawn_vertices(up, uq, u1, u2, -np.inf))
+    lo_v = np.minimum.reduce(drawn_vertices(vp, vq, v1, v2, np.inf))
+    hi_v = np.maximum.reduce(drawn_vertices(vp, vq, v1, v2, -np.inf))
+    # clipped on both sides before the integer cast, so that a vertex projected absurdly far cannot overflow it
+    u_min = np.clip(np.ceil(lo_u - PIXEL_CENTRE_TOL), 0, W).astype(np.int64)
+    u_max = np.clip(np.floor(hi_u + PIXEL_CENTRE_TOL), -1, W - 1).astype(np.int64)
+    v_min = np.clip(np.ceil(lo_v - PIXEL_CENTRE_TOL), 0, H).astype(np.int64)
+    v_max = np.clip(np.floor(hi_v + PIXEL_CENTRE_TOL), -1, H - 1).astype(np.int64)
     n_u = np.maximum(u_max - u_min + 1, 0)
     n_v = np.maximum(v_max - v_min + 1, 0)
     n = n_u * n_v
