@@ -17,9 +17,16 @@ on two cores against 55 ms pinned to one, and faster with the other core busy th
 pinned to one core (``sched_setaffinity``, as ``taskset -c 0`` does), and the line under the table gives gtforge's
 speed-ups against that too.
 
-    python benchmarks/bench_reproject.py [--repeat 15] [--against e1dbf65] [--write]
+Before anything is timed, every gtforge method's output on the benchmark's scene is compared with the float64
+reference of the same computation (``gtforge.reproject_reference``; mesh with ``span_mm`` too): each prints
+"identical to the float64 reference: yes" or "no, N pixels differ", and the benchmark stops with exit code 1 if any of
+the current code's methods is not identical (benchmarks/README.md: speed work never changes results). ``--check-only``
+runs these checks and exits (no Open3D timing).
 
-``--against REV`` adds the kernels of ``src/gtforge/reproject.py`` at git revision REV (before/after).
+    python benchmarks/bench_reproject.py [--repeat 15] [--against e1dbf65] [--write] [--check-only]
+
+``--against REV`` adds the kernels of ``src/gtforge/reproject.py`` at git revision REV (before/after); their
+comparison with the reference is printed but does not stop the run (an old revision may predate a fix).
 """
 from __future__ import annotations
 
@@ -43,6 +50,7 @@ import open3d as o3d
 
 from gtforge import reproject
 from gtforge.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.reproject_reference import project_depth_reference
 from gtforge.synthetic import default_rig, lit_mask, random_fruit_scene, raycast_depth
 
 
@@ -89,11 +97,38 @@ def interleaved(methods: dict, repeat: int) -> dict:
     return {k: (statistics.median(wall[k]) * 1e3, statistics.median(cpu[k]) * 1e3) for k in methods}
 
 
+def differing_pixels(got: np.ndarray, ref: np.ndarray) -> int:
+    """Pixels whose float32 value is not the reference's, bit for bit (NaN equals NaN); a shape or dtype mismatch
+    counts every pixel."""
+    if got.shape != ref.shape or got.dtype != ref.dtype:
+        return ref.size
+    return int(np.count_nonzero(~((got == ref) | (np.isnan(got) & np.isnan(ref)))))
+
+
+def check_against_reference(checks: dict, reference: dict) -> bool:
+    """Run each method of ``checks`` (name -> (function, mode, returns span)) once and compare its output with
+    ``reference[mode]`` (depth, span); prints one line a method. True when every one is identical."""
+    all_same = True
+    for name, (fn, mode, with_span) in checks.items():
+        got = fn()
+        outputs = got if with_span else (got,)
+        counts = [differing_pixels(g, r) for g, r in zip(outputs, reference[mode])]
+        n = counts[0]
+        verdict = "yes" if n == 0 else f"no, {n} pixels differ"
+        if with_span:
+            verdict = "yes" if sum(counts) == 0 else f"no, {n} depth and {counts[1]} span_mm pixels differ"
+        print(f"{name}: identical to the float64 reference: {verdict}", flush=True)
+        all_same &= sum(counts) == 0
+    return all_same
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--write", action="store_true")
     ap.add_argument("--against", default=None, help="also time reproject.py at this git revision")
+    ap.add_argument("--check-only", action="store_true",
+                    help="only compare every gtforge method with the float64 reference, then exit")
     ap.add_argument("--open3d-only", action="store_true", help=argparse.SUPPRESS)  # the 1-thread Open3D child
     args = ap.parse_args()
     rig = default_rig(1.0)
@@ -162,6 +197,29 @@ def main():
     if args.open3d_only:  # run by the parent pinned to one core (Open3D's OpenMP sizes its loops by the affinity)
         r = interleaved({"o": methods[base]}, args.repeat)["o"]
         print(f"{r[0]} {r[1]}")
+        return
+
+    # "identical output" means identical to the float64 reference of the same computation, not only to the
+    # previous optimisation (issue #26: float32 ray planes passed a comparison with the float32 code before them)
+    t0 = time.perf_counter()
+    reference = {"mesh": project_depth_reference(depth, mech, T, cam, mesh, return_span=True),
+                 "splat": (project_depth_reference(depth, mech, T, cam, splat),)}
+    print(f"float64 reference (gtforge.reproject_reference) on the benchmark's scene: "
+          f"{time.perf_counter() - t0:.1f} s", flush=True)
+
+    def mode_of(name):
+        return "splat" if "splat" in name else "mesh"
+
+    current = {k: (fn, mode_of(k), "span_mm" in k) for k, fn in methods.items()
+               if k.startswith("gtforge") and "@" not in k}
+    older = {k: (fn, mode_of(k), False) for k, fn in methods.items() if k.startswith("gtforge") and "@" in k}
+    identical = check_against_reference(current, reference)
+    if older:
+        check_against_reference(older, reference)  # reported only: an old revision may predate a fix
+    if not identical:
+        sys.exit("bench_reproject: a gtforge method's output differs from the float64 reference; speed work may not "
+                 "change results (benchmarks/README.md). Nothing timed.")
+    if args.check_only:
         return
     child = subprocess.run([sys.executable, __file__, "--open3d-only", "--repeat", str(args.repeat)],
                            preexec_fn=pin_to_one_core,

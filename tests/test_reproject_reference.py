@@ -1,0 +1,144 @@
+"""The fast reprojection kernels draw exactly what the slow float64 reference (gtforge.reproject_reference) draws.
+
+Bit for bit, NaN where NaN: on small synthetic scenes from the generator (a distorted depth camera denser than the
+target, one sparser than it, noisy depth under a strict slant bound, an undistorted depth camera, both ZED views of the
+one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/test_real_reprojection.py uses it).
+A speed change that moves any depth by one bit, or draws one pixel more or less, fails here (docs/pipeline.md,
+"Speed work never changes results"). One numba thread throughout: the windowed multi-thread path is forced onto it
+once here (its chunks, windows and merge), and tests/test_real_reprojection.py holds a real four-thread run to the
+one-thread image.
+"""
+from __future__ import annotations
+
+import functools
+
+import numba
+import numpy as np
+import pytest
+
+from gtforge import reproject
+from gtforge.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
+from gtforge.reproject_reference import project_depth_reference
+from gtforge.synthetic import default_rig, lit_mask, random_fruit_scene, raycast_depth
+
+MESH, SPLAT = ReprojectParams(mode="mesh"), ReprojectParams(mode="splat")
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One numba thread: the path a build worker takes (the windowed path is held to it elsewhere)."""
+    previous = numba.get_num_threads()
+    numba.set_num_threads(1)
+    yield
+    numba.set_num_threads(previous)
+
+
+def assert_identical(fast: np.ndarray, ref: np.ndarray, what: str) -> None:
+    assert fast.dtype == ref.dtype == np.float32 and fast.shape == ref.shape
+    differ = ~((fast == ref) | (np.isnan(fast) & np.isnan(ref)))
+    assert differ.sum() == 0, f"{what}: {differ.sum()} pixels differ from the float64 reference"
+    np.testing.assert_array_equal(fast, ref)  # the same, with numpy's own NaN-aware comparison
+    assert np.isfinite(ref).sum() > 1000  # a real comparison, not two empty images
+
+
+@functools.lru_cache(maxsize=1)
+def small_scene():
+    """The benchmark's scene (bench_reproject.scene_depth) at 0.2x: a 384x240 distorted depth camera -> 442x248."""
+    rig = default_rig(0.2)
+    rng = np.random.default_rng(0)
+    scene = random_fruit_scene(rng, rig, 0)
+    z, _, p = raycast_depth(scene, rig.mech, rig.T_mech_from_world)
+    hit = np.isfinite(z)
+    lit = np.zeros_like(hit)
+    lit[hit] = lit_mask(scene, rig, p[hit])
+    return rig, np.where(hit & lit, z, np.nan).astype(np.float32)
+
+
+def check_both_modes(depth, mech, T, cam, mesh=MESH, what=""):
+    fast, fast_span = project_depth_to_camera(depth, mech, T, cam, mesh, return_span=True)
+    ref, ref_span = project_depth_reference(depth, mech, T, cam, mesh, return_span=True)
+    assert_identical(fast, ref, f"{what} mesh")
+    assert_identical(fast_span, ref_span, f"{what} mesh span_mm")
+    splat = ReprojectParams(mode="splat", max_slant_deg=mesh.max_slant_deg, abs_tol_mm=mesh.abs_tol_mm)
+    assert_identical(project_depth_to_camera(depth, mech, T, cam, splat),
+                     project_depth_reference(depth, mech, T, cam, splat), f"{what} splat")
+
+
+def test_synthetic_distorted_depth_camera():
+    rig, depth = small_scene()
+    assert rig.mech.has_distortion
+    check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="synthetic")
+
+
+def test_synthetic_target_denser_than_the_depth_grid():
+    """Most quads hold several pixel centres: the kernels' general triangle loop instead of the one-pixel path."""
+    rig, depth = small_scene()
+    check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left.scaled(2.5), what="dense target")
+
+
+def test_synthetic_noisy_depth_strict_slant_bound():
+    """Noise puts many edges near the continuity bound, so the drawn/rejected decisions are exercised."""
+    rig, depth = small_scene()
+    noisy = (depth + np.random.default_rng(3).normal(0.0, 0.4, depth.shape)).astype(np.float32)
+    noisy[::17, ::13] = -5.0  # invalid depths other than NaN: negative ...
+    noisy[5::23, 7::19] = 0.0  # ... zero
+    noisy[9::29, 3::31] = np.inf  # ... and infinite
+    params = ReprojectParams(mode="mesh", max_slant_deg=70.0, abs_tol_mm=0.1)
+    check_both_modes(noisy, rig.mech, rig.T_zed_from_mech, rig.zed.left, params, what="noisy")
+
+
+def test_synthetic_undistorted_depth_camera():
+    rig, depth = small_scene()
+    mech = rig.mech.model_copy(update={"dist_coeffs": [0.0] * 5})
+    assert not mech.has_distortion
+    check_both_modes(depth, mech, rig.T_zed_from_mech, rig.zed.left, what="undistorted")
+
+
+def test_stereo_one_pass_both_views():
+    """reproject_to_zed's one-pass path (one thread, mesh) draws both ZED views as the reference does."""
+    rig, depth = small_scene()
+    zed = rig.zed.model_copy(update={"doffs_px": 3.25})
+    sd = reproject_to_zed(depth, rig.mech, rig.T_zed_from_mech, zed, MESH, left_span=True)
+    ref_l, ref_span = project_depth_reference(depth, rig.mech, rig.T_zed_from_mech, zed.left, MESH, return_span=True)
+    ref_r = project_depth_reference(depth, rig.mech, zed.T_zedr_from_zed @ rig.T_zed_from_mech, zed.right, MESH)
+    assert_identical(sd.depth_mm, ref_l, "stereo left")
+    assert_identical(sd.span_mm, ref_span, "stereo left span_mm")
+    assert_identical(sd.depth_right_mm, ref_r, "stereo right")
+
+
+def motorcycle():
+    from test_real_reprojection import motorcycle as load  # skips where ../shared/data is absent
+
+    return load()
+
+
+def test_middlebury_motorcycle():
+    """Real depth, a rectified pair: nearly every pixel centre lies on a grid edge two quads share, so the z-buffer's
+    tie rule (the first quad wins among equal depths) decides span_mm at 220,180 pixels."""
+    z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
+    check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="Middlebury Motorcycle")
+
+
+def test_the_comparison_catches_float32_rays(monkeypatch):
+    """The guard has teeth: the kernels fed float32-rounded ray planes (issue #26's speed change) differ from the
+    reference on the real scene: measured 2026-12-02, mesh 18,173 pixels differ, 4,564 of them holes the reference
+    fills (splat: 6 pixels)."""
+    z0, cam0, cam1, T, _, _ = motorcycle()
+    rx, ry = reproject._ray_planes(cam0.model_dump_json())
+    rounded = (rx.astype(np.float32).astype(np.float64), ry.astype(np.float32).astype(np.float64))
+    monkeypatch.setattr(reproject, "_ray_planes", lambda cam_json: rounded)
+    fast = project_depth_to_camera(z0, cam0, T, cam1, MESH)
+    ref = project_depth_reference(z0, cam0, T, cam1, MESH)
+    differ = ~((fast == ref) | (np.isnan(fast) & np.isnan(ref)))
+    assert differ.sum() > 1000 and np.isnan(fast).sum() > np.isnan(ref).sum()  # the float32 rays lost pixels
+
+
+def test_windowed_path_on_one_thread(monkeypatch):
+    """The windowed path (chunks of grid rows rasterised into windows of target rows, merged by a per-pixel minimum)
+    forced on the one thread here: the same images as the reference, span_mm included (the merge keeps the first
+    window's span among equal depths, as the reference keeps the first quad's)."""
+    monkeypatch.setattr(reproject, "MIN_PARALLEL_THREADS", 1)
+    rig, depth = small_scene()
+    check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="windowed synthetic")
+    z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
+    check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="windowed Middlebury Motorcycle")
