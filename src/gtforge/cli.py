@@ -163,13 +163,17 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
               captures: Optional[str] = typer.Option(None, metavar="NAMES",
                                                      help="Comma-separated capture names to use (default: all)."),
               loo: bool = typer.Option(True, "--loo/--no-loo",
-                                       help="Leave-one-pose-out cross-validation (--no-loo saves time).")) -> None:
+                                       help="Leave-one-pose-out cross-validation (--no-loo saves time)."),
+              self_rectify: bool = typer.Option(True, "--self-rectify/--no-self-rectify",
+                                                help="Correct the ZED right camera's residual rotation from left-right "
+                                                     "matches over every capture (boards and scenes); applied only "
+                                                     "where the captures determine it (docs/pipeline.md).")) -> None:
     """Solve T_zed_from_mech from checkerboard captures in SESSION/board/."""
     from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run, calibration_output_path
     from gtforge.reports.calibration import write_calibration_report
 
     params = _options(CalibrateParams, board=_options(BoardModel, cols=cols, rows=rows, square_size_mm=square_mm),
-                      use_depth=use_depth, leave_one_out=loo)
+                      use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     output = calibration_output_path(output)
     res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
     rep = write_calibration_report(res, report_dir or output.parent / (output.stem + "_report"))
@@ -186,6 +190,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                   f"(declared {res.board.square_size_mm:g} mm)")
     from gtforge.rectification import summary_lines
 
+    if res.zed_self_rectification is not None:
+        out.print(res.zed_self_rectification.summary_line())
     for line in summary_lines(res.rectification, res.zed_conf):
         out.print(line)
     out.print(f"wrote {output} and {rep}")

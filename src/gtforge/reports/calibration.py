@@ -213,10 +213,17 @@ def rectification_section(calib: CalibrationFile) -> Section | None:
     return build(getattr(calib, "rectification", None), getattr(calib, "zed_conf", None), z.width_px, z.height_px)
 
 
+def self_rectification_section(calib: CalibrationFile) -> Section | None:
+    """The ZED self-rectification: the fit, the decision, and every capture's rows before and after."""
+    from gtforge.reports.rectification import self_rectification_section as build
+
+    return build(calib.zed_self_rectification)
+
+
 SectionBuilder = Callable[[CalibrationFile], "Section | None"]
 SECTIONS: list[SectionBuilder] = [verdict_section, summary_section, reprojection_section, methods_section,
                                   poses_section, histogram_section, regions_section, vectors_section,
-                                  rectification_section]
+                                  rectification_section, self_rectification_section]
 
 
 def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,

@@ -8,6 +8,7 @@ import numpy as np
 
 from gtforge.rectification import COLS, ROWS, RectificationQuality, ZedConfChoice
 from gtforge.reports.html import Section, fig_to_img_tag, note, table
+from gtforge.selfcal import ZedSelfRectification
 
 
 def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice | None,
@@ -73,3 +74,39 @@ def _scatter(points: np.ndarray, width_px: int, height_px: int) -> str:
     fig.colorbar(sc, ax=ax, label="v_left - v_right (px)", shrink=0.8)
     return fig_to_img_tag(fig, "70%", dpi=90, alt="vertical disparity over the image") + note(
         "Each detected corner at its place in the rectified left image, coloured by its vertical disparity.")
+
+
+def self_rectification_section(s: ZedSelfRectification | None) -> Section | None:
+    """``None`` when no self-rectification was run (``--no-self-rectify``)."""
+    if s is None:
+        return None
+    w, sw = np.degrees(s.rotvec_rad), np.degrees(s.sigma_rotvec_rad)
+    status = {"applied": "pass", "not needed": None, "not determined": "warn"}[s.status]
+    body = f"<p><b>{html.escape(s.status)}</b>: {html.escape(s.reason)}.</p>"
+    rows = [["matches (captures)", f"{s.n_matches} ({len(s.captures)})"],
+            ["median |v_left - v_right| before (px)", s.median_abs_before_px],
+            ["median |v_left - v_right| after (px)", s.median_abs_after_px],
+            ["rotation about x (deg)", f"{w[0]:+.4f} \u00b1 {sw[0]:.4f}"],
+            ["rotation about z (deg)", f"{w[2]:+.4f} \u00b1 {sw[2]:.4f}"],
+            ["focal scale", f"{s.focal_scale:+.2e} \u00b1 {s.sigma_focal_scale:.1e}"],
+            ["largest vertical move over the image (px)", s.max_vertical_move_px]]
+    if s.omega_y_vertical_only_rad is not None:
+        rows.append(["rotation about y, from vertical disparity alone (deg; not applied)",
+                     f"{np.degrees(s.omega_y_vertical_only_rad):+.4f} \u00b1 "
+                     f"{np.degrees(s.sigma_omega_y_vertical_only_rad or 0.0):.4f}"])
+    body += table(["", "value"], rows, fmt="{:.3f}", cls="kv")
+    body += note(f"Matched in the images as rectified {html.escape(s.rectified_by)}. The right camera's rectifying "
+                 "rotation gets a small extra rotation and its focal length a scale, fitted to the rows of SIFT matches "
+                 "refined by Lucas-Kanade over every capture (boards and scenes). The rotation about the vertical axis "
+                 "shifts every disparity by about f times its angle and shows in the rows only at second order: it is "
+                 "reported, never applied here. A vertical principal-point offset is the rotation about x to first "
+                 "order. 'After': the same matches with the correction applied.")
+    if s.captures:
+        body += table(["capture", "matches", "median v_l - v_r before", "median |.| before", "median |.| after",
+                       "median after"],
+                      [[c.capture, c.n_matches, c.median_before_px, c.median_abs_before_px, c.median_abs_after_px,
+                        c.median_after_px] for c in s.captures],
+                      fmt=[None, "{:d}", "{:+.3f}", "{:.3f}", "{:.3f}", "{:+.3f}"], caption="Per capture (px).")
+    if s.skipped:
+        body += table(["capture", "not used because"], sorted(s.skipped.items()))
+    return Section("ZED self-rectification", body, status=status)
