@@ -155,6 +155,9 @@ def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, ca
     assert res.zed_conf.reading == SESSION_READING and res.zed_conf.chosen_by == "board images"
     assert res.zed_conf.captures == ["000", "001", "002", "003"] and not res.zed_conf.warnings
     assert res.zed_conf.candidates[0].vertical.fit_mean_abs_px <= 0.05
+    # the files are exact: self-rectification finds nothing to correct and leaves the images alone
+    sr = res.zed_self_rectification
+    assert sr.status == "not needed" and sr.correction is None and sr.median_abs_before_px < 0.05, sr.reason
     # the rig's rectified ZED is the true one
     z = res.rig.zed
     assert z.left.fx_px == pytest.approx(truth_stereo.left.fx_px, abs=1e-6)
@@ -184,6 +187,40 @@ def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, ca
     seen, ok = tr["seen_by_mech"], np.isfinite(gt)
     assert ok[seen].mean() >= 0.99
     assert np.mean(np.abs(gt - tr["zed_disparity_px"])[seen & ok]) <= 0.01
+
+
+def test_reading_from_feature_matches_without_a_board(raw_session):
+    """No board seen whole in both raw images: every reading is scored on raw feature matches (scenes and boards
+    alike). The conf was written under neg-all: neg-all wins (as-is gives the same maps but a right camera at -x), the
+    TY/TZ-flipped neg-x is 0.1-0.5 px worse, the inverse rotations are far off."""
+    from gtforge.rectification import choose_reading_by_matches, raw_matches
+
+    s = open_session(raw_session)
+    factory = s.rectification.factory
+    matches = raw_matches(s, s.capture_dirs("scenes") + s.capture_dirs("board")[:1])
+    choice = choose_reading_by_matches(factory, matches)
+    assert choice.chosen_by == "scene matches" and choice.reading == SESSION_READING, choice
+    by = {c.reading: c for c in choice.candidates}
+    assert not by["as-is"].eligible and by[SESSION_READING].vertical.mean_abs_px < 0.06
+    assert by["neg-x"].vertical.mean_abs_px > by[SESSION_READING].vertical.mean_abs_px + 0.05
+    assert min(by[r].vertical.mean_abs_px for r in by if r.endswith("+inv-rot")) > 0.5
+    assert choose_reading_by_matches(factory, [m for m in matches][:1][:0]) is None  # no matches: not decided
+
+
+def test_real_zed_mini_reading_from_feature_matches():
+    """The real ZED Mini view (../shared/data): the inverse-rotation readings leave 3.6 px, the others 0.5 px (the
+    rest is the unit's residual rotation, which self-rectification removes: tests/test_selfcal.py)."""
+    from conftest import shared_data
+    from gtforge.io.formats import read_image
+    from gtforge.rectification import RawBoardPair, choose_reading_by_matches, match_points
+
+    d = shared_data("zed-mini-raw-pair")
+    factory = read_zed_conf(d / "SN10027514.conf", 1280)
+    pl, pr = match_points(read_image(d / "left_raw.png"), read_image(d / "right_raw.png"), rectified=False)
+    choice = choose_reading_by_matches(factory, [RawBoardPair("corridor", pl, pr)])
+    by = {c.reading: c.vertical.mean_abs_px for c in choice.candidates}
+    assert len(pl) > 100 and not choice.reading.endswith("+inv-rot") and by[choice.reading] < 0.6
+    assert min(v for r, v in by.items() if r.endswith("+inv-rot")) > 3.0
 
 
 def test_scene_vertical_disparity_follows_the_reading(raw_session):

@@ -250,7 +250,7 @@ class ZedConfChoice(GTModel):
     resolution: str
     reading: str
     formula: str
-    chosen_by: Literal["board images", "session.yaml", "default"]
+    chosen_by: Literal["board images", "scene matches", "session.yaml", "default"]
     threshold_px: float
     captures: list[str]  # the raw board pairs every candidate was scored on
     candidates: list[ReadingScore]  # best first
@@ -347,6 +347,56 @@ def choose_reading(factory: ZedFactoryCalibration, pairs: list[RawBoardPair], bo
                          captures=[p.capture for p in pairs], candidates=scores, warnings=warnings)
 
 
+def choose_reading_by_matches(factory: ZedFactoryCalibration, matches: list[RawBoardPair],
+                              threshold_px: float = VERTICAL_WARN_PX) -> ZedConfChoice | None:
+    """Without a board seen whole in both raw images: every reading scored on feature matches between the raw left
+    and right images (``match_points(rectified=False)``), the one with the smallest median |vertical disparity|
+    kept. ``None`` where there are too few matches (fewer than 30) or no reading puts the right camera at +x."""
+    pairs = [m for m in matches if len(m.left_uv)]
+    if sum(len(m.left_uv) for m in pairs) < 30:
+        return None
+    scores = []
+    for reading in ZED_CONF_READINGS:
+        sr = factory.stereo_rectify(reading)
+        dv = np.concatenate([rectify_points(factory.left, m.left_uv, sr.R_rect_from_raw_left, sr.P_left)[:, 1]
+                             - rectify_points(factory.right, m.right_uv, sr.R_rect_from_raw_right, sr.P_right)[:, 1]
+                             for m in pairs])
+        # a match can slide along its epipolar line within RANSAC's 1 px: the scores leave out matches beyond 5 MAD
+        med = float(np.median(dv))
+        dv = dv[np.abs(dv - med) <= max(5.0 * 1.4826 * float(np.median(np.abs(dv - med))), 0.5)]
+        vert = VerticalDisparity(**_stats(dv))
+        baseline = sr.baseline_signed_mm
+        scores.append((float(np.median(np.abs(dv))), ReadingScore(
+            reading=reading, formula=describe_zed_conf_reading(reading),
+            R_rotvec_rad=cv2.Rodrigues(sr.R)[0].ravel().tolist(), T_mm=sr.T_mm.tolist(), baseline_mm=baseline,
+            eligible=bool(baseline > 0), vertical=vert)))
+    scores.sort(key=lambda s: (not s[1].eligible, s[0]))
+    if not scores[0][1].eligible:
+        return None
+    best_px, best = scores[0]
+    warnings = [] if best_px <= threshold_px else [
+        f"even the SN.conf reading '{best.reading}' leaves {best_px:.3f} px median vertical disparity on the raw "
+        f"feature matches (threshold {threshold_px} px) before self-rectification"]
+    return ZedConfChoice(conf_file=str(factory.path), resolution=factory.resolution, reading=best.reading,
+                         formula=best.formula, chosen_by="scene matches", threshold_px=threshold_px,
+                         captures=[m.capture for m in pairs], candidates=[s for _, s in scores], warnings=warnings)
+
+
+def raw_matches(session: Session, dirs: list[Path], progress: Callable[[str], None] | None = None
+                ) -> list[RawBoardPair]:
+    """Feature matches between the raw left and right images of each capture in ``dirs``."""
+    raw = dataclasses.replace(session, rectification=None)
+    out = []
+    for k, d in enumerate(dirs):
+        if progress:
+            progress(f"raw ZED matches {d.name} ({k + 1}/{len(dirs)})")
+        cap = raw.load_capture(d, need_right=True)
+        if cap.zed_right is not None:
+            pl, pr = match_points(cap.zed_left, cap.zed_right, rectified=False)
+            out.append(RawBoardPair(d.name, pl, pr))
+    return out
+
+
 def _default_reading() -> str:
     from gtforge.io.cameras import DEFAULT_ZED_CONF_READING
 
@@ -384,7 +434,15 @@ def settle_zed_conf_reading(session: Session, dirs: list[Path], board: BoardSpec
         return session, None
     pairs, _ = detect_raw_pairs(session, dirs, board, progress)
     override = getattr(session.config, "zed_conf_reading", None)
-    choice = choose_reading(rect.factory, pairs, board, override, threshold_px)
+    choice = None
+    if not pairs and override is None:
+        # no board seen whole in both raw images: the readings are decided on feature matches, scenes included
+        scene_root = session.root / session.config.scenes_dir
+        scenes = session.capture_dirs("scenes") if scene_root.is_dir() and any(scene_root.iterdir()) else []
+        choice = choose_reading_by_matches(rect.factory, raw_matches(session, list(dirs) + scenes, progress),
+                                           threshold_px)
+    if choice is None:
+        choice = choose_reading(rect.factory, pairs, board, override, threshold_px)
     if choice.reading != rect.reading:
         session = open_session(session.root, zed_conf_reading=choice.reading)
     return session, choice
@@ -399,10 +457,11 @@ class SceneVerticalDisparity(VerticalDisparity):
 
 
 def match_points(left: np.ndarray, right: np.ndarray, max_features: int = 4000, ratio: float = 0.75,
-                 fb_max_px: float = 0.05, win_px: int = 15) -> tuple[np.ndarray, np.ndarray]:
+                 fb_max_px: float = 0.05, win_px: int = 15, rectified: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Corresponding points ``(N, 2)`` left and right: SIFT matches (ratio test), refined by pyramidal
     Lucas-Kanade from the left point into the right image and kept when tracking back lands within
-    ``fb_max_px`` of the start."""
+    ``fb_max_px`` of the start. ``rectified``: matches more than 8 px off the row are wrong; otherwise (raw images)
+    matches that do not fit one epipolar geometry (RANSAC on the fundamental matrix, 1 px) are dropped."""
     gl, gr = to_gray(left), to_gray(right)
     sift = cv2.SIFT_create(nfeatures=max_features)
     kl, dl = sift.detectAndCompute(gl, None)
@@ -415,7 +474,13 @@ def match_points(left: np.ndarray, right: np.ndarray, max_features: int = 4000, 
         return np.zeros((0, 2)), np.zeros((0, 2))
     pl = np.float32([kl[m.queryIdx].pt for m in good])
     pr0 = np.float32([kr[m.trainIdx].pt for m in good])
-    keep = np.abs(pl[:, 1] - pr0[:, 1]) < 8.0  # rectified: matches far off the row are wrong
+    if rectified:
+        keep = np.abs(pl[:, 1] - pr0[:, 1]) < 8.0  # rectified: matches far off the row are wrong
+    elif len(pl) >= 8:
+        _, inl = cv2.findFundamentalMat(pl, pr0, cv2.FM_RANSAC, 1.0, 0.999)
+        keep = np.zeros(len(pl), bool) if inl is None else inl.ravel() == 1
+    else:
+        keep = np.zeros(len(pl), bool)
     pl, pr0 = np.round(pl[keep]).astype(np.float32), pr0[keep]
     if not len(pl):
         return np.zeros((0, 2)), np.zeros((0, 2))
