@@ -349,6 +349,20 @@ class SyntheticCapture:
     corners_mech_uv: np.ndarray | None = None
     corners_zed_uv: np.ndarray | None = None
     fruit_id: str | None = None
+    # the fruit ellipsoids in the ZED-left frame (fruit_ellipsoids_zed): centre_mm (K, 3), radii_mm (K, 3),
+    # R_zed_from_fruit (K, 3, 3) (columns: the semi-axes' directions), and T_zed_from_world
+    fruit_truth: dict | None = None
+
+
+def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
+    """Exact fruit shapes in the ZED-left frame: every ``SpheroidObject`` (world-axis-aligned ellipsoid) as
+    ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus ``T_zed_from_world``."""
+    fr = [o for o in scene.objects if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT]
+    R = T_zed_from_world[:3, :3]
+    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world, o.c[None])[0] for o in fr]).reshape(-1, 3),
+                fruit_radii_mm=np.array([o.r for o in fr]).reshape(-1, 3),
+                fruit_R_zed_from_fruit=np.array([R for _ in fr]).reshape(-1, 3, 3),
+                T_zed_from_world=np.asarray(T_zed_from_world, float))
 
 
 def _table(seed: int) -> PlaneObject:
@@ -398,7 +412,8 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     disp_r = zed.depth_to_disparity(np.where(hit_r, z_r, np.nan))
     seen_r = _seen_by_depth_camera(zed_scene, rig, p_r, hit_r)
     return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
-                            ids_z == OBJ_FRUIT, disp_r, seen_r)
+                            ids_z == OBJ_FRUIT, disp_r, seen_r,
+                            fruit_truth=fruit_ellipsoids_zed(zed_scene, rig.T_zed_from_world))
 
 
 def _seen_by_depth_camera(scene: Scene, rig: SyntheticRig, p_world: np.ndarray, hit: np.ndarray) -> np.ndarray:
@@ -534,6 +549,8 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
                      corners_zed_uv=cap.corners_zed_uv)
     if cap.zed_right_disparity_px is not None:
         extra.update(zed_right_disparity_px=cap.zed_right_disparity_px, seen_by_mech_right=cap.seen_by_mech_right)
+    if cap.fruit_truth is not None:
+        extra.update(cap.fruit_truth)
     np.savez_compressed(truth_dir / f"{cap.kind}_{cap.name}.npz", zed_depth_mm=cap.zed_depth_mm,
                         zed_disparity_px=cap.zed_disparity_px, seen_by_mech=cap.seen_by_mech,
                         fruit_mask=cap.fruit_mask, fruit_motion_mm=np.asarray(fruit_motion_mm, float), **extra)
