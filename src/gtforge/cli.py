@@ -409,7 +409,12 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
                                                   help="Network input size with --fit resize."),
              params_count: Optional[int] = typer.Option(None, metavar="N", help="Parameter count for the table."),
              clouds: bool = typer.Option(False, "--clouds/--no-clouds",
-                                         help="Also write a PLY point cloud per scene, coloured by depth error.")) -> None:
+                                         help="Also write a PLY point cloud per scene, coloured by depth error."),
+             fruit_size: bool = typer.Option(True, "--fruit-size/--no-fruit-size",
+                                             help="Measure each fruit's diameter, height and volume (GT and model)."),
+             grades: Optional[str] = typer.Option(
+                 None, metavar="QUANTITY:EDGES", help="Grade bins for the fruit, e.g. diameter_mm:180,200,220 or "
+                 "volume_ml:2500,4000: grade confusion of model vs GT.")) -> None:
     """Score a model's disparities against the built ground truth, per region.
 
     Exactly one model option is required: --onnx, --torchscript, --predictions or --sgbm.
@@ -435,8 +440,14 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
         pred = PredictionFolder(predictions, name)
     else:
         pred = SGBM(name=name or "SGBM")
-    rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma)
+    from gtforge.fruit_size import parse_grades
+
+    bins = parse_grades(grades) if grades is not None else None
+    rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma,
+              grades=bins, fruit_size=fruit_size)
     out.print(tables_markdown([rep]))
+    if rep.fruit_size is not None and rep.fruit_size.time_ms_per_scene is not None:
+        out.print(f"fruit size measured in {rep.fruit_size.time_ms_per_scene:.0f} ms per scene (median)")
     out.print(f"median warm inference {rep.time_ms_median:.1f} ms/frame ({rep.provider}); results in {output}")
     if rep.missing:
         out.print(f"{len(rep.missing)} scene(s) excluded: " + "; ".join(f"{k}: {v}" for k, v in rep.missing.items()))
