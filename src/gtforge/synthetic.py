@@ -743,3 +743,86 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
             progress(f"scene {cap.name}")
     SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids).write(out / "session.yaml")
     return out
+
+
+# ---- gauge objects (VDI/VDE 2634-2: spheres, a sphere pair, a plane) ------------------------------
+OBJ_GAUGE = 4
+
+
+def _gauge_albedo(xy: np.ndarray) -> np.ndarray:
+    """A matte grey with a fine speckle (texture for the ZED images; the structured-light depth ignores it)."""
+    return 0.55 + 0.15 * np.sin(xy[:, 0] * 0.7) * np.sin(xy[:, 1] * 0.9)
+
+
+class SphereGauge(SpheroidObject):
+    """A calibrated sphere (matte, speckled)."""
+
+    def __init__(self, centre: np.ndarray, diameter_mm: float, seed: int):
+        super().__init__(OBJ_GAUGE, centre, np.full(3, diameter_mm / 2.0), 0, 0.0, seed)
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        q = (p_world - self.c) / self.r
+        n = self.noise(np.stack([np.arctan2(q[:, 1], q[:, 0]) * 60, np.arcsin(np.clip(q[:, 2], -1, 1)) * 60], axis=1))
+        return (0.45 + 0.35 * n)[:, None] * np.ones(3)
+
+
+def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0, pair_diameter_mm: float = 80.0,
+                 pair_distance_mm: float = 240.0, plane_wh_mm: tuple[float, float] = (220.0, 150.0),
+                 plane_tilt_deg: float = 20.0) -> dict[str, tuple[Scene, dict]]:
+    """name -> (scene, truth in the world frame): a sphere resting on the table, two spheres at a known centre
+    distance, a tilted plate 60 mm above the table; all under the middle of the structured-light view."""
+    T_world_from_mech = invert_T(rig.T_mech_from_world)
+    p, d = T_world_from_mech[:3, 3], T_world_from_mech[:3, 2]
+    c_table = p + (-p[2] / d[2]) * d
+    out = {}
+    r = sphere_diameter_mm / 2
+    c = c_table + [0, 0, r]
+    out["sphere"] = (Scene([_table(seed), SphereGauge(c, sphere_diameter_mm, seed)]),
+                     dict(kind="sphere", centres_world_mm=np.array([c]), diameter_mm=sphere_diameter_mm))
+    r = pair_diameter_mm / 2
+    ang = np.radians(25.0)
+    half = pair_distance_mm / 2 * np.array([np.cos(ang), np.sin(ang), 0.0])
+    cs = np.array([c_table - half + [0, 0, r], c_table + half + [0, 0, r]])
+    out["sphere_pair"] = (Scene([_table(seed + 1)] + [SphereGauge(x, pair_diameter_mm, seed + 2 + k) for k, x in enumerate(cs)]),
+                          dict(kind="sphere_pair", centres_world_mm=cs, diameter_mm=pair_diameter_mm,
+                               centre_distance_mm=pair_distance_mm))
+    w, h = plane_wh_mm
+    T_plate = make_T(cv2.Rodrigues(np.array([np.radians(plane_tilt_deg), 0.0, 0.0]))[0], c_table + [0, 0, 60.0])
+    out["plane"] = (Scene([_table(seed + 3), PlaneObject(OBJ_GAUGE, T_plate, _gauge_albedo, (-w / 2, w / 2, -h / 2, h / 2))]),
+                    dict(kind="plane", normal_world=T_plate[:3, 2], point_world_mm=T_plate[:3, 3]))
+    return out
+
+
+def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 0, depth_noise_mm: float = 0.0,
+                    depth_scale: float = 1.0, image_noise: float = 1.5, supersample: int = 1, two_camera: bool = False,
+                    **sizes) -> Path:
+    """Add ``gauges/`` to a session written by ``generate_session`` (same ``scale``/``two_camera``): one capture per
+    gauge object (``gauge_scenes``; ``sizes`` override its sizes) and ``gauges/gauges.yaml`` naming each object's
+    calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
+    depth scale error). ``truth/gauge_<name>.npz``: the exact centres (ZED-left frame) or plane, and ZED-left truth."""
+    from gtforge.gauges import GaugeSpec, GaugesFile
+
+    root = Path(session_dir)
+    rig = two_camera_rig(scale) if two_camera else default_rig(scale)
+    rng = np.random.default_rng(seed + 7000)
+    specs = []
+    for name, (scene, truth) in gauge_scenes(rig, seed, **sizes).items():
+        cap = render_capture(name, scene, rig, rng, kind="gauge", supersample=supersample,
+                             depth_noise_mm=depth_noise_mm, image_noise=image_noise)
+        cap.mech_depth_mm = (cap.mech_depth_mm * np.float32(depth_scale)).astype(np.float32)
+        cap.fruit_truth = None
+        write_capture(root / "gauges" / name, cap, root / "truth")
+        T = rig.T_zed_from_world
+        extra = {}
+        if "centres_world_mm" in truth:
+            extra["centres_zed_mm"] = transform_points(T, truth["centres_world_mm"])
+        if truth["kind"] == "plane":
+            n = T[:3, :3] @ truth["normal_world"]
+            extra.update(plane_normal_zed=n, plane_offset_zed_mm=float(n @ transform_points(T, truth["point_world_mm"][None])[0]))
+        with np.load(root / "truth" / f"gauge_{name}.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        np.savez_compressed(root / "truth" / f"gauge_{name}.npz", **arrays, **extra)
+        specs.append(GaugeSpec(capture=name, kind=truth["kind"], diameter_mm=truth.get("diameter_mm"),
+                               centre_distance_mm=truth.get("centre_distance_mm")))
+    GaugesFile(gauges=specs).write(root / "gauges" / "gauges.yaml")
+    return root
