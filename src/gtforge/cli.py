@@ -344,10 +344,26 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
              rows: Optional[int] = typer.Option(None, help="Inner corners along a column (default: the calibration's)."),
              square_mm: Optional[float] = typer.Option(None, help="Square size, mm (default: the calibration's)."),
              xy_threshold_px: float = typer.Option(0.3, help="PASS when the mean XY error is at most this (px)."),
-             z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%).")) -> None:
-    """XY reprojection (px) and Z geometric (%) accuracy; exit code 1 on FAIL."""
+             z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%)."),
+             gauges_only: bool = typer.Option(False, "--gauges-only",
+                                              help="Only the gauge objects of gauges/gauges.yaml (VDI/VDE 2634-2 "
+                                                   "figures; needs --calibration), not the board captures.")) -> None:
+    """XY reprojection (px) and Z geometric (%) accuracy, and the gauge objects' VDI/VDE 2634-2 figures when the
+    session has gauges/gauges.yaml; exit code 1 on FAIL."""
     from gtforge.calibrate import BoardModel
+    from gtforge.gauges import summary_lines as gauge_lines, validate_gauges
     from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams, validate as run
+
+    if gauges_only:
+        if calibration is None:
+            raise InputError(None, "--calibration", "a calibration file with --gauges-only", "none")
+        grep = validate_gauges(session, calibration, output, progress=_status)
+        for line in gauge_lines(grep):
+            out.print(line)
+        out.print(f"report: {output / 'gauges.html'}")
+        if grep.status == "FAIL":
+            raise typer.Exit(1)
+        return
 
     board = None
     if cols is not None or rows is not None or square_mm is not None:
@@ -371,8 +387,11 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
 
     for line in summary_lines(rep.rectification):
         out.print(line)
+    if rep.gauges is not None:
+        for line in gauge_lines(rep.gauges):
+            out.print(line)
     out.print(f"report: {output / 'validation.html'}")
-    if not rep.passed:
+    if not rep.passed or (rep.gauges is not None and rep.gauges.status == "FAIL"):
         raise typer.Exit(1)
 
 
