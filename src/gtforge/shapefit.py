@@ -16,6 +16,7 @@ from scipy.optimize import least_squares
 MIN_POINTS_SPHERE = 20
 MIN_POINTS_PLANE = 20
 MIN_POINTS_ELLIPSOID = 50
+MIN_HEIGHT_MM = 5.0  # an object whose points rise less than this above its support plane has no measurable shape
 
 
 @dataclass
@@ -182,6 +183,9 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
     h = p @ n - plane_offset_mm
     if np.median(h) < 0:
         return EllipsoidFit(False, "the points lie below the support plane", n_points=len(p), constraint=constraint)
+    if np.percentile(h, 99) < MIN_HEIGHT_MM:
+        return EllipsoidFit(False, f"the points rise less than {MIN_HEIGHT_MM:g} mm above the support plane",
+                            n_points=len(p), constraint=constraint)
     # start: horizontal PCA of the points, height from the highest point
     xy = np.column_stack([p @ e1, p @ e2])
     m = xy.mean(0)
@@ -196,7 +200,7 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
 
     def unpack(x):
         s, t, yaw, la, lb, lc = x[:6]
-        a, b, c = np.exp([la, lb, lc])
+        a, b, c = np.exp(np.clip([la, lb, lc], -5.0, 12.0))  # 7 um .. 160 m: no overflow on a wild step
         ch = c if constraint == "resting" else x[6]
         centre = base + s * e1 + t * e2 + ch * n
         ax1 = np.cos(yaw) * e1 + np.sin(yaw) * e2
@@ -212,7 +216,8 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
 
     x0 = [m[0], m[1], yaw0, np.log(a0), np.log(b0), np.log(c0)] + ([c0] if constraint == "upright" else [])
     try:
-        out = least_squares(res, np.array(x0, float), method="trf", x_scale="jac", max_nfev=400)
+        with np.errstate(all="ignore"):
+            out = least_squares(res, np.array(x0, float), method="trf", x_scale="jac", max_nfev=400)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return EllipsoidFit(False, f"the fit failed ({exc})", n_points=len(p), constraint=constraint)
     if out.status <= 0 or not np.all(np.isfinite(out.x)):
