@@ -198,3 +198,18 @@ def test_gauges_only_on_the_command_line(exact, tmp_path):
     assert r.exit_code == 0, r.output
     assert "Gauge objects (VDI/VDE 2634-2, ground truth): PASS" in r.output and "spacing error" in r.output
     assert (tmp_path / "v" / "gauges.json").is_file() and (tmp_path / "v" / "gauges.html").is_file()
+
+
+def test_validation_page_has_the_gauge_section(exact):
+    """validate() puts the gauge report into validation.json (``gauges``) and this section into validation.html."""
+    from types import SimpleNamespace
+
+    from gtforge.reports.validation import SECTIONS, gauges_section
+    from gtforge.validate import ValidationReport
+
+    _, _, rep = exact
+    assert gauges_section in SECTIONS and ValidationReport.model_fields["gauges"].default is None
+    sec = gauges_section(SimpleNamespace(gauges=rep), None)
+    assert sec.heading == "Gauge objects (VDI/VDE 2634-2): PASS" and sec.status == "pass"
+    assert "sphere_pair (sphere_pair): PASS" in sec.body and "gauges.html" in sec.body
+    assert gauges_section(SimpleNamespace(gauges=None), None) is None

@@ -24,7 +24,7 @@ from gtforge.schema import GTModel
 from gtforge.shapefit import EllipsoidFit, fit_resting_ellipsoid
 
 MIN_FRUIT_PX = 200  # smaller fruit components are not measured (specks of a mislabelled region)
-MAX_FIT_POINTS = 20000  # the ellipsoid is fitted to at most this many of a fruit's pixels (an even subsample)
+MAX_FIT_POINTS = 4000  # the ellipsoid is fitted to at most this many of a fruit's pixels (an even subsample)
 TABLE_THRESHOLD_MM = 3.0  # RANSAC inlier distance of the table plane
 TABLE_RING = 0.5  # the table is fitted to background pixels within this share of the fruit's box size around it
 REGION_FRUIT = (2, 3)
@@ -158,12 +158,32 @@ class FruitSizeReport(GTModel):
 
 
 # ---- measuring ------------------------------------------------------------------------------------------
-def fruit_instances(region: np.ndarray, min_pixels: int = MIN_FRUIT_PX) -> list[np.ndarray]:
-    """Boolean masks of the fruit components (8-connected region 2/3 pixels), largest first."""
-    fruit = np.isin(region, REGION_FRUIT).astype(np.uint8)
+def _components(region: np.ndarray, min_pixels: int) -> tuple[np.ndarray, list[tuple[int, tuple[int, int, int, int]]]]:
+    """(labels, [(label, (y0, y1, x0, x1) box), ...]) of the fruit components, largest first."""
+    fruit = ((region == REGION_FRUIT[0]) | (region == REGION_FRUIT[1])).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(fruit, connectivity=8)
     order = sorted(range(1, n), key=lambda k: -stats[k, cv2.CC_STAT_AREA])
-    return [labels == k for k in order if stats[k, cv2.CC_STAT_AREA] >= min_pixels]
+    boxes = []
+    for k in order:
+        x, y, w, h, area = stats[k]
+        if area >= min_pixels:
+            boxes.append((k, (int(y), int(y + h), int(x), int(x + w))))
+    return labels, boxes
+
+
+def fruit_instances(region: np.ndarray, min_pixels: int = MIN_FRUIT_PX) -> list[np.ndarray]:
+    """Boolean masks of the fruit components (8-connected region 2/3 pixels), largest first."""
+    labels, boxes = _components(region, min_pixels)
+    return [labels == k for k, _ in boxes]
+
+
+class _Window:
+    """A calibration seen through an image window starting at pixel (x0, y0) (the principal point moves)."""
+
+    def __init__(self, calib, x0: int, y0: int):
+        self.f_px, self.fy_px = calib.f_px, getattr(calib, "fy_px", calib.f_px)
+        self.cx_px, self.cy_px = calib.cx_px - x0, calib.cy_px - y0
+        self.baseline_mm, self.doffs_px = calib.baseline_mm, calib.doffs_px
 
 
 def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray) -> np.ndarray:
@@ -260,15 +280,24 @@ def measure_scene(sid: str, region: np.ndarray, calib, gt: np.ndarray, pred: np.
                   constraint: str = "resting") -> list[FruitRecord]:
     """Every fruit of one scene: sizes from the GT and (given) the prediction on the same pixels, and the
     generator's truth where it exists."""
-    bg = region == REGION_BACKGROUND
+    labels, boxes = _components(region, MIN_FRUIT_PX)
+    H, W = region.shape
     out = []
-    for k, m in enumerate(fruit_instances(region), start=1):
+    for k, (lab, (y0, y1, x0, x1)) in enumerate(boxes, start=1):
+        # everything on the fruit's box plus the table ring around it (the same result as on the whole image)
+        r = int(np.ceil(TABLE_RING * max(y1 - y0, x1 - x0)))
+        wy0, wy1, wx0, wx1 = max(y0 - r, 0), min(y1 + r, H), max(x0 - r, 0), min(x1 + r, W)
+        win = (slice(wy0, wy1), slice(wx0, wx1))
+        m = labels[win] == lab
+        bg = region[win] == REGION_BACKGROUND
+        cal = _Window(calib, wx0, wy0)
         v, u = np.nonzero(m)
-        g = measure_fruit(gt, calib, m, bg, constraint)
-        p = measure_fruit(pred, calib, m, bg, constraint) if pred is not None else None
+        g = measure_fruit(gt[win], cal, m, bg, constraint)
+        p = measure_fruit(pred[win], cal, m, bg, constraint) if pred is not None else None
+        v, u = v + wy0, u + wx0
         t = None
         if truth is not None:
-            j = _match_truth(m, truth, calib)
+            j = _match_truth(m, truth, cal)
             if j is not None:
                 t = FruitSize.from_radii(truth["fruit_radii_mm"][j], truth["fruit_centre_zed_mm"][j])
         q = grades.quantity if grades else None

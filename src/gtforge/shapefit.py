@@ -217,7 +217,7 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
     x0 = [m[0], m[1], yaw0, np.log(a0), np.log(b0), np.log(c0)] + ([c0] if constraint == "upright" else [])
     try:
         with np.errstate(all="ignore"):
-            out = least_squares(res, np.array(x0, float), method="trf", x_scale="jac", max_nfev=400)
+            out = least_squares(res, np.array(x0, float), method="lm", x_scale="jac", max_nfev=600)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return EllipsoidFit(False, f"the fit failed ({exc})", n_points=len(p), constraint=constraint)
     if out.status <= 0 or not np.all(np.isfinite(out.x)):
