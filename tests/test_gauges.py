@@ -213,3 +213,21 @@ def test_validation_page_has_the_gauge_section(exact):
     assert sec.heading == "Gauge objects (VDI/VDE 2634-2): PASS" and sec.status == "pass"
     assert "sphere_pair (sphere_pair): PASS" in sec.body and "gauges.html" in sec.body
     assert gauges_section(SimpleNamespace(gauges=None), None) is None
+
+
+def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
+    """With 0.05 mm depth noise the raw depth's size and spacing errors are within 4 predicted sigmas (no bias in the
+    raw depth), and the sigmas shrink with the number of points."""
+    s0, c, _ = exact
+    rng = np.random.default_rng(1)
+    s = _copy_with_depth(s0, tmp_path / "noisy", lambda d: d + rng.normal(0, NOISE_MM, d.shape))
+    rep = validate_gauges(s, c, None, GaugeParams(depth_noise=DepthNoiseModel(a_mm=NOISE_MM, b_mm_per_m2=0.0)))
+    g = _by(rep)
+    raw = g["sphere"].raw.spheres + g["sphere_pair"].raw.spheres
+    for sp in raw:
+        assert 0.001 < sp.size_sigma_predicted_mm < 0.02
+        assert abs(sp.size_error_mm) <= 4 * sp.size_sigma_predicted_mm
+    pair = g["sphere_pair"].raw
+    assert 0 < pair.spacing_sigma_predicted_mm < 0.02 and abs(pair.spacing_error_mm) <= 4 * pair.spacing_sigma_predicted_mm
+    big, small = g["sphere"].raw.spheres[0], g["sphere_pair"].raw.spheres[0]
+    assert big.n_points > small.n_points and big.size_sigma_predicted_mm < small.size_sigma_predicted_mm

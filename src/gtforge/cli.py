@@ -493,7 +493,9 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                       help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
           seed: int = typer.Option(0, help="Random seed (the same seed renders the same session)."),
           depth_noise_mm: float = typer.Option(0.03, metavar="MM", min=0.0,
-                                               help="Gaussian noise added to the structured-light depth (mm).")) -> None:
+                                               help="Gaussian noise added to the structured-light depth (mm)."),
+          gauges: bool = typer.Option(False, "--gauges", help="Also capture gauge objects (a sphere, a sphere pair, "
+                                      "a plate) into gauges/ with gauges.yaml, for validate.")) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
@@ -502,6 +504,11 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
                      progress=_progress_lines)
+    if gauges:
+        from gtforge.synthetic import generate_gauges
+
+        generate_gauges(output, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm)
+        _progress_lines("gauges")
     out.print(f"wrote {output}")
 
 

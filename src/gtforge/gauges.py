@@ -102,6 +102,10 @@ class SphereFigures(GTModel):
     centre_mm: list[float]  # ZED-left frame
     form_rms_predicted_mm: float | None = None  # from the sigma map (GT) or the depth noise model (raw)
     form_range_predicted_mm: float | None = None  # expected range of n_points Gaussian residuals of that RMS
+    # 1-sigma of the fitted diameter from the same per-point sigmas (independent points: a lower bound where
+    # neighbouring GT pixels share depth pixels); the mesh's chord bias is not in it
+    size_sigma_predicted_mm: float | None = None
+    centre_cov_predicted_mm2: list[list[float]] | None = None
 
 
 class SourceFigures(GTModel):
@@ -113,6 +117,7 @@ class SourceFigures(GTModel):
     spheres: list[SphereFigures] = Field(default_factory=list)
     centre_distance_mm: float | None = None
     spacing_error_mm: float | None = None  # SD
+    spacing_sigma_predicted_mm: float | None = None  # 1-sigma of the centre distance from both centres' covariances
     n_points: int | None = None  # plane
     flatness_mm: float | None = None  # F
     plane_rms_mm: float | None = None
@@ -222,10 +227,19 @@ def _sphere_figures(pts: np.ndarray, spec_d: float, c_cam: np.ndarray, axis: np.
         nrm = (p - f.centre_mm) / np.linalg.norm(p - f.centre_mm, axis=1, keepdims=True)
         s = _radial_sigma(p, nrm, sigma_axis[keep], c_cam, axis)
         s = s[np.isfinite(s)]
-        if s.size:
-            rms = float(np.sqrt(np.mean(s ** 2)))
+        ok = np.isfinite(s) & (s > 0)
+        if ok.any():
+            rms = float(np.sqrt(np.mean(s[ok] ** 2)))
             fig.form_rms_predicted_mm = rms
             fig.form_range_predicted_mm = expected_range(rms, f.n_points)
+            # weighted least squares covariance of (centre, radius): (J^T W J)^-1, J_i = (-(p_i - c)^T / |p_i - c|, -1)
+            J = np.column_stack([-nrm[ok], -np.ones(ok.sum())]) / s[ok, None]
+            try:
+                cov = np.linalg.inv(J.T @ J)
+                fig.size_sigma_predicted_mm = float(2 * np.sqrt(cov[3, 3]))
+                fig.centre_cov_predicted_mm2 = cov[:3, :3].tolist()
+            except np.linalg.LinAlgError:
+                pass
     return f, fig, keep
 
 
@@ -271,6 +285,10 @@ def measure_source(spec: GaugeSpec, P: np.ndarray, masks: list[np.ndarray], sigm
     if need == 2:
         L = float(np.linalg.norm(centres[0] - centres[1]))
         out.centre_distance_mm, out.spacing_error_mm = L, L - spec.centre_distance_mm
+        if all(s.centre_cov_predicted_mm2 is not None for s in spheres):
+            u = (centres[0] - centres[1]) / L
+            C = np.asarray(spheres[0].centre_cov_predicted_mm2) + np.asarray(spheres[1].centre_cov_predicted_mm2)
+            out.spacing_sigma_predicted_mm = float(np.sqrt(u @ C @ u))
     return out, res_map
 
 
