@@ -186,10 +186,11 @@ class _Window:
         self.baseline_mm, self.doffs_px = calib.baseline_mm, calib.doffs_px
 
 
-def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray) -> np.ndarray:
+def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray, step: int = 1) -> np.ndarray:
     """``(N, 3)`` ZED-left points (mm) of the masked pixels with a finite, positive ``d + doffs``; ``calib``: a
-    ``gtforge.evaluate.SceneCalib`` (f, fy, cx, cy, baseline, doffs)."""
-    v, u = np.nonzero(mask)
+    ``gtforge.evaluate.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column only."""
+    v, u = np.nonzero(mask[::step, ::step])
+    v, u = v * step, u * step
     d = disp[v, u].astype(np.float64) + calib.doffs_px
     ok = np.isfinite(d) & (d > 0)
     v, u, d = v[ok], u[ok], d[ok]
@@ -202,6 +203,11 @@ def _subsample(n: int, max_n: int) -> np.ndarray:
     return np.arange(n) if n <= max_n else np.linspace(0, n - 1, max_n).round().astype(int)
 
 
+def _step(n_pixels: int) -> int:
+    """A grid step that still leaves at least ``MAX_FIT_POINTS`` of ``n_pixels`` (fewer pixels to turn into points)."""
+    return max(1, int(np.sqrt(n_pixels / (2.0 * MAX_FIT_POINTS))))
+
+
 def table_plane(disp: np.ndarray, calib, background: np.ndarray, fruit: np.ndarray) -> tuple[np.ndarray, float] | None:
     """The table ``n . p = c`` (``n`` towards the camera) from the background pixels around ``fruit``; None when
     fewer than 50 background points remain."""
@@ -212,7 +218,7 @@ def table_plane(disp: np.ndarray, calib, background: np.ndarray, fruit: np.ndarr
     x0, x1 = max(u.min() - r, 0), min(u.max() + r + 1, disp.shape[1])
     ring = np.zeros(disp.shape, bool)
     ring[y0:y1, x0:x1] = background[y0:y1, x0:x1]
-    pts = points_from_disparity(disp, calib, ring)
+    pts = points_from_disparity(disp, calib, ring, _step((y1 - y0) * (x1 - x0)))
     if len(pts) < 50:
         return None
     pts = pts[_subsample(len(pts), MAX_FIT_POINTS)]
@@ -228,7 +234,7 @@ def measure_fruit(disp: np.ndarray, calib, fruit: np.ndarray, background: np.nda
     plane = table_plane(disp, calib, background, fruit)
     if plane is None:
         return FruitSize(ok=False, reason="too few table pixels around the fruit to fit the support plane")
-    pts = points_from_disparity(disp, calib, fruit)
+    pts = points_from_disparity(disp, calib, fruit, _step(int(np.count_nonzero(fruit))))
     pts = pts[_subsample(len(pts), MAX_FIT_POINTS)]
     return FruitSize.from_fit(fit_resting_ellipsoid(pts, plane[0], plane[1], constraint))
 
