@@ -20,9 +20,13 @@ if not (d / "ds").exists():
     (d / "p").mkdir()
     for s in (d / "ds" / "scenes").iterdir():
         write_pfm(d / "p" / f"{s.name}.pfm", read_pfm(s / "disp0GT.pfm") + 0.3)
-for fs in (False, True, False, True):
-    t = time.perf_counter()
-    rep = evaluate(d / "ds", PredictionFolder(d / "p"), None, fruit_size=fs)
-    dt = (time.perf_counter() - t) / len(rep.scenes) * 1000
-    extra = f", fruit size {rep.fruit_size.time_ms_per_scene:.0f} ms/scene (median)" if fs else ""
-    print(f"scale {scale} ({rep.per_scene and read_pfm(d/'ds'/'scenes'/rep.scenes[0]/'disp0GT.pfm').shape}): evaluate fruit_size={fs}: {dt:.0f} ms/scene{extra}")
+shape = read_pfm(next((d / "ds" / "scenes").iterdir()) / "disp0GT.pfm").shape
+for out in (None, d / "ev"):
+    for fs in (False, True, False, True):
+        t, c = time.perf_counter(), time.process_time()
+        rep = evaluate(d / "ds", PredictionFolder(d / "p"), out, fruit_size=fs)
+        n = len(rep.scenes)
+        wall, cpu = (time.perf_counter() - t) / n * 1000, (time.process_time() - c) / n * 1000
+        extra = f"; fruit size alone {rep.fruit_size.time_ms_per_scene:.0f} ms/scene (median)" if fs else ""
+        print(f"{shape[1]}x{shape[0]}, {'writing maps and HTML' if out else 'no output folder'}, fruit_size={fs}: "
+              f"{wall:.0f} ms wall, {cpu:.0f} ms CPU per scene{extra}")

@@ -231,3 +231,18 @@ def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
     assert 0 < pair.spacing_sigma_predicted_mm < 0.02 and abs(pair.spacing_error_mm) <= 4 * pair.spacing_sigma_predicted_mm
     big, small = g["sphere"].raw.spheres[0], g["sphere_pair"].raw.spheres[0]
     assert big.n_points > small.n_points and big.size_sigma_predicted_mm < small.size_sigma_predicted_mm
+
+
+def test_synth_writes_gauges_and_validate_refuses_to_write_into_them(exact, tmp_path):
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--boards", "0", "--scenes", "0", "--scale", "0.1",
+                                 "--gauges"])
+    assert r.exit_code == 0, r.output
+    assert len(GaugesFile.read(tmp_path / "s" / "gauges" / "gauges.yaml").gauges) == 3
+    assert (tmp_path / "s" / "gauges" / "sphere_pair" / "DepthMap.tiff").is_file()
+    s, c, _ = exact
+    with pytest.raises(InputError, match="--output"):
+        validate_gauges(s, c, s / "gauges" / "out")

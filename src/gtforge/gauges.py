@@ -396,6 +396,13 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
     calib = CalibrationFile.read(calibration)
     session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
     gfile = read_gauges_file(session.root)
+    if out_dir is not None:
+        session.refuse_output_inside_captures(out_dir)
+        g = (session.root / GAUGES_DIR).resolve()
+        o = Path(out_dir).resolve()
+        if o == g or g in o.parents:
+            raise InputError(out_dir, "--output", "a folder outside the session's captures", f"a path inside {g}",
+                             "gtforge never writes into capture folders")
     rig = calib.rig
     results, maps = [], {}
     for k, spec in enumerate(gfile.gauges):
