@@ -30,3 +30,14 @@ for out in (None, d / "ev"):
         extra = f"; fruit size alone {rep.fruit_size.time_ms_per_scene:.0f} ms/scene (median)" if fs else ""
         print(f"{shape[1]}x{shape[0]}, {'writing maps and HTML' if out else 'no output folder'}, fruit_size={fs}: "
               f"{wall:.0f} ms wall, {cpu:.0f} ms CPU per scene{extra}")
+# the fruit figures alone, CPU time (a shared machine's wall clock varies more than the cost itself)
+from gtforge.evaluate import SceneCalib
+from gtforge.fruit_size import measure_scene
+from gtforge.io.formats import read_image
+s = sorted((d / "ds" / "scenes").iterdir())[0]
+cal, gt, reg = SceneCalib(s / "calib.txt"), read_pfm(s / "disp0GT.pfm"), read_image(s / "region.png")
+measure_scene(s.name, reg, cal, gt, gt + 0.3)
+c = time.process_time()
+for _ in range(5):
+    measure_scene(s.name, reg, cal, gt, gt + 0.3)
+print(f"{shape[1]}x{shape[0]}: measure_scene (GT + prediction, one fruit): {(time.process_time() - c) / 5 * 1000:.0f} ms CPU per scene")
