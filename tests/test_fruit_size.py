@@ -154,6 +154,9 @@ def test_gt_fruit_size_matches_the_generators_fruit(small_dataset, tmp_path):
     assert again.fruit_size.fruit[0].gt.diameter_mm == f.fruit[0].gt.diameter_mm
     page = (tmp_path / "ev" / "results.html").read_text()
     assert "Fruit size, volume and grade" in page and "predicted vs GT fruit diameter" in page
+    rows = (tmp_path / "ev" / "fruit_size.csv").read_text().splitlines()
+    assert len(rows) == 4 and rows[0].startswith("scene,fruit,n_pixels,gt_ok,gt_diameter_mm")
+    assert float(rows[1].split(",")[4]) == f.fruit[0].gt.diameter_mm
 
 
 def test_disparity_scale_error_scales_every_size_exactly_and_grades_follow(small_dataset, tmp_path):

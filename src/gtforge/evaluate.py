@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import time
 from pathlib import Path
 from typing import Callable, ClassVar
 
@@ -24,7 +25,7 @@ from gtforge.metrics import (
     region_errors,
 )
 from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
-from gtforge.fruit_size import FruitSizeReport, GradeBins
+from gtforge.fruit_size import FruitSizeReport, GradeBins, measure_scene, scene_truth, summarise
 from gtforge.schema import VersionedFile
 
 log = logging.getLogger("gtforge.evaluate")
@@ -251,14 +252,10 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             res[r] = metrics_from_errors(*re_)
             pooled[r].add(*re_)
         scene = SceneResult(scene=sid, time_ms=ms, metrics=res)
-        if fruit_size:
-            import time as _time
-
-            from gtforge.fruit_size import measure_scene, scene_truth
-
-            t0 = _time.perf_counter()
+        if fruit_size:  # per-fruit diameter, height, volume and grade (gtforge.fruit_size)
+            t0 = time.perf_counter()
             fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
-            fruit_ms.append((_time.perf_counter() - t0) * 1000.0)
+            fruit_ms.append((time.perf_counter() - t0) * 1000.0)
         if out is not None:
             _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px, write_clouds)
         per_scene.append(scene)
@@ -277,13 +274,15 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                      per_image_mean={r: mean_of([s.metrics[r] for s in per_scene]) for r in REGIONS},
                      per_scene=per_scene)
     if fruit_size:
-        from gtforge.fruit_size import summarise
-
         rep.fruit_size = summarise(fruit_records, grades, time_ms_per_scene=float(np.median(fruit_ms)) if fruit_ms else None)
     if out is not None:
         from gtforge.reports.evaluation import write_eval_html, write_tables
 
         write_tables([rep], out)
+        if rep.fruit_size is not None:
+            from gtforge.reports.fruit_size import write_fruit_csv
+
+            write_fruit_csv(rep, out / "fruit_size.csv")
         rep.write(out / "results.json")
         write_eval_html(rep, out)
     return rep

@@ -356,6 +356,8 @@ def _measure_raw(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, 
     Q = depth_points_in_zed(depth_mm, rig)
     bg = ~fg & np.all(np.isfinite(P_gt), axis=-1)
     bgp = P_gt[bg]
+    if len(bgp) < 50:
+        return SourceFigures(source="raw", measurable=False, reason="too little table around the gauge in the GT")
     bgp = bgp[np.linspace(0, len(bgp) - 1, min(len(bgp), 20000)).astype(int)]
     n, c, _ = fit_plane_robust(bgp, 3.0, iterations=200, rng=np.random.default_rng(0))
     if c > 0:

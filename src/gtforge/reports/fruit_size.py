@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from gtforge.reports.html import Section, fig_to_img_tag, note, table
+from gtforge.reports.html import Section, note, table
 
 if TYPE_CHECKING:
     from gtforge.evaluate import EvalReport
@@ -86,7 +86,20 @@ def _scatter(f: "FruitSizeReport") -> str:
     ax.set_ylabel("measured diameter (mm): model, or GT for x")
     ax.legend(fontsize=7)
     ax.set_aspect("equal", adjustable="datalim")
-    return fig_to_img_tag(fig, width="460px", alt="predicted vs GT fruit diameter")
+    return svg_img_tag(fig, "predicted vs GT fruit diameter")
+
+
+def svg_img_tag(fig, alt: str) -> str:
+    """A figure inlined as SVG (a scatter plot: small and sharp; results.html keeps raster images to its JPEG map
+    previews)."""
+    import base64
+    import html
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="svg", bbox_inches="tight")
+    b64 = base64.b64encode(buf.getvalue()).decode("ascii")
+    return f'<img style="max-width:460px" alt="{html.escape(alt)}" src="data:image/svg+xml;base64,{b64}"/>'
 
 
 def fruit_section(rep: "EvalReport") -> Section | None:
@@ -126,3 +139,31 @@ def comparison_section(reports: list["EvalReport"], labels: list[str]) -> Sectio
     if not rows:
         return None
     return Section("Fruit size, volume and grade", table(POOLED_HEADERS, rows) + note(FRUIT_NOTE))
+
+
+FRUIT_CSV_HEADERS = ["scene", "fruit", "n_pixels", "gt_ok", "gt_diameter_mm", "gt_length_mm", "gt_width_mm",
+                     "gt_height_mm", "gt_volume_ml", "pred_ok", "pred_diameter_mm", "pred_height_mm", "pred_volume_ml",
+                     "diameter_error_mm", "volume_error_pct", "truth_diameter_mm", "truth_volume_ml",
+                     "gt_diameter_error_mm", "gt_volume_error_pct", "grade_gt", "grade_pred", "grade_truth", "reason"]
+
+
+def write_fruit_csv(rep: "EvalReport", path) -> None:
+    """``fruit_size.csv``: one row per fruit (what results.json's ``fruit_size.fruit`` holds)."""
+    import csv
+    import io
+
+    from gtforge.io.atomic import atomic_write_text
+
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(FRUIT_CSV_HEADERS)
+    for r in rep.fruit_size.fruit:
+        p, t = r.pred, r.truth
+        reason = "; ".join(x for x in (r.gt.reason and f"GT: {r.gt.reason}", p and p.reason and f"model: {p.reason}") if x)
+        w.writerow(["" if v is None else v for v in [
+            r.scene, r.fruit, r.n_pixels, r.gt.ok, r.gt.diameter_mm, r.gt.length_mm, r.gt.width_mm, r.gt.height_mm,
+            r.gt.volume_ml, p.ok if p else None, p.diameter_mm if p else None, p.height_mm if p else None,
+            p.volume_ml if p else None, r.diameter_error_mm, r.volume_error_pct, t.diameter_mm if t else None,
+            t.volume_ml if t else None, r.gt_diameter_error_mm, r.gt_volume_error_pct, r.grade_gt, r.grade_pred,
+            r.grade_truth, reason]])
+    atomic_write_text(path, buf.getvalue())
