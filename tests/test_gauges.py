@@ -246,3 +246,25 @@ def test_synth_writes_gauges_and_validate_refuses_to_write_into_them(exact, tmp_
     s, c, _ = exact
     with pytest.raises(InputError, match="--output"):
         validate_gauges(s, c, s / "gauges" / "out")
+
+
+def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibration, tmp_path):
+    """gtforge validate on a session with boards and gauges: the board checks and the gauge figures in one run
+    (validation.json ``gauges``, the validation.html section, the console lines)."""
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+    from gtforge.validate import ValidationReport
+
+    s = tmp_path / "s"
+    shutil.copytree(session_dir, s, ignore=shutil.ignore_patterns("scenes"))
+    generate_gauges(s, scale=0.4, seed=11, names=("sphere",))
+    r = CliRunner().invoke(app, ["validate", str(s), "-c", str(true_calibration), "--captures", "000", "-o",
+                                 str(tmp_path / "v")])
+    assert r.exit_code == 0, r.output
+    assert "XY reprojection" in r.output and "Gauge objects (VDI/VDE 2634-2, ground truth): PASS" in r.output
+    rep = ValidationReport.read(tmp_path / "v" / "validation.json")
+    assert [g.capture for g in rep.gauges.gauges] == ["sphere"]
+    assert abs(rep.gauges.gauges[0].gt.spheres[0].size_error_mm) <= 0.05
+    assert "Gauge objects (VDI/VDE 2634-2): PASS" in (tmp_path / "v" / "validation.html").read_text()
+    assert (tmp_path / "v" / "gauges.html").is_file()

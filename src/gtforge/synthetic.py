@@ -795,11 +795,12 @@ def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0
 
 def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 0, depth_noise_mm: float = 0.0,
                     depth_scale: float = 1.0, image_noise: float = 1.5, supersample: int = 1, two_camera: bool = False,
-                    **sizes) -> Path:
+                    names: tuple[str, ...] | None = None, **sizes) -> Path:
     """Add ``gauges/`` to a session written by ``generate_session`` (same ``scale``/``two_camera``): one capture per
     gauge object (``gauge_scenes``; ``sizes`` override its sizes) and ``gauges/gauges.yaml`` naming each object's
     calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
-    depth scale error). ``truth/gauge_<name>.npz``: the exact centres (ZED-left frame) or plane, and ZED-left truth."""
+    depth scale error). ``names``: only these of ``sphere``, ``sphere_pair``, ``plane``. ``truth/gauge_<name>.npz``: the
+    exact centres (ZED-left frame) or plane, and ZED-left truth."""
     from gtforge.gauges import GaugeSpec, GaugesFile
 
     root = Path(session_dir)
@@ -807,6 +808,8 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
     rng = np.random.default_rng(seed + 7000)
     specs = []
     for name, (scene, truth) in gauge_scenes(rig, seed, **sizes).items():
+        if names is not None and name not in names:
+            continue
         cap = render_capture(name, scene, rig, rng, kind="gauge", supersample=supersample,
                              depth_noise_mm=depth_noise_mm, image_noise=image_noise)
         cap.mech_depth_mm = (cap.mech_depth_mm * np.float32(depth_scale)).astype(np.float32)
