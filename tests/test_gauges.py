@@ -268,3 +268,16 @@ def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibr
     assert abs(rep.gauges.gauges[0].gt.spheres[0].size_error_mm) <= 0.05
     assert "Gauge objects (VDI/VDE 2634-2): PASS" in (tmp_path / "v" / "validation.html").read_text()
     assert (tmp_path / "v" / "gauges.html").is_file()
+
+
+def test_gauges_yaml_params_set_the_prediction(exact, tmp_path):
+    s0, c, rep0 = exact
+    s = _with_gauges_yaml(s0, tmp_path / "s", [{"capture": "sphere", "kind": "sphere", "diameter_mm": 100.0}])
+    y = yaml.safe_load((s / "gauges" / "gauges.yaml").read_text())
+    y["params"] = {"depth_noise": {"a_mm": 0.05, "b_mm_per_m2": 0.0}, "erosion_px": 4}
+    (s / "gauges" / "gauges.yaml").write_text(yaml.safe_dump(y))
+    rep = validate_gauges(s, c, None)
+    assert rep.params.erosion_px == 4 and rep.params.depth_noise.a_mm == 0.05
+    sp, sp0 = rep.gauges[0].gt.spheres[0], rep0.gauges[0].gt.spheres[0]
+    # the default model: 0.05 mm at 1 m growing with Z^2 (0.02 mm at 650 mm); here 0.05 mm at any distance
+    assert sp.n_points < sp0.n_points and sp.form_rms_predicted_mm > 2 * sp0.form_rms_predicted_mm

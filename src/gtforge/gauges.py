@@ -81,6 +81,7 @@ class GaugesFile(VersionedFile):
     KIND: ClassVar[str] = "gauges.yaml (gauge objects of a capture session)"
     gauges: list[GaugeSpec] = Field(min_length=1)
     limits: GaugeLimits = Field(default_factory=GaugeLimits)
+    params: "GaugeParams | None" = None  # segmentation, fit and depth-noise settings (defaults: GaugeParams())
 
 
 class GaugeParams(GTModel):
@@ -387,17 +388,18 @@ def _measure_raw(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, 
 def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: str | Path | None = None,
                     params: GaugeParams | None = None, progress: Callable[[str], None] | None = None,
                     write_html: bool = True) -> GaugeReport:
-    """Measure every gauge of ``session_dir/gauges/gauges.yaml``; ``gauges.json``/``gauges.html`` go to ``out_dir``."""
+    """Measure every gauge of ``session_dir/gauges/gauges.yaml``; ``gauges.json``/``gauges.html`` go to ``out_dir``.
+    ``params``: None takes ``gauges.yaml``'s ``params`` (or the defaults)."""
     import time
 
     from gtforge.calibrate import CalibrationFile
     from gtforge.io.captures import open_session
 
     t0 = time.perf_counter()
-    params = params or GaugeParams()
     calib = CalibrationFile.read(calibration)
     session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
     gfile = read_gauges_file(session.root)
+    params = params if params is not None else (gfile.params or GaugeParams())
     if out_dir is not None:
         session.refuse_output_inside_captures(out_dir)
         g = (session.root / GAUGES_DIR).resolve()
@@ -454,3 +456,6 @@ def summary_lines(rep: GaugeReport) -> list[str]:
             parts.append(f"flatness {g.gt.flatness_mm:.3f} mm{pr} (RMS {g.gt.plane_rms_mm:.3f}), {g.gt.n_points} points")
         lines.append(head + ": " + "; ".join(parts))
     return lines
+
+
+GaugesFile.model_rebuild()
