@@ -281,3 +281,17 @@ def test_gauges_yaml_params_set_the_prediction(exact, tmp_path):
     sp, sp0 = rep.gauges[0].gt.spheres[0], rep0.gauges[0].gt.spheres[0]
     # the default model: 0.05 mm at 1 m growing with Z^2 (0.02 mm at 650 mm); here 0.05 mm at any distance
     assert sp.n_points < sp0.n_points and sp.form_rms_predicted_mm > 2 * sp0.form_rms_predicted_mm
+
+
+def test_ball_bar_whose_bar_joins_the_spheres(tmp_path):
+    """Two 80 mm spheres 240 mm apart on a 12 mm bar: one component above the table, split in two, each sphere found
+    among the bar's points by RANSAC of the calibrated size; the figures as without the bar."""
+    s = tmp_path / "s"
+    generate_session(s, n_board=0, n_scenes=0, scale=SCALE, seed=3, depth_noise_mm=0.0, image_noise=1.0, supersample=1)
+    generate_gauges(s, scale=SCALE, seed=3, names=("sphere_pair",), pair_bar_mm=12.0)
+    rep = validate_gauges(s, _calib(tmp_path / "c.yaml"), None)
+    g = rep.gauges[0]
+    assert g.status == "PASS", g.reasons
+    for sp in g.gt.spheres:
+        assert abs(sp.size_error_mm) <= 0.05 and sp.form_range_mm <= 0.05
+    assert abs(g.gt.spacing_error_mm) <= 0.05 and abs(g.raw.spacing_error_mm) <= 0.005

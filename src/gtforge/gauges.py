@@ -30,7 +30,7 @@ from scipy.stats import norm
 from gtforge.errors import InputError
 from gtforge.geometry import fit_plane_robust, transform_points
 from gtforge.schema import GTModel, VersionedFile
-from gtforge.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere
+from gtforge.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere, fit_sphere_ransac
 from gtforge.uncertainty import DepthNoiseModel
 
 log = logging.getLogger("gtforge.gauges")
@@ -91,6 +91,8 @@ class GaugeParams(GTModel):
     gate_mm: float = Field(10.0, gt=0)  # raw depth: points within this of the GT fit's surface are the object's
     depth_noise: DepthNoiseModel = Field(default_factory=DepthNoiseModel)  # for the predicted form figures
     min_points: int = Field(30, ge=10)
+    inlier_mm: float = Field(1.0, gt=0)  # sphere points farther than this from a RANSAC sphere of the calibrated size
+    # are not the sphere's (a ball bar's rod, stray depth)
 
 
 # ---- results ----------------------------------------------------------------------------------
@@ -106,6 +108,7 @@ class SphereFigures(GTModel):
     # 1-sigma of the fitted diameter from the same per-point sigmas (independent points: a lower bound where
     # neighbouring GT pixels share depth pixels); the mesh's chord bias is not in it
     size_sigma_predicted_mm: float | None = None
+    n_outliers: int = 0  # points left out beyond 4 robust sigmas of the first fit
     centre_cov_predicted_mm2: list[list[float]] | None = None
 
 
@@ -209,20 +212,31 @@ def expected_range(rms: float, n: int) -> float:
 
 def _sphere_figures(pts: np.ndarray, spec_d: float, c_cam: np.ndarray, axis: np.ndarray, sigma_axis: np.ndarray | None,
                     params: GaugeParams) -> tuple[SphereFit, SphereFigures | None, np.ndarray]:
-    """Fit, drop the grazing points, refit. Returns (fit, figures, mask of the points kept)."""
-    f = fit_sphere(pts, params.min_points)
-    keep = np.ones(len(pts), bool)
+    """Find the sphere of the calibrated size among the points (RANSAC), fit, drop the grazing points, refit. Returns
+    (fit, figures, mask of the points kept)."""
+    f, keep = fit_sphere_ransac(pts, spec_d / 2, params.inlier_mm, min_points=params.min_points)
     if f.ok:
         nrm = pts - f.centre_mm
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
         to_cam = c_cam - pts
         to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
-        keep = np.sum(nrm * to_cam, axis=1) >= np.cos(np.radians(params.max_incidence_deg))
+        keep &= np.sum(nrm * to_cam, axis=1) >= np.cos(np.radians(params.max_incidence_deg))
         f = fit_sphere(pts[keep], params.min_points)
+    n_out = 0
+    if f.ok:  # once: points beyond 4 robust sigmas (at least 0.05 mm) of the fit (a ball bar's junction, stray depth)
+        r = f.residuals_mm
+        gate = max(4 * 1.4826 * float(np.median(np.abs(r - np.median(r)))), 0.05)
+        far = np.abs(r - np.median(r)) > gate
+        if far.any():
+            n_out = int(far.sum())
+            idx = np.flatnonzero(keep)
+            keep[idx[far]] = False
+            f = fit_sphere(pts[keep], params.min_points)
     if not f.ok:
         return f, None, keep
     fig = SphereFigures(n_points=f.n_points, diameter_mm=f.diameter_mm, size_error_mm=f.diameter_mm - spec_d,
-                        form_range_mm=f.form_range_mm, form_rms_mm=f.rms_mm, centre_mm=[float(x) for x in f.centre_mm])
+                        form_range_mm=f.form_range_mm, form_rms_mm=f.rms_mm, centre_mm=[float(x) for x in f.centre_mm],
+                        n_outliers=n_out)
     if sigma_axis is not None:
         p = pts[keep]
         nrm = (p - f.centre_mm) / np.linalg.norm(p - f.centre_mm, axis=1, keepdims=True)
@@ -251,6 +265,8 @@ def measure_source(spec: GaugeSpec, P: np.ndarray, masks: list[np.ndarray], sigm
     the signed residual map (H, W; NaN where no point was used)."""
     need = 2 if spec.kind == "sphere_pair" else 1
     res_map = np.full(P.shape[:2], np.nan)
+    if need == 2 and len(masks) == 1:  # a ball bar: the bar joins the spheres; split the points in two
+        masks = _split_in_two(masks[0], P, spec.centre_distance_mm) or masks
     if len(masks) < need:
         return SourceFigures(source=source, measurable=False,
                              reason=f"{len(masks)} object(s) found above the table, {need} expected"), res_map
@@ -291,6 +307,27 @@ def measure_source(spec: GaugeSpec, P: np.ndarray, masks: list[np.ndarray], sigm
             C = np.asarray(spheres[0].centre_cov_predicted_mm2) + np.asarray(spheres[1].centre_cov_predicted_mm2)
             out.spacing_sigma_predicted_mm = float(np.sqrt(u @ C @ u))
     return out, res_map
+
+
+def _split_in_two(mask: np.ndarray, P: np.ndarray, centre_distance_mm: float) -> list[np.ndarray] | None:
+    """One component holding both spheres of a pair (and the bar between them): its points in two 3-D clusters.
+    None when the component is too small to hold both (its extent below 0.9 of the centre distance)."""
+    from scipy.cluster.vq import kmeans2
+
+    m = mask & np.all(np.isfinite(P), axis=-1)
+    v, u = np.nonzero(m)
+    if len(v) < 4:
+        return None
+    X = P[v, u]
+    if np.linalg.norm(np.ptp(X, axis=0)) < 0.9 * centre_distance_mm:
+        return None
+    _, lab = kmeans2(X, 2, seed=0, minit="++")
+    out = []
+    for k in (0, 1):
+        mk = np.zeros_like(mask)
+        mk[v[lab == k], u[lab == k]] = True
+        out.append(mk)
+    return out
 
 
 def _grade(value: float | None, ok: float, warn: float) -> Status:

@@ -231,3 +231,34 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
                             constraint=constraint)
     return EllipsoidFit(True, centre_mm=centre, radii_mm=r, axes=A, residuals_mm=res(out.x), n_points=len(p),
                         constraint=constraint)
+
+
+def fit_sphere_ransac(points: np.ndarray, radius_mm: float, threshold_mm: float = 1.0, radius_tol: float = 0.1,
+                      iterations: int = 300, min_points: int = MIN_POINTS_SPHERE,
+                      rng: np.random.Generator | None = None) -> tuple[SphereFit, np.ndarray]:
+    """A sphere of about ``radius_mm`` (within ``radius_tol``) among other points (a ball bar's rod, stray depth):
+    spheres through 4 random points, the one with most points within ``threshold_mm`` of its surface, then
+    ``fit_sphere`` on those. Returns (fit, inlier mask over the finite points)."""
+    p = _finite_points(points)
+    if len(p) < min_points:
+        return SphereFit(False, f"too few points ({len(p)} < {min_points})", n_points=len(p)), np.zeros(len(p), bool)
+    rng = rng or np.random.default_rng(0)
+    best, best_n = None, -1
+    idx = rng.integers(0, len(p), size=(iterations, 4))
+    for s in idx:
+        q = p[s]
+        A = np.column_stack([2 * q, np.ones(4)])
+        try:
+            sol = np.linalg.solve(A, np.sum(q ** 2, axis=1))
+        except np.linalg.LinAlgError:
+            continue
+        c, r2 = sol[:3], sol[3] + sol[:3] @ sol[:3]
+        if r2 <= 0 or abs(np.sqrt(r2) - radius_mm) > radius_tol * radius_mm:
+            continue
+        inl = np.abs(np.linalg.norm(p - c, axis=1) - np.sqrt(r2)) < threshold_mm
+        if inl.sum() > best_n:
+            best, best_n = inl, int(inl.sum())
+    if best is None:
+        return SphereFit(False, f"no sphere of radius {radius_mm:g} mm +- {100 * radius_tol:g} % among the points",
+                         n_points=len(p)), np.zeros(len(p), bool)
+    return fit_sphere(p[best], min_points), best

@@ -766,11 +766,48 @@ class SphereGauge(SpheroidObject):
         return (0.45 + 0.35 * n)[:, None] * np.ones(3)
 
 
+class RodGauge:
+    """A cylinder of ``diameter_mm`` from ``a`` to ``b`` (a ball bar's bar; open ends, inside the spheres)."""
+
+    def __init__(self, a: np.ndarray, b: np.ndarray, diameter_mm: float):
+        self.obj_id = OBJ_GAUGE
+        self.a = np.asarray(a, float)
+        self.length = float(np.linalg.norm(np.asarray(b, float) - self.a))
+        self.ax = (np.asarray(b, float) - self.a) / self.length
+        self.r = diameter_mm / 2
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        m = o - self.a
+        dp = d - np.outer(d @ self.ax, self.ax)
+        mp = m - np.outer(m @ self.ax, self.ax)
+        A = np.einsum("ij,ij->i", dp, dp)
+        B = 2 * np.einsum("ij,ij->i", mp, dp)
+        C = np.einsum("ij,ij->i", mp, mp) - self.r ** 2
+        disc = B * B - 4 * A * C
+        sq = np.sqrt(np.maximum(disc, 0))
+        t = np.full(len(d), np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for tk in ((-B + sq) / (2 * A), (-B - sq) / (2 * A)):  # nearer last: it wins where both are valid
+                s_ = np.einsum("ij,j->i", m + tk[:, None] * d, self.ax)
+                ok = (disc >= 0) & (A > 1e-12) & (tk > 1e-9) & (s_ >= 0) & (s_ <= self.length)
+                t = np.where(ok & (tk < t), tk, t)
+        return t
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        return np.full((len(p_world), 3), 0.6)
+
+    def normal(self, p_world: np.ndarray) -> np.ndarray:
+        m = p_world - self.a
+        n = m - np.outer(m @ self.ax, self.ax)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
 def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0, pair_diameter_mm: float = 80.0,
                  pair_distance_mm: float = 240.0, plane_wh_mm: tuple[float, float] = (220.0, 150.0),
-                 plane_tilt_deg: float = 20.0) -> dict[str, tuple[Scene, dict]]:
+                 plane_tilt_deg: float = 20.0, pair_bar_mm: float = 0.0) -> dict[str, tuple[Scene, dict]]:
     """name -> (scene, truth in the world frame): a sphere resting on the table, two spheres at a known centre
-    distance, a tilted plate 60 mm above the table; all under the middle of the structured-light view."""
+    distance (``pair_bar_mm`` > 0: joined by a bar of that diameter, a ball bar), a tilted plate 60 mm above the
+    table; all under the middle of the structured-light view."""
     T_world_from_mech = invert_T(rig.T_mech_from_world)
     p, d = T_world_from_mech[:3, 3], T_world_from_mech[:3, 2]
     c_table = p + (-p[2] / d[2]) * d
@@ -783,7 +820,9 @@ def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0
     ang = np.radians(25.0)
     half = pair_distance_mm / 2 * np.array([np.cos(ang), np.sin(ang), 0.0])
     cs = np.array([c_table - half + [0, 0, r], c_table + half + [0, 0, r]])
-    out["sphere_pair"] = (Scene([_table(seed + 1)] + [SphereGauge(x, pair_diameter_mm, seed + 2 + k) for k, x in enumerate(cs)]),
+    bar = [RodGauge(cs[0], cs[1], pair_bar_mm)] if pair_bar_mm > 0 else []
+    out["sphere_pair"] = (Scene([_table(seed + 1)] + [SphereGauge(x, pair_diameter_mm, seed + 2 + k) for k, x in enumerate(cs)]
+                                + bar),
                           dict(kind="sphere_pair", centres_world_mm=cs, diameter_mm=pair_diameter_mm,
                                centre_distance_mm=pair_distance_mm))
     w, h = plane_wh_mm
