@@ -105,7 +105,8 @@ def test_sgbm_baseline_is_plausible(dataset, tmp_path):
     assert len(warnings) == 1 and "model name 'SGBM' is used by 2 results" in warnings[0]
     assert table.count("| SGBM [b] | all |") == 1 and table.count(f"| SGBM [{tmp_path.name}] | all |") == 1
     chtml = (tmp_path / "cmp" / "comparison.html").read_text()
-    assert "model name &#x27;SGBM&#x27; is used by 2 results" in chtml and chtml.count("<td>SGBM [b]</td>") == 5
+    # 4 region rows, the fruit size row, the sources table
+    assert "model name &#x27;SGBM&#x27; is used by 2 results" in chtml and chtml.count("<td>SGBM [b]</td>") == 6
 
 
 def test_results_html_is_small_with_colour_bars_and_header(dataset, tmp_path):

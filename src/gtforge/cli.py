@@ -350,10 +350,26 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
              rows: Optional[int] = typer.Option(None, help="Inner corners along a column (default: the calibration's)."),
              square_mm: Optional[float] = typer.Option(None, help="Square size, mm (default: the calibration's)."),
              xy_threshold_px: float = typer.Option(0.3, help="PASS when the mean XY error is at most this (px)."),
-             z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%).")) -> None:
-    """XY reprojection (px) and Z geometric (%) accuracy; exit code 1 on FAIL."""
+             z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%)."),
+             gauges_only: bool = typer.Option(False, "--gauges-only",
+                                              help="Only the gauge objects of gauges/gauges.yaml (VDI/VDE 2634-2 "
+                                                   "figures; needs --calibration), not the board captures.")) -> None:
+    """XY reprojection (px) and Z geometric (%) accuracy, and the gauge objects' VDI/VDE 2634-2 figures when the
+    session has gauges/gauges.yaml; exit code 1 on FAIL."""
     from gtforge.calibrate import BoardModel
+    from gtforge.gauges import summary_lines as gauge_lines, validate_gauges
     from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams, validate as run
+
+    if gauges_only:
+        if calibration is None:
+            raise InputError(None, "--calibration", "a calibration file with --gauges-only", "none")
+        grep = validate_gauges(session, calibration, output, progress=_status)
+        for line in gauge_lines(grep):
+            out.print(line)
+        out.print(f"report: {output / 'gauges.html'}")
+        if grep.status == "FAIL":
+            raise typer.Exit(1)
+        return
 
     board = None
     if cols is not None or rows is not None or square_mm is not None:
@@ -377,8 +393,11 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
 
     for line in summary_lines(rep.rectification):
         out.print(line)
+    if rep.gauges is not None:
+        for line in gauge_lines(rep.gauges):
+            out.print(line)
     out.print(f"report: {output / 'validation.html'}")
-    if not rep.passed:
+    if not rep.passed or (rep.gauges is not None and rep.gauges.status == "FAIL"):
         raise typer.Exit(1)
 
 
@@ -415,7 +434,12 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
                                                   help="Network input size with --fit resize."),
              params_count: Optional[int] = typer.Option(None, metavar="N", help="Parameter count for the table."),
              clouds: bool = typer.Option(False, "--clouds/--no-clouds",
-                                         help="Also write a PLY point cloud per scene, coloured by depth error.")) -> None:
+                                         help="Also write a PLY point cloud per scene, coloured by depth error."),
+             fruit_size: bool = typer.Option(True, "--fruit-size/--no-fruit-size",
+                                             help="Measure each fruit's diameter, height and volume (GT and model)."),
+             grades: Optional[str] = typer.Option(
+                 None, metavar="QUANTITY:EDGES", help="Grade bins for the fruit, e.g. diameter_mm:180,200,220 or "
+                 "volume_ml:2500,4000: grade confusion of model vs GT.")) -> None:
     """Score a model's disparities against the built ground truth, per region.
 
     Exactly one model option is required: --onnx, --torchscript, --predictions or --sgbm.
@@ -441,8 +465,14 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
         pred = PredictionFolder(predictions, name)
     else:
         pred = SGBM(name=name or "SGBM")
-    rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma)
+    from gtforge.fruit_size import parse_grades
+
+    bins = parse_grades(grades) if grades is not None else None
+    rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma,
+              grades=bins, fruit_size=fruit_size)
     out.print(tables_markdown([rep]))
+    if rep.fruit_size is not None and rep.fruit_size.time_ms_per_scene is not None:
+        out.print(f"fruit size measured in {rep.fruit_size.time_ms_per_scene:.0f} ms per scene (median)")
     out.print(f"median warm inference {rep.time_ms_median:.1f} ms/frame ({rep.provider}); results in {output}")
     if rep.missing:
         out.print(f"{len(rep.missing)} scene(s) excluded: " + "; ".join(f"{k}: {v}" for k, v in rep.missing.items()))
@@ -469,7 +499,9 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                       help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
           seed: int = typer.Option(0, help="Random seed (the same seed renders the same session)."),
           depth_noise_mm: float = typer.Option(0.03, metavar="MM", min=0.0,
-                                               help="Gaussian noise added to the structured-light depth (mm).")) -> None:
+                                               help="Gaussian noise added to the structured-light depth (mm)."),
+          gauges: bool = typer.Option(False, "--gauges", help="Also capture gauge objects (a sphere, a sphere pair, "
+                                      "a plate) into gauges/ with gauges.yaml, for validate.")) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
@@ -478,6 +510,11 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
                      progress=_progress_lines)
+    if gauges:
+        from gtforge.synthetic import generate_gauges
+
+        generate_gauges(output, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm)
+        _progress_lines("gauges")
     out.print(f"wrote {output}")
 
 

@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import time
 from pathlib import Path
 from typing import Callable, ClassVar
 
@@ -24,6 +25,7 @@ from gtforge.metrics import (
     region_errors,
 )
 from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
+from gtforge.fruit_size import FruitSizeReport, GradeBins, measure_scene, scene_truth, summarise
 from gtforge.schema import VersionedFile
 
 log = logging.getLogger("gtforge.evaluate")
@@ -44,6 +46,7 @@ class SceneCalib:
         try:
             cam0 = [float(x) for x in re.split(r"[\s;]+", kv["cam0"].strip("[] "))]
             self.f_px = cam0[0]
+            self.fy_px = cam0[4]
             self.cx_px, self.cy_px = cam0[2], cam0[5]
             self.doffs_px = float(kv["doffs"])
             self.baseline_mm = float(kv["baseline"])
@@ -93,6 +96,8 @@ class EvalReport(VersionedFile):
     pooled: dict[str, Metrics]
     per_image_mean: dict[str, Metrics]
     per_scene: list[SceneResult]
+    # per-fruit size, volume and grade (gtforge.fruit_size); absent in results written before it existed
+    fruit_size: "FruitSizeReport | None" = None
 
 
 def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
@@ -170,12 +175,14 @@ def nice_ceil(x: float) -> float:
 
 def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path | None = None, split: str | None = None,
              max_disp_px: float | None = None, write_clouds: bool = False, params_count: int | None = None,
-             progress: Callable[[str], None] | None = None, max_gt_sigma_px: float | None = None) -> EvalReport:
+             progress: Callable[[str], None] | None = None, max_gt_sigma_px: float | None = None,
+             grades: GradeBins | None = None, fruit_size: bool = True) -> EvalReport:
     """Evaluate ``predictor`` on every scene (or a split) of a built dataset.
 
     ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
-    any scoring and listed in ``EvalReport.missing``."""
+    any scoring and listed in ``EvalReport.missing``. ``fruit_size``: also measure every fruit's diameter, height
+    and volume from the GT and the prediction (``gtforge.fruit_size``; ``grades``: bins for the grade confusion)."""
     ds = Path(dataset_dir)
     if not (ds / "manifest.json").is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
@@ -208,6 +215,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         for sid in absent:
             missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"
     warmed = False
+    fruit_records, fruit_ms = [], []
     for k, sid in enumerate(ids):
         if sid in missing:
             continue
@@ -217,7 +225,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         try:
             left, right = read_image(s / "im0.png"), read_image(s / "im1.png")
             gt = read_pfm(s / "disp0GT.pfm")
-            masks = region_masks(read_image(s / "region.png"), read_image(s / "mask0nocc.png"))
+            region = read_image(s / "region.png")
+            masks = region_masks(region, read_image(s / "mask0nocc.png"))
             cal = SceneCalib(s / "calib.txt")
             sigma = None
             if max_gt_sigma_px is not None:
@@ -243,6 +252,10 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             res[r] = metrics_from_errors(*re_)
             pooled[r].add(*re_)
         scene = SceneResult(scene=sid, time_ms=ms, metrics=res)
+        if fruit_size:  # per-fruit diameter, height, volume and grade (gtforge.fruit_size)
+            t0 = time.perf_counter()
+            fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
+            fruit_ms.append((time.perf_counter() - t0) * 1000.0)
         if out is not None:
             _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px, write_clouds)
         per_scene.append(scene)
@@ -260,10 +273,16 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                      pooled={r: a.result() for r, a in pooled.items()},
                      per_image_mean={r: mean_of([s.metrics[r] for s in per_scene]) for r in REGIONS},
                      per_scene=per_scene)
+    if fruit_size:
+        rep.fruit_size = summarise(fruit_records, grades, time_ms_per_scene=float(np.median(fruit_ms)) if fruit_ms else None)
     if out is not None:
         from gtforge.reports.evaluation import write_eval_html, write_tables
 
         write_tables([rep], out)
+        if rep.fruit_size is not None:
+            from gtforge.reports.fruit_size import write_fruit_csv
+
+            write_fruit_csv(rep, out / "fruit_size.csv")
         rep.write(out / "results.json")
         write_eval_html(rep, out)
     return rep

@@ -352,6 +352,20 @@ class SyntheticCapture:
     corners_mech_uv: np.ndarray | None = None
     corners_zed_uv: np.ndarray | None = None
     fruit_id: str | None = None
+    # the fruit ellipsoids in the ZED-left frame (fruit_ellipsoids_zed): centre_mm (K, 3), radii_mm (K, 3),
+    # R_zed_from_fruit (K, 3, 3) (columns: the semi-axes' directions), and T_zed_from_world
+    fruit_truth: dict | None = None
+
+
+def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
+    """Exact fruit shapes in the ZED-left frame: every ``SpheroidObject`` (world-axis-aligned ellipsoid) as
+    ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus ``T_zed_from_world``."""
+    fr = [o for o in scene.objects if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT]
+    R = T_zed_from_world[:3, :3]
+    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world, o.c[None])[0] for o in fr]).reshape(-1, 3),
+                fruit_radii_mm=np.array([o.r for o in fr]).reshape(-1, 3),
+                fruit_R_zed_from_fruit=np.array([R for _ in fr]).reshape(-1, 3, 3),
+                T_zed_from_world=np.asarray(T_zed_from_world, float))
 
 
 def _table(seed: int) -> PlaneObject:
@@ -405,7 +419,8 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     disp_r = zed.depth_to_disparity(np.where(hit_r, z_r, np.nan))
     seen_r = _seen_by_depth_camera(zed_scene, rig, p_r, hit_r)
     return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
-                            ids_z == OBJ_FRUIT, disp_r, seen_r)
+                            ids_z == OBJ_FRUIT, disp_r, seen_r,
+                            fruit_truth=fruit_ellipsoids_zed(zed_scene, rig.T_zed_from_world))
 
 
 def _seen_by_depth_camera(scene: Scene, rig: SyntheticRig, p_world: np.ndarray, hit: np.ndarray) -> np.ndarray:
@@ -541,6 +556,8 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
                      corners_zed_uv=cap.corners_zed_uv)
     if cap.zed_right_disparity_px is not None:
         extra.update(zed_right_disparity_px=cap.zed_right_disparity_px, seen_by_mech_right=cap.seen_by_mech_right)
+    if cap.fruit_truth is not None:
+        extra.update(cap.fruit_truth)
     np.savez_compressed(truth_dir / f"{cap.kind}_{cap.name}.npz", zed_depth_mm=cap.zed_depth_mm,
                         zed_disparity_px=cap.zed_disparity_px, seen_by_mech=cap.seen_by_mech,
                         fruit_mask=cap.fruit_mask, fruit_motion_mm=np.asarray(fruit_motion_mm, float), **extra)
@@ -748,3 +765,128 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
             progress(f"scene {cap.name}")
     SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids).write(out / "session.yaml")
     return out
+
+
+# ---- gauge objects (VDI/VDE 2634-2: spheres, a sphere pair, a plane) ------------------------------
+OBJ_GAUGE = 4
+
+
+def _gauge_albedo(xy: np.ndarray) -> np.ndarray:
+    """A matte grey with a fine speckle (texture for the ZED images; the structured-light depth ignores it)."""
+    return 0.55 + 0.15 * np.sin(xy[:, 0] * 0.7) * np.sin(xy[:, 1] * 0.9)
+
+
+class SphereGauge(SpheroidObject):
+    """A calibrated sphere (matte, speckled)."""
+
+    def __init__(self, centre: np.ndarray, diameter_mm: float, seed: int):
+        super().__init__(OBJ_GAUGE, centre, np.full(3, diameter_mm / 2.0), 0, 0.0, seed)
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        q = (p_world - self.c) / self.r
+        n = self.noise(np.stack([np.arctan2(q[:, 1], q[:, 0]) * 60, np.arcsin(np.clip(q[:, 2], -1, 1)) * 60], axis=1))
+        return (0.45 + 0.35 * n)[:, None] * np.ones(3)
+
+
+class RodGauge:
+    """A cylinder of ``diameter_mm`` from ``a`` to ``b`` (a ball bar's bar; open ends, inside the spheres)."""
+
+    def __init__(self, a: np.ndarray, b: np.ndarray, diameter_mm: float):
+        self.obj_id = OBJ_GAUGE
+        self.a = np.asarray(a, float)
+        self.length = float(np.linalg.norm(np.asarray(b, float) - self.a))
+        self.ax = (np.asarray(b, float) - self.a) / self.length
+        self.r = diameter_mm / 2
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        m = o - self.a
+        dp = d - np.outer(d @ self.ax, self.ax)
+        mp = m - np.outer(m @ self.ax, self.ax)
+        A = np.einsum("ij,ij->i", dp, dp)
+        B = 2 * np.einsum("ij,ij->i", mp, dp)
+        C = np.einsum("ij,ij->i", mp, mp) - self.r ** 2
+        disc = B * B - 4 * A * C
+        sq = np.sqrt(np.maximum(disc, 0))
+        t = np.full(len(d), np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for tk in ((-B + sq) / (2 * A), (-B - sq) / (2 * A)):  # nearer last: it wins where both are valid
+                s_ = np.einsum("ij,j->i", m + tk[:, None] * d, self.ax)
+                ok = (disc >= 0) & (A > 1e-12) & (tk > 1e-9) & (s_ >= 0) & (s_ <= self.length)
+                t = np.where(ok & (tk < t), tk, t)
+        return t
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        return np.full((len(p_world), 3), 0.6)
+
+    def normal(self, p_world: np.ndarray) -> np.ndarray:
+        m = p_world - self.a
+        n = m - np.outer(m @ self.ax, self.ax)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0, pair_diameter_mm: float = 80.0,
+                 pair_distance_mm: float = 240.0, plane_wh_mm: tuple[float, float] = (220.0, 150.0),
+                 plane_tilt_deg: float = 20.0, pair_bar_mm: float = 0.0) -> dict[str, tuple[Scene, dict]]:
+    """name -> (scene, truth in the world frame): a sphere resting on the table, two spheres at a known centre
+    distance (``pair_bar_mm`` > 0: joined by a bar of that diameter, a ball bar), a tilted plate 60 mm above the
+    table; all under the middle of the structured-light view."""
+    T_world_from_mech = invert_T(rig.T_mech_from_world)
+    p, d = T_world_from_mech[:3, 3], T_world_from_mech[:3, 2]
+    c_table = p + (-p[2] / d[2]) * d
+    out = {}
+    r = sphere_diameter_mm / 2
+    c = c_table + [0, 0, r]
+    out["sphere"] = (Scene([_table(seed), SphereGauge(c, sphere_diameter_mm, seed)]),
+                     dict(kind="sphere", centres_world_mm=np.array([c]), diameter_mm=sphere_diameter_mm))
+    r = pair_diameter_mm / 2
+    ang = np.radians(25.0)
+    half = pair_distance_mm / 2 * np.array([np.cos(ang), np.sin(ang), 0.0])
+    cs = np.array([c_table - half + [0, 0, r], c_table + half + [0, 0, r]])
+    bar = [RodGauge(cs[0], cs[1], pair_bar_mm)] if pair_bar_mm > 0 else []
+    out["sphere_pair"] = (Scene([_table(seed + 1)] + [SphereGauge(x, pair_diameter_mm, seed + 2 + k) for k, x in enumerate(cs)]
+                                + bar),
+                          dict(kind="sphere_pair", centres_world_mm=cs, diameter_mm=pair_diameter_mm,
+                               centre_distance_mm=pair_distance_mm))
+    w, h = plane_wh_mm
+    T_plate = make_T(cv2.Rodrigues(np.array([np.radians(plane_tilt_deg), 0.0, 0.0]))[0], c_table + [0, 0, 60.0])
+    out["plane"] = (Scene([_table(seed + 3), PlaneObject(OBJ_GAUGE, T_plate, _gauge_albedo, (-w / 2, w / 2, -h / 2, h / 2))]),
+                    dict(kind="plane", normal_world=T_plate[:3, 2], point_world_mm=T_plate[:3, 3]))
+    return out
+
+
+def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 0, depth_noise_mm: float = 0.0,
+                    depth_scale: float = 1.0, image_noise: float = 1.5, supersample: int = 1, two_camera: bool = False,
+                    names: tuple[str, ...] | None = None, **sizes) -> Path:
+    """Add ``gauges/`` to a session written by ``generate_session`` (same ``scale``/``two_camera``): one capture per
+    gauge object (``gauge_scenes``; ``sizes`` override its sizes) and ``gauges/gauges.yaml`` naming each object's
+    calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
+    depth scale error). ``names``: only these of ``sphere``, ``sphere_pair``, ``plane``. ``truth/gauge_<name>.npz``: the
+    exact centres (ZED-left frame) or plane, and ZED-left truth."""
+    from gtforge.gauges import GaugeSpec, GaugesFile
+
+    root = Path(session_dir)
+    rig = two_camera_rig(scale) if two_camera else default_rig(scale)
+    rng = np.random.default_rng(seed + 7000)
+    specs = []
+    for name, (scene, truth) in gauge_scenes(rig, seed, **sizes).items():
+        if names is not None and name not in names:
+            continue
+        cap = render_capture(name, scene, rig, rng, kind="gauge", supersample=supersample,
+                             depth_noise_mm=depth_noise_mm, image_noise=image_noise)
+        cap.mech_depth_mm = (cap.mech_depth_mm * np.float32(depth_scale)).astype(np.float32)
+        cap.fruit_truth = None
+        write_capture(root / "gauges" / name, cap, root / "truth")
+        T = rig.T_zed_from_world
+        extra = {}
+        if "centres_world_mm" in truth:
+            extra["centres_zed_mm"] = transform_points(T, truth["centres_world_mm"])
+        if truth["kind"] == "plane":
+            n = T[:3, :3] @ truth["normal_world"]
+            extra.update(plane_normal_zed=n, plane_offset_zed_mm=float(n @ transform_points(T, truth["point_world_mm"][None])[0]))
+        with np.load(root / "truth" / f"gauge_{name}.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        np.savez_compressed(root / "truth" / f"gauge_{name}.npz", **arrays, **extra)
+        specs.append(GaugeSpec(capture=name, kind=truth["kind"], diameter_mm=truth.get("diameter_mm"),
+                               centre_distance_mm=truth.get("centre_distance_mm")))
+    GaugesFile(gauges=specs).write(root / "gauges" / "gauges.yaml")
+    return root

@@ -21,6 +21,7 @@ from gtforge.board import check_board_spec, detect_corners
 from gtforge.calibrate import BoardModel, CalibrateParams, CalibrationFile, calibrate, solve_pnp
 from gtforge.camera import PinholeCamera, Rig
 from gtforge.errors import InputError
+from gtforge.gauges import GaugeReport
 from gtforge.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
 from gtforge.rectification import RectificationMeter, RectificationQuality, rectified_by
 from gtforge.reproject import ReprojectParams, project_depth_to_camera
@@ -92,6 +93,8 @@ class ValidationReport(VersionedFile):
     corner_errors: list[list[float]] = Field(default_factory=list)  # (u_zed, v_zed, du, dv) per corner
     # vertical disparity of the board corners in both rectified ZED images (gtforge.rectification)
     rectification: RectificationQuality | None = None
+    # VDI/VDE 2634-2 figures on the session's gauge objects (gtforge.gauges); absent: no gauges/gauges.yaml
+    gauges: GaugeReport | None = None
 
 
 def corners_3d_from_depth(corners_uv: np.ndarray, depth_mm: np.ndarray, cam: PinholeCamera,
@@ -230,11 +233,13 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
 
 def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: str | Path | None = None,
              params: ValidateParams | None = None, captures: list[str] | None = None, holdout: int = 0,
-             progress: Callable[[str], None] | None = None) -> ValidationReport:
+             progress: Callable[[str], None] | None = None, gauges: bool = True) -> ValidationReport:
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
     ``holdout=K``: calibrate on all board captures but the last K and validate on those K; that calibration
-    goes to ``out_dir/holdout_calibration.yaml`` (``calibration`` is neither needed nor touched)."""
+    goes to ``out_dir/holdout_calibration.yaml`` (``calibration`` is neither needed nor touched). ``gauges``: also
+    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.gauges``; written to
+    ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
     from gtforge.io.captures import open_session
 
     params = params or ValidateParams()
@@ -313,6 +318,10 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         xy_model_mean_px=float(np.average([p.xy_model_mean_px for p in poses], weights=[p.n_corners for p in poses])),
         board=board_model, warnings=warnings, skipped=skipped, poses=poses, corner_errors=allv.tolist(),
         rectification=rect)
+    from gtforge.gauges import GAUGES_DIR, GAUGES_FILE, validate_gauges
+
+    if gauges and (session.root / GAUGES_DIR / GAUGES_FILE).is_file():
+        rep.gauges = validate_gauges(session_dir, calib_path, out_dir, progress=progress)
     if out_dir is not None:
         from gtforge.reports.validation import write_validation_report
 

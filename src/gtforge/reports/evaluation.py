@@ -153,7 +153,10 @@ def tables_markdown(reports: list[EvalReport], labels: list[str] | None = None,
     lines = [f"> warning: {w}" for w in warnings or []] + ([""] if warnings else [])
     lines += ["| " + " | ".join(h) + " |", "|" + "---|" * len(h)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in _rows(reports, labels)]
-    return "\n".join(lines) + "\n\n" + "\n\n".join(_notes(reports)) + "\n"
+    from gtforge.reports.fruit_size import fruit_markdown
+
+    fruit = fruit_markdown(reports, labels)
+    return "\n".join(lines) + "\n\n" + "\n\n".join(_notes(reports)) + "\n" + ("\n" + fruit if fruit else "")
 
 
 def write_tables(reports: list[EvalReport], out: Path, stem: str = "results", labels: list[str] | None = None,
@@ -223,6 +226,11 @@ def write_eval_html(rep: EvalReport, out: Path, max_scenes: int = MAX_SCENES_SHO
              "time (ms)"], scene_rows)),
         Section("Error maps", _scene_maps(rep, out, max_scenes)),
     ]
+    from gtforge.reports.fruit_size import fruit_section
+
+    fruit = fruit_section(rep)
+    if fruit is not None:
+        sections.insert(2, fruit)
     if rep.missing:
         sections.insert(0, Section(f"{len(rep.missing)} scene(s) excluded", table(
             ["scene", "reason"], list(rep.missing.items())), status="warn"))
@@ -293,6 +301,11 @@ def write_comparison_html(reports: list[EvalReport], files: list[Path], labels: 
     h = headers(reports)
     sections.append(Section("Pooled results", table(h, list(_rows(reports, labels))) +
                             "".join(note(n) for n in _notes(reports))))
+    from gtforge.reports.fruit_size import comparison_section
+
+    fruit = comparison_section(reports, labels)
+    if fruit is not None:
+        sections.append(fruit)
     src = [[lab, str(f), r.model_source or r.model, r.dataset_dir, r.split or "every scene", len(r.scenes), r.created or None]
            for lab, f, r in zip(labels, files, reports)]
     sections.append(Section("Results compared", table(["row label", "results.json", "model", "dataset", "split",

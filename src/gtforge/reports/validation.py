@@ -147,8 +147,20 @@ def rectification_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Sect
 
 
 SectionBuilder = Callable[[ValidationReport, PinholeCamera], "Section | None"]
+def gauges_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
+    """The gauge objects' VDI/VDE 2634-2 figures (gauges.html has the residual maps and histograms)."""
+    if rep.gauges is None:
+        return None
+    from gtforge.reports.gauges import gauge_sections
+
+    parts = gauge_sections(rep.gauges)
+    body = parts[0].body + "".join(f"<h3>{html.escape(p.heading)}</h3>{p.body}" for p in parts[1:])
+    body += note('Residual maps and histograms: <a href="gauges.html">gauges.html</a>.')
+    return Section(parts[0].heading, body, status=parts[0].status)
+
+
 SECTIONS: list[SectionBuilder] = [verdict_section, per_pose_section, field_of_view_section, poses_section,
-                                  skipped_section, rectification_section]
+                                  skipped_section, rectification_section, gauges_section]
 
 
 def write_validation_report(rep: ValidationReport, out: Path, zed_cam: PinholeCamera,
