@@ -1,0 +1,675 @@
+"""Calibration targets other than the full checkerboard: ChArUco (partial views) and circle grids.
+
+One board definition, ``BoardModel`` (``kind`` + sizes + ArUco dictionary + legacy flag), is given on the
+command line or in session.yaml, recorded in the calibration file and turned by ``BoardModel.spec()`` into the
+geometry the stages and the generator use (``gtforge.synthetic.BoardSpec`` for the checkerboard, ``CharucoSpec``,
+``CircleGridSpec`` here; all share ``corners_board()``, ``extent_mm()``, ``albedo()``). Every detection carries
+``ids``: indices into ``corners_board()`` (board order), so a board cut by the image border still gives its
+visible points, matched between cameras by id.
+
+Point meanings (docs/targets.md): ChArUco corners are the chessboard's inner corners, OpenCV's ids
+(``CharucoBoard.getChessboardCorners()``, origin moved to corner 0); circle-grid points are circle centres in
+``cv2.findCirclesGrid``'s order.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+import cv2
+import numpy as np
+from pydantic import model_serializer
+
+from gtforge.board import Detection
+from gtforge.errors import InputError
+from gtforge.io.formats import to_gray
+from gtforge.schema import GTModel
+from gtforge.synthetic import BoardSpec
+
+log = logging.getLogger("gtforge.targets")
+
+BoardKind = Literal["checkerboard", "charuco", "circles_symmetric", "circles_asymmetric"]
+# dictionaries tried when the declared one finds no markers (the error then names what the board carries)
+ARUCO_DICTIONARIES = ("DICT_4X4_1000", "DICT_5X5_1000", "DICT_6X6_1000", "DICT_7X7_1000", "DICT_ARUCO_ORIGINAL",
+                      "DICT_APRILTAG_36h11", "DICT_APRILTAG_25h9", "DICT_APRILTAG_16h5")
+MIN_COMMON_CORNERS = 6  # a pose needs this many points seen by both cameras (PnP on a plane needs 4; margin)
+
+
+class BoardModel(GTModel):
+    """The calibration target, as declared (CLI ``--board``/``--cols``/... or session.yaml ``board:``).
+
+    ``cols`` x ``rows``: inner corners (checkerboard); **squares** (ChArUco, as OpenCV's ``CharucoBoard`` and board
+    generators count them); circles per row x rows (circle grids, ``cv2.findCirclesGrid``'s pattern size).
+    ``square_size_mm``: the square side, or the circle spacing (asymmetric grids: OpenCV's spacing, the centre
+    of circle ``(row i, col j)`` at ``((2 j + i % 2) s, i s)``)."""
+
+    kind: BoardKind = "checkerboard"
+    cols: int = 12
+    rows: int = 9
+    square_size_mm: float = 20.0
+    marker_size_mm: float | None = None  # ChArUco: the ArUco marker's side
+    dictionary: str | None = None  # ChArUco: OpenCV's predefined dictionary name, e.g. DICT_5X5_100
+    legacy_pattern: bool = False  # ChArUco boards made before OpenCV 4.6 with an even row count
+    circle_diameter_mm: float | None = None  # circle grids (None: half the spacing)
+
+    @model_serializer(mode="wrap")
+    def _compact(self, handler):
+        # a checkerboard record stays what it was before the other targets existed (older files, older readers)
+        d = handler(self)
+        if self.kind == "checkerboard":
+            return {k: d[k] for k in ("cols", "rows", "square_size_mm")}
+        return {k: v for k, v in d.items() if v is not None}
+
+    def spec(self):
+        if self.kind == "checkerboard":
+            return BoardSpec(self.cols, self.rows, self.square_size_mm)
+        if self.kind == "charuco":
+            return CharucoSpec(self.cols, self.rows, self.square_size_mm,
+                               self.marker_size_mm if self.marker_size_mm is not None else 0.75 * self.square_size_mm,
+                               self.dictionary or "DICT_5X5_100", self.legacy_pattern)
+        return CircleGridSpec(self.cols, self.rows, self.square_size_mm,
+                              self.circle_diameter_mm or 0.5 * self.square_size_mm,
+                              self.kind == "circles_asymmetric")
+
+    def describe(self) -> str:
+        if self.kind == "checkerboard":
+            return f"checkerboard {self.cols} x {self.rows} inner corners, {self.square_size_mm:g} mm squares"
+        if self.kind == "charuco":
+            return (f"ChArUco {self.cols} x {self.rows} squares, {self.square_size_mm:g} mm squares, "
+                    f"{self.marker_size_mm:g} mm markers, {self.dictionary}"
+                    + (", legacy pattern" if self.legacy_pattern else ""))
+        return (f"{'asymmetric' if self.kind == 'circles_asymmetric' else 'symmetric'} circle grid "
+                f"{self.cols} x {self.rows}, spacing {self.square_size_mm:g} mm, "
+                f"circles {self.circle_diameter_mm or 0.5 * self.square_size_mm:g} mm")
+
+
+def board_model_of(spec) -> BoardModel:
+    """The declaration that gives ``spec`` back (the generator writes it into session.yaml)."""
+    if isinstance(spec, CharucoSpec):
+        return BoardModel(kind="charuco", cols=spec.squares_x, rows=spec.squares_y, square_size_mm=spec.square_size_mm,
+                          marker_size_mm=spec.marker_size_mm, dictionary=spec.dictionary,
+                          legacy_pattern=spec.legacy_pattern)
+    if isinstance(spec, CircleGridSpec):
+        return BoardModel(kind="circles_asymmetric" if spec.asymmetric else "circles_symmetric", cols=spec.cols,
+                          rows=spec.rows, square_size_mm=spec.square_size_mm, circle_diameter_mm=spec.diameter_mm)
+    return BoardModel(cols=spec.cols, rows=spec.rows, square_size_mm=spec.square_size_mm)
+
+
+def _dictionary(name: str):
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+
+
+def check_board_model(board: BoardModel, where: str = "board") -> None:
+    """Refuse a declaration no detector can honour (one line, naming the field)."""
+    from gtforge.board import check_board_spec
+
+    if board.kind == "checkerboard":
+        check_board_spec(board.spec(), where)
+        return
+    if not board.square_size_mm > 0:
+        raise InputError(None, f"{where}.square_size_mm", "a positive size (mm)", str(board.square_size_mm))
+    if board.kind == "charuco":
+        if board.cols < 3 or board.rows < 3:
+            raise InputError(None, f"{where}.cols/rows", "at least 3x3 squares (ChArUco counts squares)",
+                             f"{board.cols}x{board.rows}")
+        if board.dictionary is None or not hasattr(cv2.aruco, board.dictionary) or not board.dictionary.startswith("DICT_"):
+            raise InputError(None, f"{where}.dictionary", "an OpenCV ArUco dictionary name such as DICT_5X5_100",
+                             repr(board.dictionary), "the board generator's settings name it (dictionary/--dictionary)")
+        if board.marker_size_mm is None or not 0 < board.marker_size_mm < board.square_size_mm:
+            raise InputError(None, f"{where}.marker_size_mm", f"a marker side between 0 and the square "
+                             f"({board.square_size_mm:g} mm)", repr(board.marker_size_mm), "measure a marker's black "
+                             "outline on the print (--marker-mm)")
+        n_markers = (board.cols * board.rows) // 2
+        size = _dictionary(board.dictionary).bytesList.shape[0]
+        if n_markers > size:
+            raise InputError(None, f"{where}.dictionary", f"a dictionary with at least {n_markers} markers for a "
+                             f"{board.cols}x{board.rows} board", f"{board.dictionary} ({size} markers)")
+        return
+    if board.cols < 3 or board.rows < 3:
+        raise InputError(None, f"{where}.cols/rows", "at least 3x3 circles", f"{board.cols}x{board.rows}")
+    if board.kind == "circles_symmetric" and board.cols == board.rows:
+        raise InputError(None, f"{where}.cols/rows", "a symmetric grid with different counts per row and column",
+                         f"{board.cols}x{board.rows}", "a square grid looks the same turned by 90 degrees")
+    d = board.circle_diameter_mm or 0.5 * board.square_size_mm
+    nn = board.square_size_mm * (np.sqrt(2) if board.kind == "circles_asymmetric" else 1.0)
+    if not 0 < d < nn:
+        raise InputError(None, f"{where}.circle_diameter_mm", f"a diameter below the circles' spacing ({nn:.3g} mm)",
+                         f"{d:g}")
+
+
+# ---- ChArUco ---------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=16)
+def _cv_charuco(sx: int, sy: int, s: float, m: float, dictionary: str, legacy: bool):
+    b = cv2.aruco.CharucoBoard((sx, sy), s, m, _dictionary(dictionary))
+    b.setLegacyPattern(legacy)
+    return b
+
+
+@functools.lru_cache(maxsize=8)
+def _charuco_texture(sx: int, sy: int, s: float, m: float, dictionary: str, legacy: bool, px_per_square: int):
+    """OpenCV's own drawing of the board, ``px_per_square`` pixels per square, no margin: square edges fall on pixel
+    edges, so sampling it by ``floor`` gives the exact chessboard edges (the corners' ground truth)."""
+    return _cv_charuco(sx, sy, s, m, dictionary, legacy).generateImage((sx * px_per_square, sy * px_per_square),
+                                                                        marginSize=0, borderBits=1)
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """ChArUco board: ``squares_x`` x ``squares_y`` squares. Board frame as the checkerboard's: origin at inner
+    corner 0 (OpenCV's ChArUco corner id 0), x along the id order, z into the board."""
+
+    squares_x: int
+    squares_y: int
+    square_size_mm: float
+    marker_size_mm: float
+    dictionary: str
+    legacy_pattern: bool = False
+    margin_mm: float = 15.0
+    kind: ClassVar[str] = "charuco"
+    px_per_square: ClassVar[int] = 120
+
+    @property
+    def cols(self) -> int:
+        return self.squares_x - 1
+
+    @property
+    def rows(self) -> int:
+        return self.squares_y - 1
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+    @property
+    def n_markers(self) -> int:
+        return (self.squares_x * self.squares_y) // 2
+
+    def cv_board(self):
+        return _cv_charuco(self.squares_x, self.squares_y, self.square_size_mm, self.marker_size_mm, self.dictionary,
+                           self.legacy_pattern)
+
+    def corners_board(self) -> np.ndarray:
+        c = np.asarray(self.cv_board().getChessboardCorners(), np.float64).reshape(-1, 3)
+        return c - np.array([self.square_size_mm, self.square_size_mm, 0.0])
+
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        s, m = self.square_size_mm, self.margin_mm
+        return (-s - m, (self.squares_x - 1) * s + m, -s - m, (self.squares_y - 1) * s + m)
+
+    def albedo(self, xy: np.ndarray) -> np.ndarray:
+        tex = _charuco_texture(self.squares_x, self.squares_y, self.square_size_mm, self.marker_size_mm,
+                               self.dictionary, self.legacy_pattern, self.px_per_square)
+        s = self.square_size_mm
+        p = (xy + s) / s * self.px_per_square  # texture pixels, continuous (pixel k covers [k, k+1))
+        iu, iv = np.floor(p[:, 0]).astype(np.int64), np.floor(p[:, 1]).astype(np.int64)
+        inside = (iu >= 0) & (iu < tex.shape[1]) & (iv >= 0) & (iv < tex.shape[0])
+        val = np.full(len(xy), 255, np.uint8)
+        val[inside] = tex[iv[inside], iu[inside]]
+        return np.where(val > 127, 0.88, 0.08)
+
+    @property
+    def diagonal_mm(self) -> float:
+        s = self.square_size_mm
+        return float(np.hypot((self.cols - 1) * s, (self.rows - 1) * s))
+
+
+# ---- circle grids ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CircleGridSpec:
+    """Dark circles on a white plate, OpenCV's layout and order (``cv2.findCirclesGrid``): ``cols`` circles per
+    row, ``rows`` rows; symmetric: centre ``(j s, i s)``; asymmetric: ``((2 j + i % 2) s, i s)``."""
+
+    cols: int
+    rows: int
+    square_size_mm: float  # the spacing
+    diameter_mm: float
+    asymmetric: bool = False
+    margin_mm: float = 15.0
+
+    @property
+    def kind(self) -> str:
+        return "circles_asymmetric" if self.asymmetric else "circles_symmetric"
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+    def corners_board(self) -> np.ndarray:
+        i, j = np.mgrid[0:self.rows, 0:self.cols]
+        s = self.square_size_mm
+        x = (2 * j + (i % 2)) * s if self.asymmetric else j * s
+        return np.stack([x.ravel(), (i * s).ravel(), np.zeros(i.size)], axis=1).astype(np.float64)
+
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        c = self.corners_board()
+        m = self.margin_mm + self.diameter_mm / 2
+        return (c[:, 0].min() - m, c[:, 0].max() + m, c[:, 1].min() - m, c[:, 1].max() + m)
+
+    def albedo(self, xy: np.ndarray) -> np.ndarray:
+        c = self.corners_board()[:, :2]
+        s = self.square_size_mm
+        # nearest centre by rounding to the lattice (asymmetric: the nearer of the two row candidates)
+        r = (self.diameter_mm / 2) ** 2
+        dark = np.zeros(len(xy), bool)
+        iy = np.round(xy[:, 1] / s).astype(np.int64)
+        for di in (-1, 0, 1):
+            i = iy + di
+            ok_i = (i >= 0) & (i < self.rows)
+            off = np.where(i % 2 == 1, s, 0.0) if self.asymmetric else 0.0
+            step = 2 * s if self.asymmetric else s
+            j = np.round((xy[:, 0] - off) / step).astype(np.int64)
+            ok = ok_i & (j >= 0) & (j < self.cols)
+            cx, cy = j * step + off, i * s
+            dark |= ok & ((xy[:, 0] - cx) ** 2 + (xy[:, 1] - cy) ** 2 <= r)
+        del c
+        return np.where(dark, 0.08, 0.88)
+
+    @property
+    def diagonal_mm(self) -> float:
+        c = self.corners_board()
+        return float(np.hypot(np.ptp(c[:, 0]), np.ptp(c[:, 1])))
+
+
+def neighbour_pairs(spec, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (into ``ids``) of nearest neighbours on the board (square or circle spacing apart)."""
+    X = spec.corners_board()[ids, :2]
+    d = np.linalg.norm(X[:, None] - X[None], axis=2)
+    nn = spec.square_size_mm * (np.sqrt(2) if getattr(spec, "asymmetric", False) else 1.0)
+    a, b = np.nonzero(np.triu(np.abs(d - nn) < 1e-6 * nn))
+    return a, b
+
+
+def collinear(X: np.ndarray, min_ratio: float = 0.05) -> bool:
+    """Whether board points ``(N, 3)`` lie (nearly) on one line: their second principal extent is below
+    ``min_ratio`` of the first (PnP then has no unique solution)."""
+    if len(X) < 3:
+        return True
+    sv = np.linalg.svd(X[:, :2] - X[:, :2].mean(0), compute_uv=False)
+    return bool(sv[1] < min_ratio * sv[0])
+
+
+# ---- blur (edge width) for every target -------------------------------------------------------
+def edge_width_px(gray: np.ndarray, pts_uv: np.ndarray, radius_px: float) -> float:
+    """Median 10-90 % edge width (px) in patches around ``pts_uv``: contrast over the steepest gradient.
+    For a step blurred by a Gaussian of sigma, contrast / max gradient = sigma * sqrt(2 pi) and the 10-90 % width
+    is 2.56 sigma, so width = 1.02 * contrast / max gradient (OpenCV's chessboard sharpness measures the same width,
+    which only full checkerboards can use)."""
+    g = gray.astype(np.float32)
+    gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8, cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8
+    mag = np.hypot(gx, gy)
+    H, W = g.shape
+    r = int(max(3, round(radius_px)))
+    widths = []
+    for u, v in np.round(pts_uv).astype(int):
+        if u - r < 0 or v - r < 0 or u + r >= W or v + r >= H:
+            continue
+        patch, mp = g[v - r:v + r + 1, u - r:u + r + 1], mag[v - r:v + r + 1, u - r:u + r + 1]
+        c = np.percentile(patch, 95) - np.percentile(patch, 5)
+        gm = np.percentile(mp, 99)
+        if gm > 0 and c > 10:
+            widths.append(1.02 * c / gm)
+    return float(np.median(widths)) if widths else float("nan")
+
+
+# ---- detection -------------------------------------------------------------------------------
+def _undistorted_px(uv: np.ndarray, cam) -> np.ndarray:
+    """Pixels with the lens distortion removed (an ideal pinhole with the same K); as given without a camera."""
+    if cam is None or not np.any(cam.dist_coeffs):
+        return np.asarray(uv, np.float64).reshape(-1, 2)
+    xy = cam.undistort_to_normalized(uv)
+    return np.stack([xy[:, 0] * cam.fx_px + cam.cx_px, xy[:, 1] * cam.fy_px + cam.cy_px], axis=1)
+
+
+def _layout_fits(obj_xy: np.ndarray, img_uv: np.ndarray, tol_px: float) -> tuple[float, np.ndarray]:
+    """Fraction of points a single homography maps within ``tol_px`` (a planar board: 1.0 when the declared layout
+    is right), and the inlier mask."""
+    if len(obj_xy) < 8:
+        return 1.0, np.ones(len(obj_xy), bool)
+    Hm, _ = cv2.findHomography(obj_xy.astype(np.float64), img_uv.astype(np.float64), cv2.RANSAC, tol_px)
+    if Hm is None:
+        return 0.0, np.zeros(len(obj_xy), bool)
+    p = cv2.perspectiveTransform(obj_xy.reshape(-1, 1, 2).astype(np.float64), Hm).reshape(-1, 2)
+    inl = np.linalg.norm(p - img_uv, axis=1) < tol_px
+    return float(inl.mean()), inl
+
+
+def _markers(gray: np.ndarray, dictionary: str):
+    det = cv2.aruco.ArucoDetector(_dictionary(dictionary), cv2.aruco.DetectorParameters())
+    corners, ids, _ = det.detectMarkers(gray)
+    if ids is None:
+        return [], np.zeros(0, int)
+    return corners, ids.ravel().astype(int)
+
+
+def _family_largest(dictionary: str) -> str:
+    for fam in ("4X4", "5X5", "6X6", "7X7"):
+        if f"_{fam}_" in dictionary:
+            return f"DICT_{fam}_1000"
+    return dictionary
+
+
+def _marker_side_px(corners) -> float:
+    return float(np.median([np.linalg.norm(np.diff(np.vstack([c.reshape(4, 2), c.reshape(4, 2)[:1]]), axis=0), axis=1).mean()
+                            for c in corners]))
+
+
+def _charuco_layout_fits(spec: CharucoSpec, corners, ids: np.ndarray, cam) -> float:
+    """Fraction of the detected markers' corners where the declared board puts them (one homography)."""
+    keep = [k for k, i in enumerate(ids) if i < spec.n_markers]
+    if len(keep) < 3:
+        return 1.0
+    obj, img = spec.cv_board().matchImagePoints([corners[k] for k in keep], ids[keep].reshape(-1, 1))
+    if obj is None or len(obj) < 8:
+        return 1.0
+    tol = max(1.0, 0.15 * _marker_side_px([corners[k] for k in keep]))
+    frac, _ = _layout_fits(obj.reshape(-1, 3)[:, :2], _undistorted_px(img.reshape(-1, 2), cam), tol)
+    return frac
+
+
+def diagnose_charuco(gray: np.ndarray, spec: CharucoSpec, cam=None, where: str = "board") -> None:
+    """Raise ``InputError`` naming what the image shows when it is not the declared ChArUco board: markers of
+    another dictionary, ids beyond the board's, a layout that only the other legacy flag or another size fits.
+    Returns when the image shows no markers at all (no board) or agrees with the declaration."""
+    decl = (f"{spec.squares_x}x{spec.squares_y} {spec.dictionary}"
+            + (" legacy" if spec.legacy_pattern else ""))
+    corners, ids = _markers(gray, _family_largest(spec.dictionary))
+    dict_size = _dictionary(spec.dictionary).bytesList.shape[0]
+    if len(ids) < 4:
+        best = None
+        for name in ARUCO_DICTIONARIES:
+            if name == _family_largest(spec.dictionary):
+                continue
+            c2, i2 = _markers(gray, name)
+            if len(i2) >= 4 and (best is None or len(i2) > len(best[1])):
+                best = (name, i2)
+        if best is not None:
+            name, i2 = best
+            raise InputError(where, "board.dictionary", f"ChArUco markers of {spec.dictionary}",
+                             f"{len(i2)} markers of the {name.removesuffix('_1000').replace('DICT_', '')} family "
+                             f"(ids up to {i2.max()}) and {len(ids)} of {spec.dictionary}'s",
+                             f"a {name.removesuffix('_1000')}_{_dict_size_for(int(i2.max()))} dictionary? "
+                             "(--dictionary / session.yaml board.dictionary)")
+        return
+    if ids.max() >= dict_size:
+        fam = spec.dictionary.rsplit("_", 1)[0]
+        raise InputError(where, "board.dictionary", f"marker ids below {dict_size} ({spec.dictionary})",
+                         f"ids up to {ids.max()}", f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
+                         "dictionary, or a larger board?")
+    if ids.max() >= spec.n_markers:
+        raise InputError(where, "board.cols/rows", f"marker ids 0-{spec.n_markers - 1} (a {decl} board has "
+                         f"{spec.n_markers} markers)", f"ids up to {ids.max()}",
+                         f"saw ids up to {ids.max()}: a larger board (at least {ids.max() + 1} markers, "
+                         f"e.g. {_size_for(int(ids.max()) + 1)} squares)?")
+    if _charuco_layout_fits(spec, corners, ids, cam) >= 0.9:
+        return
+    # the ids belong to the board but sit elsewhere: the legacy flag, or another size with as many markers
+    alt = CharucoSpec(spec.squares_x, spec.squares_y, spec.square_size_mm, spec.marker_size_mm, spec.dictionary,
+                      not spec.legacy_pattern)
+    if _charuco_layout_fits(alt, corners, ids, cam) >= 0.9:
+        raise InputError(where, "board.legacy_pattern", f"the marker layout of a {decl} board",
+                         f"the layout of the {'non-legacy' if spec.legacy_pattern else 'legacy'} pattern "
+                         f"(legacy_pattern: {str(not spec.legacy_pattern).lower()})",
+                         "boards made before OpenCV 4.6 with an even row count use the legacy pattern "
+                         f"({'--no-legacy-pattern' if spec.legacy_pattern else '--legacy-pattern'})")
+    for sx in range(3, 21):
+        for sy in range(3, 21):
+            if (sx, sy) == (spec.squares_x, spec.squares_y) or (sx * sy) // 2 <= ids.max():
+                continue
+            for legacy in (False, True):
+                cand = CharucoSpec(sx, sy, spec.square_size_mm, spec.marker_size_mm, spec.dictionary, legacy)
+                if _charuco_layout_fits(cand, corners, ids, cam) >= 0.95:
+                    raise InputError(where, "board.cols/rows", f"the marker layout of a {decl} board",
+                                     f"the layout of a {sx}x{sy}{' legacy' if legacy else ''} board",
+                                     f"declare --cols {sx} --rows {sy} (ChArUco counts squares)")
+    raise InputError(where, "board", f"the marker layout of a {decl} board", "markers that no single plane "
+                     "of that layout explains", "check the board's size, marker size and legacy flag")
+
+
+def _dict_size_for(max_id: int) -> int:
+    return next(n for n in (50, 100, 250, 1000) if n > max_id)
+
+
+def _size_for(n_markers: int) -> str:
+    for sy in range(3, 40):
+        sx = int(np.ceil(2 * n_markers / sy))
+        if sx >= sy and (sx * sy) // 2 >= n_markers:
+            return f"{sx}x{sy}"
+    return "?"
+
+
+def _subpix_window(corners_uv: np.ndarray, ids: np.ndarray, spec) -> int:
+    """cornerSubPix half-window from the local square size in pixels (as gtforge.board: 0.3 of a square, 2-15)."""
+    a, b = neighbour_pairs(spec, ids)
+    if len(a) == 0:
+        return 5
+    sq_px = float(np.median(np.linalg.norm(corners_uv[a] - corners_uv[b], axis=1)))
+    return int(max(2, min(15, round(sq_px * 0.3))))
+
+
+def detect_charuco(image: np.ndarray, spec: CharucoSpec, cam=None, where: str = "board",
+                   min_corners: int = 4) -> Detection | None:
+    """ChArUco corners ``(N, 2)`` with their ids (sorted), or None. OpenCV's ``CharucoDetector`` (markers, then
+    corners interpolated from them), then ``cornerSubPix`` with the checkerboard's window rule; corners whose
+    window would leave the image are dropped (the window is needed whole); corners a homography of the declared
+    layout does not explain are dropped (never a wrong id). A declaration the image contradicts raises
+    ``InputError`` (``diagnose_charuco``)."""
+    gray = to_gray(image)
+    diagnose_charuco(gray, spec, cam, where)
+    det = cv2.aruco.CharucoDetector(spec.cv_board())
+    ch_corners, ch_ids, m_corners, m_ids = det.detectBoard(gray)
+    if ch_ids is None or len(ch_ids) < min_corners:
+        return None
+    ids = ch_ids.ravel().astype(int)
+    uv = ch_corners.reshape(-1, 2).astype(np.float32)
+    win = _subpix_window(uv, ids, spec)
+    H, W = gray.shape
+    inside = (uv[:, 0] >= win + 1) & (uv[:, 1] >= win + 1) & (uv[:, 0] <= W - win - 2) & (uv[:, 1] <= H - win - 2)
+    uv, ids = uv[inside], ids[inside]
+    if len(ids) < min_corners:
+        return None
+    uv = cv2.cornerSubPix(gray, uv.reshape(-1, 1, 2).copy(), (win, win), (-1, -1),
+                          (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-5)).reshape(-1, 2).astype(np.float64)
+    X = spec.corners_board()
+    sq_px = 2 * win / 0.6
+    _, inl = _layout_fits(X[ids, :2], _undistorted_px(uv, cam), max(1.0, 0.1 * sq_px))
+    if (~inl).any():
+        log.info("%s: %d ChArUco corner(s) off the declared layout dropped", where, int((~inl).sum()))
+    uv, ids = uv[inl], ids[inl]
+    order = np.argsort(ids)
+    uv, ids = uv[order], ids[order]
+    if len(ids) < min_corners:
+        return None
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+    mask = np.zeros(gray.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(hull).astype(np.int32)], 1)
+    vals = gray[mask > 0]
+    contrast = float(np.percentile(vals, 90) - np.percentile(vals, 10)) if vals.size else 0.0
+    sharp = edge_width_px(gray, uv, 0.35 * sq_px)
+    return Detection(uv, sharp, "charuco", contrast, ids)
+
+
+def _blob_detector(gray: np.ndarray, spec: CircleGridSpec):
+    p = cv2.SimpleBlobDetector_Params()
+    p.minArea = 4
+    p.maxArea = float(gray.size) / max(spec.n_corners, 1)
+    p.minDistBetweenBlobs = 2
+    p.filterByConvexity = False
+    p.filterByInertia = True
+    p.minInertiaRatio = 0.05
+    return cv2.SimpleBlobDetector_create(p)
+
+
+def refine_circle_centres(gray: np.ndarray, uv: np.ndarray, radius_px: np.ndarray, iters: int = 3) -> np.ndarray:
+    """Darkness-weighted centroids (the centroid of the dark disk's area, blur-invariant for a symmetric blur)
+    in windows of 1.5 radii, re-centred ``iters`` times; the weight is the darkness below the local white level,
+    clipped at 0 and with the noise floor's 10 % removed so the white around the circle weighs nothing."""
+    g = gray.astype(np.float64)
+    H, W = g.shape
+    out = uv.astype(np.float64).copy()
+    for k in range(len(out)):
+        R = max(3.0, 1.5 * radius_px[k])
+        for _ in range(iters):
+            u0, v0 = out[k]
+            x0, x1 = int(max(0, np.floor(u0 - R))), int(min(W - 1, np.ceil(u0 + R)))
+            y0, y1 = int(max(0, np.floor(v0 - R))), int(min(H - 1, np.ceil(v0 + R)))
+            patch = g[y0:y1 + 1, x0:x1 + 1]
+            yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+            inwin = (xx - u0) ** 2 + (yy - v0) ** 2 <= R * R
+            white, black = np.percentile(patch[inwin], 95), np.percentile(patch[inwin], 2)
+            if white - black < 10:
+                break
+            w = np.clip((white - patch) / (white - black) - 0.1, 0, None) * inwin
+            s = w.sum()
+            if s <= 0:
+                break
+            out[k] = [(w * xx).sum() / s, (w * yy).sum() / s]
+    return out
+
+
+def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str = "board") -> Detection | None:
+    """Circle centres in ``cv2.findCirclesGrid``'s order (ids 0..N-1; the whole grid is needed), refined by
+    ``refine_circle_centres``. The perspective bias of a circle's centre is removed later, once the pose is known
+    (``circle_centre_bias``)."""
+    gray = to_gray(image)
+    flags = cv2.CALIB_CB_ASYMMETRIC_GRID if spec.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
+    blob = _blob_detector(gray, spec)
+    ok, c = cv2.findCirclesGrid(gray, spec.pattern_size, flags=flags, blobDetector=blob)
+    if not ok:
+        ok, c = cv2.findCirclesGrid(gray, spec.pattern_size, flags=flags | cv2.CALIB_CB_CLUSTERING, blobDetector=blob)
+    if not ok:
+        return None
+    uv = c.reshape(-1, 2).astype(np.float64)
+    ids = np.arange(spec.n_corners)
+    a, b = neighbour_pairs(spec, ids)
+    nn_px = np.linalg.norm(uv[a] - uv[b], axis=1)
+    # per-circle radius from its own neighbour spacing (perspective changes it across the board)
+    sp = np.zeros(len(uv))
+    cnt = np.zeros(len(uv))
+    np.add.at(sp, a, nn_px)
+    np.add.at(sp, b, nn_px)
+    np.add.at(cnt, a, 1)
+    np.add.at(cnt, b, 1)
+    nn_mm = spec.square_size_mm * (np.sqrt(2) if spec.asymmetric else 1.0)
+    r_px = sp / np.maximum(cnt, 1) * (spec.diameter_mm / 2) / nn_mm
+    uv = refine_circle_centres(gray, uv, r_px)
+    H, W = gray.shape
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+    mask = np.zeros(gray.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(hull).astype(np.int32)], 1)
+    vals = gray[mask > 0]
+    contrast = float(np.percentile(vals, 95) - np.percentile(vals, 5)) if vals.size else 0.0
+    sharp = edge_width_px(gray, uv, 1.3 * float(np.median(r_px)))
+    return Detection(uv, sharp, "circles", contrast, ids)
+
+
+def circle_centre_bias(spec: CircleGridSpec, T_cam_from_board: np.ndarray, cam, n: int = 72) -> np.ndarray:
+    """``(N, 2)`` px: where each circle's image centroid (what the detector measures) lies minus where its centre
+    projects. A circle seen obliquely projects to an ellipse whose centre is not the centre's image (it is pushed
+    away from the vanishing line; up to tenths of a pixel for large circles at 30-45 degrees). Computed from the
+    projected outline (lens distortion included): the area centroid of the projected polygon."""
+    from gtforge.geometry import transform_points
+
+    X = spec.corners_board()
+    r = spec.diameter_mm / 2
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([r * np.cos(t), r * np.sin(t), np.zeros(n)], axis=1)
+    pts = (X[:, None, :] + ring[None]).reshape(-1, 3)
+    uv = cam.project(transform_points(T_cam_from_board, pts)).reshape(len(X), n, 2)
+    x, y = uv[..., 0], uv[..., 1]
+    x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cr = x * y1 - x1 * y
+    A = cr.sum(1) / 2
+    cx = ((x + x1) * cr).sum(1) / (6 * A)
+    cy = ((y + y1) * cr).sum(1) / (6 * A)
+    centre = cam.project(transform_points(T_cam_from_board, X))
+    return np.stack([cx, cy], axis=1) - centre
+
+
+def detect_target(image: np.ndarray, spec, cam=None, where: str = "board") -> Detection | None:
+    """Any target's points with ids (indices into ``spec.corners_board()``)."""
+    from gtforge.board import detect_corners
+
+    if isinstance(spec, CharucoSpec):
+        return detect_charuco(image, spec, cam, where)
+    if isinstance(spec, CircleGridSpec):
+        return detect_circles(image, spec, cam, where)
+    d = detect_corners(image, spec)
+    if d is not None and d.ids is None:
+        d.ids = np.arange(spec.n_corners)
+    return d
+
+
+def _pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarray, np.ndarray]:
+    """PnP from a detection; for circles, the centroids are corrected for the perspective bias at the PnP pose and
+    solved again (the bias changes by far less than itself between the two poses). Returns (T, uv used)."""
+    X = spec.corners_board()[det.ids]
+    T = solve_pnp(X, det.corners_uv, cam)
+    uv = det.corners_uv
+    if isinstance(spec, CircleGridSpec):
+        for _ in range(2):
+            uv = det.corners_uv - circle_centre_bias(spec, T, cam)[det.ids]
+            T = solve_pnp(X, uv, cam)
+    return T, uv
+
+
+def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, blur_px: float,
+                       min_common: int = MIN_COMMON_CORNERS):
+    """``gtforge.calibrate.detect_pose`` for ChArUco and circle grids: points matched by id between the two
+    cameras; a pose with fewer than ``min_common`` common points, or collinear ones, is skipped with the reason.
+    Each camera's board pose (PnP) uses all its own points; the extrinsic only the common ones."""
+    from gtforge.calibrate import PoseObs, PoseReport, solve_pnp
+
+    dm = detect_target(texture, spec, mech, where=f"{name}: structured-light image")
+    dz = detect_target(zed_left, spec, zed.left, where=f"{name}: ZED-left image")
+    if dm is None or dz is None:
+        which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
+        log.warning("capture %s: board not found in the %s image; skipped", name, which)
+        return None, PoseReport(capture=name, status="skipped", reason=f"board not found in the {which} image")
+    X = spec.corners_board()
+    counts = dict(n_points_mech=len(dm.ids), n_points_zed=len(dz.ids))
+    for d, cam, cname in ((dm, mech, "structured-light"), (dz, zed.left, "ZED")):
+        if len(d.ids) < min_common or collinear(X[d.ids]):
+            why = (f"only {len(d.ids)} board points in the {cname} image (need {min_common})" if len(d.ids) < min_common
+                   else f"the board points in the {cname} image lie on one line")
+            log.warning("capture %s: %s; skipped", name, why)
+            return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+    T_mb, uv_m_all = _pnp_bias_corrected(spec, dm, mech, solve_pnp)
+    T_zb, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+    if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
+        # a symmetric grid has a 180-degree ambiguity: each camera may have numbered it from the other end. The
+        # cameras look the same way (their relative rotation about the view axis is far below 90 degrees), so the
+        # board's x axis points the same way in both; flip the ZED's numbering when it does not
+        if T_mb[:3, 0] @ T_zb[:3, 0] < 0:
+            dz = Detection(dz.corners_uv[::-1].copy(), dz.sharpness_px, dz.method, dz.pattern_contrast, dz.ids)
+            T_zb, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+    common, im, iz = np.intersect1d(dm.ids, dz.ids, return_indices=True)
+    counts["n_points_common"] = len(common)
+    if len(common) < min_common:
+        why = f"only {len(common)} board points seen by both cameras (need {min_common})"
+        log.warning("capture %s: %s; skipped", name, why)
+        return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+    if collinear(X[common]):
+        why = "the board points both cameras see lie on one line"
+        log.warning("capture %s: %s; skipped", name, why)
+        return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+    blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)
+    if blurred:
+        log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
+
+    def fin(x: float) -> float | None:
+        return float(x) if np.isfinite(x) else None
+
+    rep = PoseReport(capture=name, status="used", sharpness_mech_px=fin(dm.sharpness_px),
+                     sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
+    obs = PoseObs(name, uv_m_all[im], uv_z_all[iz], T_mb, T_zb, depth_mm, dm, dz, ids=common)
+    return obs, rep
