@@ -321,14 +321,19 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
 def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera, board,
                          T_zed_from_mech0: np.ndarray, huber_px: float = 1.0,
                          T_mech_from_board0: list[np.ndarray] | None = None) -> Refined:
-    """``joint_refine`` for poses with different point sets (ChArUco partial views): the same residuals, pose by
-    pose (mech then ZED), with each pose's own board points; ``res_mech``/``res_zed`` are lists."""
+    """``joint_refine`` for poses with different point sets (ChArUco partial views): the same residuals with each
+    pose's own board points (all mech residuals, then all ZED residuals); ``res_mech``/``res_zed`` are lists."""
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
     P = len(obs)
     Xs = [o.board_points(board) for o in obs]
-    Ns = [len(X) for X in Xs]
-    offs = np.concatenate([[0], np.cumsum([4 * n for n in Ns])])
+    Ns = np.array([len(X) for X in Xs])
+    starts = np.concatenate([[0], np.cumsum(Ns)])
+    n_pts = int(starts[-1])
+    Xh = np.concatenate([np.column_stack([X, np.ones(len(X))]) for X in Xs])
+    pose_of = np.repeat(np.arange(P), Ns)
+    uv_m = np.concatenate([o.mech_uv for o in obs])
+    uv_z = np.concatenate([o.zed_uv for o in obs])
     Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
 
     def unpack(x):
@@ -338,23 +343,26 @@ def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: Pinho
 
     def residuals(x):
         Te, Tbs = unpack(x)
-        out = []
-        for o, X, T in zip(obs, Xs, Tbs):
-            out.append((mech.project(transform_points(T, X)) - o.mech_uv).ravel())
-            out.append((zed_cam.project(transform_points(Te @ T, X)) - o.zed_uv).ravel())
-        return np.concatenate(out)
+        Tm = np.stack(Tbs)[pose_of]  # (n, 4, 4): each point's board pose
+        pm = np.einsum("nij,nj->ni", Tm[:, :3], Xh)
+        pz = pm @ Te[:3, :3].T + Te[:3, 3]
+        return np.concatenate([(mech.project(pm) - uv_m).ravel(), (zed_cam.project(pz) - uv_z).ravel()])
 
-    m = int(offs[-1])
+    m = 4 * n_pts
     sp = lil_matrix((m, 6 + 6 * P), dtype=int)
     for i in range(P):
-        sp[offs[i]:offs[i + 1], 6 + 6 * i: 12 + 6 * i] = 1
-        sp[offs[i] + 2 * Ns[i]:offs[i + 1], :6] = 1
+        rows_m = slice(2 * starts[i], 2 * starts[i + 1])
+        rows_z = slice(2 * n_pts + 2 * starts[i], 2 * n_pts + 2 * starts[i + 1])
+        sp[rows_m, 6 + 6 * i: 12 + 6 * i] = 1
+        sp[rows_z, 6 + 6 * i: 12 + 6 * i] = 1
+        sp[rows_z, :6] = 1
     x0 = np.zeros(6 + 6 * P)
     sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
                         method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
     Te, Tbs = unpack(sol.x)
-    res_m = [sol.fun[offs[i]:offs[i] + 2 * Ns[i]].reshape(-1, 2) for i in range(P)]
-    res_z = [sol.fun[offs[i] + 2 * Ns[i]:offs[i + 1]].reshape(-1, 2) for i in range(P)]
+    rm, rz = sol.fun[:2 * n_pts].reshape(-1, 2), sol.fun[2 * n_pts:].reshape(-1, 2)
+    res_m = [rm[starts[i]:starts[i + 1]] for i in range(P)]
+    res_z = [rz[starts[i]:starts[i + 1]] for i in range(P)]
     J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
     s2 = float(np.sum(sol.fun ** 2) / max(m - len(x0), 1))
     try:
