@@ -260,6 +260,11 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         calib_path = Path(calibration)
         calib = CalibrationFile.read(calib_path)
     board_model = params.board or calib.board  # the calibration's board unless overridden
+    if board_model.kind != "checkerboard":
+        raise InputError(calib_path if calib_path else session_dir, "board.kind", "a checkerboard calibration "
+                         "(validate measures full checkerboards only, so far)", board_model.kind,
+                         "validate with checkerboard captures; ChArUco/circle-grid validation is not built yet "
+                         "(docs/targets.md)")
     board = board_model.spec()
     check_board_spec(board)
     if getattr(calib, "zed_conf", None) is not None:  # raw ZED images + SN.conf: rectify as the calibration did
