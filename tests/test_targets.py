@@ -86,10 +86,15 @@ def test_charuco_truth_ids_and_corners(charuco_views):
     assert 6 <= len(d.ids) < CHARUCO.n_corners
 
 
-def test_charuco_partial_views_improve_the_extrinsic(charuco_views):
+@pytest.fixture(scope="module")
+def charuco_calibrations(charuco_views):
     rig, full, part = charuco_views
-    res_full, _ = _calibrate(full, rig, CHARUCO)
-    res_all, obs = _calibrate(full + part, rig, CHARUCO)
+    return _calibrate(full, rig, CHARUCO)[0], _calibrate(full + part, rig, CHARUCO)[0]
+
+
+def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_calibrations):
+    rig, full, part = charuco_views
+    res_full, res_all = charuco_calibrations
     rot_f, tr_f = pose_difference(res_full.rig.T, rig.T_zed_from_mech)
     rot_a, tr_a = pose_difference(res_all.rig.T, rig.T_zed_from_mech)
     # with the cut poses: within the checkerboard's limits at this size, and better than the whole boards alone,
@@ -193,3 +198,30 @@ def test_board_mismatch_is_a_one_line_error(shown, declared, match):
 def test_impossible_declarations_are_refused(decl, match):
     with pytest.raises(InputError, match=match):
         check_board_model(BoardModel(**decl))
+
+
+def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, charuco_calibrations, tmp_path):
+    from gtforge.reports.calibration import write_calibration_report
+
+    rig, full, part = charuco_views
+    res_full, res_all = charuco_calibrations
+    cf, ca = res_full.coverage, res_all.coverage
+    mech_f = next(c for c in cf.cameras if c.camera == "mech")
+    mech_a = next(c for c in ca.cameras if c.camera == "mech")
+    # whole boards never reach the texture image's corners; the cut poses do
+    assert min(mech_f.nearest_to_corner_px.values()) > 110
+    assert sum(d <= 110 for d in mech_a.nearest_to_corner_px.values()) >= 2
+    text_f = "\n".join(cf.guidance)
+    assert "no board points within 110 px of the structured-light image's bottom-left corner" in text_f
+    assert "never tilted more than" in text_f and "about the vertical axis" in text_f
+    assert sum("structured-light image" in g and g.startswith("no board") for g in ca.guidance) < \
+        sum("structured-light image" in g and g.startswith("no board") for g in cf.guidance)
+    # predicted gain of one more pose: below today's sigma; and the cut poses really brought it down by more than
+    # one such pose is predicted to
+    assert cf.predictions and all(p.sigma_rot_deg < res_full.sigma_rot_deg for p in cf.predictions)
+    best = min(p.sigma_rot_deg for p in cf.predictions)
+    assert res_all.sigma_rot_deg < best < res_full.sigma_rot_deg
+    # points seen by one camera only count for coverage: the texture camera's map has more than the common points
+    assert mech_a.n_points >= sum(p.n_points_mech for p in res_all.poses if p.status == "used")
+    html = write_calibration_report(res_all, tmp_path).read_text()
+    assert "Coverage and what to capture next" in html and "every corner has an id" in html

@@ -36,6 +36,7 @@ log = logging.getLogger("gtforge.calibrate")
 LOO_WARN_PX = 0.3  # verdict WARN when the leave-one-pose-out transfer error exceeds this
 
 
+from gtforge.coverage import CoverageReport  # noqa: E402
 from gtforge.targets import BoardModel  # noqa: E402  (the board declaration; re-exported here as before)
 
 
@@ -170,6 +171,7 @@ class CalibrationFile(VersionedFile):
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
+    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.coverage)
 
     @property
     def zed_conf_reading(self) -> str | None:
@@ -558,6 +560,12 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
     # RMS ratio over the six parameters), the covariance is scaled up by the ratio (never down).
     jack_scale = jackknife_scale(T_final, loo_T, ref.cov_extrinsic)
     cov = cov * (jack_scale or 1.0)
+    from gtforge.coverage import coverage_report
+
+    # where the points fell, the poses' distances and tilts, what to capture next (reprojection solve)
+    coverage = coverage_report(used, ref.T_mech_from_board, ref.T_zed_from_mech, mech, zed.left, board,
+                               cov if np.all(np.isfinite(cov)) else None, float(np.sqrt(np.mean(allres ** 2))),
+                               jack_scale)
     methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
                             rms_zed_px=_rms(np.concatenate([np.reshape(r, (-1, 2)) for r in ref.res_zed])))]
     method = "reprojection"
@@ -610,7 +618,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
         square_size_measured_mm=square_measured,
         verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
         residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
-        time_s=time.perf_counter() - t0)
+        coverage=coverage, time_s=time.perf_counter() - t0)
     result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result

@@ -201,6 +201,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
 
     for line in summary_lines(res.rectification, res.zed_conf):
         out.print(line)
+    if res.coverage is not None and res.coverage.guidance:
+        out.print("capture next (docs/targets.md, 'Coverage'):" + "".join(f"\n  - {g}" for g in res.coverage.guidance))
     out.print(f"wrote {output} and {rep}")
     out.print(f"verdict: {res.verdict}" + "".join(f"\n  - {r}" for r in res.verdict_reasons))
     if res.verdict == "FAIL":
