@@ -225,3 +225,27 @@ def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, c
     assert mech_a.n_points >= sum(p.n_points_mech for p in res_all.poses if p.status == "used")
     html = write_calibration_report(res_all, tmp_path).read_text()
     assert "Coverage and what to capture next" in html and "every corner has an id" in html
+
+
+def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp_path):
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+    from gtforge.io.captures import SessionFile
+    from gtforge.synthetic import SyntheticTruth, generate_session
+
+    spec = CircleGridSpec(7, 5, 36.0, 18.0, False)
+    sess = generate_session(tmp_path / "s", n_board=4, n_scenes=0, scale=0.25, seed=3, board=spec,
+                            depth_noise_mm=0.0, image_noise=1.0, supersample=2)
+    assert SessionFile.read(sess / "session.yaml").board == board_model_of(spec)
+    out = tmp_path / "cal.yaml"
+    r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(out), "--no-loo"])
+    assert r.exit_code == 0, r.output
+    assert "capture next" in r.output and "circle spacing measured in the depth: 36.0" in r.output
+    cal = CalibrationFile.read(out)
+    assert cal.board.kind == "circles_symmetric" and cal.coverage is not None
+    rot, tr = pose_difference(cal.rig.T, np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
+    assert rot < 0.05 and tr < 0.5, (rot, tr)
+    # a board option on the command line overrides session.yaml's field; the wrong size finds no grid
+    r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(tmp_path / "c2.yaml"), "--cols", "6"])
+    assert r.exit_code == 2 and "usable" in r.output and "Traceback" not in r.output
