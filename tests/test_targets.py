@@ -248,4 +248,4 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     assert rot < 0.05 and tr < 0.5, (rot, tr)
     # a board option on the command line overrides session.yaml's field; the wrong size finds no grid
     r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(tmp_path / "c2.yaml"), "--cols", "6"])
-    assert r.exit_code == 2 and "usable" in r.output and "Traceback" not in r.output
+    assert r.exit_code == 2 and "more circles beyond" in r.output and "Traceback" not in r.output

@@ -647,6 +647,50 @@ def _plate_only(gray: np.ndarray) -> np.ndarray:
     return out
 
 
+def _grid_continues(gray: np.ndarray, spec: CircleGridSpec, uv: np.ndarray, r_px: float) -> str | None:
+    """The side ("left", "right", "top", "bottom" in grid terms) beyond which the image shows more circles of the
+    grid, or None. ``findCirclesGrid`` happily returns a smaller grid inside a larger one (a 6x5 in a 7x5), which
+    would number the circles differently in the two cameras: the positions one spacing beyond each edge (a homography
+    of the declared layout) are checked for a dark disk inside a white ring, as the grid's own circles look."""
+    X = spec.corners_board()[:, :2]
+    Hm, _ = cv2.findHomography(X, uv, 0)
+    if Hm is None:
+        return None
+    g = cv2.GaussianBlur(gray, (0, 0), max(0.5, r_px / 4)).astype(np.float32)
+
+    def sample(p):
+        return cv2.remap(g, p[:, 0].astype(np.float32).reshape(-1, 1), p[:, 1].astype(np.float32).reshape(-1, 1),
+                         cv2.INTER_LINEAR, borderValue=-1).ravel()
+
+    dark = float(np.median(sample(uv)))
+    t = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    ring = np.stack([np.cos(t), np.sin(t)], 1) * 1.6 * r_px
+    white = float(np.median(sample((uv[:, None, :] + ring[None]).reshape(-1, 2))))
+    if white - dark < 30:
+        return None
+    mid = 0.5 * (white + dark)
+    s = spec.square_size_mm
+    i_all, j_all = np.mgrid[0:spec.rows, 0:spec.cols]
+
+    def pos(i, j):
+        x = (2 * j + (i % 2)) * s if spec.asymmetric else j * s
+        return np.stack([x, i * s], 1).astype(np.float64)
+
+    sides = {"left": pos(np.arange(spec.rows), np.full(spec.rows, -1)),
+             "right": pos(np.arange(spec.rows), np.full(spec.rows, spec.cols)),
+             "top": pos(np.full(spec.cols, -2 if spec.asymmetric else -1), np.arange(spec.cols)),
+             "bottom": pos(np.full(spec.cols, spec.rows + (1 if spec.asymmetric else 0)), np.arange(spec.cols))}
+    for side, xy in sides.items():
+        p = cv2.perspectiveTransform(xy.reshape(-1, 1, 2), Hm).reshape(-1, 2)
+        c = sample(p)
+        rg = sample((p[:, None, :] + ring[None]).reshape(-1, 2)).reshape(len(p), -1)
+        # as dark as the grid's circles, inside a ring that is white all round (the plate), not table or border
+        circles = (c >= 0) & (c < dark + 0.3 * (white - dark)) & ((rg > mid).sum(1) >= len(t) - 1)
+        if circles.sum() >= max(2, len(p) // 2):
+            return side
+    return None
+
+
 def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str = "board") -> Detection | None:
     """Circle centres in ``cv2.findCirclesGrid``'s order (ids 0..N-1; the whole grid is needed), refined by
     ``refine_circle_centres``. The perspective bias of a circle's centre is removed later, once the pose is known
@@ -679,6 +723,11 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
     np.add.at(cnt, b, 1)
     nn_mm = spec.square_size_mm * (np.sqrt(2) if spec.asymmetric else 1.0)
     r_px = sp / np.maximum(cnt, 1) * (spec.diameter_mm / 2) / nn_mm
+    side = _grid_continues(gray, spec, uv, float(np.median(r_px)))
+    if side is not None:
+        raise InputError(where, "board.cols/rows", f"a {spec.cols}x{spec.rows} circle grid",
+                         f"more circles beyond its {side} edge", "a larger grid: count the circles per row (--cols) "
+                         "and the rows (--rows) on the plate")
     uv = refine_circle_centres(gray, uv, r_px)
     H, W = gray.shape
     hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
