@@ -408,10 +408,15 @@ def diagnose_charuco(gray: np.ndarray, spec: CharucoSpec, cam=None, where: str =
                          f"ids up to {ids.max()}", f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
                          "dictionary, or a larger board?")
     if ids.max() >= spec.n_markers:
+        sx, sy = spec.squares_x + 1, spec.squares_y + 1
+        counted_corners = ((sx * sy) // 2 > ids.max())  # the usual slip: inner corners declared, not squares
         raise InputError(where, "board.cols/rows", f"marker ids 0-{spec.n_markers - 1} (a {decl} board has "
                          f"{spec.n_markers} markers)", f"ids up to {ids.max()}",
-                         f"saw ids up to {ids.max()}: a larger board (at least {ids.max() + 1} markers, "
-                         f"e.g. {_size_for(int(ids.max()) + 1)} squares)?")
+                         f"saw ids up to {ids.max()}: " + (
+                             f"ChArUco counts squares; {spec.squares_x}x{spec.squares_y} inner corners is --cols {sx} "
+                             f"--rows {sy}?" if counted_corners else
+                             f"a larger board (at least {ids.max() + 1} markers, e.g. "
+                             f"{_size_for(int(ids.max()) + 1)} squares)?"))
     # a few misread markers (small or blurred ones) are normal and dropped later, corner by corner; a layout
     # mismatch leaves most markers unexplained
     if len(ids) < 6 or _charuco_layout_fits(spec, corners, ids, cam) >= 0.6:
@@ -444,11 +449,10 @@ def _dict_size_for(max_id: int) -> int:
 
 
 def _size_for(n_markers: int) -> str:
-    for sy in range(3, 40):
-        sx = int(np.ceil(2 * n_markers / sy))
-        if sx >= sy and (sx * sy) // 2 >= n_markers:
-            return f"{sx}x{sy}"
-    return "?"
+    """The smallest near-square board (squares, 3 <= rows <= cols <= 2 rows) with at least ``n_markers`` markers."""
+    best = min(((sx * sy, sx - sy, sx, sy) for sy in range(3, 60) for sx in range(sy, 2 * sy + 1)
+                if (sx * sy) // 2 >= n_markers))
+    return f"{best[2]}x{best[3]}"
 
 
 def _subpix_window(corners_uv: np.ndarray, ids: np.ndarray, spec) -> int:
