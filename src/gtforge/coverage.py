@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from gtforge.geometry import invert_T, make_T, transform_points
+from gtforge.geometry import invert_T, transform_points
 from gtforge.schema import GTModel
 
 GRID_COLS, GRID_ROWS = 8, 6  # the coverage map's cells per image

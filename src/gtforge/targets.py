@@ -256,7 +256,6 @@ class CircleGridSpec:
         return (c[:, 0].min() - m, c[:, 0].max() + m, c[:, 1].min() - m, c[:, 1].max() + m)
 
     def albedo(self, xy: np.ndarray) -> np.ndarray:
-        c = self.corners_board()[:, :2]
         s = self.square_size_mm
         # nearest centre by rounding to the lattice (asymmetric: the nearer of the two row candidates)
         r = (self.diameter_mm / 2) ** 2
@@ -271,7 +270,6 @@ class CircleGridSpec:
             ok = ok_i & (j >= 0) & (j < self.cols)
             cx, cy = j * step + off, i * s
             dark |= ok & ((xy[:, 0] - cx) ** 2 + (xy[:, 1] - cy) ** 2 <= r)
-        del c
         return np.where(dark, 0.08, 0.88)
 
     @property
