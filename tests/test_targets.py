@@ -31,7 +31,7 @@ def _detect_all(views, rig, spec):
 def _calibrate(views, rig, spec, loo=False):
     obs, reps = _detect_all(views, rig, spec)
     res = calibrate_observations(obs, reps, rig.mech, rig.zed,
-                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo))
+                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo)).attach_coverage()
     return res, obs
 
 

@@ -184,6 +184,17 @@ class CalibrationFile(VersionedFile):
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
     _residuals: dict = PrivateAttr(default_factory=dict)
+    _coverage_inputs: dict = PrivateAttr(default_factory=dict)
+
+    def attach_coverage(self) -> "CalibrationFile":
+        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.coverage) from
+        the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
+        (a few tenths of a second)."""
+        from gtforge.coverage import coverage_report
+
+        if self._coverage_inputs:
+            self.coverage = coverage_report(**self._coverage_inputs)
+        return self
 
 
 @dataclass
@@ -560,12 +571,6 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
     # RMS ratio over the six parameters), the covariance is scaled up by the ratio (never down).
     jack_scale = jackknife_scale(T_final, loo_T, ref.cov_extrinsic)
     cov = cov * (jack_scale or 1.0)
-    from gtforge.coverage import coverage_report
-
-    # where the points fell, the poses' distances and tilts, what to capture next (reprojection solve)
-    coverage = coverage_report(used, ref.T_mech_from_board, ref.T_zed_from_mech, mech, zed.left, board,
-                               cov if np.all(np.isfinite(cov)) else None, float(np.sqrt(np.mean(allres ** 2))),
-                               jack_scale)
     methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
                             rms_zed_px=_rms(np.concatenate([np.reshape(r, (-1, 2)) for r in ref.res_zed])))]
     method = "reprojection"
@@ -618,7 +623,12 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
         square_size_measured_mm=square_measured,
         verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
         residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
-        coverage=coverage, time_s=time.perf_counter() - t0)
+        time_s=time.perf_counter() - t0)
+    # what gtforge.coverage needs (calibrate() attaches the coverage report; other callers may: attach_coverage)
+    result._coverage_inputs = dict(used=used, T_mech_from_board=ref.T_mech_from_board, T_zed_from_mech=ref.T_zed_from_mech,
+                                   mech=mech, zed_cam=zed.left, board=board,
+                                   cov=cov if np.all(np.isfinite(cov)) else None,
+                                   rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
     result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result
@@ -692,6 +702,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
                 meter.add(d.name, cap.zed_right, left_uv=o.zed_uv)
     result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress, session.depth_cam,
                                     session.T_mech_from_depth)
+    result.attach_coverage()
     result.session_dir = str(Path(session_dir).resolve())
     result.zed_conf, result.rectification = zed_conf, (meter.result() if meter is not None else None)
     stereo_warnings = (zed_conf.warnings if zed_conf else []) + (result.rectification.warnings if result.rectification else [])

@@ -151,7 +151,7 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
         sigma_px = max(float(rms_px), 1e-3) / np.sqrt(2.0) * np.sqrt(jack_scale or 1.0)
         for kind, detail in gaps:
             best = None
-            for T_mb, T in zip(T_mech_from_board, T_zb):
+            for T_mb, T in _sources(kind, detail, T_mech_from_board, T_zb, centre_b, mech, zed_cam):
                 for T_new, text in _proposals(kind, detail, T, T_zed_from_mech, centre_b, mech, zed_cam):
                     T_mb_new = invert_T(T_zed_from_mech) @ T_new
                     vis = _visible(mech, transform_points(T_mb_new, X_all)) & _visible(zed_cam, transform_points(T_new, X_all))
@@ -179,6 +179,21 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
                           tilt_vertical_axis_deg=[float(tilts[:, 0].min()), float(tilts[:, 0].max())],
                           tilt_horizontal_axis_deg=[float(tilts[:, 1].min()), float(tilts[:, 1].max())],
                           guidance=guidance, predictions=predictions)
+
+
+def _sources(kind: str, detail: str, T_mech_from_board, T_zb, centre_b, mech, zed_cam, n: int = 3):
+    """The used poses a proposal starts from (at most ``n``: the cost stays a fraction of the calibration's): for a
+    corner gap the poses whose board centre is imaged nearest that corner, for a tilt the first ``n``."""
+    pairs = list(zip(T_mech_from_board, T_zb))
+    if kind != "corner":
+        return pairs[:n]
+    cam_name, corner = detail.split(":")
+    cam = zed_cam if cam_name == "zed" else mech
+    k = {"top-left": (0, 0), "top-right": (1, 0), "bottom-right": (1, 1), "bottom-left": (0, 1)}[corner]
+    c = np.array([k[0] * (cam.width_px - 1), k[1] * (cam.height_px - 1)])
+    d = [np.linalg.norm(cam.project(transform_points(T_mb if cam_name == "mech" else T, centre_b[None]))[0] - c)
+         for T_mb, T in pairs]
+    return [pairs[i] for i in np.argsort(d)[:n]]
 
 
 def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_mech: np.ndarray,
