@@ -246,6 +246,12 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     assert cal.board.kind == "circles_symmetric" and cal.coverage is not None
     rot, tr = pose_difference(cal.rig.T, np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
     assert rot < 0.05 and tr < 0.5, (rot, tr)
+    # validate measures the ground truth on the same target (XY reprojection px, Z geometric %)
+    from gtforge.validate import validate
+
+    v = validate(sess, out, tmp_path / "val")
+    assert v.board.kind == "circles_symmetric" and len(v.poses) >= 3
+    assert v.xy_mean_px < 0.3 and v.z_error_mean_pct < 0.5, (v.xy_mean_px, v.z_error_mean_pct)
     # a board option on the command line overrides session.yaml's field: a grid one column short is refused (it
     # would otherwise be found inside the plate's, numbered from either end), one line, exit code 2
     from test_safety import gtforge, one_line_error

@@ -857,6 +857,22 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
     return obs, rep
 
 
+def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
+                   min_common: int = MIN_COMMON_CORNERS) -> tuple[Detection, Detection, np.ndarray] | str:
+    """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
+    circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
+    reason the pose cannot be used."""
+    from gtforge.camera import RectifiedStereo
+
+    zed = RectifiedStereo(left=zed_cam, baseline_mm=1.0)
+    o, rep = detect_pose_target(name, texture, None, zed_left, mech, zed, spec, float("inf"), min_common)
+    if o is None:
+        return rep.reason
+    dm = Detection(o.mech_uv, o.det_mech.sharpness_px, o.det_mech.method, o.det_mech.pattern_contrast, o.ids)
+    dz = Detection(o.zed_uv, o.det_zed.sharpness_px, o.det_zed.method, o.det_zed.pattern_contrast, o.ids)
+    return dm, dz, o.ids
+
+
 # ---- generator: boards cut by the image border; light renders for tests ---------------------------
 def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int, camera: str = "mech",
                               min_common: int = 12, tries: int = 3000) -> np.ndarray:
