@@ -400,12 +400,20 @@ def diagnose_charuco(gray: np.ndarray, spec: CharucoSpec, cam=None, where: str =
                              f"a {name.removesuffix('_1000')}_{_dict_size_for(int(i2.max()))} dictionary? "
                              "(--dictionary / session.yaml board.dictionary)")
         return
-    if ids.max() >= dict_size:
+    def beyond(limit: int) -> bool:
+        # one misread marker (a larger dictionary has more codes to misread into) is no evidence; several are
+        n = int((ids >= limit).sum())
+        return n >= 2 and n >= 0.1 * len(ids)
+
+    if not beyond(spec.n_markers):
+        ids_ok = ids < spec.n_markers
+        corners, ids = [c for c, k in zip(corners, ids_ok) if k], ids[ids_ok]
+    if len(ids) and beyond(dict_size):
         fam = spec.dictionary.rsplit("_", 1)[0]
         raise InputError(where, "board.dictionary", f"marker ids below {dict_size} ({spec.dictionary})",
                          f"ids up to {ids.max()}", f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
                          "dictionary, or a larger board?")
-    if ids.max() >= spec.n_markers:
+    if len(ids) and beyond(spec.n_markers):
         sx, sy = spec.squares_x + 1, spec.squares_y + 1
         counted_corners = ((sx * sy) // 2 > ids.max())  # the usual slip: inner corners declared, not squares
         raise InputError(where, "board.cols/rows", f"marker ids 0-{spec.n_markers - 1} (a {decl} board has "
