@@ -3,9 +3,7 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from gtforge.cli import app
 from gtforge.errors import InputError
 from gtforge.evaluate import EvalReport, SceneCalib, compare, evaluate
 from gtforge.fruit_size import (FruitSize, GradeBins, fruit_instances, measure_fruit, parse_grades, points_from_disparity,
@@ -92,7 +90,6 @@ def test_grade_bins_and_their_parsing():
 
 
 def test_bad_grades_on_the_command_line_is_a_one_line_error(tmp_path):
-    from gtforge.cli import main
     import subprocess
     import sys
 

@@ -18,9 +18,9 @@ from typing import Callable, ClassVar, Literal
 
 import cv2
 import numpy as np
-from pydantic import Field, PrivateAttr
+from pydantic import Field, PrivateAttr, model_serializer
 
-from gtforge.board import Detection, check_board_spec, detect_corners
+from gtforge.board import Detection, detect_corners
 from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.errors import InputError
 from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
@@ -37,13 +37,8 @@ log = logging.getLogger("gtforge.calibrate")
 LOO_WARN_PX = 0.3  # verdict WARN when the leave-one-pose-out transfer error exceeds this
 
 
-class BoardModel(GTModel):
-    cols: int = 12
-    rows: int = 9
-    square_size_mm: float = 20.0
-
-    def spec(self) -> BoardSpec:
-        return BoardSpec(self.cols, self.rows, self.square_size_mm)
+from gtforge.coverage import CoverageReport  # noqa: E402
+from gtforge.targets import BoardModel  # noqa: E402  (the board declaration; re-exported here as before)
 
 
 class CalibrateParams(GTModel):
@@ -79,6 +74,15 @@ class PoseReport(GTModel):
     init_trans_dev_mm: float | None = None
     loo_transfer_mean_px: float | None = None
     loo_transfer_max_px: float | None = None
+    # ChArUco / circle grids (gtforge.targets): board points found in each image and in both (None: checkerboard)
+    n_points_mech: int | None = None
+    n_points_zed: int | None = None
+    n_points_common: int | None = None
+
+    @model_serializer(mode="wrap")
+    def _compact(self, handler):
+        d = handler(self)
+        return {k: v for k, v in d.items() if not (k.startswith("n_points_") and v is None)}
 
 
 class MethodResult(GTModel):
@@ -170,6 +174,7 @@ class CalibrationFile(VersionedFile):
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
+    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.coverage)
 
     @property
     def zed_conf_reading(self) -> str | None:
@@ -198,6 +203,17 @@ class CalibrationFile(VersionedFile):
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
     _residuals: dict = PrivateAttr(default_factory=dict)
+    _coverage_inputs: dict = PrivateAttr(default_factory=dict)
+
+    def attach_coverage(self) -> "CalibrationFile":
+        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.coverage) from
+        the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
+        (a few tenths of a second)."""
+        from gtforge.coverage import coverage_report
+
+        if self._coverage_inputs:
+            self.coverage = coverage_report(**self._coverage_inputs)
+        return self
 
 
 @dataclass
@@ -210,6 +226,12 @@ class PoseObs:
     depth_mm: np.ndarray | None = None
     det_mech: Detection | None = None
     det_zed: Detection | None = None
+    ids: np.ndarray | None = None  # board-point ids of mech_uv/zed_uv rows (ChArUco, circles); None: all, in order
+
+    def board_points(self, board) -> np.ndarray:
+        """``(N, 3)`` board-frame points of this pose's ``mech_uv``/``zed_uv`` rows."""
+        X = board.corners_board()
+        return X if self.ids is None else X[self.ids]
 
 
 # ---- PnP ------------------------------------------------------------------------------------
@@ -283,6 +305,8 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
     """Minimise every corner's reprojection error in both cameras over the extrinsic and the board poses."""
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
+    if any(o.ids is not None for o in obs):
+        return _joint_refine_ragged(obs, mech, zed_cam, board, T_zed_from_mech0, huber_px, T_mech_from_board0)
     P = len(obs)
     X = board.corners_board()
     N = len(X)
@@ -326,6 +350,60 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
     return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
 
 
+def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera, board,
+                         T_zed_from_mech0: np.ndarray, huber_px: float = 1.0,
+                         T_mech_from_board0: list[np.ndarray] | None = None) -> Refined:
+    """``joint_refine`` for poses with different point sets (ChArUco partial views): the same residuals with each
+    pose's own board points (all mech residuals, then all ZED residuals); ``res_mech``/``res_zed`` are lists."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+    P = len(obs)
+    Xs = [o.board_points(board) for o in obs]
+    Ns = np.array([len(X) for X in Xs])
+    starts = np.concatenate([[0], np.cumsum(Ns)])
+    n_pts = int(starts[-1])
+    Xh = np.concatenate([np.column_stack([X, np.ones(len(X))]) for X in Xs])
+    pose_of = np.repeat(np.arange(P), Ns)
+    uv_m = np.concatenate([o.mech_uv for o in obs])
+    uv_z = np.concatenate([o.zed_uv for o in obs])
+    Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
+
+    def unpack(x):
+        Te = _perturbed(T_zed_from_mech0, x[:6])
+        Tbs = [_perturbed(Tb0[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
+        return Te, Tbs
+
+    def residuals(x):
+        Te, Tbs = unpack(x)
+        Tm = np.stack(Tbs)[pose_of]  # (n, 4, 4): each point's board pose
+        pm = np.einsum("nij,nj->ni", Tm[:, :3], Xh)
+        pz = pm @ Te[:3, :3].T + Te[:3, 3]
+        return np.concatenate([(mech.project(pm) - uv_m).ravel(), (zed_cam.project(pz) - uv_z).ravel()])
+
+    m = 4 * n_pts
+    sp = lil_matrix((m, 6 + 6 * P), dtype=int)
+    for i in range(P):
+        rows_m = slice(2 * starts[i], 2 * starts[i + 1])
+        rows_z = slice(2 * n_pts + 2 * starts[i], 2 * n_pts + 2 * starts[i + 1])
+        sp[rows_m, 6 + 6 * i: 12 + 6 * i] = 1
+        sp[rows_z, 6 + 6 * i: 12 + 6 * i] = 1
+        sp[rows_z, :6] = 1
+    x0 = np.zeros(6 + 6 * P)
+    sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
+                        method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
+    Te, Tbs = unpack(sol.x)
+    rm, rz = sol.fun[:2 * n_pts].reshape(-1, 2), sol.fun[2 * n_pts:].reshape(-1, 2)
+    res_m = [rm[starts[i]:starts[i + 1]] for i in range(P)]
+    res_z = [rz[starts[i]:starts[i + 1]] for i in range(P)]
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
+    s2 = float(np.sum(sol.fun ** 2) / max(m - len(x0), 1))
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((len(x0), len(x0)), np.nan)
+    return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
+
+
 # ---- depth-based corners ----------------------------------------------------------------------
 def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, depth_cam: PinholeCamera | None = None,
                              T_mech_from_depth: np.ndarray | None = None) -> np.ndarray | None:
@@ -336,7 +414,7 @@ def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, 
         return None
     depth_cam = depth_cam or mech
     T_md = np.eye(4) if T_mech_from_depth is None else np.asarray(T_mech_from_depth, float)
-    X_depth = transform_points(invert_T(T_md) @ o.T_mech_from_board, board.corners_board())
+    X_depth = transform_points(invert_T(T_md) @ o.T_mech_from_board, o.board_points(board))
     uv_depth = depth_cam.project(X_depth)
     if not np.all(np.isfinite(uv_depth)):
         return None
@@ -358,8 +436,16 @@ def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, 
     return d * t[:, None]
 
 
-def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec) -> float:
-    """Median distance between neighbouring corners of one pose (mm)."""
+def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec, ids: np.ndarray | None = None) -> float:
+    """Median distance between neighbouring corners of one pose (mm); with ``ids`` (ChArUco, circle grids) the
+    neighbours' distances scaled to the declared spacing (asymmetric grids' nearest neighbours are sqrt(2) apart)."""
+    if ids is not None:
+        from gtforge.targets import neighbour_pairs
+
+        a, b = neighbour_pairs(board, ids)
+        Xb = board.corners_board()[ids]
+        ratio = np.linalg.norm(corners_mech[a] - corners_mech[b], axis=1) / np.linalg.norm(Xb[a] - Xb[b], axis=1)
+        return float(np.median(ratio) * board.square_size_mm)
     g = corners_mech.reshape(board.rows, board.cols, 3)
     d = np.concatenate([np.linalg.norm(np.diff(g, axis=1), axis=2).ravel(),
                         np.linalg.norm(np.diff(g, axis=0), axis=2).ravel()])
@@ -370,6 +456,10 @@ def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec) -> float
 def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed_left: np.ndarray,
                 mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
                 blur_px: float) -> tuple[PoseObs | None, PoseReport]:
+    if getattr(board, "kind", "checkerboard") != "checkerboard":
+        from gtforge.targets import detect_pose_target
+
+        return detect_pose_target(name, texture, depth_mm, zed_left, mech, zed, board, blur_px)
     dm = detect_corners(texture, board)
     dz = detect_corners(zed_left, board)
     if dm is None or dz is None:
@@ -416,7 +506,7 @@ def jackknife_scale(T: np.ndarray, T_loo: list[np.ndarray], cov: np.ndarray) -> 
 
 def transfer_error(o: PoseObs, T_zed_from_mech: np.ndarray, zed_cam: PinholeCamera, board: BoardSpec) -> np.ndarray:
     """Per-corner error (px) of mech-PnP board corners mapped into the ZED-left image."""
-    X = transform_points(T_zed_from_mech @ o.T_mech_from_board, board.corners_board())
+    X = transform_points(T_zed_from_mech @ o.T_mech_from_board, o.board_points(board))
     return np.linalg.norm(zed_cam.project(X) - o.zed_uv, axis=1)
 
 
@@ -452,7 +542,8 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
             corners_depth[o.name] = X
     square_measured = None
     if len(corners_depth) >= 2:
-        square_measured = float(np.median([measured_square_size_mm(X, board) for X in corners_depth.values()]))
+        ids_of = {o.name: o.ids for o in used}
+        square_measured = float(np.median([measured_square_size_mm(X, board, ids_of[n]) for n, X in corners_depth.items()]))
         dev_pct = (square_measured / board.square_size_mm - 1.0) * 100.0
         if params.square_check_pct and abs(dev_pct) > params.square_check_pct:
             raise InputError(None, "--square-mm", f"the board's square size as the depth camera measures it "
@@ -500,7 +591,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
     jack_scale = jackknife_scale(T_final, loo_T, ref.cov_extrinsic)
     cov = cov * (jack_scale or 1.0)
     methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
-                            rms_zed_px=_rms(ref.res_zed))]
+                            rms_zed_px=_rms(np.concatenate([np.reshape(r, (-1, 2)) for r in ref.res_zed])))]
     method = "reprojection"
     verdict_reasons: list[str] = []
     fail = False
@@ -552,6 +643,11 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
         verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
         residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
         time_s=time.perf_counter() - t0)
+    # what gtforge.coverage needs (calibrate() attaches the coverage report; other callers may: attach_coverage)
+    result._coverage_inputs = dict(used=used, T_mech_from_board=ref.T_mech_from_board, T_zed_from_mech=ref.T_zed_from_mech,
+                                   mech=mech, zed_cam=zed.left, board=board,
+                                   cov=cov if np.all(np.isfinite(cov)) else None,
+                                   rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
     result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result
@@ -593,18 +689,23 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     (an existing folder, or a path ending in ``/``, gets ``calibration.yaml`` inside it)."""
     from gtforge.io.captures import open_session
 
+    from gtforge.targets import check_board_model
+
     params = params or CalibrateParams()
-    board = params.board.spec()
-    check_board_spec(board)
     session = open_session(session_dir)
+    params = params.model_copy(update={"board": session_board(session, params.board, "board" in params.model_fields_set)})
+    check_board_model(params.board)
+    board = params.board.spec()
     if out_path is not None:
         out_path = calibration_output_path(out_path)
         session.refuse_output_inside_captures(out_path)
     dirs = session.select("board", captures, exclude)
     from gtforge.rectification import RectificationMeter, rectified_by, settle_zed_conf_reading
 
-    # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)
-    session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress)
+    checker = params.board.kind == "checkerboard"
+    # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it);
+    # the rectification is measured on full checkerboards only (other targets: not yet, docs/targets.md)
+    session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress) if checker else (session, None)
     selfcal = None
     if params.self_rectify:
         # every capture with both images: the scenes' texture constrains the rows as well as the boards
@@ -614,7 +715,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         if selfcal.correction is not None:
             session = open_session(session_dir, zed_conf_reading=zed_conf.reading if zed_conf else None,
                                    zed_right_correction=selfcal.correction)
-    meter = RectificationMeter(board, session.zed.left, rectified_by(session))
+    meter = RectificationMeter(board, session.zed.left, rectified_by(session)) if checker else None
     obs, reports = [], []
     for k, d in enumerate(dirs):
         if progress:
@@ -625,11 +726,13 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         reports.append(rep)
         if o is not None:
             obs.append(o)
-            meter.add(d.name, cap.zed_right, left_uv=o.zed_uv)
+            if meter is not None:
+                meter.add(d.name, cap.zed_right, left_uv=o.zed_uv)
     result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress, session.depth_cam,
                                     session.T_mech_from_depth)
+    result.attach_coverage()
     result.session_dir = str(Path(session_dir).resolve())
-    result.zed_conf, result.rectification = zed_conf, meter.result()
+    result.zed_conf, result.rectification = zed_conf, (meter.result() if meter is not None else None)
     result.zed_self_rectification = selfcal
     stereo_warnings = (zed_conf.warnings if zed_conf else []) + (result.rectification.warnings if result.rectification else [])
     if selfcal is not None and selfcal.status == "not determined":
@@ -641,6 +744,17 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         result.write(out_path)
     return result
 
+
+
+def session_board(session, given: BoardModel, given_explicitly: bool) -> BoardModel:
+    """The board to use: session.yaml's ``board:`` when there is one, with the fields given explicitly (CLI options,
+    ``given.model_fields_set``) overriding it; else ``given``."""
+    declared = getattr(session.config, "board", None)
+    if declared is None:
+        return given
+    if not given_explicitly:
+        return declared
+    return BoardModel.model_validate({**declared.model_dump(), **{k: getattr(given, k) for k in given.model_fields_set}})
 
 
 def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,

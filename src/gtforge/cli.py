@@ -155,9 +155,18 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                          help="Calibration YAML to write (a folder: calibration.yaml inside it)."),
               report_dir: Optional[Path] = typer.Option(None, metavar="DIR",
                                                         help="Report folder (default: OUTPUT's name + _report, beside it)."),
-              cols: int = typer.Option(12, help="Inner corners along a row."),
-              rows: int = typer.Option(9, help="Inner corners along a column."),
-              square_mm: float = typer.Option(20.0, help="Square size (mm)."),
+              cols: Optional[int] = typer.Option(None, help="Inner corners along a row (ChArUco: squares; circle "
+                                                 "grids: circles per row). Default 12, or session.yaml's board."),
+              rows: Optional[int] = typer.Option(None, help="Inner corners along a column (ChArUco: squares; circle "
+                                                 "grids: rows). Default 9, or session.yaml's board."),
+              square_mm: Optional[float] = typer.Option(None, help="Square size, or circle spacing (mm). Default 20."),
+              board: Optional[str] = typer.Option(None, metavar="KIND", help="checkerboard (default), charuco, "
+                                                  "circles_symmetric or circles_asymmetric (docs/targets.md)."),
+              marker_mm: Optional[float] = typer.Option(None, help="ChArUco marker side (mm)."),
+              dictionary: Optional[str] = typer.Option(None, help="ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
+              legacy_pattern: Optional[bool] = typer.Option(None, "--legacy-pattern/--no-legacy-pattern",
+                                                            help="ChArUco board made before OpenCV 4.6 (even rows)."),
+              circle_mm: Optional[float] = typer.Option(None, help="Circle diameter (mm; default half the spacing)."),
               use_depth: bool = typer.Option(False, "--use-depth", help="Also solve 3D-2D through the depth camera's "
                                              "board measurement, use it, and report both methods."),
               captures: Optional[str] = typer.Option(None, metavar="NAMES",
@@ -168,11 +177,15 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                                 help="Correct the ZED right camera's residual rotation from left-right "
                                                      "matches over every capture (boards and scenes); applied only "
                                                      "where the captures determine it (docs/pipeline.md).")) -> None:
-    """Solve T_zed_from_mech from checkerboard captures in SESSION/board/."""
+    """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run, calibration_output_path
     from gtforge.reports.calibration import write_calibration_report
 
-    params = _options(CalibrateParams, board=_options(BoardModel, cols=cols, rows=rows, square_size_mm=square_mm),
+    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
+                                   dictionary=dictionary, legacy_pattern=legacy_pattern,
+                                   circle_diameter_mm=circle_mm).items() if v is not None}
+    # only the board options given: session.yaml's board (if any) fills the rest
+    params = _options(CalibrateParams, **({"board": _options(BoardModel, **given)} if given else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     output = calibration_output_path(output)
     res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
@@ -186,14 +199,16 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
         out.print(f"method {m.method}: RMS {m.rms_zed_px:.3f} px, differs by {m.rot_diff_to_primary_deg:.4f} deg / "
                   f"{m.trans_diff_to_primary_mm:.3f} mm")
     if res.square_size_measured_mm is not None:
-        out.print(f"board squares measured in the depth: {res.square_size_measured_mm:.2f} mm "
-                  f"(declared {res.board.square_size_mm:g} mm)")
+        out.print(f"board {'circle spacing' if res.board.kind.startswith('circles') else 'squares'} measured in the "
+                  f"depth: {res.square_size_measured_mm:.2f} mm (declared {res.board.square_size_mm:g} mm)")
     from gtforge.rectification import summary_lines
 
     if res.zed_self_rectification is not None:
         out.print(res.zed_self_rectification.summary_line())
     for line in summary_lines(res.rectification, res.zed_conf):
         out.print(line)
+    if res.coverage is not None and res.coverage.guidance:
+        out.print("capture next (docs/targets.md, 'Coverage'):" + "".join(f"\n  - {g}" for g in res.coverage.guidance))
     out.print(f"wrote {output} and {rep}")
     out.print(f"verdict: {res.verdict}" + "".join(f"\n  - {r}" for r in res.verdict_reasons))
     if res.verdict == "FAIL":

@@ -566,8 +566,9 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
 def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3, scale: float = 0.5,
                      seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.03,
                      image_noise: float = 1.5, supersample: int = 3, two_camera: bool = False,
-                     fruit_motion_mm: dict[int, tuple[float, float, float]] | None = None,
-                     zed_right_rotation_error_rad: tuple[float, float, float] | None = None, progress=None) -> Path:
+                     fruit_motion_mm: dict[int, tuple[float, float, float]] | None = None, progress=None,
+                     partial_poses: int = 0, partial_camera: str = "mech",
+                     zed_right_rotation_error_rad: tuple[float, float, float] | None = None) -> Path:
     """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``.
 
     ``zed_right_rotation_error_rad``: the right ZED image is rendered from a camera turned by this rotation vector
@@ -576,7 +577,10 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
 
     ``two_camera``: the structured-light unit has a separate depth camera (``two_camera_rig``); the session names it
     (``depth_intrinsics``, ``T_mech_from_depth``). ``fruit_motion_mm``: scene index -> the fruit's displacement
-    (world mm) between the structured-light capture and the ZED capture (truth follows the ZED)."""
+    (world mm) between the structured-light capture and the ZED capture (truth follows the ZED).
+    ``board``: any target of ``gtforge.targets`` (ChArUco, circle grids; session.yaml then declares it);
+    ``partial_poses``: that many more board captures cut by ``partial_camera``'s image border, near its corners in
+    turn (``gtforge.targets.random_partial_board_pose``)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -599,6 +603,12 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         write_capture(out / "board" / cap.name, cap, out / "truth")
         if progress:
             progress(f"board {cap.name}")
+    if partial_poses:
+        from gtforge.targets import random_partial_board_pose
+        for k in range(partial_poses):
+            T = random_partial_board_pose(rng, rig, board, k % 4, partial_camera)
+            cap = board_capture(f"{n_board + k:03d}", rig, board, T, rng, seed + n_board + k, **kw)
+            write_capture(out / "board" / cap.name, cap, out / "truth")
     motions = fruit_motion_mm or {}
     for i in range(n_scenes):
         scene = random_fruit_scene(rng, rig, seed + 100 + i)
@@ -611,6 +621,9 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
             progress(f"scene {cap.name}")
     from gtforge.io.captures import SessionFile
     extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
+    if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.targets)
+        from gtforge.targets import board_model_of
+        extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
 

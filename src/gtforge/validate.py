@@ -152,13 +152,32 @@ def bilinear_valid(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
         return np.where(den > 1e-9, num / den, np.nan)
 
 
+def _check_board(board_model) -> None:
+    """The declaration's own checks: the checkerboard's as before, the other targets' (gtforge.targets)."""
+    if board_model.kind == "checkerboard":
+        check_board_spec(board_model.spec())
+    else:
+        from gtforge.targets import check_board_model
+
+        check_board_model(board_model)
+
+
 def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: BoardSpec, params: ValidateParams,
                   used_for_calibration: bool) -> tuple[PoseValidation | None, np.ndarray | None, str | None]:
-    dm = detect_corners(texture, board)
-    dz = detect_corners(zed_left, board)
+    ids = None  # ChArUco / circle grids (gtforge.targets): the ids both cameras saw
+    if getattr(board, "kind", "checkerboard") != "checkerboard":
+        from gtforge.targets import matched_points
+
+        got = matched_points(name, texture, zed_left, rig.mech, rig.zed.left, board)
+        if isinstance(got, str):
+            return None, None, got
+        dm, dz, ids = got
+    else:
+        dm = detect_corners(texture, board)
+        dz = detect_corners(zed_left, board)
     if dm is None or dz is None:
         return None, None, "board not found in the " + ("structured-light" if dm is None else "ZED") + " image"
-    X = board.corners_board()
+    X = board.corners_board() if ids is None else board.corners_board()[ids]
     # per-pose board models fitted to all detected corners: PnP (with the lens model) in the texture camera,
     # a homography in the rectified ZED (exact for a planar board); their residuals are the detectors' noise
     T_mech_from_board = solve_pnp(X, dm.corners_uv, rig.mech)
@@ -188,8 +207,15 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     e_model = np.linalg.norm(rig.zed.left.project(transform_points(rig.T, P_model[okm])) - uv_fit[okm], axis=1)
     # noise floor: the mean XY error detector noise alone gives (2-D Gaussian: mean = sigma * sqrt(pi / 2)), the
     # texture camera's noise scaled into ZED pixels by the ratio of the board's corner spacings
-    spacing_m = np.median(np.linalg.norm(np.diff(uv_mech_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
-    spacing_z = np.median(np.linalg.norm(np.diff(uv_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
+    if ids is None:
+        spacing_m = np.median(np.linalg.norm(np.diff(uv_mech_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
+        spacing_z = np.median(np.linalg.norm(np.diff(uv_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
+    else:
+        from gtforge.targets import neighbour_pairs
+
+        a, b = neighbour_pairs(board, ids)
+        spacing_m = np.median(np.linalg.norm(uv_mech_fit[a] - uv_mech_fit[b], axis=1))
+        spacing_z = np.median(np.linalg.norm(uv_fit[a] - uv_fit[b], axis=1))
     floor = float(np.sqrt(np.pi / 2) * np.hypot(rms_m * spacing_z / spacing_m, rms_z))
     # Z: generated ZED-left depth at the detected ZED corners
     depth_zed = project_depth_to_camera(depth_mech_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
@@ -244,7 +270,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
 
     params = params or ValidateParams()
     if params.board is not None:
-        check_board_spec(params.board.spec())
+        _check_board(params.board)
     session = open_session(session_dir)
     if out_dir is not None:
         session.refuse_output_inside_captures(out_dir)
@@ -266,11 +292,13 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         calib = CalibrationFile.read(calib_path)
     board_model = params.board or calib.board  # the calibration's board unless overridden
     board = board_model.spec()
-    check_board_spec(board)
+    _check_board(board_model)
     # raw ZED images + SN.conf, a self-rectified ZED: rectify as the calibration did
     if calib.zed_conf is not None or calib.zed_right_correction is not None:
         session = calib.open_session(session_dir)
-    meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session))
+    # the rectification is measured on whole checkerboards only (docs/targets.md)
+    meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session)) if board_model.kind == "checkerboard" \
+        else None
     warnings = []
     used = set(calib.captures_used)
     poses, vecs, skipped = [], [], {}
@@ -280,7 +308,8 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         cap = session.load_capture(d, need_right=False)
         pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.mech_depth_mm, cap.zed_left, calib.rig, board, params,
                                      d.name in used)
-        meter.add(d.name, cap.zed_right, left_image=cap.zed_left)
+        if meter is not None:
+            meter.add(d.name, cap.zed_right, left_image=cap.zed_left)
         if err:
             skipped[d.name] = err
             log.warning("capture %s: %s; skipped", d.name, err)
@@ -303,7 +332,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     zerr = np.array([p.z_error_pct for p in poses])
     xy_mean = float(e.mean())
     z_mean = float(np.nanmean(zerr))
-    rect = meter.result()
+    rect = meter.result() if meter is not None else None
     warnings += rect.warnings if rect is not None else []
     rep = ValidationReport(
         calibration_path=str(calib_path), session_dir=str(session_dir),

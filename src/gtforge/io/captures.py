@@ -20,6 +20,7 @@ from gtforge.io.cameras import ZedConfReading
 from gtforge.io.digest import blake3_hex
 from gtforge.io.formats import PNG_SIGNATURE, read_image
 from gtforge.schema import GTModel, VersionedFile, matrix4_field
+from gtforge.targets import BoardModel
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -186,6 +187,9 @@ class SessionFile(VersionedFile):
     scenes_dir: str = "scenes"
     files: FileNames = Field(default_factory=FileNames)
     fruit_ids: dict[str, str] = Field(default_factory=dict)
+    # the calibration target (gtforge.targets.BoardModel: kind, cols, rows, square_size_mm, ...); absent: the
+    # command line's (default: the 12x9 checkerboard)
+    board: BoardModel | None = None
 
     @field_validator("T_mech_from_depth", mode="before")
     @classmethod

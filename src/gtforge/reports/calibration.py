@@ -25,6 +25,12 @@ METHOD_TEXT = {
     "depth": "depth: the depth camera's 3-D board corners, one 3D-to-2D solve into the ZED-left image",
 }
 ARROW_LENGTH_FRAC = 0.05  # the 95th-percentile residual is drawn this long (share of the image width), every view
+AMBIGUITY_TEXT = {  # how each target's point order is made the same in both cameras (docs/targets.md)
+    "checkerboard": "none: cols + rows odd, the pattern fixes the corner order",
+    "charuco": "none: every corner has an id from its markers",
+    "circles_asymmetric": "none: the staggered rows fix the order",
+    "circles_symmetric": "resolved per pose: the ZED numbering whose board x axis agrees with the texture camera's",
+}
 REGION_ROWS = ("top", "middle", "bottom")
 REGION_COLS = ("left", "centre", "right")
 
@@ -81,7 +87,9 @@ def summary_section(calib: CalibrationFile) -> Section:
         [f"1-sigma translation x / y / z (mm), {sm} solve", " / ".join(f"{v:.3f}" for v in calib.sigma_trans_xyz_mm)],
         ["leave-one-pose-out transfer mean / max (px), reprojection solve", loo],
         ["poses used / skipped / outliers", f"{len(calib.captures_used)} / {n_skip} / {n_out}"],
-        ["board (inner corners, square)", f"{b.cols} x {b.rows}, {b.square_size_mm:g} mm"],
+        ["board (inner corners, square)", f"{b.cols} x {b.rows}, {b.square_size_mm:g} mm"] if b.kind == "checkerboard"
+        else ["board", b.describe()],
+        ["board's 180-degree ambiguity", AMBIGUITY_TEXT.get(b.kind, "")],
     ]
     measured = getattr(calib, "square_size_measured_mm", None)
     if measured is not None:
@@ -220,10 +228,54 @@ def self_rectification_section(calib: CalibrationFile) -> Section | None:
     return build(calib.zed_self_rectification)
 
 
+def coverage_section(calib: CalibrationFile) -> Section | None:
+    """Where each camera's board points fell (all detected points of the used poses), the poses' distances and
+    tilts, and what to capture next (gtforge.coverage)."""
+    cov = getattr(calib, "coverage", None)
+    if cov is None:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gtforge.coverage import GRID_COLS, GRID_ROWS
+
+    fig, axes = plt.subplots(1, len(cov.cameras), figsize=(5.5 * len(cov.cameras), 4.0), squeeze=False)
+    for ax, c in zip(axes.ravel(), cov.cameras):
+        grid = np.asarray(c.counts_grid, float)
+        ax.imshow(grid > 0, extent=(0, c.width_px, c.height_px, 0), cmap="Greens", vmin=0, vmax=2.5, alpha=0.6,
+                  interpolation="nearest", aspect="equal")
+        pts = np.asarray(c.points_uv).reshape(-1, 2)
+        if len(pts):
+            ax.plot(pts[:, 0], pts[:, 1], ".", ms=2, color="k")
+        for gx in range(1, GRID_COLS):
+            ax.axvline(gx * c.width_px / GRID_COLS, color="0.8", lw=0.5)
+        for gy in range(1, GRID_ROWS):
+            ax.axhline(gy * c.height_px / GRID_ROWS, color="0.8", lw=0.5)
+        ax.set_xlim(0, c.width_px)
+        ax.set_ylim(c.height_px, 0)
+        ax.set_title(f"{'ZED-left' if c.camera == 'zed' else 'structured-light texture'}: {c.n_points} points, "
+                     f"{int((grid > 0).sum())}/{grid.size} cells", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    body = note("Dots: every board point each camera detected in the used poses (also those the other camera did not "
+                "see); green: cells of the 8x6 grid with at least one point. "
+                f"Board distance from the ZED {cov.distance_mm_min:.0f}-{cov.distance_mm_max:.0f} mm; tilt about the "
+                f"vertical axis {cov.tilt_vertical_axis_deg[0]:+.0f} to {cov.tilt_vertical_axis_deg[1]:+.0f} deg, about "
+                f"the horizontal axis {cov.tilt_horizontal_axis_deg[0]:+.0f} to {cov.tilt_horizontal_axis_deg[1]:+.0f} deg.")
+    body += fig_to_img_tag(fig, dpi=80, alt="coverage map")
+    if cov.guidance:
+        body += "<p><b>Capture next:</b></p><ul>" + "".join(f"<li>{html.escape(g)}</li>" for g in cov.guidance) + "</ul>"
+    else:
+        body += "<p>No gap found: the points reach every image corner, the poses span tilts and distances.</p>"
+    return Section("Coverage and what to capture next", body)
+
+
 SectionBuilder = Callable[[CalibrationFile], "Section | None"]
 SECTIONS: list[SectionBuilder] = [verdict_section, summary_section, reprojection_section, methods_section,
                                   poses_section, histogram_section, regions_section, vectors_section,
-                                  rectification_section, self_rectification_section]
+                                  coverage_section, rectification_section, self_rectification_section]
 
 
 def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,

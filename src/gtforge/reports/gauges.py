@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, verdict_badge, write_html
+from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, write_html
 
 if TYPE_CHECKING:
     from gtforge.gauges import GaugeReport, GaugeResult

@@ -1,0 +1,260 @@
+"""ChArUco (partial views), circle grids, the board declaration and its mismatch errors (gtforge.targets).
+
+Boards are rendered by the generator (exact truth) at small sizes, inside their bounding box only
+(``render_board_views``); the extrinsic limits are the checkerboard's (0.05 deg / 0.5 mm at 7 poses, 0.4x:
+tests/test_calibrate.py) or tighter where the target allows.
+"""
+import cv2
+import numpy as np
+import pytest
+
+from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate_observations, detect_pose
+from gtforge.errors import InputError
+from gtforge.geometry import pose_difference
+from gtforge.synthetic import BoardSpec, default_rig, random_board_pose
+from gtforge.targets import (BoardModel, CharucoSpec, CircleGridSpec, board_model_of, check_board_model,
+                             circle_centre_bias, detect_charuco, random_partial_board_pose, render_board_views)
+
+CHARUCO = CharucoSpec(7, 5, 40.0, 30.0, "DICT_4X4_50")
+
+
+def _detect_all(views, rig, spec):
+    obs, reps = [], []
+    for v in views:
+        o, r = detect_pose(v.name, v.mech_texture, v.mech_depth_mm, v.zed_left, rig.mech, rig.zed, spec, 4.0)
+        reps.append(r)
+        if o is not None:
+            obs.append(o)
+    return obs, reps
+
+
+def _calibrate(views, rig, spec, loo=False):
+    obs, reps = _detect_all(views, rig, spec)
+    res = calibrate_observations(obs, reps, rig.mech, rig.zed,
+                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo)).attach_coverage()
+    return res, obs
+
+
+@pytest.fixture(scope="module")
+def charuco_views():
+    """4 whole-board poses and 4 cut by the texture camera's image border near its corners (0.4x resolution)."""
+    rig = default_rig(0.4)
+    rng = np.random.default_rng(5)
+    full = [render_board_views(f"f{i}", rig, CHARUCO, random_board_pose(rng, rig, CHARUCO), rng, i) for i in range(4)]
+    part = [render_board_views(f"p{k}", rig, CHARUCO, random_partial_board_pose(rng, rig, CHARUCO, k), rng, 50 + k)
+            for k in range(4)]
+    return rig, full, part
+
+
+def test_board_declaration_round_trips_and_old_files_still_load(tmp_path):
+    # a checkerboard record is what it was before (older readers, byte-identical calibration files)
+    assert BoardModel().model_dump() == {"cols": 12, "rows": 9, "square_size_mm": 20.0}
+    assert isinstance(BoardModel().spec(), BoardSpec)
+    ch = BoardModel(kind="charuco", cols=7, rows=5, square_size_mm=40, marker_size_mm=30, dictionary="DICT_4X4_50")
+    assert BoardModel.model_validate(ch.model_dump()) == ch and ch.spec() == CHARUCO
+    assert board_model_of(CHARUCO) == ch
+    rig = default_rig(0.2)
+    from gtforge.camera import Rig
+
+    path = CalibrationFile.known_extrinsic(Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech)
+                                           ).write(tmp_path / "c.yaml")
+    text = path.read_text()  # a checkerboard record exactly as before: cols, rows, square_size_mm, no "kind"
+    assert "board: {cols: 12, rows: 9, square_size_mm: 20.0}\n" in text and "kind:" not in text
+    assert CalibrationFile.read(path).board.kind == "checkerboard"
+    # a ChArUco record is kept whole
+    c = CalibrationFile.read(path)
+    c.board = ch
+    c.write(tmp_path / "d.yaml")
+    assert CalibrationFile.read(tmp_path / "d.yaml").board == ch
+
+
+def test_charuco_truth_ids_and_corners(charuco_views):
+    rig, full, part = charuco_views
+    errs = []
+    for v in full + part:
+        for img, truth, cam in ((v.mech_texture, v.corners_mech_uv, rig.mech), (v.zed_left, v.corners_zed_uv, rig.zed.left)):
+            d = detect_charuco(img, CHARUCO, cam)
+            assert d is not None
+            # every id is where the truth puts that corner: a wrong id would be a square (>10 px) off
+            e = np.linalg.norm(d.corners_uv - truth[d.ids], axis=1)
+            assert e.max() < 0.7, (v.name, e.max())
+            errs.append(e)
+    e = np.concatenate(errs)
+    assert np.mean(e) < 0.1 and np.median(e) < 0.08, (np.mean(e), np.median(e))
+    # the cut poses: part of the board is outside the texture image, yet its visible corners are found
+    d = detect_charuco(part[0].mech_texture, CHARUCO, rig.mech)
+    assert 6 <= len(d.ids) < CHARUCO.n_corners
+
+
+@pytest.fixture(scope="module")
+def charuco_calibrations(charuco_views):
+    rig, full, part = charuco_views
+    return _calibrate(full, rig, CHARUCO)[0], _calibrate(full + part, rig, CHARUCO)[0]
+
+
+def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_calibrations):
+    rig, full, part = charuco_views
+    res_full, res_all = charuco_calibrations
+    rot_f, tr_f = pose_difference(res_full.rig.T, rig.T_zed_from_mech)
+    rot_a, tr_a = pose_difference(res_all.rig.T, rig.T_zed_from_mech)
+    # with the cut poses: within the checkerboard's limits at this size, and better than the whole boards alone,
+    # both as reported (sigma) and against the truth
+    assert rot_a < 0.05 and tr_a < 0.5, (rot_a, tr_a)
+    assert res_all.sigma_rot_deg < 0.8 * res_full.sigma_rot_deg and res_all.sigma_trans_mm < 0.8 * res_full.sigma_trans_mm
+    assert rot_a < rot_f and tr_a < tr_f, (rot_f, tr_f, rot_a, tr_a)
+    # every cut pose was used, with only the corners both cameras saw
+    by = {p.capture: p for p in res_all.poses}
+    for v in part:
+        p = by[v.name]
+        assert p.status == "used" and p.n_points_common < CHARUCO.n_corners
+        assert p.n_points_common <= min(p.n_points_mech, p.n_points_zed)
+    assert abs(res_all.square_size_measured_mm - 40.0) < 0.2
+
+
+@pytest.mark.parametrize("spec, scale", [(CircleGridSpec(7, 5, 36.0, 18.0, False), 0.25),
+                                         (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)], ids=["symmetric", "asymmetric"])
+def test_circle_grid_calibration(spec, scale):
+    rig = default_rig(scale)
+    rng = np.random.default_rng(5)
+    views = [render_board_views(f"{i}", rig, spec, random_board_pose(rng, rig, spec), rng, i) for i in range(5)]
+    res, obs = _calibrate(views, rig, spec)
+    assert len(obs) >= 4
+    rot, tr = pose_difference(res.rig.T, rig.T_zed_from_mech)
+    assert rot < 0.03 and tr < 0.3, (rot, tr)
+    assert res.rms_px < 0.1
+    spacing = abs(res.square_size_measured_mm - spec.square_size_mm)
+    assert spacing < 0.05 * spec.square_size_mm
+    # both cameras number the circles alike: as the truth, or (symmetric grids, which look the same turned by 180
+    # degrees) both from the other end; an asymmetric grid has one numbering only
+    for o in obs:
+        v = next(v for v in views if v.name == o.name)
+        flips = (False, True) if not spec.asymmetric else (False,)
+        ok = [max(np.linalg.norm(o.zed_uv - (v.corners_zed_uv[::-1] if f else v.corners_zed_uv), axis=1).max(),
+                  np.linalg.norm(o.mech_uv - (v.corners_mech_uv[::-1] if f else v.corners_mech_uv), axis=1).max()) < 0.3
+              for f in flips]
+        assert any(ok), o.name
+
+
+def test_circle_centre_bias_is_the_ellipse_centroid_shift():
+    # a 40 mm circle 300 mm away, tilted 45 degrees: the projected disk's centroid is off the centre's image by a
+    # computable amount; zero for a fronto-parallel circle
+    from gtforge.camera import PinholeCamera
+    from gtforge.geometry import T_from_rotvec
+
+    spec = CircleGridSpec(3, 4, 50.0, 40.0)
+    cam = PinholeCamera(width_px=1000, height_px=1000, fx_px=1000.0, fy_px=1000.0, cx_px=500.0, cy_px=500.0)
+    flat = circle_centre_bias(spec, T_from_rotvec([0, 0, 0], [-50, -75, 300]), cam)
+    assert np.abs(flat).max() < 1e-6
+    tilted = circle_centre_bias(spec, T_from_rotvec(np.radians([45, 0, 0]), [-50, -75, 300]), cam)
+    assert 0.2 < np.abs(tilted[:, 1]).max() < 5 and np.abs(tilted[:, 0]).max() < np.abs(tilted[:, 1]).max()
+
+
+# ---- the declaration against what the image shows --------------------------------------------------
+def _flat(board_cv, squares, px=60):
+    img = board_cv.generateImage((squares[0] * px, squares[1] * px), marginSize=40, borderBits=1)
+    return cv2.GaussianBlur(img, (0, 0), 0.7)
+
+
+def _cv_board(sx, sy, dictionary, legacy=False):
+    b = cv2.aruco.CharucoBoard((sx, sy), 40.0, 30.0, cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)))
+    b.setLegacyPattern(legacy)
+    return b
+
+
+def test_declared_board_matches_the_flat_print():
+    d = detect_charuco(_flat(_cv_board(7, 5, "DICT_4X4_50"), (7, 5)), CHARUCO)
+    assert d is not None and list(d.ids) == list(range(24))
+
+
+@pytest.mark.parametrize("shown, declared, match", [
+    # markers of another dictionary
+    (("DICT_5X5_100", 7, 5, False), dict(dictionary="DICT_4X4_50"), r"board.dictionary.*5X5"),
+    # ids beyond the declared dictionary's size (the issue's example)
+    (("DICT_5X5_100", 12, 12, False), dict(dictionary="DICT_5X5_50", cols=8, rows=8), r"saw ids up to 7\d: a DICT_5X5_100"),
+    # a larger board than declared
+    (("DICT_4X4_50", 10, 8, False), dict(), r"board.cols/rows.*saw ids up to 39"),
+    # a smaller board than declared: same ids, other places
+    (("DICT_4X4_50", 5, 5, False), dict(), r"a 5x5 board"),
+    # the legacy pattern (boards made before OpenCV 4.6 with an even row count)
+    (("DICT_4X4_50", 6, 6, True), dict(cols=6, rows=6), r"legacy"),
+], ids=["dictionary", "dictionary-size", "larger-board", "smaller-board", "legacy"])
+def test_board_mismatch_is_a_one_line_error(shown, declared, match):
+    name, sx, sy, legacy = shown
+    img = _flat(_cv_board(sx, sy, name, legacy), (sx, sy))
+    decl = dict(kind="charuco", cols=7, rows=5, square_size_mm=40, marker_size_mm=30, dictionary="DICT_4X4_50")
+    decl.update(declared)
+    with pytest.raises(InputError, match=match) as e:
+        detect_charuco(img, BoardModel(**decl).spec(), where="board/000/2DImage.png")
+    assert "\n" not in str(e.value) and "board/000/2DImage.png" in str(e.value)
+
+
+@pytest.mark.parametrize("decl, match", [
+    (dict(kind="charuco", cols=7, rows=5, marker_size_mm=30), "dictionary"),
+    (dict(kind="charuco", cols=7, rows=5, marker_size_mm=45, dictionary="DICT_4X4_50", square_size_mm=40), "marker_size_mm"),
+    (dict(kind="charuco", cols=12, rows=12, marker_size_mm=15, dictionary="DICT_4X4_50"), "at least 72 markers"),
+    (dict(kind="circles_symmetric", cols=6, rows=6), "90 degrees"),
+    (dict(kind="circles_asymmetric", cols=4, rows=11, circle_diameter_mm=40), "diameter"),
+])
+def test_impossible_declarations_are_refused(decl, match):
+    with pytest.raises(InputError, match=match):
+        check_board_model(BoardModel(**decl))
+
+
+def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, charuco_calibrations, tmp_path):
+    from gtforge.reports.calibration import write_calibration_report
+
+    rig, full, part = charuco_views
+    res_full, res_all = charuco_calibrations
+    cf, ca = res_full.coverage, res_all.coverage
+    mech_f = next(c for c in cf.cameras if c.camera == "mech")
+    mech_a = next(c for c in ca.cameras if c.camera == "mech")
+    # whole boards never reach the texture image's corners; the cut poses do
+    assert min(mech_f.nearest_to_corner_px.values()) > 110
+    assert sum(d <= 110 for d in mech_a.nearest_to_corner_px.values()) >= 2
+    text_f = "\n".join(cf.guidance)
+    assert "no board points within 110 px of the structured-light image's bottom-left corner" in text_f
+    assert "never tilted more than" in text_f and "about the vertical axis" in text_f
+    assert sum("structured-light image" in g and g.startswith("no board") for g in ca.guidance) < \
+        sum("structured-light image" in g and g.startswith("no board") for g in cf.guidance)
+    # predicted gain of one more pose: below today's sigma; and the cut poses really brought it down by more than
+    # one such pose is predicted to
+    assert cf.predictions and all(p.sigma_rot_deg < res_full.sigma_rot_deg for p in cf.predictions)
+    best = min(p.sigma_rot_deg for p in cf.predictions)
+    assert res_all.sigma_rot_deg < best < res_full.sigma_rot_deg
+    # points seen by one camera only count for coverage: the texture camera's map has more than the common points
+    assert mech_a.n_points >= sum(p.n_points_mech for p in res_all.poses if p.status == "used")
+    html = write_calibration_report(res_all, tmp_path).read_text()
+    assert "Coverage and what to capture next" in html and "every corner has an id" in html
+
+
+def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp_path):
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+    from gtforge.io.captures import SessionFile
+    from gtforge.synthetic import SyntheticTruth, generate_session
+
+    spec = CircleGridSpec(7, 5, 36.0, 18.0, False)
+    sess = generate_session(tmp_path / "s", n_board=4, n_scenes=0, scale=0.25, seed=3, board=spec,
+                            depth_noise_mm=0.0, image_noise=1.0, supersample=1)
+    assert SessionFile.read(sess / "session.yaml").board == board_model_of(spec)
+    out = tmp_path / "cal.yaml"
+    r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(out), "--no-loo"])
+    assert r.exit_code == 0, r.output
+    assert "capture next" in r.output and "circle spacing measured in the depth: 36.0" in r.output
+    cal = CalibrationFile.read(out)
+    assert cal.board.kind == "circles_symmetric" and cal.coverage is not None
+    rot, tr = pose_difference(cal.rig.T, np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
+    assert rot < 0.05 and tr < 0.5, (rot, tr)
+    # validate measures the ground truth on the same target (XY reprojection px, Z geometric %)
+    from gtforge.validate import validate
+
+    v = validate(sess, out, tmp_path / "val")
+    assert v.board.kind == "circles_symmetric" and len(v.poses) >= 3
+    assert v.xy_mean_px < 0.3 and v.z_error_mean_pct < 0.5, (v.xy_mean_px, v.z_error_mean_pct)
+    # a board option on the command line overrides session.yaml's field: a grid one column short is refused (it
+    # would otherwise be found inside the plate's, numbered from either end), one line, exit code 2
+    from test_safety import gtforge, one_line_error
+
+    r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--cols", "6")
+    assert r.returncode == 2 and one_line_error(r) and "more circles beyond" in r.stderr, r.stderr
