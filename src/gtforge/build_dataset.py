@@ -311,6 +311,7 @@ def _disparity_summary(disp, over_px):
 # ---- one scene ------------------------------------------------------------------------------
 def build_scene_arrays(depth_mech_mm: np.ndarray, rig: Rig, params: BuildParams, user_mask: np.ndarray | None = None):
     """Ground-truth depth/disparity/occlusion in the ZED-left image, region labels and the fruit mask."""
+    depth_mech_mm = rig.corrected_depth_mm(depth_mech_mm)  # (itself without calibrate-scale's depth correction)
     sd = reproject_to_zed(depth_mech_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed, params.reproject_params(),
                           params.occlusion_rel_tol, left_span=params.sigma and params.mode == "mesh")
     region, fruit = fruit_regions(sd.depth_mm, rig.zed, params, user_mask)
