@@ -330,6 +330,36 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     out.print(f"wrote {calibration_output_path(output)}")
 
 
+@app.command("calibrate-scale")
+def calibrate_scale(session: Path = typer.Argument(..., help="Capture session folder (its scenes/ and board/ captures)."),
+                    calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
+                                                     help="The calibration to correct (gtforge calibrate)."),
+                    output: str = typer.Option("scaled.yaml", "--output", "-o", metavar="PATH",
+                                               help="Corrected calibration YAML to write (never the input file)."),
+                    scenes: Optional[str] = typer.Option(None, metavar="IDS",
+                                                         help="Comma-separated scene ids (default: all)."),
+                    boards: bool = typer.Option(True, "--boards/--no-boards",
+                                                help="Use the board captures (they separate baseline from depth scale).")
+                    ) -> None:
+    """Estimate the disparity-scale terms (ZED baseline, right-camera yaw, depth scale and offset) from the scenes'
+    stereo consistency and the boards; writes a calibration file that applies them (its 'scale_calibration' says
+    what was found, each term's sigma and where it came from)."""
+    from gtforge.scale_calibration import ScaleParams, calibrate_scale as run
+
+    res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
+              progress=_status)
+    info = res.scale_calibration
+    for name, t in info.terms.items():
+        sig = f" +- {t.sigma:.3g}" if t.sigma is not None else ""
+        out.print(f"  {name}: {t.value:+.4g}{sig} [{t.status}]" + (f" ({t.reason})" if t.reason else "")
+                  + (f"; from {', '.join(t.sources)}" if t.sources else ""))
+    out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
+              f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
+    from gtforge.calibrate import calibration_output_path
+
+    out.print(f"wrote {calibration_output_path(output)}")
+
+
 @app.command()
 def validate(session: Path = typer.Argument(..., help="Capture session folder (board/ captures)."),
              calibration: Optional[Path] = typer.Option(None, "--calibration", "-c",

@@ -433,6 +433,9 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     params = params or ScaleParams()
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
+    if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
+        raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
+                         "one already corrected", "run calibrate-scale on the board (or refined) calibration")
     session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
     check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
@@ -441,9 +444,6 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         if Path(out_path).resolve() == calib_path.resolve():
             raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
                              "the input calibration", "write the corrected calibration beside it, e.g. scaled.yaml")
-    if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
-        raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
-                         "one already corrected", "run calibrate-scale on the board (or refined) calibration")
     rig_file = calib.rig
     B_file = rig_file.zed.baseline_mm
     # the boards first: absolute measurements, independent of the scenes' GT
@@ -549,3 +549,28 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     if out_path is not None:
         out.write(out_path)
     return out
+
+
+def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+    """Each GT pixel's 1-sigma (px) from the applied scale terms' covariance: ``sqrt(J C J^T)`` with
+    ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units)."""
+    zed = rig.zed
+    fb = zed.f_px * zed.baseline_mm
+    z = np.asarray(depth_mm, np.float64)
+    x = (np.arange(z.shape[1], dtype=np.float64)[None, :] - zed.left.cx_px) / zed.f_px
+    J = [fb / z, np.broadcast_to(zed.f_px * (1 + x * x) * np.pi / 180.0, z.shape), fb / z, fb / z ** 2]
+    C = np.asarray(info.covariance, np.float64)
+    var = np.zeros(z.shape)
+    for i in range(4):
+        for j in range(4):
+            if C[i, j] != 0.0:
+                var += J[i] * C[i, j] * J[j]
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+    """``sigma_px`` (float32, +inf where no GT) with the scale terms' sigma added in quadrature."""
+    s = scale_sigma_px(depth_mm, rig, info)
+    with np.errstate(invalid="ignore"):
+        out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
+    return out.astype(np.float32)

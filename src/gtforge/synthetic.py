@@ -278,17 +278,20 @@ def _subsample_offsets(ss: int) -> np.ndarray:
 
 
 def render_image(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray, supersample: int = 3,
-                 rows_per_chunk: int = 48) -> np.ndarray:
-    """Linear-intensity RGB float image ``(H, W, 3)`` in [0, 1], box-filtered over ``supersample**2`` rays."""
+                 rows_per_chunk: int = 48, T_light_from_world: np.ndarray | None = None) -> np.ndarray:
+    """Linear-intensity RGB float image ``(H, W, 3)`` in [0, 1], box-filtered over ``supersample**2`` rays.
+    The light comes from the camera's direction, or from ``T_light_from_world``'s when given (a camera turned by a
+    small error sees the scene under the same light)."""
     T_world_from_cam = invert_T(T_cam_from_world)
     centre = T_world_from_cam[:3, 3]
     R = T_world_from_cam[:3, :3]
+    R_light = R if T_light_from_world is None else invert_T(T_light_from_world)[:3, :3]
     grid = cam.ray_grid()  # (H, W, 2) normalised coordinates of pixel centres
     # local Jacobian of the normalised coordinates w.r.t. pixel offsets (central differences)
     jac_u = np.gradient(grid, axis=1)
     jac_v = np.gradient(grid, axis=0)
     offs = _subsample_offsets(supersample)
-    light = -R[:, 2] + np.array([0.3, -0.2, 0.0])
+    light = -R_light[:, 2] + np.array([0.3, -0.2, 0.0])
     light /= np.linalg.norm(light)
     H, W = cam.height_px, cam.width_px
     out = np.zeros((H, W, 3))
@@ -390,7 +393,8 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
                         image_noise)
     # the right image from the (possibly yawed) true right camera; its truth below stays the ideal rectified one
     right = finish_image(render_image(zed_scene, zed.right, rig.T_zedr_actual_from_zedr @ T_zedr_from_world,
-                                      supersample), rng, blur_sigma_px, image_noise)
+                                      supersample, T_light_from_world=T_zedr_from_world), rng, blur_sigma_px,
+                         image_noise)
     tex = finish_image(render_image(scene, rig.mech, T_mech_from_world, supersample), rng, blur_sigma_px,
                        image_noise, gray=True)
     # structured-light depth at the depth camera's pixel centres, with projector shadows
