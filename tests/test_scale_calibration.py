@@ -8,7 +8,7 @@ import pytest
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays, middlebury_calib_text
 from gtforge.calibrate import CalibrationFile
-from gtforge.camera import Rig
+from gtforge.camera import Rig, ScaleCorrections
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
 from gtforge.scale_calibration import (ScaleParams, apply_homography, calibrate_scale, corrected_right_image,
@@ -168,15 +168,14 @@ def test_yaw_homography_is_the_turned_cameras_projection():
     actual = sr.zed.right.project(Xr @ sr.T_zedr_actual_from_zedr[:3, :3].T)
     u, v = apply_homography(yaw_homography(rig, sr.right_yaw_rad), ideal[:, 0], ideal[:, 1])
     np.testing.assert_allclose(np.column_stack([u, v]), actual, atol=1e-9)
-    # a linear ramp is re-rectified exactly (cubic convolution reproduces linear functions)
-    rig = rig.model_copy(update={"scale_corrections": {"zed_right_yaw_deg": 0.15}})
-    rig = Rig.model_validate(rig.model_dump())
+    # a linear ramp is re-rectified to within the output's rounding (cubic B-splines reproduce linear functions)
+    rig = rig.model_copy(update={"scale_corrections": ScaleCorrections(zed_right_yaw_deg=0.15)})
     h, w = 40, 60
     ramp = np.arange(w)[None, :] * 2 + np.arange(h)[:, None] + 10
     out = corrected_right_image(ramp.astype(np.uint8), rig)
     vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
     us, vs = apply_homography(yaw_homography(rig, np.radians(0.15)), uu.ravel(), vv.ravel())
-    inner = ((us > 2) & (us < w - 3) & (vs > 2) & (vs < h - 3)).reshape(h, w)
+    inner = ((us > 6) & (us < w - 7) & (vs > 6) & (vs < h - 7)).reshape(h, w)  # (the spline's mirrored borders)
     expect = us.reshape(h, w) * 2.0 + vs.reshape(h, w) + 10
     assert np.abs(out[inner] - expect[inner]).max() <= 0.5 + 1e-9
 
