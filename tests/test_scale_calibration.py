@@ -12,12 +12,14 @@ from gtforge.camera import Rig, ScaleCorrections
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
 from gtforge.scale_calibration import (ScaleParams, apply_homography, calibrate_scale, corrected_right_image,
-                                       scale_sigma_px, yaw_homography)
+                                       scale_sigma_px, shown_disparity_px, yaw_homography)
 from gtforge.synthetic import SyntheticTruth, default_rig, generate_session
 from gtforge.verify import verify_scene
 
 # the combined errors of the session below, at the issue's limits: baseline +0.3 %, right-camera yaw 0.15 deg,
 # depth scale -0.2 % and offset +0.5 mm
+# half the default pixels a scene: the tests' sessions are small and the budget tight
+FAST = ScaleParams(points_per_scene=20000)
 ERRORS = dict(zed_baseline_error_frac=0.003, right_yaw_deg=0.15, depth_scale_error_frac=-0.002, depth_offset_mm=0.5)
 
 
@@ -31,15 +33,18 @@ def _known_calibration(session: Path, out: Path) -> Path:
 
 
 def _gt_epe(session: Path, calib: CalibrationFile) -> list[float]:
-    """Per scene: mean |GT - truth| (px) over the pixels the depth camera saw, the GT built with ``calib``."""
+    """Per scene: mean |GT - what the images show| (px) over the pixels the depth camera saw, the GT built with
+    ``calib`` and the right image re-rectified with its yaw (as build-dataset writes im1)."""
     s = open_session(session)
+    yaw_true = SyntheticTruth.read(session / "truth" / "rig_truth.yaml").zed_right_yaw_deg
     out = []
     for d in s.select("scenes", None):
         cap = s.load_capture(d)
         sd, _, _ = build_scene_arrays(cap.mech_depth_mm, calib.rig, BuildParams(), cap.fruit_mask)
         t = np.load(session / "truth" / f"scene_{d.name}.npz")
-        m = np.isfinite(sd.disparity_px) & np.isfinite(t["zed_disparity_px"]) & t["seen_by_mech"] & sd.nonoccluded
-        out.append(float(np.mean(np.abs(sd.disparity_px[m] - t["zed_disparity_px"][m]))))
+        shown = shown_disparity_px(t["zed_disparity_px"], calib.rig, yaw_true)
+        m = np.isfinite(sd.disparity_px) & np.isfinite(shown) & t["seen_by_mech"] & sd.nonoccluded
+        out.append(float(np.mean(np.abs(sd.disparity_px[m] - shown[m]))))
     return out
 
 
@@ -56,7 +61,7 @@ def errors_session(tmp_path_factory):
 def errors_calibrated(errors_session, tmp_path_factory):
     out = tmp_path_factory.mktemp("scale_cal")
     start = _known_calibration(errors_session, out / "start.yaml")
-    return start, calibrate_scale(errors_session, start, out / "scaled.yaml")
+    return start, calibrate_scale(errors_session, start, out / "scaled.yaml", FAST)
 
 
 def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_calibrated):
@@ -65,11 +70,13 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
     truth = dict(zed_baseline_frac=ERRORS["zed_baseline_error_frac"], zed_right_yaw_deg=ERRORS["right_yaw_deg"],
                  depth_scale_frac=ERRORS["depth_scale_error_frac"], depth_offset_mm=ERRORS["depth_offset_mm"])
     for name, t in info.terms.items():
-        assert t.status == "applied", (name, t)
-        # each within 4 sigma of the truth (the scenes' photometric estimate carries a model error of about a
-        # sigma; see docs/pipeline.md) and every term has a board source besides the scenes
-        assert abs(t.value - truth[name]) < 4 * t.sigma, (name, t.value, t.sigma)
+        # five board poses at 0.3x leave the offset's sigma near 0.2 mm: it may be reported "not significant"
+        # (within 2 sigma of 0) and not applied; every estimate within 3 sigma of the truth, every term with a board
+        # source besides the scenes
+        assert t.status in ("applied", "not significant"), (name, t)
+        assert abs(t.estimate - truth[name]) < 3 * t.sigma, (name, t.estimate, t.sigma)
         assert any(s.startswith("boards") for s in t.sources)
+        assert t.status == "applied" or t.value == 0.0  # what is not applied is held at 0
     # the covariance is a covariance, its diagonal the sigmas
     C = np.array(info.covariance)
     np.testing.assert_allclose(np.sqrt(np.diag(C)), [info.terms[n].sigma for n in info.terms], rtol=1e-9)
@@ -77,9 +84,9 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
     # applied through the rig: the baseline, the depth correction and the yaw
     assert res.rig.zed.baseline_mm == pytest.approx(63.0 * (1 + info.terms["zed_baseline_frac"].value))
     assert res.rig.scale_corrections.depth_scale == pytest.approx(1 + info.terms["depth_scale_frac"].value)
-    # the ground truth built with it matches what the images show (0.06-0.2 px before: each error alone is 0.02-0.1)
+    # the ground truth built with it matches what the images show (0.88 px before, the yaw's 0.15 deg dominating)
     before, after = _gt_epe(errors_session, CalibrationFile.read(start)), _gt_epe(errors_session, res)
-    assert min(before) > 0.05 and max(after) <= 0.02, (before, after)
+    assert min(before) > 0.5 and max(after) <= 0.02, (before, after)
     # written and read back
     again = CalibrationFile.read(Path(start).parent / "scaled.yaml")
     assert again.scale_calibration == info and again.rig == res.rig
@@ -100,9 +107,44 @@ def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, 
     assert abs(biases["before"]) > 0.2 and abs(biases["after"]) < 0.02, biases
 
 
+def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_calibrated, tmp_path):
+    """calib.txt's baseline is the corrected one, im1 the re-rectified right image, the labels the corrected GT, the
+    scene's verification reads no stereo bias and the sigma map carries the scale terms."""
+    from gtforge.build_dataset import build_dataset
+    from gtforge.io.formats import read_image, read_pfm
+    from gtforge.scale_calibration import scale_sigma_px
+
+    start, res = errors_calibrated
+    scaled = Path(start).parent / "scaled.yaml"
+    out = tmp_path / "ds"
+    build_dataset(errors_session, scaled, out, workers=1, scenes=["000"])
+    sc = out / "scenes" / "000"
+    calib_txt = dict(line.split("=", 1) for line in (sc / "calib.txt").read_text().splitlines())
+    assert float(calib_txt["baseline"]) == pytest.approx(res.rig.zed.baseline_mm, abs=1e-6)
+    s = open_session(errors_session)
+    cap = s.load_capture(s.select("scenes", None)[0])
+    np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected_right_image(cap.zed_right, res.rig))
+    sd, _, _ = build_scene_arrays(cap.mech_depth_mm, res.rig, BuildParams(), cap.fruit_mask)
+    np.testing.assert_array_equal(read_pfm(sc / "disp0GT.pfm"), sd.disparity_px)
+    meta = __import__("json").loads((sc / "meta.json").read_text())
+    assert abs(meta["verification"]["stereo"]["all"]["disparity_bias_px"]) < 0.02
+    sigma = read_pfm(sc / "disp0GT_sigma.pfm")
+    m = np.isfinite(sigma)
+    assert np.all(sigma[m] >= scale_sigma_px(sd.depth_mm, res.rig, res.scale_calibration)[m] * (1 - 1e-6))
+
+
 def test_without_boards_baseline_and_depth_scale_are_not_separable(errors_session, errors_calibrated, tmp_path):
+    """Through the CLI, --no-boards."""
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+
     start, _ = errors_calibrated
-    res = calibrate_scale(errors_session, start, tmp_path / "noboards.yaml", ScaleParams(use_boards=False))
+    r = CliRunner().invoke(app, ["calibrate-scale", str(errors_session), "-c", str(start), "-o",
+                                 str(tmp_path / "noboards.yaml"), "--no-boards"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert "not separable" in r.output
+    res = CalibrationFile.read(tmp_path / "noboards.yaml")
     t = res.scale_calibration.terms
     assert t["depth_scale_frac"].status == "not separable" and t["depth_scale_frac"].sigma is None
     assert res.rig.scale_corrections.depth_scale == 1.0
@@ -120,7 +162,7 @@ def test_without_boards_baseline_and_depth_scale_are_not_separable(errors_sessio
 def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
     """The shared error-free session: every correction within 2 sigma of zero, the GT unchanged within 0.002 px."""
     start = _known_calibration(session_dir, tmp_path / "start.yaml")
-    res = calibrate_scale(session_dir, start, tmp_path / "scaled.yaml")
+    res = calibrate_scale(session_dir, start, tmp_path / "scaled.yaml", FAST)
     for name, t in res.scale_calibration.terms.items():
         assert t.status == "applied" and abs(t.value) <= 2 * t.sigma, (name, t)
     c0 = CalibrationFile.read(start)

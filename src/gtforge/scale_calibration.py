@@ -74,10 +74,12 @@ class ScaleParams(GTModel):
 
 
 class ScaleTerm(GTModel):
-    """One parameter: its estimate, 1-sigma, whether it was applied, and where it came from. "not significant":
-    within ``ScaleParams.apply_z`` sigma of 0, not applied (the others solved again with it held at 0)."""
+    """One parameter: ``estimate`` +- ``sigma`` (every determined term free: the covariance's), ``value`` what was
+    applied (0 unless "applied"; solved with the terms not applied held at 0), and where it came from.
+    "not significant": the estimate is within ``ScaleParams.apply_z`` sigma of 0."""
 
     value: float
+    estimate: float | None
     sigma: float | None
     status: Literal["applied", "not significant", "not determined", "not separable"]
     sources: list[str] = Field(default_factory=list)
@@ -556,19 +558,19 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     terms = {}
     for i, name in enumerate(PARAMS):
         if applied[i]:
-            terms[name] = ScaleTerm(value=float(x[i] * unit[i]), sigma=float(sig[i] * unit[i]), status="applied",
-                                    sources=srcs[i])
+            terms[name] = ScaleTerm(value=float(x[i] * unit[i]), estimate=float(x_est[i] * unit[i]),
+                                    sigma=float(sig[i] * unit[i]), status="applied", sources=srcs[i])
         elif determined[i]:
-            terms[name] = ScaleTerm(value=float(x_est[i] * unit[i]), sigma=float(sig[i] * unit[i]),
+            terms[name] = ScaleTerm(value=0.0, estimate=float(x_est[i] * unit[i]), sigma=float(sig[i] * unit[i]),
                                     status="not significant", sources=srcs[i],
                                     reason=f"within {params.apply_z:g} sigma of 0: not applied")
         elif not free[i]:
-            terms[name] = ScaleTerm(value=0.0, sigma=None, status="not separable", sources=[],
+            terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not separable", sources=[],
                                     reason="no board captures measure the depth scale: scenes see only the sum of "
                                            "the baseline and depth scales, applied to the baseline "
                                            "(zed_baseline_frac holds the sum)")
         else:
-            terms[name] = ScaleTerm(value=0.0, sigma=None, status="not determined", sources=srcs[i],
+            terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not determined", sources=srcs[i],
                                     reason=f"its 1-sigma would move disparities by more than {params.max_sigma_px} px")
     if not have_k and determined[IB]:
         terms[PARAMS[IB]].reason = ("the sum of the baseline and depth scales (not separable without board captures)"
@@ -613,3 +615,16 @@ def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: 
     with np.errstate(invalid="ignore"):
         out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
     return out.astype(np.float32)
+
+
+def shown_disparity_px(disp_true_px: np.ndarray, rig: Rig, yaw_true_deg: float) -> np.ndarray:
+    """What the dataset's pair shows (synthetic truth): the left image against the right image re-rectified with
+    ``rig``'s yaw when the right camera is really turned by ``yaw_true_deg``; ``disp_true_px`` is the ideal rectified
+    pair's disparity at ZED-left pixel centres. (The left pixel's match in the re-rectified image is
+    ``H(yaw_rig)^-1 H(yaw_true)`` of its ideal match.)"""
+    h, w = disp_true_px.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xr = u - disp_true_px
+    ua, va = apply_homography(yaw_homography(rig, np.radians(yaw_true_deg)), xr, v)
+    ui, _ = apply_homography(np.linalg.inv(yaw_homography(rig, np.radians(rig.zed_right_yaw_deg))), ua, va)
+    return (u - ui).astype(np.float32)
