@@ -46,7 +46,7 @@ from gtforge.geometry import invert_T, transform_points
 from gtforge.io.formats import to_gray
 from gtforge.schema import GTModel
 from gtforge.verify import (VerifyParams, even_subset, interior_mask, local_normalize, smooth_depth_mask,
-                            textured_mask)
+                            textured_mask, verify_scene)
 
 log = logging.getLogger("gtforge.scale_calibration")
 
@@ -64,7 +64,7 @@ class ScaleParams(GTModel):
     converged_px: float = Field(0.002, gt=0)  # ... until a pass moves the scenes' disparities by less than this
     cov_tile_px: int = Field(16, ge=1)
     # a parameter whose 1-sigma moves disparities (at the scenes' median depth) by more than this is not applied
-    max_sigma_px: float = Field(0.02, gt=0)
+    max_sigma_px: float = Field(0.1, gt=0)
     # a determined parameter is applied only when its estimate is more than this many sigma from 0 (an insignificant
     # correction would only move the GT by noise); the others are then solved again with it held at 0
     apply_z: float = Field(2.0, ge=0)
@@ -88,6 +88,7 @@ class ScaleTerm(GTModel):
 
 class SceneScaleReport(GTModel):
     scene: str
+    excluded: str = ""  # why the scene was left out ("": used)
     n_points: int = 0
     disparity_bias_before_px: float | None = None  # mean (d_img - d_gt) over the used pixels, before
 
@@ -475,7 +476,9 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     B_file = rig_file.zed.baseline_mm
     # the boards first: absolute measurements, independent of the scenes' GT
     boards = []
-    board_dirs = session.select("board", None) if params.use_boards and (session.root / "board").is_dir() else []
+    board_root = session.root / session.config.board_dir
+    board_dirs = session.select("board", None) if params.use_boards and board_root.is_dir() and any(
+        p.is_dir() for p in board_root.iterdir()) else []
     if board_dirs:
         boards = board_measurements(session, board_dirs, rig_file, calib.board.spec(), params, progress)
     have_b = any(m.A[:, IB].any() for m in boards)
@@ -486,6 +489,19 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     x = np.zeros(4)
     rig = apply_scale(rig_file, B_file, x)
     reports = {s: SceneScaleReport(scene=s) for s in caps}
+    # a scene whose fruit moved between the captures (its texture shift over the fruit differs from the whole area's)
+    # has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes, is kept)
+    for s in list(caps):
+        cap = caps[s]
+        sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
+        ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, None,
+                              cap.mech_texture, rig, params.verify)
+        a, f = ver.texture_all, ver.texture_fruit
+        if a.dx_px is not None and f.dx_px is not None and \
+                np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px) > params.verify.max_shift_px:
+            reports[s].excluded = (f"the fruit's texture shift differs from the whole area's by "
+                                   f"{np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px):.2f} px (did it move?)")
+            del caps[s]
     free = np.array([True, True, have_k, True])  # without boards b and k are one term: carried by b
     cov = np.zeros((4, 4))
     z_med = 650.0
