@@ -12,7 +12,8 @@ Targets (the issue): EPE <= 0.02 px after; with no error every term within 2 sig
 
 Renders (several minutes a session) are kept in WORKDIR and reused.
 
-    python benchmarks/bench_scale_calibration.py [--scale 1.0] [--boards 6] [--scenes 3] [--workdir /tmp/gtforge_bench_scale]
+    python benchmarks/bench_scale_calibration.py [--scale 1.0] [--boards 6] [--scenes 3] [--supersample 3]
+        [--cases none,combined] [--workdir /tmp/gtforge_bench_scale]
 """
 from __future__ import annotations
 
@@ -42,13 +43,13 @@ CASES = {
 }
 
 
-def session(workdir: Path, name: str, kw: dict, scale: float, boards: int, scenes: int) -> Path:
+def session(workdir: Path, name: str, kw: dict, scale: float, boards: int, scenes: int, supersample: int) -> Path:
     d = workdir / name.replace(" ", "_").replace("%", "pct").replace("+", "p").replace("-", "m")
     if not (d / "done").exists():
         shutil.rmtree(d, ignore_errors=True)
         t = time.perf_counter()
         generate_session(d, n_board=boards, n_scenes=scenes, scale=scale, seed=5, depth_noise_mm=0.03,
-                         image_noise=1.0, **kw)
+                         image_noise=1.0, supersample=supersample, **kw)
         (d / "done").write_text("")
         print(f"rendered {name} in {time.perf_counter() - t:.0f} s")
     return d
@@ -85,6 +86,7 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--boards", type=int, default=6)
     ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--supersample", type=int, default=3, help="rays per pixel side when rendering")
     ap.add_argument("--cases", default=",".join(CASES), help="comma-separated case names")
     ap.add_argument("--workdir", default="/tmp/gtforge_bench_scale")
     a = ap.parse_args()
@@ -92,7 +94,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in a.cases.split(","):
-        sess = session(work, name, CASES[name], a.scale, a.boards, a.scenes)
+        sess = session(work, name, CASES[name], a.scale, a.boards, a.scenes, a.supersample)
         start = known_calibration(sess)
         c0 = CalibrationFile.read(start)
         e0, e0max, b0 = figures(sess, c0)
