@@ -164,7 +164,9 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
     start = _known_calibration(session_dir, tmp_path / "start.yaml")
     res = calibrate_scale(session_dir, start, tmp_path / "scaled.yaml", FAST)
     for name, t in res.scale_calibration.terms.items():
-        assert t.status == "applied" and abs(t.value) <= 2 * t.sigma, (name, t)
+        # every estimate within 2 sigma of 0 (a term left alone once the others are held at 0 may still be applied:
+        # its conditional sigma is smaller; its change to the GT is then tiny, checked below)
+        assert t.status in ("applied", "not significant") and abs(t.estimate) <= 2 * t.sigma, (name, t)
     c0 = CalibrationFile.read(start)
     s = open_session(session_dir)
     for d in s.select("scenes", None):
