@@ -493,7 +493,15 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                       help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
           seed: int = typer.Option(0, help="Random seed (the same seed renders the same session)."),
           depth_noise_mm: float = typer.Option(0.03, metavar="MM", min=0.0,
-                                               help="Gaussian noise added to the structured-light depth (mm).")) -> None:
+                                               help="Gaussian noise added to the structured-light depth (mm)."),
+          baseline_error_pct: float = typer.Option(0.0, metavar="PCT",
+                                                   help="The ZED's true baseline is this much longer than its file "
+                                                        "says (%; calibrate-scale's test)."),
+          right_yaw_deg: float = typer.Option(0.0, metavar="DEG",
+                                              help="The right ZED camera is turned by this about its vertical axis."),
+          depth_scale_error_pct: float = typer.Option(0.0, metavar="PCT", help="The depth map reads this much long (%)."),
+          depth_offset_mm: float = typer.Option(0.0, metavar="MM", help="The depth map reads this much far (mm).")
+          ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
@@ -501,6 +509,8 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
     require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
+                     zed_baseline_error_frac=baseline_error_pct / 100.0, right_yaw_deg=right_yaw_deg,
+                     depth_scale_error_frac=depth_scale_error_pct / 100.0, depth_offset_mm=depth_offset_mm,
                      progress=_progress_lines)
     out.print(f"wrote {output}")
 
