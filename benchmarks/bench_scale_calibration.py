@@ -103,8 +103,9 @@ def main() -> None:
             res = calibrate_scale(sess, start, sess / f"scaled_{int(boards)}.yaml", ScaleParams(use_boards=boards))
             dt = time.perf_counter() - t
             e1, e1max, b1 = figures(sess, res)
-            terms = "; ".join(f"{k.replace('zed_', '').replace('_frac', '')} {v.value:+.5f}"
-                              + (f"+-{v.sigma:.5f}" if v.sigma is not None else "") + f" ({v.status})"
+            terms = "; ".join(f"{k.replace('zed_', '').replace('_frac', '')} "
+                              + (f"{v.estimate:+.5f}+-{v.sigma:.5f}" if v.sigma is not None else "-")
+                              + (f" applied {v.value:+.5f}" if v.status == "applied" else f" ({v.status})")
                               for k, v in res.scale_calibration.terms.items())
             rows.append((name, "yes" if boards else "no", e0, e1, e1max, b0, b1, dt, terms))
             print(rows[-1], flush=True)
