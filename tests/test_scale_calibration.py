@@ -131,6 +131,11 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     sigma = read_pfm(sc / "disp0GT_sigma.pfm")
     m = np.isfinite(sigma)
     assert np.all(sigma[m] >= scale_sigma_px(sd.depth_mm, res.rig, res.scale_calibration)[m] * (1 - 1e-6))
+    # gtforge verify on the dataset compares against the same re-rectified right image
+    from gtforge.verify import verify_dataset
+
+    rep = verify_dataset(out, workers=1)
+    assert abs(rep.scenes["000"].stereo["all"].disparity_bias_px) < 0.02
 
 
 def test_without_boards_baseline_and_depth_scale_are_not_separable(errors_session, errors_calibrated, tmp_path):

@@ -502,7 +502,8 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
             reports[s].excluded = (f"the fruit's texture shift differs from the whole area's by "
                                    f"{np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px):.2f} px (did it move?)")
             del caps[s]
-    free = np.array([True, True, have_k, True])  # without boards b and k are one term: carried by b
+    # without a board measurement of b or of k, scenes see only b + k: one term, carried by b
+    free = np.array([True, True, have_k or have_b, True])
     cov = np.zeros((4, 4))
     z_med = 650.0
     passes = 0
@@ -568,8 +569,10 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         for i in range(4):
             if m.A[:, i].any():
                 srcs[i].append(m.source)
-    if not have_k:
-        srcs[IK] = []
+    if not have_k and have_b:  # k from the scenes' b + k less the boards' b
+        srcs[IK] = [src_scene] + [m.source for m in boards if m.A[:, IB].any()]
+    if not have_b and have_k:  # b from the scenes' b + k less the boards' k
+        srcs[IB] += [m.source for m in boards if m.A[:, IK].any()]
     unit = np.array([1.0, np.degrees(1.0), 1.0, 1.0])  # yaw to degrees in the file
     terms = {}
     for i, name in enumerate(PARAMS):
@@ -582,13 +585,13 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                                     reason=f"within {params.apply_z:g} sigma of 0: not applied")
         elif not free[i]:
             terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not separable", sources=[],
-                                    reason="no board captures measure the depth scale: scenes see only the sum of "
-                                           "the baseline and depth scales, applied to the baseline "
+                                    reason="no board capture measures the depth scale or the baseline: scenes see "
+                                           "only their sum, applied to the baseline "
                                            "(zed_baseline_frac holds the sum)")
         else:
             terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not determined", sources=srcs[i],
                                     reason=f"its 1-sigma would move disparities by more than {params.max_sigma_px} px")
-    if not have_k and determined[IB]:
+    if not free[IK] and determined[IB]:
         terms[PARAMS[IB]].reason = ("the sum of the baseline and depth scales (not separable without board captures)"
                                     + ("" if applied[IB] else f"; within {params.apply_z:g} sigma of 0: not applied"))
     D = np.diag(unit)
