@@ -11,16 +11,17 @@ through a right camera turned by ``psi`` about its y axis. With ``B_true = (1 + 
 * **Scenes** (the GT disparity against the images' own photometric disparity, every textured GT pixel of every
   scene, one Gauss-Newton solve): the sum ``b + k`` (a 1/Z term), ``c`` (1/Z^2) and ``psi`` (a constant plus the
   x^2 curvature). ``b`` and ``k`` are **not separable** from scenes: only their sum.
-* **Boards, ZED** (``board_zed_measurements``): the corners' stereo disparity against their depth from PnP in the
+* **Boards, ZED** (``board_zed_measurement``): the corners' stereo disparity against their depth from PnP in the
   ZED-left image (which uses the board's known square size, not the baseline): ``b`` and ``psi``.
-* **Boards, depth** (``board_depth_measurements``): the depth camera's z at each corner's ray against the corner's z
+* **Boards, depth** (``board_depth_measurement``): the depth camera's z at each corner's ray against the corner's z
   from PnP in the texture image (the known square size again): ``z_depth - z_pnp = k z + c``: ``k`` and ``c``.
 
 ``calibrate_scale`` combines the three (generalised least squares, each with its covariance), rebuilds every scene's
-ground truth with the result and solves again until the correction stops moving; a parameter is applied only when
-the data determine it (its 1-sigma moves the scenes' disparities by at most ``ScaleParams.max_sigma_px``), else it
-is reported "not determined" (not separable: ``b`` and ``k`` without board captures, where their sum is applied to
-the baseline, which keeps the disparity labels, depth0.tiff and calib.txt consistent with each other: see
+ground truth with the result and solves again until the correction stops moving. A term is applied only when the
+data determine it (its 1-sigma moves the scenes' disparities by at most ``ScaleParams.max_sigma_px``; else "not
+determined") and it is significant (more than ``apply_z`` sigma from 0; else "not significant", held at 0 and the
+others solved again). ``b`` and ``k`` without a board measurement of either are "not separable": their sum is applied
+to the baseline, which keeps the disparity labels, depth0.tiff and calib.txt consistent with each other (see
 docs/pipeline.md). The result is stored in the calibration file (``CalibrationFile.scale_calibration``: every term,
 its sigma, the covariance and the captures it came from) and applied through the rig: ``rig.zed.baseline_mm``, and
 ``rig.scale_corrections`` (depth undone before reprojection, right image re-rectified by the yaw's homography).
