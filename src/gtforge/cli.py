@@ -331,7 +331,7 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
 
 
 @app.command("calibrate-scale")
-def calibrate_scale(session: Path = typer.Argument(..., help="Capture session folder (its scenes/ and board/ captures)."),
+def calibrate_scale(session: Path = typer.Argument(..., help="Capture session folder (scenes/ and board/ captures)."),
                     calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
                                                      help="The calibration to correct (gtforge calibrate)."),
                     output: str = typer.Option("scaled.yaml", "--output", "-o", metavar="PATH",
@@ -339,7 +339,8 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
                     scenes: Optional[str] = typer.Option(None, metavar="IDS",
                                                          help="Comma-separated scene ids (default: all)."),
                     boards: bool = typer.Option(True, "--boards/--no-boards",
-                                                help="Use the board captures (they separate baseline from depth scale).")
+                                                help="Use the board captures (they separate baseline from depth "
+                                                     "scale).")
                     ) -> None:
     """Estimate the disparity-scale terms (ZED baseline, right-camera yaw, depth scale and offset) from the scenes'
     stereo consistency and the boards; writes a calibration file that applies them (its 'scale_calibration' says
@@ -499,7 +500,8 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                                         "says (%; calibrate-scale's test)."),
           right_yaw_deg: float = typer.Option(0.0, metavar="DEG",
                                               help="The right ZED camera is turned by this about its vertical axis."),
-          depth_scale_error_pct: float = typer.Option(0.0, metavar="PCT", help="The depth map reads this much long (%)."),
+          depth_scale_error_pct: float = typer.Option(0.0, metavar="PCT",
+                                                      help="The depth map reads this much long (%)."),
           depth_offset_mm: float = typer.Option(0.0, metavar="MM", help="The depth map reads this much far (mm).")
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""

@@ -201,7 +201,8 @@ def scene_pixels(name: str, depth_mm: np.ndarray, disparity_px: np.ndarray, nono
     stack = spline_coefficients([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
                                  cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)])
     return ScenePixels(name, u, v, disparity_px[v, u].astype(np.float64), depth_mm[v, u].astype(np.float64),
-                       nl[v, u].astype(np.float64), cv2.GaussianBlur(nl, (0, 0), COARSE_SIGMA_PX)[v, u].astype(np.float64),
+                       nl[v, u].astype(np.float64),
+                       cv2.GaussianBlur(nl, (0, 0), COARSE_SIGMA_PX)[v, u].astype(np.float64),
                        stack)
 
 
