@@ -311,6 +311,7 @@ def _disparity_summary(disp, over_px):
 # ---- one scene ------------------------------------------------------------------------------
 def build_scene_arrays(depth_mech_mm: np.ndarray, rig: Rig, params: BuildParams, user_mask: np.ndarray | None = None):
     """Ground-truth depth/disparity/occlusion in the ZED-left image, region labels and the fruit mask."""
+    depth_mech_mm = rig.corrected_depth_mm(depth_mech_mm)  # (itself without calibrate-scale's depth correction)
     sd = reproject_to_zed(depth_mech_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed, params.reproject_params(),
                           params.occlusion_rel_tol, left_span=params.sigma and params.mode == "mesh")
     region, fruit = fruit_regions(sd.depth_mm, rig.zed, params, user_mask)
@@ -341,12 +342,18 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         calib = _cached_calibration(calib_path, calib_sha)
         session = _cached_session(session_dir, calib)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
+        # calibrate-scale's right-camera yaw: im1 is the right image re-rectified (decoded whole, written re-encoded)
+        yawed = rig.zed_right_yaw_deg != 0.0
         # image content is needed by verification, a crop (re-encoded im0/im1) and the PLY's colours only; for
         # verification alone the images are decoded once the ground truth says how many ZED rows the checks read
-        cap = session.load_capture(cap_dir, decode_images=bool(params.crop_wh) or params.ply)
+        cap = session.load_capture(cap_dir, decode_images=bool(params.crop_wh) or params.ply or yawed)
         t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
         decode_s = 0.0
+        if yawed:
+            from gtforge.scale_calibration import corrected_right_image
+
+            cap.zed_right = corrected_right_image(cap.zed_right, rig)
         if params.verification:
             t = time.perf_counter()
             texture, zed_left, zed_right = session.decoded_images(cap, zed_rows_used(sd.depth_mm, params.verify))
@@ -388,7 +395,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         # runs; all of them are complete when the inner context exits
         with private_folder(tmp), background_writes():
             t = time.perf_counter()
-            for name, img, src in (("im0.png", left, cap.zed_left_file), ("im1.png", right, cap.zed_right_file)):
+            for name, img, src in (("im0.png", left, cap.zed_left_file),
+                                   ("im1.png", right, None if yawed else cap.zed_right_file)):
                 if src is not None and crop is None:
                     atomic_copy_file(src, tmp / name)  # the input is already this RGB PNG: no re-encode
                 else:
@@ -424,7 +432,12 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             if params.sigma:
                 shift = verification.texture_all.magnitude_px if verification is not None else None
                 sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm,
-                                        params.uncertainty, sd.span_mm, shift)[sl]
+                                        params.uncertainty, sd.span_mm, shift)
+                if calib.scale_calibration is not None:  # the scale terms' uncertainty (calibrate-scale)
+                    from gtforge.scale_calibration import add_scale_sigma
+
+                    sigma = add_scale_sigma(sigma, sd.depth_mm, rig, calib.scale_calibration)
+                sigma = sigma[sl]
                 t = time.perf_counter()
                 write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
                 write_sigma_thumbnail(Path(out_dir) / "report" / f"{sid}_sigma.jpg", sigma)
@@ -497,6 +510,10 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
             raise InputError(folder, None, "the capture this scene was built from", "no such folder",
                              "verification needs the session's captures (pass --session if they moved)")
         cap = session.load_capture(folder)
+        if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image as the dataset's im1 has it
+            from gtforge.scale_calibration import corrected_right_image
+
+            cap.zed_right = corrected_right_image(cap.zed_right, rig)
         disp = read_pfm(s / "disp0GT.pfm")
         mask = read_image(s / "mask0nocc.png")
         region = read_image(s / "region.png")

@@ -26,6 +26,7 @@ from gtforge.errors import InputError
 from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
 from gtforge.rectification import RectificationQuality, ZedConfChoice
 from gtforge.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification, self_rectify
+from gtforge.scale_calibration import ScaleCalibration
 from gtforge.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
 
@@ -175,6 +176,8 @@ class CalibrationFile(VersionedFile):
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
     coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.coverage)
+    # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
+    scale_calibration: ScaleCalibration | None = None
 
     @property
     def zed_conf_reading(self) -> str | None:

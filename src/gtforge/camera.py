@@ -204,6 +204,31 @@ class RectifiedStereo(GTModel):
         return z.astype(np.float32)
 
 
+class ScaleCorrections(GTModel):
+    """Corrections of the disparity-scale terms a vertical check cannot see (``gtforge.scale_calibration``; the
+    baseline's correction is in ``Rig.zed.baseline_mm`` itself). The identity changes nothing.
+
+    * ``depth_scale`` / ``depth_offset_mm``: the depth map reads ``depth_scale * z + depth_offset_mm`` for a true
+      z-depth z (mm); every stage that reprojects the depth first undoes it, ``z = (depth - offset) / scale``.
+    * ``zed_right_yaw_deg``: the right camera is turned by this about its y axis relative to the rectified right
+      camera (``T_actual_from_rectified = R_y(yaw)``); the right image is re-rectified by the homography
+      ``K_right R_y(yaw) K_right^-1`` (rectified pixel -> pixel of the image as captured) before it is written or
+      compared (``gtforge.scale_calibration.corrected_right_image``)."""
+
+    depth_scale: float = Field(1.0, gt=0)
+    depth_offset_mm: float = 0.0
+    zed_right_yaw_deg: float = 0.0
+
+    @field_validator("depth_scale", "depth_offset_mm", "zed_right_yaw_deg")
+    @classmethod
+    def _fin(cls, v: float, info) -> float:
+        return _finite(v, info.field_name)
+
+    @property
+    def changes_depth(self) -> bool:
+        return self.depth_scale != 1.0 or self.depth_offset_mm != 0.0
+
+
 class Rig(VersionedFile):
     """Rectified ZED pair + structured-light unit + ``T_zed_from_mech``.
 
@@ -221,6 +246,8 @@ class Rig(VersionedFile):
     T_zed_from_mech: list[list[float]]
     depth_cam: PinholeCamera | None = None
     T_mech_from_depth: list[list[float]] | None = None
+    # gtforge calibrate-scale: depth scale/offset and the right camera's yaw (None: none; docs/pipeline.md)
+    scale_corrections: ScaleCorrections | None = None
 
     @field_validator("T_zed_from_mech", mode="before")
     @classmethod
@@ -256,6 +283,17 @@ class Rig(VersionedFile):
     @property
     def separate_depth_camera(self) -> bool:
         return self.depth_cam is not None or self.T_mech_from_depth is not None
+
+    def corrected_depth_mm(self, depth_mm: np.ndarray) -> np.ndarray:
+        """The depth map with ``scale_corrections``' depth scale and offset undone (the array itself when none)."""
+        c = self.scale_corrections
+        if c is None or not c.changes_depth:
+            return depth_mm
+        return ((np.asarray(depth_mm, np.float64) - c.depth_offset_mm) / c.depth_scale).astype(np.float32)
+
+    @property
+    def zed_right_yaw_deg(self) -> float:
+        return 0.0 if self.scale_corrections is None else self.scale_corrections.zed_right_yaw_deg
 
     def with_extrinsic(self, T_zed_from_mech: np.ndarray) -> "Rig":
         return self.model_copy(update={"T_zed_from_mech": np.asarray(T_zed_from_mech, float).tolist()})

@@ -351,6 +351,37 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     out.print(f"wrote {calibration_output_path(output)}")
 
 
+@app.command("calibrate-scale")
+def calibrate_scale(session: Path = typer.Argument(..., help="Capture session folder (scenes/ and board/ captures)."),
+                    calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
+                                                     help="The calibration to correct (gtforge calibrate)."),
+                    output: str = typer.Option("scaled.yaml", "--output", "-o", metavar="PATH",
+                                               help="Corrected calibration YAML to write (never the input file)."),
+                    scenes: Optional[str] = typer.Option(None, metavar="IDS",
+                                                         help="Comma-separated scene ids (default: all)."),
+                    boards: bool = typer.Option(True, "--boards/--no-boards",
+                                                help="Use the board captures (they separate baseline from depth "
+                                                     "scale).")
+                    ) -> None:
+    """Estimate the disparity-scale terms (ZED baseline, right-camera yaw, depth scale and offset) from the scenes'
+    stereo consistency and the boards; writes a calibration file that applies them (its 'scale_calibration' says
+    what was found, each term's sigma and where it came from)."""
+    from gtforge.scale_calibration import ScaleParams, calibrate_scale as run
+
+    res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
+              progress=_status)
+    info = res.scale_calibration
+    for name, t in info.terms.items():
+        sig = f" +- {t.sigma:.3g}" if t.sigma is not None else ""
+        out.print(f"  {name}: {t.value:+.4g}{sig} [{t.status}]" + (f" ({t.reason})" if t.reason else "")
+                  + (f"; from {', '.join(t.sources)}" if t.sources else ""))
+    out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
+              f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
+    from gtforge.calibrate import calibration_output_path
+
+    out.print(f"wrote {calibration_output_path(output)}")
+
+
 @app.command()
 def validate(session: Path = typer.Argument(..., help="Capture session folder (board/ captures)."),
              calibration: Optional[Path] = typer.Option(None, "--calibration", "-c",
@@ -516,7 +547,16 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
           depth_noise_mm: float = typer.Option(0.03, metavar="MM", min=0.0,
                                                help="Gaussian noise added to the structured-light depth (mm)."),
           gauges: bool = typer.Option(False, "--gauges", help="Also capture gauge objects (a sphere, a sphere pair, "
-                                      "a plate) into gauges/ with gauges.yaml, for validate.")) -> None:
+                                      "a plate) into gauges/ with gauges.yaml, for validate."),
+          baseline_error_pct: float = typer.Option(0.0, metavar="PCT",
+                                                   help="The ZED's true baseline is this much longer than its file "
+                                                        "says (%; calibrate-scale's test)."),
+          right_yaw_deg: float = typer.Option(0.0, metavar="DEG",
+                                              help="The right ZED camera is turned by this about its vertical axis."),
+          depth_scale_error_pct: float = typer.Option(0.0, metavar="PCT",
+                                                      help="The depth map reads this much long (%)."),
+          depth_offset_mm: float = typer.Option(0.0, metavar="MM", help="The depth map reads this much far (mm).")
+          ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
@@ -524,6 +564,8 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
     require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
+                     zed_baseline_error_frac=baseline_error_pct / 100.0, right_yaw_deg=right_yaw_deg,
+                     depth_scale_error_frac=depth_scale_error_pct / 100.0, depth_offset_mm=depth_offset_mm,
                      progress=_progress_lines)
     if gauges:
         from gtforge.synthetic import generate_gauges

@@ -98,7 +98,12 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
 def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     """One scene with the extrinsic of ``rig``: its ground truth built once, verified, and its points for the solve."""
     sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
-    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
+    zed_right = cap.zed_right
+    if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image re-rectified, as build writes it
+        from gtforge.scale_calibration import corrected_right_image
+
+        zed_right = corrected_right_image(zed_right, rig)
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, zed_right,
                           cap.mech_texture, rig, params.verify)
     return scene_points(cap.name, sd.depth_mm, sd.disparity_px, cap.mech_texture, cap.zed_left, rig, params), ver
 

@@ -215,6 +215,20 @@ class SyntheticRig:
     # the real right ZED camera turned about its own centre against the rectified model the files describe (a factory
     # rectification's residual, corrected by gtforge.selfcal): rotation vector (rad) of the image-only error
     zed_right_rotation_error_rad: np.ndarray | None = None
+    # errors in the files the pipeline trusts (issue #25, scale terms): ``zed`` is the true geometry the images are
+    # rendered with, ``zed_file`` what zed_calibration.yaml says (None: the same); the right camera is turned by
+    # ``right_yaw_rad`` about its y axis (T_actual_from_ideal = R_y(yaw)) and the depth map reads
+    # ``depth_scale * z + depth_offset_mm`` for a true z
+    zed_file: RectifiedStereo | None = None
+    right_yaw_rad: float = 0.0
+    depth_scale: float = 1.0
+    depth_offset_mm: float = 0.0
+
+    @property
+    def T_zedr_actual_from_zedr(self) -> np.ndarray:
+        """The right camera's true pose relative to the ideal rectified right camera (a yaw about its y axis)."""
+        c, s = np.cos(self.right_yaw_rad), np.sin(self.right_yaw_rad)
+        return make_T(np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]), np.zeros(3))
 
     @property
     def T_mech_from_world(self) -> np.ndarray:
@@ -267,17 +281,20 @@ def _subsample_offsets(ss: int) -> np.ndarray:
 
 
 def render_image(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray, supersample: int = 3,
-                 rows_per_chunk: int = 48) -> np.ndarray:
-    """Linear-intensity RGB float image ``(H, W, 3)`` in [0, 1], box-filtered over ``supersample**2`` rays."""
+                 rows_per_chunk: int = 48, T_light_from_world: np.ndarray | None = None) -> np.ndarray:
+    """Linear-intensity RGB float image ``(H, W, 3)`` in [0, 1], box-filtered over ``supersample**2`` rays.
+    The light comes from the camera's direction, or from ``T_light_from_world``'s when given (a camera turned by a
+    small error sees the scene under the same light)."""
     T_world_from_cam = invert_T(T_cam_from_world)
     centre = T_world_from_cam[:3, 3]
     R = T_world_from_cam[:3, :3]
+    R_light = R if T_light_from_world is None else invert_T(T_light_from_world)[:3, :3]
     grid = cam.ray_grid()  # (H, W, 2) normalised coordinates of pixel centres
     # local Jacobian of the normalised coordinates w.r.t. pixel offsets (central differences)
     jac_u = np.gradient(grid, axis=1)
     jac_v = np.gradient(grid, axis=0)
     offs = _subsample_offsets(supersample)
-    light = -R[:, 2] + np.array([0.3, -0.2, 0.0])
+    light = -R_light[:, 2] + np.array([0.3, -0.2, 0.0])
     light /= np.linalg.norm(light)
     H, W = cam.height_px, cam.width_px
     out = np.zeros((H, W, 3))
@@ -391,11 +408,14 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     T_mech_from_world = rig.T_mech_from_world
     left = finish_image(render_image(zed_scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px,
                         image_noise)
-    T_zedr_image_from_world = T_zedr_from_world
-    if rig.zed_right_rotation_error_rad is not None:  # the right image from the real (turned) camera; truth unchanged
+    # the right image from the real right camera, turned against the rectified model the files describe (a yaw:
+    # gtforge.scale_calibration; a residual rotation: gtforge.selfcal); its truth below stays the ideal rectified one
+    T_zedr_image_from_world = rig.T_zedr_actual_from_zedr @ T_zedr_from_world
+    if rig.zed_right_rotation_error_rad is not None:
         R_err = cv2.Rodrigues(np.asarray(rig.zed_right_rotation_error_rad, np.float64).reshape(3, 1))[0]
-        T_zedr_image_from_world = make_T(R_err, np.zeros(3)) @ T_zedr_from_world
-    right = finish_image(render_image(zed_scene, zed.right, T_zedr_image_from_world, supersample), rng, blur_sigma_px,
+        T_zedr_image_from_world = make_T(R_err, np.zeros(3)) @ T_zedr_image_from_world
+    right = finish_image(render_image(zed_scene, zed.right, T_zedr_image_from_world,
+                                      supersample, T_light_from_world=T_zedr_from_world), rng, blur_sigma_px,
                          image_noise)
     tex = finish_image(render_image(scene, rig.mech, T_mech_from_world, supersample), rng, blur_sigma_px,
                        image_noise, gray=True)
@@ -405,6 +425,8 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     lit = np.zeros_like(hit)
     lit[hit] = lit_mask(scene, rig, p_m[hit])
     depth = np.where(hit & lit, z_m, np.nan)
+    if rig.depth_scale != 1.0 or rig.depth_offset_mm != 0.0:  # a depth camera reading long / offset (issue #25)
+        depth = rig.depth_scale * depth + rig.depth_offset_mm
     if depth_noise_mm > 0:
         depth = depth + rng.normal(0, depth_noise_mm, depth.shape)
     # ZED-left truth
@@ -541,6 +563,12 @@ class SyntheticTruth(VersionedFile):
     seed: int
     depth_noise_mm: float
     T_mech_from_depth: list[list[float]] | None = None  # two-camera rigs only
+    # errors in the files (issue #25): the ZED's true baseline (the file says zed_calibration.yaml's), the right
+    # camera's yaw about its y axis, the depth map's scale and offset (depth = depth_scale * z + depth_offset_mm)
+    zed_baseline_true_mm: float | None = None
+    zed_right_yaw_deg: float = 0.0
+    depth_scale: float = 1.0
+    depth_offset_mm: float = 0.0
 
 
 def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_motion_mm=(0.0, 0.0, 0.0)) -> None:
@@ -568,7 +596,9 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
                      image_noise: float = 1.5, supersample: int = 3, two_camera: bool = False,
                      fruit_motion_mm: dict[int, tuple[float, float, float]] | None = None, progress=None,
                      partial_poses: int = 0, partial_camera: str = "mech",
-                     zed_right_rotation_error_rad: tuple[float, float, float] | None = None) -> Path:
+                     zed_right_rotation_error_rad: tuple[float, float, float] | None = None,
+                     zed_baseline_error_frac: float = 0.0, right_yaw_deg: float = 0.0,
+                     depth_scale_error_frac: float = 0.0, depth_offset_mm: float = 0.0) -> Path:
     """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``.
 
     ``zed_right_rotation_error_rad``: the right ZED image is rendered from a camera turned by this rotation vector
@@ -580,21 +610,35 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     (world mm) between the structured-light capture and the ZED capture (truth follows the ZED).
     ``board``: any target of ``gtforge.targets`` (ChArUco, circle grids; session.yaml then declares it);
     ``partial_poses``: that many more board captures cut by ``partial_camera``'s image border, near its corners in
-    turn (``gtforge.targets.random_partial_board_pose``)."""
+    turn (``gtforge.targets.random_partial_board_pose``).
+
+    Errors in the files the pipeline trusts (issue #25; all 0: the files are exact): ``zed_baseline_error_frac`` the
+    ZED's true baseline is ``(1 + it)`` times what zed_calibration.yaml says; ``right_yaw_deg`` the right camera is
+    turned about its y axis (the right images are rendered so, the truth is the ideal rectified pair's);
+    ``depth_scale_error_frac`` / ``depth_offset_mm`` the depth map reads ``(1 + k) z + offset``. The truth
+    (``zed_disparity_px``...) is what the images show with the true baseline, ``f * B_true / Z - doffs``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     rig = two_camera_rig(scale) if two_camera else default_rig(scale)
     if zed_right_rotation_error_rad is not None:
         rig.zed_right_rotation_error_rad = np.asarray(zed_right_rotation_error_rad, np.float64)
+    if zed_baseline_error_frac:
+        rig.zed_file = rig.zed
+        rig.zed = rig.zed.model_copy(update={"baseline_mm": rig.zed.baseline_mm * (1.0 + zed_baseline_error_frac)})
+    rig.right_yaw_rad = float(np.radians(right_yaw_deg))
+    rig.depth_scale, rig.depth_offset_mm = 1.0 + depth_scale_error_frac, float(depth_offset_mm)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
-    StereoCalibrationFile(zed=rig.zed).write(out / "zed_calibration.yaml")
+    StereoCalibrationFile(zed=rig.zed_file or rig.zed).write(out / "zed_calibration.yaml")
     T_md = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
     if two_camera:
         CameraFile(camera=rig.depth_cam).write(out / "depth_intrinsics.yaml")
     SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
                    board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
-                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_md).write(out / "truth" / "rig_truth.yaml")
+                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_md,
+                   zed_baseline_true_mm=rig.zed.baseline_mm if rig.zed_file is not None else None,
+                   zed_right_yaw_deg=float(right_yaw_deg), depth_scale=rig.depth_scale,
+                   depth_offset_mm=rig.depth_offset_mm).write(out / "truth" / "rig_truth.yaml")
     kw = dict(supersample=supersample, depth_noise_mm=depth_noise_mm, image_noise=image_noise)
     fruit_ids = {}
     for i in range(n_board):

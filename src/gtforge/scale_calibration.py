@@ -1,0 +1,651 @@
+"""The disparity-scale terms a vertical check cannot see (issue #25): the ZED's baseline scale, the right camera's yaw
+(rotation about its vertical axis), the depth camera's scale and offset.
+
+Physics. The ground truth labels ``d_gt = f B / Z_depth - doffs``; the images show ``d_img = f B_true / Z - doffs``
+through a right camera turned by ``psi`` about its y axis. With ``B_true = (1 + b) B``, ``Z_depth = (1 + k) Z + c``::
+
+    d_img - d_gt ~ (b + k) * f B / Z  +  c * f B / Z^2  -  psi * f (1 + x_r^2)       (x_r = (u_r - cx_r) / f)
+
+(the yaw also moves the right image's rows by ``psi * f x_r y_r``). So:
+
+* **Scenes** (the GT disparity against the images' own photometric disparity, every textured GT pixel of every
+  scene, one Gauss-Newton solve): the sum ``b + k`` (a 1/Z term), ``c`` (1/Z^2) and ``psi`` (a constant plus the
+  x^2 curvature). ``b`` and ``k`` are **not separable** from scenes: only their sum.
+* **Boards, ZED** (``board_zed_measurement``): the corners' stereo disparity against their depth from PnP in the
+  ZED-left image (which uses the board's known square size, not the baseline): ``b`` and ``psi``.
+* **Boards, depth** (``board_depth_measurement``): the depth camera's z at each corner's ray against the corner's z
+  from PnP in the texture image (the known square size again): ``z_depth - z_pnp = k z + c``: ``k`` and ``c``.
+
+``calibrate_scale`` combines the three (generalised least squares, each with its covariance), rebuilds every scene's
+ground truth with the result and solves again until the correction stops moving. A term is applied only when the
+data determine it (its 1-sigma moves the scenes' disparities by at most ``ScaleParams.max_sigma_px``; else "not
+determined") and it is significant (more than ``apply_z`` sigma from 0; else "not significant", held at 0 and the
+others solved again). ``b`` and ``k`` without a board measurement of either are "not separable": their sum is applied
+to the baseline, which keeps the disparity labels, depth0.tiff and calib.txt consistent with each other (see
+docs/pipeline.md). The result is stored in the calibration file (``CalibrationFile.scale_calibration``: every term,
+its sigma, the covariance and the captures it came from) and applied through the rig: ``rig.zed.baseline_mm``, and
+``rig.scale_corrections`` (depth undone before reprojection, right image re-rectified by the yaw's homography).
+
+Covariances: the scenes' is a tile sandwich (scores summed over ``cov_tile_px`` tiles, as refine's), the boards' a
+pose-clustered sandwich (a PnP pose's error moves all its corners together).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from gtforge.camera import Rig, ScaleCorrections
+from gtforge.errors import InputError
+from gtforge.geometry import invert_T, transform_points
+from gtforge.io.formats import to_gray
+from gtforge.schema import GTModel
+from gtforge.verify import (VerifyParams, even_subset, interior_mask, local_normalize, smooth_depth_mask,
+                            textured_mask, verify_scene)
+
+log = logging.getLogger("gtforge.scale_calibration")
+
+# the parameters, in this order everywhere (vectors, covariance rows/columns)
+PARAMS = ("zed_baseline_frac", "zed_right_yaw_deg", "depth_scale_frac", "depth_offset_mm")
+IB, IY, IK, IC = range(4)
+COARSE_SIGMA_PX = 1.5  # the coarse pass's blur: brings shifts of a few px into the fine pass's reach
+
+
+class ScaleParams(GTModel):
+    points_per_scene: int = Field(40000, ge=1000)  # textured GT pixels per scene, evenly subsampled
+    huber: float = Field(0.5, gt=0)  # on normalised intensities
+    iterations: int = Field(30, ge=1)  # Gauss-Newton steps per solve
+    outer_iterations: int = Field(4, ge=1)  # solve, rebuild every scene's GT with the result, solve again...
+    converged_px: float = Field(0.002, gt=0)  # ... until a pass moves the scenes' disparities by less than this
+    cov_tile_px: int = Field(16, ge=1)
+    # a parameter whose 1-sigma moves disparities (at the scenes' median depth) by more than this is not applied
+    max_sigma_px: float = Field(0.1, gt=0)
+    # a determined parameter is applied only when its estimate is more than this many sigma from 0 (an insignificant
+    # correction would only move the GT by noise); the others are then solved again with it held at 0
+    apply_z: float = Field(2.0, ge=0)
+    use_boards: bool = True
+    board_depth_window_px: int = Field(3, ge=1)  # half-size of the depth window fitted at each corner
+    verify: VerifyParams = Field(default_factory=VerifyParams)
+
+
+class ScaleTerm(GTModel):
+    """One parameter: ``estimate`` +- ``sigma`` (every determined term free: the covariance's), ``value`` what was
+    applied (0 unless "applied"; solved with the terms not applied held at 0), and where it came from.
+    "not significant": the estimate is within ``ScaleParams.apply_z`` sigma of 0."""
+
+    value: float
+    estimate: float | None
+    sigma: float | None
+    status: Literal["applied", "not significant", "not determined", "not separable"]
+    sources: list[str] = Field(default_factory=list)
+    reason: str = ""
+
+
+class SceneScaleReport(GTModel):
+    scene: str
+    excluded: str = ""  # why the scene was left out ("": used)
+    n_points: int = 0
+    disparity_bias_before_px: float | None = None  # mean (d_img - d_gt) over the used pixels, before
+
+
+class ScaleCalibration(GTModel):
+    """What ``gtforge calibrate-scale`` found and applied (stored in the calibration file)."""
+
+    method: str = "scene stereo consistency (photometric Gauss-Newton) + board PnP, stereo and depth"
+    calibrated_from: str
+    # conventions: the ZED's true baseline = (1 + zed_baseline_frac) x the file's; the right camera turned by
+    # zed_right_yaw_deg about its y axis; the depth map reads (1 + depth_scale_frac) z + depth_offset_mm
+    terms: dict[str, ScaleTerm]
+    # 4x4 over PARAMS' order (fraction, deg, fraction, mm); rows/columns of a term not determined are 0
+    covariance: list[list[float]]
+    # b + k (what scenes alone determine) with its sigma
+    combined_scale_frac: float
+    combined_scale_sigma_frac: float | None
+    baseline_file_mm: float  # the baseline before this correction (rig.zed.baseline_mm now holds the corrected one)
+    scenes_used: list[str]
+    board_poses_used: list[str] = Field(default_factory=list)
+    passes: int = 0
+    scenes: list[SceneScaleReport] = Field(default_factory=list)
+    time_s: float = 0.0
+
+
+# ---- the right image's yaw ---------------------------------------------------------------------
+def yaw_homography(rig: Rig, yaw_rad: float) -> np.ndarray:
+    """``H``: rectified right pixel -> pixel of the right image as captured by a right camera turned by ``yaw_rad``
+    about its y axis (``K_r R_y(yaw) K_r^-1``, homogeneous)."""
+    K = rig.zed.right.K
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return K @ R @ np.linalg.inv(K)
+
+
+def apply_homography(H: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    w = H[2, 0] * u + H[2, 1] * v + H[2, 2]
+    return (H[0, 0] * u + H[0, 1] * v + H[0, 2]) / w, (H[1, 0] * u + H[1, 1] * v + H[1, 2]) / w
+
+
+def spline_coefficients(stack: np.ndarray) -> np.ndarray:
+    """Cubic B-spline coefficients of each image of a stack (K, H, W), float64 (``spline_sample``)."""
+    from scipy import ndimage
+
+    return np.stack([ndimage.spline_filter(np.asarray(a, np.float64), order=3, mode="mirror") for a in stack])
+
+
+def spline_sample(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(K, N) cubic B-spline samples of each image at the points ``(x, y)`` (exact positions).
+
+    Not verify's Keys cubic convolution: its error depends on the sub-pixel phase, which along a row is the
+    disparity's fractional part, so it correlates with depth, the very thing the scale terms are fitted to. On the
+    synthetic scenes (0.35x, right camera turned 0.15 deg) it biased the scenes' estimate by (b + k, c, yaw) =
+    (+0.0040, -1.6 mm, +0.0074 deg), about 4 sigma; with B-splines (+0.0005, -0.34 mm, -0.0000 deg)."""
+    from scipy import ndimage
+
+    return np.stack([ndimage.map_coordinates(c, [y, x], order=3, prefilter=False, mode="mirror") for c in coeffs])
+
+
+def corrected_right_image(image: np.ndarray | None, rig: Rig) -> np.ndarray | None:
+    """The right image re-rectified for ``rig.scale_corrections``' yaw (the image itself when none): each rectified
+    pixel sampled (cubic B-spline, exact positions; black outside) where the turned camera saw it."""
+    yaw = rig.zed_right_yaw_deg
+    if image is None or yaw == 0.0:
+        return image
+    h, w = image.shape[:2]
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    us, vs = apply_homography(yaw_homography(rig, np.radians(yaw)), uu.ravel(), vv.ravel())
+    img = np.asarray(image)
+    stack = img[None] if img.ndim == 2 else np.moveaxis(img, 2, 0)
+    out = spline_sample(spline_coefficients(stack), us, vs)
+    inside = (us >= 0) & (us <= w - 1) & (vs >= 0) & (vs <= h - 1)
+    out = np.where(inside[None], out, 0.0)
+    out = np.clip(np.round(out), 0, 255).astype(img.dtype).reshape((-1, h, w))
+    return out[0] if img.ndim == 2 else np.ascontiguousarray(np.moveaxis(out, 0, 2))
+
+
+# ---- scenes: stereo consistency -----------------------------------------------------------------
+@dataclass
+class ScenePixels:
+    name: str
+    u: np.ndarray  # ZED-left pixel columns / rows of the used GT pixels
+    v: np.ndarray
+    d_gt: np.ndarray  # GT disparity there (px) with the rig it was built with
+    z_mm: np.ndarray  # GT depth there
+    left: np.ndarray  # normalised left value there
+    left_blur: np.ndarray  # the same of the normalised left image blurred (the coarse pass)
+    right_stack: np.ndarray  # (3, H, W) B-spline coefficients of the normalised right image (as captured) and of
+    # its x and y gradients
+
+
+def scene_pixels(name: str, depth_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
+                 zed_left: np.ndarray, zed_right: np.ndarray, params: ScaleParams) -> ScenePixels | None:
+    """The textured GT pixels of one scene away from depth edges (as verify's stereo check selects them)."""
+    sigma = params.verify.norm_sigma_px
+    nl = local_normalize(to_gray(zed_left).astype(np.float32), None, sigma)
+    nr = local_normalize(to_gray(zed_right).astype(np.float32), None, sigma)
+    ok = nonoccluded & np.isfinite(disparity_px)
+    h, w = disparity_px.shape
+    x_match = np.arange(w, dtype=np.float32)[None, :] - np.where(ok, disparity_px, 0)
+    use = interior_mask(ok, 2) & (x_match > 8) & (x_match < w - 9) & textured_mask(nl) & \
+        smooth_depth_mask(disparity_px)
+    use[:8], use[-8:] = False, False
+    v, u = np.nonzero(use)
+    if len(v) < params.verify.min_pixels:
+        return None
+    keep = even_subset(len(v), params.points_per_scene)
+    v, u = v[keep], u[keep]
+    stack = spline_coefficients([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+                                 cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)])
+    return ScenePixels(name, u, v, disparity_px[v, u].astype(np.float64), depth_mm[v, u].astype(np.float64),
+                       nl[v, u].astype(np.float64),
+                       cv2.GaussianBlur(nl, (0, 0), COARSE_SIGMA_PX)[v, u].astype(np.float64),
+                       stack)
+
+
+def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, tile_px: float | None = None,
+                  blurred: np.ndarray | None = None):
+    """Normal equations of one scene at ``theta = (ds, dc_mm, yaw_rad)`` (increments of the scale sum and the
+    offset relative to the GT's rig, the yaw in total) plus the scene's nuisances (vertical offset, gain, offset):
+    ``(H 6x6, g 6, S 6x6 or None, residuals)``."""
+    zed = rig.zed
+    f, fb = zed.f_px, zed.f_px * zed.baseline_mm
+    g_s = fb / sp.z_mm  # d(d)/d(scale sum)
+    g_c = fb / sp.z_mm ** 2  # d(d)/d(offset mm)
+    ds, dc, yaw, dy0 = theta
+    xr = sp.u - sp.d_gt - (ds * g_s + dc * g_c)  # where the rectified right image shows the left pixel
+    yr = sp.v.astype(np.float64)
+    H = yaw_homography(rig, yaw)
+    ua, va = apply_homography(H, xr, yr)
+    va = va + dy0
+    right = blurred if blurred is not None else sp.right_stack
+    left = sp.left_blur if blurred is not None else sp.left
+    w_, gx, gy = spline_sample(right, ua, va)
+    # d(ua, va)/d(yaw) at the rectified position (to first order in yaw: f (1 + x^2), f x y)
+    x = (xr - zed.right.cx_px) / f
+    y = (yr - zed.right.cy_px) / f
+    J = np.stack([-gx * g_s, -gx * g_c, gx * f * (1 + x * x) + gy * f * x * y, gy, left, np.ones_like(x)], axis=1)
+    r = w_ - left
+    wt = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
+    Jw = J * wt[:, None]
+    S = None
+    if tile_px is not None:
+        psi = Jw * r[:, None]
+        tile = (np.floor(sp.v / tile_px).astype(np.int64) * 100000 + np.floor(sp.u / tile_px).astype(np.int64))
+        _, idx = np.unique(tile, return_inverse=True)
+        g = np.stack([np.bincount(idx.ravel(), weights=psi[:, j]) for j in range(6)], axis=1)
+        S = g.T @ g
+    return Jw.T @ J, Jw.T @ r, S, r
+
+
+def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_rad: float
+                 ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Gauss-Newton (Huber IRLS, coarse pass on blurred images first) over ``(ds, dc_mm, yaw_rad)`` and each scene's
+    nuisances. Returns (the three, their 3x3 tile-sandwich covariance, each scene's nuisance vector)."""
+    n = len(scenes)
+    theta = np.array([0.0, 0.0, yaw0_rad])
+    nuis = [np.zeros(3) for _ in scenes]  # dy0, (gain, offset re-estimated at each step)
+    # (blurring the coefficients blurs the spline they describe the same way)
+    blurred = [np.stack([cv2.GaussianBlur(a, (0, 0), COARSE_SIGMA_PX) for a in sp.right_stack]) for sp in scenes]
+    for level in (0, 1):
+        for _ in range(params.iterations if level else 8):
+            A = np.zeros((3 + 3 * n, 3 + 3 * n))
+            g = np.zeros(3 + 3 * n)
+            for k, sp in enumerate(scenes):
+                Hk, gk, _, _ = _scene_system(sp, np.r_[theta, nuis[k][0]], rig, params.huber,
+                                             blurred=None if level else blurred[k])
+                idx = np.r_[0:3, 3 + 3 * k: 6 + 3 * k]
+                A[np.ix_(idx, idx)] += Hk
+                g[idx] += gk
+            scale = np.sqrt(np.maximum(np.diag(A), 1e-30))
+            step = -np.linalg.solve(A / np.outer(scale, scale), g / scale) / scale
+            theta = theta + step[:3]
+            for k in range(n):
+                nuis[k][0] += step[3 + 3 * k]
+            # stop when the step moves disparities by < 1e-4 px
+            if abs(step[0]) * 100 + abs(step[1]) * 0.2 + abs(step[2]) * 1100 < 1e-4 and level:
+                break
+    # covariance: H^-1 S H^-1 (cluster-robust over tiles)
+    A = np.zeros((3 + 3 * n, 3 + 3 * n))
+    S = np.zeros_like(A)
+    for k, sp in enumerate(scenes):
+        Hk, _, Sk, _ = _scene_system(sp, np.r_[theta, nuis[k][0]], rig, params.huber, float(params.cov_tile_px))
+        idx = np.r_[0:3, 3 + 3 * k: 6 + 3 * k]
+        A[np.ix_(idx, idx)] += Hk
+        S[np.ix_(idx, idx)] += Sk
+    Ai = np.linalg.inv(A)
+    C = (Ai @ S @ Ai)[:3, :3]
+    return theta, 0.5 * (C + C.T), nuis
+
+
+# ---- boards --------------------------------------------------------------------------------------
+@dataclass
+class BoardMeasurement:
+    """A linear(ised) measurement ``A x ~ y`` of the four parameters with covariance ``C`` (``x`` in PARAMS' order,
+    yaw in rad here)."""
+
+    A: np.ndarray
+    y: np.ndarray
+    C: np.ndarray
+    source: str
+    poses: list[str]
+
+
+def _cluster_ls(J: np.ndarray, r: np.ndarray, clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares ``J x ~ r`` with a cluster-robust covariance (clusters: a pose's corners)."""
+    x, *_ = np.linalg.lstsq(J, r, rcond=None)
+    e = r - J @ x
+    Hi = np.linalg.inv(J.T @ J)
+    ids = np.unique(clusters)
+    g = np.stack([J[clusters == c].T @ e[clusters == c] for c in ids])
+    G = len(ids)
+    C = Hi @ (g.T @ g) @ Hi * (G / max(G - J.shape[1], 1))
+    return x, C
+
+
+def board_zed_measurement(poses: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], rig: Rig
+                          ) -> BoardMeasurement | None:
+    """``b`` and ``yaw`` from board corners: ``poses`` are (name, corners in the ZED-left frame from PnP in the
+    ZED-left image (N, 3) mm, left corners (N, 2), right corners (N, 2) as detected in the right image as captured).
+    The right corner predicted from the left one, the PnP depth and the parameters is fitted to the detected one
+    (Gauss-Newton on the exact yaw homography)."""
+    if len(poses) < 3:
+        return None
+    zed = rig.zed
+    f, fb = zed.f_px, zed.f_px * zed.baseline_mm
+    Z = np.concatenate([p[1][:, 2] for p in poses])
+    ul = np.concatenate([p[2] for p in poses])
+    ur = np.concatenate([p[3] for p in poses])
+    clusters = np.concatenate([np.full(len(p[1]), i) for i, p in enumerate(poses)])
+    d0 = fb / Z - zed.doffs_px
+    x = np.zeros(3)  # b, yaw, dy0 (a vertical rectification offset, not ours)
+    for _ in range(5):
+        xr = ul[:, 0] - d0 - x[0] * fb / Z
+        ua, va = apply_homography(yaw_homography(rig, x[1]), xr, ul[:, 1])
+        xn, yn = (xr - zed.right.cx_px) / f, (ul[:, 1] - zed.right.cy_px) / f
+        r = np.concatenate([ur[:, 0] - ua, ur[:, 1] - (va + x[2])])
+        zero = np.zeros_like(Z)
+        J = np.concatenate([np.stack([-fb / Z, f * (1 + xn * xn), zero], axis=1),
+                            np.stack([zero, f * xn * yn, np.ones_like(Z)], axis=1)])
+        dx, C = _cluster_ls(J, r, np.concatenate([clusters, clusters]))
+        x = x + dx
+        if np.abs(dx[:2]).max() < 1e-9:
+            break
+    A = np.zeros((2, 4))
+    A[0, IB], A[1, IY] = 1.0, 1.0
+    return BoardMeasurement(A, x[:2], C[:2, :2], "boards: corner disparity against ZED-left PnP depth",
+                            [p[0] for p in poses])
+
+
+def depth_at_rays(depth_mm: np.ndarray, uv: np.ndarray, half_px: int) -> np.ndarray:
+    """The depth map's z along each depth-camera pixel ``uv`` (N, 2): ``1/z`` fitted as a plane in (u, v) over a
+    ``2 half_px + 1`` window (exact on a planar surface), NaN where the window has fewer than half its pixels."""
+    h, w = depth_mm.shape
+    out = np.full(len(uv), np.nan)
+    for i, (u, v) in enumerate(uv):
+        iu, iv = int(round(u)), int(round(v))
+        if iu - half_px < 0 or iv - half_px < 0 or iu + half_px >= w or iv + half_px >= h:
+            continue
+        win = depth_mm[iv - half_px: iv + half_px + 1, iu - half_px: iu + half_px + 1].astype(np.float64)
+        vv, uu = np.mgrid[-half_px: half_px + 1, -half_px: half_px + 1]
+        ok = np.isfinite(win) & (win > 0)
+        if ok.sum() < 0.5 * win.size:
+            continue
+        A = np.stack([np.ones(ok.sum()), uu[ok] + iu - u, vv[ok] + iv - v], axis=1)
+        coef, *_ = np.linalg.lstsq(A, 1.0 / win[ok], rcond=None)
+        out[i] = 1.0 / coef[0]
+    return out
+
+
+def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig: Rig, half_px: int
+                            ) -> BoardMeasurement | None:
+    """``k`` and ``c`` from board corners: ``poses`` are (name, corners in the texture camera's frame from PnP in the
+    texture image (N, 3) mm, the raw depth map). Each corner's depth-camera z against the depth map's z along its
+    ray: ``z_depth - z = k z + c``."""
+    zs, dz, cl, names = [], [], [], []
+    T_dm = invert_T(rig.T_mech_from_depth_or_identity)
+    cam = rig.depth_camera
+    for i, (name, X_mech, depth) in enumerate(poses):
+        X = transform_points(T_dm, X_mech)
+        zm = depth_at_rays(depth, cam.project(X), half_px)
+        ok = np.isfinite(zm)
+        if ok.sum() < 10:
+            continue
+        zs.append(X[ok, 2])
+        dz.append(zm[ok] - X[ok, 2])
+        cl.append(np.full(ok.sum(), i))
+        names.append(name)
+    if len(names) < 3:
+        return None
+    z = np.concatenate(zs)
+    x, C = _cluster_ls(np.stack([z, np.ones_like(z)], axis=1), np.concatenate(dz), np.concatenate(cl))
+    A = np.zeros((2, 4))
+    A[0, IK], A[1, IC] = 1.0, 1.0
+    return BoardMeasurement(A, x, C, "boards: depth map against texture-camera PnP depth", names)
+
+
+def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
+                       progress: Callable[[str], None] | None = None) -> list[BoardMeasurement]:
+    """Detect the board in every board capture (texture, ZED left and right images) and measure from them."""
+    from gtforge.board import detect_corners
+    from gtforge.calibrate import solve_pnp
+
+    X = board.corners_board()
+    zed_poses, depth_poses = [], []
+    for k, d in enumerate(dirs):
+        if progress:
+            progress(f"board {d.name} ({k + 1}/{len(dirs)})")
+        cap = session.load_capture(d)
+        dl = detect_corners(cap.zed_left, board)
+        dr = detect_corners(cap.zed_right, board) if cap.zed_right is not None else None
+        if dl is not None and dr is not None:
+            T_zb = solve_pnp(X, dl.corners_uv, rig.zed.left)
+            zed_poses.append((d.name, transform_points(T_zb, X), dl.corners_uv, dr.corners_uv))
+        dm = detect_corners(cap.mech_texture, board)
+        if dm is not None and cap.mech_depth_mm is not None:
+            T_mb = solve_pnp(X, dm.corners_uv, rig.mech)
+            depth_poses.append((d.name, transform_points(T_mb, X), cap.mech_depth_mm))
+    out = [m for m in (board_zed_measurement(zed_poses, rig),
+                       board_depth_measurement(depth_poses, rig, params.board_depth_window_px)) if m is not None]
+    return out
+
+
+# ---- combining and applying ----------------------------------------------------------------------
+def combine(measurements: list[tuple[np.ndarray, np.ndarray, np.ndarray]], free: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised least squares over the parameters flagged ``free`` (the others held at 0): each measurement
+    ``(A, y, C)`` says ``A x ~ y`` with covariance ``C``. Returns (x with 0 where not free, covariance with zero rows
+    there)."""
+    idx = np.flatnonzero(free)
+    H = np.zeros((len(idx), len(idx)))
+    g = np.zeros(len(idx))
+    for A, y, C in measurements:
+        Ai = A[:, idx]
+        W = np.linalg.inv(C)
+        H += Ai.T @ W @ Ai
+        g += Ai.T @ W @ y
+    x = np.zeros(4)
+    cov = np.zeros((4, 4))
+    Hi = np.linalg.inv(H)
+    x[idx] = Hi @ g
+    cov[np.ix_(idx, idx)] = Hi
+    return x, cov
+
+
+def apply_scale(rig: Rig, baseline_file_mm: float, x: np.ndarray) -> Rig:
+    """The rig with the parameters ``x`` (PARAMS' order, yaw in rad) applied: the baseline ``(1 + b)`` times the
+    file's, and the depth scale/offset and yaw in ``scale_corrections``."""
+    zed = rig.zed.model_copy(update={"baseline_mm": baseline_file_mm * (1.0 + x[IB])})
+    corr = ScaleCorrections(depth_scale=1.0 + x[IK], depth_offset_mm=float(x[IC]),
+                            zed_right_yaw_deg=float(np.degrees(x[IY])))
+    return Rig.model_validate({**rig.model_dump(), "zed": zed.model_dump(), "scale_corrections": corr.model_dump()})
+
+
+def _disparity_effect_px(rig: Rig, z_mm: float) -> np.ndarray:
+    """How many px one unit of each parameter moves a disparity at depth ``z_mm`` (yaw per rad)."""
+    fb = rig.zed.f_px * rig.zed.baseline_mm
+    return np.array([fb / z_mm, rig.zed.f_px, fb / z_mm, fb / z_mm ** 2])
+
+
+def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None = None,
+                    params: ScaleParams | None = None, scenes: list[str] | None = None,
+                    progress: Callable[[str], None] | None = None):
+    """Estimate and apply the disparity-scale terms (module docstring); writes ``out_path`` when given. Returns the
+    corrected calibration file (``scale_calibration`` says what was found and applied)."""
+    from gtforge.build_dataset import BuildParams, build_scene_arrays
+    from gtforge.calibrate import CalibrationFile, calibration_output_path, check_rig_matches_session
+    from gtforge.io.captures import open_session
+
+    t0 = time.perf_counter()
+    params = params or ScaleParams()
+    calib_path = Path(calibration)
+    calib = CalibrationFile.read(calib_path)
+    if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
+        raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
+                         "one already corrected", "run calibrate-scale on the board (or refined) calibration")
+    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
+    check_rig_matches_session(calib.rig, session, calib_path)
+    if out_path is not None:
+        out_path = calibration_output_path(out_path)
+        session.refuse_output_inside_captures(out_path)
+        if Path(out_path).resolve() == calib_path.resolve():
+            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
+                             "the input calibration", "write the corrected calibration beside it, e.g. scaled.yaml")
+    rig_file = calib.rig
+    B_file = rig_file.zed.baseline_mm
+    # the boards first: absolute measurements, independent of the scenes' GT
+    boards = []
+    board_root = session.root / session.config.board_dir
+    board_dirs = session.select("board", None) if params.use_boards and board_root.is_dir() and any(
+        p.is_dir() for p in board_root.iterdir()) else []
+    if board_dirs:
+        boards = board_measurements(session, board_dirs, rig_file, calib.board.spec(), params, progress)
+    have_b = any(m.A[:, IB].any() for m in boards)
+    have_k = any(m.A[:, IK].any() for m in boards)
+    dirs = session.select("scenes", scenes)
+    caps = {d.name: session.load_capture(d) for d in dirs}
+    build = BuildParams()
+    x = np.zeros(4)
+    rig = apply_scale(rig_file, B_file, x)
+    reports = {s: SceneScaleReport(scene=s) for s in caps}
+    # a scene whose fruit moved between the captures (its texture shift over the fruit differs from the whole area's)
+    # has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes, is kept)
+    for s in list(caps):
+        cap = caps[s]
+        sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
+        ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, None,
+                              cap.mech_texture, rig, params.verify)
+        a, f = ver.texture_all, ver.texture_fruit
+        if a.dx_px is not None and f.dx_px is not None and \
+                np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px) > params.verify.max_shift_px:
+            reports[s].excluded = (f"the fruit's texture shift differs from the whole area's by "
+                                   f"{np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px):.2f} px (did it move?)")
+            del caps[s]
+    # without a board measurement of b or of k, scenes see only b + k: one term, carried by b
+    free = np.array([True, True, have_k or have_b, True])
+    cov = np.zeros((4, 4))
+    z_med = 650.0
+    passes = 0
+    determined = free.copy()
+    for outer in range(params.outer_iterations):
+        passes = outer + 1
+        pix = []
+        for s, cap in caps.items():
+            if progress:
+                progress(f"pass {outer + 1}: scene {s}")
+            sd, _, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
+            sp = scene_pixels(s, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right, params)
+            if sp is not None:
+                pix.append(sp)
+                reports[s].n_points = len(sp.u)
+        if not pix:
+            raise InputError(session.root / session.config.scenes_dir, None, "scenes with textured ground truth",
+                             "none", "add scene captures with texture")
+        z_med = float(np.median(np.concatenate([sp.z_mm for sp in pix])))
+        theta, C_s, nuis = solve_scenes(pix, rig, params, x[IY])
+        if outer == 0:
+            for sp, nu in zip(pix, nuis):
+                fb = rig.zed.f_px * rig.zed.baseline_mm
+                reports[sp.name].disparity_bias_before_px = float(np.mean(
+                    theta[0] * fb / sp.z_mm + theta[1] * fb / sp.z_mm ** 2
+                    - (apply_homography(yaw_homography(rig, theta[2]), sp.u - sp.d_gt, sp.v)[0] - (sp.u - sp.d_gt))))
+        # the scenes measure (b + k, c, yaw) as increments on the current rig (b and k carried additively: their
+        # product is below 1e-5)
+        A_s = np.zeros((3, 4))
+        A_s[0, IB] = A_s[0, IK] = 1.0
+        A_s[1, IC] = A_s[2, IY] = 1.0
+        y_s = np.array([x[IB] + x[IK] + theta[0], x[IC] + theta[1] * (1.0 + x[IK]), theta[2]])
+        meas = [(A_s, y_s, C_s)] + [(m.A, m.y, m.C) for m in boards]
+        determined = free.copy()
+        x_new, cov = combine(meas, determined)
+        eff = _disparity_effect_px(rig, z_med)
+        for _ in range(4):  # leave out what the data do not determine, solve again without it
+            bad = determined & (np.sqrt(np.maximum(np.diag(cov), 0)) * eff > params.max_sigma_px)
+            if not bad.any():
+                break
+            determined &= ~bad
+            x_new, cov = combine(meas, determined) if determined.any() else (np.zeros(4), np.zeros((4, 4)))
+        x_est, cov_est, applied = x_new, cov, determined.copy()
+        while applied.any():  # hold the least significant term at 0 while any is within apply_z sigma of it
+            z = np.where(applied, np.abs(x_new) / np.sqrt(np.maximum(np.diag(cov), 1e-300)), np.inf)
+            if z.min() > params.apply_z:
+                break
+            applied[int(np.argmin(z))] = False
+            x_new, cov = combine(meas, applied) if applied.any() else (np.zeros(4), np.zeros((4, 4)))
+        moved = float(np.abs((x_new - x) * eff).max())
+        x = x_new
+        rig = apply_scale(rig_file, B_file, x)
+        if progress:
+            progress(f"pass {outer + 1}: correction moved disparities by {moved:.4f} px")
+        if moved < params.converged_px:
+            break
+    # reported: every determined term's estimate and the covariance with all of them free (the uncertainty the labels
+    # carry, applied or not); applied: x
+    sig = np.sqrt(np.maximum(np.diag(cov_est), 0))
+    src_scene = "scenes: stereo consistency"
+    srcs = {IB: [src_scene], IY: [src_scene], IK: [], IC: [src_scene]}
+    for m in boards:
+        for i in range(4):
+            if m.A[:, i].any():
+                srcs[i].append(m.source)
+    if not have_k and have_b:  # k from the scenes' b + k less the boards' b
+        srcs[IK] = [src_scene] + [m.source for m in boards if m.A[:, IB].any()]
+    if not have_b and have_k:  # b from the scenes' b + k less the boards' k
+        srcs[IB] += [m.source for m in boards if m.A[:, IK].any()]
+    unit = np.array([1.0, np.degrees(1.0), 1.0, 1.0])  # yaw to degrees in the file
+    terms = {}
+    for i, name in enumerate(PARAMS):
+        if applied[i]:
+            terms[name] = ScaleTerm(value=float(x[i] * unit[i]), estimate=float(x_est[i] * unit[i]),
+                                    sigma=float(sig[i] * unit[i]), status="applied", sources=srcs[i])
+        elif determined[i]:
+            terms[name] = ScaleTerm(value=0.0, estimate=float(x_est[i] * unit[i]), sigma=float(sig[i] * unit[i]),
+                                    status="not significant", sources=srcs[i],
+                                    reason=f"within {params.apply_z:g} sigma of 0: not applied")
+        elif not free[i]:
+            terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not separable", sources=[],
+                                    reason="no board capture measures the depth scale or the baseline: scenes see "
+                                           "only their sum, applied to the baseline "
+                                           "(zed_baseline_frac holds the sum)")
+        else:
+            terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not determined", sources=srcs[i],
+                                    reason=f"its 1-sigma would move disparities by more than {params.max_sigma_px} px")
+    if not free[IK] and determined[IB]:
+        terms[PARAMS[IB]].reason = ("the sum of the baseline and depth scales (not separable without board captures)"
+                                    + ("" if applied[IB] else f"; within {params.apply_z:g} sigma of 0: not applied"))
+    D = np.diag(unit)
+    covariance = (D @ cov_est @ D)
+    s_var = cov_est[IB, IB] + cov_est[IK, IK] + 2 * cov_est[IB, IK]
+    info = ScaleCalibration(
+        calibrated_from=str(calib_path.resolve()), terms=terms, covariance=covariance.tolist(),
+        combined_scale_frac=float(x_est[IB] + x_est[IK]),
+        combined_scale_sigma_frac=float(np.sqrt(s_var)) if determined[IB] else None,
+        baseline_file_mm=B_file, scenes_used=[sp.name for sp in pix],
+        board_poses_used=sorted({p for m in boards for p in m.poses}), passes=passes,
+        scenes=[reports[s] for s in sorted(reports)], time_s=time.perf_counter() - t0)
+    out = calib.model_copy(update=dict(rig=rig, scale_calibration=info))
+    out = CalibrationFile.model_validate(out.model_dump())
+    if out_path is not None:
+        out.write(out_path)
+    return out
+
+
+def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+    """Each GT pixel's 1-sigma (px) from the applied scale terms' covariance: ``sqrt(J C J^T)`` with
+    ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units)."""
+    zed = rig.zed
+    fb = zed.f_px * zed.baseline_mm
+    z = np.asarray(depth_mm, np.float64)
+    x = (np.arange(z.shape[1], dtype=np.float64)[None, :] - zed.left.cx_px) / zed.f_px
+    J = [fb / z, np.broadcast_to(zed.f_px * (1 + x * x) * np.pi / 180.0, z.shape), fb / z, fb / z ** 2]
+    C = np.asarray(info.covariance, np.float64)
+    var = np.zeros(z.shape)
+    for i in range(4):
+        for j in range(4):
+            if C[i, j] != 0.0:
+                var += J[i] * C[i, j] * J[j]
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+    """``sigma_px`` (float32, +inf where no GT) with the scale terms' sigma added in quadrature."""
+    s = scale_sigma_px(depth_mm, rig, info)
+    with np.errstate(invalid="ignore"):
+        out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
+    return out.astype(np.float32)
+
+
+def shown_disparity_px(disp_true_px: np.ndarray, rig: Rig, yaw_true_deg: float) -> np.ndarray:
+    """What the dataset's pair shows (synthetic truth): the left image against the right image re-rectified with
+    ``rig``'s yaw when the right camera is really turned by ``yaw_true_deg``; ``disp_true_px`` is the ideal rectified
+    pair's disparity at ZED-left pixel centres. (The left pixel's match in the re-rectified image is
+    ``H(yaw_rig)^-1 H(yaw_true)`` of its ideal match.)"""
+    h, w = disp_true_px.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xr = u - disp_true_px
+    ua, va = apply_homography(yaw_homography(rig, np.radians(yaw_true_deg)), xr, v)
+    ui, _ = apply_homography(np.linalg.inv(yaw_homography(rig, np.radians(rig.zed_right_yaw_deg))), ua, va)
+    return (u - ui).astype(np.float32)
