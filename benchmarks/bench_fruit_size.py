@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/bench_fruit_size.py WORKDIR SCALE N_SCENES  (SCALE 1.0: the ZED's 2K, 2208x1242)
 """
-import sys, time, numpy as np
+import sys, time
 from pathlib import Path
 from gtforge.synthetic import generate_session, default_rig
 from gtforge.camera import Rig
