@@ -26,8 +26,23 @@ OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
 
 
 # ---- board -----------------------------------------------------------------------------------
+class GridCounts:
+    """``pattern_size`` and ``n_corners`` of a target whose points form ``cols`` x ``rows`` (every target kind)."""
+
+    cols: int
+    rows: int
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+
 @dataclass(frozen=True)
-class BoardSpec:
+class BoardSpec(GridCounts):
     """Checkerboard: ``cols`` x ``rows`` inner corners, ``square_size_mm``.
 
     Board frame: origin at inner corner 0, x along a corner row, y down the columns, z into the board.
@@ -39,14 +54,6 @@ class BoardSpec:
     rows: int = 9
     square_size_mm: float = 20.0
     margin_mm: float = 15.0
-
-    @property
-    def pattern_size(self) -> tuple[int, int]:
-        return (self.cols, self.rows)
-
-    @property
-    def n_corners(self) -> int:
-        return self.cols * self.rows
 
     def corners_board(self) -> np.ndarray:
         """``(N, 3)`` inner corners in the board frame, OpenCV order (x fastest)."""

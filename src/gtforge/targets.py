@@ -26,7 +26,7 @@ from gtforge.board import Detection
 from gtforge.errors import InputError
 from gtforge.io.formats import to_gray
 from gtforge.schema import GTModel
-from gtforge.synthetic import BoardSpec
+from gtforge.synthetic import BoardSpec, GridCounts
 
 log = logging.getLogger("gtforge.targets")
 
@@ -156,7 +156,7 @@ def _charuco_texture(sx: int, sy: int, s: float, m: float, dictionary: str, lega
 
 
 @dataclass(frozen=True)
-class CharucoSpec:
+class CharucoSpec(GridCounts):
     """ChArUco board: ``squares_x`` x ``squares_y`` squares. Board frame as the checkerboard's: origin at inner
     corner 0 (OpenCV's ChArUco corner id 0), x along the id order, z into the board."""
 
@@ -177,14 +177,6 @@ class CharucoSpec:
     @property
     def rows(self) -> int:
         return self.squares_y - 1
-
-    @property
-    def pattern_size(self) -> tuple[int, int]:
-        return (self.cols, self.rows)
-
-    @property
-    def n_corners(self) -> int:
-        return self.cols * self.rows
 
     @property
     def n_markers(self) -> int:
@@ -221,7 +213,7 @@ class CharucoSpec:
 
 # ---- circle grids ----------------------------------------------------------------------------
 @dataclass(frozen=True)
-class CircleGridSpec:
+class CircleGridSpec(GridCounts):
     """Dark circles on a white plate, OpenCV's layout and order (``cv2.findCirclesGrid``): ``cols`` circles per
     row, ``rows`` rows; symmetric: centre ``(j s, i s)``; asymmetric: ``((2 j + i % 2) s, i s)``."""
 
@@ -235,14 +227,6 @@ class CircleGridSpec:
     @property
     def kind(self) -> str:
         return "circles_asymmetric" if self.asymmetric else "circles_symmetric"
-
-    @property
-    def pattern_size(self) -> tuple[int, int]:
-        return (self.cols, self.rows)
-
-    @property
-    def n_corners(self) -> int:
-        return self.cols * self.rows
 
     def corners_board(self) -> np.ndarray:
         i, j = np.mgrid[0:self.rows, 0:self.cols]
