@@ -771,6 +771,24 @@ def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
                              f"{a.width_px}x{a.height_px} px", hint)
 
 
+def open_calibrated_session(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None,
+                            example_name: str):
+    """The prologue of the stages that turn a calibration into a new one (refine, calibrate-scale): the calibration,
+    the session as it sees it (``CalibrationFile.open_session``), checked against it, and the output path, which may
+    be neither inside the captures nor the input file. Returns ``(calib, session, out_path or None)``."""
+    calib_path = Path(calibration)
+    calib = CalibrationFile.read(calib_path)
+    session = calib.open_session(session_dir)
+    check_rig_matches_session(calib.rig, session, calib_path)
+    if out_path is not None:
+        out_path = calibration_output_path(out_path)
+        session.refuse_output_inside_captures(out_path)
+        if Path(out_path).resolve() == calib_path.resolve():
+            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
+                             "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
+    return calib, session, out_path
+
+
 def calibration_output_path(out_path: str | Path) -> Path:
     """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
     p = Path(out_path)

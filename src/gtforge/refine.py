@@ -27,8 +27,8 @@ import numpy as np
 from pydantic import Field
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays
-from gtforge.calibrate import (CalibrationFile, RefinementInfo, SceneRefinement, calibration_output_path,
-                               check_rig_matches_session, jackknife_scale)
+from gtforge.calibrate import (CalibrationFile, RefinementInfo, SceneRefinement, jackknife_scale,
+                               open_calibrated_session)
 from gtforge.camera import Rig
 from gtforge.errors import InputError
 from gtforge.geometry import pose_difference, transform_points
@@ -216,15 +216,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     t0 = time.perf_counter()
     params = params or RefineParams()
     calib_path = Path(calibration)
-    calib = CalibrationFile.read(calib_path)
-    session = calib.open_session(session_dir)
-    check_rig_matches_session(calib.rig, session, calib_path)
-    if out_path is not None:
-        out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
-        if Path(out_path).resolve() == calib_path.resolve():
-            raise InputError(out_path, "--output", "a new file (the board calibration stays as it is)",
-                             "the input calibration", "write the refined calibration beside it, e.g. refined.yaml")
+    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "refined.yaml")
     rig0 = calib.rig
     build = BuildParams()
     dirs = session.select("scenes", scenes)

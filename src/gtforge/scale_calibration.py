@@ -456,8 +456,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     """Estimate and apply the disparity-scale terms (module docstring); writes ``out_path`` when given. Returns the
     corrected calibration file (``scale_calibration`` says what was found and applied)."""
     from gtforge.build_dataset import BuildParams, build_scene_arrays
-    from gtforge.calibrate import CalibrationFile, calibration_output_path, check_rig_matches_session
-    from gtforge.io.captures import open_session
+    from gtforge.calibrate import CalibrationFile, open_calibrated_session
 
     t0 = time.perf_counter()
     params = params or ScaleParams()
@@ -466,14 +465,8 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
         raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
                          "one already corrected", "run calibrate-scale on the board (or refined) calibration")
-    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
-    check_rig_matches_session(calib.rig, session, calib_path)
-    if out_path is not None:
-        out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
-        if Path(out_path).resolve() == calib_path.resolve():
-            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
-                             "the input calibration", "write the corrected calibration beside it, e.g. scaled.yaml")
+    # the session as the calibration sees it: its SN.conf reading and ZED self-rectification
+    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "scaled.yaml")
     rig_file = calib.rig
     B_file = rig_file.zed.baseline_mm
     # the boards first: absolute measurements, independent of the scenes' GT
