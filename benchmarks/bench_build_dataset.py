@@ -133,7 +133,7 @@ def main():
     ap.add_argument("--settle-s", type=float, default=65.0,
                     help="seconds between deleting an earlier output and the next timed run (see settle)")
     args = ap.parse_args()
-    from gtforge.scheduling import cpu_count
+    from gtforge.infra.scheduling import cpu_count
 
     workers = args.workers or cpu_count()
     wd = Path(args.workdir)

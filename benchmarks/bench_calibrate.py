@@ -16,7 +16,7 @@ import numpy as np
 
 from gtforge.calibrate import CalibrateParams, PoseReport, calibrate_observations, detect_pose, \
     robust_initial_extrinsic
-from gtforge.geometry import invert_T, pose_difference, transform_points
+from gtforge.core.geometry import invert_T, pose_difference, transform_points
 from gtforge.synthetic import (OBJ_BOARD, BoardSpec, PlaneObject, Scene, _table, default_rig, finish_image,
                                random_board_pose, render_image)
 

@@ -38,7 +38,7 @@ def main():
     ap.add_argument("--workdir", default="/tmp/gtforge_bench")
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
-    from gtforge.scheduling import limit_threads
+    from gtforge.infra.scheduling import limit_threads
 
     limit_threads(1)
     import cv2

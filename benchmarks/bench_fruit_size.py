@@ -1,11 +1,11 @@
-"""evaluate's added cost per scene from the fruit size figures (gtforge.fruit_size).
+"""evaluate's added cost per scene from the fruit size figures (gtforge.core.fruit_size).
 
 Usage: python benchmarks/bench_fruit_size.py WORKDIR SCALE N_SCENES  (SCALE 1.0: the ZED's 2K, 2208x1242)
 """
 import sys, time
 from pathlib import Path
 from gtforge.synthetic import generate_session, default_rig
-from gtforge.camera import Rig
+from gtforge.core.camera import Rig
 from gtforge.calibrate import CalibrationFile
 from gtforge.build_dataset import build_dataset
 from gtforge.evaluate import evaluate
@@ -32,7 +32,7 @@ for out in (None, d / "ev"):
               f"{wall:.0f} ms wall, {cpu:.0f} ms CPU per scene{extra}")
 # the fruit figures alone, CPU time (a shared machine's wall clock varies more than the cost itself)
 from gtforge.evaluate import SceneCalib
-from gtforge.fruit_size import measure_scene
+from gtforge.core.fruit_size import measure_scene
 from gtforge.io.formats import read_image
 s = sorted((d / "ds" / "scenes").iterdir())[0]
 cal, gt, reg = SceneCalib(s / "calib.txt"), read_pfm(s / "disp0GT.pfm"), read_image(s / "region.png")

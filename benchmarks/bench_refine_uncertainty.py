@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from gtforge import refine as R
 from gtforge.build_dataset import BuildParams
 from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate
-from gtforge.geometry import T_from_rotvec
+from gtforge.core.geometry import T_from_rotvec
 from gtforge.io.captures import open_session
 from gtforge.synthetic import SyntheticTruth, generate_session
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays
 from gtforge.calibrate import CalibrationFile
-from gtforge.camera import Rig
+from gtforge.core.camera import Rig
 from gtforge.io.captures import open_session
 from gtforge.scale_calibration import ScaleParams, calibrate_scale, corrected_right_image, shown_disparity_px
 from gtforge.synthetic import SyntheticTruth, generate_session

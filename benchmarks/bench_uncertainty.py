@@ -23,10 +23,10 @@ import numpy as np
 from gtforge.build_dataset import BuildParams, build_one_scene, build_scene_arrays
 from gtforge.calibrate import (BoardModel, CalibrateParams, CalibrationFile, calibrate_observations,
                                detect_pose)
-from gtforge.camera import Rig
+from gtforge.core.camera import Rig
 from gtforge.io.captures import open_session
 from gtforge.synthetic import SyntheticTruth, generate_session
-from gtforge.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma, draw_ground_truth
+from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma, draw_ground_truth
 
 
 def main():

@@ -23,8 +23,8 @@ import numpy as np
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays
 from gtforge.calibrate import CalibrationFile
-from gtforge.camera import Rig
-from gtforge.geometry import T_from_rotvec, pose_difference
+from gtforge.core.camera import Rig
+from gtforge.core.geometry import T_from_rotvec, pose_difference
 from gtforge.io.captures import open_session
 from gtforge.refine import RefineParams, refine
 from gtforge.synthetic import SyntheticTruth, generate_session

@@ -26,9 +26,9 @@ import numpy as np
 
 from bench_build_dataset import machine_busy_s
 
-from gtforge.io import unbuffered
-from gtforge.io.unbuffered import buffer_of, write_file
-from gtforge.scheduling import release_written_pages
+from gtforge.infra import unbuffered
+from gtforge.infra.unbuffered import buffer_of, write_file
+from gtforge.infra.scheduling import release_written_pages
 
 
 def main():

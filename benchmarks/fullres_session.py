@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gtforge.calibrate import CalibrationFile
-from gtforge.camera import CameraFile, Rig, StereoCalibrationFile
+from gtforge.core.camera import CameraFile, Rig, StereoCalibrationFile
 from gtforge.synthetic import default_rig, random_fruit_scene, render_capture, write_capture
 
 RENDER_SETTINGS = dict(scale=1.0, supersample=1, depth_noise_mm=0.05, seed=0)
@@ -77,7 +77,7 @@ def make_session(workdir: str | Path, n_scenes: int, n_distinct: int = 4, log=pr
 
 def machine_line() -> str:
     """Cores this process may use and the 1-minute load average when the measurement starts."""
-    from gtforge.scheduling import cpu_count
+    from gtforge.infra.scheduling import cpu_count
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return f"{cpu_count()} cores ({cpu_line()}), load average {load:.2f} at start"

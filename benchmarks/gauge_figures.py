@@ -7,10 +7,10 @@ import sys
 from pathlib import Path
 
 from gtforge.calibrate import CalibrationFile
-from gtforge.camera import Rig
-from gtforge.gauges import GaugeParams, validate_gauges
+from gtforge.core.camera import Rig
+from gtforge.core.gauges import GaugeParams, validate_gauges
 from gtforge.synthetic import default_rig, generate_gauges, generate_session
-from gtforge.uncertainty import DepthNoiseModel
+from gtforge.core.uncertainty import DepthNoiseModel
 
 d, scale, noise = Path(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
 if not (d / "s").exists():

@@ -29,12 +29,12 @@ def main():
     ap.add_argument("--write", action="store_true", help="write the table into benchmarks/RESULTS.md")
     args = ap.parse_args()
 
-    from gtforge.scheduling import cpu_count, limit_threads, threads_per_worker
+    from gtforge.infra.scheduling import cpu_count, limit_threads, threads_per_worker
 
     n_threads = args.threads or threads_per_worker(cpu_count())
     limit_threads(n_threads)
     try:  # what a local pool worker does at start (gtforge >= issue 12's round 3)
-        from gtforge.scheduling import reuse_freed_memory
+        from gtforge.infra.scheduling import reuse_freed_memory
 
         reuse_freed_memory()
     except ImportError:
@@ -45,12 +45,12 @@ def main():
     from gtforge.calibrate import CalibrationFile
     from gtforge.io.captures import open_session, read_depth, read_texture
     from gtforge.io.formats import read_image, write_kitti_disparity, write_pfm, write_tiff_float
-    from gtforge.reproject import project_depth_to_camera
+    from gtforge.core.reproject import project_depth_to_camera
 
     try:
-        from gtforge.reproject import disparity_and_nonoccluded
+        from gtforge.core.reproject import disparity_and_nonoccluded
     except ImportError:  # older gtforge: two numpy steps
-        from gtforge.reproject import nonoccluded_mask
+        from gtforge.core.reproject import nonoccluded_mask
 
         def disparity_and_nonoccluded(dl, dr, zed, rel_tol):
             d = zed.depth_to_disparity(dl)
@@ -137,7 +137,7 @@ def main():
                 lambda: verify_scene(depth_l, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
                                      params.verify))
     if getattr(params, "sigma", False):
-        from gtforge.uncertainty import disparity_sigma
+        from gtforge.core.uncertainty import disparity_sigma
 
         calib = CalibrationFile.read(calib_path)
         sigma = measure("compute", "GT sigma map (disp0GT_sigma)",
@@ -145,7 +145,7 @@ def main():
                                                 depth_span, None))
         measure("compute", "sigma statistics per region (meta.json)", lambda: bd.region_sigma_stats(sigma, region))
     if getattr(params, "right_gt", False):
-        from gtforge.reproject import right_view_disparity
+        from gtforge.core.reproject import right_view_disparity
 
         disp1, noc1 = measure("compute", "right-view disparity + occlusion (disp1GT)",
                               lambda: right_view_disparity(depth_l, depth_r, zed, params.occlusion_rel_tol))
@@ -153,7 +153,7 @@ def main():
     files = [p for p in cap.input_files if p.exists()]
     size_mb = sum(p.stat().st_size for p in files) / 1e6
     try:  # gtforge >= issue 12's round 5: BLAKE3
-        from gtforge.io.digest import blake3_hex
+        from gtforge.infra.digest import blake3_hex
 
         blobs = [p.read_bytes() for p in files]
         measure("hash", f"BLAKE3 of the inputs' bytes as read ({len(files)} files, {size_mb:.0f} MB)",
@@ -173,7 +173,7 @@ def main():
     writes = contextlib.ExitStack()  # closed once the write steps are done
     try:  # gtforge >= issue 12's round 6: a view's two KITTI files written together (row blocks shared), and the
         # scene's files written straight into its private temporary folder, as the build does
-        from gtforge.io.atomic import private_folder
+        from gtforge.infra.atomic import private_folder
         from gtforge.io.formats import write_kitti_disparity_pair as kitti_pair
 
         writes.enter_context(private_folder(tmp))

@@ -351,7 +351,7 @@ def test_fruit_centre_equals_the_full_image_erosion():
 def test_fit_plane_robust_counts_as_numpy_and_finds_the_plane():
     """The compiled hypothesis scoring counts the inliers numpy counts; with half the points off the plane the
     RANSAC + refit still returns it."""
-    from gtforge.geometry import _inlier_counts, fit_plane_robust
+    from gtforge.core.geometry import _inlier_counts, fit_plane_robust
 
     rng = np.random.default_rng(3)
     n_true = np.array([0.1, -0.45, -0.89])
@@ -380,8 +380,8 @@ def test_fruit_regions_equal_the_point_cloud_computation():
     import cv2
 
     from gtforge.build_dataset import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
-    from gtforge.camera import PinholeCamera, RectifiedStereo
-    from gtforge.geometry import fit_plane_robust
+    from gtforge.core.camera import PinholeCamera, RectifiedStereo
+    from gtforge.core.geometry import fit_plane_robust
 
     H, W = 240, 320
     cam = PinholeCamera(width_px=W, height_px=H, fx_px=300.0, fy_px=300.0, cx_px=161.3, cy_px=118.7)
@@ -438,7 +438,7 @@ def test_pool_workers_reuse_freed_memory():
     code = """
 import resource, sys
 import numpy as np
-from gtforge.scheduling import reuse_freed_memory
+from gtforge.infra.scheduling import reuse_freed_memory
 if sys.argv[1] == "tuned":
     assert reuse_freed_memory()
 a = [np.ones(5 << 20, np.float32) for _ in range(3)]  # the first round faults its pages in either way
@@ -486,7 +486,7 @@ def test_written_pages_are_released_two_scenes_later(tmp_path):
     import os
     import platform
 
-    from gtforge.scheduling import _WRITTEN_GROUPS, release_written_pages
+    from gtforge.infra.scheduling import _WRITTEN_GROUPS, release_written_pages
 
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         pytest.skip("Linux/glibc only (mincore through ctypes)")
@@ -523,7 +523,7 @@ def test_dask_task_keeps_freed_memory_then_restores_the_workers_setting():
     code = """
 import resource
 import numpy as np
-from gtforge.scheduling import _memory_kept_for_task
+from gtforge.infra.scheduling import _memory_kept_for_task
 
 def faults():
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -566,7 +566,7 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
         finite = d[np.isfinite(d)]
         assert _disparity_summary(d, 192.0) == (finite.size, finite.min(), finite.max(), int((finite > 192.0).sum()))
     assert _disparity_summary(np.full((4, 5), np.nan, np.float32), 192.0)[0] == 0
-    from gtforge.camera import PinholeCamera, RectifiedStereo
+    from gtforge.core.camera import PinholeCamera, RectifiedStereo
 
     zed = RectifiedStereo(left=PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=40.0, cy_px=30.0, width_px=80,
                                              height_px=60), baseline_mm=63.0)
@@ -638,7 +638,7 @@ def test_a_scene_landed_by_a_worker_that_died_before_reporting_it_is_built(datas
     written): the scene is counted as built and its views are written, byte for byte as a normal build's; a lost
     scene that did not land in this run (an older build with other options is still there) is listed as failed."""
     import gtforge.build_dataset as bd
-    from gtforge.scheduling import LOST_REASON
+    from gtforge.infra.scheduling import LOST_REASON
 
     out = tmp_path / "ds"
     build_dataset(session_dir, true_calibration, out, scenes=["002"], workers=1,

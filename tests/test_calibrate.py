@@ -3,7 +3,7 @@ import pytest
 
 from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate, calibrate_observations, detect_pose
 from gtforge.errors import InputError
-from gtforge.geometry import pose_difference
+from gtforge.core.geometry import pose_difference
 from gtforge.io.captures import open_session
 from gtforge.reports.calibration import write_calibration_report
 

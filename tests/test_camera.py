@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
+from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.errors import InputError
-from gtforge.geometry import T_from_rotvec, invert_T, transform_points
+from gtforge.core.geometry import T_from_rotvec, invert_T, transform_points
 
 
 def cam(dist=(0.0,) * 5):

@@ -20,7 +20,7 @@ import pytest
 
 from gtforge.build_dataset import Manifest, build_dataset
 from gtforge.errors import InputError
-from gtforge.scheduling import run_tasks
+from gtforge.infra.scheduling import run_tasks
 
 pytest.importorskip("distributed")  # the 'dask' extra (part of the 'test' extra)
 from distributed.diagnostics.plugin import SchedulerPlugin, WorkerPlugin  # noqa: E402

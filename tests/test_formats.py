@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gtforge.errors import InputError
-from gtforge.io.atomic import atomic_path, atomic_write_text
+from gtforge.infra.atomic import atomic_path, atomic_write_text
 from gtforge.io.formats import (read_image, read_kitti_disparity, read_pfm, read_ply_points, write_image,
                                 write_kitti_disparity, write_pfm, write_ply, write_tiff_float)
 
@@ -77,7 +77,7 @@ def test_private_folder_writes_final_names_directly(tmp_path, monkeypatch):
     and in its subfolders they stay atomic; the files get the same mode either way."""
     import tempfile
 
-    from gtforge.io.atomic import file_mode, private_folder
+    from gtforge.infra.atomic import file_mode, private_folder
     from gtforge.io.formats import write_label_png
 
     private = tmp_path / ".tmp-scene"

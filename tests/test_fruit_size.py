@@ -1,4 +1,4 @@
-"""Per-fruit size, volume and grade (gtforge.fruit_size, evaluate's fruit_size) and the shape fits behind them."""
+"""Per-fruit size, volume and grade (gtforge.core.fruit_size, evaluate's fruit_size) and the shape fits behind them."""
 import json
 
 import numpy as np
@@ -6,11 +6,11 @@ import pytest
 
 from gtforge.errors import InputError
 from gtforge.evaluate import EvalReport, SceneCalib, compare, evaluate
-from gtforge.fruit_size import (FruitSize, GradeBins, fruit_instances, measure_fruit, parse_grades, points_from_disparity,
+from gtforge.core.fruit_size import (FruitSize, GradeBins, fruit_instances, measure_fruit, parse_grades, points_from_disparity,
                                 table_plane)
 from gtforge.io.formats import read_image, read_pfm, write_pfm
 from gtforge.predictors import PredictionFolder
-from gtforge.shapefit import fit_plane_lsq, fit_resting_ellipsoid, fit_sphere
+from gtforge.core.shapefit import fit_plane_lsq, fit_resting_ellipsoid, fit_sphere
 
 
 # ---- shape fits -----------------------------------------------------------------------------------
@@ -107,7 +107,7 @@ def small_dataset(tmp_path_factory):
     ellipsoids in truth/."""
     from gtforge.build_dataset import build_dataset
     from gtforge.calibrate import CalibrationFile
-    from gtforge.camera import Rig
+    from gtforge.core.camera import Rig
     from gtforge.synthetic import default_rig, generate_session
 
     root = tmp_path_factory.mktemp("fruit")

@@ -1,4 +1,4 @@
-"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.gauges against the generator's exact sizes."""
+"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.gauges against the generator's exact sizes."""
 import shutil
 import subprocess
 import sys
@@ -8,13 +8,13 @@ import pytest
 import yaml
 
 from gtforge.calibrate import CalibrationFile, _perturbed
-from gtforge.camera import Rig
+from gtforge.core.camera import Rig
 from gtforge.errors import InputError
-from gtforge.gauges import GaugeParams, GaugeReport, GaugesFile, read_gauges_file, summary_lines, validate_gauges
+from gtforge.core.gauges import GaugeParams, GaugeReport, GaugesFile, read_gauges_file, summary_lines, validate_gauges
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import write_tiff_float
 from gtforge.synthetic import default_rig, generate_gauges, generate_session
-from gtforge.uncertainty import DepthNoiseModel
+from gtforge.core.uncertainty import DepthNoiseModel
 
 SCALE = 0.3  # ZED 662x373, structured light 576x360
 NOISE_MM = 0.05

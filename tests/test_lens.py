@@ -1,12 +1,12 @@
-"""gtforge.lens against OpenCV: the forward model equals cv2.projectPoints for every coefficient count; the inverse
+"""gtforge.core.lens against OpenCV: the forward model equals cv2.projectPoints for every coefficient count; the inverse
 round-trips to 1e-9 (normalised) where OpenCV's fixed-point undistortion does not, and is NaN where no inverse
 exists."""
 import cv2
 import numpy as np
 import pytest
 
-from gtforge import lens
-from gtforge.camera import PinholeCamera
+from gtforge.core import lens
+from gtforge.core.camera import PinholeCamera
 
 # non-trivial coefficients of every OpenCV model (k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4 tau_x tau_y), tilt in rad
 COEFFS_14 = [-0.21, 0.08, 0.0012, -0.0009, -0.015, 0.11, -0.02, 0.004, 0.0021, -0.0007, -0.0016, 0.0004,

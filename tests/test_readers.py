@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
-from gtforge.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.errors import InputError
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf, write_zed_conf
 from gtforge.io.captures import open_session, read_depth, read_video_frame, split_side_by_side

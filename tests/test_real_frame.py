@@ -18,12 +18,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gtforge.camera import PinholeCamera
-from gtforge.geometry import invert_T
+from gtforge.core.camera import PinholeCamera
+from gtforge.core.geometry import invert_T
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import read_image
 from gtforge.io.vendors import read_kinect_calibration
-from gtforge.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 
 DATA = Path(__file__).parent / "data" / "azure-kinect-frame"
 SEARCH_PX = 4  # shifts searched in x and y (this frame's x offset is -2.6 px)
@@ -264,7 +264,7 @@ def test_half_pixel_shift_is_detected():
 
 # ---- overlay for docs/images -------------------------------------------------------------------
 def write_overlay(path: Path) -> None:
-    from gtforge.io.atomic import atomic_write_bytes
+    from gtforge.infra.atomic import atomic_write_bytes
 
     chain = chains()["correct"]
     z, und, pinhole = render(chain)

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from gtforge.camera import PinholeCamera
+from gtforge.core.camera import PinholeCamera
 from gtforge.io.formats import read_pfm
-from gtforge.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 
 F_PX, BASELINE_MM, DOFFS_PX = 999.421, 193.001, 32.778  # calib.txt
 CX0_PX, CX1_PX, CY_PX = 294.182, 326.96, 252.932
@@ -80,7 +80,7 @@ def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
         numba.set_num_threads(previous)
     out = tmp_path / "many.npy"
     child = (f"import sys, numba; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-             "import test_real_reprojection as t; from gtforge import reproject; import numpy as np; "
+             "import test_real_reprojection as t; from gtforge.core import reproject; import numpy as np; "
              "assert numba.get_num_threads() >= reproject.MIN_PARALLEL_THREADS; z0, c0, c1, T, _, _ = t.motorcycle(); "
              f"np.save({str(out)!r}, reproject.project_depth_to_camera(z0, c0, T, c1))")
     subprocess.run([sys.executable, "-c", child], check=True, env={**os.environ, "NUMBA_NUM_THREADS": "4"})

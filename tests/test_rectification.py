@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from gtforge.errors import InputError
-from gtforge.geometry import make_T, transform_points
+from gtforge.core.geometry import make_T, transform_points
 from gtforge.io.cameras import ZED_CONF_READINGS, read_zed_conf
 from gtforge.io.captures import open_session
-from gtforge.rectification import (
+from gtforge.core.rectification import (
     TIE_PX,
     RawBoardPair,
     RectificationMeter,
@@ -193,7 +193,7 @@ def test_reading_from_feature_matches_without_a_board(raw_session):
     """No board seen whole in both raw images: every reading is scored on raw feature matches (scenes and boards
     alike). The conf was written under neg-all: neg-all wins (as-is gives the same maps but a right camera at -x), the
     TY/TZ-flipped neg-x is 0.1-0.5 px worse, the inverse rotations are far off."""
-    from gtforge.rectification import choose_reading_by_matches, raw_matches
+    from gtforge.core.rectification import choose_reading_by_matches, raw_matches
 
     s = open_session(raw_session)
     factory = s.rectification.factory
@@ -212,7 +212,7 @@ def test_real_zed_mini_reading_from_feature_matches():
     rest is the unit's residual rotation, which self-rectification removes: tests/test_selfcal.py)."""
     from conftest import shared_data
     from gtforge.io.formats import read_image
-    from gtforge.rectification import RawBoardPair, choose_reading_by_matches, match_points
+    from gtforge.core.rectification import RawBoardPair, choose_reading_by_matches, match_points
 
     d = shared_data("zed-mini-raw-pair")
     factory = read_zed_conf(d / "SN10027514.conf", 1280)

@@ -4,7 +4,7 @@ import pytest
 
 from gtforge.calibrate import CalibrationFile
 from gtforge.errors import InputError
-from gtforge.geometry import T_from_rotvec, pose_difference
+from gtforge.core.geometry import T_from_rotvec, pose_difference
 from gtforge.refine import RefineParams, refine
 
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from gtforge.camera import PinholeCamera, RectifiedStereo
-from gtforge.geometry import T_from_rotvec
-from gtforge.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
+from gtforge.core.camera import PinholeCamera, RectifiedStereo
+from gtforge.core.geometry import T_from_rotvec
+from gtforge.core.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
 from gtforge.synthetic import default_rig, random_fruit_scene, render_capture
 
 
@@ -127,7 +127,7 @@ def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     # one thread rasterises straight into the image; several rasterise row chunks into windows and merge
     import numba
 
-    import gtforge.reproject as rp
+    import gtforge.core.reproject as rp
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba has one thread here")
@@ -158,7 +158,7 @@ def test_both_views_in_one_pass_are_the_two_single_views(fruit_cap, monkeypatch)
     right camera has its own cx (doffs) and with the parallel path forced for the single views."""
     import numba
 
-    import gtforge.reproject as rp
+    import gtforge.core.reproject as rp
 
     rig, cap = fruit_cap
     zed = rig.zed.model_copy(update={"doffs_px": 3.25})
@@ -194,8 +194,8 @@ def test_both_views_in_one_pass_are_the_two_single_views(fruit_cap, monkeypatch)
 def test_fused_disparity_and_occlusion_match_their_definitions():
     # reproject_to_zed computes disparity and the non-occluded mask in one pass; they must equal
     # RectifiedStereo.depth_to_disparity and nonoccluded_mask (here with doffs and real occlusions)
-    from gtforge.geometry import finite_box
-    from gtforge.reproject import disparity_and_nonoccluded, nonoccluded_mask, right_view_disparity
+    from gtforge.core.geometry import finite_box
+    from gtforge.core.reproject import disparity_and_nonoccluded, nonoccluded_mask, right_view_disparity
 
     cam = PinholeCamera(width_px=150, height_px=90, fx_px=110.0, fy_px=104.0, cx_px=71.2, cy_px=47.9)
     zed = RectifiedStereo(left=cam, baseline_mm=63.0, doffs_px=2.5)
@@ -235,7 +235,7 @@ def test_fused_disparity_and_occlusion_match_their_definitions():
 
 
 def test_finite_box_is_the_bounding_box_of_the_finite_values():
-    from gtforge.geometry import finite_box, mask_bounding_box
+    from gtforge.core.geometry import finite_box, mask_bounding_box
 
     rng = np.random.default_rng(2)
     for shape, p in (((40, 70), 0.001), ((40, 70), 0.3), ((1, 9), 0.5), ((9, 1), 0.5)):

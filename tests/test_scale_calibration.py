@@ -8,7 +8,7 @@ import pytest
 
 from gtforge.build_dataset import BuildParams, build_scene_arrays, middlebury_calib_text
 from gtforge.calibrate import CalibrationFile
-from gtforge.camera import Rig, ScaleCorrections
+from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
 from gtforge.scale_calibration import (ScaleParams, apply_homography, calibrate_scale, corrected_right_image,

@@ -14,7 +14,7 @@ SCRIPT = textwrap.dedent('''
     def facts(_):
         import numba
         time.sleep(0.3)  # long enough for both workers to take a task
-        return (os.getpid(), os.getppid(), "gtforge.pool_preload" in sys.modules, "gtforge.build_dataset" in sys.modules,
+        return (os.getpid(), os.getppid(), "gtforge.infra.pool_preload" in sys.modules, "gtforge.build_dataset" in sys.modules,
                 numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"))
 
     def sigint_ignored(pid):
@@ -22,7 +22,7 @@ SCRIPT = textwrap.dedent('''
         return bool(mask & (1 << 1))  # SIGINT is signal 2
 
     if __name__ == "__main__":
-        from gtforge import scheduling
+        from gtforge.infra import scheduling
         out = {"pid": os.getpid()}
         scheduling.prestart_pool("gtforge.build_dataset", workers=2)
         for run in ("first", "second"):

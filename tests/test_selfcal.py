@@ -1,4 +1,4 @@
-"""ZED self-rectification (gtforge.selfcal): on a real ZED Mini pair against the vendor SDK's own rectification, on the
+"""ZED self-rectification (gtforge.core.selfcal): on a real ZED Mini pair against the vendor SDK's own rectification, on the
 generator's rectified and raw sessions with a right camera turned against its files (exact truth), and its refusals."""
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from conftest import shared_data
-from gtforge.camera import PinholeCamera, RectifiedStereo
+from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.io.cameras import read_zed_conf
 from gtforge.io.captures import open_session
 from gtforge.io.formats import read_image
-from gtforge.rectification import match_points
-from gtforge.selfcal import (Matches, RightImageCorrection, ZedRightCorrection, corrected_rectification,
+from gtforge.core.rectification import match_points
+from gtforge.core.selfcal import (Matches, RightImageCorrection, ZedRightCorrection, corrected_rectification,
                              fit_self_rectification, self_rectify)
 from gtforge.synthetic import generate_raw_zed_session, generate_session
 

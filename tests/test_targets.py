@@ -1,4 +1,4 @@
-"""ChArUco (partial views), circle grids, the board declaration and its mismatch errors (gtforge.targets).
+"""ChArUco (partial views), circle grids, the board declaration and its mismatch errors (gtforge.core.targets).
 
 Boards are rendered by the generator (exact truth) at small sizes, inside their bounding box only
 (``render_board_views``); the extrinsic limits are the checkerboard's (0.05 deg / 0.5 mm at 7 poses, 0.4x:
@@ -10,9 +10,9 @@ import pytest
 
 from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate_observations, detect_pose
 from gtforge.errors import InputError
-from gtforge.geometry import pose_difference
+from gtforge.core.geometry import pose_difference
 from gtforge.synthetic import BoardSpec, default_rig, random_board_pose
-from gtforge.targets import (BoardModel, CharucoSpec, CircleGridSpec, board_model_of, check_board_model,
+from gtforge.core.targets import (BoardModel, CharucoSpec, CircleGridSpec, board_model_of, check_board_model,
                              circle_centre_bias, detect_charuco, random_partial_board_pose, render_board_views)
 
 CHARUCO = CharucoSpec(7, 5, 40.0, 30.0, "DICT_4X4_50")
@@ -54,7 +54,7 @@ def test_board_declaration_round_trips_and_old_files_still_load(tmp_path):
     assert BoardModel.model_validate(ch.model_dump()) == ch and ch.spec() == CHARUCO
     assert board_model_of(CHARUCO) == ch
     rig = default_rig(0.2)
-    from gtforge.camera import Rig
+    from gtforge.core.camera import Rig
 
     path = CalibrationFile.known_extrinsic(Rig(zed=rig.zed, mech=rig.mech, T_zed_from_mech=rig.T_zed_from_mech)
                                            ).write(tmp_path / "c.yaml")
@@ -138,8 +138,8 @@ def test_circle_grid_calibration(spec, scale):
 def test_circle_centre_bias_is_the_ellipse_centroid_shift():
     # a 40 mm circle 300 mm away, tilted 45 degrees: the projected disk's centroid is off the centre's image by a
     # computable amount; zero for a fronto-parallel circle
-    from gtforge.camera import PinholeCamera
-    from gtforge.geometry import T_from_rotvec
+    from gtforge.core.camera import PinholeCamera
+    from gtforge.core.geometry import T_from_rotvec
 
     spec = CircleGridSpec(3, 4, 50.0, 40.0)
     cam = PinholeCamera(width_px=1000, height_px=1000, fx_px=1000.0, fy_px=1000.0, cx_px=500.0, cy_px=500.0)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import tifffile
 
-from gtforge.io import unbuffered
-from gtforge.io.atomic import atomic_copy_file, atomic_write_buffer, atomic_write_bytes, file_mode, private_folder
+from gtforge.infra import unbuffered
+from gtforge.infra.atomic import atomic_copy_file, atomic_write_buffer, atomic_write_bytes, file_mode, private_folder
 from gtforge.io.formats import read_pfm, write_pfm, write_tiff_float
-from gtforge.io.unbuffered import (BLOCK_BYTES, MIN_DIRECT_BYTES, aligned_buffer, background_writes, buffer_of,
+from gtforge.infra.unbuffered import (BLOCK_BYTES, MIN_DIRECT_BYTES, aligned_buffer, background_writes, buffer_of,
                                    write_file)
 
 SIZES = [0, 1, BLOCK_BYTES - 1, BLOCK_BYTES, MIN_DIRECT_BYTES - 1, MIN_DIRECT_BYTES, MIN_DIRECT_BYTES + 1,

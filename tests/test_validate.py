@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from gtforge.calibrate import CalibrationFile
-from gtforge.geometry import T_from_rotvec
+from gtforge.core.geometry import T_from_rotvec
 from gtforge.validate import bilinear_valid, validate
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from gtforge.build_dataset import BuildParams, Manifest, build_scene_arrays
 from gtforge.calibrate import CalibrationFile
-from gtforge.geometry import T_from_rotvec
+from gtforge.core.geometry import T_from_rotvec
 from gtforge.io.captures import open_session
 from gtforge.verify import VerificationReport, VerifyParams, predicted_shift, verify_dataset, verify_scene
 

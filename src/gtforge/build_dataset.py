@@ -25,11 +25,11 @@ except ImportError:  # pragma: no cover
 
 import gtforge
 from gtforge.calibrate import CalibrationFile, check_rig_matches_session
-from gtforge.camera import RectifiedStereo, Rig
+from gtforge.core.camera import RectifiedStereo, Rig
 from gtforge.errors import InputError, Interrupted
-from gtforge.geometry import finite_box, fit_plane_robust, mask_bounding_box
-from gtforge.io.atomic import atomic_copy_file, atomic_write_text, private_folder
-from gtforge.io.digest import blake3_file, sha256_file
+from gtforge.core.geometry import finite_box, fit_plane_robust, mask_bounding_box
+from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
+from gtforge.infra.digest import blake3_file, sha256_file
 from gtforge.io.outputs import require_output_folder
 from gtforge.io.formats import (
     write_image,
@@ -39,11 +39,11 @@ from gtforge.io.formats import (
     write_ply,
     write_tiff_float,
 )
-from gtforge.io.unbuffered import background_writes
-from gtforge.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
-from gtforge.scheduling import prestart_pool, release_written_pages, run_tasks
-from gtforge.schema import GTModel, VersionedFile
-from gtforge.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
+from gtforge.infra.unbuffered import background_writes
+from gtforge.core.reproject import ReprojectParams, reproject_to_zed, right_view_disparity
+from gtforge.infra.scheduling import prestart_pool, release_written_pages, run_tasks
+from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.core.uncertainty import SigmaStats, UncertaintyParams, disparity_sigma, sigma_stats_by_label
 from gtforge.verify import SceneVerification, VerifyParams, verify_scene, zed_rows_used
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ class BuildParams(GTModel):
     ply: bool = False
     max_disp_px: float = 192.0  # statistics: share of pixels above this (many training repos drop them)
     verification: bool = True  # per-scene checks of the GT against its own images (gtforge.verify)
-    sigma: bool = True  # disp0GT_sigma.pfm: per-pixel 1-sigma GT uncertainty (gtforge.uncertainty)
+    sigma: bool = True  # disp0GT_sigma.pfm: per-pixel 1-sigma GT uncertainty (gtforge.core.uncertainty)
     right_gt: bool = True  # disp1GT.pfm + mask1nocc.png (+ KITTI disp_occ_1/disp_noc_1): the right view's GT
     uncertainty: UncertaintyParams = Field(default_factory=UncertaintyParams)
     verify: VerifyParams = Field(default_factory=VerifyParams)
@@ -775,7 +775,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                          f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
     dirs = session.select("scenes", scenes)
     if scheduler:
-        from gtforge.scheduling import check_scheduler_address
+        from gtforge.infra.scheduling import check_scheduler_address
 
         check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)

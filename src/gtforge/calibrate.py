@@ -20,14 +20,14 @@ import cv2
 import numpy as np
 from pydantic import Field, PrivateAttr, model_serializer
 
-from gtforge.board import Detection, detect_corners
-from gtforge.camera import PinholeCamera, RectifiedStereo, Rig
+from gtforge.core.board import Detection, detect_corners
+from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.errors import InputError
-from gtforge.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
-from gtforge.rectification import RectificationQuality, ZedConfChoice
-from gtforge.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification, self_rectify
+from gtforge.core.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
+from gtforge.core.rectification import RectificationQuality, ZedConfChoice
+from gtforge.core.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification, self_rectify
 from gtforge.scale_calibration import ScaleCalibration
-from gtforge.schema import GTModel, VersionedFile
+from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
 
 # scipy is imported inside the functions that use it: it adds about 0.4 s to every process start, and the
@@ -38,8 +38,8 @@ log = logging.getLogger("gtforge.calibrate")
 LOO_WARN_PX = 0.3  # verdict WARN when the leave-one-pose-out transfer error exceeds this
 
 
-from gtforge.coverage import CoverageReport  # noqa: E402
-from gtforge.targets import BoardModel  # noqa: E402  (the board declaration; re-exported here as before)
+from gtforge.core.coverage import CoverageReport  # noqa: E402
+from gtforge.core.targets import BoardModel  # noqa: E402  (the board declaration; re-exported here as before)
 
 
 class CalibrateParams(GTModel):
@@ -57,7 +57,7 @@ class CalibrateParams(GTModel):
     # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
     methods_agree_deg: float = 0.1
     methods_agree_mm: float = 1.0
-    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.selfcal)
+    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.core.selfcal)
     self_rectify: bool = True
 
 
@@ -75,7 +75,7 @@ class PoseReport(GTModel):
     init_trans_dev_mm: float | None = None
     loo_transfer_mean_px: float | None = None
     loo_transfer_max_px: float | None = None
-    # ChArUco / circle grids (gtforge.targets): board points found in each image and in both (None: checkerboard)
+    # ChArUco / circle grids (gtforge.core.targets): board points found in each image and in both (None: checkerboard)
     n_points_mech: int | None = None
     n_points_zed: int | None = None
     n_points_common: int | None = None
@@ -175,7 +175,7 @@ class CalibrationFile(VersionedFile):
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
-    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.coverage)
+    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
     # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
     scale_calibration: ScaleCalibration | None = None
 
@@ -198,10 +198,10 @@ class CalibrationFile(VersionedFile):
         return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
                             zed_right_correction=self.zed_right_correction)
     # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
-    # the conf reading chosen from the board images (gtforge.rectification; later stages rectify with it)
+    # the conf reading chosen from the board images (gtforge.core.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None
     zed_conf: ZedConfChoice | None = None
-    # the ZED pair's self-rectification (gtforge.selfcal): when applied, every later stage rectifies with its correction
+    # the ZED pair's self-rectification (gtforge.core.selfcal): when applied, every later stage rectifies with its correction
     zed_self_rectification: ZedSelfRectification | None = None
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
@@ -209,10 +209,10 @@ class CalibrationFile(VersionedFile):
     _coverage_inputs: dict = PrivateAttr(default_factory=dict)
 
     def attach_coverage(self) -> "CalibrationFile":
-        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.coverage) from
+        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage) from
         the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
         (a few tenths of a second)."""
-        from gtforge.coverage import coverage_report
+        from gtforge.core.coverage import coverage_report
 
         if self._coverage_inputs:
             self.coverage = coverage_report(**self._coverage_inputs)
@@ -443,7 +443,7 @@ def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec, ids: np.
     """Median distance between neighbouring corners of one pose (mm); with ``ids`` (ChArUco, circle grids) the
     neighbours' distances scaled to the declared spacing (asymmetric grids' nearest neighbours are sqrt(2) apart)."""
     if ids is not None:
-        from gtforge.targets import neighbour_pairs
+        from gtforge.core.targets import neighbour_pairs
 
         a, b = neighbour_pairs(board, ids)
         Xb = board.corners_board()[ids]
@@ -460,7 +460,7 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
                 mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
                 blur_px: float) -> tuple[PoseObs | None, PoseReport]:
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-        from gtforge.targets import detect_pose_target
+        from gtforge.core.targets import detect_pose_target
 
         return detect_pose_target(name, texture, depth_mm, zed_left, mech, zed, board, blur_px)
     dm = detect_corners(texture, board)
@@ -646,7 +646,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
         verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
         residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
         time_s=time.perf_counter() - t0)
-    # what gtforge.coverage needs (calibrate() attaches the coverage report; other callers may: attach_coverage)
+    # what gtforge.core.coverage needs (calibrate() attaches the coverage report; other callers may: attach_coverage)
     result._coverage_inputs = dict(used=used, T_mech_from_board=ref.T_mech_from_board, T_zed_from_mech=ref.T_zed_from_mech,
                                    mech=mech, zed_cam=zed.left, board=board,
                                    cov=cov if np.all(np.isfinite(cov)) else None,
@@ -692,7 +692,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     (an existing folder, or a path ending in ``/``, gets ``calibration.yaml`` inside it)."""
     from gtforge.io.captures import open_session
 
-    from gtforge.targets import check_board_model
+    from gtforge.core.targets import check_board_model
 
     params = params or CalibrateParams()
     session = open_session(session_dir)
@@ -703,7 +703,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         out_path = calibration_output_path(out_path)
         session.refuse_output_inside_captures(out_path)
     dirs = session.select("board", captures, exclude)
-    from gtforge.rectification import RectificationMeter, rectified_by, settle_zed_conf_reading
+    from gtforge.core.rectification import RectificationMeter, rectified_by, settle_zed_conf_reading
 
     checker = params.board.kind == "checkerboard"
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it);

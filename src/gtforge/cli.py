@@ -201,7 +201,7 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     if res.square_size_measured_mm is not None:
         out.print(f"board {'circle spacing' if res.board.kind.startswith('circles') else 'squares'} measured in the "
                   f"depth: {res.square_size_measured_mm:.2f} mm (declared {res.board.square_size_mm:g} mm)")
-    from gtforge.rectification import summary_lines
+    from gtforge.core.rectification import summary_lines
 
     if res.zed_self_rectification is not None:
         out.print(res.zed_self_rectification.summary_line())
@@ -250,7 +250,7 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                                                   help="Leave scenes that verification flags out of the split lists "
                                                        "(they stay in scenes/).")) -> None:
     """Build disparity ground truth for SESSION/scenes/ into OUTPUT (docs/dataset-format.md)."""
-    from gtforge.scheduling import prestart_pool
+    from gtforge.infra.scheduling import prestart_pool
 
     prestart_pool("gtforge.build_dataset", workers, scheduler)  # the workers' imports overlap this process's own
     from gtforge.build_dataset import BuildParams, build_dataset as run
@@ -292,7 +292,7 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
                                                                             "default 0.1).")) -> None:
     """Check an existing dataset's ground truth against its captures (verification.json/.html); exit 1 if any
     scene is flagged or could not be verified."""
-    from gtforge.scheduling import prestart_pool
+    from gtforge.infra.scheduling import prestart_pool
 
     prestart_pool("gtforge.build_dataset", workers, scheduler)  # (verify_one_scene) the workers' imports overlap ours
     from gtforge.build_dataset import Manifest
@@ -403,7 +403,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
     """XY reprojection (px) and Z geometric (%) accuracy, and the gauge objects' VDI/VDE 2634-2 figures when the
     session has gauges/gauges.yaml; exit code 1 on FAIL."""
     from gtforge.calibrate import BoardModel
-    from gtforge.gauges import summary_lines as gauge_lines, validate_gauges
+    from gtforge.core.gauges import summary_lines as gauge_lines, validate_gauges
     from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams, validate as run
 
     if gauges_only:
@@ -435,7 +435,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
               f"{rep.xy_model_mean_px:.3f} px")
     out.print(f"Z geometric: mean {rep.z_error_mean_pct:.4f} % (max {rep.z_error_max_pct:.4f}); published "
               f"{REFERENCE_Z_PCT} %; threshold {z_threshold_pct} -> {'PASS' if rep.pass_z else 'FAIL'}")
-    from gtforge.rectification import summary_lines
+    from gtforge.core.rectification import summary_lines
 
     for line in summary_lines(rep.rectification):
         out.print(line)
@@ -511,7 +511,7 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
         pred = PredictionFolder(predictions, name)
     else:
         pred = SGBM(name=name or "SGBM")
-    from gtforge.fruit_size import parse_grades
+    from gtforge.core.fruit_size import parse_grades
 
     bins = parse_grades(grades) if grades is not None else None
     rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma,

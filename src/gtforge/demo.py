@@ -10,7 +10,7 @@ import numpy as np
 from gtforge.build_dataset import BuildParams, Manifest, build_dataset
 from gtforge.calibrate import CalibrateParams, calibrate
 from gtforge.evaluate import evaluate
-from gtforge.geometry import pose_difference
+from gtforge.core.geometry import pose_difference
 from gtforge.io.formats import read_pfm
 from gtforge.predictors import SGBM
 from gtforge.refine import RefineParams, refine

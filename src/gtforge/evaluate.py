@@ -17,7 +17,7 @@ from pydantic import Field
 from gtforge.errors import InputError
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.outputs import require_output_folder
-from gtforge.metrics import (
+from gtforge.core.metrics import (
     Accumulator,
     Metrics,
     mean_of,
@@ -25,8 +25,8 @@ from gtforge.metrics import (
     region_errors,
 )
 from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
-from gtforge.fruit_size import FruitSizeReport, GradeBins, measure_scene, scene_truth, summarise
-from gtforge.schema import VersionedFile
+from gtforge.core.fruit_size import FruitSizeReport, GradeBins, measure_scene, scene_truth, summarise
+from gtforge.core.schema import VersionedFile
 
 log = logging.getLogger("gtforge.evaluate")
 
@@ -96,7 +96,7 @@ class EvalReport(VersionedFile):
     pooled: dict[str, Metrics]
     per_image_mean: dict[str, Metrics]
     per_scene: list[SceneResult]
-    # per-fruit size, volume and grade (gtforge.fruit_size); absent in results written before it existed
+    # per-fruit size, volume and grade (gtforge.core.fruit_size); absent in results written before it existed
     fruit_size: "FruitSizeReport | None" = None
 
 
@@ -182,7 +182,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
     any scoring and listed in ``EvalReport.missing``. ``fruit_size``: also measure every fruit's diameter, height
-    and volume from the GT and the prediction (``gtforge.fruit_size``; ``grades``: bins for the grade confusion)."""
+    and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade confusion)."""
     ds = Path(dataset_dir)
     if not (ds / "manifest.json").is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
@@ -252,7 +252,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             res[r] = metrics_from_errors(*re_)
             pooled[r].add(*re_)
         scene = SceneResult(scene=sid, time_ms=ms, metrics=res)
-        if fruit_size:  # per-fruit diameter, height, volume and grade (gtforge.fruit_size)
+        if fruit_size:  # per-fruit diameter, height, volume and grade (gtforge.core.fruit_size)
             t0 = time.perf_counter()
             fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
             fruit_ms.append((time.perf_counter() - t0) * 1000.0)
@@ -293,7 +293,7 @@ def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray,
                       max_gt_sigma_px: float | None, max_disp_px: float | None, write_clouds: bool) -> None:
     """``heatmaps/<id>_{disp,depth}_error.png`` (full size, colour bar below) + small previews for results.html,
     and with ``write_clouds`` the fruit points coloured by depth error. Only scored pixels are coloured."""
-    from gtforge.io.atomic import atomic_write_bytes
+    from gtforge.infra.atomic import atomic_write_bytes
     from gtforge.reports.evaluation import error_map_images, preview_jpeg
 
     scored = masks["all"] & np.isfinite(gt)

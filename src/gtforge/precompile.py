@@ -24,12 +24,12 @@ def compile_kernels(scale: float = 0.25) -> float:
     that numba compiles and caches each kernel the build runs. Returns the seconds it took."""
     import numba
 
-    import gtforge.pool_preload  # noqa: F401  (its kernel: what a local pool's fork server loads)
+    import gtforge.infra.pool_preload  # noqa: F401  (its kernel: what a local pool's fork server loads)
     from gtforge.build_dataset import build_dataset
     from gtforge.calibrate import CalibrationFile
-    from gtforge.camera import Rig
+    from gtforge.core.camera import Rig
     from gtforge.io.captures import open_session
-    from gtforge.scheduling import cpu_count, limit_threads
+    from gtforge.infra.scheduling import cpu_count, limit_threads
     from gtforge.synthetic import SyntheticTruth, generate_session
 
     t0 = time.perf_counter()

@@ -29,11 +29,11 @@ from pydantic import Field
 from gtforge.build_dataset import BuildParams, build_scene_arrays
 from gtforge.calibrate import (CalibrationFile, RefinementInfo, SceneRefinement, jackknife_scale,
                                open_calibrated_session)
-from gtforge.camera import Rig
+from gtforge.core.camera import Rig
 from gtforge.errors import InputError
-from gtforge.geometry import pose_difference, transform_points
+from gtforge.core.geometry import pose_difference, transform_points
 from gtforge.io.formats import to_gray
-from gtforge.schema import GTModel
+from gtforge.core.schema import GTModel
 from gtforge.verify import (VerifyParams, sample_cubic, interior_mask, textured_mask, local_normalize,
                             render_texture, smooth_depth_mask, verify_scene)
 

@@ -41,11 +41,11 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from gtforge.camera import Rig, ScaleCorrections
+from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.errors import InputError
-from gtforge.geometry import invert_T, transform_points
+from gtforge.core.geometry import invert_T, transform_points
 from gtforge.io.formats import to_gray
-from gtforge.schema import GTModel
+from gtforge.core.schema import GTModel
 from gtforge.verify import (VerifyParams, even_subset, interior_mask, local_normalize, smooth_depth_mask,
                             textured_mask, verify_scene)
 
@@ -390,7 +390,7 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
 def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
                        progress: Callable[[str], None] | None = None) -> list[BoardMeasurement]:
     """Detect the board in every board capture (texture, ZED left and right images) and measure from them."""
-    from gtforge.board import detect_corners
+    from gtforge.core.board import detect_corners
     from gtforge.calibrate import solve_pnp
 
     X = board.corners_board()

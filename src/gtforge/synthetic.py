@@ -17,10 +17,10 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from gtforge.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
-from gtforge.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
+from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
 from gtforge.io.formats import write_image, write_tiff_float
-from gtforge.schema import VersionedFile
+from gtforge.core.schema import VersionedFile
 
 OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
 
@@ -220,7 +220,7 @@ class SyntheticRig:
     depth_cam: PinholeCamera | None = None
     T_mech_from_depth: np.ndarray | None = None
     # the real right ZED camera turned about its own centre against the rectified model the files describe (a factory
-    # rectification's residual, corrected by gtforge.selfcal): rotation vector (rad) of the image-only error
+    # rectification's residual, corrected by gtforge.core.selfcal): rotation vector (rad) of the image-only error
     zed_right_rotation_error_rad: np.ndarray | None = None
     # errors in the files the pipeline trusts (issue #25, scale terms): ``zed`` is the true geometry the images are
     # rendered with, ``zed_file`` what zed_calibration.yaml says (None: the same); the right camera is turned by
@@ -416,7 +416,7 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     left = finish_image(render_image(zed_scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px,
                         image_noise)
     # the right image from the real right camera, turned against the rectified model the files describe (a yaw:
-    # gtforge.scale_calibration; a residual rotation: gtforge.selfcal); its truth below stays the ideal rectified one
+    # gtforge.scale_calibration; a residual rotation: gtforge.core.selfcal); its truth below stays the ideal rectified one
     T_zedr_image_from_world = rig.T_zedr_actual_from_zedr @ T_zedr_from_world
     if rig.zed_right_rotation_error_rad is not None:
         R_err = cv2.Rodrigues(np.asarray(rig.zed_right_rotation_error_rad, np.float64).reshape(3, 1))[0]
@@ -615,9 +615,9 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     ``two_camera``: the structured-light unit has a separate depth camera (``two_camera_rig``); the session names it
     (``depth_intrinsics``, ``T_mech_from_depth``). ``fruit_motion_mm``: scene index -> the fruit's displacement
     (world mm) between the structured-light capture and the ZED capture (truth follows the ZED).
-    ``board``: any target of ``gtforge.targets`` (ChArUco, circle grids; session.yaml then declares it);
+    ``board``: any target of ``gtforge.core.targets`` (ChArUco, circle grids; session.yaml then declares it);
     ``partial_poses``: that many more board captures cut by ``partial_camera``'s image border, near its corners in
-    turn (``gtforge.targets.random_partial_board_pose``).
+    turn (``gtforge.core.targets.random_partial_board_pose``).
 
     Errors in the files the pipeline trusts (issue #25; all 0: the files are exact): ``zed_baseline_error_frac`` the
     ZED's true baseline is ``(1 + it)`` times what zed_calibration.yaml says; ``right_yaw_deg`` the right camera is
@@ -655,7 +655,7 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         if progress:
             progress(f"board {cap.name}")
     if partial_poses:
-        from gtforge.targets import random_partial_board_pose
+        from gtforge.core.targets import random_partial_board_pose
         for k in range(partial_poses):
             T = random_partial_board_pose(rng, rig, board, k % 4, partial_camera)
             cap = board_capture(f"{n_board + k:03d}", rig, board, T, rng, seed + n_board + k, **kw)
@@ -672,8 +672,8 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
             progress(f"scene {cap.name}")
     from gtforge.io.captures import SessionFile
     extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
-    if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.targets)
-        from gtforge.targets import board_model_of
+    if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets)
+        from gtforge.core.targets import board_model_of
         extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
@@ -926,7 +926,7 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
     calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
     depth scale error). ``names``: only these of ``sphere``, ``sphere_pair``, ``plane``. ``truth/gauge_<name>.npz``: the
     exact centres (ZED-left frame) or plane, and ZED-left truth."""
-    from gtforge.gauges import GaugeSpec, GaugesFile
+    from gtforge.core.gauges import GaugeSpec, GaugesFile
 
     root = Path(session_dir)
     rig = two_camera_rig(scale) if two_camera else default_rig(scale)

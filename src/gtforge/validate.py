@@ -17,15 +17,15 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from gtforge.board import check_board_spec, detect_corners
+from gtforge.core.board import check_board_spec, detect_corners
 from gtforge.calibrate import BoardModel, CalibrateParams, CalibrationFile, calibrate, solve_pnp
-from gtforge.camera import PinholeCamera, Rig
+from gtforge.core.camera import PinholeCamera, Rig
 from gtforge.errors import InputError
-from gtforge.gauges import GaugeReport
-from gtforge.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
-from gtforge.rectification import RectificationMeter, RectificationQuality, rectified_by
-from gtforge.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.schema import GTModel, VersionedFile
+from gtforge.core.gauges import GaugeReport
+from gtforge.core.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
+from gtforge.core.rectification import RectificationMeter, RectificationQuality, rectified_by
+from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.synthetic import BoardSpec
 
 log = logging.getLogger("gtforge.validate")
@@ -91,9 +91,9 @@ class ValidationReport(VersionedFile):
     skipped: dict[str, str] = Field(default_factory=dict)
     poses: list[PoseValidation]
     corner_errors: list[list[float]] = Field(default_factory=list)  # (u_zed, v_zed, du, dv) per corner
-    # vertical disparity of the board corners in both rectified ZED images (gtforge.rectification)
+    # vertical disparity of the board corners in both rectified ZED images (gtforge.core.rectification)
     rectification: RectificationQuality | None = None
-    # VDI/VDE 2634-2 figures on the session's gauge objects (gtforge.gauges); absent: no gauges/gauges.yaml
+    # VDI/VDE 2634-2 figures on the session's gauge objects (gtforge.core.gauges); absent: no gauges/gauges.yaml
     gauges: GaugeReport | None = None
 
 
@@ -153,20 +153,20 @@ def bilinear_valid(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def _check_board(board_model) -> None:
-    """The declaration's own checks: the checkerboard's as before, the other targets' (gtforge.targets)."""
+    """The declaration's own checks: the checkerboard's as before, the other targets' (gtforge.core.targets)."""
     if board_model.kind == "checkerboard":
         check_board_spec(board_model.spec())
     else:
-        from gtforge.targets import check_board_model
+        from gtforge.core.targets import check_board_model
 
         check_board_model(board_model)
 
 
 def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: BoardSpec, params: ValidateParams,
                   used_for_calibration: bool) -> tuple[PoseValidation | None, np.ndarray | None, str | None]:
-    ids = None  # ChArUco / circle grids (gtforge.targets): the ids both cameras saw
+    ids = None  # ChArUco / circle grids (gtforge.core.targets): the ids both cameras saw
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-        from gtforge.targets import matched_points
+        from gtforge.core.targets import matched_points
 
         got = matched_points(name, texture, zed_left, rig.mech, rig.zed.left, board)
         if isinstance(got, str):
@@ -211,7 +211,7 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
         spacing_m = np.median(np.linalg.norm(np.diff(uv_mech_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
         spacing_z = np.median(np.linalg.norm(np.diff(uv_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
     else:
-        from gtforge.targets import neighbour_pairs
+        from gtforge.core.targets import neighbour_pairs
 
         a, b = neighbour_pairs(board, ids)
         spacing_m = np.median(np.linalg.norm(uv_mech_fit[a] - uv_mech_fit[b], axis=1))
@@ -264,7 +264,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
 
     ``holdout=K``: calibrate on all board captures but the last K and validate on those K; that calibration
     goes to ``out_dir/holdout_calibration.yaml`` (``calibration`` is neither needed nor touched). ``gauges``: also
-    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.gauges``; written to
+    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.gauges``; written to
     ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
     from gtforge.io.captures import open_session
 
@@ -347,7 +347,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         xy_model_mean_px=float(np.average([p.xy_model_mean_px for p in poses], weights=[p.n_corners for p in poses])),
         board=board_model, warnings=warnings, skipped=skipped, poses=poses, corner_errors=allv.tolist(),
         rectification=rect)
-    from gtforge.gauges import GAUGES_DIR, GAUGES_FILE, validate_gauges
+    from gtforge.core.gauges import GAUGES_DIR, GAUGES_FILE, validate_gauges
 
     if gauges and (session.root / GAUGES_DIR / GAUGES_FILE).is_file():
         rep.gauges = validate_gauges(session_dir, calib_path, out_dir, progress=progress)

@@ -13,7 +13,7 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
 * **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
   Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
   (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
-  ``gtforge.rectification`` reports it for board corners), per region. A textured pixel's match is "clearly worse" when the
+  ``gtforge.core.rectification`` reports it for board corners), per region. A textured pixel's match is "clearly worse" when the
   5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps of 0.5 px) by
   more than ``bad_match_ratio``; their share is reported.
 
@@ -32,13 +32,13 @@ import numba
 import numpy as np
 from pydantic import Field
 
-from gtforge import lens
-from gtforge.camera import Rig
+from gtforge.core import lens
+from gtforge.core.camera import Rig
 from gtforge.errors import InputError
-from gtforge.geometry import finite_box, mask_bounding_box, transform_points
+from gtforge.core.geometry import finite_box, mask_bounding_box, transform_points
 from gtforge.io.formats import to_gray
-from gtforge.rectification import VERTICAL_WARN_PX
-from gtforge.schema import GTModel, VersionedFile
+from gtforge.core.rectification import VERTICAL_WARN_PX
+from gtforge.core.schema import GTModel, VersionedFile
 
 log = logging.getLogger("gtforge.verify")
 
@@ -506,7 +506,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         if max(abs(b), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
             continue
-        # vertical disparity v_left - v_right, as gtforge.rectification reports it for board corners
+        # vertical disparity v_left - v_right, as gtforge.core.rectification reports it for board corners
         out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
                                    bad_match_pct=float(100.0 * wr.mean()), n_pixels=n)
     return out
@@ -697,7 +697,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
     flagged scenes out of the split lists)."""
     from gtforge.build_dataset import Manifest, final_splits, verify_one_scene, write_lists, write_split_views
-    from gtforge.scheduling import prestart_pool, run_tasks
+    from gtforge.infra.scheduling import prestart_pool, run_tasks
 
     prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
     ds = Path(dataset_dir)

@@ -3,7 +3,7 @@ and the ZED factory calibration ``SN<serial>.conf`` (with rectification, no ZED 
 
 ZED SN.conf (docs/conventions.md, "ZED SN.conf"): the published code reads the STEREO section in
 incompatible ways; each reading is named in ``ZED_CONF_READINGS`` and ``ZedFactoryCalibration.extrinsics``
-applies one. ``gtforge calibrate`` chooses it from the board images (``gtforge.rectification``); the
+applies one. ``gtforge calibrate`` chooses it from the board images (``gtforge.core.rectification``); the
 rectified right camera always sits at ``+baseline_mm`` along the left camera's x axis.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import yaml
 
-from gtforge.camera import ZED_EYE_WIDTHS, CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.core.camera import ZED_EYE_WIDTHS, CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.errors import InputError
 
 log = logging.getLogger("gtforge.io.cameras")
@@ -64,7 +64,7 @@ def _matrix(data: dict, keys: tuple[str, ...], shape: tuple[int, int], path: Pat
 
 def _distortion(data: dict, path: Path) -> np.ndarray:
     """Every OpenCV lens model: ROS plumb_bob (5) and rational_polynomial (8), OpenCV's 4/5/8/12/14 coefficients."""
-    from gtforge.camera import DIST_LENGTHS
+    from gtforge.core.camera import DIST_LENGTHS
 
     for k in ("distortion_coefficients", "D", "d"):
         if k in data:
@@ -303,7 +303,7 @@ class ZedRectification:
     P_right: np.ndarray
     reading: str = DEFAULT_ZED_CONF_READING
     factory: ZedFactoryCalibration | None = None
-    correction: object | None = None  # gtforge.selfcal.ZedRightCorrection folded into the right maps
+    correction: object | None = None  # gtforge.core.selfcal.ZedRightCorrection folded into the right maps
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
@@ -377,7 +377,7 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
 
 def write_zed_conf(path: str | Path, calib: dict[str, dict[str, float]]) -> Path:
     """Write an SN.conf-style INI (used by the synthetic generator and tests)."""
-    from gtforge.io.atomic import atomic_write_text
+    from gtforge.infra.atomic import atomic_write_text
 
     lines = []
     for sec, kv in calib.items():

@@ -14,13 +14,13 @@ import numpy as np
 import tifffile
 from pydantic import Field, field_validator
 
-from gtforge.camera import PinholeCamera, RectifiedStereo
+from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.errors import InputError
 from gtforge.io.cameras import ZedConfReading
-from gtforge.io.digest import blake3_hex
+from gtforge.infra.digest import blake3_hex
 from gtforge.io.formats import PNG_SIGNATURE, read_image
-from gtforge.schema import GTModel, VersionedFile, matrix4_field
-from gtforge.targets import BoardModel
+from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
+from gtforge.core.targets import BoardModel
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -187,7 +187,7 @@ class SessionFile(VersionedFile):
     scenes_dir: str = "scenes"
     files: FileNames = Field(default_factory=FileNames)
     fruit_ids: dict[str, str] = Field(default_factory=dict)
-    # the calibration target (gtforge.targets.BoardModel: kind, cols, rows, square_size_mm, ...); absent: the
+    # the calibration target (gtforge.core.targets.BoardModel: kind, cols, rows, square_size_mm, ...); absent: the
     # command line's (default: the 12x9 checkerboard)
     board: BoardModel | None = None
 
@@ -252,7 +252,7 @@ class Session:
     config: SessionFile
     mech: PinholeCamera  # the texture camera (2D image)
     zed: RectifiedStereo
-    # ZedRectification when raw images + SN.conf; gtforge.selfcal.RightImageCorrection for images rectified before
+    # ZedRectification when raw images + SN.conf; gtforge.core.selfcal.RightImageCorrection for images rectified before
     # gtforge with a self-rectification applied; None: the images are used as they are
     rectification: object | None
     depth_cam: PinholeCamera | None = None  # the depth map's camera when it is not the texture camera
@@ -463,7 +463,7 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
     ``zed_right_correction``: the right camera's correction a calibration file recorded
-    (``gtforge.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to the
+    (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to the
     right image of images rectified before gtforge."""
     from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, load_camera, load_zed_rectified, read_zed_conf
     from gtforge.io.vendors import load_structured_light_cameras
@@ -501,7 +501,7 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
     if zed_right_correction is not None:
-        from gtforge.selfcal import RightImageCorrection, corrected_rectification
+        from gtforge.core.selfcal import RightImageCorrection, corrected_rectification
 
         rectification = corrected_rectification(rectification, zed_right_correction) if rectification is not None \
             else RightImageCorrection(zed_right_correction, zed)

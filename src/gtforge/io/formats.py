@@ -31,8 +31,8 @@ import tifffile
 from zlib_ng import zlib_ng
 
 from gtforge.errors import InputError
-from gtforge.io.atomic import atomic_path, atomic_write_buffer, atomic_write_bytes
-from gtforge.io.unbuffered import aligned_buffer
+from gtforge.infra.atomic import atomic_path, atomic_write_buffer, atomic_write_bytes
+from gtforge.infra.unbuffered import aligned_buffer
 
 try:  # PNG inflate: ISA-L where its wheel exists (1.8x zlib-ng's speed here), else zlib-ng (the same results)
     from isal import isal_zlib as _png_inflate_lib

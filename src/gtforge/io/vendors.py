@@ -22,10 +22,10 @@ import numpy as np
 import yaml
 from pydantic import Field, field_validator
 
-from gtforge.camera import PinholeCamera
+from gtforge.core.camera import PinholeCamera
 from gtforge.errors import InputError
-from gtforge.geometry import invert_T, make_T
-from gtforge.schema import GTModel, VersionedFile
+from gtforge.core.geometry import invert_T, make_T
+from gtforge.core.schema import GTModel, VersionedFile
 
 
 class StructuredLightCameras(NamedTuple):

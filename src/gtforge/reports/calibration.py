@@ -230,7 +230,7 @@ def self_rectification_section(calib: CalibrationFile) -> Section | None:
 
 def coverage_section(calib: CalibrationFile) -> Section | None:
     """Where each camera's board points fell (all detected points of the used poses), the poses' distances and
-    tilts, and what to capture next (gtforge.coverage)."""
+    tilts, and what to capture next (gtforge.core.coverage)."""
     cov = getattr(calib, "coverage", None)
     if cov is None:
         return None
@@ -239,7 +239,7 @@ def coverage_section(calib: CalibrationFile) -> Section | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gtforge.coverage import GRID_COLS, GRID_ROWS
+    from gtforge.core.coverage import GRID_COLS, GRID_ROWS
 
     fig, axes = plt.subplots(1, len(cov.cameras), figsize=(5.5 * len(cov.cameras), 4.0), squeeze=False)
     for ax, c in zip(axes.ravel(), cov.cameras):
@@ -282,7 +282,7 @@ def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,
                              sections: list[SectionBuilder] | None = None) -> Path:
     """``calibration_report.json`` (the calibration + per-corner residuals) and a self-contained
     ``calibration_report.html`` built from ``sections`` (default ``SECTIONS``)."""
-    from gtforge.io.atomic import atomic_write_text
+    from gtforge.infra.atomic import atomic_write_text
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -15,8 +15,8 @@ from typing import Callable
 import numpy as np
 
 from gtforge.evaluate import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalReport
-from gtforge.io.atomic import atomic_write_text
-from gtforge.metrics import Metrics
+from gtforge.infra.atomic import atomic_write_text
+from gtforge.core.metrics import Metrics
 from gtforge.reports.html import Section, note, table, write_html
 
 ERROR_CMAP = "turbo"

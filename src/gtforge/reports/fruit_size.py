@@ -1,4 +1,4 @@
-"""Fruit size, volume and grade in ``results.md``/``results.html``/``comparison.*`` (``gtforge.fruit_size``)."""
+"""Fruit size, volume and grade in ``results.md``/``results.html``/``comparison.*`` (``gtforge.core.fruit_size``)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -7,7 +7,7 @@ from gtforge.reports.html import Section, note, table
 
 if TYPE_CHECKING:
     from gtforge.evaluate import EvalReport
-    from gtforge.fruit_size import FruitSizeReport, GradeAgreement
+    from gtforge.core.fruit_size import FruitSizeReport, GradeAgreement
 
 FRUIT_NOTE = ("Per fruit (connected fruit components of region.png): an ellipsoid resting on the table (one axis "
               "along the table's normal, lowest point on the table; the table fitted to the same source's background "
@@ -152,7 +152,7 @@ def write_fruit_csv(rep: "EvalReport", path) -> None:
     import csv
     import io
 
-    from gtforge.io.atomic import atomic_write_text
+    from gtforge.infra.atomic import atomic_write_text
 
     buf = io.StringIO()
     w = csv.writer(buf)

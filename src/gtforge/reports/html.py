@@ -16,7 +16,7 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
-from gtforge.io.atomic import atomic_write_text
+from gtforge.infra.atomic import atomic_write_text
 
 MISSING = "\u2013"  # what an empty cell shows (None, NaN)
 

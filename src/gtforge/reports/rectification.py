@@ -6,9 +6,9 @@ import html
 
 import numpy as np
 
-from gtforge.rectification import COLS, ROWS, RectificationQuality, ZedConfChoice
+from gtforge.core.rectification import COLS, ROWS, RectificationQuality, ZedConfChoice
 from gtforge.reports.html import Section, fig_to_img_tag, note, table
-from gtforge.selfcal import ZedSelfRectification
+from gtforge.core.selfcal import ZedSelfRectification
 
 
 def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice | None,

@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.camera import PinholeCamera
+from gtforge.core.camera import PinholeCamera
 from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, verdict_badge, write_html
 from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationReport
 

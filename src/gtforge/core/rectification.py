@@ -14,7 +14,7 @@ detected in both images. Two figures per set of corners:
 an SN.conf, the board corners are detected once per raw image; each candidate reading is evaluated by
 mapping those raw corners through its rectification (lens model inverted, ``R1``/``R2`` applied,
 projected with ``P1``/``P2``: the same mapping ``cv2.undistortPoints(R=, P=)`` performs, with the
-inverse solved to 1e-9 px by ``gtforge.lens``) and the reading with the smallest vertical disparity is
+inverse solved to 1e-9 px by ``gtforge.core.lens``) and the reading with the smallest vertical disparity is
 kept. A reading whose rectified right camera sits at ``-x`` contradicts the images (their disparities
 are positive) and is not eligible.
 
@@ -34,8 +34,8 @@ import cv2
 import numpy as np
 from pydantic import Field, PrivateAttr
 
-from gtforge.board import detect_corners
-from gtforge.camera import PinholeCamera
+from gtforge.core.board import detect_corners
+from gtforge.core.camera import PinholeCamera
 from gtforge.errors import InputError
 from gtforge.io.cameras import (
     ZED_CONF_READINGS,
@@ -44,13 +44,13 @@ from gtforge.io.cameras import (
     describe_zed_conf_reading,
 )
 from gtforge.io.formats import to_gray
-from gtforge.schema import GTModel
+from gtforge.core.schema import GTModel
 from gtforge.synthetic import BoardSpec
 
 if TYPE_CHECKING:
     from gtforge.io.captures import Session
 
-log = logging.getLogger("gtforge.rectification")
+log = logging.getLogger("gtforge.core.rectification")
 
 VERTICAL_WARN_PX = 0.15  # mean |vertical disparity| (homography-fitted) above this: the rectification is suspect
 TIE_PX = 0.02  # two readings whose rectified corners differ by less than this are the same rectification

@@ -5,7 +5,7 @@ texture + depth, ZED pair) and ``gauges/gauges.yaml`` naming each object's calib
 For each gauge the ground truth is built exactly as ``build-dataset`` builds a scene (``reproject_to_zed`` with the
 calibration's rig), turned back into 3-D points in the ZED-left frame from the disparity the dataset ships
 (``Z = f*B/(d + doffs)``), the object segmented (components above the RANSAC table plane, eroded), and fitted by
-least squares (``gtforge.shapefit``). The raw structured-light depth, mapped into the same frame, is fitted too
+least squares (``gtforge.core.shapefit``). The raw structured-light depth, mapped into the same frame, is fitted too
 for comparison. Figures (docs/metrics.md, "Gauge objects"):
 
 * sphere: size error ``PS = D_fit - D_cal`` (mm), form error ``PF`` = range of the radial residuals (mm) and their RMS;
@@ -13,7 +13,7 @@ for comparison. Figures (docs/metrics.md, "Gauge objects"):
 * plane: flatness ``F`` = range of the signed distances to the fitted plane (mm) and their RMS.
 
 Each with the number of points used, and the form figures predicted from the per-pixel sigma map
-(``gtforge.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and changes
+(``gtforge.core.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and changes
 no form or size figure).
 """
 from __future__ import annotations
@@ -28,12 +28,12 @@ from pydantic import Field, model_validator
 from scipy.stats import norm
 
 from gtforge.errors import InputError
-from gtforge.geometry import fit_plane_robust, transform_points
-from gtforge.schema import GTModel, VersionedFile
-from gtforge.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere, fit_sphere_ransac
-from gtforge.uncertainty import DepthNoiseModel
+from gtforge.core.geometry import fit_plane_robust, transform_points
+from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.core.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere, fit_sphere_ransac
+from gtforge.core.uncertainty import DepthNoiseModel
 
-log = logging.getLogger("gtforge.gauges")
+log = logging.getLogger("gtforge.core.gauges")
 
 GAUGES_DIR = "gauges"
 GAUGES_FILE = "gauges.yaml"
@@ -366,7 +366,7 @@ def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParam
     """One gauge capture: its ground truth built as build-dataset builds a scene, fitted; the raw depth fitted too.
     Returns the result and the arrays the report draws (``residual_gt_mm``: (H, W) map on the ZED-left image)."""
     from gtforge.build_dataset import BuildParams, build_scene_arrays
-    from gtforge.uncertainty import UncertaintyParams, disparity_sigma
+    from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
 
     bp = BuildParams(fruit_height_mm=params.min_height_mm, min_component_frac=0.2)
     sd, _, fg = build_scene_arrays(depth_mm, rig, bp)

@@ -41,14 +41,14 @@ import numpy as np
 from pydantic import Field
 from scipy.optimize import least_squares
 
-from gtforge.camera import RectifiedStereo
-from gtforge.rectification import match_points
-from gtforge.schema import GTModel
+from gtforge.core.camera import RectifiedStereo
+from gtforge.core.rectification import match_points
+from gtforge.core.schema import GTModel
 
 if TYPE_CHECKING:
     from gtforge.io.captures import Session
 
-log = logging.getLogger("gtforge.selfcal")
+log = logging.getLogger("gtforge.core.selfcal")
 
 
 class SelfRectifyParams(GTModel):
@@ -254,7 +254,7 @@ def self_rectify(session: Session, dirs: Sequence[Path], params: SelfRectifyPara
                  progress: Callable[[str], None] | None = None) -> ZedSelfRectification:
     """Match left and right in every capture of ``dirs`` (boards and scenes alike) as ``session`` rectifies them, fit
     the right camera's correction and decide whether it is applied (module docstring)."""
-    from gtforge.rectification import rectified_by
+    from gtforge.core.rectification import rectified_by
 
     params = params or SelfRectifyParams()
     matches, skipped = collect_matches(session, dirs, params.max_features, progress)

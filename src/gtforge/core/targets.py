@@ -22,13 +22,13 @@ import cv2
 import numpy as np
 from pydantic import model_serializer
 
-from gtforge.board import Detection
+from gtforge.core.board import Detection
 from gtforge.errors import InputError
 from gtforge.io.formats import to_gray
-from gtforge.schema import GTModel
+from gtforge.core.schema import GTModel
 from gtforge.synthetic import BoardSpec, GridCounts
 
-log = logging.getLogger("gtforge.targets")
+log = logging.getLogger("gtforge.core.targets")
 
 BoardKind = Literal["checkerboard", "charuco", "circles_symmetric", "circles_asymmetric"]
 # dictionaries tried when the declared one finds no markers (the error then names what the board carries)
@@ -103,7 +103,7 @@ def _dictionary(name: str):
 
 def check_board_model(board: BoardModel, where: str = "board") -> None:
     """Refuse a declaration no detector can honour (one line, naming the field)."""
-    from gtforge.board import check_board_spec
+    from gtforge.core.board import check_board_spec
 
     if board.kind == "checkerboard":
         check_board_spec(board.spec(), where)
@@ -446,7 +446,7 @@ def _size_for(n_markers: int) -> str:
 
 
 def _subpix_window(corners_uv: np.ndarray, ids: np.ndarray, spec) -> int:
-    """cornerSubPix half-window from the local square size in pixels (as gtforge.board: 0.3 of a square, 2-15)."""
+    """cornerSubPix half-window from the local square size in pixels (as gtforge.core.board: 0.3 of a square, 2-15)."""
     a, b = neighbour_pairs(spec, ids)
     if len(a) == 0:
         return 5
@@ -738,7 +738,7 @@ def circle_centre_bias(spec: CircleGridSpec, T_cam_from_board: np.ndarray, cam, 
     projects. A circle seen obliquely projects to an ellipse whose centre is not the centre's image (it is pushed
     away from the vanishing line; up to tenths of a pixel for large circles at 30-45 degrees). Computed from the
     projected outline (lens distortion included): the area centroid of the projected polygon."""
-    from gtforge.geometry import transform_points
+    from gtforge.core.geometry import transform_points
 
     X = spec.corners_board()
     r = spec.diameter_mm / 2
@@ -758,7 +758,7 @@ def circle_centre_bias(spec: CircleGridSpec, T_cam_from_board: np.ndarray, cam, 
 
 def detect_target(image: np.ndarray, spec, cam=None, where: str = "board") -> Detection | None:
     """Any target's points with ids (indices into ``spec.corners_board()``)."""
-    from gtforge.board import detect_corners
+    from gtforge.core.board import detect_corners
 
     if isinstance(spec, CharucoSpec):
         return detect_charuco(image, spec, cam, where)
@@ -854,7 +854,7 @@ def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
     """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
     circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
     reason the pose cannot be used."""
-    from gtforge.camera import RectifiedStereo
+    from gtforge.core.camera import RectifiedStereo
 
     zed = RectifiedStereo(left=zed_cam, baseline_mm=1.0)
     o, rep = detect_pose_target(name, texture, None, zed_left, mech, zed, spec, float("inf"), min_common)
@@ -872,7 +872,7 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
     ``corner`` (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left): some of its points outside that image, at
     least ``min_common`` inside both the texture and the ZED-left image (3 px from the border), the board above the
     table and seen at most 60 degrees off-axis. These are the poses a full-board rule loses."""
-    from gtforge.geometry import invert_T, make_T, transform_points
+    from gtforge.core.geometry import invert_T, make_T, transform_points
 
     cam, T_cam_from_world = (rig.mech, rig.T_mech_from_world) if camera == "mech" else (rig.zed.left, rig.T_zed_from_world)
     X = board.corners_board()
@@ -934,7 +934,7 @@ def _render_cropped(scene, cam, T_cam_from_world: np.ndarray, T_world_from_board
                     supersample: int, background: float = 0.3) -> np.ndarray:
     """Linear RGB of ``scene`` rendered only inside the board's bounding box (a camera with the same lens and a
     shifted principal point sees exactly the same rays there); elsewhere a flat ``background``."""
-    from gtforge.geometry import transform_points
+    from gtforge.core.geometry import transform_points
     from gtforge.synthetic import render_image
 
     ex = board.extent_mm()
@@ -964,7 +964,7 @@ def render_board_views(name: str, rig, board, T_world_from_board: np.ndarray, rn
     rectified ZED-left image of one board pose, rendered inside the board's bounding box only (the table around it
     is flat grey): ``gtforge.synthetic.board_capture`` without the right image and the stereo truth, several
     times faster, for tests that only calibrate."""
-    from gtforge.geometry import transform_points
+    from gtforge.core.geometry import transform_points
     from gtforge.synthetic import OBJ_BOARD, PlaneObject, Scene, _table, finish_image, raycast_depth
 
     scene = Scene([_table(seed), PlaneObject(OBJ_BOARD, T_world_from_board, board.albedo, board.extent_mm())])

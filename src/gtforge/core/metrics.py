@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gtforge.schema import GTModel
+from gtforge.core.schema import GTModel
 
 BAD_THRESHOLDS_PX = (0.5, 1.0, 2.0, 4.0)
 QUANTILES = (50, 90, 95, 99)

@@ -12,9 +12,9 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from gtforge import lens
-from gtforge.geometry import invert_T
-from gtforge.schema import GTModel, VersionedFile, matrix4_field
+from gtforge.core import lens
+from gtforge.core.geometry import invert_T
+from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
 
 ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
 
@@ -105,7 +105,7 @@ class PinholeCamera(GTModel):
 
     # ---- projection ------------------------------------------------------------------------
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        """Apply the lens model to normalised coordinates ``(N, 2)`` (``gtforge.lens.distort``)."""
+        """Apply the lens model to normalised coordinates ``(N, 2)`` (``gtforge.core.lens.distort``)."""
         return lens.distort(xy, self.dist_coeffs)
 
     def project(self, pts_cam: np.ndarray) -> np.ndarray:

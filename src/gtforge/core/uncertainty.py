@@ -29,9 +29,9 @@ import numba
 import numpy as np
 from pydantic import Field
 
-from gtforge.camera import Rig
-from gtforge.geometry import finite_box
-from gtforge.schema import GTModel
+from gtforge.core.camera import Rig
+from gtforge.core.geometry import finite_box
+from gtforge.core.schema import GTModel
 
 
 class DepthNoiseModel(GTModel):
@@ -307,7 +307,7 @@ def draw_ground_truth(depth_mech_mm: np.ndarray, rig: Rig, cov_extrinsic_rad_mm,
     depth map by Gaussian noise; the ground truth built from them (mesh) and its sigma map. ``(disparity, sigma)``
     ZED-left arrays, for checking coverage against exact truth (tests, benchmarks)."""
     from gtforge.calibrate import _perturbed
-    from gtforge.reproject import ReprojectParams, project_depth_to_camera
+    from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 
     C = np.asarray(cov_extrinsic_rad_mm, np.float64)
     drawn = rig.with_extrinsic(_perturbed(rig.T, np.linalg.cholesky(C) @ rng.standard_normal(6)))

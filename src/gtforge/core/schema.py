@@ -10,7 +10,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from gtforge.errors import InputError
-from gtforge.io.atomic import atomic_write_text
+from gtforge.infra.atomic import atomic_write_text
 
 M = TypeVar("M", bound="GTModel")
 

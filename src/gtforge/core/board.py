@@ -22,7 +22,7 @@ class Detection:
     sharpness_px: float  # mean edge width (OpenCV estimateChessboardSharpness); larger = blurrier
     method: str  # "sb" or "classic"
     pattern_contrast: float  # mean |intensity difference| between dark and white squares
-    ids: np.ndarray | None = None  # indices into the board's corners_board() (gtforge.targets); None: all, in order
+    ids: np.ndarray | None = None  # indices into the board's corners_board() (gtforge.core.targets); None: all, in order
 
 
 def check_board_spec(board: BoardSpec, where: str = "board") -> None:

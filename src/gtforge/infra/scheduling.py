@@ -4,7 +4,7 @@ Every task is an independent call ``fn(*args)`` that writes its own outputs atom
 small picklable result; the caller's ``on_result`` runs in this process, in completion order.
 
 Local workers are forked from one fork server (``multiprocessing``'s ``forkserver``, where the platform has it; else
-each is spawned): it imports the task's module, the main script and ``gtforge.pool_preload`` once, instead of each
+each is spawned): it imports the task's module, the main script and ``gtforge.infra.pool_preload`` once, instead of each
 worker importing them (a 4-scene build with 2 workers: 1.6-1.7 instead of 2.1-2.4 s; benchmarks/RESULTS.md).
 ``prestart_pool`` starts it before the caller's own set-up, so that its imports overlap that.
 
@@ -274,7 +274,7 @@ def prestart_pool(module: str, workers: int | None = None, scheduler: str | None
 
 def _pool_context(module: str, n_threads: int):
     """The ``multiprocessing`` context local workers start with: this process's fork server, started here once with
-    ``__main__``, ``gtforge.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other itself)
+    ``__main__``, ``gtforge.infra.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other itself)
     preloaded and numba/OpenMP limited to ``n_threads`` threads, as ``_init_worker`` limits them in a spawned worker;
     ``spawn`` where the platform has no fork server, or for another thread count than the server was started with."""
     import multiprocessing as mp
@@ -287,7 +287,7 @@ def _pool_context(module: str, n_threads: int):
     from multiprocessing import forkserver
 
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["__main__", "gtforge.pool_preload", module])
+    ctx.set_forkserver_preload(["__main__", "gtforge.infra.pool_preload", module])
     env = _thread_environment(n_threads)
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # the server's environment is this process's when it starts (fork + exec, below)

@@ -30,8 +30,8 @@ import numpy as np
 # numba: prefer OpenMP (TBB builds on Debian are often too old and only produce a warning)
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
-from gtforge.camera import PinholeCamera, RectifiedStereo
-from gtforge.geometry import finite_box
+from gtforge.core.camera import PinholeCamera, RectifiedStereo
+from gtforge.core.geometry import finite_box
 
 Mode = Literal["mesh", "splat"]
 
