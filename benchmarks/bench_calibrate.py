@@ -14,11 +14,21 @@ import time
 
 import numpy as np
 
-from gtforge.calibrate import CalibrateParams, PoseReport, calibrate_observations, detect_pose, \
-    robust_initial_extrinsic
+from gtforge.calibrate import calibrate_observations, detect_pose
+from gtforge.core.board import BoardSpec
+from gtforge.core.board_extrinsic import robust_initial_extrinsic
 from gtforge.core.geometry import invert_T, pose_difference, transform_points
-from gtforge.synthetic import (OBJ_BOARD, BoardSpec, PlaneObject, Scene, _table, default_rig, finish_image,
-                               random_board_pose, render_image)
+from gtforge.records.calibration import CalibrateParams, PoseReport
+from gtforge.synthetic import (
+    OBJ_BOARD,
+    PlaneObject,
+    Scene,
+    _table,
+    default_rig,
+    finish_image,
+    random_board_pose,
+    render_image,
+)
 
 
 def main():

@@ -47,9 +47,9 @@ def main():
     from PIL import Image
 
     from gtforge import build_dataset as bd
-    from gtforge.calibrate import CalibrationFile
     from gtforge.io.captures import open_session
     from gtforge.io.formats import _kitti_quantize, encode_label_png, write_tiff_float
+    from gtforge.records.calibration import CalibrationFile
 
     wd = Path(args.workdir)
     sess, calib = make_session(wd, 1, 1)

@@ -2,15 +2,18 @@
 
 Usage: python benchmarks/bench_fruit_size.py WORKDIR SCALE N_SCENES  (SCALE 1.0: the ZED's 2K, 2208x1242)
 """
-import sys, time
+import sys
+import time
 from pathlib import Path
-from gtforge.synthetic import generate_session, default_rig
-from gtforge.core.camera import Rig
-from gtforge.calibrate import CalibrationFile
+
 from gtforge.build_dataset import build_dataset
+from gtforge.core.camera import Rig
 from gtforge.evaluate import evaluate
-from gtforge.predictors import PredictionFolder
 from gtforge.io.formats import read_pfm, write_pfm
+from gtforge.predictors import PredictionFolder
+from gtforge.records.calibration import CalibrationFile
+from gtforge.synthetic import default_rig, generate_session
+
 d = Path(sys.argv[1]); scale = float(sys.argv[2]); n = int(sys.argv[3])
 if not (d / "ds").exists():
     generate_session(d / "s", n_board=0, n_scenes=n, scale=scale, seed=1, depth_noise_mm=0.03, supersample=1)
@@ -31,9 +34,10 @@ for out in (None, d / "ev"):
         print(f"{shape[1]}x{shape[0]}, {'writing maps and HTML' if out else 'no output folder'}, fruit_size={fs}: "
               f"{wall:.0f} ms wall, {cpu:.0f} ms CPU per scene{extra}")
 # the fruit figures alone, CPU time (a shared machine's wall clock varies more than the cost itself)
-from gtforge.evaluate import SceneCalib
 from gtforge.core.fruit_size import measure_scene
 from gtforge.io.formats import read_image
+from gtforge.io.middlebury import SceneCalib
+
 s = sorted((d / "ds" / "scenes").iterdir())[0]
 cal, gt, reg = SceneCalib(s / "calib.txt"), read_pfm(s / "disp0GT.pfm"), read_image(s / "region.png")
 measure_scene(s.name, reg, cal, gt, gt + 0.3)

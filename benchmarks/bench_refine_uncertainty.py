@@ -19,10 +19,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gtforge import refine as R
-from gtforge.build_dataset import BuildParams
-from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate
+from gtforge.calibrate import calibrate
 from gtforge.core.geometry import T_from_rotvec
 from gtforge.io.captures import open_session
+from gtforge.records.calibration import CalibrateParams, CalibrationFile
+from gtforge.records.dataset import BuildParams
 from gtforge.synthetic import SyntheticTruth, generate_session
 
 

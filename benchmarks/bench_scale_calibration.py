@@ -24,11 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gtforge.build_dataset import BuildParams, build_scene_arrays
-from gtforge.calibrate import CalibrationFile
 from gtforge.core.camera import Rig
+from gtforge.core.scale_corrections import corrected_right_image, shown_disparity_px
+from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
-from gtforge.scale_calibration import ScaleParams, calibrate_scale, corrected_right_image, shown_disparity_px
+from gtforge.records.calibration import CalibrationFile, ScaleParams
+from gtforge.records.dataset import BuildParams
+from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, generate_session
 from gtforge.verify import verify_scene
 

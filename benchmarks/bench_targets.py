@@ -16,11 +16,12 @@ import time
 
 import numpy as np
 
-from gtforge.calibrate import CalibrateParams, calibrate_observations, detect_pose
+from gtforge.calibrate import calibrate_observations, detect_pose
+from gtforge.core.board import BoardSpec
 from gtforge.core.geometry import pose_difference
-from gtforge.synthetic import BoardSpec, default_rig, random_board_pose
-from gtforge.core.targets import (CharucoSpec, CircleGridSpec, board_model_of, random_partial_board_pose,
-                             render_board_views)
+from gtforge.core.targets import CharucoSpec, CircleGridSpec, board_model_of
+from gtforge.records.calibration import CalibrateParams
+from gtforge.synthetic import default_rig, random_board_pose, random_partial_board_pose, render_board_views
 
 TARGETS = {
     "checkerboard": BoardSpec(12, 9, 20.0),

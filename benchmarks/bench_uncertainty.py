@@ -20,13 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from gtforge.build_dataset import BuildParams, build_one_scene, build_scene_arrays
-from gtforge.calibrate import (BoardModel, CalibrateParams, CalibrationFile, calibrate_observations,
-                               detect_pose)
+from gtforge.build_dataset import build_one_scene
+from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.camera import Rig
-from gtforge.io.captures import open_session
-from gtforge.synthetic import SyntheticTruth, generate_session
+from gtforge.core.targets import BoardModel
 from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma, draw_ground_truth
+from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.io.captures import open_session
+from gtforge.records.calibration import CalibrateParams, CalibrationFile
+from gtforge.records.dataset import BuildParams
+from gtforge.synthetic import SyntheticTruth, generate_session
 
 
 def main():

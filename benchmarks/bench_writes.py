@@ -23,12 +23,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from bench_build_dataset import machine_busy_s
 
 from gtforge.infra import unbuffered
-from gtforge.infra.unbuffered import buffer_of, write_file
 from gtforge.infra.scheduling import release_written_pages
+from gtforge.infra.unbuffered import buffer_of, write_file
 
 
 def main():

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gtforge.calibrate import CalibrationFile
 from gtforge.core.camera import CameraFile, Rig, StereoCalibrationFile
+from gtforge.records.calibration import CalibrationFile
 from gtforge.synthetic import default_rig, random_fruit_scene, render_capture, write_capture
 
 RENDER_SETTINGS = dict(scale=1.0, supersample=1, depth_noise_mm=0.05, seed=0)

@@ -6,11 +6,12 @@ Usage: PYTHONPATH=src python benchmarks/gauge_figures.py WORKDIR SCALE DEPTH_NOI
 import sys
 from pathlib import Path
 
-from gtforge.calibrate import CalibrationFile
 from gtforge.core.camera import Rig
-from gtforge.core.gauges import GaugeParams, validate_gauges
-from gtforge.synthetic import default_rig, generate_gauges, generate_session
+from gtforge.core.gauges import GaugeParams
 from gtforge.core.uncertainty import DepthNoiseModel
+from gtforge.records.calibration import CalibrationFile
+from gtforge.synthetic import default_rig, generate_gauges, generate_session
+from gtforge.validate import validate_gauges
 
 d, scale, noise = Path(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
 if not (d / "s").exists():

@@ -42,10 +42,10 @@ def main():
     import numpy as np
 
     from gtforge import build_dataset as bd
-    from gtforge.calibrate import CalibrationFile
+    from gtforge.core.reproject import project_depth_to_camera
     from gtforge.io.captures import open_session, read_depth, read_texture
     from gtforge.io.formats import read_image, write_kitti_disparity, write_pfm, write_tiff_float
-    from gtforge.core.reproject import project_depth_to_camera
+    from gtforge.records.calibration import CalibrationFile
 
     try:
         from gtforge.core.reproject import disparity_and_nonoccluded

@@ -24,7 +24,8 @@ def T_true(session_dir):
 
 @pytest.fixture(scope="session")
 def calibration(session_dir, tmp_path_factory):
-    from gtforge.calibrate import CalibrateParams, calibrate
+    from gtforge.calibrate import calibrate
+    from gtforge.records.calibration import CalibrateParams
 
     path = tmp_path_factory.mktemp("calib") / "calibration.yaml"
     res = calibrate(session_dir, path, CalibrateParams(use_depth=False))
@@ -34,7 +35,7 @@ def calibration(session_dir, tmp_path_factory):
 @pytest.fixture(scope="session")
 def true_calibration(session_dir, calibration, T_true, tmp_path_factory):
     """The calibration file with the exact extrinsic (isolates the later stages from calibration error)."""
-    from gtforge.calibrate import CalibrationFile
+    from gtforge.records.calibration import CalibrationFile
 
     c = CalibrationFile.read(calibration[0])
     c.rig = c.rig.model_copy(update={"T_zed_from_mech": T_true.tolist()})

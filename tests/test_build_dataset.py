@@ -5,9 +5,11 @@ import shutil
 import numpy as np
 import pytest
 
-from gtforge.build_dataset import BuildParams, Manifest, build_dataset, make_splits
+from gtforge.build_dataset import build_dataset
+from gtforge.dataset.views import make_splits
 from gtforge.errors import InputError
 from gtforge.io.formats import read_image, read_kitti_disparity, read_pfm, write_tiff_float
+from gtforge.records.dataset import BuildParams, Manifest
 
 
 def test_dataset_matches_exact_truth(session_dir, dataset):
@@ -328,7 +330,7 @@ def test_fruit_centre_equals_the_full_image_erosion():
     OpenCV's erosion of the whole mask, also for fruit touching the image border."""
     import cv2
 
-    from gtforge.build_dataset import REGION_CENTRE, REGION_EDGE, fruit_regions
+    from gtforge.core.regions import REGION_CENTRE, REGION_EDGE, fruit_regions
 
     rng = np.random.default_rng(1)
     yy, xx = np.mgrid[0:60, 0:80]
@@ -379,9 +381,9 @@ def test_fruit_regions_equal_the_point_cloud_computation():
     image."""
     import cv2
 
-    from gtforge.build_dataset import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
     from gtforge.core.camera import PinholeCamera, RectifiedStereo
     from gtforge.core.geometry import fit_plane_robust
+    from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
 
     H, W = 240, 320
     cam = PinholeCamera(width_px=W, height_px=H, fx_px=300.0, fy_px=300.0, cx_px=161.3, cy_px=118.7)
@@ -551,7 +553,9 @@ print(outside, inside, faults())
 def test_occlusion_mask_and_disparity_summary_match_numpy():
     """The compiled occlusion mask and one-pass statistics give numpy's values exactly (NaN, +-inf, strided crops);
     calib.txt's vmin/vmax/ndisp from the range."""
-    from gtforge.build_dataset import _disparity_summary, middlebury_calib_text, occlusion_mask
+    from gtforge.build_dataset import _disparity_summary
+    from gtforge.core.regions import occlusion_mask
+    from gtforge.io.middlebury import middlebury_calib_text
 
     rng = np.random.default_rng(3)
     disp = (rng.random((60, 80)) * 250).astype(np.float32)

@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
-from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate, calibrate_observations, detect_pose
-from gtforge.errors import InputError
+from gtforge.calibrate import calibrate, calibrate_observations, detect_pose
 from gtforge.core.geometry import pose_difference
+from gtforge.errors import InputError
 from gtforge.io.captures import open_session
+from gtforge.records.calibration import CalibrateParams, CalibrationFile
 from gtforge.reports.calibration import write_calibration_report
 
 
@@ -48,7 +49,7 @@ def test_outlier_pose_is_rejected_and_use_depth_agrees(session_dir, T_true):
     s, obs, reps = _observations(session_dir)
     # corrupt one pose: its ZED detections shifted by 6 px (a mismatched image pair, say)
     obs[2].zed_uv = obs[2].zed_uv + np.array([6.0, 0.0])
-    from gtforge.calibrate import solve_pnp
+    from gtforge.core.board import solve_pnp
 
     obs[2].T_zed_from_board = solve_pnp(CalibrateParams().board.spec().corners_board(), obs[2].zed_uv, s.zed.left)
     res = calibrate_observations(obs, reps, s.mech, s.zed, CalibrateParams(use_depth=True, leave_one_out=False))
@@ -69,7 +70,7 @@ def test_too_few_poses_is_a_clear_error(session_dir, tmp_path):
 
 
 def test_wrong_board_spec_skips_every_pose(session_dir, tmp_path):
-    from gtforge.calibrate import BoardModel
+    from gtforge.core.targets import BoardModel
 
     with pytest.raises(InputError, match="usable"):
         calibrate(session_dir, tmp_path / "c.yaml", CalibrateParams(board=BoardModel(cols=10, rows=7)))

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
-from gtforge.errors import InputError
 from gtforge.core.geometry import T_from_rotvec, invert_T, transform_points
+from gtforge.errors import InputError
 
 
 def cam(dist=(0.0,) * 5):

@@ -6,10 +6,11 @@ import time
 
 import pytest
 import yaml
-
-from gtforge.build_dataset import BuildParams, build_dataset
-from gtforge.reports.evaluation import row_labels
 from test_safety import gtforge, one_line_error, tree_digest
+
+from gtforge.build_dataset import build_dataset
+from gtforge.records.dataset import BuildParams
+from gtforge.reports.evaluation import row_labels
 
 
 def test_synth_and_demo_never_write_into_an_existing_folder(tmp_path, session_dir):
@@ -113,7 +114,7 @@ def test_resume_rebuilds_a_scene_with_a_deleted_file(session_dir, true_calibrati
     params = BuildParams(verification=False)
     s = build_dataset(session_dir, true_calibration, out, params, scenes=["000", "001"], workers=1)
     assert s.built == ["000", "001"]
-    from gtforge.build_dataset import scene_files
+    from gtforge.dataset.layout import scene_files
 
     assert sorted(p.name for p in (out / "scenes" / "000").iterdir()) == sorted(scene_files(params))
     (out / "scenes" / "001" / "disp0GT.pfm").unlink()

@@ -18,9 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from gtforge.build_dataset import Manifest, build_dataset
+from gtforge.build_dataset import build_dataset
 from gtforge.errors import InputError
 from gtforge.infra.scheduling import run_tasks
+from gtforge.records.dataset import Manifest
 
 pytest.importorskip("distributed")  # the 'dask' extra (part of the 'test' extra)
 from distributed.diagnostics.plugin import SchedulerPlugin, WorkerPlugin  # noqa: E402
@@ -284,7 +285,7 @@ def test_scheduler_errors_are_one_line(session_dir, true_calibration, tmp_path, 
 def test_stale_cleanup_spares_a_live_writer(tmp_path):
     """A scene folder still being written (a Dask task cancelled by Ctrl-C runs to its end) is not removed
     under its writer; a dead writer's folders and locks are."""
-    from gtforge.build_dataset import _lock_writer, _remove_stale, _unlock_writer
+    from gtforge.dataset.scene_folder import _lock_writer, _remove_stale, _unlock_writer
 
     scenes = tmp_path / "scenes"
     fd = _lock_writer(scenes, "007", "abc")  # a live writer (flock: another open file, even in this process)

@@ -10,9 +10,10 @@ from typer.testing import CliRunner
 
 from gtforge.cli import app
 from gtforge.errors import InputError
-from gtforge.evaluate import EvalReport, compare, evaluate
+from gtforge.evaluate import compare, evaluate
 from gtforge.io.formats import read_image, read_pfm, write_kitti_disparity, write_pfm
 from gtforge.predictors import SGBM, OnnxModel, PredictionFolder
+from gtforge.records.evaluation import EvalReport
 from gtforge.training import StereoDataset
 
 
@@ -133,7 +134,7 @@ def test_results_html_is_small_with_colour_bars_and_header(dataset, tmp_path):
     full = read_image(tmp_path / "heatmaps" / f"{rep.scenes[0]}_disp_error.png")
     H, W = gt.shape
     assert full.shape[0] > H + 40 and full.shape[1] == W
-    from gtforge.evaluate import SceneCalib
+    from gtforge.io.middlebury import SceneCalib
 
     cal = SceneCalib(s / "calib.txt")
     pred = SGBM().predict(rep.scenes[0], read_image(s / "im0.png"), read_image(s / "im1.png"), cal.ndisp, cal.vmin)
@@ -153,7 +154,8 @@ def _constant_offset_predictions(ds, folder, offset_px, scenes=None):
 
 def test_depth_error_map_is_scaled_to_the_data(dataset, tmp_path):
     """Issue 11 item 10: the fruit depth-error map's scale follows the errors (not a fixed 0-1 mm, solid red)."""
-    from gtforge.evaluate import SceneCalib, nice_ceil
+    from gtforge.io.middlebury import SceneCalib
+    from gtforge.reports.html import nice_ceil
 
     ds, _ = dataset
     preds = _constant_offset_predictions(ds, tmp_path / "p", 0.5)

@@ -5,8 +5,17 @@ import pytest
 
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_path, atomic_write_text
-from gtforge.io.formats import (read_image, read_kitti_disparity, read_pfm, read_ply_points, write_image,
-                                write_kitti_disparity, write_pfm, write_ply, write_tiff_float)
+from gtforge.io.formats import (
+    read_image,
+    read_kitti_disparity,
+    read_pfm,
+    read_ply_points,
+    write_image,
+    write_kitti_disparity,
+    write_pfm,
+    write_ply,
+    write_tiff_float,
+)
 
 
 def test_pfm_layout_and_invalid(tmp_path):
@@ -101,10 +110,10 @@ def test_private_folder_writes_final_names_directly(tmp_path, monkeypatch):
 
 
 def test_label_png_and_kitti_quantisation(tmp_path):
-    from gtforge.io.formats import write_label_png
-
     import cv2
     from PIL import Image
+
+    from gtforge.io.formats import write_label_png
 
     lab = (np.arange(37 * 53) % 4).astype(np.uint8).reshape(37, 53)
     q = (np.arange(37 * 53) * 41 % 65536).astype(np.uint16).reshape(37, 53)
@@ -192,9 +201,8 @@ def test_label_png_blocks_reused_only_where_rows_are_the_same():
 
 
 def test_float_tiff_compression_round_trip(tmp_path):
-    import tifffile
-
     import cv2
+    import tifffile
 
     a = np.linspace(300, 900, 150 * 20, dtype=np.float32).reshape(150, 20)  # 3 strips of 64 rows when compressed
     a[3, 4] = a[149, 19] = np.nan

@@ -4,13 +4,22 @@ import json
 import numpy as np
 import pytest
 
-from gtforge.errors import InputError
-from gtforge.evaluate import EvalReport, SceneCalib, compare, evaluate
-from gtforge.core.fruit_size import (FruitSize, GradeBins, fruit_instances, measure_fruit, parse_grades, points_from_disparity,
-                                table_plane)
-from gtforge.io.formats import read_image, read_pfm, write_pfm
-from gtforge.predictors import PredictionFolder
+from gtforge.core.fruit_size import (
+    FruitSize,
+    GradeBins,
+    fruit_instances,
+    measure_fruit,
+    parse_grades,
+    points_from_disparity,
+    table_plane,
+)
 from gtforge.core.shapefit import fit_plane_lsq, fit_resting_ellipsoid, fit_sphere
+from gtforge.errors import InputError
+from gtforge.evaluate import compare, evaluate
+from gtforge.io.formats import read_image, read_pfm, write_pfm
+from gtforge.io.middlebury import SceneCalib
+from gtforge.predictors import PredictionFolder
+from gtforge.records.evaluation import EvalReport
 
 
 # ---- shape fits -----------------------------------------------------------------------------------
@@ -106,8 +115,8 @@ def small_dataset(tmp_path_factory):
     """3 noise-free fruit scenes at 0.25x (ZED 552x310), built with the exact extrinsic; the generator's fruit
     ellipsoids in truth/."""
     from gtforge.build_dataset import build_dataset
-    from gtforge.calibrate import CalibrationFile
     from gtforge.core.camera import Rig
+    from gtforge.records.calibration import CalibrationFile
     from gtforge.synthetic import default_rig, generate_session
 
     root = tmp_path_factory.mktemp("fruit")

@@ -7,14 +7,16 @@ import numpy as np
 import pytest
 import yaml
 
-from gtforge.calibrate import CalibrationFile, _perturbed
 from gtforge.core.camera import Rig
+from gtforge.core.gauges import GaugeParams, GaugeReport, GaugesFile, read_gauges_file, summary_lines
+from gtforge.core.uncertainty import DepthNoiseModel
 from gtforge.errors import InputError
-from gtforge.core.gauges import GaugeParams, GaugeReport, GaugesFile, read_gauges_file, summary_lines, validate_gauges
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import write_tiff_float
+from gtforge.records.calibration import CalibrationFile
+from gtforge.refine import _perturbed
 from gtforge.synthetic import default_rig, generate_gauges, generate_session
-from gtforge.core.uncertainty import DepthNoiseModel
+from gtforge.validate import validate_gauges
 
 SCALE = 0.3  # ZED 662x373, structured light 576x360
 NOISE_MM = 0.05
@@ -204,8 +206,8 @@ def test_validation_page_has_the_gauge_section(exact):
     """validate() puts the gauge report into validation.json (``gauges``) and this section into validation.html."""
     from types import SimpleNamespace
 
+    from gtforge.records.validation import ValidationReport
     from gtforge.reports.validation import SECTIONS, gauges_section
-    from gtforge.validate import ValidationReport
 
     _, _, rep = exact
     assert gauges_section in SECTIONS and ValidationReport.model_fields["gauges"].default is None
@@ -254,7 +256,7 @@ def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibr
     from typer.testing import CliRunner
 
     from gtforge.cli import app
-    from gtforge.validate import ValidationReport
+    from gtforge.records.validation import ValidationReport
 
     s = tmp_path / "s"
     shutil.copytree(session_dir, s, ignore=shutil.ignore_patterns("scenes"))

@@ -1,9 +1,12 @@
 """gtforge.precompile (run by scripts/setup.sh): afterwards a build finds every kernel it runs in numba's cache."""
 from __future__ import annotations
 
+import importlib
 import os
 import subprocess
 import sys
+
+from gtforge.precompile import KERNELS
 
 
 def _cache_state(cache):
@@ -17,13 +20,11 @@ def test_after_precompile_a_build_compiles_nothing(tmp_path, session_dir, true_c
                        timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "kernels compiled and cached in" in r.stdout and r.stderr == ""  # (no split warning for its one scene)
-    index = {p.name.split("-")[0] for p in cache.rglob("*.nbi")}
-    # a kernel of each part of a build: the reader, both ZED views' rasterisation, the occlusion test, the sigma map,
-    # the verification's render and cubic samples, the writers, the fork server's preload
-    for kernel in ("captures._depth_mm", "formats._png_unfilter", "reproject._mesh_rows_stereo",
-                   "reproject._disparity_nonoccluded", "uncertainty._sigma_kernel", "verify._render_kernel",
-                   "verify._cubic_at", "formats._pfm_rows", "formats._kitti_png_rows", "pool_preload._first_compiled_call"):
-        assert kernel in index, kernel
+    index = {p.name.split("-")[0] for p in cache.rglob("*.nbi")}  # numba names them <file stem>.<function>-...
+    for kernel in KERNELS:
+        module, name = kernel.rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(module), name)), kernel  # the list names real kernels
+        assert f"{module.rsplit('.', 1)[1]}.{name}" in index, kernel
     before = _cache_state(cache)
     # a default build with two local workers (one numba thread each), on another session than precompile's (another
     # resolution, texture and fruit): numba would add an index entry for any new kernel or argument types

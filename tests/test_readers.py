@@ -266,7 +266,7 @@ def test_capture_records_the_hash_of_the_bytes_it_decoded(tmp_path):
     the files again, and hashes only the rest (here: the PNGs a --no-verify load left undecoded)."""
     import blake3
 
-    from gtforge.build_dataset import hash_inputs
+    from gtforge.dataset.layout import hash_inputs
 
     c = _mini_session(tmp_path)
     s = open_session(tmp_path)

@@ -20,10 +20,10 @@ import numpy as np
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import invert_T
+from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import read_image
 from gtforge.io.vendors import read_kinect_calibration
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 
 DATA = Path(__file__).parent / "data" / "azure-kinect-frame"
 SEARCH_PX = 4  # shifts searched in x and y (this frame's x offset is -2.6 px)

@@ -19,11 +19,11 @@ import imageio.v3 as iio
 import numba
 import numpy as np
 import pytest
-
 from conftest import shared_data
+
 from gtforge.core.camera import PinholeCamera
-from gtforge.io.formats import read_pfm
 from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.io.formats import read_pfm
 
 F_PX, BASELINE_MM, DOFFS_PX = 999.421, 193.001, 32.778  # calib.txt
 CX0_PX, CX1_PX, CY_PX = 294.182, 326.96, 252.932

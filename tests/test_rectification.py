@@ -11,25 +11,27 @@ import cv2
 import numpy as np
 import pytest
 
-from gtforge.errors import InputError
+from gtforge.core.board import BoardSpec
 from gtforge.core.geometry import make_T, transform_points
-from gtforge.io.cameras import ZED_CONF_READINGS, read_zed_conf
-from gtforge.io.captures import open_session
 from gtforge.core.rectification import (
     TIE_PX,
-    RawBoardPair,
     RectificationMeter,
     board_pose_vertical_disparity,
+    rectify_points,
+    scene_vertical_disparity,
+)
+from gtforge.errors import InputError
+from gtforge.io.cameras import ZED_CONF_READINGS, read_zed_conf
+from gtforge.io.captures import open_session
+from gtforge.io.zed_rectification import (
+    RawBoardPair,
     choose_reading,
     detect_raw_pairs,
     rectified_by,
-    rectify_points,
-    scene_vertical_disparity,
     score_readings,
     settle_zed_conf_reading,
 )
 from gtforge.synthetic import (
-    BoardSpec,
     RawZed,
     SyntheticTruth,
     default_raw_zed,
@@ -60,7 +62,8 @@ def raw_pairs(raw_session):
 
 @pytest.fixture(scope="module")
 def calibration(raw_session, tmp_path_factory):
-    from gtforge.calibrate import CalibrateParams, calibrate
+    from gtforge.calibrate import calibrate
+    from gtforge.records.calibration import CalibrateParams
 
     path = tmp_path_factory.mktemp("raw_calib") / "calibration.yaml"
     return path, calibrate(raw_session, path, CalibrateParams(leave_one_out=False))
@@ -82,10 +85,10 @@ def test_conf_values_decode_exactly_and_readings_differ(tmp_path):
     decoded = {}
     for reading in ZED_CONF_READINGS:
         f = read_zed_conf(write_raw_zed_conf(tmp_path / f"{reading}.conf", raw, reading), 672)
-        R, T = f.extrinsics(reading)
+        R, T = f.R_t_right_from_left(reading)
         np.testing.assert_allclose(R, raw.R, atol=1e-12)
         np.testing.assert_allclose(T, raw.T_mm, atol=1e-9)
-        decoded[reading] = {r: f.extrinsics(r) for r in ZED_CONF_READINGS}
+        decoded[reading] = {r: f.R_t_right_from_left(r) for r in ZED_CONF_READINGS}
     # the Stereolabs-sample encoding is the plain one: Baseline = -T_x, TY = T_y, TZ = T_z, (RX, CV, RZ) = rotvec(R)
     v = zed_conf_values(raw, "neg-x")
     assert (v["Baseline"], v["TY"], v["TZ"]) == (63.0, 0.21, -0.35)
@@ -145,8 +148,8 @@ def test_every_encoding_is_recognised_from_the_images(raw_session, raw_pairs, tm
 
 def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, calibration, tmp_path):
     from gtforge.build_dataset import build_dataset
-    from gtforge.calibrate import CalibrationFile
     from gtforge.io.formats import read_pfm
+    from gtforge.records.calibration import CalibrationFile
     from gtforge.reports.calibration import write_calibration_report
 
     path, res = calibration
@@ -193,7 +196,7 @@ def test_reading_from_feature_matches_without_a_board(raw_session):
     """No board seen whole in both raw images: every reading is scored on raw feature matches (scenes and boards
     alike). The conf was written under neg-all: neg-all wins (as-is gives the same maps but a right camera at -x), the
     TY/TZ-flipped neg-x is 0.1-0.5 px worse, the inverse rotations are far off."""
-    from gtforge.core.rectification import choose_reading_by_matches, raw_matches
+    from gtforge.io.zed_rectification import choose_reading_by_matches, raw_matches
 
     s = open_session(raw_session)
     factory = s.rectification.factory
@@ -211,8 +214,10 @@ def test_real_zed_mini_reading_from_feature_matches():
     """The real ZED Mini view (../shared/data): the inverse-rotation readings leave 3.6 px, the others 0.5 px (the
     rest is the unit's residual rotation, which self-rectification removes: tests/test_selfcal.py)."""
     from conftest import shared_data
+
+    from gtforge.core.rectification import match_points
     from gtforge.io.formats import read_image
-    from gtforge.core.rectification import RawBoardPair, choose_reading_by_matches, match_points
+    from gtforge.io.zed_rectification import RawBoardPair, choose_reading_by_matches
 
     d = shared_data("zed-mini-raw-pair")
     factory = read_zed_conf(d / "SN10027514.conf", 1280)

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from gtforge.calibrate import CalibrationFile
-from gtforge.errors import InputError
 from gtforge.core.geometry import T_from_rotvec, pose_difference
+from gtforge.errors import InputError
+from gtforge.records.calibration import CalibrationFile
 from gtforge.refine import RefineParams, refine
 
 
@@ -81,8 +81,8 @@ def test_refined_covariance_matches_the_errors(refine_session, true_calibration,
     0.014 deg / 0.14 mm off): the normalised squared error of the extrinsic, e^T C^-1 e, averages about 6 (six
     parameters) when the reported covariance is right; six draws of chi2(6) average within 2.9-10.1 (99 %). Then a
     refinement without leave-one-out: its covariance has no jackknife factor (None), not the board file's."""
-    from gtforge.build_dataset import BuildParams
     from gtforge.io.captures import open_session
+    from gtforge.records.dataset import BuildParams
     from gtforge.refine import _perturbed, _scene_at, solve_extrinsic
 
     calib = CalibrationFile.read(true_calibration)

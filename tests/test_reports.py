@@ -4,7 +4,8 @@ import re
 import numpy as np
 import pytest
 
-from gtforge.calibrate import CalibrateParams, calibrate
+from gtforge.calibrate import calibrate
+from gtforge.records.calibration import CalibrateParams
 from gtforge.reports import calibration as calib_report
 from gtforge.reports import validation as val_report
 from gtforge.reports.html import MISSING, Section, fmt_value, table

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from gtforge.calibrate import CalibrationFile
+from gtforge.records.calibration import CalibrationFile
 
 
 def gtforge(*args, umask=None, timeout=600):

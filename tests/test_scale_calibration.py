@@ -6,13 +6,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gtforge.build_dataset import BuildParams, build_scene_arrays, middlebury_calib_text
-from gtforge.calibrate import CalibrationFile
 from gtforge.core.camera import Rig, ScaleCorrections
+from gtforge.core.scale_corrections import (
+    apply_homography,
+    corrected_right_image,
+    scale_sigma_px,
+    shown_disparity_px,
+    yaw_homography,
+)
+from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
-from gtforge.scale_calibration import (ScaleParams, apply_homography, calibrate_scale, corrected_right_image,
-                                       scale_sigma_px, shown_disparity_px, yaw_homography)
+from gtforge.io.middlebury import middlebury_calib_text
+from gtforge.records.calibration import CalibrationFile, ScaleParams
+from gtforge.records.dataset import BuildParams
+from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, default_rig, generate_session
 from gtforge.verify import verify_scene
 
@@ -111,8 +119,8 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     """calib.txt's baseline is the corrected one, im1 the re-rectified right image, the labels the corrected GT, the
     scene's verification reads no stereo bias and the sigma map carries the scale terms."""
     from gtforge.build_dataset import build_dataset
+    from gtforge.core.scale_corrections import scale_sigma_px
     from gtforge.io.formats import read_image, read_pfm
-    from gtforge.scale_calibration import scale_sigma_px
 
     start, res = errors_calibrated
     scaled = Path(start).parent / "scaled.yaml"
@@ -232,7 +240,7 @@ def test_yaw_homography_is_the_turned_cameras_projection():
 def test_scale_sigma_is_the_covariance_propagated():
     sr = default_rig(0.3)
     rig = Rig(zed=sr.zed, mech=sr.mech, T_zed_from_mech=sr.T_zed_from_mech)
-    from gtforge.scale_calibration import ScaleCalibration
+    from gtforge.records.calibration import ScaleCalibration
 
     C = np.diag([1e-8, 1e-6, 0.0, 0.01])  # 1e-4 in b, 1e-3 deg yaw, 0.1 mm offset
     info = ScaleCalibration(calibrated_from="x", terms={}, covariance=C.tolist(), combined_scale_frac=0.0,

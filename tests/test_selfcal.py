@@ -6,15 +6,21 @@ import functools
 
 import numpy as np
 import pytest
-
 from conftest import shared_data
+
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
+from gtforge.core.rectification import match_points
+from gtforge.core.selfcal import (
+    Matches,
+    RightImageCorrection,
+    ZedRightCorrection,
+    corrected_rectification,
+    fit_self_rectification,
+)
 from gtforge.io.cameras import read_zed_conf
 from gtforge.io.captures import open_session
 from gtforge.io.formats import read_image
-from gtforge.core.rectification import match_points
-from gtforge.core.selfcal import (Matches, RightImageCorrection, ZedRightCorrection, corrected_rectification,
-                             fit_self_rectification, self_rectify)
+from gtforge.io.zed_rectification import self_rectify
 from gtforge.synthetic import generate_raw_zed_session, generate_session
 
 ERR_RAD = tuple(np.radians([0.1, 0.05, -0.08]))  # the right camera turned about x, y and z

@@ -2,10 +2,16 @@
 import numpy as np
 import pytest
 
-from gtforge.core.board import check_board_spec, detect_corners
+from gtforge.core.board import BoardSpec, check_board_spec, detect_corners
 from gtforge.errors import InputError
-from gtforge.synthetic import (BoardSpec, board_capture, default_rig, random_board_pose, random_fruit_scene,
-                               raycast_depth, render_capture)
+from gtforge.synthetic import (
+    board_capture,
+    default_rig,
+    random_board_pose,
+    random_fruit_scene,
+    raycast_depth,
+    render_capture,
+)
 
 
 @pytest.fixture(scope="module")

@@ -8,12 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from gtforge.calibrate import CalibrateParams, CalibrationFile, calibrate_observations, detect_pose
-from gtforge.errors import InputError
+from gtforge.calibrate import calibrate_observations, detect_pose
+from gtforge.core.board import BoardSpec
 from gtforge.core.geometry import pose_difference
-from gtforge.synthetic import BoardSpec, default_rig, random_board_pose
-from gtforge.core.targets import (BoardModel, CharucoSpec, CircleGridSpec, board_model_of, check_board_model,
-                             circle_centre_bias, detect_charuco, random_partial_board_pose, render_board_views)
+from gtforge.core.target_detection import circle_centre_bias, detect_charuco
+from gtforge.core.targets import BoardModel, CharucoSpec, CircleGridSpec, board_model_of, check_board_model
+from gtforge.errors import InputError
+from gtforge.records.calibration import CalibrateParams, CalibrationFile
+from gtforge.synthetic import default_rig, random_board_pose, random_partial_board_pose, render_board_views
 
 CHARUCO = CharucoSpec(7, 5, 40.0, 30.0, "DICT_4X4_50")
 

@@ -11,9 +11,15 @@ import tifffile
 
 from gtforge.infra import unbuffered
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_buffer, atomic_write_bytes, file_mode, private_folder
+from gtforge.infra.unbuffered import (
+    BLOCK_BYTES,
+    MIN_DIRECT_BYTES,
+    aligned_buffer,
+    background_writes,
+    buffer_of,
+    write_file,
+)
 from gtforge.io.formats import read_pfm, write_pfm, write_tiff_float
-from gtforge.infra.unbuffered import (BLOCK_BYTES, MIN_DIRECT_BYTES, aligned_buffer, background_writes, buffer_of,
-                                   write_file)
 
 SIZES = [0, 1, BLOCK_BYTES - 1, BLOCK_BYTES, MIN_DIRECT_BYTES - 1, MIN_DIRECT_BYTES, MIN_DIRECT_BYTES + 1,
          MIN_DIRECT_BYTES + BLOCK_BYTES, 3 * 1024 * 1024 + 5]

@@ -2,12 +2,15 @@
 import numpy as np
 import pytest
 
-from gtforge.build_dataset import BuildParams, SceneMeta, build_scene_arrays
-from gtforge.calibrate import CalibrateParams, CalibrationFile, PoseObs, PoseReport, calibrate_observations
+from gtforge.calibrate import calibrate_observations
+from gtforge.core.board import PoseObs
 from gtforge.core.geometry import transform_points
+from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, draw_ground_truth
+from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
 from gtforge.io.formats import read_pfm
-from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, draw_ground_truth
+from gtforge.records.calibration import CalibrateParams, CalibrationFile, PoseReport
+from gtforge.records.dataset import BuildParams, SceneMeta
 
 
 @pytest.mark.parametrize("loo", [False, True])
@@ -16,8 +19,8 @@ def test_calibration_covariance_matches_the_spread_of_errors(loo):
     averaged, is about 6 (6 parameters) when the reported covariance is right. With leave-one-out on, the
     covariance may be scaled up by the jackknife spread (never down): it stays within the target here, where the
     corner noise is independent (rendered boards need the scaling: benchmarks/bench_uncertainty.py)."""
-    from gtforge.calibrate import solve_pnp
-    from gtforge.synthetic import BoardSpec, default_rig, random_board_pose
+    from gtforge.core.board import BoardSpec, solve_pnp
+    from gtforge.synthetic import default_rig, random_board_pose
 
     rig = default_rig(0.4)
     board = BoardSpec()

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from gtforge.calibrate import CalibrationFile
 from gtforge.core.geometry import T_from_rotvec
+from gtforge.records.calibration import CalibrationFile
 from gtforge.validate import bilinear_valid, validate
 
 

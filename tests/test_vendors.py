@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
-from gtforge.errors import InputError
 from gtforge.core.geometry import T_from_rotvec, invert_T, transform_points
+from gtforge.errors import InputError
 from gtforge.io.captures import open_session
 from gtforge.io.vendors import (
     KINECT_COLOR_MODES,

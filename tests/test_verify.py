@@ -5,11 +5,13 @@ import shutil
 import numpy as np
 import pytest
 
-from gtforge.build_dataset import BuildParams, Manifest, build_scene_arrays
-from gtforge.calibrate import CalibrationFile
 from gtforge.core.geometry import T_from_rotvec
+from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
-from gtforge.verify import VerificationReport, VerifyParams, predicted_shift, verify_dataset, verify_scene
+from gtforge.records.calibration import CalibrationFile
+from gtforge.records.dataset import BuildParams, Manifest
+from gtforge.records.verification import VerificationReport, VerifyParams
+from gtforge.verify import predicted_shift, verify_dataset, verify_scene
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +86,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
     crashed on the shapes before). A work width of 300 px forces a factor 3 on this 883 px wide scene."""
     import cv2
 
-    from gtforge.build_dataset import write_verification_overlay
+    from gtforge.verify import write_verification_overlay
 
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(moved_session)
@@ -220,7 +222,7 @@ def test_local_normalize_is_the_numpy_expression():
     with NaN and inf in the image, flat areas and a mask whose weights fall to 0 (division by zero)."""
     import cv2
 
-    from gtforge.verify import local_normalize
+    from gtforge.core.photometric import local_normalize
 
     def reference(img, mask, sigma_px):  # gtforge's numpy implementation before the compiled pass
         k = (0, 0)

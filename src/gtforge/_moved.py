@@ -22,7 +22,14 @@ MOVED: dict[str, tuple[str, ...]] = {
     "gtforge.pool_preload": ("gtforge.infra.pool_preload",),
     **{f"gtforge.{m}": (f"gtforge.core.{m}",) for m in (
         "schema", "camera", "lens", "geometry", "board", "targets", "coverage", "reproject", "reproject_reference",
-        "rectification", "selfcal", "uncertainty", "metrics", "shapefit", "fruit_size", "gauges")},
+        "uncertainty", "metrics", "shapefit", "fruit_size")},
+    # split modules: an attribute is looked up in each new home in turn
+    "gtforge.rectification": ("gtforge.core.rectification", "gtforge.io.zed_rectification",
+                              "gtforge.reports.rectification"),
+    "gtforge.selfcal": ("gtforge.core.selfcal", "gtforge.io.zed_rectification"),
+    "gtforge.gauges": ("gtforge.core.gauges", "gtforge.validate"),
+    "gtforge.targets": ("gtforge.core.targets", "gtforge.core.target_detection", "gtforge.calibrate",
+                        "gtforge.synthetic"),
 }
 
 

@@ -12,23 +12,36 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, ClassVar, Literal
+from typing import Callable
 
-import cv2
 import numpy as np
-from pydantic import Field, PrivateAttr, model_serializer
 
-from gtforge.core.board import Detection, detect_corners
+from gtforge.core.board import BoardSpec, Detection, PoseObs, detect_corners, solve_pnp
+from gtforge.core.board_extrinsic import (
+    _rms,
+    board_corners_from_depth,
+    jackknife_scale,
+    joint_refine,
+    measured_square_size_mm,
+    robust_initial_extrinsic,
+    transfer_error,
+)
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
+from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
+from gtforge.core.selfcal import SelfRectifyParams
+from gtforge.core.target_detection import _pnp_bias_corrected, _unmirror, detect_target
+from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.errors import InputError
-from gtforge.core.geometry import fit_plane_robust, invert_T, make_T, pose_difference, transform_points
-from gtforge.core.rectification import RectificationQuality, ZedConfChoice
-from gtforge.core.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification, self_rectify
-from gtforge.scale_calibration import ScaleCalibration
-from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.synthetic import BoardSpec
+from gtforge.io.zed_rectification import self_rectify
+from gtforge.records.calibration import (
+    CalibrateParams,
+    CalibrationFile,
+    MethodResult,
+    PoseReport,
+    calibration_output_path,
+    session_board,
+)
 
 # scipy is imported inside the functions that use it: it adds about 0.4 s to every process start, and the
 # build-dataset workers, which import this module for CalibrationFile, never need it
@@ -38,421 +51,13 @@ log = logging.getLogger("gtforge.calibrate")
 LOO_WARN_PX = 0.3  # verdict WARN when the leave-one-pose-out transfer error exceeds this
 
 
-from gtforge.core.coverage import CoverageReport  # noqa: E402
-from gtforge.core.targets import BoardModel  # noqa: E402  (the board declaration; re-exported here as before)
-
-
-class CalibrateParams(GTModel):
-    board: BoardModel = Field(default_factory=BoardModel)
-    use_depth: bool = False
-    huber_px: float = 1.0
-    outlier_k: float = 4.0  # median + k * 1.4826 * MAD rule on the per-pose extrinsic estimates
-    outlier_floor_deg: float = 0.1
-    outlier_floor_mm: float = 1.0
-    blur_sharpness_px: float = 4.0  # flag poses whose edge width exceeds this
-    min_poses: int = 3
-    leave_one_out: bool = True
-    # the board's squares measured in the depth must match square_size_mm within this (%); 0 switches it off
-    square_check_pct: float = Field(3.0, ge=0)
-    # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
-    methods_agree_deg: float = 0.1
-    methods_agree_mm: float = 1.0
-    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.core.selfcal)
-    self_rectify: bool = True
-
-
-class PoseReport(GTModel):
-    capture: str
-    status: Literal["used", "skipped", "outlier"]
-    reason: str = ""
-    rms_mech_px: float | None = None
-    rms_zed_px: float | None = None
-    max_px: float | None = None
-    sharpness_mech_px: float | None = None
-    sharpness_zed_px: float | None = None
-    blurred: bool = False
-    init_rot_dev_deg: float | None = None
-    init_trans_dev_mm: float | None = None
-    loo_transfer_mean_px: float | None = None
-    loo_transfer_max_px: float | None = None
-    # ChArUco / circle grids (gtforge.core.targets): board points found in each image and in both (None: checkerboard)
-    n_points_mech: int | None = None
-    n_points_zed: int | None = None
-    n_points_common: int | None = None
-
-    @model_serializer(mode="wrap")
-    def _compact(self, handler):
-        d = handler(self)
-        return {k: v for k, v in d.items() if not (k.startswith("n_points_") and v is None)}
-
-
-class MethodResult(GTModel):
-    method: Literal["reprojection", "depth"]
-    T_zed_from_mech: list[list[float]]
-    rms_zed_px: float
-    rot_diff_to_primary_deg: float = 0.0
-    trans_diff_to_primary_mm: float = 0.0
-
-
-class SceneRefinement(GTModel):
-    scene: str
-    status: Literal["used", "excluded", "not usable"]
-    reason: str = ""
-    n_points: int = 0
-    shift_before_px: float | None = None  # |texture shift| (whole area) with the starting calibration
-    shift_after_px: float | None = None  # with the refined calibration
-    fruit_shift_after_px: float | None = None
-    heldout_shift_px: float | None = None  # refined WITHOUT this scene, measured on it (cross-validation)
-
-
-class RefinementInfo(GTModel):
-    """Provenance of a refined calibration (stored in the calibration file)."""
-
-    refined_from: str  # the starting calibration file
-    method: str = "scene texture alignment (direct photometric, Huber IRLS)"
-    scenes_used: list[str]
-    scenes_excluded: dict[str, str] = Field(default_factory=dict)
-    change_rot_deg: float
-    change_trans_mm: float
-    heldout_shift_before_mean_px: float | None = None
-    heldout_shift_after_mean_px: float | None = None
-    sigma_jackknife_rot_deg: float | None = None
-    sigma_jackknife_trans_mm: float | None = None
-    scenes: list[SceneRefinement] = Field(default_factory=list)
-
-
-class CalibrationFile(VersionedFile):
-    """Output of ``gtforge calibrate``; ``rig`` is what every later stage uses."""
-
-    KIND: ClassVar[str] = "gtforge calibration file (from gtforge calibrate)"
-
-    @classmethod
-    def read(cls, path: str | Path) -> "CalibrationFile":
-        """Read a calibration file; a folder holding ``calibration.yaml`` (what ``calibrate -o DIR/`` writes) means
-        that file."""
-        p = Path(path)
-        if p.is_dir() and (p / "calibration.yaml").is_file():
-            p = p / "calibration.yaml"
-        return super().read(p)
-
-    @classmethod
-    def known_extrinsic(cls, rig: Rig, sigma_rot_deg: float = 0.0, sigma_trans_mm: float = 0.0) -> "CalibrationFile":
-        """A calibration file for a rig whose extrinsic is known (synthetic truth, benchmarks), reported with
-        ``sigma_rot_deg`` / ``sigma_trans_mm`` per axis (the covariance's diagonal, independent axes; no covariance
-        when both are 0)."""
-        cov = None
-        if sigma_rot_deg or sigma_trans_mm:
-            cov = np.diag([np.radians(sigma_rot_deg) ** 2] * 3 + [sigma_trans_mm ** 2] * 3).tolist()
-        return cls(rig=rig, board=BoardModel(), captures_used=[], rms_px=0.0, max_px=0.0,
-                   sigma_rot_xyz_deg=[sigma_rot_deg] * 3, sigma_trans_xyz_mm=[sigma_trans_mm] * 3,
-                   sigma_rot_deg=float(np.sqrt(3) * sigma_rot_deg), sigma_trans_mm=float(np.sqrt(3) * sigma_trans_mm),
-                   poses=[], cov_extrinsic_rad_mm=cov)
-
-    rig: Rig
-    board: BoardModel
-    method: Literal["reprojection", "depth"] = "reprojection"
-    session_dir: str = ""
-    captures_used: list[str]
-    rms_px: float
-    max_px: float
-    sigma_rot_xyz_deg: list[float]
-    sigma_trans_xyz_mm: list[float]
-    sigma_rot_deg: float
-    sigma_trans_mm: float
-    loo_transfer_mean_px: float | None = None
-    loo_transfer_max_px: float | None = None
-    poses: list[PoseReport]
-    methods: list[MethodResult] = Field(default_factory=list)
-    residuals_by_region_px: dict[str, float] = Field(default_factory=dict)
-    # Full covariance of the written extrinsic, parameterised as a left perturbation:
-    # T_zed_from_mech = [exp(omega) R | t + delta_t] with omega (rad, 3) then delta_t (mm, 3); rows/columns in
-    # that order (omega_x, omega_y, omega_z, t_x, t_y, t_z). sigma_* above are the square roots of its diagonal.
-    cov_extrinsic_rad_mm: list[list[float]] | None = None
-    # the factor the leave-one-out jackknife scaled cov_extrinsic_rad_mm by (>= 1): over board poses (calibrate) or,
-    # in a refined file, over scenes (refine --loo); None: no jackknife was run for this covariance
-    cov_jackknife_scale: float | None = None
-    square_size_measured_mm: float | None = None  # from the depth camera's view of the board (median over poses)
-    verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
-    verdict_reasons: list[str] = Field(default_factory=list)
-    refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
-    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
-    # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
-    scale_calibration: ScaleCalibration | None = None
-
-    @property
-    def zed_conf_reading(self) -> str | None:
-        """The SN.conf reading later stages rectify raw ZED images with (None: not a raw + SN.conf session)."""
-        return self.zed_conf.reading if self.zed_conf is not None else None
-
-    @property
-    def zed_right_correction(self) -> ZedRightCorrection | None:
-        """The right camera's correction later stages rectify with (None: none was applied)."""
-        s = self.zed_self_rectification
-        return s.correction if s is not None and s.status == "applied" else None
-
-    def open_session(self, session_dir: str | Path):
-        """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading and
-        the self-rectification's correction."""
-        from gtforge.io.captures import open_session
-
-        return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
-                            zed_right_correction=self.zed_right_correction)
-    # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
-    # the conf reading chosen from the board images (gtforge.core.rectification; later stages rectify with it)
-    rectification: RectificationQuality | None = None
-    zed_conf: ZedConfChoice | None = None
-    # the ZED pair's self-rectification (gtforge.core.selfcal): when applied, every later stage rectifies with its correction
-    zed_self_rectification: ZedSelfRectification | None = None
-    time_s: float = 0.0
-    # per-corner residuals for the report (not written into the calibration file)
-    _residuals: dict = PrivateAttr(default_factory=dict)
-    _coverage_inputs: dict = PrivateAttr(default_factory=dict)
-
-    def attach_coverage(self) -> "CalibrationFile":
-        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage) from
-        the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
-        (a few tenths of a second)."""
-        from gtforge.core.coverage import coverage_report
-
-        if self._coverage_inputs:
-            self.coverage = coverage_report(**self._coverage_inputs)
-        return self
-
-
-@dataclass
-class PoseObs:
-    name: str
-    mech_uv: np.ndarray  # (N, 2) detected in the structured-light texture (distorted pixels)
-    zed_uv: np.ndarray  # (N, 2) detected in the rectified ZED left image
-    T_mech_from_board: np.ndarray
-    T_zed_from_board: np.ndarray
-    depth_mm: np.ndarray | None = None
-    det_mech: Detection | None = None
-    det_zed: Detection | None = None
-    ids: np.ndarray | None = None  # board-point ids of mech_uv/zed_uv rows (ChArUco, circles); None: all, in order
-
-    def board_points(self, board) -> np.ndarray:
-        """``(N, 3)`` board-frame points of this pose's ``mech_uv``/``zed_uv`` rows."""
-        X = board.corners_board()
-        return X if self.ids is None else X[self.ids]
-
-
 # ---- PnP ------------------------------------------------------------------------------------
-def solve_pnp(obj_pts: np.ndarray, uv: np.ndarray, cam: PinholeCamera) -> np.ndarray:
-    """``T_cam_from_obj`` from 3D-2D correspondences (IPPE for planar sets, then LM refinement)."""
-    obj = np.ascontiguousarray(obj_pts, np.float64).reshape(-1, 1, 3)
-    img = np.ascontiguousarray(uv, np.float64).reshape(-1, 1, 2)
-    planar = np.ptp(obj[:, 0, 2]) < 1e-9
-    flag = cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_EPNP
-    ok, rvec, tvec = cv2.solvePnP(obj, img, cam.K, cam.dist, flags=flag)
-    if not ok:
-        raise RuntimeError("solvePnP failed")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, cam.K, cam.dist, rvec, tvec,
-                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-12))
-    return make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
 
 
 # ---- fusion ---------------------------------------------------------------------------------
-def robust_initial_extrinsic(Ts: list[np.ndarray], params: CalibrateParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rotation mean on SO(3) + translation mean over poses kept by a median/MAD rule.
-
-    Returns (T, inlier mask, rotation deviation deg, translation deviation mm)."""
-    from scipy.spatial.transform import Rotation
-    Rs = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts]))
-    ts = np.stack([T[:3, 3] for T in Ts])
-    keep = np.ones(len(Ts), bool)
-    for _ in range(3):
-        R_mean = Rs[keep].mean()
-        t_med = np.median(ts[keep], axis=0)
-        rot_dev = np.degrees((R_mean.inv() * Rs).magnitude())
-        tr_dev = np.linalg.norm(ts - t_med, axis=1)
-        new_keep = np.ones(len(Ts), bool)
-        for dev, floor in ((rot_dev, params.outlier_floor_deg), (tr_dev, params.outlier_floor_mm)):
-            med = np.median(dev[keep])
-            mad = 1.4826 * np.median(np.abs(dev[keep] - med))
-            new_keep &= dev <= med + params.outlier_k * max(mad, floor)
-        if new_keep.sum() < 2 or np.array_equal(new_keep, keep):
-            keep = new_keep if new_keep.sum() >= 2 else keep
-            break
-        keep = new_keep
-    R_mean = Rs[keep].mean()
-    T = make_T(R_mean.as_matrix(), ts[keep].mean(axis=0))
-    rot_dev = np.degrees((R_mean.inv() * Rs).magnitude())
-    tr_dev = np.linalg.norm(ts - T[:3, 3], axis=1)
-    return T, keep, rot_dev, tr_dev
-
-
-def _project_many(cam: PinholeCamera, pts: np.ndarray) -> np.ndarray:
-    return cam.project(pts.reshape(-1, 3)).reshape(pts.shape[:-1] + (2,))
-
-
-def _perturbed(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``T = [exp(x[:3]) R0 | t0 + x[3:]]`` (small-perturbation parametrisation)."""
-    from scipy.spatial.transform import Rotation
-    return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])
-
-
-@dataclass
-class Refined:
-    T_zed_from_mech: np.ndarray
-    T_mech_from_board: list[np.ndarray]
-    res_mech: np.ndarray  # (P, N, 2)
-    res_zed: np.ndarray  # (P, N, 2)
-    cov_extrinsic: np.ndarray  # (6, 6): rotation perturbation (rad), translation (mm)
-    n_iter: int
-
-
-def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera, board: BoardSpec,
-                 T_zed_from_mech0: np.ndarray, huber_px: float = 1.0,
-                 T_mech_from_board0: list[np.ndarray] | None = None) -> Refined:
-    """Minimise every corner's reprojection error in both cameras over the extrinsic and the board poses."""
-    from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
-    if any(o.ids is not None for o in obs):
-        return _joint_refine_ragged(obs, mech, zed_cam, board, T_zed_from_mech0, huber_px, T_mech_from_board0)
-    P = len(obs)
-    X = board.corners_board()
-    N = len(X)
-    Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
-    uv_m = np.stack([o.mech_uv for o in obs])
-    uv_z = np.stack([o.zed_uv for o in obs])
-
-    def unpack(x):
-        Te = _perturbed(T_zed_from_mech0, x[:6])
-        Tbs = [_perturbed(Tb0[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
-        return Te, Tbs
-
-    def residuals(x):
-        Te, Tbs = unpack(x)
-        pm = np.stack([transform_points(T, X) for T in Tbs])
-        pz = np.stack([transform_points(Te @ T, X) for T in Tbs])
-        rm = _project_many(mech, pm) - uv_m
-        rz = _project_many(zed_cam, pz) - uv_z
-        return np.concatenate([rm.reshape(P, -1), rz.reshape(P, -1)], axis=1).ravel()
-
-    m = P * N * 4
-    sp = lil_matrix((m, 6 + 6 * P), dtype=int)
-    for i in range(P):
-        rows = slice(i * N * 4, (i + 1) * N * 4)
-        sp[rows, 6 + 6 * i: 12 + 6 * i] = 1
-        sp[i * N * 4 + N * 2: (i + 1) * N * 4, :6] = 1
-    x0 = np.zeros(6 + 6 * P)
-    sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
-                        method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
-    Te, Tbs = unpack(sol.x)
-    r = sol.fun.reshape(P, 4 * N)
-    res_m = r[:, :2 * N].reshape(P, N, 2)
-    res_z = r[:, 2 * N:].reshape(P, N, 2)
-    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
-    dof = max(m - len(x0), 1)
-    s2 = float(np.sum(sol.fun ** 2) / dof)
-    try:
-        cov = np.linalg.inv(J.T @ J) * s2
-    except np.linalg.LinAlgError:
-        cov = np.full((len(x0), len(x0)), np.nan)
-    return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
-
-
-def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera, board,
-                         T_zed_from_mech0: np.ndarray, huber_px: float = 1.0,
-                         T_mech_from_board0: list[np.ndarray] | None = None) -> Refined:
-    """``joint_refine`` for poses with different point sets (ChArUco partial views): the same residuals with each
-    pose's own board points (all mech residuals, then all ZED residuals); ``res_mech``/``res_zed`` are lists."""
-    from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
-    P = len(obs)
-    Xs = [o.board_points(board) for o in obs]
-    Ns = np.array([len(X) for X in Xs])
-    starts = np.concatenate([[0], np.cumsum(Ns)])
-    n_pts = int(starts[-1])
-    Xh = np.concatenate([np.column_stack([X, np.ones(len(X))]) for X in Xs])
-    pose_of = np.repeat(np.arange(P), Ns)
-    uv_m = np.concatenate([o.mech_uv for o in obs])
-    uv_z = np.concatenate([o.zed_uv for o in obs])
-    Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
-
-    def unpack(x):
-        Te = _perturbed(T_zed_from_mech0, x[:6])
-        Tbs = [_perturbed(Tb0[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
-        return Te, Tbs
-
-    def residuals(x):
-        Te, Tbs = unpack(x)
-        Tm = np.stack(Tbs)[pose_of]  # (n, 4, 4): each point's board pose
-        pm = np.einsum("nij,nj->ni", Tm[:, :3], Xh)
-        pz = pm @ Te[:3, :3].T + Te[:3, 3]
-        return np.concatenate([(mech.project(pm) - uv_m).ravel(), (zed_cam.project(pz) - uv_z).ravel()])
-
-    m = 4 * n_pts
-    sp = lil_matrix((m, 6 + 6 * P), dtype=int)
-    for i in range(P):
-        rows_m = slice(2 * starts[i], 2 * starts[i + 1])
-        rows_z = slice(2 * n_pts + 2 * starts[i], 2 * n_pts + 2 * starts[i + 1])
-        sp[rows_m, 6 + 6 * i: 12 + 6 * i] = 1
-        sp[rows_z, 6 + 6 * i: 12 + 6 * i] = 1
-        sp[rows_z, :6] = 1
-    x0 = np.zeros(6 + 6 * P)
-    sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
-                        method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
-    Te, Tbs = unpack(sol.x)
-    rm, rz = sol.fun[:2 * n_pts].reshape(-1, 2), sol.fun[2 * n_pts:].reshape(-1, 2)
-    res_m = [rm[starts[i]:starts[i + 1]] for i in range(P)]
-    res_z = [rz[starts[i]:starts[i + 1]] for i in range(P)]
-    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
-    s2 = float(np.sum(sol.fun ** 2) / max(m - len(x0), 1))
-    try:
-        cov = np.linalg.inv(J.T @ J) * s2
-    except np.linalg.LinAlgError:
-        cov = np.full((len(x0), len(x0)), np.nan)
-    return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
 
 
 # ---- depth-based corners ----------------------------------------------------------------------
-def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, depth_cam: PinholeCamera | None = None,
-                             T_mech_from_depth: np.ndarray | None = None) -> np.ndarray | None:
-    """3D corners (mech frame) measured by the depth camera: a robust plane through the board's depth, intersected
-    with the texture camera's corner rays. The board's area in the depth image comes from the texture camera's PnP
-    pose mapped into the depth camera (the same camera, and the detected corners, when there is one camera)."""
-    if o.depth_mm is None:
-        return None
-    depth_cam = depth_cam or mech
-    T_md = np.eye(4) if T_mech_from_depth is None else np.asarray(T_mech_from_depth, float)
-    X_depth = transform_points(invert_T(T_md) @ o.T_mech_from_board, o.board_points(board))
-    uv_depth = depth_cam.project(X_depth)
-    if not np.all(np.isfinite(uv_depth)):
-        return None
-    hull = cv2.convexHull(uv_depth.astype(np.float32)).reshape(-1, 2)
-    centre = hull.mean(0)
-    hull = centre + 0.92 * (hull - centre)  # stay off the board edge
-    mask = np.zeros(o.depth_mm.shape, np.uint8)
-    cv2.fillPoly(mask, [np.round(hull).astype(np.int32)], 1)
-    v, u = np.nonzero((mask > 0) & np.isfinite(o.depth_mm))
-    if len(v) < 50:
-        return None
-    rays = depth_cam.ray_grid()[v, u]
-    z = o.depth_mm[v, u].astype(np.float64)
-    pts = transform_points(T_md, np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1))
-    n, c, _ = fit_plane_robust(pts, threshold_mm=1.0)
-    xy = mech.undistort_to_normalized(o.mech_uv)
-    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-    t = c / (d @ n)
-    return d * t[:, None]
-
-
-def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec, ids: np.ndarray | None = None) -> float:
-    """Median distance between neighbouring corners of one pose (mm); with ``ids`` (ChArUco, circle grids) the
-    neighbours' distances scaled to the declared spacing (asymmetric grids' nearest neighbours are sqrt(2) apart)."""
-    if ids is not None:
-        from gtforge.core.targets import neighbour_pairs
-
-        a, b = neighbour_pairs(board, ids)
-        Xb = board.corners_board()[ids]
-        ratio = np.linalg.norm(corners_mech[a] - corners_mech[b], axis=1) / np.linalg.norm(Xb[a] - Xb[b], axis=1)
-        return float(np.median(ratio) * board.square_size_mm)
-    g = corners_mech.reshape(board.rows, board.cols, 3)
-    d = np.concatenate([np.linalg.norm(np.diff(g, axis=1), axis=2).ravel(),
-                        np.linalg.norm(np.diff(g, axis=0), axis=2).ravel()])
-    return float(np.median(d))
 
 
 # ---- main entry -------------------------------------------------------------------------------
@@ -460,7 +65,7 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
                 mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
                 blur_px: float) -> tuple[PoseObs | None, PoseReport]:
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-        from gtforge.core.targets import detect_pose_target
+        from gtforge.calibrate import detect_pose_target
 
         return detect_pose_target(name, texture, depth_mm, zed_left, mech, zed, board, blur_px)
     dm = detect_corners(texture, board)
@@ -481,36 +86,6 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
     rep = PoseReport(capture=name, status="used", sharpness_mech_px=finite_or_none(dm.sharpness_px),
                      sharpness_zed_px=finite_or_none(dz.sharpness_px), blurred=blurred)
     return PoseObs(name, dm.corners_uv, dz.corners_uv, T_mb, T_zb, depth_mm, dm, dz), rep
-
-
-def _rms(a: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum(a.reshape(-1, 2) ** 2, axis=1))))
-
-
-def jackknife_scale(T: np.ndarray, T_loo: list[np.ndarray], cov: np.ndarray) -> float | None:
-    """``max(1, rms_i(C_jack[i, i] / cov[i, i]))`` over the six parameters, where ``C_jack`` is the jackknife
-    covariance of the leave-one-out solutions ``T_loo`` around ``T`` (parameterised as ``cov``). None below 4.
-
-    Measured (benchmarks/bench_uncertainty.py, tests/test_uncertainty.py): the normalised squared error of the
-    extrinsic averages 10.9 with the Jacobian covariance on rendered boards (correlated detector errors) and 7.6 once
-    scaled; with independent corner noise 5.7 unscaled and 4.5 scaled (6 is right). The mean ratio gave 8.5 / 4.7,
-    the largest 4.5 / 3.5."""
-    from scipy.spatial.transform import Rotation
-    n = len(T_loo)
-    if n < 4 or not np.all(np.isfinite(cov)):
-        return None
-    xs = np.array([np.concatenate([Rotation.from_matrix(Ti[:3, :3] @ T[:3, :3].T).as_rotvec(), Ti[:3, 3] - T[:3, 3]])
-                   for Ti in T_loo])
-    d = xs - xs.mean(axis=0)
-    c_jack = (n - 1) / n * (d.T @ d)
-    ratio = float(np.sqrt(np.mean((np.diag(c_jack) / np.maximum(np.diag(cov), 1e-30)) ** 2)))
-    return max(1.0, ratio)
-
-
-def transfer_error(o: PoseObs, T_zed_from_mech: np.ndarray, zed_cam: PinholeCamera, board: BoardSpec) -> np.ndarray:
-    """Per-corner error (px) of mech-PnP board corners mapped into the ZED-left image."""
-    X = transform_points(T_zed_from_mech @ o.T_mech_from_board, o.board_points(board))
-    return np.linalg.norm(zed_cam.project(X) - o.zed_uv, axis=1)
 
 
 def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: PinholeCamera,
@@ -669,13 +244,13 @@ def _depth_method(used: list[PoseObs], corners_depth: dict[str, np.ndarray], zed
     P3, P2 = np.concatenate(P3), np.concatenate(P2)
 
     def residuals(x):
-        return (zed.left.project(transform_points(_perturbed(T_init, x), P3)) - P2).ravel()
+        return (zed.left.project(transform_points(perturb_left(T_init, x), P3)) - P2).ravel()
 
     sol = least_squares(residuals, np.zeros(6), method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
-    T = _perturbed(T_init, sol.x)
+    T = perturb_left(T_init, sol.x)
     res = sol.fun.reshape(-1, 2)
     # re-linearise at the solution so the covariance is in the parameterisation around the written T
-    J = least_squares(lambda x: (zed.left.project(transform_points(_perturbed(T, x), P3)) - P2).ravel(),
+    J = least_squares(lambda x: (zed.left.project(transform_points(perturb_left(T, x), P3)) - P2).ravel(),
                       np.zeros(6), max_nfev=1, method="lm").jac
     s2 = float(np.sum(res ** 2) / max(res.size - 6, 1))
     try:
@@ -690,9 +265,8 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
               progress: Callable[[str], None] | None = None) -> CalibrationFile:
     """Calibrate from a capture session's ``board/`` captures; writes ``out_path`` (YAML) when given
     (an existing folder, or a path ending in ``/``, gets ``calibration.yaml`` inside it)."""
-    from gtforge.io.captures import open_session
-
     from gtforge.core.targets import check_board_model
+    from gtforge.io.captures import open_session
 
     params = params or CalibrateParams()
     session = open_session(session_dir)
@@ -703,7 +277,8 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         out_path = calibration_output_path(out_path)
         session.refuse_output_inside_captures(out_path)
     dirs = session.select("board", captures, exclude)
-    from gtforge.core.rectification import RectificationMeter, rectified_by, settle_zed_conf_reading
+    from gtforge.core.rectification import RectificationMeter
+    from gtforge.io.zed_rectification import rectified_by, settle_zed_conf_reading
 
     checker = params.board.kind == "checkerboard"
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it);
@@ -748,50 +323,83 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     return result
 
 
+def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, blur_px: float,
+                       min_common: int = MIN_COMMON_CORNERS):
+    """``gtforge.calibrate.detect_pose`` for ChArUco and circle grids: points matched by id between the two
+    cameras; a pose with fewer than ``min_common`` common points, or collinear ones, is skipped with the reason.
+    Each camera's board pose (PnP) uses all its own points; the extrinsic only the common ones."""
+    from gtforge.core.board import PoseObs, solve_pnp
+    from gtforge.records.calibration import PoseReport
 
-def session_board(session, given: BoardModel, given_explicitly: bool) -> BoardModel:
-    """The board to use: session.yaml's ``board:`` when there is one, with the fields given explicitly (CLI options,
-    ``given.model_fields_set``) overriding it; else ``given``."""
-    declared = getattr(session.config, "board", None)
-    if declared is None:
-        return given
-    if not given_explicitly:
-        return declared
-    return BoardModel.model_validate({**declared.model_dump(), **{k: getattr(given, k) for k in given.model_fields_set}})
+    dm = detect_target(texture, spec, mech, where=f"{name}: structured-light image")
+    dz = detect_target(zed_left, spec, zed.left, where=f"{name}: ZED-left image")
+    if dm is None or dz is None:
+        which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
+        log.warning("capture %s: board not found in the %s image; skipped", name, which)
+        return None, PoseReport(capture=name, status="skipped", reason=f"board not found in the {which} image")
+    X = spec.corners_board()
+    counts = dict(n_points_mech=len(dm.ids), n_points_zed=len(dz.ids))
+    for d, cam, cname in ((dm, mech, "structured-light"), (dz, zed.left, "ZED")):
+        if len(d.ids) < min_common or collinear(X[d.ids]):
+            why = (f"only {len(d.ids)} board points in the {cname} image (need {min_common})" if len(d.ids) < min_common
+                   else f"the board points in the {cname} image lie on one line")
+            log.warning("capture %s: %s; skipped", name, why)
+            return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+    if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
+        dm, dz = _unmirror(spec, dm, mech, solve_pnp), _unmirror(spec, dz, zed.left, solve_pnp)
+    T_mb, uv_m_all = _pnp_bias_corrected(spec, dm, mech, solve_pnp)
+    T_zb, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+    if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
+        # a symmetric grid has a 180-degree ambiguity: each camera may have numbered it from the other end. The
+        # cameras look the same way (their relative rotation about the view axis is far below 90 degrees), so the
+        # board's x axis points the same way in both; flip the ZED's numbering when it does not
+        if T_mb[:3, 0] @ T_zb[:3, 0] < 0:
+            dz = Detection(dz.corners_uv[::-1].copy(), dz.sharpness_px, dz.method, dz.pattern_contrast, dz.ids)
+            T_zb, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+    common, im, iz = np.intersect1d(dm.ids, dz.ids, return_indices=True)
+    counts["n_points_common"] = len(common)
+    if len(common) < min_common:
+        why = f"only {len(common)} board points seen by both cameras (need {min_common})"
+        log.warning("capture %s: %s; skipped", name, why)
+        return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+    if collinear(X[common]):
+        why = "the board points both cameras see lie on one line"
+        log.warning("capture %s: %s; skipped", name, why)
+        return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+    blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)
+    if blurred:
+        log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
+
+    def fin(x: float) -> float | None:
+        return float(x) if np.isfinite(x) else None
+
+    rep = PoseReport(capture=name, status="used", sharpness_mech_px=fin(dm.sharpness_px),
+                     sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
+    obs = PoseObs(name, uv_m_all[im], uv_z_all[iz], T_mb, T_zb, depth_mm, dm, dz, ids=common)
+    return obs, rep
 
 
-def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
-                              hint: str = "was this calibration made for another session?") -> None:
-    """The calibration's cameras have the session's image sizes (a calibration of another rig or resolution would
-    otherwise fail deep inside a stage)."""
-    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
-                       ("depth_cam", rig.depth_camera, session.depth_camera)):
-        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
-            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
-                             f"{a.width_px}x{a.height_px} px", hint)
+def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
+                   min_common: int = MIN_COMMON_CORNERS) -> tuple[Detection, Detection, np.ndarray] | str:
+    """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
+    circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
+    reason the pose cannot be used."""
+    from gtforge.core.camera import RectifiedStereo
+
+    zed = RectifiedStereo(left=zed_cam, baseline_mm=1.0)
+    o, rep = detect_pose_target(name, texture, None, zed_left, mech, zed, spec, float("inf"), min_common)
+    if o is None:
+        return rep.reason
+    dm = Detection(o.mech_uv, o.det_mech.sharpness_px, o.det_mech.method, o.det_mech.pattern_contrast, o.ids)
+    dz = Detection(o.zed_uv, o.det_zed.sharpness_px, o.det_zed.method, o.det_zed.pattern_contrast, o.ids)
+    return dm, dz, o.ids
 
 
-def open_calibrated_session(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None,
-                            example_name: str):
-    """The prologue of the stages that turn a calibration into a new one (refine, calibrate-scale): the calibration,
-    the session as it sees it (``CalibrationFile.open_session``), checked against it, and the output path, which may
-    be neither inside the captures nor the input file. Returns ``(calib, session, out_path or None)``."""
-    calib_path = Path(calibration)
-    calib = CalibrationFile.read(calib_path)
-    session = calib.open_session(session_dir)
-    check_rig_matches_session(calib.rig, session, calib_path)
-    if out_path is not None:
-        out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
-        if Path(out_path).resolve() == calib_path.resolve():
-            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
-                             "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
-    return calib, session, out_path
-
-
-def calibration_output_path(out_path: str | Path) -> Path:
-    """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
-    p = Path(out_path)
-    if p.is_dir() or str(out_path).endswith(("/", "\\")):
-        return p / "calibration.yaml"
-    return p
+# Moved in round 3 (docs/architecture.md); still importable from here for one release.
+from gtforge.core.board_extrinsic import Refined  # noqa: E402,F401
+from gtforge.records.calibration import (  # noqa: E402,F401
+    RefinementInfo,
+    SceneRefinement,
+    check_rig_matches_session,
+    open_calibrated_session,
+)

@@ -7,19 +7,20 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.build_dataset import BuildParams, Manifest, build_dataset
-from gtforge.calibrate import CalibrateParams, calibrate
-from gtforge.evaluate import evaluate
+from gtforge.build_dataset import build_dataset
+from gtforge.calibrate import calibrate
 from gtforge.core.geometry import pose_difference
+from gtforge.evaluate import evaluate
 from gtforge.io.formats import read_pfm
-from gtforge.predictors import SGBM
-from gtforge.refine import RefineParams, refine
-from gtforge.synthetic import SyntheticTruth, generate_session
 from gtforge.io.outputs import require_new_or_empty_folder
+from gtforge.predictors import SGBM
+from gtforge.records.calibration import CalibrateParams
+from gtforge.records.dataset import BuildParams, Manifest
+from gtforge.refine import RefineParams, refine
 from gtforge.reports.calibration import write_calibration_report
 from gtforge.reports.evaluation import tables_markdown
+from gtforge.synthetic import SyntheticTruth, generate_session
 from gtforge.validate import validate
-
 
 # The demo's right ZED camera is turned against zed_calibration.yaml, as a real unit's is against its factory file
 # (rows about 0.4 px apart at the demo's size): calibrate's self-rectification finds and removes it.

@@ -18,6 +18,16 @@ import tempfile
 import time
 from pathlib import Path
 
+# A kernel of each part of a build, by its full name: the reader, both ZED views' rasterisation, the occlusion test,
+# the sigma map, the verification's render and cubic samples, the writers, the fork server's preload.
+# tests/cli/test_precompile.py checks that each is in numba's cache after compile_kernels.
+KERNELS = (
+    "gtforge.io.captures._depth_mm", "gtforge.io.formats._png_unfilter", "gtforge.core.reproject._mesh_rows_stereo",
+    "gtforge.core.reproject._disparity_nonoccluded", "gtforge.core.uncertainty._sigma_kernel",
+    "gtforge.core.render._render_kernel", "gtforge.core.photometric._cubic_at", "gtforge.io.formats._pfm_rows",
+    "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
+)
+
 
 def compile_kernels(scale: float = 0.25) -> float:
     """Build one synthetic scene at ``scale`` (of the ZED Mini's 2208x1242) with one thread and with every core, so
@@ -26,10 +36,10 @@ def compile_kernels(scale: float = 0.25) -> float:
 
     import gtforge.infra.pool_preload  # noqa: F401  (its kernel: what a local pool's fork server loads)
     from gtforge.build_dataset import build_dataset
-    from gtforge.calibrate import CalibrationFile
     from gtforge.core.camera import Rig
-    from gtforge.io.captures import open_session
     from gtforge.infra.scheduling import cpu_count, limit_threads
+    from gtforge.io.captures import open_session
+    from gtforge.records.calibration import CalibrationFile
     from gtforge.synthetic import SyntheticTruth, generate_session
 
     t0 = time.perf_counter()

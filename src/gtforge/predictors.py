@@ -10,8 +10,8 @@ from typing import Literal, Protocol
 import cv2
 import numpy as np
 
-from gtforge.errors import InputError
 from gtforge.core.schema import GTModel
+from gtforge.errors import InputError
 
 # the files PredictionFolder looks for, in this order (docs/metrics.md, "Predictions")
 PREDICTION_CANDIDATES = ("<id>.pfm", "<id>.npy", "<id>.png", "<id>_10.png", "<id>/disp0.pfm", "<id>/disp0GT.pfm")

@@ -26,16 +26,25 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from gtforge.build_dataset import BuildParams, build_scene_arrays
-from gtforge.calibrate import (CalibrationFile, RefinementInfo, SceneRefinement, jackknife_scale,
-                               open_calibrated_session)
+from gtforge.core.board_extrinsic import jackknife_scale
 from gtforge.core.camera import Rig
-from gtforge.errors import InputError
 from gtforge.core.geometry import pose_difference, transform_points
-from gtforge.io.formats import to_gray
+from gtforge.core.photometric import (
+    interior_mask,
+    local_normalize,
+    sample_cubic,
+    smooth_depth_mask,
+    textured_mask,
+    to_gray,
+)
+from gtforge.core.render import render_texture
 from gtforge.core.schema import GTModel
-from gtforge.verify import (VerifyParams, sample_cubic, interior_mask, textured_mask, local_normalize,
-                            render_texture, smooth_depth_mask, verify_scene)
+from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.errors import InputError
+from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement, open_calibrated_session
+from gtforge.records.dataset import BuildParams
+from gtforge.records.verification import VerifyParams
+from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.refine")
 
@@ -66,7 +75,7 @@ class ScenePoints:
 
 
 def _perturbed(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
-    from gtforge.calibrate import _perturbed as p
+    from gtforge.refine import _perturbed as p
 
     return p(T0, x)
 
@@ -100,7 +109,7 @@ def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
     zed_right = cap.zed_right
     if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image re-rectified, as build writes it
-        from gtforge.scale_calibration import corrected_right_image
+        from gtforge.core.scale_corrections import corrected_right_image
 
         zed_right = corrected_right_image(zed_right, rig)
     ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, zed_right,

@@ -35,19 +35,25 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable
 
 import cv2
 import numpy as np
-from pydantic import Field
 
 from gtforge.core.camera import Rig, ScaleCorrections
-from gtforge.errors import InputError
 from gtforge.core.geometry import invert_T, transform_points
-from gtforge.io.formats import to_gray
-from gtforge.core.schema import GTModel
-from gtforge.verify import (VerifyParams, even_subset, interior_mask, local_normalize, smooth_depth_mask,
-                            textured_mask, verify_scene)
+from gtforge.core.photometric import (
+    even_subset,
+    interior_mask,
+    local_normalize,
+    smooth_depth_mask,
+    textured_mask,
+    to_gray,
+)
+from gtforge.core.scale_corrections import apply_homography, spline_coefficients, spline_sample, yaw_homography
+from gtforge.errors import InputError
+from gtforge.records.calibration import ScaleCalibration, ScaleParams, ScaleTerm, SceneScaleReport
+from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.scale_calibration")
 
@@ -57,114 +63,7 @@ IB, IY, IK, IC = range(4)
 COARSE_SIGMA_PX = 1.5  # the coarse pass's blur: brings shifts of a few px into the fine pass's reach
 
 
-class ScaleParams(GTModel):
-    points_per_scene: int = Field(40000, ge=1000)  # textured GT pixels per scene, evenly subsampled
-    huber: float = Field(0.5, gt=0)  # on normalised intensities
-    iterations: int = Field(30, ge=1)  # Gauss-Newton steps per solve
-    outer_iterations: int = Field(4, ge=1)  # solve, rebuild every scene's GT with the result, solve again...
-    converged_px: float = Field(0.002, gt=0)  # ... until a pass moves the scenes' disparities by less than this
-    cov_tile_px: int = Field(16, ge=1)
-    # a parameter whose 1-sigma moves disparities (at the scenes' median depth) by more than this is not applied
-    max_sigma_px: float = Field(0.1, gt=0)
-    # a determined parameter is applied only when its estimate is more than this many sigma from 0 (an insignificant
-    # correction would only move the GT by noise); the others are then solved again with it held at 0
-    apply_z: float = Field(2.0, ge=0)
-    use_boards: bool = True
-    board_depth_window_px: int = Field(3, ge=1)  # half-size of the depth window fitted at each corner
-    verify: VerifyParams = Field(default_factory=VerifyParams)
-
-
-class ScaleTerm(GTModel):
-    """One parameter: ``estimate`` +- ``sigma`` (every determined term free: the covariance's), ``value`` what was
-    applied (0 unless "applied"; solved with the terms not applied held at 0), and where it came from.
-    "not significant": the estimate is within ``ScaleParams.apply_z`` sigma of 0."""
-
-    value: float
-    estimate: float | None
-    sigma: float | None
-    status: Literal["applied", "not significant", "not determined", "not separable"]
-    sources: list[str] = Field(default_factory=list)
-    reason: str = ""
-
-
-class SceneScaleReport(GTModel):
-    scene: str
-    excluded: str = ""  # why the scene was left out ("": used)
-    n_points: int = 0
-    disparity_bias_before_px: float | None = None  # mean (d_img - d_gt) over the used pixels, before
-
-
-class ScaleCalibration(GTModel):
-    """What ``gtforge calibrate-scale`` found and applied (stored in the calibration file)."""
-
-    method: str = "scene stereo consistency (photometric Gauss-Newton) + board PnP, stereo and depth"
-    calibrated_from: str
-    # conventions: the ZED's true baseline = (1 + zed_baseline_frac) x the file's; the right camera turned by
-    # zed_right_yaw_deg about its y axis; the depth map reads (1 + depth_scale_frac) z + depth_offset_mm
-    terms: dict[str, ScaleTerm]
-    # 4x4 over PARAMS' order (fraction, deg, fraction, mm); rows/columns of a term not determined are 0
-    covariance: list[list[float]]
-    # b + k (what scenes alone determine) with its sigma
-    combined_scale_frac: float
-    combined_scale_sigma_frac: float | None
-    baseline_file_mm: float  # the baseline before this correction (rig.zed.baseline_mm now holds the corrected one)
-    scenes_used: list[str]
-    board_poses_used: list[str] = Field(default_factory=list)
-    passes: int = 0
-    scenes: list[SceneScaleReport] = Field(default_factory=list)
-    time_s: float = 0.0
-
-
 # ---- the right image's yaw ---------------------------------------------------------------------
-def yaw_homography(rig: Rig, yaw_rad: float) -> np.ndarray:
-    """``H``: rectified right pixel -> pixel of the right image as captured by a right camera turned by ``yaw_rad``
-    about its y axis (``K_r R_y(yaw) K_r^-1``, homogeneous)."""
-    K = rig.zed.right.K
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-    return K @ R @ np.linalg.inv(K)
-
-
-def apply_homography(H: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    w = H[2, 0] * u + H[2, 1] * v + H[2, 2]
-    return (H[0, 0] * u + H[0, 1] * v + H[0, 2]) / w, (H[1, 0] * u + H[1, 1] * v + H[1, 2]) / w
-
-
-def spline_coefficients(stack: np.ndarray) -> np.ndarray:
-    """Cubic B-spline coefficients of each image of a stack (K, H, W), float64 (``spline_sample``)."""
-    from scipy import ndimage
-
-    return np.stack([ndimage.spline_filter(np.asarray(a, np.float64), order=3, mode="mirror") for a in stack])
-
-
-def spline_sample(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(K, N) cubic B-spline samples of each image at the points ``(x, y)`` (exact positions).
-
-    Not verify's Keys cubic convolution: its error depends on the sub-pixel phase, which along a row is the
-    disparity's fractional part, so it correlates with depth, the very thing the scale terms are fitted to. On the
-    synthetic scenes (0.35x, right camera turned 0.15 deg) it biased the scenes' estimate by (b + k, c, yaw) =
-    (+0.0040, -1.6 mm, +0.0074 deg), about 4 sigma; with B-splines (+0.0005, -0.34 mm, -0.0000 deg)."""
-    from scipy import ndimage
-
-    return np.stack([ndimage.map_coordinates(c, [y, x], order=3, prefilter=False, mode="mirror") for c in coeffs])
-
-
-def corrected_right_image(image: np.ndarray | None, rig: Rig) -> np.ndarray | None:
-    """The right image re-rectified for ``rig.scale_corrections``' yaw (the image itself when none): each rectified
-    pixel sampled (cubic B-spline, exact positions; black outside) where the turned camera saw it."""
-    yaw = rig.zed_right_yaw_deg
-    if image is None or yaw == 0.0:
-        return image
-    h, w = image.shape[:2]
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-    us, vs = apply_homography(yaw_homography(rig, np.radians(yaw)), uu.ravel(), vv.ravel())
-    img = np.asarray(image)
-    stack = img[None] if img.ndim == 2 else np.moveaxis(img, 2, 0)
-    out = spline_sample(spline_coefficients(stack), us, vs)
-    inside = (us >= 0) & (us <= w - 1) & (vs >= 0) & (vs <= h - 1)
-    out = np.where(inside[None], out, 0.0)
-    out = np.clip(np.round(out), 0, 255).astype(img.dtype).reshape((-1, h, w))
-    return out[0] if img.ndim == 2 else np.ascontiguousarray(np.moveaxis(out, 0, 2))
 
 
 # ---- scenes: stereo consistency -----------------------------------------------------------------
@@ -390,8 +289,7 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
 def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
                        progress: Callable[[str], None] | None = None) -> list[BoardMeasurement]:
     """Detect the board in every board capture (texture, ZED left and right images) and measure from them."""
-    from gtforge.core.board import detect_corners
-    from gtforge.calibrate import solve_pnp
+    from gtforge.core.board import detect_corners, solve_pnp
 
     X = board.corners_board()
     zed_poses, depth_poses = [], []
@@ -455,8 +353,9 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                     progress: Callable[[str], None] | None = None):
     """Estimate and apply the disparity-scale terms (module docstring); writes ``out_path`` when given. Returns the
     corrected calibration file (``scale_calibration`` says what was found and applied)."""
-    from gtforge.build_dataset import BuildParams, build_scene_arrays
-    from gtforge.calibrate import CalibrationFile, open_calibrated_session
+    from gtforge.dataset.ground_truth import build_scene_arrays
+    from gtforge.records.calibration import CalibrationFile, open_calibrated_session
+    from gtforge.records.dataset import BuildParams
 
     t0 = time.perf_counter()
     params = params or ScaleParams()
@@ -606,39 +505,5 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     return out
 
 
-def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
-    """Each GT pixel's 1-sigma (px) from the applied scale terms' covariance: ``sqrt(J C J^T)`` with
-    ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units)."""
-    zed = rig.zed
-    fb = zed.f_px * zed.baseline_mm
-    z = np.asarray(depth_mm, np.float64)
-    x = (np.arange(z.shape[1], dtype=np.float64)[None, :] - zed.left.cx_px) / zed.f_px
-    J = [fb / z, np.broadcast_to(zed.f_px * (1 + x * x) * np.pi / 180.0, z.shape), fb / z, fb / z ** 2]
-    C = np.asarray(info.covariance, np.float64)
-    var = np.zeros(z.shape)
-    for i in range(4):
-        for j in range(4):
-            if C[i, j] != 0.0:
-                var += J[i] * C[i, j] * J[j]
-    return np.sqrt(np.maximum(var, 0.0))
-
-
-def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
-    """``sigma_px`` (float32, +inf where no GT) with the scale terms' sigma added in quadrature."""
-    s = scale_sigma_px(depth_mm, rig, info)
-    with np.errstate(invalid="ignore"):
-        out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
-    return out.astype(np.float32)
-
-
-def shown_disparity_px(disp_true_px: np.ndarray, rig: Rig, yaw_true_deg: float) -> np.ndarray:
-    """What the dataset's pair shows (synthetic truth): the left image against the right image re-rectified with
-    ``rig``'s yaw when the right camera is really turned by ``yaw_true_deg``; ``disp_true_px`` is the ideal rectified
-    pair's disparity at ZED-left pixel centres. (The left pixel's match in the re-rectified image is
-    ``H(yaw_rig)^-1 H(yaw_true)`` of its ideal match.)"""
-    h, w = disp_true_px.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    xr = u - disp_true_px
-    ua, va = apply_homography(yaw_homography(rig, np.radians(yaw_true_deg)), xr, v)
-    ui, _ = apply_homography(np.linalg.inv(yaw_homography(rig, np.radians(rig.zed_right_yaw_deg))), ua, va)
-    return (u - ui).astype(np.float32)
+# Moved in round 3 (docs/architecture.md); still importable from here for one release.
+from gtforge.core.scale_corrections import add_scale_sigma, corrected_right_image, scale_sigma_px, shown_disparity_px  # noqa: E402,F401

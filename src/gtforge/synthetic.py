@@ -7,6 +7,9 @@ noisy). Every truth is exact: the extrinsic, board poses, corner pixels in both 
 disparity at ZED-left pixel centres, which ZED-left pixels the depth camera really saw, the fruit mask.
 
 World frame: the table is ``z = 0``, ``z`` up. Deterministic by seed.
+
+One module over 500 lines on purpose: the scenes, rigs, renderers and session writers share one scene model and
+change together whenever a new effect is simulated; tests and benchmarks import them from one place.
 """
 from __future__ import annotations
 
@@ -17,66 +20,17 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
+from gtforge.core.board import BoardSpec
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
-from gtforge.io.formats import write_image, write_tiff_float
 from gtforge.core.schema import VersionedFile
+from gtforge.core.targets import collinear
+from gtforge.io.formats import write_image, write_tiff_float
 
 OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
 
 
 # ---- board -----------------------------------------------------------------------------------
-class GridCounts:
-    """``pattern_size`` and ``n_corners`` of a target whose points form ``cols`` x ``rows`` (every target kind)."""
-
-    cols: int
-    rows: int
-
-    @property
-    def pattern_size(self) -> tuple[int, int]:
-        return (self.cols, self.rows)
-
-    @property
-    def n_corners(self) -> int:
-        return self.cols * self.rows
-
-
-@dataclass(frozen=True)
-class BoardSpec(GridCounts):
-    """Checkerboard: ``cols`` x ``rows`` inner corners, ``square_size_mm``.
-
-    Board frame: origin at inner corner 0, x along a corner row, y down the columns, z into the board.
-    The square diagonally outside corner 0 (board x, y in [-s, 0]) is **black**; with an odd
-    ``cols + rows`` the opposite outer square is white, which fixes the 180-degree ambiguity.
-    """
-
-    cols: int = 12
-    rows: int = 9
-    square_size_mm: float = 20.0
-    margin_mm: float = 15.0
-
-    def corners_board(self) -> np.ndarray:
-        """``(N, 3)`` inner corners in the board frame, OpenCV order (x fastest)."""
-        j, i = np.mgrid[0:self.rows, 0:self.cols]
-        s = self.square_size_mm
-        return np.stack([i.ravel() * s, j.ravel() * s, np.zeros(i.size)], axis=1).astype(np.float64)
-
-    def extent_mm(self) -> tuple[float, float, float, float]:
-        s, m = self.square_size_mm, self.margin_mm
-        return (-s - m, self.cols * s + m, -s - m, self.rows * s + m)
-
-    def albedo(self, xy: np.ndarray) -> np.ndarray:
-        s = self.square_size_mm
-        ix = np.floor(xy[:, 0] / s)
-        iy = np.floor(xy[:, 1] / s)
-        inside = (ix >= -1) & (ix <= self.cols - 1) & (iy >= -1) & (iy <= self.rows - 1)
-        dark = inside & (((ix + iy) % 2) == 0)
-        return np.where(dark, 0.08, 0.88)
-
-    @property
-    def diagonal_mm(self) -> float:
-        s = self.square_size_mm
-        return float(np.hypot((self.cols - 1) * s, (self.rows - 1) * s))
 
 
 # ---- procedural texture ----------------------------------------------------------------------
@@ -655,7 +609,7 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         if progress:
             progress(f"board {cap.name}")
     if partial_poses:
-        from gtforge.core.targets import random_partial_board_pose
+        from gtforge.synthetic import random_partial_board_pose
         for k in range(partial_poses):
             T = random_partial_board_pose(rng, rig, board, k % 4, partial_camera)
             cap = board_capture(f"{n_board + k:03d}", rig, board, T, rng, seed + n_board + k, **kw)
@@ -926,7 +880,7 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
     calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
     depth scale error). ``names``: only these of ``sphere``, ``sphere_pair``, ``plane``. ``truth/gauge_<name>.npz``: the
     exact centres (ZED-left frame) or plane, and ZED-left truth."""
-    from gtforge.core.gauges import GaugeSpec, GaugesFile
+    from gtforge.core.gauges import GaugesFile, GaugeSpec
 
     root = Path(session_dir)
     rig = two_camera_rig(scale) if two_camera else default_rig(scale)
@@ -954,3 +908,124 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
                                centre_distance_mm=truth.get("centre_distance_mm")))
     GaugesFile(gauges=specs).write(root / "gauges" / "gauges.yaml")
     return root
+
+
+def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int, camera: str = "mech",
+                              min_common: int = 12, tries: int = 3000) -> np.ndarray:
+    """``T_world_from_board`` with the board cut by ``camera``'s image border ("mech" or "zed") near image corner
+    ``corner`` (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left): some of its points outside that image, at
+    least ``min_common`` inside both the texture and the ZED-left image (3 px from the border), the board above the
+    table and seen at most 60 degrees off-axis. These are the poses a full-board rule loses."""
+    from gtforge.core.geometry import invert_T, make_T, transform_points
+
+    cam, T_cam_from_world = (rig.mech, rig.T_mech_from_world) if camera == "mech" else (rig.zed.left, rig.T_zed_from_world)
+    X = board.corners_board()
+    ex = board.extent_mm()
+    outline = np.array([[ex[0], ex[2], 0], [ex[1], ex[2], 0], [ex[0], ex[3], 0], [ex[1], ex[3], 0]])
+    centre_b = np.array([(ex[0] + ex[1]) / 2, (ex[2] + ex[3]) / 2, 0])
+    fu, fv = [(0, 0), (1, 0), (1, 1), (0, 1)][corner]
+    z_table = float(T_cam_from_world[2, 3])  # about the camera's distance to the table
+    views = [(rig.mech, rig.T_mech_from_world), (rig.zed.left, rig.T_zed_from_world)]
+    for _ in range(tries):
+        a, b = rng.uniform(0.02, 0.2, size=2)
+        u = (1 - a if fu else a) * cam.width_px
+        v = (1 - b if fv else b) * cam.height_px
+        xy = cam.undistort_to_normalized(np.array([[u, v]]))[0]
+        if not np.all(np.isfinite(xy)):
+            continue
+        p_cam = np.array([xy[0], xy[1], 1.0]) * rng.uniform(0.55, 0.85) * z_table
+        tilt = rng.uniform(-35, 35, size=2)
+        R = cv2.Rodrigues(np.radians([tilt[0], tilt[1], 0.0]))[0] @ cv2.Rodrigues(np.radians([0, 0, rng.uniform(-30, 30)]))[0]
+        T_cam_from_board = make_T(R, np.zeros(3))
+        T_cam_from_board[:3, 3] = p_cam - R @ centre_b
+        T = invert_T(T_cam_from_world) @ T_cam_from_board
+        if (transform_points(T, outline)[:, 2] < 5).any():
+            continue  # under the table
+        inside_all, ok = [], True
+        for c, Tcw in views:
+            pc = transform_points(Tcw @ T, X)
+            n_cam = (Tcw @ T)[:3, 2]
+            m = pc.mean(0)
+            if np.any(pc[:, 2] <= 0) or n_cam @ (m / np.linalg.norm(m)) < np.cos(np.radians(60)):
+                ok = False
+                break
+            uv = c.project(pc)
+            inside_all.append((uv[:, 0] >= 3) & (uv[:, 1] >= 3) & (uv[:, 0] <= c.width_px - 4) & (uv[:, 1] <= c.height_px - 4))
+        if not ok:
+            continue
+        own = inside_all[0] if camera == "mech" else inside_all[1]
+        both = inside_all[0] & inside_all[1]
+        if own.all() or both.sum() < min_common or collinear(X[both]):
+            continue
+        return T
+    raise RuntimeError(f"could not place a board cut by the {camera} image's corner {corner}")
+
+
+
+@dataclass
+class BoardViews:
+    """What calibrate needs from one board capture (no right image), with the exact truth."""
+
+    name: str
+    mech_texture: np.ndarray
+    mech_depth_mm: np.ndarray
+    zed_left: np.ndarray
+    T_mech_from_board: np.ndarray
+    corners_mech_uv: np.ndarray
+    corners_zed_uv: np.ndarray
+
+
+
+def _render_cropped(scene, cam, T_cam_from_world: np.ndarray, T_world_from_board: np.ndarray, board,
+                    supersample: int, background: float = 0.3) -> np.ndarray:
+    """Linear RGB of ``scene`` rendered only inside the board's bounding box (a camera with the same lens and a
+    shifted principal point sees exactly the same rays there); elsewhere a flat ``background``."""
+    from gtforge.core.geometry import transform_points
+    from gtforge.synthetic import render_image
+
+    ex = board.extent_mm()
+    t = np.linspace(0, 1, 24)
+    edge = np.concatenate([np.stack([ex[0] + t * (ex[1] - ex[0]), np.full_like(t, y)], 1) for y in ex[2:]]
+                          + [np.stack([np.full_like(t, x), ex[2] + t * (ex[3] - ex[2])], 1) for x in ex[:2]])
+    pc = transform_points(T_cam_from_world @ T_world_from_board, np.column_stack([edge, np.zeros(len(edge))]))
+    out = np.full((cam.height_px, cam.width_px, 3), background)
+    pc = pc[pc[:, 2] > 0]
+    if len(pc) == 0:
+        return out
+    uv = cam.project(pc)
+    u0, v0 = (np.floor(uv.min(0)) - 6).astype(int)
+    u1, v1 = (np.ceil(uv.max(0)) + 6).astype(int)
+    u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, cam.width_px - 1), min(v1, cam.height_px - 1)
+    if u1 <= u0 or v1 <= v0:
+        return out
+    crop = cam.model_copy(update=dict(width_px=int(u1 - u0 + 1), height_px=int(v1 - v0 + 1),
+                                      cx_px=cam.cx_px - u0, cy_px=cam.cy_px - v0))
+    out[v0:v1 + 1, u0:u1 + 1] = render_image(scene, crop, T_cam_from_world, supersample)
+    return out
+
+
+
+def render_board_views(name: str, rig, board, T_world_from_board: np.ndarray, rng: np.random.Generator, seed: int,
+                       supersample: int = 2, image_noise: float = 1.0, blur_sigma_px: float = 0.6) -> BoardViews:
+    """The texture, the depth (exact, projector shadows ignored: a flat board casts none on itself) and the
+    rectified ZED-left image of one board pose, rendered inside the board's bounding box only (the table around it
+    is flat grey): ``gtforge.synthetic.board_capture`` without the right image and the stereo truth, several
+    times faster, for tests that only calibrate."""
+    from gtforge.core.geometry import transform_points
+    from gtforge.synthetic import OBJ_BOARD, PlaneObject, Scene, _table, finish_image, raycast_depth
+
+    scene = Scene([_table(seed), PlaneObject(OBJ_BOARD, T_world_from_board, board.albedo, board.extent_mm())])
+    tex = finish_image(_render_cropped(scene, rig.mech, rig.T_mech_from_world, T_world_from_board, board, supersample),
+                       rng, blur_sigma_px, image_noise, gray=True)
+    left = finish_image(_render_cropped(scene, rig.zed.left, rig.T_zed_from_world, T_world_from_board, board,
+                                        supersample), rng, blur_sigma_px, image_noise)
+    z, _, _ = raycast_depth(scene, rig.depth_camera, rig.T_depth_from_world)
+    depth = np.where(np.isfinite(z), z, np.nan).astype(np.float32)
+    T_mb = rig.T_mech_from_world @ T_world_from_board
+    X = board.corners_board()
+    return BoardViews(name, tex, depth, left, T_mb, rig.mech.project(transform_points(T_mb, X)),
+                      rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_world_from_board, X)))
+
+
+# Moved in round 3 (docs/architecture.md); still importable from here for one release.
+from gtforge.core.board import GridCounts  # noqa: E402,F401

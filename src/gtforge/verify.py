@@ -25,356 +25,42 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Callable, ClassVar, Literal, NamedTuple
+from typing import Callable, NamedTuple
 
 import cv2
 import numba
 import numpy as np
-from pydantic import Field
 
-from gtforge.core import lens
 from gtforge.core.camera import Rig
-from gtforge.errors import InputError
 from gtforge.core.geometry import finite_box, mask_bounding_box, transform_points
-from gtforge.io.formats import to_gray
-from gtforge.core.rectification import VERTICAL_WARN_PX
-from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.core.photometric import (
+    MAX_POINTS,
+    ShiftAligner,
+    ShiftEstimate,
+    even_subset,
+    interior_mask,
+    local_normalize,
+    pixels_of,
+    sample_cubic,
+    smooth_depth_mask,
+    take_at,
+    textured_mask,
+    to_gray,
+)
+from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
+from gtforge.core.render import render_texture
+from gtforge.dataset.worker_cache import _cached_session
+from gtforge.errors import InputError
+from gtforge.io.formats import write_image
+from gtforge.records.calibration import CalibrationFile
+from gtforge.records.dataset import SceneMeta
+from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationReport, VerifyParams
+from gtforge.reports.verification import write_verification_report
 
 log = logging.getLogger("gtforge.verify")
 
-REGION_NONE, REGION_BG, REGION_CENTRE, REGION_EDGE = 0, 1, 2, 3  # as gtforge.build_dataset writes region.png
-
-
-class VerifyParams(GTModel):
-    """Thresholds (px at the dataset's resolution) and settings of the per-scene checks."""
-
-    max_shift_px: float = Field(0.25, gt=0)  # |texture shift| over the fruit or the whole valid area
-    min_correlation: float = Field(0.5, ge=-1, le=1)  # normalised cross-correlation after alignment
-    max_disparity_bias_px: float = Field(0.1, gt=0)  # |stereo disparity bias| in any region
-    # |vertical disparity v_left - v_right| over the whole area; the board figure's threshold
-    max_vertical_px: float = Field(VERTICAL_WARN_PX, gt=0)
-    max_bad_match_pct: float = Field(10.0, gt=0)  # share of textured pixels with a clearly worse match at the GT
-    bad_match_ratio: float = Field(1.5, gt=1)  # "clearly worse": cost at GT > ratio * best cost within +-1 px
-    norm_sigma_px: float = Field(3.0, gt=0)  # Gaussian window of the local normalisation
-    min_pixels: int = Field(400, ge=50)  # fewer usable pixels in a region: that region is not measured
-    tiles: tuple[int, int] = (4, 3)  # shift map: tiles across x, y
-    # the checks run on images reduced by an integer factor to at most this width (2208 -> 1104: factor 2); figures
-    # are reported in the dataset's pixels
-    work_width_px: int = Field(1200, ge=64)
-    texture_occlusion_tol_mm: float = 2.0  # a GT point hidden from the texture camera by more than this is skipped
-
-
-class ShiftEstimate(GTModel):
-    dx_px: float | None = None
-    dy_px: float | None = None
-    correlation: float | None = None  # ZNCC of the normalised images after alignment
-    n_pixels: int = 0
-
-    @property
-    def magnitude_px(self) -> float | None:
-        return None if self.dx_px is None else float(np.hypot(self.dx_px, self.dy_px))
-
-
-class StereoEstimate(GTModel):
-    disparity_bias_px: float | None = None
-    vertical_px: float | None = None
-    bad_match_pct: float | None = None
-    n_pixels: int = 0
-
-
-class SceneVerification(GTModel):
-    status: Literal["ok", "flagged", "not verifiable"]
-    reasons: list[str] = Field(default_factory=list)
-    texture_all: ShiftEstimate = Field(default_factory=ShiftEstimate)
-    texture_fruit: ShiftEstimate = Field(default_factory=ShiftEstimate)
-    texture_tiles: list[list[float | None]] = Field(default_factory=list)  # rows of (u_centre, v_centre, dx, dy)
-    stereo: dict[str, StereoEstimate] = Field(default_factory=dict)  # region name -> estimate
-
-    @property
-    def worst_shift_px(self) -> float:
-        vals = [e.magnitude_px for e in (self.texture_all, self.texture_fruit) if e.magnitude_px is not None]
-        return max(vals) if vals else float("nan")
-
-
-class VerificationReport(VersionedFile):
-    """``verification.json`` in a dataset: every scene's checks and the thresholds they were judged by."""
-
-    KIND: ClassVar[str] = "verification report (verification.json from gtforge build-dataset / verify)"
-    dataset_dir: str
-    params: VerifyParams
-    scenes: dict[str, SceneVerification]
-
-    @property
-    def flagged(self) -> dict[str, list[str]]:
-        return {s: v.reasons for s, v in self.scenes.items() if v.status == "flagged"}
-
 
 # ---- image helpers ------------------------------------------------------------------------------
-def local_normalize(img: np.ndarray, mask: np.ndarray | None, sigma_px: float) -> np.ndarray:
-    """Zero local mean, unit local standard deviation within a Gaussian window, using only ``mask`` pixels
-    (normalised convolution; ``None``: every pixel); 0 outside the mask. Removes gain, offset and slow shading
-    differences."""
-    k = (0, 0)
-    x = np.ascontiguousarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
-    if mask is None:  # the weights are all 1: no normalisation by them
-        w, m = np.ones((1, 1), np.float32), np.ones((1, 1), np.bool_)
-    else:
-        m = np.ascontiguousarray(mask, np.bool_)
-        w = cv2.GaussianBlur(m.astype(np.float32), k, sigma_px)
-    out = np.empty(x.shape, np.float32)
-    _normalized(x, cv2.GaussianBlur(x, k, sigma_px), cv2.GaussianBlur(x * x, k, sigma_px), w, m, mask is not None,
-                out)
-    return out
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _normalized(x, blur_x, blur_xx, w, mask, weighted, out):
-    """``local_normalize``'s arithmetic after its blurs, in one pass with numpy's float32 operations in numpy's order:
-    mean = blur(x) [/ w], var = blur(x^2) [/ w] - mean^2, (x - mean) / sqrt(max(var, 1e-6) + 1) (+1 grey level^2: flat
-    areas stay near 0), 0 outside the mask (or where w <= 0.5) and where not finite (the same values as the numpy
-    expression it replaces, which took 2 ms of a 700x460 image in a dozen passes)."""
-    H, W = x.shape
-    eps, one, half = np.float32(1e-6), np.float32(1.0), np.float32(0.5)
-    for v in range(H):
-        for u in range(W):
-            mean, sq = blur_x[v, u], blur_xx[v, u]
-            if weighted:
-                mean, sq = mean / w[v, u], sq / w[v, u]
-            var = sq - mean * mean
-            var = var if (var >= eps) | (var != var) else eps  # np.maximum: NaN stays NaN
-            o = (x[v, u] - mean) / np.sqrt(var + one)
-            if weighted and not (mask[v, u] and w[v, u] > half):
-                o = np.float32(0.0)
-            out[v, u] = o if abs(o) < np.inf else np.float32(0.0)  # (NaN compares false)
-
-
-def interior_mask(mask: np.ndarray, radius_px: int) -> np.ndarray:
-    """Mask pixels whose whole ``radius_px`` neighbourhood is in the mask (normalisation and gradients are exact)."""
-    k = 2 * radius_px + 1
-    return cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
-
-
-def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occlusion_tol_mm: float = 2.0,
-                   origin_px: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
-    """The texture image rendered into the ZED-left view through the GT depth: ``(float32 image, valid mask)``.
-
-    Each ZED-left pixel with GT depth is back-projected, moved into the texture camera (``T_mech_from_zed``),
-    projected with its lens model and sampled bilinearly. A point the texture camera cannot see (outside its image,
-    or hidden behind another GT point by more than ``occlusion_tol_mm``) is left out. ``depth_zed_mm`` may be a
-    window of the ZED-left image whose pixel ``[0, 0]`` is the image's pixel ``(u, v) = origin_px``."""
-    zed, mech = rig.zed.left, rig.mech
-    T = rig.T_mech_from_zed
-    d = lens.full_coeffs(mech.dist_coeffs)
-    tilted = bool(d[12] != 0.0 or d[13] != 0.0)
-    out = np.zeros(depth_zed_mm.shape, np.float32)
-    ok = np.zeros(depth_zed_mm.shape, bool)
-    _render_kernel(np.asarray(depth_zed_mm, np.float32), float(origin_px[0]), float(origin_px[1]),
-                   np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]), np.ascontiguousarray(T[:3, :3]),
-                   np.ascontiguousarray(T[:3, 3]), np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
-                   lens.tilt_matrix(d[12], d[13]), tilted, np.ascontiguousarray(to_gray(texture)),
-                   rig.separate_depth_camera, float(occlusion_tol_mm), out, ok)
-    return out, ok
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _render_kernel(depth, x0, y0, k_zed, R, t, k_tex, dist, M, tilted, tex, zbuffer, tol_mm, out, ok):
-    """``render_texture``'s loop over the pixels: texture-camera position and depth of each GT pixel (depth NaN: not
-    seen), the z-buffer of those (only with ``zbuffer``: a separate depth camera), then the bilinear samples."""
-    H, W = depth.shape
-    th, tw = tex.shape
-    # the positions as three planes, every pixel computed and the unseen ones marked by a NaN depth at the end: no
-    # branch in the loop, so the compiler vectorises it (the same arithmetic, the same positions)
-    pu, pv, pz = np.empty((H, W)), np.empty((H, W)), np.empty((H, W))
-    for v in range(H):
-        ru, rv, rz, drow = pu[v], pv[v], pz[v], depth[v]
-        for u in range(W):
-            z = np.float64(drow[u])
-            X = (u + x0 - k_zed[2]) / k_zed[0] * z
-            Y = (v + y0 - k_zed[3]) / k_zed[1] * z
-            Zm = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * z + t[2]
-            Xm = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * z + t[0]
-            Ym = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * z + t[1]
-            xd, yd = lens.distort_point(Xm / Zm, Ym / Zm, dist, M, tilted)
-            ut = k_tex[0] * xd + k_tex[2]
-            vt = k_tex[1] * yd + k_tex[3]
-            seen = (abs(z) < np.inf) & (Zm > 0) & (ut >= 0) & (ut <= tw - 1) & (vt >= 0) & (vt <= th - 1)
-            ru[u] = ut
-            rv[u] = vt
-            rz[u] = Zm if seen else np.nan
-    zbuf = np.full((th, tw) if zbuffer else (1, 1), np.inf)
-    if zbuffer:  # the depth camera saw these points; the texture camera may not: z-buffer them in the texture image
-        for v in range(H):
-            for u in range(W):
-                if math.isfinite(pz[v, u]):
-                    ti, tj = int(np.rint(pv[v, u])), int(np.rint(pu[v, u]))
-                    zbuf[ti, tj] = min(zbuf[ti, tj], pz[v, u])
-    for v in range(H):
-        for u in range(W):
-            ut, vt, Zm = pu[v, u], pv[v, u], pz[v, u]
-            if not math.isfinite(Zm) or (zbuffer and Zm > zbuf[int(np.rint(vt)), int(np.rint(ut))] + tol_mm):
-                continue
-            # bilinear at the exact position (cv2.remap would round it to 1/32 px)
-            i = min(int(ut), tw - 2) if tw > 1 else 0
-            j = min(int(vt), th - 2) if th > 1 else 0
-            fx, fy = ut - i, vt - j
-            i1, j1 = min(i + 1, tw - 1), min(j + 1, th - 1)
-            top = (1.0 - fx) * tex[j, i] + fx * tex[j, i1]
-            bot = (1.0 - fx) * tex[j1, i] + fx * tex[j1, i1]
-            out[v, u] = (1.0 - fy) * top + fy * bot
-            ok[v, u] = True
-
-
-def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px: float = 1.0) -> np.ndarray:
-    """Pixels whose GT disparity varies by less than ``max_range_px`` within ``radius_px`` (away from depth edges,
-    where a rendering through the GT mixes fore- and background and biases an alignment)."""
-    k = np.ones((2 * radius_px + 1,) * 2, np.uint8)
-    d = disparity_px.astype(np.float32)
-    hi = cv2.dilate(np.where(np.isfinite(d), d, -1e6).astype(np.float32), k)
-    lo = cv2.erode(np.where(np.isfinite(d), d, 1e6).astype(np.float32), k)
-    return (hi - lo) < max_range_px
-
-
-@numba.njit(cache=True)
-def _cubic_at(imgs, x, y, out):
-    """Keys cubic convolution (a = -0.5, interpolating) of each image of the stack ``imgs`` (K, H, W) at exact
-    positions into ``out`` (K, N); borders replicated. A point's 4 + 4 weights are computed once, for every image."""
-    K, H, W = imgs.shape
-    for k in range(x.shape[0]):
-        fx = math.floor(x[k])
-        fy = math.floor(y[k])
-        ix = int(fx)
-        iy = int(fy)
-        # the Keys kernel at the 4 taps ix - 1 .. ix + 2 (offsets 1 + t, t, 1 - t, 2 - t), as polynomials in t
-        t = x[k] - fx
-        t2 = t * t
-        t3 = t2 * t
-        wx0, wx1, wx2, wx3 = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
-                              0.5 * t3 - 0.5 * t2)
-        t = y[k] - fy
-        t2 = t * t
-        t3 = t2 * t
-        wy0, wy1, wy2, wy3 = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
-                              0.5 * t3 - 0.5 * t2)
-        if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
-            x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
-        else:
-            x0, x1, x2, x3 = (min(max(ix - 1, 0), W - 1), min(max(ix, 0), W - 1), min(max(ix + 1, 0), W - 1),
-                              min(max(ix + 2, 0), W - 1))
-            y0, y1, y2, y3 = (min(max(iy - 1, 0), H - 1), min(max(iy, 0), H - 1), min(max(iy + 1, 0), H - 1),
-                              min(max(iy + 2, 0), H - 1))
-        for c in range(K):
-            r0 = wx0 * imgs[c, y0, x0] + wx1 * imgs[c, y0, x1] + wx2 * imgs[c, y0, x2] + wx3 * imgs[c, y0, x3]
-            r1 = wx0 * imgs[c, y1, x0] + wx1 * imgs[c, y1, x1] + wx2 * imgs[c, y1, x2] + wx3 * imgs[c, y1, x3]
-            r2 = wx0 * imgs[c, y2, x0] + wx1 * imgs[c, y2, x1] + wx2 * imgs[c, y2, x2] + wx3 * imgs[c, y2, x3]
-            r3 = wx0 * imgs[c, y3, x0] + wx1 * imgs[c, y3, x1] + wx2 * imgs[c, y3, x2] + wx3 * imgs[c, y3, x3]
-            out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
-
-
-def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Cubic samples of ``img`` (H, W), or of each image of a stack (K, H, W) -> (K, N), at the points ``(x, y)``
-    (exact sub-pixel positions: ``cv2.remap`` rounds them to 1/32 px, the size of the shifts measured here)."""
-    imgs = np.ascontiguousarray(img, np.float32)
-    out = np.empty((1 if imgs.ndim == 2 else imgs.shape[0], len(x)))
-    _cubic_at(imgs.reshape((-1,) + imgs.shape[-2:]), np.ascontiguousarray(x, np.float64),
-              np.ascontiguousarray(y, np.float64), out)
-    return out[0] if imgs.ndim == 2 else out
-
-
-# the pixels an estimate uses at most: a larger set is subsampled evenly (the estimate's noise stays far below the
-# thresholds)
-MAX_POINTS = 30000
-
-
-def even_subset(n: int, max_points: int) -> np.ndarray | slice:
-    """Indices of at most ``max_points`` of ``n`` listed items, evenly spread (all of them: ``slice(None)``)."""
-    return np.linspace(0, n - 1, max_points).round().astype(np.int64) if n > max_points else slice(None)
-
-
-def pixels_of(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(v, u, flat index)`` of a 2-D mask's pixels in row-major order (``np.nonzero``'s order; flat indices are 4-5x
-    faster to find and to gather with, ``take_at``)."""
-    idx = np.flatnonzero(mask)
-    v, u = np.divmod(idx, mask.shape[1])
-    return v, u, idx
-
-
-def take_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``a[v, u]`` for the flat indices ``idx`` of ``(v, u)`` in a 2-D array (a gather, not numpy's multi-index
-    iterator: 6x faster; an array that is not C-contiguous is copied first)."""
-    return np.ascontiguousarray(a).reshape(-1).take(idx)
-
-
-class ShiftAligner:
-    """Translation ``d`` with ``img(u + d) ~ ref(u)`` over any mask of pixels (both images already normalised).
-
-    Inverse-compositional Lucas-Kanade (the Hessian from ``ref``'s gradients) with a free gain and offset, ``img``
-    sampled by cubic splines at the mask's points only; a coarse pass on copies blurred by 2 px first, so shifts of a
-    few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
-
-    SIGMAS = (2.0, 0.0)
-    COARSE_TOL_PX = 0.01
-
-    def __init__(self, ref: np.ndarray, img: np.ndarray):
-        self.ref = ref
-        self.levels = []
-        for sigma in self.SIGMAS:
-            r = cv2.GaussianBlur(ref, (0, 0), sigma) if sigma else ref
-            i = cv2.GaussianBlur(img, (0, 0), sigma) if sigma else img
-            self.levels.append((r, cv2.Sobel(r, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8), np.ascontiguousarray(i, np.float32)))
-
-    def align(self, mask: np.ndarray, min_pixels: int = 400, iterations: int = 30, tol_px: float = 1e-4,
-              max_points: int = MAX_POINTS) -> ShiftEstimate:
-        """``max_points``: a larger mask is subsampled evenly (the estimate's noise is far below the thresholds)."""
-        v, u, _ = pixels_of(mask)
-        return self.align_at(v, u, min_pixels, iterations, tol_px, max_points)
-
-    def align_at(self, v: np.ndarray, u: np.ndarray, min_pixels: int = 400, iterations: int = 30,
-                 tol_px: float = 1e-4, max_points: int = MAX_POINTS) -> ShiftEstimate:
-        """``align`` over the pixels ``(v, u)`` of a mask, listed in ``np.nonzero``'s (row-major) order."""
-        n = len(v)
-        if n < min_pixels:
-            return ShiftEstimate(n_pixels=n)
-        keep = even_subset(n, max_points)
-        v, u = v[keep], u[keep]
-        uf, vf = u.astype(np.float64), v.astype(np.float64)
-        idx = v * self.ref.shape[1] + u
-        d = np.zeros(2)
-        for level, (r, gx, gy, coeffs) in enumerate(self.levels):
-            # the coarse pass only brings the fine one near its solution: a loose tolerance there
-            tol = tol_px if level == len(self.levels) - 1 else self.COARSE_TOL_PX
-            rv = take_at(r, idx).astype(np.float64)
-            # img(u + d) * (1 + g) + o ~ ref(u): unknowns (step in d, g, o), linearised at the template
-            At = np.stack([take_at(gx, idx), take_at(gy, idx), rv, np.ones_like(rv)]).astype(np.float64)
-            try:
-                inv = np.linalg.inv(At @ At.T)
-            except np.linalg.LinAlgError:
-                return ShiftEstimate(n_pixels=n)
-            for _ in range(iterations):
-                step = inv @ (At @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv))
-                d -= step[:2]  # inverse composition of a translation
-                if np.abs(d).max() > 20:  # diverged: nothing to align
-                    return ShiftEstimate(n_pixels=n)
-                if np.abs(step[:2]).max() < tol:
-                    break
-        w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
-        rv = take_at(self.ref, idx).astype(np.float64)
-        a, b = rv - rv.mean(), w - w.mean()
-        # plain sums, not BLAS dot products: the same digits whatever the thread count (builds are byte-identical)
-        saa, sbb, sab = float(np.sum(a * a)), float(np.sum(b * b)), float(np.sum(a * b))
-        zncc = sab / np.sqrt(saa * sbb) if saa > 0 and sbb > 0 else None
-        return ShiftEstimate(dx_px=float(d[0]), dy_px=float(d[1]), correlation=zncc, n_pixels=n)
-
-
-def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixels: int = 400) -> ShiftEstimate:
-    """One translation ``d`` with ``img(u + d) ~ ref(u)`` over ``mask`` (see ``ShiftAligner``)."""
-    return ShiftAligner(ref, img).align(mask, min_pixels)
-
-
-def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
-    gx = cv2.Sobel(norm_img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(norm_img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-    return cv2.magnitude(gx, gy) > thresh
 
 
 # ---- the checks -----------------------------------------------------------------------------------
@@ -681,23 +367,16 @@ def predicted_shift(depth_zed_mm: np.ndarray, rig: Rig, T_zed_from_mech_true: np
     return (cam.project(moved) - np.stack([u, v], axis=1)).mean(axis=0)
 
 
-def write_verification_report(report: VerificationReport, out_dir: str | Path) -> Path:
-    """``verification.json`` + ``verification.html`` in ``out_dir``."""
-    from gtforge.reports.verification import write_verification_html
-
-    out = Path(out_dir)
-    report.write(out / "verification.json")
-    return write_verification_html(report, out)
-
-
 def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, scenes: list[str] | None = None,
                    session_dir: str | Path | None = None, workers: int | None = None, scheduler: str | None = None,
                    quarantine: bool = False, progress: Callable[[str], None] | None = None) -> VerificationReport:
     """Re-run the checks on an existing dataset (its manifest names the session and calibration); writes
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
     flagged scenes out of the split lists)."""
-    from gtforge.build_dataset import Manifest, final_splits, verify_one_scene, write_lists, write_split_views
+    from gtforge.dataset.views import final_splits, write_lists, write_split_views
     from gtforge.infra.scheduling import prestart_pool, run_tasks
+    from gtforge.records.dataset import Manifest
+    from gtforge.verify import verify_one_scene
 
     prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
     ds = Path(dataset_dir)
@@ -714,7 +393,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     if not calib.is_file():
         raise InputError(man_path, "calibration_path", "the calibration file the dataset was built from",
                          f"{calib} (no such file)", "restore it; verification needs the rig it was built with")
-    from gtforge.calibrate import CalibrationFile, check_rig_matches_session
+    from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
 
     cal = CalibrationFile.read(calib)
     check_rig_matches_session(cal.rig, cal.open_session(sess), calib,
@@ -750,3 +429,74 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     write_split_views(ds, man.splits, man.params)
     man.write(man_path)
     return rep
+
+
+def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: str,
+                     params_json: str) -> tuple[str, dict]:
+    """Worker for ``gtforge verify``: re-check a built scene against its captures. Returns (sid, SceneVerification)."""
+    from gtforge.io.formats import read_image, read_pfm
+    from gtforge.records.verification import SceneVerification, VerifyParams
+
+    params = VerifyParams.model_validate_json(params_json)
+    s = Path(dataset_dir) / "scenes" / sid
+    try:
+        calib = CalibrationFile.read(calib_path)
+        session = _cached_session(session_dir, calib)
+        rig = calib.rig
+        meta = SceneMeta.read(s / "meta.json")
+        folder = session.root / session.config.scenes_dir / sid
+        if not folder.is_dir():
+            raise InputError(folder, None, "the capture this scene was built from", "no such folder",
+                             "verification needs the session's captures (pass --session if they moved)")
+        cap = session.load_capture(folder)
+        if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image as the dataset's im1 has it
+            from gtforge.core.scale_corrections import corrected_right_image
+
+            cap.zed_right = corrected_right_image(cap.zed_right, rig)
+        disp = read_pfm(s / "disp0GT.pfm")
+        mask = read_image(s / "mask0nocc.png")
+        region = read_image(s / "region.png")
+    except InputError as exc:
+        return sid, SceneVerification(status="not verifiable", reasons=[str(exc)]).model_dump(mode="json")
+    H, W = cap.zed_left.shape[:2]
+    if meta.crop_xywh:  # a cropped dataset: put the crop back where it was cut from
+        x0, y0, cw, ch = meta.crop_xywh
+
+        def uncrop(a, fill):
+            full = np.full((H, W), fill, a.dtype)
+            full[y0:y0 + ch, x0:x0 + cw] = a
+            return full
+
+        disp, mask, region = uncrop(disp, np.nan), uncrop(mask, 0), uncrop(region, 0)
+    depth = rig.zed.disparity_to_depth(disp)
+    ver, rendered = verify_scene(depth, disp, mask == 255, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
+                                 params)
+    if ver.status == "flagged" and rendered is not None:
+        write_verification_overlay(Path(dataset_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
+    return sid, ver.model_dump(mode="json")
+
+
+def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: np.ndarray) -> None:
+    """A flagged scene's overlay for verification.html: ZED-left grey in green, the texture rendered through the
+    ground truth in magenta (both locally normalised); aligned structures look grey, a shift shows as colour fringes."""
+    from gtforge.core.photometric import local_normalize, to_gray
+
+    gray = to_gray(zed_left)
+    if gray.shape != rendered_norm.shape:  # verify_scene renders at its work resolution (a factor smaller)
+        gray = cv2.resize(gray, rendered_norm.shape[::-1], interpolation=cv2.INTER_AREA)
+    g = local_normalize(gray.astype(np.float32), None, 3.0)
+
+    def to8(a):
+        return np.clip(128 + 50 * a, 0, 255).astype(np.uint8)
+
+    rgb = np.stack([to8(rendered_norm), to8(g), to8(rendered_norm)], axis=2)
+    rgb[rendered_norm == 0] = np.stack([to8(g)] * 3, axis=2)[rendered_norm == 0] // 2
+    scale = min(1.0, 1280 / rgb.shape[1])
+    if scale < 1.0:
+        rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    write_image(path, rgb)
+
+
+# Moved in round 3 (docs/architecture.md); still importable from here for one release.
+from gtforge.core.photometric import estimate_shift  # noqa: E402,F401
+from gtforge.core.regions import REGION_NONE  # noqa: E402,F401

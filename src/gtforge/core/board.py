@@ -1,6 +1,6 @@
 """Checkerboard detection with an orientation fixed by the board pattern itself.
 
-The board convention is in ``gtforge.synthetic.BoardSpec``: the square diagonally inside corner 0
+The board convention is in ``gtforge.core.board.BoardSpec``: the square diagonally inside corner 0
 (board x, y in [0, s]) is black. With ``cols + rows`` odd (12x9 is), a 180-degree turn makes it
 white, so the corner order is the same in every camera whatever the viewpoint.
 """
@@ -11,9 +11,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gtforge.core.camera import PinholeCamera
+from gtforge.core.geometry import make_T
+from gtforge.core.photometric import to_gray
 from gtforge.errors import InputError
-from gtforge.io.formats import to_gray
-from gtforge.synthetic import BoardSpec
 
 
 @dataclass
@@ -104,3 +105,90 @@ def detect_corners(image: np.ndarray, board: BoardSpec, min_contrast: float = 20
     except cv2.error:
         sharpness = float("nan")
     return Detection(corners, sharpness, method, contrast)
+
+
+class GridCounts:
+    """``pattern_size`` and ``n_corners`` of a target whose points form ``cols`` x ``rows`` (every target kind)."""
+
+    cols: int
+    rows: int
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+
+
+@dataclass(frozen=True)
+class BoardSpec(GridCounts):
+    """Checkerboard: ``cols`` x ``rows`` inner corners, ``square_size_mm``.
+
+    Board frame: origin at inner corner 0, x along a corner row, y down the columns, z into the board.
+    The square diagonally outside corner 0 (board x, y in [-s, 0]) is **black**; with an odd
+    ``cols + rows`` the opposite outer square is white, which fixes the 180-degree ambiguity.
+    """
+
+    cols: int = 12
+    rows: int = 9
+    square_size_mm: float = 20.0
+    margin_mm: float = 15.0
+
+    def corners_board(self) -> np.ndarray:
+        """``(N, 3)`` inner corners in the board frame, OpenCV order (x fastest)."""
+        j, i = np.mgrid[0:self.rows, 0:self.cols]
+        s = self.square_size_mm
+        return np.stack([i.ravel() * s, j.ravel() * s, np.zeros(i.size)], axis=1).astype(np.float64)
+
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        s, m = self.square_size_mm, self.margin_mm
+        return (-s - m, self.cols * s + m, -s - m, self.rows * s + m)
+
+    def albedo(self, xy: np.ndarray) -> np.ndarray:
+        s = self.square_size_mm
+        ix = np.floor(xy[:, 0] / s)
+        iy = np.floor(xy[:, 1] / s)
+        inside = (ix >= -1) & (ix <= self.cols - 1) & (iy >= -1) & (iy <= self.rows - 1)
+        dark = inside & (((ix + iy) % 2) == 0)
+        return np.where(dark, 0.08, 0.88)
+
+    @property
+    def diagonal_mm(self) -> float:
+        s = self.square_size_mm
+        return float(np.hypot((self.cols - 1) * s, (self.rows - 1) * s))
+
+
+@dataclass
+class PoseObs:
+    name: str
+    mech_uv: np.ndarray  # (N, 2) detected in the structured-light texture (distorted pixels)
+    zed_uv: np.ndarray  # (N, 2) detected in the rectified ZED left image
+    T_mech_from_board: np.ndarray
+    T_zed_from_board: np.ndarray
+    depth_mm: np.ndarray | None = None
+    det_mech: Detection | None = None
+    det_zed: Detection | None = None
+    ids: np.ndarray | None = None  # board-point ids of mech_uv/zed_uv rows (ChArUco, circles); None: all, in order
+
+    def board_points(self, board) -> np.ndarray:
+        """``(N, 3)`` board-frame points of this pose's ``mech_uv``/``zed_uv`` rows."""
+        X = board.corners_board()
+        return X if self.ids is None else X[self.ids]
+
+
+
+def solve_pnp(obj_pts: np.ndarray, uv: np.ndarray, cam: PinholeCamera) -> np.ndarray:
+    """``T_cam_from_obj`` from 3D-2D correspondences (IPPE for planar sets, then LM refinement)."""
+    obj = np.ascontiguousarray(obj_pts, np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(uv, np.float64).reshape(-1, 1, 2)
+    planar = np.ptp(obj[:, 0, 2]) < 1e-9
+    flag = cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_EPNP
+    ok, rvec, tvec = cv2.solvePnP(obj, img, cam.K, cam.dist, flags=flag)
+    if not ok:
+        raise RuntimeError("solvePnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, cam.K, cam.dist, rvec, tvec,
+                                      (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-12))
+    return make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())

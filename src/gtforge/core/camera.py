@@ -213,7 +213,7 @@ class ScaleCorrections(GTModel):
     * ``zed_right_yaw_deg``: the right camera is turned by this about its y axis relative to the rectified right
       camera (``T_actual_from_rectified = R_y(yaw)``); the right image is re-rectified by the homography
       ``K_right R_y(yaw) K_right^-1`` (rectified pixel -> pixel of the image as captured) before it is written or
-      compared (``gtforge.scale_calibration.corrected_right_image``)."""
+      compared (``gtforge.core.scale_corrections.corrected_right_image``)."""
 
     depth_scale: float = Field(1.0, gt=0)
     depth_offset_mm: float = 0.0

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from gtforge.core.geometry import invert_T, transform_points
+from gtforge.core.geometry import invert_T, perturb_left, transform_points
 from gtforge.core.schema import GTModel
 
 GRID_COLS, GRID_ROWS = 8, 6  # the coverage map's cells per image
@@ -86,11 +86,10 @@ def pose_information(T_zed_from_mech: np.ndarray, T_mech_from_board: np.ndarray,
                      sigma_px: float) -> np.ndarray:
     """6x6 information on the extrinsic (left perturbation, rad then mm: ``CalibrationFile.cov_extrinsic_rad_mm``)
     from one pose whose points ``X`` both cameras see, its board pose marginalised out (Schur complement)."""
-    from gtforge.calibrate import _perturbed
 
     def res(x):
-        Te = _perturbed(T_zed_from_mech, x[:6])
-        Tb = _perturbed(T_mech_from_board, x[6:])
+        Te = perturb_left(T_zed_from_mech, x[:6])
+        Tb = perturb_left(T_mech_from_board, x[6:])
         return np.concatenate([mech.project(transform_points(Tb, X)).ravel(),
                                zed_cam.project(transform_points(Te @ Tb, X)).ravel()])
 

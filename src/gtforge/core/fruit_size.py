@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 from pydantic import Field, field_validator
 
-from gtforge.errors import InputError
 from gtforge.core.geometry import fit_plane_robust
 from gtforge.core.schema import GTModel
 from gtforge.core.shapefit import EllipsoidFit, fit_resting_ellipsoid
+from gtforge.errors import InputError
 
 MIN_FRUIT_PX = 200  # smaller fruit components are not measured (specks of a mislabelled region)
 MAX_FIT_POINTS = 4000  # the ellipsoid is fitted to at most this many of a fruit's pixels (an even subsample)
@@ -188,7 +188,7 @@ class _Window:
 
 def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray, step: int = 1) -> np.ndarray:
     """``(N, 3)`` ZED-left points (mm) of the masked pixels with a finite, positive ``d + doffs``; ``calib``: a
-    ``gtforge.evaluate.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column only."""
+    ``gtforge.io.middlebury.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column only."""
     v, u = np.nonzero(mask[::step, ::step])
     v, u = v * step, u * step
     d = disp[v, u].astype(np.float64) + calib.doffs_px

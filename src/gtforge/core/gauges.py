@@ -20,18 +20,18 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Callable, ClassVar, Literal
+from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
 from pydantic import Field, model_validator
 from scipy.stats import norm
 
-from gtforge.errors import InputError
 from gtforge.core.geometry import fit_plane_robust, transform_points
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere, fit_sphere_ransac
 from gtforge.core.uncertainty import DepthNoiseModel
+from gtforge.errors import InputError
 
 log = logging.getLogger("gtforge.core.gauges")
 
@@ -361,32 +361,6 @@ def gauge_status(spec: GaugeSpec, gt: SourceFigures, lim: GaugeLimits) -> tuple[
     return worst, reasons
 
 
-def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParams, limits: GaugeLimits
-                  ) -> tuple[GaugeResult, dict]:
-    """One gauge capture: its ground truth built as build-dataset builds a scene, fitted; the raw depth fitted too.
-    Returns the result and the arrays the report draws (``residual_gt_mm``: (H, W) map on the ZED-left image)."""
-    from gtforge.build_dataset import BuildParams, build_scene_arrays
-    from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
-
-    bp = BuildParams(fruit_height_mm=params.min_height_mm, min_component_frac=0.2)
-    sd, _, fg = build_scene_arrays(depth_mm, rig, bp)
-    P = disparity_points(sd.disparity_px, rig.zed)
-    masks = _components(fg, params.erosion_px)
-    # stated per-pixel sigma of the GT disparity (no extrinsic term: it moves the object rigidly), as depth along z
-    sig_d = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, None,
-                            UncertaintyParams(depth_noise=params.depth_noise), sd.span_mm)
-    fb = rig.zed.left.fx_px * rig.zed.baseline_mm
-    with np.errstate(invalid="ignore"):
-        sig_z = np.where(np.isfinite(sig_d), P[..., 2] ** 2 / fb * sig_d, np.nan)
-    gt, res_gt = measure_source(spec, P, masks, sig_z, np.zeros(3), np.array([0.0, 0.0, 1.0]), params, "gt")
-    raw = None
-    if gt.measurable:
-        raw = _measure_raw(spec, gt, depth_mm, rig, P, fg, params)
-    status, reasons = gauge_status(spec, gt, limits)
-    return GaugeResult(capture=spec.capture, kind=spec.kind, spec=spec, gt=gt, raw=raw, status=status,
-                       reasons=reasons), {"residual_gt_mm": res_gt}
-
-
 def _measure_raw(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, P_gt: np.ndarray, fg: np.ndarray,
                  params: GaugeParams) -> SourceFigures:
     """The raw depth map's points in the ZED-left frame, the object's taken within ``gate_mm`` of the GT fit and
@@ -420,53 +394,6 @@ def _measure_raw(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, 
     sig = params.depth_noise.sigma_mm(depth_mm)
     out, _ = measure_source(spec, Q, masks, sig, T[:3, 3], T[:3, 2], params, "raw")
     return out
-
-
-def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: str | Path | None = None,
-                    params: GaugeParams | None = None, progress: Callable[[str], None] | None = None,
-                    write_html: bool = True) -> GaugeReport:
-    """Measure every gauge of ``session_dir/gauges/gauges.yaml``; ``gauges.json``/``gauges.html`` go to ``out_dir``.
-    ``params``: None takes ``gauges.yaml``'s ``params`` (or the defaults)."""
-    import time
-
-    from gtforge.calibrate import CalibrationFile
-    from gtforge.io.captures import open_session
-
-    t0 = time.perf_counter()
-    calib = CalibrationFile.read(calibration)
-    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
-    gfile = read_gauges_file(session.root)
-    params = params if params is not None else (gfile.params or GaugeParams())
-    if out_dir is not None:
-        session.refuse_output_inside_captures(out_dir)
-        g = (session.root / GAUGES_DIR).resolve()
-        o = Path(out_dir).resolve()
-        if o == g or g in o.parents:
-            raise InputError(out_dir, "--output", "a folder outside the session's captures", f"a path inside {g}",
-                             "gtforge never writes into capture folders")
-    rig = calib.rig
-    results, maps = [], {}
-    for k, spec in enumerate(gfile.gauges):
-        if progress:
-            progress(f"gauge {spec.capture} ({k + 1}/{len(gfile.gauges)})")
-        cap = session.load_capture(session.root / GAUGES_DIR / spec.capture, need_right=False, decode_images=False)
-        res, arrays = measure_gauge(spec, cap.mech_depth_mm, rig, params, gfile.limits)
-        if res.status == "NOT MEASURABLE":
-            log.warning("gauge %s: not measurable: %s", spec.capture, "; ".join(res.reasons))
-        results.append(res)
-        maps[spec.capture] = arrays
-    worst = max((r.status for r in results), key=lambda s: ORDER[s])
-    rep = GaugeReport(session_dir=str(session_dir), calibration_path=str(calibration), limits=gfile.limits,
-                      params=params, gauges=results, status=worst, time_s=time.perf_counter() - t0)
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        rep.write(out / "gauges.json")
-        if write_html:
-            from gtforge.reports.gauges import write_gauges_html
-
-            write_gauges_html(rep, maps, out / "gauges.html")
-    return rep
 
 
 def summary_lines(rep: GaugeReport) -> list[str]:

@@ -155,3 +155,11 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
         best = inliers
         n, off = fit_plane(pts[best])
     return n, off, best
+
+
+def perturb_left(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``T = [exp(omega) R0 | t0 + delta_t]`` with ``x = (omega_rad (3), delta_t_mm (3))``: the left perturbation every
+    covariance of gtforge is written in (``cov_extrinsic_rad_mm``)."""
+    from scipy.spatial.transform import Rotation  # scipy adds ~0.4 s to a process start; build workers never need it
+
+    return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])

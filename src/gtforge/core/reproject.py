@@ -16,6 +16,9 @@ rasterised into its own window of target rows (the rows its points reach, from a
 pass) and the windows are merged by a per-pixel minimum: no full-size buffer per thread, no locks, and
 chunks are handed out dynamically so a thread on a busy core takes fewer. The result does not depend
 on the number of threads (the minimum is order-free).
+
+Over 500 lines on purpose: the kernels and their hand-inlined copies of ``_pixel`` stay side by side so that they
+change together (tests/test_reproject_reference.py pins every path to the float64 reference).
 """
 from __future__ import annotations
 
@@ -388,7 +391,7 @@ class ReprojectParams:
     abs_tol_mm: float = 0.5  # mesh: depth-noise allowance added to the slant bound
 
 
-def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_cam_from_mech: np.ndarray,
+def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_cam_from_depth: np.ndarray,
                             cam: PinholeCamera, params: ReprojectParams = ReprojectParams(), *,
                             return_span: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Structured-light depth ``(Hm, Wm)`` mm (NaN invalid) -> z-depth ``(H, W)`` float32 mm in ``cam``
@@ -398,9 +401,10 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
     z-buffer at each pixel, max - min of its three vertices' Z in ``cam`` (mm); NaN where no triangle.
     Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS``; the result is the
     same for any number."""
-    depth = np.asarray(depth_mech_mm)
-    if depth.shape != (mech.height_px, mech.width_px):
-        raise ValueError(f"{depth.shape=} but expected {(mech.height_px, mech.width_px)} from the mech intrinsics")
+    depth = np.asarray(depth_mm)
+    if depth.shape != (depth_cam.height_px, depth_cam.width_px):
+        raise ValueError(f"{depth.shape=} but expected {(depth_cam.height_px, depth_cam.width_px)} from the depth "
+                         "camera's intrinsics")
     if cam.has_distortion:
         raise ValueError("the target camera must be undistorted (rectified)")
     if params.mode not in ("mesh", "splat"):
@@ -409,12 +413,12 @@ def project_depth_to_camera(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_ca
         raise ValueError("return_span needs mode 'mesh' (a splat has no triangles)")
     mesh = params.mode == "mesh"
     depth = np.ascontiguousarray(depth, dtype=np.float32)
-    T = np.asarray(T_cam_from_mech, np.float64)
+    T = np.asarray(T_cam_from_depth, np.float64)
     R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
-    rx, ry = _ray_planes(mech.model_dump_json())
+    rx, ry = _ray_planes(depth_cam.model_dump_json())
     H, W = cam.height_px, cam.width_px
     fx, fy, cx, cy = cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px
-    k1, k2 = _slant_bounds(mech, params)
+    k1, k2 = _slant_bounds(depth_cam, params)
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
@@ -487,26 +491,26 @@ class StereoDepth:
     span_mm: np.ndarray | None = None  # mesh, when asked: Z range of the winning triangle (see project_depth_to_camera)
 
 
-def reproject_to_zed(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_zed_from_mech: np.ndarray,
+def reproject_to_zed(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_zed_from_depth: np.ndarray,
                      zed: RectifiedStereo, params: ReprojectParams = ReprojectParams(),
                      occlusion_rel_tol: float = 0.01, occlusion_abs_tol_mm: float = 0.5, *,
                      left_span: bool = False) -> StereoDepth:
     """ZED-left depth, disparity ``d = f*B/Z - doffs`` and the non-occluded mask (right-view z-buffer).
     ``left_span`` (mesh): also the left view's ``span_mm``."""
     span = None
-    T_zedr_from_mech = zed.T_zedr_from_zed @ T_zed_from_mech
-    if params.mode == "mesh" and numba.get_num_threads() < MIN_PARALLEL_THREADS and np.shape(depth_mech_mm)[0] >= 8 \
-            and not zed.left.has_distortion and np.shape(depth_mech_mm) == (mech.height_px, mech.width_px):
+    T_zedr_from_depth = zed.T_zedr_from_zed @ T_zed_from_depth
+    if params.mode == "mesh" and numba.get_num_threads() < MIN_PARALLEL_THREADS and np.shape(depth_mm)[0] >= 8 \
+            and not zed.left.has_distortion and np.shape(depth_mm) == (depth_cam.height_px, depth_cam.width_px):
         # one thread (a build worker): both views in one pass over the grid, the same images as the two calls below
-        depth_l, span, depth_r = _project_depth_to_stereo(depth_mech_mm, mech, T_zed_from_mech, T_zedr_from_mech, zed,
+        depth_l, span, depth_r = _project_depth_to_stereo(depth_mm, depth_cam, T_zed_from_depth, T_zedr_from_depth, zed,
                                                           params, left_span)
     else:
         if left_span:
-            depth_l, span = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params,
+            depth_l, span = project_depth_to_camera(depth_mm, depth_cam, T_zed_from_depth, zed.left, params,
                                                     return_span=True)
         else:
-            depth_l = project_depth_to_camera(depth_mech_mm, mech, T_zed_from_mech, zed.left, params)
-        depth_r = project_depth_to_camera(depth_mech_mm, mech, T_zedr_from_mech, zed.right, params)
+            depth_l = project_depth_to_camera(depth_mm, depth_cam, T_zed_from_depth, zed.left, params)
+        depth_r = project_depth_to_camera(depth_mm, depth_cam, T_zedr_from_depth, zed.right, params)
     disp, noc = disparity_and_nonoccluded(depth_l, depth_r, zed, occlusion_rel_tol, occlusion_abs_tol_mm)
     return StereoDepth(depth_l, disp, depth_r, noc, span)
 

@@ -31,9 +31,7 @@ stay exactly as they were.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import cv2
@@ -42,11 +40,10 @@ from pydantic import Field
 from scipy.optimize import least_squares
 
 from gtforge.core.camera import RectifiedStereo
-from gtforge.core.rectification import match_points
 from gtforge.core.schema import GTModel
 
 if TYPE_CHECKING:
-    from gtforge.io.captures import Session
+    pass
 
 log = logging.getLogger("gtforge.core.selfcal")
 
@@ -144,25 +141,6 @@ class Matches:
     right_uv: np.ndarray  # (N, 2) rectified right
 
 
-def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 8000,
-                    progress: Callable[[str], None] | None = None) -> tuple[list[Matches], dict[str, str]]:
-    """Feature matches between the left and right images of each capture, as the session rectifies them."""
-    out, skipped = [], {}
-    for k, d in enumerate(dirs):
-        if progress:
-            progress(f"left-right matches {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=True)
-        if cap.zed_right is None:
-            skipped[d.name] = "no right image"
-            continue
-        pl, pr = match_points(cap.zed_left, cap.zed_right, max_features=max_features)
-        if not len(pl):
-            skipped[d.name] = "no left-right match (too little texture?)"
-            continue
-        out.append(Matches(d.name, pl, pr))
-    return out, skipped
-
-
 def _vertical_residual(theta: np.ndarray, pl: np.ndarray, pr: np.ndarray, stereo: RectifiedStereo,
                        with_omega_y: bool) -> np.ndarray:
     """``v_left - v_right'`` with the right points moved by the correction ``theta``: (omega_x, omega_z, s) or, with
@@ -248,20 +226,6 @@ def fit_self_rectification(matches: list[Matches], stereo: RectifiedStereo, para
             "the images are left as they are", **fields)
     return ZedSelfRectification(status="applied", reason="the captures determine the right camera's residual "
                                 "rotation (about x and z) and focal scale", correction=corr, **fields)
-
-
-def self_rectify(session: Session, dirs: Sequence[Path], params: SelfRectifyParams | None = None,
-                 progress: Callable[[str], None] | None = None) -> ZedSelfRectification:
-    """Match left and right in every capture of ``dirs`` (boards and scenes alike) as ``session`` rectifies them, fit
-    the right camera's correction and decide whether it is applied (module docstring)."""
-    from gtforge.core.rectification import rectified_by
-
-    params = params or SelfRectifyParams()
-    matches, skipped = collect_matches(session, dirs, params.max_features, progress)
-    res = fit_self_rectification(matches, session.zed, params, rectified_by(session), skipped)
-    (log.info if res.status == "applied" else log.warning if res.status == "not determined" else log.info)(
-        res.summary_line())
-    return res
 
 
 # ---- applying it ---------------------------------------------------------------------------------------------------

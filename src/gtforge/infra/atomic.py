@@ -10,7 +10,14 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
 
-from gtforge.infra.unbuffered import MIN_DIRECT_BYTES, AlignedBuffer, aligned_buffer, buffer_of, run_or_queue, write_file
+from gtforge.infra.unbuffered import (
+    MIN_DIRECT_BYTES,
+    AlignedBuffer,
+    aligned_buffer,
+    buffer_of,
+    run_or_queue,
+    write_file,
+)
 
 
 def _umask() -> int:

@@ -222,7 +222,7 @@ class StereoRectifyResult:
 class ZedFactoryCalibration:
     """Raw (unrectified) ZED calibration for one resolution, as written in SN<serial>.conf.
 
-    The STEREO values are kept as written (``baseline_conf_mm`` keeps its sign); ``extrinsics(reading)``
+    The STEREO values are kept as written (``baseline_conf_mm`` keeps its sign); ``R_t_right_from_left(reading)``
     turns them into OpenCV's ``(R, T)``."""
 
     resolution: str
@@ -239,8 +239,9 @@ class ZedFactoryCalibration:
     def size_wh(self) -> tuple[int, int]:
         return self.left.width_px, self.left.height_px
 
-    def extrinsics(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
-        """``(R, T)`` of ``X_right = R @ X_left + T`` (mm) under ``reading`` (``ZED_CONF_READINGS``)."""
+    def R_t_right_from_left(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, T)`` of ``X_right = R @ X_left + T`` (mm) under ``reading`` (``ZED_CONF_READINGS``): the pair
+        ``cv2.stereoRectify`` takes."""
         check_zed_conf_reading(reading)
         R = cv2.Rodrigues(np.asarray(self.rotvec_conf_rad, np.float64).reshape(3, 1))[0]
         if reading.endswith("+inv-rot"):
@@ -250,8 +251,12 @@ class ZedFactoryCalibration:
         T = {"neg-x": np.array([-t[0], t[1], t[2]]), "neg-all": -t, "as-is": t, "right-centre": -R @ t}[base]
         return R, T
 
+    def extrinsics(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
+        """The name ``R_t_right_from_left`` had before round 3; it goes in the next release."""
+        return self.R_t_right_from_left(reading)
+
     def stereo_rectify(self, reading: str = DEFAULT_ZED_CONF_READING) -> StereoRectifyResult:
-        R, T = self.extrinsics(reading)
+        R, T = self.R_t_right_from_left(reading)
         size = self.size_wh
         R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(self.left.K, self.left.dist, self.right.K, self.right.dist,
                                                     size, R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
@@ -261,12 +266,12 @@ class ZedFactoryCalibration:
     # the default reading's extrinsics, by the names used before readings were explicit
     @property
     def R_right_from_left(self) -> np.ndarray:
-        return self.extrinsics()[0]
+        return self.R_t_right_from_left()[0]
 
     @property
     def t_right_in_left_mm(self) -> np.ndarray:
         """The right camera's centre in the left camera frame (mm) under the default reading."""
-        R, T = self.extrinsics()
+        R, T = self.R_t_right_from_left()
         return -R.T @ T
 
     def rectification(self, reading: str = DEFAULT_ZED_CONF_READING) -> ZedRectification:

@@ -1,5 +1,8 @@
 """Capture readers: structured-light depth + texture, ZED images (side-by-side, separate, video),
-and capture folders (docs/capture-layout.md)."""
+and capture folders (docs/capture-layout.md).
+
+Over 500 lines on purpose: ``Session`` is the one reader every stage uses for every capture layout (separate,
+side-by-side and raw ZED images with an SN.conf), and its checks name the file and field they refuse."""
 from __future__ import annotations
 
 import io
@@ -15,12 +18,12 @@ import tifffile
 from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
-from gtforge.errors import InputError
-from gtforge.io.cameras import ZedConfReading
-from gtforge.infra.digest import blake3_hex
-from gtforge.io.formats import PNG_SIGNATURE, read_image
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
 from gtforge.core.targets import BoardModel
+from gtforge.errors import InputError
+from gtforge.infra.digest import blake3_hex
+from gtforge.io.cameras import ZedConfReading
+from gtforge.io.formats import PNG_SIGNATURE, read_image
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 

@@ -467,10 +467,6 @@ def _png_predictor(kind, a, b, c):
     return a if (pa <= pb and pa <= pc) else (b if pb <= pc else c)
 
 
-def to_gray(img: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
-
-
 # ---- PLY ------------------------------------------------------------------------------------
 def write_ply(path: str | Path, pts_mm: np.ndarray, colors_rgb01: np.ndarray | None = None) -> Path:
     """Point cloud through Open3D (binary PLY), atomically."""
@@ -489,3 +485,7 @@ def read_ply_points(path: str | Path) -> np.ndarray:
     import open3d as o3d
 
     return np.asarray(o3d.io.read_point_cloud(str(path)).points)
+
+
+# Moved in round 3 (docs/architecture.md); still importable from here for one release.
+from gtforge.core.photometric import to_gray  # noqa: E402,F401

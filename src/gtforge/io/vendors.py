@@ -23,9 +23,9 @@ import yaml
 from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.errors import InputError
 from gtforge.core.geometry import invert_T, make_T
 from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.errors import InputError
 
 
 class StructuredLightCameras(NamedTuple):

@@ -6,7 +6,11 @@ import datetime
 import html
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 import gtforge
+from gtforge.io.formats import write_image
 from gtforge.reports.html import table, write_html
 
 
@@ -15,7 +19,7 @@ def _f(v, fmt="{:.4f}"):
 
 
 def write_build_report(manifest, out: Path, sigma_vmax_px: float = 0.1) -> Path:
-    """``manifest``: the dataset's ``gtforge.build_dataset.Manifest``."""
+    """``manifest``: the dataset's ``gtforge.records.dataset.Manifest``."""
     scenes = manifest.scenes
     head = (f"<p>{len(scenes)} scene(s) built, {len(manifest.failures)} failed, {len(manifest.flagged)} flagged by "
             f"verification (<a href='verification.html'>verification.html</a>){', ' if manifest.quarantined else ''}"
@@ -52,3 +56,15 @@ def write_build_report(manifest, out: Path, sigma_vmax_px: float = 0.1) -> Path:
     return write_html(out / "build_report.html", "gtforge dataset", [
         ("Summary", head), ("Per scene", stats),
         ("Ground-truth uncertainty (sigma) per scene", legend + ("".join(thumbs) or "<p>no sigma maps</p>"))])
+
+
+def write_sigma_thumbnail(path: Path, sigma: np.ndarray, vmax_px: float = 0.1) -> None:
+    """A small heat map of a scene's GT sigma for build_report.html (turbo, 0 to ``vmax_px``; black: no GT)."""
+    s = np.asarray(sigma, np.float32)
+    scale = min(1.0, 640 / s.shape[1])
+    if scale < 1.0:  # nearest neighbour: the thumbnail's pixels are values of the map (inf stays inf)
+        s = cv2.resize(s, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    grey = np.round(np.clip(np.nan_to_num(s, nan=0.0, posinf=0.0, neginf=0.0) / vmax_px, 0, 1) * 255).astype(np.uint8)
+    bgr = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)
+    bgr *= np.isfinite(s)[..., None]  # black where no GT (a boolean-mask assignment took 1.8 ms here)
+    write_image(path, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))

@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.calibrate import CalibrationFile, MethodResult
+from gtforge.records.calibration import CalibrationFile, MethodResult
 from gtforge.reports.html import Raw, Section, fig_to_img_tag, note, standard_header, table, write_html
 
 METHOD_TEXT = {
@@ -179,7 +179,7 @@ def vectors_section(calib: CalibrationFile) -> Section | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gtforge.evaluate import nice_ceil
+    from gtforge.reports.html import nice_ceil
 
     names = [p.capture for p in calib.poses if p.capture in calib._residuals]
     W, H = calib.rig.zed.left.width_px, calib.rig.zed.left.height_px

@@ -5,18 +5,18 @@
 """
 from __future__ import annotations
 
-import os
 import csv
 import html
 import io
+import os
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from gtforge.evaluate import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalReport
-from gtforge.infra.atomic import atomic_write_text
 from gtforge.core.metrics import Metrics
+from gtforge.infra.atomic import atomic_write_text
+from gtforge.records.evaluation import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalReport
 from gtforge.reports.html import Section, note, table, write_html
 
 ERROR_CMAP = "turbo"

@@ -6,8 +6,8 @@ from typing import TYPE_CHECKING
 from gtforge.reports.html import Section, note, table
 
 if TYPE_CHECKING:
-    from gtforge.evaluate import EvalReport
     from gtforge.core.fruit_size import FruitSizeReport, GradeAgreement
+    from gtforge.records.evaluation import EvalReport
 
 FRUIT_NOTE = ("Per fruit (connected fruit components of region.png): an ellipsoid resting on the table (one axis "
               "along the table's normal, lowest point on the table; the table fitted to the same source's background "

@@ -137,3 +137,15 @@ def write_html(path: str | Path, title: str, sections: Sequence[Section | tuple[
         parts.append(f"<h2{cls}{anchor}>{esc(s.heading)}</h2>{s.body}")
     parts.append("</body></html>")
     return atomic_write_text(path, "\n".join(parts))
+
+
+def nice_ceil(x: float) -> float:
+    """The smallest of 1, 2, 2.5, 5 x 10^k that is >= ``x`` (a readable colour-scale top)."""
+    if not np.isfinite(x) or x <= 0:
+        return 1.0
+    k = np.floor(np.log10(x))
+    for m in (1.0, 2.0, 2.5, 5.0, 10.0):
+        v = float(m * 10 ** k)
+        if v >= x * (1 - 1e-9):
+            return v
+    return float(10 ** (k + 1))

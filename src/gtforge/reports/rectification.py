@@ -6,9 +6,10 @@ import html
 
 import numpy as np
 
-from gtforge.core.rectification import COLS, ROWS, RectificationQuality, ZedConfChoice
-from gtforge.reports.html import Section, fig_to_img_tag, note, table
+from gtforge.core.rectification import COLS, ROWS, RectificationQuality
 from gtforge.core.selfcal import ZedSelfRectification
+from gtforge.io.zed_rectification import ZedConfChoice
+from gtforge.reports.html import Section, fig_to_img_tag, note, table
 
 
 def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice | None,
@@ -110,3 +111,24 @@ def self_rectification_section(s: ZedSelfRectification | None) -> Section | None
     if s.skipped:
         body += table(["capture", "not used because"], sorted(s.skipped.items()))
     return Section("ZED self-rectification", body, status=status)
+
+
+def summary_lines(q: RectificationQuality | None, choice: ZedConfChoice | None = None) -> list[str]:
+    """The lines ``gtforge calibrate`` / ``validate`` print about the rectification."""
+    lines = []
+    if choice is not None:
+        line = f"SN.conf read as '{choice.reading}' ({choice.formula}), chosen by {choice.chosen_by}"
+        others = [c for c in choice.candidates if c.eligible and c.reading != choice.reading]
+        mine = choice.score(choice.reading)
+        if mine is not None:
+            line += f": {mine.vertical.fit_mean_abs_px:.3f} px on the raw board corners"
+            if others:
+                line += f" (next: '{others[0].reading}' {others[0].vertical.fit_mean_abs_px:.3f} px)"
+        lines.append(line)
+    if q is not None:
+        o = q.overall
+        lines.append(f"ZED vertical disparity on {len(q.poses)} poses: mean {o.fit_mean_abs_px:.3f} px (fitted corners), "
+                     f"{o.mean_abs_px:.3f} px (detected; max {o.max_abs_px:.3f} px); threshold {q.threshold_px} px")
+    else:
+        lines.append("ZED vertical disparity: not measured (no right image with the whole board)")
+    return lines

@@ -12,10 +12,9 @@ from typing import Callable
 import numpy as np
 
 from gtforge.core.camera import PinholeCamera
+from gtforge.records.validation import REFERENCE_SOURCE, REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationReport
 from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, verdict_badge, write_html
-from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationReport
 
-REFERENCE_SOURCE = "Li et al., MI-ACVNet (MDPI, 2026)"  # where the published 0.56 px / 0.08 % come from
 THRESHOLD_COLOUR = "#c00000"
 REFERENCE_COLOUR = "#777777"
 
@@ -88,7 +87,7 @@ def per_pose_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
 def field_of_view_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
     if not rep.corner_errors:
         return None
-    from gtforge.evaluate import nice_ceil
+    from gtforge.reports.html import nice_ceil
 
     plt = _plt()
     v = np.array(rep.corner_errors)

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 import gtforge
+from gtforge.records.verification import SceneVerification, VerificationReport
 from gtforge.reports.html import fig_to_img_tag, table, write_html
-from gtforge.verify import SceneVerification, VerificationReport
 
 
 def _f(v, fmt="{:+.3f}"):
@@ -94,3 +94,12 @@ def write_verification_html(rep: VerificationReport, out: Path) -> Path:
     return write_html(out / "verification.html", "gtforge verification", [
         ("Summary", head + thresholds), ("Per scene, worst first", body),
         ("Flagged scenes", "".join(flagged_parts) or "<p>none</p>")])
+
+
+def write_verification_report(report: VerificationReport, out_dir: str | Path) -> Path:
+    """``verification.json`` + ``verification.html`` in ``out_dir``."""
+    from gtforge.reports.verification import write_verification_html
+
+    out = Path(out_dir)
+    report.write(out / "verification.json")
+    return write_verification_html(report, out)

@@ -1,7 +1,10 @@
-"""The ``gtforge`` command: a thin Typer layer over ``gtforge.<stage>.<function>``.
+"""The ``gtforge`` command: one Typer command per stage, each over ``gtforge.<stage>.<function>``; what it adds is
+the options' parsing, the console output and the exit codes (help formatting: ``_typer_style``).
 
 Bad input (``InputError``) prints one line and exits with code 2; a FAIL verdict of ``validate``
 exits with 1; unexpected bugs keep their traceback.
+
+Over 500 lines on purpose: one short command per stage, its options' help beside it.
 """
 from __future__ import annotations
 
@@ -13,69 +16,9 @@ from typing import List, Optional
 
 import typer
 from rich.console import Console
-from typer.core import TyperArgument, TyperCommand, TyperGroup
 
+from gtforge.cli._typer_style import _Group
 from gtforge.errors import InputError, Interrupted
-
-
-def _plain_metavars(params: list) -> None:
-    """Help and usage show ``SESSION``/``PATH``, never typer's ``{session}``/``<path>``/``<bool>``/``<list[Path]>``:
-    arguments get their upper-case name, flags no value placeholder, other options their type's name
-    (click parameters, duck-typed: typer may vendor its own click)."""
-    for p in params:
-        if p.metavar is not None:
-            continue
-        if p.param_type_name == "argument":
-            p.metavar = (p.name or "").upper()
-            if type(p) is TyperArgument:
-                p.__class__ = _Argument
-        elif p.param_type_name == "option":
-            p.metavar = "" if getattr(p, "is_flag", False) else _type_name(p)
-
-
-def _type_name(p) -> str:
-    """``TEXT``/``INTEGER``/``FLOAT``/``PATH`` for an option without a metavar."""
-    t = getattr(p, "type", None)  # click's parameter type (typer < 0.20 and click itself)
-    name = getattr(t, "name", None) if t is not None else None
-    if name is None and hasattr(p, "display_type"):  # newer typer: "<int>", "<path>", ...
-        name = str(p.display_type(None) or "value").strip("<>")
-    name = str(name or "value").upper()
-    return {"STR": "TEXT", "INT": "INTEGER"}.get(name, name)
-
-
-class _Argument(TyperArgument):
-    def display_type_rich(self, ctx):  # the name column already shows the metavar; no "<path>"/"<list[Path]>"
-        return None
-
-
-class _Command(TyperCommand):
-    def collect_usage_pieces(self, ctx) -> list[str]:
-        return [piece.replace("{", "").replace("}", "") for piece in super().collect_usage_pieces(ctx)]
-
-    def get_help_option(self, ctx):
-        opt = super().get_help_option(ctx)
-        if opt is not None:
-            _plain_metavars([opt])
-        return opt
-
-
-class _Group(TyperGroup):
-    """Applies ``_plain_metavars`` to every command (present and future) and to the group's own options."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        _plain_metavars(self.params)
-        for cmd in self.commands.values():
-            if type(cmd) is TyperCommand:
-                cmd.__class__ = _Command
-            _plain_metavars(cmd.params)
-
-    def get_help_option(self, ctx):
-        opt = super().get_help_option(ctx)
-        if opt is not None:
-            _plain_metavars([opt])
-        return opt
-
 
 app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.")
@@ -178,7 +121,9 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                                      "matches over every capture (boards and scenes); applied only "
                                                      "where the captures determine it (docs/pipeline.md).")) -> None:
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
-    from gtforge.calibrate import BoardModel, CalibrateParams, calibrate as run, calibration_output_path
+    from gtforge.calibrate import calibrate as run
+    from gtforge.core.targets import BoardModel
+    from gtforge.records.calibration import CalibrateParams, calibration_output_path
     from gtforge.reports.calibration import write_calibration_report
 
     given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
@@ -253,7 +198,8 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     from gtforge.infra.scheduling import prestart_pool
 
     prestart_pool("gtforge.build_dataset", workers, scheduler)  # the workers' imports overlap this process's own
-    from gtforge.build_dataset import BuildParams, build_dataset as run
+    from gtforge.build_dataset import build_dataset as run
+    from gtforge.records.dataset import BuildParams
 
     try:
         tr, va = (float(x) for x in split.split(","))
@@ -294,8 +240,8 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
     scene is flagged or could not be verified."""
     from gtforge.infra.scheduling import prestart_pool
 
-    prestart_pool("gtforge.build_dataset", workers, scheduler)  # (verify_one_scene) the workers' imports overlap ours
-    from gtforge.build_dataset import Manifest
+    prestart_pool("gtforge.verify", workers, scheduler)  # (verify_one_scene) the workers' imports overlap ours
+    from gtforge.records.dataset import Manifest
     from gtforge.verify import verify_dataset
 
     params = None
@@ -329,7 +275,8 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
                                     help="Hold each scene out in turn and measure it (cross-validation).")) -> None:
     """Refine T_zed_from_mech from the scenes' texture alignment; writes a normal calibration file whose
     'refinement' says it was refined and from which scenes."""
-    from gtforge.refine import RefineParams, refine as run
+    from gtforge.refine import RefineParams
+    from gtforge.refine import refine as run
 
     res = run(session, calibration, output, RefineParams(leave_one_out=loo), scenes.split(",") if scenes else None,
               progress=_status)
@@ -346,7 +293,7 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     if info.heldout_shift_after_mean_px is not None:
         out.print(f"cross-validation: held-out scenes {info.heldout_shift_before_mean_px:.3f} -> "
                   f"{info.heldout_shift_after_mean_px:.3f} px mean |texture shift|")
-    from gtforge.calibrate import calibration_output_path
+    from gtforge.records.calibration import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output)}")
 
@@ -366,7 +313,8 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
     """Estimate the disparity-scale terms (ZED baseline, right-camera yaw, depth scale and offset) from the scenes'
     stereo consistency and the boards; writes a calibration file that applies them (its 'scale_calibration' says
     what was found, each term's sigma and where it came from)."""
-    from gtforge.scale_calibration import ScaleParams, calibrate_scale as run
+    from gtforge.records.calibration import ScaleParams
+    from gtforge.scale_calibration import calibrate_scale as run
 
     res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
               progress=_status)
@@ -377,7 +325,7 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
                   + (f"; from {', '.join(t.sources)}" if t.sources else ""))
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
               f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
-    from gtforge.calibrate import calibration_output_path
+    from gtforge.records.calibration import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output)}")
 
@@ -402,9 +350,11 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
                                                    "figures; needs --calibration), not the board captures.")) -> None:
     """XY reprojection (px) and Z geometric (%) accuracy, and the gauge objects' VDI/VDE 2634-2 figures when the
     session has gauges/gauges.yaml; exit code 1 on FAIL."""
-    from gtforge.calibrate import BoardModel
-    from gtforge.core.gauges import summary_lines as gauge_lines, validate_gauges
-    from gtforge.validate import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams, validate as run
+    from gtforge.core.gauges import summary_lines as gauge_lines
+    from gtforge.core.targets import BoardModel
+    from gtforge.records.validation import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams
+    from gtforge.validate import validate as run
+    from gtforge.validate import validate_gauges
 
     if gauges_only:
         if calibration is None:
@@ -420,7 +370,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
     board = None
     if cols is not None or rows is not None or square_mm is not None:
         if calibration is not None and not holdout:
-            from gtforge.calibrate import CalibrationFile
+            from gtforge.records.calibration import CalibrationFile
 
             base = CalibrationFile.read(calibration).board
         else:
@@ -491,8 +441,8 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
     Exactly one model option is required: --onnx, --torchscript, --predictions or --sgbm.
     Exit code 1 when some scenes could not be scored (listed first and last), 2 on bad input."""
     from gtforge.evaluate import evaluate as run
-    from gtforge.reports.evaluation import tables_markdown
     from gtforge.predictors import SGBM, InputConvention, OnnxModel, PredictionFolder, TorchScriptModel
+    from gtforge.reports.evaluation import tables_markdown
 
     chosen = [x for x in (onnx, torchscript, predictions) if x is not None] + ([True] if sgbm else [])
     if len(chosen) != 1:

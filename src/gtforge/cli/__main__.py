@@ -1,0 +1,4 @@
+"""``python -m gtforge.cli``: the ``gtforge`` command."""
+from gtforge.precompile import main
+
+main()

@@ -1,0 +1,69 @@
+"""How the ``gtforge`` command's help looks: ``SESSION``/``PATH`` placeholders instead of typer's ``{session}``,
+``<path>`` or ``<bool>``, for every command present and future (click parameters, duck-typed: typer may vendor its own
+click)."""
+from __future__ import annotations
+
+from typer.core import TyperArgument, TyperCommand, TyperGroup
+
+
+def _plain_metavars(params: list) -> None:
+    """Help and usage show ``SESSION``/``PATH``, never typer's ``{session}``/``<path>``/``<bool>``/``<list[Path]>``:
+    arguments get their upper-case name, flags no value placeholder, other options their type's name
+    (click parameters, duck-typed: typer may vendor its own click)."""
+    for p in params:
+        if p.metavar is not None:
+            continue
+        if p.param_type_name == "argument":
+            p.metavar = (p.name or "").upper()
+            if type(p) is TyperArgument:
+                p.__class__ = _Argument
+        elif p.param_type_name == "option":
+            p.metavar = "" if getattr(p, "is_flag", False) else _type_name(p)
+
+
+
+def _type_name(p) -> str:
+    """``TEXT``/``INTEGER``/``FLOAT``/``PATH`` for an option without a metavar."""
+    t = getattr(p, "type", None)  # click's parameter type (typer < 0.20 and click itself)
+    name = getattr(t, "name", None) if t is not None else None
+    if name is None and hasattr(p, "display_type"):  # newer typer: "<int>", "<path>", ...
+        name = str(p.display_type(None) or "value").strip("<>")
+    name = str(name or "value").upper()
+    return {"STR": "TEXT", "INT": "INTEGER"}.get(name, name)
+
+
+
+class _Argument(TyperArgument):
+    def display_type_rich(self, ctx):  # the name column already shows the metavar; no "<path>"/"<list[Path]>"
+        return None
+
+
+
+class _Command(TyperCommand):
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        return [piece.replace("{", "").replace("}", "") for piece in super().collect_usage_pieces(ctx)]
+
+    def get_help_option(self, ctx):
+        opt = super().get_help_option(ctx)
+        if opt is not None:
+            _plain_metavars([opt])
+        return opt
+
+
+
+class _Group(TyperGroup):
+    """Applies ``_plain_metavars`` to every command (present and future) and to the group's own options."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _plain_metavars(self.params)
+        for cmd in self.commands.values():
+            if type(cmd) is TyperCommand:
+                cmd.__class__ = _Command
+            _plain_metavars(cmd.params)
+
+    def get_help_option(self, ctx):
+        opt = super().get_help_option(ctx)
+        if opt is not None:
+            _plain_metavars([opt])
+        return opt

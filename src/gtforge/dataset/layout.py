@@ -1,0 +1,104 @@
+"""A dataset folder's files and how a build knows a scene is up to date: the files a scene holds, its inputs' hashes
+(BLAKE3, with a size+mtime fast path) and the checks that a landed scene is the one this build asked for."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from gtforge.errors import InputError
+from gtforge.infra.digest import blake3_file
+from gtforge.records.dataset import BuildParams, InputStamp, SceneMeta
+
+if TYPE_CHECKING:
+    from gtforge.io.captures import ReadRecord
+
+
+# the KITTI view's disparity folders (its image_2/image_3 are links to the scene's im0/im1)
+KITTI_DISPARITY_DIRS = ("disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1")
+
+
+
+# A recorded size + mtime is trusted only when the file was last modified this long before it was hashed:
+# a file rewritten within the filesystem's timestamp granularity of the hash could keep both (as git's
+# "racily clean" entries).
+STAMP_MARGIN_NS = 2_000_000_000
+
+
+
+def hash_inputs(paths: list[Path], read: dict[str, "ReadRecord"] | None = None
+                ) -> tuple[dict[str, str], dict[str, "InputStamp"]]:
+    """BLAKE3 of each input (``io.digest``), and its size + mtime taken just before hashing (for
+    ``inputs_unchanged``).
+    ``read``: files the capture reader already hashed as it read them (``Capture.read_records``), by name."""
+    hashes, stamps = {}, {}
+    for p in paths:
+        r = (read or {}).get(p.name)
+        if r is not None:
+            hashes[p.name] = r.blake3
+            stamps[p.name] = InputStamp(size_bytes=r.size_bytes, mtime_ns=r.mtime_ns, hashed_at_ns=r.read_at_ns)
+            continue
+        st = p.stat()
+        now_ns = time.time_ns()
+        hashes[p.name] = blake3_file(p)
+        stamps[p.name] = InputStamp(size_bytes=st.st_size, mtime_ns=st.st_mtime_ns, hashed_at_ns=now_ns)
+    return hashes, stamps
+
+
+
+def inputs_unchanged(meta: "SceneMeta", paths: list[Path]) -> bool:
+    """Resume check: the same input files with the same contents as when ``meta``'s scene was built.
+    A file whose size and mtime equal the recorded ones (and was not modified within ``STAMP_MARGIN_NS``
+    of being hashed) counts as unchanged without reading it; any other file is hashed and compared."""
+    if {p.name for p in paths} != set(meta.input_blake3):
+        return False
+    for p in paths:
+        st = p.stat()
+        s = meta.input_stamps.get(p.name)
+        if s is not None and s.size_bytes == st.st_size and s.mtime_ns == st.st_mtime_ns \
+                and s.mtime_ns < s.hashed_at_ns - STAMP_MARGIN_NS:
+            continue
+        if blake3_file(p) != meta.input_blake3[p.name]:
+            return False
+    return True
+
+
+
+def scene_files(params: BuildParams) -> list[str]:
+    """The files build_one_scene writes into a scene folder with these parameters."""
+    return (["im0.png", "im1.png", "disp0GT.pfm", "mask0nocc.png", "region.png", "weight.tiff", "depth0.tiff",
+             "calib.txt", "meta.json"] + (["disp1GT.pfm", "mask1nocc.png"] if params.right_gt else [])
+            + (["disp0GT_sigma.pfm"] if params.sigma else []) + (["cloud.ply"] if params.ply else []))
+
+
+
+def _file_stamp(path: Path) -> tuple[int, int] | None:
+    """``path``'s (inode, mtime in ns), None if it does not exist: tells a file written since from the one seen."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+
+def _landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash: str, calib_sha: str,
+                 expected: list[str]) -> "SceneMeta | None":
+    """The meta of scene ``sid`` if a worker of this run landed it whole (a new meta.json, for these parameters and
+    this calibration, with every scene file) and then died before it reported it; else None."""
+    meta_path = out / "scenes" / sid / "meta.json"
+    if _file_stamp(meta_path) in (None, stamp_before):
+        return None
+    try:
+        m = SceneMeta.read(meta_path)
+    except InputError:
+        return None
+    return m if _built_as_asked(m, meta_path.parent, phash, calib_sha, expected) else None
+
+
+
+def _built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, expected: list[str]) -> bool:
+    """Whether the scene in ``scene_dir`` (its meta ``m``) was built with these parameters and this calibration and
+    still has every scene file (none deleted since)."""
+    return m.params_hash == phash and m.calibration_sha256 == calib_sha and \
+        all((scene_dir / name).is_file() for name in expected)

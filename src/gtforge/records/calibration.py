@@ -1,0 +1,315 @@
+"""What calibrate, refine and calibrate-scale write: the calibration file (``CalibrationFile``: the rig every later
+stage uses, its covariance, and every correction with where it came from) and its parts; and how a stage opens a
+session with a calibration (``open_calibrated_session``)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, PrivateAttr, model_serializer
+
+from gtforge.core.camera import Rig
+from gtforge.core.coverage import CoverageReport
+from gtforge.core.rectification import RectificationQuality
+from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
+from gtforge.core.targets import BoardModel
+from gtforge.errors import InputError
+from gtforge.io.zed_rectification import ZedConfChoice
+from gtforge.records.verification import VerifyParams
+
+
+class CalibrateParams(GTModel):
+    board: BoardModel = Field(default_factory=BoardModel)
+    use_depth: bool = False
+    huber_px: float = 1.0
+    outlier_k: float = 4.0  # median + k * 1.4826 * MAD rule on the per-pose extrinsic estimates
+    outlier_floor_deg: float = 0.1
+    outlier_floor_mm: float = 1.0
+    blur_sharpness_px: float = 4.0  # flag poses whose edge width exceeds this
+    min_poses: int = 3
+    leave_one_out: bool = True
+    # the board's squares measured in the depth must match square_size_mm within this (%); 0 switches it off
+    square_check_pct: float = Field(3.0, ge=0)
+    # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
+    methods_agree_deg: float = 0.1
+    methods_agree_mm: float = 1.0
+    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.core.selfcal)
+    self_rectify: bool = True
+
+
+
+class PoseReport(GTModel):
+    capture: str
+    status: Literal["used", "skipped", "outlier"]
+    reason: str = ""
+    rms_mech_px: float | None = None
+    rms_zed_px: float | None = None
+    max_px: float | None = None
+    sharpness_mech_px: float | None = None
+    sharpness_zed_px: float | None = None
+    blurred: bool = False
+    init_rot_dev_deg: float | None = None
+    init_trans_dev_mm: float | None = None
+    loo_transfer_mean_px: float | None = None
+    loo_transfer_max_px: float | None = None
+    # ChArUco / circle grids (gtforge.core.targets): board points found in each image and in both (None: checkerboard)
+    n_points_mech: int | None = None
+    n_points_zed: int | None = None
+    n_points_common: int | None = None
+
+    @model_serializer(mode="wrap")
+    def _compact(self, handler):
+        d = handler(self)
+        return {k: v for k, v in d.items() if not (k.startswith("n_points_") and v is None)}
+
+
+
+class MethodResult(GTModel):
+    method: Literal["reprojection", "depth"]
+    T_zed_from_mech: list[list[float]]
+    rms_zed_px: float
+    rot_diff_to_primary_deg: float = 0.0
+    trans_diff_to_primary_mm: float = 0.0
+
+
+
+class SceneRefinement(GTModel):
+    scene: str
+    status: Literal["used", "excluded", "not usable"]
+    reason: str = ""
+    n_points: int = 0
+    shift_before_px: float | None = None  # |texture shift| (whole area) with the starting calibration
+    shift_after_px: float | None = None  # with the refined calibration
+    fruit_shift_after_px: float | None = None
+    heldout_shift_px: float | None = None  # refined WITHOUT this scene, measured on it (cross-validation)
+
+
+
+class RefinementInfo(GTModel):
+    """Provenance of a refined calibration (stored in the calibration file)."""
+
+    refined_from: str  # the starting calibration file
+    method: str = "scene texture alignment (direct photometric, Huber IRLS)"
+    scenes_used: list[str]
+    scenes_excluded: dict[str, str] = Field(default_factory=dict)
+    change_rot_deg: float
+    change_trans_mm: float
+    heldout_shift_before_mean_px: float | None = None
+    heldout_shift_after_mean_px: float | None = None
+    sigma_jackknife_rot_deg: float | None = None
+    sigma_jackknife_trans_mm: float | None = None
+    scenes: list[SceneRefinement] = Field(default_factory=list)
+
+
+
+class CalibrationFile(VersionedFile):
+    """Output of ``gtforge calibrate``; ``rig`` is what every later stage uses."""
+
+    KIND: ClassVar[str] = "gtforge calibration file (from gtforge calibrate)"
+
+    @classmethod
+    def read(cls, path: str | Path) -> "CalibrationFile":
+        """Read a calibration file; a folder holding ``calibration.yaml`` (what ``calibrate -o DIR/`` writes) means
+        that file."""
+        p = Path(path)
+        if p.is_dir() and (p / "calibration.yaml").is_file():
+            p = p / "calibration.yaml"
+        return super().read(p)
+
+    @classmethod
+    def known_extrinsic(cls, rig: Rig, sigma_rot_deg: float = 0.0, sigma_trans_mm: float = 0.0) -> "CalibrationFile":
+        """A calibration file for a rig whose extrinsic is known (synthetic truth, benchmarks), reported with
+        ``sigma_rot_deg`` / ``sigma_trans_mm`` per axis (the covariance's diagonal, independent axes; no covariance
+        when both are 0)."""
+        cov = None
+        if sigma_rot_deg or sigma_trans_mm:
+            cov = np.diag([np.radians(sigma_rot_deg) ** 2] * 3 + [sigma_trans_mm ** 2] * 3).tolist()
+        return cls(rig=rig, board=BoardModel(), captures_used=[], rms_px=0.0, max_px=0.0,
+                   sigma_rot_xyz_deg=[sigma_rot_deg] * 3, sigma_trans_xyz_mm=[sigma_trans_mm] * 3,
+                   sigma_rot_deg=float(np.sqrt(3) * sigma_rot_deg), sigma_trans_mm=float(np.sqrt(3) * sigma_trans_mm),
+                   poses=[], cov_extrinsic_rad_mm=cov)
+
+    rig: Rig
+    board: BoardModel
+    method: Literal["reprojection", "depth"] = "reprojection"
+    session_dir: str = ""
+    captures_used: list[str]
+    rms_px: float
+    max_px: float
+    sigma_rot_xyz_deg: list[float]
+    sigma_trans_xyz_mm: list[float]
+    sigma_rot_deg: float
+    sigma_trans_mm: float
+    loo_transfer_mean_px: float | None = None
+    loo_transfer_max_px: float | None = None
+    poses: list[PoseReport]
+    methods: list[MethodResult] = Field(default_factory=list)
+    residuals_by_region_px: dict[str, float] = Field(default_factory=dict)
+    # Full covariance of the written extrinsic, parameterised as a left perturbation:
+    # T_zed_from_mech = [exp(omega) R | t + delta_t] with omega (rad, 3) then delta_t (mm, 3); rows/columns in
+    # that order (omega_x, omega_y, omega_z, t_x, t_y, t_z). sigma_* above are the square roots of its diagonal.
+    cov_extrinsic_rad_mm: list[list[float]] | None = None
+    # the factor the leave-one-out jackknife scaled cov_extrinsic_rad_mm by (>= 1): over board poses (calibrate) or,
+    # in a refined file, over scenes (refine --loo); None: no jackknife was run for this covariance
+    cov_jackknife_scale: float | None = None
+    square_size_measured_mm: float | None = None  # from the depth camera's view of the board (median over poses)
+    verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
+    verdict_reasons: list[str] = Field(default_factory=list)
+    refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
+    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
+    # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
+    scale_calibration: ScaleCalibration | None = None
+
+    @property
+    def zed_conf_reading(self) -> str | None:
+        """The SN.conf reading later stages rectify raw ZED images with (None: not a raw + SN.conf session)."""
+        return self.zed_conf.reading if self.zed_conf is not None else None
+
+    @property
+    def zed_right_correction(self) -> ZedRightCorrection | None:
+        """The right camera's correction later stages rectify with (None: none was applied)."""
+        s = self.zed_self_rectification
+        return s.correction if s is not None and s.status == "applied" else None
+
+    def open_session(self, session_dir: str | Path):
+        """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading and
+        the self-rectification's correction."""
+        from gtforge.io.captures import open_session
+
+        return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
+                            zed_right_correction=self.zed_right_correction)
+    # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
+    # the conf reading chosen from the board images (gtforge.core.rectification; later stages rectify with it)
+    rectification: RectificationQuality | None = None
+    zed_conf: ZedConfChoice | None = None
+    # the ZED pair's self-rectification (gtforge.core.selfcal): when applied, every later stage rectifies with its correction
+    zed_self_rectification: ZedSelfRectification | None = None
+    time_s: float = 0.0
+    # per-corner residuals for the report (not written into the calibration file)
+    _residuals: dict = PrivateAttr(default_factory=dict)
+    _coverage_inputs: dict = PrivateAttr(default_factory=dict)
+
+    def attach_coverage(self) -> "CalibrationFile":
+        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage) from
+        the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
+        (a few tenths of a second)."""
+        from gtforge.core.coverage import coverage_report
+
+        if self._coverage_inputs:
+            self.coverage = coverage_report(**self._coverage_inputs)
+        return self
+
+
+
+def session_board(session, given: BoardModel, given_explicitly: bool) -> BoardModel:
+    """The board to use: session.yaml's ``board:`` when there is one, with the fields given explicitly (CLI options,
+    ``given.model_fields_set``) overriding it; else ``given``."""
+    declared = getattr(session.config, "board", None)
+    if declared is None:
+        return given
+    if not given_explicitly:
+        return declared
+    return BoardModel.model_validate({**declared.model_dump(), **{k: getattr(given, k) for k in given.model_fields_set}})
+
+
+
+def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
+                              hint: str = "was this calibration made for another session?") -> None:
+    """The calibration's cameras have the session's image sizes (a calibration of another rig or resolution would
+    otherwise fail deep inside a stage)."""
+    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
+                       ("depth_cam", rig.depth_camera, session.depth_camera)):
+        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
+            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
+                             f"{a.width_px}x{a.height_px} px", hint)
+
+
+
+def open_calibrated_session(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None,
+                            example_name: str):
+    """The prologue of the stages that turn a calibration into a new one (refine, calibrate-scale): the calibration,
+    the session as it sees it (``CalibrationFile.open_session``), checked against it, and the output path, which may
+    be neither inside the captures nor the input file. Returns ``(calib, session, out_path or None)``."""
+    calib_path = Path(calibration)
+    calib = CalibrationFile.read(calib_path)
+    session = calib.open_session(session_dir)
+    check_rig_matches_session(calib.rig, session, calib_path)
+    if out_path is not None:
+        out_path = calibration_output_path(out_path)
+        session.refuse_output_inside_captures(out_path)
+        if Path(out_path).resolve() == calib_path.resolve():
+            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
+                             "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
+    return calib, session, out_path
+
+
+
+def calibration_output_path(out_path: str | Path) -> Path:
+    """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
+    p = Path(out_path)
+    if p.is_dir() or str(out_path).endswith(("/", "\\")):
+        return p / "calibration.yaml"
+    return p
+
+
+class ScaleParams(GTModel):
+    points_per_scene: int = Field(40000, ge=1000)  # textured GT pixels per scene, evenly subsampled
+    huber: float = Field(0.5, gt=0)  # on normalised intensities
+    iterations: int = Field(30, ge=1)  # Gauss-Newton steps per solve
+    outer_iterations: int = Field(4, ge=1)  # solve, rebuild every scene's GT with the result, solve again...
+    converged_px: float = Field(0.002, gt=0)  # ... until a pass moves the scenes' disparities by less than this
+    cov_tile_px: int = Field(16, ge=1)
+    # a parameter whose 1-sigma moves disparities (at the scenes' median depth) by more than this is not applied
+    max_sigma_px: float = Field(0.1, gt=0)
+    # a determined parameter is applied only when its estimate is more than this many sigma from 0 (an insignificant
+    # correction would only move the GT by noise); the others are then solved again with it held at 0
+    apply_z: float = Field(2.0, ge=0)
+    use_boards: bool = True
+    board_depth_window_px: int = Field(3, ge=1)  # half-size of the depth window fitted at each corner
+    verify: VerifyParams = Field(default_factory=VerifyParams)
+
+
+
+class ScaleTerm(GTModel):
+    """One parameter: ``estimate`` +- ``sigma`` (every determined term free: the covariance's), ``value`` what was
+    applied (0 unless "applied"; solved with the terms not applied held at 0), and where it came from.
+    "not significant": the estimate is within ``ScaleParams.apply_z`` sigma of 0."""
+
+    value: float
+    estimate: float | None
+    sigma: float | None
+    status: Literal["applied", "not significant", "not determined", "not separable"]
+    sources: list[str] = Field(default_factory=list)
+    reason: str = ""
+
+
+
+class SceneScaleReport(GTModel):
+    scene: str
+    excluded: str = ""  # why the scene was left out ("": used)
+    n_points: int = 0
+    disparity_bias_before_px: float | None = None  # mean (d_img - d_gt) over the used pixels, before
+
+
+
+class ScaleCalibration(GTModel):
+    """What ``gtforge calibrate-scale`` found and applied (stored in the calibration file)."""
+
+    method: str = "scene stereo consistency (photometric Gauss-Newton) + board PnP, stereo and depth"
+    calibrated_from: str
+    # conventions: the ZED's true baseline = (1 + zed_baseline_frac) x the file's; the right camera turned by
+    # zed_right_yaw_deg about its y axis; the depth map reads (1 + depth_scale_frac) z + depth_offset_mm
+    terms: dict[str, ScaleTerm]
+    # 4x4 over PARAMS' order (fraction, deg, fraction, mm); rows/columns of a term not determined are 0
+    covariance: list[list[float]]
+    # b + k (what scenes alone determine) with its sigma
+    combined_scale_frac: float
+    combined_scale_sigma_frac: float | None
+    baseline_file_mm: float  # the baseline before this correction (rig.zed.baseline_mm now holds the corrected one)
+    scenes_used: list[str]
+    board_poses_used: list[str] = Field(default_factory=list)
+    passes: int = 0
+    scenes: list[SceneScaleReport] = Field(default_factory=list)
+    time_s: float = 0.0

@@ -1,0 +1,80 @@
+"""The import rule of docs/architecture.md, checked on the source: no import circles, and no module imports a higher
+layer (a function-local import counts: it is an edge all the same, it only runs later)."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src" / "gtforge"
+
+# Lowest first. A module may import its own layer and the layers below it, never one above.
+LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    ("infra", ("gtforge.errors", "gtforge._moved", "gtforge.infra")),
+    ("core", ("gtforge.core",)),
+    ("io", ("gtforge.io",)),
+    ("records", ("gtforge.records",)),
+    ("reports", ("gtforge.reports",)),
+    ("dataset", ("gtforge.dataset",)),
+    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
+                "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
+    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.cli")),
+]
+
+
+def _graph_module():
+    spec = importlib.util.spec_from_file_location("import_graph", ROOT / "scripts" / "import_graph.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("import_graph", mod)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def graph():
+    g = _graph_module()
+    modules, edges = g.graph(SRC)
+    edges.pop("gtforge", None)  # the package's __init__: the version and the moved paths' finder
+    return g, modules, edges
+
+
+def test_every_module_is_in_a_layer(graph):
+    g, modules, _ = graph
+    unplaced = []
+    for m in modules:
+        if m == "gtforge":
+            continue
+        try:
+            g.layer_of(m, LAYERS)
+        except KeyError:
+            unplaced.append(m)
+    assert unplaced == [], f"add these to LAYERS (tests/test_architecture.py) and docs/architecture.md: {unplaced}"
+
+
+def test_no_import_circles(graph):
+    g, _, edges = graph
+    assert g.circles(edges) == []
+
+
+def test_no_import_goes_up_a_layer(graph):
+    g, _, edges = graph
+    ups = [f"{m}:{line} imports {tgt} ({LAYERS[g.layer_of(tgt, LAYERS)][0]} is above "
+           f"{LAYERS[g.layer_of(m, LAYERS)][0]})" for m, line, tgt in g.upward(edges, LAYERS)]
+    assert ups == []
+
+
+def test_the_checker_sees_a_circle_and_an_upward_import(tmp_path):
+    """The rule's checker on a made-up package: it must report what it is there to forbid."""
+    g = _graph_module()
+    pkg = tmp_path / "gtforge"
+    (pkg / "core").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "core" / "__init__.py").write_text("")
+    (pkg / "core" / "a.py").write_text("def f():\n    from gtforge.calibrate import x\n")
+    (pkg / "calibrate.py").write_text("from gtforge.core.a import f\n")
+    modules, edges = g.graph(pkg)
+    assert g.circles(edges) == [["gtforge.calibrate", "gtforge.core.a"]]
+    assert g.upward(edges, LAYERS) == [("gtforge.core.a", 2, "gtforge.calibrate")]
