@@ -265,6 +265,7 @@ def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibrati
     from pathlib import Path
 
     import gtforge.build_dataset as bd
+    from gtforge.dataset import layout
 
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)
@@ -280,9 +281,9 @@ def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibrati
                                                                  "right.png"}
     assert meta.input_stamps["left.png"].size_bytes == (cap / "left.png").stat().st_size
     hashed = []
-    real_calib, real_input = bd.sha256_file, bd.blake3_file
+    real_calib, real_input = bd.sha256_file, layout.blake3_file
     monkeypatch.setattr(bd, "sha256_file", lambda p: hashed.append(Path(p).name) or real_calib(p))
-    monkeypatch.setattr(bd, "blake3_file", lambda p: hashed.append(Path(p).name) or real_input(p))
+    monkeypatch.setattr(layout, "blake3_file", lambda p: hashed.append(Path(p).name) or real_input(p))
     s = build_dataset(sess, true_calibration, out, scenes=["000"], workers=1)
     assert s.skipped_unchanged == ["000"]
     # size + mtime trusted for the old files; the one modified near its hash is read again
@@ -615,6 +616,7 @@ def test_scene_locks_are_released_per_scene_and_deleted_at_the_end(session_dir, 
     scene makes ext4 without a journal skip its inode at every allocation for a minute): no lock file is deleted
     while scenes are built, none is left afterwards, and a stale check meanwhile keeps them."""
     import gtforge.build_dataset as bd
+    from gtforge.dataset import scene_folder
 
     out = tmp_path / "ds"
     seen = []  # after each scene: (lock files in scenes/, whether any is still held)
@@ -623,8 +625,8 @@ def test_scene_locks_are_released_per_scene_and_deleted_at_the_end(session_dir, 
     def run_tasks(fn, args, on_result, **kw):
         def after(res):
             locks = sorted((out / "scenes").glob(".lock-*"))
-            seen.append((len(locks), any(bd._writer_alive(out / "scenes", p.name) for p in locks)))
-            bd._remove_stale(out, locks=False)  # what the build does before the views: the locks stay
+            seen.append((len(locks), any(scene_folder.writer_alive(out / "scenes", p.name) for p in locks)))
+            scene_folder.remove_stale_entries(out, locks=False)  # what the build does before the views: the locks stay
             assert len(list((out / "scenes").glob(".lock-*"))) == len(locks)
             on_result(res)
         real_run_tasks(fn, args, after, **kw)

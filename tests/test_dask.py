@@ -285,17 +285,17 @@ def test_scheduler_errors_are_one_line(session_dir, true_calibration, tmp_path, 
 def test_stale_cleanup_spares_a_live_writer(tmp_path):
     """A scene folder still being written (a Dask task cancelled by Ctrl-C runs to its end) is not removed
     under its writer; a dead writer's folders and locks are."""
-    from gtforge.dataset.scene_folder import _lock_writer, _remove_stale, _unlock_writer
+    from gtforge.dataset.scene_folder import lock_writer, remove_stale_entries, unlock_writer
 
     scenes = tmp_path / "scenes"
-    fd = _lock_writer(scenes, "007", "abc")  # a live writer (flock: another open file, even in this process)
+    fd = lock_writer(scenes, "007", "abc")  # a live writer (flock: another open file, even in this process)
     (scenes / ".tmp-007-abc").mkdir()
     (scenes / ".tmp-007-abc" / "im0.png").write_bytes(b"partial")
     (scenes / ".tmp-008-def").mkdir()  # no lock: its writer is gone
     (scenes / ".lock-009-ghi").touch()  # a lock nobody holds (its writer was killed)
-    _remove_stale(tmp_path)
+    remove_stale_entries(tmp_path)
     assert sorted(p.name for p in scenes.iterdir()) == [".lock-007-abc", ".tmp-007-abc"]
     assert (scenes / ".tmp-007-abc" / "im0.png").read_bytes() == b"partial"
-    _unlock_writer(scenes, "007", "abc", fd)
-    _remove_stale(tmp_path)
+    unlock_writer(scenes, "007", "abc", fd)
+    remove_stale_entries(tmp_path)
     assert list(scenes.iterdir()) == []

@@ -3,10 +3,7 @@ stereo training code reads without glue (docs/dataset-format.md). Parallel, resu
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 import time
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,16 +15,16 @@ from gtforge.core.regions import occlusion_mask, region_sigma_stats, sgra_weight
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.layout import (
     KITTI_DISPARITY_DIRS,
-    _built_as_asked,
-    _file_stamp,
-    _landed_meta,
+    built_as_asked,
+    file_stamp,
+    landed_meta,
     hash_inputs,
     inputs_unchanged,
     scene_files,
 )
-from gtforge.dataset.scene_folder import _lock_writer, _remove_stale, _unlock_writer
+from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
 from gtforge.dataset.views import final_splits, write_lists, write_scene_views, write_split_views
-from gtforge.dataset.worker_cache import _cached_calibration, _cached_session
+from gtforge.dataset.worker_cache import cached_calibration, cached_session
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
 from gtforge.reports.build import write_sigma_thumbnail
@@ -127,8 +124,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     params = BuildParams.model_validate_json(params_json)
     cap_dir = Path(capture_dir)
     try:
-        calib = _cached_calibration(calib_path, calib_sha)
-        session = _cached_session(session_dir, calib)
+        calib = cached_calibration(calib_path, calib_sha)
+        session = cached_session(session_dir, calib)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
         # calibrate-scale's right-camera yaw: im1 is the right image re-rectified (decoded whole, written re-encoded)
         yawed = rig.zed_right_yaw_deg != 0.0
@@ -170,17 +167,11 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                        disp_min_px=float(lo) if n_valid else None, disp_max_px=float(hi) if n_valid else None,
                        over_max_disp_pct=100.0 * (n_over / n_valid) if n_valid else 0.0)
     scenes = Path(out_dir) / "scenes"
-    token = uuid.uuid4().hex[:12]  # unique across processes and machines (Dask workers share the folder)
-    tmp = scenes / f".tmp-{sid}-{token}"
-    lock = _lock_writer(scenes, sid, token)  # held until the scene is in place (see _remove_stale)
     write_s = 0.0
-    try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-        # renamed into place whole below: no temporary file per file. The files that do not depend on the
-        # verification are written first: the large ones go from this process's writer thread while the verification
-        # runs; all of them are complete when the inner context exits
+    # the scene's folder lands whole when the block ends (no temporary file per file). The files that do not depend on
+    # the verification are written first: the large ones go from this process's writer thread while the verification
+    # runs; all of them are complete when the inner context exits
+    with scene_writer(scenes, sid) as tmp:
         with private_folder(tmp), background_writes():
             t = time.perf_counter()
             for name, img, src in (("im0.png", left, cap.zed_left_file),
@@ -204,7 +195,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 v, u = np.nonzero(np.isfinite(disp))
                 K = rig.zed.left
                 z = depth[v, u].astype(np.float64)
-                pts = np.stack([(u + cx_shift - K.cx_px) / K.fx_px * z, (v + cy_shift - K.cy_px) / K.fy_px * z, z], axis=1)
+                pts = K.unproject(np.stack([u + cx_shift, v + cy_shift], axis=1), z)  # the uncropped image's pixels
                 write_ply(tmp / "cloud.ply", pts, left[v, u] / 255.0)
             write_s += time.perf_counter() - t
             verification = None
@@ -242,18 +233,6 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             meta.time_s, meta.time_read_s = t_end - t0, t_read - t0 + decode_s  # (the images decoded for verification)
             meta.time_compute_s, meta.time_write_s = t_end - t_read - decode_s - write_s, write_s
             meta.write(tmp / "meta.json")
-        final = scenes / sid
-        old = scenes / f".old-{sid}-{token}"
-        if final.exists():
-            os.replace(final, old)
-        os.replace(tmp, final)
-        if old.exists():
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)  # (its writes have ended: background_writes waited for them)
-        raise
-    finally:
-        _unlock_writer(scenes, sid, token, lock)
     with background_writes():
         write_scene_views(Path(out_dir), sid, params, disp, noc, disp1, noc1)
     kitti = Path(out_dir) / "kitti" / "training"
@@ -294,7 +273,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
 
         check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)
-    _remove_stale(out)
+    remove_stale_entries(out)
     phash = params.output_hash()
     todo, unchanged = [], []
     expected = scene_files(params)
@@ -305,14 +284,14 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             try:
                 m = SceneMeta.read(meta_path)
                 files = [p for p in session.capture_files(d) if p.exists()]
-                if _built_as_asked(m, meta_path.parent, phash, calib_sha, expected) and inputs_unchanged(m, files):
+                if built_as_asked(m, meta_path.parent, phash, calib_sha, expected) and inputs_unchanged(m, files):
                     unchanged.append(d.name)
                     metas[d.name] = m
                     continue
             except InputError:
                 pass
         todo.append(d)
-    before = {d.name: _file_stamp(out / "scenes" / d.name / "meta.json") for d in todo}
+    before = {d.name: file_stamp(out / "scenes" / d.name / "meta.json") for d in todo}
     failures: dict[str, str] = {}
     built: list[str] = []
     recovered: list[str] = []  # landed by a worker that died before it reported them
@@ -343,7 +322,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                 metas[sid] = SceneMeta.model_validate(meta)
 
         def lost(a, reason):
-            meta = _landed_meta(out, a[2], before[a[2]], phash, calib_sha, expected)
+            meta = landed_meta(out, a[2], before[a[2]], phash, calib_sha, expected)
             if meta is None:
                 return a[2], reason, None
             recovered.append(a[2])
@@ -352,13 +331,13 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         try:
             run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost)
         except (KeyboardInterrupt, Interrupted):
-            _remove_stale(out)
+            remove_stale_entries(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
             raise Interrupted(f"interrupted: {len(built)} scene(s) built in this run and complete, "
                               f"{len(args) - len(built) - len(failures)} not built; rerun the same command to "
                               f"resume") from None
     # left by a worker process that died mid-scene (its scene was run again elsewhere); the locks after the views
-    _remove_stale(out, locks=False)
+    remove_stale_entries(out, locks=False)
     ok_ids = sorted(metas)
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
     flagged = {s: metas[s].verification.reasons for s in ok_ids
@@ -379,7 +358,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     from gtforge.reports.build import write_build_report
 
     write_build_report(Manifest.read(out / "manifest.json"), out)
-    _remove_stale(out)  # the scenes' released locks (_unlock_writer)
+    remove_stale_entries(out)  # the scenes' released locks (unlock_writer)
     if flagged:
         log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
                     ", left out of the split lists (--quarantine)" if quarantined else "",

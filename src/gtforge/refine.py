@@ -28,7 +28,7 @@ from pydantic import Field
 
 from gtforge.core.board_extrinsic import jackknife_scale
 from gtforge.core.camera import Rig
-from gtforge.core.geometry import pose_difference, transform_points
+from gtforge.core.geometry import pose_difference, rotvec_between, transform_points
 from gtforge.core.photometric import (
     interior_mask,
     local_normalize,
@@ -98,7 +98,7 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
         v, u = v[keep], u[keep]
     cam = rig.zed.left
     z = depth_zed_mm[v, u].astype(np.float64)
-    X_zed = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
+    X_zed = cam.unproject(np.stack([u, v], axis=1), z)
     grad = np.stack([cv2.Sobel(n_rend, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)[v, u],
                      cv2.Sobel(n_rend, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)[v, u]], axis=1).astype(np.float64)
     return ScenePoints(name, transform_points(rig.T_mech_from_zed, X_zed), n_rend[v, u].astype(np.float64), grad, n_zed)
@@ -294,7 +294,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     jack_scale = None  # the refined file's own: not the board calibration's (leave-one-pose-out) factor
     if len(jack) >= 3:
         # jackknife spread of the leave-one-out solutions (captures scene-to-scene error the pixel model cannot)
-        xs = np.array([np.concatenate([_rotvec_between(T, Tk), Tk[:3, 3] - T[:3, 3]]) for Tk in jack])
+        xs = np.array([np.concatenate([rotvec_between(T, Tk), Tk[:3, 3] - T[:3, 3]]) for Tk in jack])
         n = len(jack)
         cj = (n - 1) / n * (xs - xs.mean(0)).T @ (xs - xs.mean(0))
         sig_jr = float(np.degrees(np.sqrt(np.trace(cj[:3, :3]))))
@@ -326,8 +326,3 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     return out
 
 
-def _rotvec_between(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
-    """omega with R_b = exp(omega) R_a (the calibration file's left perturbation)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(T_b[:3, :3] @ T_a[:3, :3].T).as_rotvec()

@@ -40,7 +40,7 @@ from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.core.targets import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.zed_rectification import rectified_by
-from gtforge.records.calibration import CalibrateParams, CalibrationFile
+from gtforge.records.calibration import CalibrateParams, CalibrationFile, check_rig_matches_session
 from gtforge.records.validation import PoseValidation, ValidateParams, ValidationReport
 
 log = logging.getLogger("gtforge.validate")
@@ -245,6 +245,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     # raw ZED images + SN.conf, a self-rectified ZED: rectify as the calibration did
     if calib.zed_conf is not None or calib.zed_right_correction is not None:
         session = calib.open_session(session_dir)
+    check_rig_matches_session(calib.rig, session, calib_path)  # as every other stage (a calibration of another rig)
     # the rectification is measured on whole checkerboards only (docs/targets.md)
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session)) if board_model.kind == "checkerboard" \
         else None
@@ -343,12 +344,10 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
     ``params``: None takes ``gauges.yaml``'s ``params`` (or the defaults)."""
     import time
 
-    from gtforge.io.captures import open_session
-    from gtforge.records.calibration import CalibrationFile
-
     t0 = time.perf_counter()
     calib = CalibrationFile.read(calibration)
-    session = open_session(session_dir, zed_conf_reading=calib.zed_conf_reading)
+    session = calib.open_session(session_dir)  # (the gauges use the depth and the left image only)
+    check_rig_matches_session(calib.rig, session, calibration)
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())
     if out_dir is not None:

@@ -49,7 +49,7 @@ from gtforge.core.photometric import (
 )
 from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
 from gtforge.core.render import render_texture
-from gtforge.dataset.worker_cache import _cached_session
+from gtforge.dataset.worker_cache import cached_session
 from gtforge.errors import InputError
 from gtforge.io.formats import write_image
 from gtforge.records.calibration import CalibrationFile
@@ -362,7 +362,7 @@ def predicted_shift(depth_zed_mm: np.ndarray, rig: Rig, T_zed_from_mech_true: np
     v, u = np.nonzero(np.isfinite(depth_zed_mm))
     cam = rig.zed.left
     z = depth_zed_mm[v, u].astype(np.float64)
-    P = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
+    P = cam.unproject(np.stack([u, v], axis=1), z)
     moved = transform_points(T_zed_from_mech_true @ rig.T_mech_from_zed, P)
     return (cam.project(moved) - np.stack([u, v], axis=1)).mean(axis=0)
 
@@ -441,7 +441,7 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
     s = Path(dataset_dir) / "scenes" / sid
     try:
         calib = CalibrationFile.read(calib_path)
-        session = _cached_session(session_dir, calib)
+        session = cached_session(session_dir, calib)
         rig = calib.rig
         meta = SceneMeta.read(s / "meta.json")
         folder = session.root / session.config.scenes_dir / sid

@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from gtforge.core.geometry import fit_plane_robust
+from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
 from gtforge.core.schema import GTModel
 from gtforge.core.shapefit import EllipsoidFit, fit_resting_ellipsoid
 from gtforge.errors import InputError
@@ -27,8 +28,8 @@ MIN_FRUIT_PX = 200  # smaller fruit components are not measured (specks of a mis
 MAX_FIT_POINTS = 4000  # the ellipsoid is fitted to at most this many of a fruit's pixels (an even subsample)
 TABLE_THRESHOLD_MM = 3.0  # RANSAC inlier distance of the table plane
 TABLE_RING = 0.5  # the table is fitted to background pixels within this share of the fruit's box size around it
-REGION_FRUIT = (2, 3)
-REGION_BACKGROUND = 1
+REGION_FRUIT = (REGION_CENTRE, REGION_EDGE)
+REGION_BACKGROUND = REGION_BG
 
 
 # ---- grades -----------------------------------------------------------------------------------------

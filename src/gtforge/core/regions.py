@@ -38,9 +38,9 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
             rng = np.random.default_rng(0)
             v, u = np.divmod(flat[rng.choice(len(flat), min(len(flat), 20000), replace=False)], x1 - x0)
             v, u = v + y0, u + x0
-            cam = zed.left  # rectified: no distortion, the ray of pixel (u, v) is ((u - cx) / fx, (v - cy) / fy, 1)
+            cam = zed.left
             z = depth_mm[v, u].astype(np.float64)
-            sub = np.stack([(u - cam.cx_px) / cam.fx_px * z, (v - cam.cy_px) / cam.fy_px * z, z], axis=1)
+            sub = cam.unproject(np.stack([u, v], axis=1), z)
             n, c, _ = fit_plane_robust(sub, params.plane_threshold_mm, iterations=300, rng=rng)
             if c > 0:  # orient the normal towards the camera (origin): height = n.p - c > 0 in front
                 n, c = -n, -c

@@ -72,7 +72,7 @@ def scene_files(params: BuildParams) -> list[str]:
 
 
 
-def _file_stamp(path: Path) -> tuple[int, int] | None:
+def file_stamp(path: Path) -> tuple[int, int] | None:
     """``path``'s (inode, mtime in ns), None if it does not exist: tells a file written since from the one seen."""
     try:
         st = path.stat()
@@ -82,22 +82,22 @@ def _file_stamp(path: Path) -> tuple[int, int] | None:
 
 
 
-def _landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash: str, calib_sha: str,
+def landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash: str, calib_sha: str,
                  expected: list[str]) -> "SceneMeta | None":
     """The meta of scene ``sid`` if a worker of this run landed it whole (a new meta.json, for these parameters and
     this calibration, with every scene file) and then died before it reported it; else None."""
     meta_path = out / "scenes" / sid / "meta.json"
-    if _file_stamp(meta_path) in (None, stamp_before):
+    if file_stamp(meta_path) in (None, stamp_before):
         return None
     try:
         m = SceneMeta.read(meta_path)
     except InputError:
         return None
-    return m if _built_as_asked(m, meta_path.parent, phash, calib_sha, expected) else None
+    return m if built_as_asked(m, meta_path.parent, phash, calib_sha, expected) else None
 
 
 
-def _built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, expected: list[str]) -> bool:
+def built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, expected: list[str]) -> bool:
     """Whether the scene in ``scene_dir`` (its meta ``m``) was built with these parameters and this calibration and
     still has every scene file (none deleted since)."""
     return m.params_hash == phash and m.calibration_sha256 == calib_sha and \

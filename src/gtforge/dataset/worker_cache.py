@@ -6,24 +6,24 @@ from gtforge.records.calibration import CalibrationFile
 
 # Per worker process. A Dask worker (or this process with workers=1) lives across builds: an entry is
 # reloaded when its files changed (session: their size and mtime; calibration: its sha256).
-_SESSION_CACHE: dict = {}
+WORKER_CACHE: dict = {}
 
 
 
-def _cached_session(session_dir: str, calib: CalibrationFile):
+def cached_session(session_dir: str, calib: CalibrationFile):
     """The session as ``calib`` sees it (``CalibrationFile.open_session``: the SN.conf reading and the ZED
     self-rectification it recorded)."""
     corr = calib.zed_right_correction
     key = (session_dir, calib.zed_conf_reading, corr.model_dump_json() if corr is not None else None)
-    hit = _SESSION_CACHE.get(key)
-    if hit is None or hit[1] != _session_stamp(hit[0]):
+    hit = WORKER_CACHE.get(key)
+    if hit is None or hit[1] != session_stamp(hit[0]):
         session = calib.open_session(session_dir)
-        hit = _SESSION_CACHE[key] = (session, _session_stamp(session))
+        hit = WORKER_CACHE[key] = (session, session_stamp(session))
     return hit[0]
 
 
 
-def _session_stamp(session) -> tuple:
+def session_stamp(session) -> tuple:
     c = session.config
     stamp = []
     for name in ("session.yaml", c.mech_intrinsics, c.depth_intrinsics, c.zed_calibration, c.zed_right_info):
@@ -37,9 +37,9 @@ def _session_stamp(session) -> tuple:
 
 
 
-def _cached_calibration(path: str, sha256: str) -> CalibrationFile:
+def cached_calibration(path: str, sha256: str) -> CalibrationFile:
     key = ("calib", path)
-    hit = _SESSION_CACHE.get(key)
+    hit = WORKER_CACHE.get(key)
     if hit is None or hit[1] != sha256:
-        hit = _SESSION_CACHE[key] = (CalibrationFile.read(path), sha256)
+        hit = WORKER_CACHE[key] = (CalibrationFile.read(path), sha256)
     return hit[0]
