@@ -75,8 +75,8 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
         log.warning("capture %s: board not found in the %s image; skipped", name, which)
         return None, PoseReport(capture=name, status="skipped", reason=f"board not found in the {which} image")
     X = board.corners_board()
-    T_mb = solve_pnp(X, dm.corners_uv, mech)
-    T_zb = solve_pnp(X, dz.corners_uv, zed.left)
+    T_mech_from_board = solve_pnp(X, dm.corners_uv, mech)
+    T_zed_from_board = solve_pnp(X, dz.corners_uv, zed.left)
     blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)  # NaN (unmeasurable) is not blurred
     if blurred:
         log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
@@ -85,7 +85,7 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
 
     rep = PoseReport(capture=name, status="used", sharpness_mech_px=finite_or_none(dm.sharpness_px),
                      sharpness_zed_px=finite_or_none(dz.sharpness_px), blurred=blurred)
-    return PoseObs(name, dm.corners_uv, dz.corners_uv, T_mb, T_zb, depth_mm, dm, dz), rep
+    return PoseObs(name, dm.corners_uv, dz.corners_uv, T_mech_from_board, T_zed_from_board, depth_mm, dm, dz), rep
 
 
 def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: PinholeCamera,
@@ -174,10 +174,10 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
     verdict_reasons: list[str] = []
     fail = False
     if params.use_depth:
-        T_d, rms_d, cov_d = _depth_method(used, corners_depth, zed, T_final)
-        if T_d is not None:
-            dr, dt = pose_difference(T_final, T_d)
-            methods.append(MethodResult(method="depth", T_zed_from_mech=T_d.tolist(), rms_zed_px=rms_d,
+        T_depth_method, rms_d, cov_d = _depth_method(used, corners_depth, zed, T_final)
+        if T_depth_method is not None:
+            dr, dt = pose_difference(T_final, T_depth_method)
+            methods.append(MethodResult(method="depth", T_zed_from_mech=T_depth_method.tolist(), rms_zed_px=rms_d,
                                         rot_diff_to_primary_deg=dr, trans_diff_to_primary_mm=dt))
             sr = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
             st = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
@@ -188,7 +188,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: 
                     f"--use-depth: the depth method differs from the reprojection method by {dr:.3f} deg / {dt:.2f} mm "
                     f"(allowed {lim_deg:.3f} deg / {lim_mm:.2f} mm): the depth's scale or bias, or the board size, "
                     "is off")
-            T_final, method = T_d, "depth"
+            T_final, method = T_depth_method, "depth"
             if cov_d is not None:
                 cov = cov_d * (jack_scale or 1.0)  # the ZED corners' correlated errors affect both solves
         else:
@@ -347,15 +347,15 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
             return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
     if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
         dm, dz = _unmirror(spec, dm, mech, solve_pnp), _unmirror(spec, dz, zed.left, solve_pnp)
-    T_mb, uv_m_all = _pnp_bias_corrected(spec, dm, mech, solve_pnp)
-    T_zb, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+    T_mech_from_board, uv_m_all = _pnp_bias_corrected(spec, dm, mech, solve_pnp)
+    T_zed_from_board, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
     if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
         # a symmetric grid has a 180-degree ambiguity: each camera may have numbered it from the other end. The
         # cameras look the same way (their relative rotation about the view axis is far below 90 degrees), so the
         # board's x axis points the same way in both; flip the ZED's numbering when it does not
-        if T_mb[:3, 0] @ T_zb[:3, 0] < 0:
+        if T_mech_from_board[:3, 0] @ T_zed_from_board[:3, 0] < 0:
             dz = Detection(dz.corners_uv[::-1].copy(), dz.sharpness_px, dz.method, dz.pattern_contrast, dz.ids)
-            T_zb, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+            T_zed_from_board, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
     common, im, iz = np.intersect1d(dm.ids, dz.ids, return_indices=True)
     counts["n_points_common"] = len(common)
     if len(common) < min_common:
@@ -375,7 +375,7 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
 
     rep = PoseReport(capture=name, status="used", sharpness_mech_px=fin(dm.sharpness_px),
                      sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
-    obs = PoseObs(name, uv_m_all[im], uv_z_all[iz], T_mb, T_zb, depth_mm, dm, dz, ids=common)
+    obs = PoseObs(name, uv_m_all[im], uv_z_all[iz], T_mech_from_board, T_zed_from_board, depth_mm, dm, dz, ids=common)
     return obs, rep
 
 

@@ -256,8 +256,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     for outer in range(params.outer_iterations):
         if progress:
             progress(f"solving over {len(used)} scenes (pass {outer + 1})")
-        T_new, cov = solve_extrinsic([pts[s] for s in used], T, rig0, params)
-        rig = rig0.with_extrinsic(T_new)
+        T_zed_from_mech_new, cov = solve_extrinsic([pts[s] for s in used], T, rig0, params)
+        rig = rig0.with_extrinsic(T_zed_from_mech_new)
         flagged = {}
         for s in sorted(pts):
             sp, ver = _scene_at(caps[s], rig, build, params)
@@ -267,8 +267,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
             reports[s].fruit_shift_after_px = ver.texture_fruit.magnitude_px
             if ver.status == "flagged":
                 flagged[s] = "; ".join(ver.reasons)
-        dr, dt = pose_difference(T, T_new)
-        T = T_new
+        dr, dt = pose_difference(T, T_zed_from_mech_new)
+        T = T_zed_from_mech_new
         if progress:
             progress(f"pass {outer + 1}: moved {dr:.5f} deg / {dt:.4f} mm; {len(flagged)} scene(s) flagged")
         new_used = [s for s in sorted(pts) if s not in flagged]
@@ -284,9 +284,9 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
         for s in used:
             if progress:
                 progress(f"leave-one-out: refine without {s}")
-            T_k, _ = solve_extrinsic([pts[x] for x in used if x != s], T, rig0, params)
-            jack.append(T_k)
-            _, ver = _scene_at(caps[s], rig0.with_extrinsic(T_k), build, params)
+            T_zed_from_mech_without_s, _ = solve_extrinsic([pts[x] for x in used if x != s], T, rig0, params)
+            jack.append(T_zed_from_mech_without_s)
+            _, ver = _scene_at(caps[s], rig0.with_extrinsic(T_zed_from_mech_without_s), build, params)
             reports[s].heldout_shift_px = ver.texture_all.magnitude_px
             held_before.append(reports[s].shift_before_px)
             held_after.append(ver.texture_all.magnitude_px)

@@ -75,19 +75,19 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
     P = len(obs)
     X = board.corners_board()
     N = len(X)
-    Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
+    T_mech_from_board_start = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
     uv_m = np.stack([o.mech_uv for o in obs])
     uv_z = np.stack([o.zed_uv for o in obs])
 
     def unpack(x):
-        Te = perturb_left(T_zed_from_mech0, x[:6])
-        Tbs = [perturb_left(Tb0[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
-        return Te, Tbs
+        T_zed_from_mech = perturb_left(T_zed_from_mech0, x[:6])
+        T_mech_from_boards = [perturb_left(T_mech_from_board_start[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
+        return T_zed_from_mech, T_mech_from_boards
 
     def residuals(x):
-        Te, Tbs = unpack(x)
-        pm = np.stack([transform_points(T, X) for T in Tbs])
-        pz = np.stack([transform_points(Te @ T, X) for T in Tbs])
+        T_zed_from_mech, T_mech_from_boards = unpack(x)
+        pm = np.stack([transform_points(T, X) for T in T_mech_from_boards])
+        pz = np.stack([transform_points(T_zed_from_mech @ T, X) for T in T_mech_from_boards])
         rm = _project_many(mech, pm) - uv_m
         rz = _project_many(zed_cam, pz) - uv_z
         return np.concatenate([rm.reshape(P, -1), rz.reshape(P, -1)], axis=1).ravel()
@@ -101,7 +101,7 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
     x0 = np.zeros(6 + 6 * P)
     sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
                         method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
-    Te, Tbs = unpack(sol.x)
+    T_zed_from_mech, T_mech_from_boards = unpack(sol.x)
     r = sol.fun.reshape(P, 4 * N)
     res_m = r[:, :2 * N].reshape(P, N, 2)
     res_z = r[:, 2 * N:].reshape(P, N, 2)
@@ -112,7 +112,7 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
         cov = np.full((len(x0), len(x0)), np.nan)
-    return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
+    return Refined(T_zed_from_mech, T_mech_from_boards, res_m, res_z, cov[:6, :6], int(sol.nfev))
 
 
 
@@ -132,18 +132,18 @@ def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: Pinho
     pose_of = np.repeat(np.arange(P), Ns)
     uv_m = np.concatenate([o.mech_uv for o in obs])
     uv_z = np.concatenate([o.zed_uv for o in obs])
-    Tb0 = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
+    T_mech_from_board_start = T_mech_from_board0 or [o.T_mech_from_board for o in obs]
 
     def unpack(x):
-        Te = perturb_left(T_zed_from_mech0, x[:6])
-        Tbs = [perturb_left(Tb0[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
-        return Te, Tbs
+        T_zed_from_mech = perturb_left(T_zed_from_mech0, x[:6])
+        T_mech_from_boards = [perturb_left(T_mech_from_board_start[i], x[6 + 6 * i: 12 + 6 * i]) for i in range(P)]
+        return T_zed_from_mech, T_mech_from_boards
 
     def residuals(x):
-        Te, Tbs = unpack(x)
-        Tm = np.stack(Tbs)[pose_of]  # (n, 4, 4): each point's board pose
+        T_zed_from_mech, T_mech_from_boards = unpack(x)
+        Tm = np.stack(T_mech_from_boards)[pose_of]  # (n, 4, 4): each point's board pose
         pm = np.einsum("nij,nj->ni", Tm[:, :3], Xh)
-        pz = pm @ Te[:3, :3].T + Te[:3, 3]
+        pz = pm @ T_zed_from_mech[:3, :3].T + T_zed_from_mech[:3, 3]
         return np.concatenate([(mech.project(pm) - uv_m).ravel(), (zed_cam.project(pz) - uv_z).ravel()])
 
     m = 4 * n_pts
@@ -157,7 +157,7 @@ def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: Pinho
     x0 = np.zeros(6 + 6 * P)
     sol = least_squares(residuals, x0, jac_sparsity=sp, loss="huber", f_scale=huber_px, x_scale="jac",
                         method="trf", xtol=1e-8, ftol=1e-8, gtol=1e-8, max_nfev=200)
-    Te, Tbs = unpack(sol.x)
+    T_zed_from_mech, T_mech_from_boards = unpack(sol.x)
     rm, rz = sol.fun[:2 * n_pts].reshape(-1, 2), sol.fun[2 * n_pts:].reshape(-1, 2)
     res_m = [rm[starts[i]:starts[i + 1]] for i in range(P)]
     res_z = [rz[starts[i]:starts[i + 1]] for i in range(P)]
@@ -167,7 +167,7 @@ def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: Pinho
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
         cov = np.full((len(x0), len(x0)), np.nan)
-    return Refined(Te, Tbs, res_m, res_z, cov[:6, :6], int(sol.nfev))
+    return Refined(T_zed_from_mech, T_mech_from_boards, res_m, res_z, cov[:6, :6], int(sol.nfev))
 
 
 
@@ -179,8 +179,8 @@ def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, 
     if o.depth_mm is None:
         return None
     depth_cam = depth_cam or mech
-    T_md = np.eye(4) if T_mech_from_depth is None else np.asarray(T_mech_from_depth, float)
-    X_depth = transform_points(invert_T(T_md) @ o.T_mech_from_board, o.board_points(board))
+    T_mech_from_depth_4x4 = np.eye(4) if T_mech_from_depth is None else np.asarray(T_mech_from_depth, float)
+    X_depth = transform_points(invert_T(T_mech_from_depth_4x4) @ o.T_mech_from_board, o.board_points(board))
     uv_depth = depth_cam.project(X_depth)
     if not np.all(np.isfinite(uv_depth)):
         return None
@@ -194,7 +194,7 @@ def board_corners_from_depth(o: PoseObs, mech: PinholeCamera, board: BoardSpec, 
         return None
     rays = depth_cam.ray_grid()[v, u]
     z = o.depth_mm[v, u].astype(np.float64)
-    pts = transform_points(T_md, np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1))
+    pts = transform_points(T_mech_from_depth_4x4, np.stack([rays[:, 0] * z, rays[:, 1] * z, z], axis=1))
     n, c, _ = fit_plane_robust(pts, threshold_mm=1.0)
     xy = mech.undistort_to_normalized(o.mech_uv)
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
