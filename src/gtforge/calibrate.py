@@ -43,7 +43,7 @@ from gtforge.records.calibration import (
     session_board,
 )
 
-# scipy is imported inside the functions that use it: it adds about 0.4 s to every process start, and the
+# scipy is imported inside the functions that use it: importing it slows every process start, and the
 # build-dataset workers, which import this module for CalibrationFile, never need it
 
 log = logging.getLogger("gtforge.calibrate")

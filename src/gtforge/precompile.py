@@ -2,9 +2,9 @@
 
 numba compiles a kernel on its first call after an install or a change of its source, and caches the machine code
 beside the source (``__pycache__``; numba's own cache folder where that is read-only). With a cold cache, the first
-``build-dataset`` pays for it in every worker process at once: an 8-scene full-resolution build took 26.8 s instead of
-2.4 s (benchmarks/RESULTS.md). ``make setup`` (scripts/setup.sh) runs ``python -m gtforge.precompile`` once after
-installing; every later process loads the kernels from the cache.
+``build-dataset`` pays for it in every worker process at once, each compiling the same kernels (benchmarks/RESULTS.md,
+round 10). ``make setup`` (scripts/setup.sh) runs ``python -m gtforge.precompile`` once after installing; every later
+process loads the kernels from the cache.
 
 It builds one small synthetic scene (default options: verification, sigma map, right view) in this process, once
 with one numba thread (the kernels a build worker runs when ``--workers`` = cores) and once with every core (the

@@ -23,8 +23,7 @@ def mask_bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
 def finite_box(a):
     """``(y0, y1, x0, x1)`` (ends exclusive) of a 2-D float array's finite values; ``(0, 0, 0, 0)`` where there are
     none. The image-sized passes of a build run on this box only: a depth camera narrower than the ZED fills about a
-    third of its image (the benchmark's scenes: 37 % of 2208x1242). Two branch-free row passes (about 0.25 ms at
-    2208x1242)."""
+    third of its image (the benchmark's scenes: 37 % of 2208x1242). Two branch-free row passes."""
     H, W = a.shape
     y0, y1 = H, 0
     for v in range(H):
@@ -51,7 +50,7 @@ def finite_box(a):
 
 
 def T_from_rotvec(rotvec_rad: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation  # here, not at import: scipy adds 0.4 s to every process start
+    from scipy.spatial.transform import Rotation  # here, not at import: importing scipy slows every process start
 
     return make_T(Rotation.from_rotvec(np.asarray(rotvec_rad, float).reshape(3)).as_matrix(), t_mm)
 
@@ -160,7 +159,7 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
 def perturb_left(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
     """``T = [exp(omega) R0 | t0 + delta_t]`` with ``x = (omega_rad (3), delta_t_mm (3))``: the left perturbation every
     covariance of gtforge is written in (``cov_extrinsic_rad_mm``)."""
-    from scipy.spatial.transform import Rotation  # scipy adds ~0.4 s to a process start; build workers never need it
+    from scipy.spatial.transform import Rotation  # here, not at import: build workers never need scipy
 
     return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])
 

@@ -76,7 +76,7 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
 
 def sgra_weights(region: np.ndarray, params: BuildParams) -> np.ndarray:
     """``weight.tiff``: the SGRA loss weight of each pixel's region (0 where no GT), float32."""
-    lut = np.zeros(256, np.float32)  # by region label: one table look-up (0.3 ms) instead of three masked writes (2 ms)
+    lut = np.zeros(256, np.float32)  # by region label: one table look-up pass instead of three masked writes
     lut[[REGION_BG, REGION_CENTRE, REGION_EDGE]] = params.lambda_bg, params.lambda_center, params.lambda_edge
     return cv2.LUT(np.ascontiguousarray(region, np.uint8), lut)
 

@@ -39,13 +39,12 @@ from gtforge.core.geometry import finite_box
 Mode = Literal["mesh", "splat"]
 
 # error_model="numpy": a float division by zero gives inf/NaN instead of a Python exception check, which
-# would keep the compiler from vectorising the row loops (3x slower projection).
+# would keep the compiler from vectorising the row loops.
 _JIT = {"cache": True, "error_model": "numpy"}
 _EPS = 1e-9  # pixel-centre tolerance (px): a centre on a triangle's edge belongs to it
-# Below this many numba threads one thread rasterises straight into the image. Measured on 2 cores
-# (benchmarks/RESULTS.md): 2 threads gain 1.3x for mesh and lose 2x for splat on an idle machine (a second
-# projection pass, the windows, the merge), and with one core busy both lose 1.5-2x (each parallel region
-# waits for the thread that shares the busy core).
+# Below this many numba threads one thread rasterises straight into the image: the parallel path adds a second
+# projection pass, the windows and the merge, and each parallel region waits for the thread that shares a busy
+# core, so on 2 cores it lost more than it gained (benchmarks/RESULTS.md, "Figures from code comments").
 MIN_PARALLEL_THREADS = 3
 
 
@@ -235,7 +234,7 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         a2 = dqu * (v2 - vp) - dqv * (u2 - up)
         ok1 = t1 & (abs(a1) >= 1e-12)
         ok2 = t2 & (abs(a2) >= 1e-12)
-        # _pixel's test, written out: through an inlined helper shared with it, 1-3 ms slower a view (2026-12-02)
+        # _pixel's test, written out: an inlined helper shared with it was slower (benchmarks/RESULTS.md)
         er = dqu * (py - vp) - dqv * (px - up)
         use1 = ok1 & ((er * a1 >= 0.0) | ~ok2)
         ur = u1 if use1 else u2
@@ -518,7 +517,7 @@ def reproject_to_zed(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_zed_from_
 def disparity_and_nonoccluded(depth_l: np.ndarray, depth_r: np.ndarray, zed: RectifiedStereo, rel_tol: float = 0.01,
                               abs_tol_mm: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """``zed.depth_to_disparity(depth_l)`` and ``nonoccluded_mask(depth_l, disparity, depth_r, ...)`` in one
-    compiled pass (identical results; 7 instead of 43 ms at 2208x1242)."""
+    compiled pass (identical results, without numpy's index arrays, gathers and temporaries)."""
     if depth_l.shape != depth_r.shape:
         raise ValueError(f"{depth_l.shape=} but {depth_r.shape=}")
     return _disparity_nonoccluded(np.ascontiguousarray(depth_l, np.float32), np.ascontiguousarray(depth_r, np.float32),
@@ -547,7 +546,7 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
         # the box's columns as slices from index 0: plain loads and stores (a column index the compiler cannot prove
         # non-negative would make them gathers)
         zs, ds, ns = depth_l[v, x0:x1], drow[x0:x1], noc[v, x0:x1]
-        for i in range(x1 - x0):  # no branch, so the compiler vectorises the divisions (4.3 instead of 6.2 ms a call)
+        for i in range(x1 - x0):  # no branch, so the compiler vectorises the divisions
             zl = zs[i]
             q = np.float32(fB / np.float64(zl) - doffs)
             ds[i] = q if zl > 0.0 else nan32

@@ -162,7 +162,7 @@ def _sigma_kernel(disp, depth, span, fx, fy, cx, cy, B, cov, t, c_depth, axis_de
           C[4, 4], 2 * C[4, 5],
           C[5, 5])
     fb = fx * B
-    x_over_z = np.empty(W)  # (u - cx) / fx of each column, divided once (the same value: 12.7 instead of 14.9 ms)
+    x_over_z = np.empty(W)  # (u - cx) / fx of each column, divided once, not once a pixel (the same value)
     for u in range(W):
         x_over_z[u] = (u - cx) / fx
     y0, y1, x0, x1 = finite_box(disp)  # no GT outside it
@@ -235,7 +235,7 @@ def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[
     labels = np.asarray(labels)
     if labels.shape != s.shape:
         raise ValueError(f"{labels.shape=} but expected {s.shape} (the sigma map's)")
-    # compiled passes around numpy's log10: 2-3 instead of 10-13 ms on a 2208x1242 map, the same counts
+    # compiled passes around numpy's log10 instead of numpy's masks, selections and histograms: the same counts
     v, lab = _finite_positive(s, labels.view(np.uint8) if labels.dtype == bool else labels)
     n_labels = int(lab.max()) + 1 if lab.size else 1
     nb = len(_LOG_EDGES) - 1

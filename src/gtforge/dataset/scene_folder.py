@@ -61,7 +61,8 @@ def lock_writer(scenes: Path, sid: str, token: str) -> int | None:
 def unlock_writer(scenes: Path, sid: str, token: str, fd: int | None) -> None:
     """Release the lock. Its file stays until the run's end (``remove_stale_entries`` removes unheld locks): a file deleted
     per scene would make ext4 without a journal skip it, for a minute, each time it allocates an inode in that folder
-    (``recently_deleted``): 1-2 % of a build's CPU, and up to 3 s while the split views' 4,080 links are made."""
+    (``recently_deleted``), a search paid in every scene and again for each of the split views' links
+    (benchmarks/RESULTS.md, "Figures from code comments")."""
     if fd is not None:
         os.close(fd)
 

@@ -135,8 +135,9 @@ def write_split_views(out: Path, splits: dict[str, list[str]], params: BuildPara
 
 def _make_symlinks(links: list[tuple[str, str]]) -> None:
     """Relative symlinks ``link -> target`` (absolute paths given), made folder by folder, each folder made once.
-    In that order 4,080 links (240 scenes' split views) took 0.17 s on the project VM; made scene by scene, each link
-    in another folder than the one before, they took 0.7-1.0 s of kernel time, while every other core was idle."""
+    In that order each link goes in the folder the one before went in; made scene by scene, each link in another
+    folder than the one before, the same links took several times the kernel time (benchmarks/RESULTS.md, "Figures
+    from code comments")."""
     links = sorted(links, key=lambda ta: ta[1])
     made = set()
     for target, at in links:

@@ -40,8 +40,8 @@ _PRIVATE_FOLDERS: set[str] = set()
 def private_folder(folder: str | Path) -> Iterator[Path]:
     """Within this context, the atomic writers write files directly in ``folder`` (not in its subfolders) under their
     final names: ``folder`` is one that nobody reads until the caller renames it into place, complete, and deletes it
-    whole otherwise (a scene's hidden temporary folder), so a temporary file and a rename per file would add nothing
-    (0.09 ms a file)."""
+    whole otherwise (a scene's hidden temporary folder), so a temporary file and a rename per file would add work and
+    no safety."""
     key = os.fspath(folder)
     _PRIVATE_FOLDERS.add(key)
     try:

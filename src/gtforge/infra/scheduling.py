@@ -5,11 +5,11 @@ small picklable result; the caller's ``on_result`` runs in this process, in comp
 
 Local workers are forked from one fork server (``multiprocessing``'s ``forkserver``, where the platform has it; else
 each is spawned): it imports the task's module, the main script and ``gtforge.infra.pool_preload`` once, instead of each
-worker importing them (a 4-scene build with 2 workers: 1.6-1.7 instead of 2.1-2.4 s; benchmarks/RESULTS.md).
+worker importing them: their CPU is spent once, not once a worker (benchmarks/RESULTS.md, "Figures from code comments").
 ``prestart_pool`` starts it before the caller's own set-up, so that its imports overlap that.
 
 Threads x processes: each local worker process gets ``max(1, cores // workers)`` numba threads, so the
-pool never runs more compute threads than cores (a busy core slows numba's parallel loops 2-3x). On a
+pool never runs more compute threads than cores (a parallel loop waits for its thread on a busy core). On a
 Dask cluster each task gets ``max(1, cores // threads)``, where ``threads`` counts the task threads of
 every worker on that host.
 
@@ -85,10 +85,10 @@ def reuse_freed_memory() -> bool:
     """Let glibc's malloc keep freed memory for the next array instead of returning it to the kernel.
 
     A scene allocates and frees dozens of full-image arrays (10-40 MB each). By default glibc maps each anew and
-    the kernel zero-fills its pages on first touch: 10,000-20,000 page faults, about 8 % of a scene's CPU time
-    (benchmarks/RESULTS.md). With these settings arrays up to 32 MB (glibc's upper limit) come from the heap and
-    freed memory stays there, so a local pool worker keeps its peak footprint between scenes. On a Dask worker see
-    ``_memory_kept_for_task``. Returns whether it applied (glibc only)."""
+    the kernel zero-fills its pages on first touch: a page fault per page of every array, every scene
+    (benchmarks/RESULTS.md, "Figures from code comments"). With these settings arrays up to 32 MB (glibc's upper
+    limit) come from the heap and freed memory stays there, so a local pool worker keeps its peak footprint between
+    scenes. On a Dask worker see ``_memory_kept_for_task``. Returns whether it applied (glibc only)."""
     libc = _glibc()
     return libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)) \
         and bool(libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30))
@@ -99,8 +99,8 @@ def _memory_kept_for_task():
     """``reuse_freed_memory`` for one task on a Dask worker, whose process is shared with other tasks and whose memory
     Dask watches: the worker's settings are put back afterwards and the freed memory is returned to the kernel
     (``malloc_trim``). Dask starts workers with MALLOC_TRIM_THRESHOLD_ = 64 kB, which returns every freed array at
-    once: a scene took 1.4-1.6x as long (docs/cluster.md). Another gtforge task running at the same time on the same
-    worker may finish with the worker's settings (slower, not wrong)."""
+    once, to be faulted in again by the next allocation (docs/design/performance.md). Another gtforge task running
+    at the same time on the same worker may finish with the worker's settings (slower, not wrong)."""
     applied = reuse_freed_memory()
     try:
         yield
@@ -144,10 +144,9 @@ def release_written_pages(paths: Sequence[str | os.PathLike]) -> None:
     ``POSIX_FADV_DONTNEED`` on ``paths`` starts their writeback (it drops only pages already clean); two calls
     later, two scenes on, the same advice drops their pages, written by then, and the following scenes' writes
     reuse them instead of growing the cache into memory never touched. Pages still dirty then stay cached and
-    are written back by the kernel as usual; contents are never affected. On the 2-core project
-    VM, where a page-cache page the guest has not touched before costs the host a fault (about 3 ms/MB against
-    0.3 ms/MB for a reused one), this halved build-dataset's kernel time (benchmarks/RESULTS.md). No-op where
-    ``posix_fadvise`` does not exist."""
+    are written back by the kernel as usual; contents are never affected. On a VM, a page-cache page the guest has
+    not touched before costs the host a fault and a reused one does not (benchmarks/RESULTS.md, "Figures from code
+    comments"). No-op where ``posix_fadvise`` does not exist."""
     if not hasattr(os, "posix_fadvise"):
         return
     group = [os.fspath(p) for p in paths]

@@ -1,9 +1,9 @@
 """Output files written past the page cache (``O_DIRECT``), and from a background thread.
 
-Why: on the 2-core project VM, a buffered write of an 11 MB PFM cost the writing process 12-14 ms of CPU (the
-kernel copies the data into page-cache pages, which the guest must first get from the host, and writes them back
-later), an ``O_DIRECT`` write of the same file about 1 ms: the device reads the process's own buffer
-(benchmarks/RESULTS.md, round 9). A build writes about 56 MB a full-resolution scene.
+Why: a buffered write costs the writing process CPU for every byte (the kernel copies the data into page-cache
+pages, which a VM's guest must first get from the host, and writes them back later); an ``O_DIRECT`` write costs it
+almost none: the device reads the process's own buffer (benchmarks/RESULTS.md, "Writes past the page cache"). A
+build writes about 56 MB a full-resolution scene.
 
 ``O_DIRECT`` wants the buffer's address, the file offset and the length to be multiples of the device's block size:
 the bytes are put in an ``AlignedBuffer`` (``BLOCK_BYTES``-aligned, its length padded to a whole block), written
@@ -12,8 +12,8 @@ filesystems), the platform has none, or a write ends off a block boundary, the r
 the file's bytes are the same either way. Files under ``MIN_DIRECT_BYTES`` are written the ordinary way (their
 page-cache cost is small; a direct write waits for the device).
 
-A direct write returns once the device has the data (about 6-10 ms for 11 MB there): ``background_writes`` lets
-the calling thread go on (encoding the next file) while this process's writer thread waits for the device.
+A direct write returns only once the device has the data: ``background_writes`` lets the calling thread go on
+(encoding the next file) while this process's writer thread waits for the device.
 """
 from __future__ import annotations
 

@@ -79,7 +79,7 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     if depth_unit == "m":
         d *= 1000.0
     else:
-        sample = d[::4, ::4]  # every 16th pixel tells metres from mm (the full median: 5 ms)
+        sample = d[::4, ::4]  # every 16th pixel tells metres from mm as well as all do, and the median sorts 16x fewer
         sample = sample[np.isfinite(sample)]
         med = float(np.median(sample if sample.size else d[np.isfinite(d)]))
         if med < 10.0:

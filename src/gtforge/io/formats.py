@@ -6,14 +6,14 @@ Every writer is atomic.
 Encoder settings were chosen by measurement (benchmarks/RESULTS.md, "Output encodings"):
 * label PNGs (masks, regions, KITTI disparity; read every epoch, written once): no PNG filter, deflated by
   zlib-ng at level 1 (``encode_label_png``). They decode as fast as OpenCV's fastest-decoding setting (level 1,
-  default strategy, no filter: 2.4x (KITTI) to 7x (masks) faster than OpenCV's default) and encode 3x (KITTI)
-  to 8x (masks) faster than it; a KITTI PNG is 0.9 instead of 0.6 MB (zlib-ng's level 1 uses fixed Huffman
-  codes). The PNG container (signature, IHDR, one IDAT, IEND) is written here; zlib-ng does the deflate, in blocks
-  of 16 rows each compressed on its own (``_deflate_blocks``: 0.3 % larger), so that a view's ``disp_occ`` and
-  ``disp_noc`` share every block without an occluded pixel (``write_kitti_disparity_pair``).
-* float32 TIFF: uncompressed by default (zlib on float depth costs 65-250 ms a file for a 5x smaller file);
-  ``compression="zlib"`` for piecewise-constant data such as weights: strips of 64 rows deflated by zlib-ng at
-  level 1 (0.12 MB instead of 11 MB, 3 ms; tifffile's own zlib at level 1: 0.06 MB, 13 ms).
+  default strategy, no filter), much faster than OpenCV's default, and encode much faster than it; a KITTI PNG is
+  0.9 instead of 0.6 MB (zlib-ng's level 1 uses fixed Huffman codes). The PNG container (signature, IHDR, one
+  IDAT, IEND) is written here; zlib-ng does the deflate, in blocks of 16 rows each compressed on its own
+  (``_deflate_blocks``: 0.3 % larger), so that a view's ``disp_occ`` and ``disp_noc`` share every block without an
+  occluded pixel (``write_kitti_disparity_pair``).
+* float32 TIFF: uncompressed by default (zlib on float depth is slow to encode and to decode, for a 5x smaller
+  file); ``compression="zlib"`` for piecewise-constant data such as weights: strips of 64 rows deflated by zlib-ng
+  at level 1 (0.12 MB instead of 11 MB; tifffile's own zlib at level 1: 0.06 MB, several times slower).
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_path, atomic_write_buffer, atomic_write_bytes
 from gtforge.infra.unbuffered import aligned_buffer
 
-try:  # PNG inflate: ISA-L where its wheel exists (1.8x zlib-ng's speed here), else zlib-ng (the same results)
+try:  # PNG inflate: ISA-L where its wheel exists (hand-vectorised, faster than zlib-ng), else zlib-ng (same results)
     from isal import isal_zlib as _png_inflate_lib
 except ImportError:  # pragma: no cover - platforms without an isal wheel
     _png_inflate_lib = zlib_ng
@@ -55,8 +55,7 @@ def write_pfm(path: str | Path, disp_px: np.ndarray) -> Path:
 
 @numba.njit(cache=True)
 def _pfm_rows(a, out):
-    """PFM's rows into ``out``: bottom-to-top, with NaN and -inf -> +inf, in one pass (numpy needs three: 7 ms of a
-    2208x1242 write)."""
+    """PFM's rows into ``out``: bottom-to-top, with NaN and -inf -> +inf, in one pass (numpy needs three)."""
     H, W = a.shape
     for v in range(H):
         for u in range(W):
@@ -126,8 +125,8 @@ def _kitti_value(x):
 
 @numba.njit(cache=True)
 def _kitti_quantize(d, mask):
-    """``_kitti_value`` of every pixel; 0 outside ``mask``. One pass: the numpy expression of it takes 18 ms on a
-    2208x1242 image, this 2 ms."""
+    """``_kitti_value`` of every pixel; 0 outside ``mask``. One pass, instead of the numpy expression's several
+    passes and temporaries."""
     H, W = d.shape
     q = np.zeros((H, W), np.uint16)
     for v in range(H):
@@ -141,8 +140,7 @@ def _kitti_quantize(d, mask):
 def _kitti_png_rows(d, mask):
     """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)`` and of
     ``_kitti_quantize(d, mask)``, and whether each row is the same in both. The first pass has no branch (the compiler
-    vectorises it: 0.9 ms at 2208x1242); the second copies the first and clears the masked pixels of the rows that
-    differ."""
+    vectorises it); the second copies the first and clears the masked pixels of the rows that differ."""
     H, W = d.shape
     occ = np.empty((H, 1 + 2 * W), np.uint8)
     same = np.ones(H, np.bool_)
@@ -243,7 +241,7 @@ def write_tiff_float(path: str | Path, a: np.ndarray, compression: Literal["none
         np.copyto(d[len(head):len(head) + a.nbytes].view(a.dtype).reshape(a.shape), a)
         d[len(head) + a.nbytes:] = np.frombuffer(tail, np.uint8)
         return atomic_write_buffer(path, buf)
-    with atomic_path(path) as tmp:  # strips of 64 rows deflated by zlib-ng at level 1 (3x faster than tifffile's zlib)
+    with atomic_path(path) as tmp:  # strips of 64 rows deflated by zlib-ng at level 1 (faster than tifffile's zlib)
         n = TIFF_ROWS_PER_STRIP
         strips = (zlib_ng.compress(a[v:v + n], 1) for v in range(0, a.shape[0], n))
         tifffile.imwrite(tmp, strips, shape=a.shape, dtype=a.dtype, compression="zlib", rowsperstrip=n)
@@ -334,11 +332,11 @@ def decode_png(data: bytes, rows: int | None = None) -> np.ndarray | None:
     decodes those with imageio. ``rows``: decode the first ``rows`` rows only (``(rows, W, ...)``): the stream is
     inflated only as far as they need, so its end and checksum are not checked then (the chunks' CRCs are).
 
-    Why not imageio/Pillow or OpenCV for these: they inflate with the system zlib, which took 38 of the 42 ms of
-    decoding a 2208x1242 RGB ZED image here; ISA-L (``isal``) inflates it in 12 ms, zlib-ng (the fallback where isal
-    has no wheel) in 21 ms, and the row filters are undone in one compiled pass (benchmarks/RESULTS.md,
-    "profile_scene"). Every chunk's CRC, the zlib stream's end and checksum, the data size and each row's filter
-    type are checked: a truncated or corrupt file raises ``ValueError``.
+    Why not imageio/Pillow or OpenCV for these: they inflate with the system zlib, where most of a decode's time
+    goes; ISA-L (``isal``) and zlib-ng (the fallback where isal has no wheel) inflate much faster, and the row filters
+    are undone in one compiled pass (benchmarks/RESULTS.md, "profile_scene" and "Figures from code comments"). Every
+    chunk's CRC, the zlib stream's end and checksum, the data size and each row's filter type are checked: a
+    truncated or corrupt file raises ``ValueError``.
     """
     view = memoryview(data)
     if bytes(view[:8]) != PNG_SIGNATURE:
@@ -435,7 +433,7 @@ def _unfilter_left_row_bpp(kind, src, up, cur, bpp):
 def _unfilter_left_row(kind, src, up, cur, bpp):
     """One row of the filters that use the left neighbour (Sub, Average, Paeth). Each channel's left and upper-left
     values are carried in registers (a0..a3, c0..c3) instead of being read back from the row just written: the
-    store-to-load round trip was the loop's critical path (a grey Sub row 8x, an RGB Paeth row 2x faster)."""
+    store-to-load round trip was the loop's critical path (benchmarks/RESULTS.md, "Figures from code comments")."""
     a0 = a1 = a2 = a3 = np.int32(0)
     c0 = c1 = c2 = c3 = np.int32(0)
     for p in range(0, cur.shape[0], bpp):
