@@ -17,9 +17,9 @@ from gtforge.dataset.layout import (
     KITTI_DISPARITY_DIRS,
     built_as_asked,
     file_stamp,
-    landed_meta,
     hash_inputs,
     inputs_unchanged,
+    landed_meta,
     scene_files,
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
@@ -38,11 +38,12 @@ except ImportError:  # pragma: no cover
 import gtforge
 from gtforge.core.geometry import finite_box, mask_bounding_box
 from gtforge.core.reproject import right_view_disparity
+from gtforge.core.scale_corrections import add_scale_sigma, corrected_right_image
 from gtforge.core.uncertainty import disparity_sigma
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
 from gtforge.infra.digest import sha256_file
-from gtforge.infra.scheduling import prestart_pool, release_written_pages, run_tasks
+from gtforge.infra.scheduling import check_scheduler_address, prestart_pool, release_written_pages, run_tasks
 from gtforge.infra.unbuffered import background_writes
 from gtforge.io.formats import (
     write_image,
@@ -53,6 +54,9 @@ from gtforge.io.formats import (
 )
 from gtforge.io.outputs import require_output_folder
 from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
+from gtforge.records.verification import VerificationReport
+from gtforge.reports.build import write_build_report
+from gtforge.reports.verification import write_verification_report
 from gtforge.verify import verify_scene, zed_rows_used
 
 if TYPE_CHECKING:
@@ -136,7 +140,6 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
         decode_s = 0.0
         if yawed:
-            from gtforge.core.scale_corrections import corrected_right_image
 
             cap.zed_right = corrected_right_image(cap.zed_right, rig)
         if params.verification:
@@ -213,7 +216,6 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm,
                                         params.uncertainty, sd.span_mm, shift)
                 if calib.scale_calibration is not None:  # the scale terms' uncertainty (calibrate-scale)
-                    from gtforge.core.scale_corrections import add_scale_sigma
 
                     sigma = add_scale_sigma(sigma, sd.depth_mm, rig, calib.scale_calibration)
                 sigma = sigma[sl]
@@ -269,7 +271,6 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                          f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
     dirs = session.select("scenes", scenes)
     if scheduler:
-        from gtforge.infra.scheduling import check_scheduler_address
 
         check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)
@@ -355,7 +356,6 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     write_lists(out, splits)
     write_split_views(out, splits, params)
     _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
-    from gtforge.reports.build import write_build_report
 
     write_build_report(Manifest.read(out / "manifest.json"), out)
     remove_stale_entries(out)  # the scenes' released locks (unlock_writer)
@@ -375,8 +375,6 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
 
 
 def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneMeta"]) -> None:
-    from gtforge.records.verification import VerificationReport
-    from gtforge.reports.verification import write_verification_report
 
     scenes = {s: m.verification for s, m in sorted(metas.items()) if m.verification is not None}
     for s, v in scenes.items():  # overlays of scenes no longer flagged

@@ -29,11 +29,13 @@ from gtforge.core.board_extrinsic import (
 )
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
+from gtforge.core.rectification import RectificationMeter
 from gtforge.core.selfcal import SelfRectifyParams
 from gtforge.core.target_detection import _pnp_bias_corrected, _unmirror, detect_target
-from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
+from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, check_board_model, collinear
 from gtforge.errors import InputError
-from gtforge.io.zed_rectification import self_rectify
+from gtforge.io.captures import open_session
+from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
 from gtforge.records.calibration import (
     CalibrateParams,
     CalibrationFile,
@@ -65,7 +67,6 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
                 mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
                 blur_px: float) -> tuple[PoseObs | None, PoseReport]:
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-        from gtforge.calibrate import detect_pose_target
 
         return detect_pose_target(name, texture, depth_mm, zed_left, mech, zed, board, blur_px)
     dm = detect_corners(texture, board)
@@ -265,8 +266,6 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
               progress: Callable[[str], None] | None = None) -> CalibrationFile:
     """Calibrate from a capture session's ``board/`` captures; writes ``out_path`` (YAML) when given
     (an existing folder, or a path ending in ``/``, gets ``calibration.yaml`` inside it)."""
-    from gtforge.core.targets import check_board_model
-    from gtforge.io.captures import open_session
 
     params = params or CalibrateParams()
     session = open_session(session_dir)
@@ -277,8 +276,6 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         out_path = calibration_output_path(out_path)
         session.refuse_output_inside_captures(out_path)
     dirs = session.select("board", captures, exclude)
-    from gtforge.core.rectification import RectificationMeter
-    from gtforge.io.zed_rectification import rectified_by, settle_zed_conf_reading
 
     checker = params.board.kind == "checkerboard"
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it);
@@ -328,8 +325,6 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
     """``gtforge.calibrate.detect_pose`` for ChArUco and circle grids: points matched by id between the two
     cameras; a pose with fewer than ``min_common`` common points, or collinear ones, is skipped with the reason.
     Each camera's board pose (PnP) uses all its own points; the extrinsic only the common ones."""
-    from gtforge.core.board import PoseObs, solve_pnp
-    from gtforge.records.calibration import PoseReport
 
     dm = detect_target(texture, spec, mech, where=f"{name}: structured-light image")
     dz = detect_target(zed_left, spec, zed.left, where=f"{name}: ZED-left image")
@@ -384,7 +379,6 @@ def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
     """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
     circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
     reason the pose cannot be used."""
-    from gtforge.core.camera import RectifiedStereo
 
     zed = RectifiedStereo(left=zed_cam, baseline_mm=1.0)
     o, rep = detect_pose_target(name, texture, None, zed_left, mech, zed, spec, float("inf"), min_common)

@@ -12,6 +12,7 @@ from typing import Callable
 
 import numpy as np
 
+import gtforge
 from gtforge.core.fruit_size import GradeBins, measure_scene, scene_truth, summarise
 from gtforge.core.metrics import (
     Accumulator,
@@ -21,6 +22,7 @@ from gtforge.core.metrics import (
 )
 from gtforge.core.regions import region_masks
 from gtforge.errors import InputError
+from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.middlebury import SceneCalib
 from gtforge.io.outputs import require_output_folder
@@ -33,6 +35,17 @@ from gtforge.records.evaluation import (
     EvalReport,
     SceneResult,
 )
+from gtforge.reports.evaluation import (
+    comparison_warnings,
+    error_map_images,
+    preview_jpeg,
+    row_labels,
+    tables_markdown,
+    write_comparison_html,
+    write_eval_html,
+    write_tables,
+)
+from gtforge.reports.fruit_size import write_fruit_csv
 from gtforge.reports.html import nice_ceil
 
 log = logging.getLogger("gtforge.evaluate")
@@ -190,7 +203,6 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     if not per_scene:
         raise InputError(ds, "scenes", "at least one scene with a prediction", "none",
                          "; ".join(f"{k}: {v}" for k, v in list(missing.items())[:3]))
-    import gtforge
 
     rep = EvalReport(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds.resolve()),
                      scenes=[s.scene for s in per_scene], missing=missing, max_disp_px=max_disp_px,
@@ -204,11 +216,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     if fruit_size:
         rep.fruit_size = summarise(fruit_records, grades, time_ms_per_scene=float(np.median(fruit_ms)) if fruit_ms else None)
     if out is not None:
-        from gtforge.reports.evaluation import write_eval_html, write_tables
 
         write_tables([rep], out)
         if rep.fruit_size is not None:
-            from gtforge.reports.fruit_size import write_fruit_csv
 
             write_fruit_csv(rep, out / "fruit_size.csv")
         rep.write(out / "results.json")
@@ -221,8 +231,6 @@ def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray,
                       max_gt_sigma_px: float | None, max_disp_px: float | None, write_clouds: bool) -> None:
     """``heatmaps/<id>_{disp,depth}_error.png`` (full size, colour bar below) + small previews for results.html,
     and with ``write_clouds`` the fruit points coloured by depth error. Only scored pixels are coloured."""
-    from gtforge.infra.atomic import atomic_write_bytes
-    from gtforge.reports.evaluation import error_map_images, preview_jpeg
 
     scored = masks["all"] & np.isfinite(gt)
     if max_disp_px is not None:
@@ -259,13 +267,6 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
 
     Returns the Markdown table and the warnings: results from different datasets, scene sets or scoring
     limits, and model names used by more than one result (their rows are then labelled with the folder)."""
-    from gtforge.reports.evaluation import (
-        comparison_warnings,
-        row_labels,
-        tables_markdown,
-        write_comparison_html,
-        write_tables,
-    )
 
     files = [Path(p) for p in result_files]
     reports = [EvalReport.read(p) for p in files]

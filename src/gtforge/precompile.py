@@ -18,6 +18,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from gtforge.build_dataset import build_dataset
+from gtforge.core.camera import Rig
+from gtforge.infra.scheduling import cpu_count, limit_threads
+from gtforge.io.captures import open_session
+from gtforge.records.calibration import CalibrationFile
+from gtforge.synthetic import SyntheticTruth, generate_session
+
 # A kernel of each part of a build, by its full name: the reader, both ZED views' rasterisation, the occlusion test,
 # the sigma map, the verification's render and cubic samples, the writers, the fork server's preload.
 # tests/cli/test_precompile.py checks that each is in numba's cache after compile_kernels.
@@ -35,12 +42,6 @@ def compile_kernels(scale: float = 0.25) -> float:
     import numba
 
     import gtforge.infra.pool_preload  # noqa: F401  (its kernel: what a local pool's fork server loads)
-    from gtforge.build_dataset import build_dataset
-    from gtforge.core.camera import Rig
-    from gtforge.infra.scheduling import cpu_count, limit_threads
-    from gtforge.io.captures import open_session
-    from gtforge.records.calibration import CalibrationFile
-    from gtforge.synthetic import SyntheticTruth, generate_session
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="gtforge-precompile-") as tmp:

@@ -12,6 +12,7 @@ import numpy as np
 
 from gtforge.core.schema import GTModel
 from gtforge.errors import InputError
+from gtforge.io.formats import read_kitti_disparity, read_pfm
 
 # the files PredictionFolder looks for, in this order (docs/metrics.md, "Predictions")
 PREDICTION_CANDIDATES = ("<id>.pfm", "<id>.npy", "<id>.png", "<id>_10.png", "<id>/disp0.pfm", "<id>/disp0GT.pfm")
@@ -199,7 +200,6 @@ class PredictionFolder:
         return None
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
-        from gtforge.io.formats import read_kitti_disparity, read_pfm
 
         p = self.find(scene_id)
         if p is None:

@@ -38,6 +38,7 @@ from gtforge.core.photometric import (
     to_gray,
 )
 from gtforge.core.render import render_texture
+from gtforge.core.scale_corrections import corrected_right_image
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
@@ -109,7 +110,6 @@ def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
     zed_right = cap.zed_right
     if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image re-rectified, as build writes it
-        from gtforge.core.scale_corrections import corrected_right_image
 
         zed_right = corrected_right_image(zed_right, rig)
     ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, zed_right,

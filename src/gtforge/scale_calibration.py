@@ -40,6 +40,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from gtforge.core.board import detect_corners, solve_pnp
 from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.geometry import invert_T, transform_points
 from gtforge.core.photometric import (
@@ -51,8 +52,17 @@ from gtforge.core.photometric import (
     to_gray,
 )
 from gtforge.core.scale_corrections import apply_homography, spline_coefficients, spline_sample, yaw_homography
+from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
-from gtforge.records.calibration import ScaleCalibration, ScaleParams, ScaleTerm, SceneScaleReport
+from gtforge.records.calibration import (
+    CalibrationFile,
+    ScaleCalibration,
+    ScaleParams,
+    ScaleTerm,
+    SceneScaleReport,
+    open_calibrated_session,
+)
+from gtforge.records.dataset import BuildParams
 from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.scale_calibration")
@@ -289,7 +299,6 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
 def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
                        progress: Callable[[str], None] | None = None) -> list[BoardMeasurement]:
     """Detect the board in every board capture (texture, ZED left and right images) and measure from them."""
-    from gtforge.core.board import detect_corners, solve_pnp
 
     X = board.corners_board()
     zed_poses, depth_poses = [], []
@@ -353,9 +362,6 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                     progress: Callable[[str], None] | None = None):
     """Estimate and apply the disparity-scale terms (module docstring); writes ``out_path`` when given. Returns the
     corrected calibration file (``scale_calibration`` says what was found and applied)."""
-    from gtforge.dataset.ground_truth import build_scene_arrays
-    from gtforge.records.calibration import CalibrationFile, open_calibrated_session
-    from gtforge.records.dataset import BuildParams
 
     t0 = time.perf_counter()
     params = params or ScaleParams()

@@ -22,9 +22,12 @@ import numpy as np
 
 from gtforge.core.board import BoardSpec
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.core.gauges import GaugesFile, GaugeSpec
 from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
 from gtforge.core.schema import VersionedFile
-from gtforge.core.targets import collinear
+from gtforge.core.targets import board_model_of, collinear
+from gtforge.io.cameras import check_zed_conf_reading, write_zed_conf
+from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_tiff_float
 
 OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
@@ -609,7 +612,6 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         if progress:
             progress(f"board {cap.name}")
     if partial_poses:
-        from gtforge.synthetic import random_partial_board_pose
         for k in range(partial_poses):
             T = random_partial_board_pose(rng, rig, board, k % 4, partial_camera)
             cap = board_capture(f"{n_board + k:03d}", rig, board, T, rng, seed + n_board + k, **kw)
@@ -624,10 +626,8 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         fruit_ids[cap.name] = f"fruit{i // 2:02d}"
         if progress:
             progress(f"scene {cap.name}")
-    from gtforge.io.captures import SessionFile
     extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
     if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets)
-        from gtforge.core.targets import board_model_of
         extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
@@ -675,7 +675,6 @@ def default_raw_zed() -> RawZed:
 def zed_conf_values(raw: RawZed, reading: str) -> dict[str, float]:
     """The STEREO numbers (Baseline, TY, TZ, RX, CV, RZ) that ``reading`` decodes into ``raw``'s exact (R, T):
     the inverse of ``gtforge.io.cameras.ZedFactoryCalibration.extrinsics``."""
-    from gtforge.io.cameras import check_zed_conf_reading
 
     check_zed_conf_reading(reading)
     inv = reading.endswith("+inv-rot")
@@ -689,7 +688,6 @@ def zed_conf_values(raw: RawZed, reading: str) -> dict[str, float]:
 
 def write_raw_zed_conf(path: str | Path, raw: RawZed, reading: str) -> Path:
     """An SN<serial>.conf whose values encode ``raw`` exactly under ``reading``."""
-    from gtforge.io.cameras import write_zed_conf
 
     res = raw.resolution
     v = zed_conf_values(raw, reading)
@@ -742,7 +740,6 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
     """A capture session with raw ZED images (``left.png``/``right.png`` straight off the sensor) and
     ``SN<serial>.conf`` written under ``reading``; ``session.yaml`` says ``zed_rectified: false``.
     ``truth/`` as in ``generate_session`` (in the true rectified frame) plus ``raw_zed_truth.yaml``."""
-    from gtforge.io.captures import SessionFile
 
     raw = raw or default_raw_zed()
     out = Path(out_dir)
@@ -880,7 +877,6 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
     calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
     depth scale error). ``names``: only these of ``sphere``, ``sphere_pair``, ``plane``. ``truth/gauge_<name>.npz``: the
     exact centres (ZED-left frame) or plane, and ZED-left truth."""
-    from gtforge.core.gauges import GaugesFile, GaugeSpec
 
     root = Path(session_dir)
     rig = two_camera_rig(scale) if two_camera else default_rig(scale)
@@ -916,7 +912,6 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
     ``corner`` (0 top-left, 1 top-right, 2 bottom-right, 3 bottom-left): some of its points outside that image, at
     least ``min_common`` inside both the texture and the ZED-left image (3 px from the border), the board above the
     table and seen at most 60 degrees off-axis. These are the poses a full-board rule loses."""
-    from gtforge.core.geometry import invert_T, make_T, transform_points
 
     cam, T_cam_from_world = (rig.mech, rig.T_mech_from_world) if camera == "mech" else (rig.zed.left, rig.T_zed_from_world)
     X = board.corners_board()
@@ -980,8 +975,6 @@ def _render_cropped(scene, cam, T_cam_from_world: np.ndarray, T_world_from_board
                     supersample: int, background: float = 0.3) -> np.ndarray:
     """Linear RGB of ``scene`` rendered only inside the board's bounding box (a camera with the same lens and a
     shifted principal point sees exactly the same rays there); elsewhere a flat ``background``."""
-    from gtforge.core.geometry import transform_points
-    from gtforge.synthetic import render_image
 
     ex = board.extent_mm()
     t = np.linspace(0, 1, 24)
@@ -1011,8 +1004,6 @@ def render_board_views(name: str, rig, board, T_world_from_board: np.ndarray, rn
     rectified ZED-left image of one board pose, rendered inside the board's bounding box only (the table around it
     is flat grey): ``gtforge.synthetic.board_capture`` without the right image and the stereo truth, several
     times faster, for tests that only calibrate."""
-    from gtforge.core.geometry import transform_points
-    from gtforge.synthetic import OBJ_BOARD, PlaneObject, Scene, _table, finish_image, raycast_depth
 
     scene = Scene([_table(seed), PlaneObject(OBJ_BOARD, T_world_from_board, board.albedo, board.extent_mm())])
     tex = finish_image(_render_cropped(scene, rig.mech, rig.T_mech_from_world, T_world_from_board, board, supersample),

@@ -16,11 +16,12 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from gtforge.calibrate import calibrate
+from gtforge.calibrate import calibrate, matched_points
 from gtforge.core.board import BoardSpec, check_board_spec, detect_corners, solve_pnp
 from gtforge.core.camera import PinholeCamera, Rig
 from gtforge.core.gauges import (
     GAUGES_DIR,
+    GAUGES_FILE,
     ORDER,
     GaugeLimits,
     GaugeParams,
@@ -37,11 +38,17 @@ from gtforge.core.gauges import (
 from gtforge.core.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
 from gtforge.core.rectification import RectificationMeter
 from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.core.targets import BoardModel
+from gtforge.core.targets import BoardModel, check_board_model, neighbour_pairs
+from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
+from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
+from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import rectified_by
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, check_rig_matches_session
+from gtforge.records.dataset import BuildParams
 from gtforge.records.validation import PoseValidation, ValidateParams, ValidationReport
+from gtforge.reports.gauges import write_gauges_html
+from gtforge.reports.validation import write_validation_report
 
 log = logging.getLogger("gtforge.validate")
 
@@ -106,7 +113,6 @@ def _check_board(board_model) -> None:
     if board_model.kind == "checkerboard":
         check_board_spec(board_model.spec())
     else:
-        from gtforge.core.targets import check_board_model
 
         check_board_model(board_model)
 
@@ -115,7 +121,6 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
                   used_for_calibration: bool) -> tuple[PoseValidation | None, np.ndarray | None, str | None]:
     ids = None  # ChArUco / circle grids (gtforge.core.targets): the ids both cameras saw
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-        from gtforge.calibrate import matched_points
 
         got = matched_points(name, texture, zed_left, rig.mech, rig.zed.left, board)
         if isinstance(got, str):
@@ -160,7 +165,6 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
         spacing_m = np.median(np.linalg.norm(np.diff(uv_mech_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
         spacing_z = np.median(np.linalg.norm(np.diff(uv_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
     else:
-        from gtforge.core.targets import neighbour_pairs
 
         a, b = neighbour_pairs(board, ids)
         spacing_m = np.median(np.linalg.norm(uv_mech_fit[a] - uv_mech_fit[b], axis=1))
@@ -215,7 +219,6 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     goes to ``out_dir/holdout_calibration.yaml`` (``calibration`` is neither needed nor touched). ``gauges``: also
     measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.gauges``; written to
     ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
-    from gtforge.io.captures import open_session
 
     params = params or ValidateParams()
     if params.board is not None:
@@ -297,13 +300,10 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         xy_model_mean_px=float(np.average([p.xy_model_mean_px for p in poses], weights=[p.n_corners for p in poses])),
         board=board_model, warnings=warnings, skipped=skipped, poses=poses, corner_errors=allv.tolist(),
         rectification=rect)
-    from gtforge.core.gauges import GAUGES_DIR, GAUGES_FILE
-    from gtforge.validate import validate_gauges
 
     if gauges and (session.root / GAUGES_DIR / GAUGES_FILE).is_file():
         rep.gauges = validate_gauges(session_dir, calib_path, out_dir, progress=progress)
     if out_dir is not None:
-        from gtforge.reports.validation import write_validation_report
 
         write_validation_report(rep, Path(out_dir), calib.rig.zed.left)
     return rep
@@ -313,9 +313,6 @@ def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParam
                   ) -> tuple[GaugeResult, dict]:
     """One gauge capture: its ground truth built as build-dataset builds a scene, fitted; the raw depth fitted too.
     Returns the result and the arrays the report draws (``residual_gt_mm``: (H, W) map on the ZED-left image)."""
-    from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
-    from gtforge.dataset.ground_truth import build_scene_arrays
-    from gtforge.records.dataset import BuildParams
 
     bp = BuildParams(fruit_height_mm=params.min_height_mm, min_component_frac=0.2)
     sd, _, fg = build_scene_arrays(depth_mm, rig, bp)
@@ -376,7 +373,6 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         out.mkdir(parents=True, exist_ok=True)
         rep.write(out / "gauges.json")
         if write_html:
-            from gtforge.reports.gauges import write_gauges_html
 
             write_gauges_html(rep, maps, out / "gauges.html")
     return rep

@@ -49,11 +49,14 @@ from gtforge.core.photometric import (
 )
 from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
 from gtforge.core.render import render_texture
+from gtforge.core.scale_corrections import corrected_right_image
+from gtforge.dataset.views import final_splits, write_lists, write_split_views
 from gtforge.dataset.worker_cache import cached_session
 from gtforge.errors import InputError
-from gtforge.io.formats import write_image
-from gtforge.records.calibration import CalibrationFile
-from gtforge.records.dataset import SceneMeta
+from gtforge.infra.scheduling import prestart_pool, run_tasks
+from gtforge.io.formats import read_image, read_pfm, write_image
+from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
+from gtforge.records.dataset import Manifest, SceneMeta
 from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationReport, VerifyParams
 from gtforge.reports.verification import write_verification_report
 
@@ -373,10 +376,6 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     """Re-run the checks on an existing dataset (its manifest names the session and calibration); writes
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
     flagged scenes out of the split lists)."""
-    from gtforge.dataset.views import final_splits, write_lists, write_split_views
-    from gtforge.infra.scheduling import prestart_pool, run_tasks
-    from gtforge.records.dataset import Manifest
-    from gtforge.verify import verify_one_scene
 
     prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
     ds = Path(dataset_dir)
@@ -393,7 +392,6 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     if not calib.is_file():
         raise InputError(man_path, "calibration_path", "the calibration file the dataset was built from",
                          f"{calib} (no such file)", "restore it; verification needs the rig it was built with")
-    from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
 
     cal = CalibrationFile.read(calib)
     check_rig_matches_session(cal.rig, cal.open_session(sess), calib,
@@ -434,8 +432,6 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
 def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: str,
                      params_json: str) -> tuple[str, dict]:
     """Worker for ``gtforge verify``: re-check a built scene against its captures. Returns (sid, SceneVerification)."""
-    from gtforge.io.formats import read_image, read_pfm
-    from gtforge.records.verification import SceneVerification, VerifyParams
 
     params = VerifyParams.model_validate_json(params_json)
     s = Path(dataset_dir) / "scenes" / sid
@@ -450,7 +446,6 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
                              "verification needs the session's captures (pass --session if they moved)")
         cap = session.load_capture(folder)
         if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image as the dataset's im1 has it
-            from gtforge.core.scale_corrections import corrected_right_image
 
             cap.zed_right = corrected_right_image(cap.zed_right, rig)
         disp = read_pfm(s / "disp0GT.pfm")
@@ -479,7 +474,6 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
 def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: np.ndarray) -> None:
     """A flagged scene's overlay for verification.html: ZED-left grey in green, the texture rendered through the
     ground truth in magenta (both locally normalised); aligned structures look grey, a shift shows as colour fringes."""
-    from gtforge.core.photometric import local_normalize, to_gray
 
     gray = to_gray(zed_left)
     if gray.shape != rendered_norm.shape:  # verify_scene renders at its work resolution (a factor smaller)

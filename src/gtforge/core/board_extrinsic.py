@@ -13,6 +13,7 @@ import numpy as np
 from gtforge.core.board import BoardSpec, PoseObs
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import fit_plane_robust, invert_T, make_T, perturb_left, rotvec_between, transform_points
+from gtforge.core.targets import neighbour_pairs
 
 if TYPE_CHECKING:  # its outlier settings
     from gtforge.records.calibration import CalibrateParams
@@ -207,7 +208,6 @@ def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec, ids: np.
     """Median distance between neighbouring corners of one pose (mm); with ``ids`` (ChArUco, circle grids) the
     neighbours' distances scaled to the declared spacing (asymmetric grids' nearest neighbours are sqrt(2) apart)."""
     if ids is not None:
-        from gtforge.core.targets import neighbour_pairs
 
         a, b = neighbour_pairs(board, ids)
         Xb = board.corners_board()[ids]

@@ -15,6 +15,7 @@ from pydantic import Field, field_validator, model_validator
 from gtforge.core import lens
 from gtforge.core.geometry import invert_T
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
+from gtforge.errors import InputError
 
 ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
 
@@ -134,7 +135,6 @@ class PinholeCamera(GTModel):
         return _ray_grid_cached(self.model_dump_json())
 
     def check_image_size(self, shape: tuple[int, ...], file=None, what: str = "image") -> None:
-        from gtforge.errors import InputError
         h, w = shape[:2]
         if (w, h) != (self.width_px, self.height_px):
             raise InputError(file, "size", f"{self.width_px}x{self.height_px} px (from the intrinsics)",

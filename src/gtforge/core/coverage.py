@@ -17,6 +17,7 @@ from pydantic import Field
 
 from gtforge.core.geometry import invert_T, perturb_left, transform_points
 from gtforge.core.schema import GTModel
+from gtforge.core.targets import collinear
 
 GRID_COLS, GRID_ROWS = 8, 6  # the coverage map's cells per image
 CORNER_RADIUS_FRAC = 0.12  # "no points within R of an image corner", R as a share of the image diagonal
@@ -156,7 +157,6 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
                     vis = _visible(mech, transform_points(T_mb_new, X_all)) & _visible(zed_cam, transform_points(T_new, X_all))
                     if vis.sum() < min_common:
                         continue
-                    from gtforge.core.targets import collinear
 
                     if collinear(X_all[vis]):
                         continue

@@ -8,7 +8,8 @@ import logging
 import cv2
 import numpy as np
 
-from gtforge.core.board import Detection
+from gtforge.core.board import Detection, detect_corners
+from gtforge.core.geometry import transform_points
 from gtforge.core.photometric import to_gray
 from gtforge.core.targets import ARUCO_DICTIONARIES, CharucoSpec, CircleGridSpec, _dictionary, neighbour_pairs
 from gtforge.errors import InputError
@@ -490,7 +491,6 @@ def circle_centre_bias(spec: CircleGridSpec, T_cam_from_board: np.ndarray, cam, 
     projects. A circle seen obliquely projects to an ellipse whose centre is not the centre's image (it is pushed
     away from the vanishing line; up to tenths of a pixel for large circles at 30-45 degrees). Computed from the
     projected outline (lens distortion included): the area centroid of the projected polygon."""
-    from gtforge.core.geometry import transform_points
 
     X = spec.corners_board()
     r = spec.diameter_mm / 2
@@ -511,7 +511,6 @@ def circle_centre_bias(spec: CircleGridSpec, T_cam_from_board: np.ndarray, cam, 
 
 def detect_target(image: np.ndarray, spec, cam=None, where: str = "board") -> Detection | None:
     """Any target's points with ids (indices into ``spec.corners_board()``)."""
-    from gtforge.core.board import detect_corners
 
     if isinstance(spec, CharucoSpec):
         return detect_charuco(image, spec, cam, where)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from pydantic import model_serializer
 
-from gtforge.core.board import BoardSpec, GridCounts
+from gtforge.core.board import BoardSpec, GridCounts, check_board_spec
 from gtforge.core.schema import GTModel
 from gtforge.errors import InputError
 
@@ -101,7 +101,6 @@ def _dictionary(name: str):
 
 def check_board_model(board: BoardModel, where: str = "board") -> None:
     """Refuse a declaration no detector can honour (one line, naming the field)."""
-    from gtforge.core.board import check_board_spec
 
     if board.kind == "checkerboard":
         check_board_spec(board.spec(), where)

@@ -31,6 +31,7 @@ from pydantic import Field
 
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import finite_box, perturb_left
+from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.core.schema import GTModel
 
 
@@ -306,7 +307,6 @@ def draw_ground_truth(depth_mech_mm: np.ndarray, rig: Rig, cov_extrinsic_rad_mm,
     """One draw of the errors the sigma map describes: the extrinsic perturbed by a sample of its covariance, the
     depth map by Gaussian noise; the ground truth built from them (mesh) and its sigma map. ``(disparity, sigma)``
     ZED-left arrays, for checking coverage against exact truth (tests, benchmarks)."""
-    from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 
     C = np.asarray(cov_extrinsic_rad_mm, np.float64)
     drawn = rig.with_extrinsic(perturb_left(rig.T, np.linalg.cholesky(C) @ rng.standard_normal(6)))

@@ -11,7 +11,7 @@ import numpy as np
 
 from gtforge.dataset.layout import KITTI_DISPARITY_DIRS
 from gtforge.infra.atomic import atomic_write_text
-from gtforge.io.formats import write_kitti_disparity_pair
+from gtforge.io.formats import read_image, read_pfm, write_kitti_disparity_pair
 from gtforge.records.dataset import BuildParams
 
 
@@ -52,7 +52,6 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
                       noc: np.ndarray | None = None, disp1: np.ndarray | None = None,
                       noc1: np.ndarray | None = None) -> None:
     """KITTI and ETH3D views of one built scene (links where possible). The arrays save re-reading."""
-    from gtforge.io.formats import read_image, read_pfm
 
     s = out / "scenes" / sid
     if params.kitti:

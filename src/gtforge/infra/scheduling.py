@@ -39,6 +39,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
+import gtforge
 from gtforge.errors import InputError
 
 if TYPE_CHECKING:
@@ -365,7 +366,6 @@ def connect_scheduler(address: str, timeout_s: float | None = None) -> Client:
     except ImportError:
         raise InputError(None, "--scheduler", "dask.distributed installed", "it is not installed",
                          "pip install 'gtforge[dask]'") from None
-    import gtforge
 
     check_scheduler_address(address)
     if timeout_s is None:

@@ -19,8 +19,16 @@ import cv2
 import numpy as np
 import yaml
 
-from gtforge.core.camera import ZED_EYE_WIDTHS, CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
+from gtforge.core.camera import (
+    DIST_LENGTHS,
+    ZED_EYE_WIDTHS,
+    CameraFile,
+    PinholeCamera,
+    RectifiedStereo,
+    StereoCalibrationFile,
+)
 from gtforge.errors import InputError
+from gtforge.infra.atomic import atomic_write_text
 
 log = logging.getLogger("gtforge.io.cameras")
 
@@ -64,7 +72,6 @@ def _matrix(data: dict, keys: tuple[str, ...], shape: tuple[int, int], path: Pat
 
 def _distortion(data: dict, path: Path) -> np.ndarray:
     """Every OpenCV lens model: ROS plumb_bob (5) and rational_polynomial (8), OpenCV's 4/5/8/12/14 coefficients."""
-    from gtforge.core.camera import DIST_LENGTHS
 
     for k in ("distortion_coefficients", "D", "d"):
         if k in data:
@@ -382,7 +389,6 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
 
 def write_zed_conf(path: str | Path, calib: dict[str, dict[str, float]]) -> Path:
     """Write an SN.conf-style INI (used by the synthetic generator and tests)."""
-    from gtforge.infra.atomic import atomic_write_text
 
     lines = []
     for sec, kv in calib.items():

@@ -19,11 +19,13 @@ from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
+from gtforge.core.selfcal import RightImageCorrection, corrected_rectification
 from gtforge.core.targets import BoardModel
 from gtforge.errors import InputError
 from gtforge.infra.digest import blake3_hex
-from gtforge.io.cameras import ZedConfReading
+from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.formats import PNG_SIGNATURE, read_image
+from gtforge.io.vendors import load_structured_light_cameras
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
@@ -468,8 +470,6 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     ``zed_right_correction``: the right camera's correction a calibration file recorded
     (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to the
     right image of images rectified before gtforge."""
-    from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, load_camera, load_zed_rectified, read_zed_conf
-    from gtforge.io.vendors import load_structured_light_cameras
 
     root = Path(root)
     if not root.is_dir():
@@ -504,7 +504,6 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
     if zed_right_correction is not None:
-        from gtforge.core.selfcal import RightImageCorrection, corrected_rectification
 
         rectification = corrected_rectification(rectification, zed_right_correction) if rectification is not None \
             else RightImageCorrection(zed_right_correction, zed)

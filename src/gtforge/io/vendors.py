@@ -26,6 +26,7 @@ from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import invert_T, make_T
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.errors import InputError
+from gtforge.io.cameras import load_camera
 
 
 class StructuredLightCameras(NamedTuple):
@@ -360,7 +361,6 @@ def load_structured_light_cameras(path: str | Path, *, depth_mode: str | None = 
     - Mech-Eye API intrinsics YAML (``camera_intrinsics`` + ``camera_resolutions``);
     - one camera as gtforge / ROS camera_info / OpenCV YAML (:func:`gtforge.io.cameras.load_camera`): depth None.
     """
-    from gtforge.io.cameras import load_camera
 
     path = Path(path)
     if not path.is_file():

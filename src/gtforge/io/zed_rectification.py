@@ -29,6 +29,7 @@ from gtforge.core.schema import GTModel
 from gtforge.core.selfcal import Matches, SelfRectifyParams, ZedSelfRectification, fit_self_rectification
 from gtforge.errors import InputError
 from gtforge.io.cameras import (
+    DEFAULT_ZED_CONF_READING,
     ZED_CONF_READINGS,
     ZedFactoryCalibration,
     check_zed_conf_reading,
@@ -233,7 +234,6 @@ def raw_matches(session: Session, dirs: list[Path], progress: Callable[[str], No
 
 
 def _default_reading() -> str:
-    from gtforge.io.cameras import DEFAULT_ZED_CONF_READING
 
     return DEFAULT_ZED_CONF_READING
 

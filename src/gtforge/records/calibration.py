@@ -10,12 +10,13 @@ import numpy as np
 from pydantic import Field, PrivateAttr, model_serializer
 
 from gtforge.core.camera import Rig
-from gtforge.core.coverage import CoverageReport
+from gtforge.core.coverage import CoverageReport, coverage_report
 from gtforge.core.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
 from gtforge.core.targets import BoardModel
 from gtforge.errors import InputError
+from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import ZedConfChoice
 from gtforge.records.verification import VerifyParams
 
@@ -176,7 +177,6 @@ class CalibrationFile(VersionedFile):
     def open_session(self, session_dir: str | Path):
         """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading and
         the self-rectification's correction."""
-        from gtforge.io.captures import open_session
 
         return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
                             zed_right_correction=self.zed_right_correction)
@@ -195,7 +195,6 @@ class CalibrationFile(VersionedFile):
         """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage) from
         the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
         (a few tenths of a second)."""
-        from gtforge.core.coverage import coverage_report
 
         if self._coverage_inputs:
             self.coverage = coverage_report(**self._coverage_inputs)

@@ -17,8 +17,11 @@ from typing import Callable
 
 import numpy as np
 
+from gtforge.core.coverage import GRID_COLS, GRID_ROWS
+from gtforge.infra.atomic import atomic_write_text
 from gtforge.records.calibration import CalibrationFile, MethodResult
-from gtforge.reports.html import Raw, Section, fig_to_img_tag, note, standard_header, table, write_html
+from gtforge.reports import rectification as rectification_report
+from gtforge.reports.html import Raw, Section, fig_to_img_tag, nice_ceil, note, standard_header, table, write_html
 
 METHOD_TEXT = {
     "reprojection": "reprojection: joint refinement of every corner's reprojection in both cameras",
@@ -179,7 +182,6 @@ def vectors_section(calib: CalibrationFile) -> Section | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gtforge.reports.html import nice_ceil
 
     names = [p.capture for p in calib.poses if p.capture in calib._residuals]
     W, H = calib.rig.zed.left.width_px, calib.rig.zed.left.height_px
@@ -215,17 +217,14 @@ def vectors_section(calib: CalibrationFile) -> Section | None:
 
 def rectification_section(calib: CalibrationFile) -> Section | None:
     """Vertical disparity of the board corners in both rectified ZED images; the SN.conf reading chosen."""
-    from gtforge.reports.rectification import rectification_section as build
-
     z = calib.rig.zed.left
-    return build(getattr(calib, "rectification", None), getattr(calib, "zed_conf", None), z.width_px, z.height_px)
+    return rectification_report.rectification_section(getattr(calib, "rectification", None),
+                                                      getattr(calib, "zed_conf", None), z.width_px, z.height_px)
 
 
 def self_rectification_section(calib: CalibrationFile) -> Section | None:
     """The ZED self-rectification: the fit, the decision, and every capture's rows before and after."""
-    from gtforge.reports.rectification import self_rectification_section as build
-
-    return build(calib.zed_self_rectification)
+    return rectification_report.self_rectification_section(calib.zed_self_rectification)
 
 
 def coverage_section(calib: CalibrationFile) -> Section | None:
@@ -239,7 +238,6 @@ def coverage_section(calib: CalibrationFile) -> Section | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gtforge.core.coverage import GRID_COLS, GRID_ROWS
 
     fig, axes = plt.subplots(1, len(cov.cameras), figsize=(5.5 * len(cov.cameras), 4.0), squeeze=False)
     for ax, c in zip(axes.ravel(), cov.cameras):
@@ -282,7 +280,6 @@ def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,
                              sections: list[SectionBuilder] | None = None) -> Path:
     """``calibration_report.json`` (the calibration + per-corner residuals) and a self-contained
     ``calibration_report.html`` built from ``sections`` (default ``SECTIONS``)."""
-    from gtforge.infra.atomic import atomic_write_text
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,8 @@ import numpy as np
 from gtforge.core.metrics import Metrics
 from gtforge.infra.atomic import atomic_write_text
 from gtforge.records.evaluation import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalReport
-from gtforge.reports.html import Section, note, table, write_html
+from gtforge.reports.fruit_size import comparison_section, fruit_markdown, fruit_section
+from gtforge.reports.html import Section, note, standard_header, table, write_html
 
 ERROR_CMAP = "turbo"
 PREVIEW_MAX_WH = (360, 250)  # preview size limit (px); crops smaller than this are enlarged at most 4x
@@ -153,7 +154,6 @@ def tables_markdown(reports: list[EvalReport], labels: list[str] | None = None,
     lines = [f"> warning: {w}" for w in warnings or []] + ([""] if warnings else [])
     lines += ["| " + " | ".join(h) + " |", "|" + "---|" * len(h)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in _rows(reports, labels)]
-    from gtforge.reports.fruit_size import fruit_markdown
 
     fruit = fruit_markdown(reports, labels)
     return "\n".join(lines) + "\n\n" + "\n\n".join(_notes(reports)) + "\n" + ("\n" + fruit if fruit else "")
@@ -226,7 +226,6 @@ def write_eval_html(rep: EvalReport, out: Path, max_scenes: int = MAX_SCENES_SHO
              "time (ms)"], scene_rows)),
         Section("Error maps", _scene_maps(rep, out, max_scenes)),
     ]
-    from gtforge.reports.fruit_size import fruit_section
 
     fruit = fruit_section(rep)
     if fruit is not None:
@@ -292,7 +291,6 @@ def comparison_warnings(reports: list[EvalReport], files: list[Path]) -> list[st
 
 def write_comparison_html(reports: list[EvalReport], files: list[Path], labels: list[str], warnings: list[str],
                           path: Path) -> Path:
-    from gtforge.reports.html import standard_header
 
     sections = []
     if warnings:
@@ -301,7 +299,6 @@ def write_comparison_html(reports: list[EvalReport], files: list[Path], labels: 
     h = headers(reports)
     sections.append(Section("Pooled results", table(h, list(_rows(reports, labels))) +
                             "".join(note(n) for n in _notes(reports))))
-    from gtforge.reports.fruit_size import comparison_section
 
     fruit = comparison_section(reports, labels)
     if fruit is not None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from gtforge.infra.atomic import atomic_write_text
 from gtforge.reports.html import Section, note, table
 
 if TYPE_CHECKING:
@@ -152,7 +153,6 @@ def write_fruit_csv(rep: "EvalReport", path) -> None:
     import csv
     import io
 
-    from gtforge.infra.atomic import atomic_write_text
 
     buf = io.StringIO()
     w = csv.writer(buf)

@@ -16,6 +16,7 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
+import gtforge
 from gtforge.infra.atomic import atomic_write_text
 
 MISSING = "\u2013"  # what an empty cell shows (None, NaN)
@@ -100,7 +101,6 @@ def header_block(items: Sequence[tuple[str, Any]]) -> str:
 
 def standard_header(*extra: tuple[str, Any]) -> list[tuple[str, Any]]:
     """``[("written", now), ("gtforge", version)] + extra``."""
-    import gtforge
 
     return [("written", now_text()), ("gtforge version", gtforge.__version__), *extra]
 

@@ -13,7 +13,18 @@ import numpy as np
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.records.validation import REFERENCE_SOURCE, REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationReport
-from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, verdict_badge, write_html
+from gtforge.reports import rectification as rectification_report
+from gtforge.reports.gauges import gauge_sections
+from gtforge.reports.html import (
+    Section,
+    fig_to_img_tag,
+    nice_ceil,
+    note,
+    standard_header,
+    table,
+    verdict_badge,
+    write_html,
+)
 
 THRESHOLD_COLOUR = "#c00000"
 REFERENCE_COLOUR = "#777777"
@@ -87,7 +98,6 @@ def per_pose_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
 def field_of_view_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
     if not rep.corner_errors:
         return None
-    from gtforge.reports.html import nice_ceil
 
     plt = _plt()
     v = np.array(rep.corner_errors)
@@ -140,9 +150,7 @@ def skipped_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
 
 def rectification_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
     """Vertical disparity of the board corners in both rectified ZED images."""
-    from gtforge.reports.rectification import rectification_section as build
-
-    return build(getattr(rep, "rectification", None), None, zed_cam.width_px, zed_cam.height_px)
+    return rectification_report.rectification_section(getattr(rep, "rectification", None), None, zed_cam.width_px, zed_cam.height_px)
 
 
 SectionBuilder = Callable[[ValidationReport, PinholeCamera], "Section | None"]
@@ -150,7 +158,6 @@ def gauges_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | N
     """The gauge objects' VDI/VDE 2634-2 figures (gauges.html has the residual maps and histograms)."""
     if rep.gauges is None:
         return None
-    from gtforge.reports.gauges import gauge_sections
 
     parts = gauge_sections(rep.gauges)
     body = parts[0].body + "".join(f"<h3>{html.escape(p.heading)}</h3>{p.body}" for p in parts[1:])

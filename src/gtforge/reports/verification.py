@@ -98,7 +98,6 @@ def write_verification_html(rep: VerificationReport, out: Path) -> Path:
 
 def write_verification_report(report: VerificationReport, out_dir: str | Path) -> Path:
     """``verification.json`` + ``verification.html`` in ``out_dir``."""
-    from gtforge.reports.verification import write_verification_html
 
     out = Path(out_dir)
     report.write(out / "verification.json")
