@@ -146,7 +146,7 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     if res.square_size_measured_mm is not None:
         out.print(f"board {'circle spacing' if res.board.kind.startswith('circles') else 'squares'} measured in the "
                   f"depth: {res.square_size_measured_mm:.2f} mm (declared {res.board.square_size_mm:g} mm)")
-    from gtforge.core.rectification import summary_lines
+    from gtforge.reports.rectification import summary_lines
 
     if res.zed_self_rectification is not None:
         out.print(res.zed_self_rectification.summary_line())
@@ -385,7 +385,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
               f"{rep.xy_model_mean_px:.3f} px")
     out.print(f"Z geometric: mean {rep.z_error_mean_pct:.4f} % (max {rep.z_error_max_pct:.4f}); published "
               f"{REFERENCE_Z_PCT} %; threshold {z_threshold_pct} -> {'PASS' if rep.pass_z else 'FAIL'}")
-    from gtforge.core.rectification import summary_lines
+    from gtforge.reports.rectification import summary_lines
 
     for line in summary_lines(rep.rectification):
         out.print(line)
