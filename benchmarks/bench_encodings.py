@@ -57,7 +57,7 @@ def main():
     rig = CalibrationFile.read(calib).rig
     params = bd.BuildParams()
     cap = session.load_capture(sess / "scenes" / "0000")
-    sd, region, _ = bd.build_scene_arrays(cap.mech_depth_mm, rig, params, None)
+    sd, region, _ = bd.build_scene_arrays(cap.depth_mm, rig, params, None)
     mask = np.zeros(region.shape, np.uint8)
     mask[np.isfinite(sd.disparity_px)] = 128
     mask[sd.nonoccluded] = 255

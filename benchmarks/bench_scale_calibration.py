@@ -71,7 +71,7 @@ def figures(sess: Path, calib: CalibrationFile) -> tuple[float, float, float]:
     epes, bias = [], float("nan")
     for d in s.select("scenes", None):
         cap = s.load_capture(d)
-        sd, region, _ = build_scene_arrays(cap.mech_depth_mm, calib.rig, BuildParams(), cap.fruit_mask)
+        sd, region, _ = build_scene_arrays(cap.depth_mm, calib.rig, BuildParams(), cap.fruit_mask)
         t = np.load(sess / "truth" / f"scene_{d.name}.npz")
         shown = shown_disparity_px(t["zed_disparity_px"], calib.rig, yaw_true)
         m = np.isfinite(sd.disparity_px) & np.isfinite(shown) & t["seen_by_mech"] & sd.nonoccluded

@@ -34,7 +34,7 @@ TARGETS = {
 def calibrate_views(views, rig, spec):
     obs, reps = [], []
     for v in views:
-        o, r = detect_pose(v.name, v.mech_texture, v.mech_depth_mm, v.zed_left, rig.mech, rig.zed, spec, 4.0)
+        o, r = detect_pose(v.name, v.mech_texture, v.depth_mm, v.zed_left, rig.mech, rig.zed, spec, 4.0)
         reps.append(r)
         if o is not None:
             obs.append(o)

@@ -71,7 +71,7 @@ def main():
             assert err is None, err
         times[sigma] = float(np.median(ts))
     cap = s.load_capture(full / "scenes" / "000")
-    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, calib.rig, BuildParams())
+    sd, region, _ = build_scene_arrays(cap.depth_mm, calib.rig, BuildParams())
     disparity_sigma(sd.disparity_px, sd.depth_mm, calib.rig, C, None, sd.span_mm)  # compile
     t = time.perf_counter()
     for _ in range(3):
@@ -88,9 +88,9 @@ def main():
     for sid in ("000", "001"):
         tr = np.load(full / "truth" / f"scene_{sid}.npz")
         cap = s.load_capture(full / "scenes" / sid)
-        _, region, _ = build_scene_arrays(cap.mech_depth_mm, calib.rig, BuildParams())
+        _, region, _ = build_scene_arrays(cap.depth_mm, calib.rig, BuildParams())
         for _ in range(20):
-            disp, sig = draw_ground_truth(cap.mech_depth_mm, calib.rig, C, 0.05, rng, up)
+            disp, sig = draw_ground_truth(cap.depth_mm, calib.rig, C, 0.05, rng, up)
             err = np.abs(disp - tr["zed_disparity_px"])
             ok = tr["seen_by_mech"] & np.isfinite(disp)
             for lab in pooled:

@@ -51,7 +51,7 @@ def calib_file(d: Path, T: np.ndarray, path: Path) -> Path:
 
 
 def verify(cap, rig, depth=None, left=None):
-    sd, region, _ = build_scene_arrays(cap.mech_depth_mm if depth is None else depth, rig, BuildParams())
+    sd, region, _ = build_scene_arrays(cap.depth_mm if depth is None else depth, rig, BuildParams())
     ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region,
                           cap.zed_left if left is None else left, cap.zed_right, cap.mech_texture, rig)
     return ver, sd
@@ -81,7 +81,7 @@ def main():
             sh, sf, sb = [], [], []
             for sid in ids:
                 cap = caps[sid]
-                depth = cap.mech_depth_mm + rng.normal(0, dn, cap.mech_depth_mm.shape).astype(np.float32) if dn else None
+                depth = cap.depth_mm + rng.normal(0, dn, cap.depth_mm.shape).astype(np.float32) if dn else None
                 extra = np.sqrt(max(im ** 2 - 0.5 ** 2, 0.0))  # the renders carry 0.5 already
                 left = np.clip(cap.zed_left + rng.normal(0, extra, cap.zed_left.shape), 0, 255).astype(np.uint8) \
                     if extra else None

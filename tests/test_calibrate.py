@@ -38,7 +38,7 @@ def _observations(session_dir, names=None):
         if names and d.name not in names:
             continue
         cap = s.load_capture(d, need_right=False)
-        o, r = detect_pose(d.name, cap.mech_texture, cap.mech_depth_mm, cap.zed_left, s.mech, s.zed,
+        o, r = detect_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, s.mech, s.zed,
                            CalibrateParams().board.spec(), 4.0)
         obs.append(o)
         reps.append(r)

@@ -236,7 +236,7 @@ def test_capture_without_decoding_checks_the_headers(tmp_path):
     cap = s.load_capture(c, decode_images=False)
     assert cap.mech_texture is None and cap.zed_left is None and cap.zed_right is None
     assert cap.zed_left_file == c / "left.png" and cap.zed_right_file == c / "right.png"
-    assert cap.mech_depth_mm.shape == (12, 16)
+    assert cap.depth_mm.shape == (12, 16)
     full = s.load_capture(c)
     assert full.zed_left.shape == (10, 20, 3) and full.zed_left_file == c / "left.png"
     # a grey ZED PNG is decoded (and expanded to RGB), so it is not copied verbatim

@@ -18,7 +18,7 @@ def fruit_cap():
 
 def test_mesh_accuracy_and_coverage(fruit_cap):
     rig, cap = fruit_cap
-    sd = reproject_to_zed(cap.mech_depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed)
+    sd = reproject_to_zed(cap.depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed)
     seen = cap.seen_by_mech
     got = np.isfinite(sd.disparity_px)
     err = np.abs(sd.disparity_px - cap.zed_disparity_px)
@@ -138,9 +138,9 @@ def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     try:
         for n in (1, 2):
             numba.set_num_threads(n)
-            out[n] = [project_depth_to_camera(cap.mech_depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed.left,
+            out[n] = [project_depth_to_camera(cap.depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed.left,
                                               ReprojectParams(mode="mesh"), return_span=True),
-                      project_depth_to_camera(cap.mech_depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed.left,
+                      project_depth_to_camera(cap.depth_mm, rig.mech, rig.T_zed_from_mech, rig.zed.left,
                                               ReprojectParams(mode="splat"))]
     finally:
         numba.set_num_threads(before)
@@ -164,30 +164,30 @@ def test_both_views_in_one_pass_are_the_two_single_views(fruit_cap, monkeypatch)
     zed = rig.zed.model_copy(update={"doffs_px": 3.25})
     T = rig.T_zed_from_mech
     for params in (ReprojectParams(), ReprojectParams(max_slant_deg=70.0, abs_tol_mm=0.2)):
-        left, span, right = rp._project_depth_to_stereo(cap.mech_depth_mm, rig.mech, T, zed.T_zedr_from_zed @ T,
+        left, span, right = rp._project_depth_to_stereo(cap.depth_mm, rig.mech, T, zed.T_zedr_from_zed @ T,
                                                         zed, params, True)
-        z1, s1 = project_depth_to_camera(cap.mech_depth_mm, rig.mech, T, zed.left, params, return_span=True)
-        r1 = project_depth_to_camera(cap.mech_depth_mm, rig.mech, zed.T_zedr_from_zed @ T, zed.right, params)
+        z1, s1 = project_depth_to_camera(cap.depth_mm, rig.mech, T, zed.left, params, return_span=True)
+        r1 = project_depth_to_camera(cap.depth_mm, rig.mech, zed.T_zedr_from_zed @ T, zed.right, params)
         assert np.isfinite(left).mean() > 0.2 and np.isfinite(right).mean() > 0.2
         assert not np.array_equal(left, right, equal_nan=True)
         np.testing.assert_array_equal(left, z1)
         np.testing.assert_array_equal(span, s1)
         np.testing.assert_array_equal(right, r1)
     # reproject_to_zed takes the one-pass path with one thread, and the single views with several
-    sd = reproject_to_zed(cap.mech_depth_mm, rig.mech, T, zed, left_span=True)
+    sd = reproject_to_zed(cap.depth_mm, rig.mech, T, zed, left_span=True)
     if numba.config.NUMBA_NUM_THREADS >= 2:
         monkeypatch.setattr(rp, "MIN_PARALLEL_THREADS", 2)
         before = numba.get_num_threads()
         numba.set_num_threads(2)
         try:
-            sd2 = reproject_to_zed(cap.mech_depth_mm, rig.mech, T, zed, left_span=True)
+            sd2 = reproject_to_zed(cap.depth_mm, rig.mech, T, zed, left_span=True)
         finally:
             numba.set_num_threads(before)
         for a, b in ((sd.depth_mm, sd2.depth_mm), (sd.span_mm, sd2.span_mm), (sd.depth_right_mm, sd2.depth_right_mm),
                      (sd.nonoccluded, sd2.nonoccluded)):
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="translation along x"):
-        rp._project_depth_to_stereo(cap.mech_depth_mm, rig.mech, T, T_from_rotvec([0.0, 0.01, 0.0], [-60.0, 0, 0]) @ T,
+        rp._project_depth_to_stereo(cap.depth_mm, rig.mech, T, T_from_rotvec([0.0, 0.01, 0.0], [-60.0, 0, 0]) @ T,
                                     zed, ReprojectParams(), False)
 
 

@@ -48,7 +48,7 @@ def _gt_epe(session: Path, calib: CalibrationFile) -> list[float]:
     out = []
     for d in s.select("scenes", None):
         cap = s.load_capture(d)
-        sd, _, _ = build_scene_arrays(cap.mech_depth_mm, calib.rig, BuildParams(), cap.fruit_mask)
+        sd, _, _ = build_scene_arrays(cap.depth_mm, calib.rig, BuildParams(), cap.fruit_mask)
         t = np.load(session / "truth" / f"scene_{d.name}.npz")
         shown = shown_disparity_px(t["zed_disparity_px"], calib.rig, yaw_true)
         m = np.isfinite(sd.disparity_px) & np.isfinite(shown) & t["seen_by_mech"] & sd.nonoccluded
@@ -108,7 +108,7 @@ def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, 
     biases = {}
     for name, calib in (("before", CalibrationFile.read(start)), ("after", res)):
         rig = calib.rig
-        sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), cap.fruit_mask)
+        sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
         ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left,
                               corrected_right_image(cap.zed_right, rig), cap.mech_texture, rig)
         biases[name] = ver.stereo["all"].disparity_bias_px
@@ -132,7 +132,7 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     s = open_session(errors_session)
     cap = s.load_capture(s.select("scenes", None)[0])
     np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected_right_image(cap.zed_right, res.rig))
-    sd, _, _ = build_scene_arrays(cap.mech_depth_mm, res.rig, BuildParams(), cap.fruit_mask)
+    sd, _, _ = build_scene_arrays(cap.depth_mm, res.rig, BuildParams(), cap.fruit_mask)
     np.testing.assert_array_equal(read_pfm(sc / "disp0GT.pfm"), sd.disparity_px)
     meta = __import__("json").loads((sc / "meta.json").read_text())
     assert abs(meta["verification"]["stereo"]["all"]["disparity_bias_px"]) < 0.02
@@ -184,8 +184,8 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
     s = open_session(session_dir)
     for d in s.select("scenes", None):
         cap = s.load_capture(d)
-        a = build_scene_arrays(cap.mech_depth_mm, c0.rig, BuildParams(), cap.fruit_mask)[0].disparity_px
-        b = build_scene_arrays(cap.mech_depth_mm, res.rig, BuildParams(), cap.fruit_mask)[0].disparity_px
+        a = build_scene_arrays(cap.depth_mm, c0.rig, BuildParams(), cap.fruit_mask)[0].disparity_px
+        b = build_scene_arrays(cap.depth_mm, res.rig, BuildParams(), cap.fruit_mask)[0].disparity_px
         m = np.isfinite(a) & np.isfinite(b)
         assert np.mean(np.abs(a[m] - b[m])) < 0.002
 

@@ -65,7 +65,7 @@ def test_truth_disparity_is_f_b_over_z():
     # the fruit is nearer than the table: larger disparity
     assert np.nanmedian(cap.zed_disparity_px[cap.fruit_mask]) > np.nanmedian(cap.zed_disparity_px[hit & ~cap.fruit_mask])
     # projector shadows: some depth is missing, and the seen mask excludes pixels the depth camera cannot see
-    assert 0.002 < np.isnan(cap.mech_depth_mm).mean() < 0.5
+    assert 0.002 < np.isnan(cap.depth_mm).mean() < 0.5
     assert 0.05 < cap.seen_by_mech.mean() < 0.95
 
 
@@ -76,4 +76,4 @@ def test_generator_is_deterministic_by_seed():
     b = render_capture("s", random_fruit_scene(np.random.default_rng(1), rig, 1), rig, np.random.default_rng(2),
                        kind="scene", supersample=1, depth_noise_mm=0.1)
     np.testing.assert_array_equal(a.zed_left, b.zed_left)
-    np.testing.assert_array_equal(a.mech_depth_mm, b.mech_depth_mm)
+    np.testing.assert_array_equal(a.depth_mm, b.depth_mm)

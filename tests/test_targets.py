@@ -23,7 +23,7 @@ CHARUCO = CharucoSpec(7, 5, 40.0, 30.0, "DICT_4X4_50")
 def _detect_all(views, rig, spec):
     obs, reps = [], []
     for v in views:
-        o, r = detect_pose(v.name, v.mech_texture, v.mech_depth_mm, v.zed_left, rig.mech, rig.zed, spec, 4.0)
+        o, r = detect_pose(v.name, v.mech_texture, v.depth_mm, v.zed_left, rig.mech, rig.zed, spec, 4.0)
         reps.append(r)
         if o is not None:
             obs.append(o)

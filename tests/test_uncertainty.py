@@ -61,9 +61,9 @@ def _coverage(session_dir, calibration, T_true, draws, noise_mm, cov_scale=1.0):
     for sid in ("000", "001"):
         tr = np.load(session_dir / "truth" / f"scene_{sid}.npz")
         cap = s.load_capture(s.root / "scenes" / sid)
-        _, region, _ = build_scene_arrays(cap.mech_depth_mm, rig0, BuildParams())
+        _, region, _ = build_scene_arrays(cap.depth_mm, rig0, BuildParams())
         for _ in range(draws):
-            disp, sig = draw_ground_truth(cap.mech_depth_mm, rig0, C, noise_mm, rng, up)
+            disp, sig = draw_ground_truth(cap.depth_mm, rig0, C, noise_mm, rng, up)
             err = np.abs(disp - tr["zed_disparity_px"])
             ok = tr["seen_by_mech"] & np.isfinite(disp)
             for lab in pooled:
@@ -95,7 +95,7 @@ def test_sigma_map_is_the_same_for_float32_and_float64_inputs(session_dir, calib
     rig = cal.rig
     s = open_session(session_dir)
     cap = s.load_capture(s.root / "scenes" / "000")
-    depth, span = project_depth_to_camera(cap.mech_depth_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
+    depth, span = project_depth_to_camera(cap.depth_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
                                           ReprojectParams(), return_span=True)
     disp = rig.zed.depth_to_disparity(depth)
     C = cal.cov_extrinsic_rad_mm

@@ -29,7 +29,7 @@ def moved_session(tmp_path_factory):
 def _verify(session_dir, sid, rig, params=None):
     s = open_session(session_dir)
     cap = s.load_capture(s.root / "scenes" / sid)
-    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), None)
+    sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), None)
     ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
                           cap.mech_texture, rig, params)
     return ver, sd, cap
@@ -91,7 +91,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(moved_session)
     cap = s.load_capture(s.root / "scenes" / "000")
-    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), None)
+    sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), None)
     ver, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
                                  cap.mech_texture, rig, VerifyParams(work_width_px=300))
     assert ver.status == "flagged" and rendered.shape == (sd.depth_mm.shape[0] // 3, sd.depth_mm.shape[1] // 3)
@@ -110,7 +110,7 @@ def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(session_dir)
     cap = s.load_capture(s.root / "scenes" / "001")
-    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, BuildParams(), None)
+    sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), None)
     depth, disp = sd.depth_mm.copy(), sd.disparity_px.copy()
     H = depth.shape[0]
     depth[int(0.7 * H):] = np.nan  # the depth camera sees less than the ZED (the GT ends above its last rows)
@@ -148,7 +148,7 @@ def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibratio
     s = open_session(session_dir)
     a = s.load_capture(s.root / "scenes" / "000")
     b = s.load_capture(s.root / "scenes" / "002")
-    sd, region, _ = build_scene_arrays(a.mech_depth_mm, rig, BuildParams(), None)
+    sd, region, _ = build_scene_arrays(a.depth_mm, rig, BuildParams(), None)
     # the ZED pair of another scene: the texture no longer matches at all
     ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, b.zed_left, b.zed_right,
                           a.mech_texture, rig)

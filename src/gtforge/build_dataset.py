@@ -137,7 +137,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         # verification alone the images are decoded once the ground truth says how many ZED rows the checks read
         cap = session.load_capture(cap_dir, decode_images=bool(params.crop_wh) or params.ply or yawed)
         t_read = time.perf_counter()
-        sd, region, fruit = build_scene_arrays(cap.mech_depth_mm, rig, params, cap.fruit_mask)
+        sd, region, fruit = build_scene_arrays(cap.depth_mm, rig, params, cap.fruit_mask)
         decode_s = 0.0
         if yawed:
 

@@ -296,7 +296,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         if progress:
             progress(f"detect {d.name} ({k + 1}/{len(dirs)})")
         cap = session.load_capture(d, need_right=False)
-        o, rep = detect_pose(d.name, cap.mech_texture, cap.mech_depth_mm, cap.zed_left, session.mech, session.zed,
+        o, rep = detect_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, session.mech, session.zed,
                              board, params.blur_sharpness_px)
         reports.append(rep)
         if o is not None:

@@ -107,7 +107,7 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
 
 def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     """One scene with the extrinsic of ``rig``: its ground truth built once, verified, and its points for the solve."""
-    sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
+    sd, region, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
     zed_right = cap.zed_right
     if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image re-rectified, as build writes it
 

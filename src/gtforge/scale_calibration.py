@@ -312,9 +312,9 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
             T_zb = solve_pnp(X, dl.corners_uv, rig.zed.left)
             zed_poses.append((d.name, transform_points(T_zb, X), dl.corners_uv, dr.corners_uv))
         dm = detect_corners(cap.mech_texture, board)
-        if dm is not None and cap.mech_depth_mm is not None:
+        if dm is not None and cap.depth_mm is not None:
             T_mb = solve_pnp(X, dm.corners_uv, rig.mech)
-            depth_poses.append((d.name, transform_points(T_mb, X), cap.mech_depth_mm))
+            depth_poses.append((d.name, transform_points(T_mb, X), cap.depth_mm))
     out = [m for m in (board_zed_measurement(zed_poses, rig),
                        board_depth_measurement(depth_poses, rig, params.board_depth_window_px)) if m is not None]
     return out
@@ -393,7 +393,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     # has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes, is kept)
     for s in list(caps):
         cap = caps[s]
-        sd, region, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
+        sd, region, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
         ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, None,
                               cap.mech_texture, rig, params.verify)
         a, f = ver.texture_all, ver.texture_fruit
@@ -414,7 +414,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         for s, cap in caps.items():
             if progress:
                 progress(f"pass {outer + 1}: scene {s}")
-            sd, _, _ = build_scene_arrays(cap.mech_depth_mm, rig, build, cap.fruit_mask)
+            sd, _, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
             sp = scene_pixels(s, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right, params)
             if sp is not None:
                 pix.append(sp)

@@ -320,7 +320,7 @@ class SyntheticCapture:
     name: str
     kind: str  # "board" or "scene"
     mech_texture: np.ndarray
-    mech_depth_mm: np.ndarray  # float32, NaN invalid (shadows, misses)
+    depth_mm: np.ndarray  # the depth camera's, float32, NaN invalid (shadows, misses)
     zed_left: np.ndarray
     zed_right: np.ndarray
     zed_depth_mm: np.ndarray  # exact z at ZED-left pixel centres, NaN where nothing is hit
@@ -538,7 +538,7 @@ class SyntheticTruth(VersionedFile):
 def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_motion_mm=(0.0, 0.0, 0.0)) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     write_image(folder / "2DImage.png", cap.mech_texture)
-    write_tiff_float(folder / "DepthMap.tiff", cap.mech_depth_mm)
+    write_tiff_float(folder / "DepthMap.tiff", cap.depth_mm)
     write_image(folder / "left.png", cap.zed_left)
     write_image(folder / "right.png", cap.zed_right)
     truth_dir.mkdir(parents=True, exist_ok=True)
@@ -887,7 +887,7 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
             continue
         cap = render_capture(name, scene, rig, rng, kind="gauge", supersample=supersample,
                              depth_noise_mm=depth_noise_mm, image_noise=image_noise)
-        cap.mech_depth_mm = (cap.mech_depth_mm * np.float32(depth_scale)).astype(np.float32)
+        cap.depth_mm = (cap.depth_mm * np.float32(depth_scale)).astype(np.float32)
         cap.fruit_truth = None
         write_capture(root / "gauges" / name, cap, root / "truth")
         T = rig.T_zed_from_world
@@ -963,7 +963,7 @@ class BoardViews:
 
     name: str
     mech_texture: np.ndarray
-    mech_depth_mm: np.ndarray
+    depth_mm: np.ndarray
     zed_left: np.ndarray
     T_mech_from_board: np.ndarray
     corners_mech_uv: np.ndarray

@@ -259,7 +259,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         if progress:
             progress(f"validate {d.name} ({k + 1}/{len(dirs)})")
         cap = session.load_capture(d, need_right=False)
-        pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.mech_depth_mm, cap.zed_left, calib.rig, board, params,
+        pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, calib.rig, board, params,
                                      d.name in used)
         if meter is not None:
             meter.add(d.name, cap.zed_right, left_image=cap.zed_left)
@@ -360,7 +360,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         if progress:
             progress(f"gauge {spec.capture} ({k + 1}/{len(gfile.gauges)})")
         cap = session.load_capture(session.root / GAUGES_DIR / spec.capture, need_right=False, decode_images=False)
-        res, arrays = measure_gauge(spec, cap.mech_depth_mm, rig, params, gfile.limits)
+        res, arrays = measure_gauge(spec, cap.depth_mm, rig, params, gfile.limits)
         if res.status == "NOT MEASURABLE":
             log.warning("gauge %s: not measurable: %s", spec.capture, "; ".join(res.reasons))
         results.append(res)

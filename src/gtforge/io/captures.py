@@ -212,7 +212,7 @@ class Capture:
     name: str
     folder: Path
     mech_texture: np.ndarray | None
-    mech_depth_mm: np.ndarray
+    depth_mm: np.ndarray  # on the depth camera's pixel grid (the texture camera's when the unit has one camera)
     zed_left: np.ndarray | None
     zed_right: np.ndarray | None
     fruit_mask: np.ndarray | None = None
@@ -223,6 +223,11 @@ class Capture:
     zed_right_file: Path | None = None
     # the input files read whole to build the arrays above, by name: the BLAKE3 of exactly the bytes decoded
     read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
+
+    @property
+    def mech_depth_mm(self) -> np.ndarray:
+        """``depth_mm``'s name before round 3 (it is on the depth camera's grid); it goes in the next release."""
+        return self.depth_mm
 
 
 @dataclass(frozen=True)
