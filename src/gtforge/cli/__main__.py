@@ -1,4 +1,4 @@
 """``python -m gtforge.cli``: the ``gtforge`` command."""
-from gtforge.precompile import main
+from gtforge.cli import main
 
 main()
