@@ -18,7 +18,7 @@ from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.board import BoardSpec
 from gtforge.core.board_extrinsic import robust_initial_extrinsic
 from gtforge.core.geometry import invert_T, pose_difference, transform_points
-from gtforge.records.calibration import CalibrateParams, PoseReport
+from gtforge.records.calibration import CalibrateParams, PoseResult
 from gtforge.synthetic import (
     OBJ_BOARD,
     PlaneObject,
@@ -71,7 +71,7 @@ def main():
             obs.append(o)
             reps.append(r)
         for n in counts:
-            sub, subr = obs[:n], [PoseReport(capture=r.capture, status="used") for r in reps[:n]]
+            sub, subr = obs[:n], [PoseResult(capture=r.capture, status="used") for r in reps[:n]]
             t = time.perf_counter()
             res = calibrate_observations(sub, subr, rig.mech, rig.zed, CalibrateParams())
             t_solve = time.perf_counter() - t

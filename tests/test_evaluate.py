@@ -13,7 +13,7 @@ from gtforge.errors import InputError
 from gtforge.evaluate import compare, evaluate
 from gtforge.io.formats import read_image, read_pfm, write_kitti_disparity, write_pfm
 from gtforge.predictors import SGBM, OnnxModel, PredictionFolder
-from gtforge.records.evaluation import EvalReport
+from gtforge.records.evaluation import EvalResult
 from gtforge.training import StereoDataset
 
 
@@ -54,7 +54,7 @@ def test_onnx_model_end_to_end_through_the_cli(dataset, tmp_path):
     model = constant_onnx(tmp_path / "const.onnx", 35.0)
     r = CliRunner().invoke(app, ["evaluate", str(ds), "--onnx", str(model), "-o", str(tmp_path / "ev"), "--no-clouds"])
     assert r.exit_code == 0, r.output
-    rep = EvalReport.read(tmp_path / "ev" / "results.json")
+    rep = EvalResult.read(tmp_path / "ev" / "results.json")
     assert rep.pooled["all"].epe_px == pytest.approx(_expected_epe(ds, 35.0), rel=1e-5)
     assert rep.pooled["all"].coverage_pct == 100.0
     assert rep.time_ms_median is not None and rep.time_ms_median > 0
@@ -264,7 +264,7 @@ def test_max_gt_sigma_scores_only_certain_pixels(dataset, tmp_path):
     r = CliRunner().invoke(app, ["evaluate", str(ds), "--predictions", str(preds), "--max-gt-sigma", "0.5",
                                  "-o", str(tmp_path / "ev")])
     assert r.exit_code == 0, r.output
-    rep = EvalReport.read(tmp_path / "ev" / "results.json")
+    rep = EvalResult.read(tmp_path / "ev" / "results.json")
     assert rep.max_gt_sigma_px == 0.5
     for reg in ("all", "fruit"):
         m = rep.pooled[reg]

@@ -19,7 +19,7 @@ from gtforge.evaluate import compare, evaluate
 from gtforge.io.formats import read_image, read_pfm, write_pfm
 from gtforge.io.middlebury import SceneCalib
 from gtforge.predictors import PredictionFolder
-from gtforge.records.evaluation import EvalReport
+from gtforge.records.evaluation import EvalResult
 
 
 # ---- shape fits -----------------------------------------------------------------------------------
@@ -156,7 +156,7 @@ def test_gt_fruit_size_matches_the_generators_fruit(small_dataset, tmp_path):
     assert f.diameter_model_vs_gt.mae_mm == 0.0
     assert f.time_ms_per_scene is not None and f.time_ms_per_scene > 0
     # results.json round trip; results.html has the section and its scatter plot
-    again = EvalReport.read(tmp_path / "ev" / "results.json")
+    again = EvalResult.read(tmp_path / "ev" / "results.json")
     assert again.fruit_size.fruit[0].gt.diameter_mm == f.fruit[0].gt.diameter_mm
     page = (tmp_path / "ev" / "results.html").read_text()
     assert "Fruit size, volume and grade" in page and "predicted vs GT fruit diameter" in page
@@ -226,7 +226,7 @@ def test_results_without_fruit_size_still_load(small_dataset, tmp_path):
     assert rep.fruit_size is None
     data = json.loads((tmp_path / "ev" / "results.json").read_text())
     data.pop("fruit_size", None)  # as written before the field existed
-    assert EvalReport.from_dict(data).fruit_size is None
+    assert EvalResult.from_dict(data).fruit_size is None
     assert "diameter MAE" not in (tmp_path / "ev" / "results.md").read_text()
 
 

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from gtforge.core.camera import Rig
-from gtforge.core.gauges import GaugeParams, GaugeReport, GaugesFile, read_gauges_file, summary_lines
+from gtforge.core.gauges import GaugeParams, GaugesResult, GaugesFile, read_gauges_file, summary_lines
 from gtforge.core.uncertainty import DepthNoiseModel
 from gtforge.errors import InputError
 from gtforge.io.captures import read_depth
@@ -79,7 +79,7 @@ def test_exact_extrinsic_gives_sizes_within_005_mm(exact):
         assert abs(sp.size_error_mm) <= 0.002
     assert abs(g["sphere_pair"].raw.spacing_error_mm) <= 0.002
     assert (rep_path := s.parent / "out" / "gauges.json").is_file()
-    assert GaugeReport.read(rep_path).gauges[1].gt.spacing_error_mm == g["sphere_pair"].gt.spacing_error_mm
+    assert GaugesResult.read(rep_path).gauges[1].gt.spacing_error_mm == g["sphere_pair"].gt.spacing_error_mm
     page = (s.parent / "out" / "gauges.html").read_text()
     assert "sphere-spacing error SD" in page and "gauge residual map and histogram" in page
     assert any("spacing error" in line for line in summary_lines(rep))
@@ -206,11 +206,11 @@ def test_validation_page_has_the_gauge_section(exact):
     """validate() puts the gauge report into validation.json (``gauges``) and this section into validation.html."""
     from types import SimpleNamespace
 
-    from gtforge.records.validation import ValidationReport
+    from gtforge.records.validation import ValidationResult
     from gtforge.reports.validation import SECTIONS, gauges_section
 
     _, _, rep = exact
-    assert gauges_section in SECTIONS and ValidationReport.model_fields["gauges"].default is None
+    assert gauges_section in SECTIONS and ValidationResult.model_fields["gauges"].default is None
     sec = gauges_section(SimpleNamespace(gauges=rep), None)
     assert sec.heading == "Gauge objects (VDI/VDE 2634-2): PASS" and sec.status == "pass"
     assert "sphere_pair (sphere_pair): PASS" in sec.body and "gauges.html" in sec.body
@@ -256,7 +256,7 @@ def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibr
     from typer.testing import CliRunner
 
     from gtforge.cli import app
-    from gtforge.records.validation import ValidationReport
+    from gtforge.records.validation import ValidationResult
 
     s = tmp_path / "s"
     shutil.copytree(session_dir, s, ignore=shutil.ignore_patterns("scenes"))
@@ -265,7 +265,7 @@ def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibr
                                  str(tmp_path / "v")])
     assert r.exit_code == 0, r.output
     assert "XY reprojection" in r.output and "Gauge objects (VDI/VDE 2634-2, ground truth): PASS" in r.output
-    rep = ValidationReport.read(tmp_path / "v" / "validation.json")
+    rep = ValidationResult.read(tmp_path / "v" / "validation.json")
     assert [g.capture for g in rep.gauges.gauges] == ["sphere"]
     assert abs(rep.gauges.gauges[0].gt.spheres[0].size_error_mm) <= 0.05
     assert "Gauge objects (VDI/VDE 2634-2): PASS" in (tmp_path / "v" / "validation.html").read_text()

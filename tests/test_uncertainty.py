@@ -9,7 +9,7 @@ from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, draw_gr
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
 from gtforge.io.formats import read_pfm
-from gtforge.records.calibration import CalibrateParams, CalibrationFile, PoseReport
+from gtforge.records.calibration import CalibrateParams, CalibrationFile, PoseResult
 from gtforge.records.dataset import BuildParams, SceneMeta
 
 
@@ -37,7 +37,7 @@ def test_calibration_covariance_matches_the_spread_of_errors(loo):
             uv_m = rig.mech.project(transform_points(T_mb, X)) + noise.normal(0, 0.08, (len(X), 2))
             uv_z = rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_wb, X)) + noise.normal(0, 0.08, (len(X), 2))
             obs.append(PoseObs(f"{i:03d}", uv_m, uv_z, solve_pnp(X, uv_m, rig.mech), solve_pnp(X, uv_z, rig.zed.left)))
-            reps.append(PoseReport(capture=f"{i:03d}", status="used"))
+            reps.append(PoseResult(capture=f"{i:03d}", status="used"))
         res = calibrate_observations(obs, reps, rig.mech, rig.zed, CalibrateParams(leave_one_out=loo,
                                                                                     square_check_pct=0))
         assert (res.cov_jackknife_scale is not None) == loo and (res.cov_jackknife_scale or 1.0) >= 1.0

@@ -10,7 +10,7 @@ from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams, Manifest
-from gtforge.records.verification import VerificationReport, VerifyParams
+from gtforge.records.verification import VerificationResult, VerifyParams
 from gtforge.verify import predicted_shift, verify_dataset, verify_scene
 
 
@@ -37,7 +37,7 @@ def _verify(session_dir, sid, rig, params=None):
 
 def test_exact_extrinsic_scenes_verify_at_zero(dataset):
     out, summary = dataset
-    rep = VerificationReport.read(out / "verification.json")
+    rep = VerificationResult.read(out / "verification.json")
     assert sorted(rep.scenes) == ["000", "001", "002"]
     for sid, v in rep.scenes.items():
         assert v.status == "ok", (sid, v.reasons)

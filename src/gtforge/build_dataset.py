@@ -54,7 +54,7 @@ from gtforge.io.formats import (
 )
 from gtforge.io.outputs import require_output_folder
 from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
-from gtforge.records.verification import VerificationReport
+from gtforge.records.verification import VerificationResult
 from gtforge.reports.build import write_build_report
 from gtforge.reports.verification import write_verification_report
 from gtforge.verify import verify_scene, zed_rows_used
@@ -380,7 +380,7 @@ def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneM
     for s, v in scenes.items():  # overlays of scenes no longer flagged
         if v.status != "flagged":
             (out / "verification" / f"{s}_overlay.jpg").unlink(missing_ok=True)
-    write_verification_report(VerificationReport(dataset_dir=str(out.resolve()), params=params.verify, scenes=scenes),
+    write_verification_report(VerificationResult(dataset_dir=str(out.resolve()), params=params.verify, scenes=scenes),
                               out)
 
 

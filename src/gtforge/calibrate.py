@@ -40,7 +40,7 @@ from gtforge.records.calibration import (
     CalibrateParams,
     CalibrationFile,
     MethodResult,
-    PoseReport,
+    PoseResult,
     calibration_output_path,
     session_board,
 )
@@ -65,7 +65,7 @@ LOO_WARN_PX = 0.3  # verdict WARN when the leave-one-pose-out transfer error exc
 # ---- main entry -------------------------------------------------------------------------------
 def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed_left: np.ndarray,
                 mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
-                blur_px: float) -> tuple[PoseObs | None, PoseReport]:
+                blur_px: float) -> tuple[PoseObs | None, PoseResult]:
     if getattr(board, "kind", "checkerboard") != "checkerboard":
 
         return detect_pose_target(name, texture, depth_mm, zed_left, mech, zed, board, blur_px)
@@ -74,7 +74,7 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
     if dm is None or dz is None:
         which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
         log.warning("capture %s: board not found in the %s image; skipped", name, which)
-        return None, PoseReport(capture=name, status="skipped", reason=f"board not found in the {which} image")
+        return None, PoseResult(capture=name, status="skipped", reason=f"board not found in the {which} image")
     X = board.corners_board()
     T_mech_from_board = solve_pnp(X, dm.corners_uv, mech)
     T_zed_from_board = solve_pnp(X, dz.corners_uv, zed.left)
@@ -84,12 +84,12 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
     def finite_or_none(x: float) -> float | None:
         return x if np.isfinite(x) else None
 
-    rep = PoseReport(capture=name, status="used", sharpness_mech_px=finite_or_none(dm.sharpness_px),
+    rep = PoseResult(capture=name, status="used", sharpness_mech_px=finite_or_none(dm.sharpness_px),
                      sharpness_zed_px=finite_or_none(dz.sharpness_px), blurred=blurred)
     return PoseObs(name, dm.corners_uv, dz.corners_uv, T_mech_from_board, T_zed_from_board, depth_mm, dm, dz), rep
 
 
-def calibrate_observations(obs: list[PoseObs], reports: list[PoseReport], mech: PinholeCamera,
+def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: PinholeCamera,
                            zed: RectifiedStereo, params: CalibrateParams,
                            progress: Callable[[str], None] | None = None, depth_cam: PinholeCamera | None = None,
                            T_mech_from_depth: np.ndarray | None = None) -> CalibrationFile:
@@ -331,7 +331,7 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
     if dm is None or dz is None:
         which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
         log.warning("capture %s: board not found in the %s image; skipped", name, which)
-        return None, PoseReport(capture=name, status="skipped", reason=f"board not found in the {which} image")
+        return None, PoseResult(capture=name, status="skipped", reason=f"board not found in the {which} image")
     X = spec.corners_board()
     counts = dict(n_points_mech=len(dm.ids), n_points_zed=len(dz.ids))
     for d, cam, cname in ((dm, mech, "structured-light"), (dz, zed.left, "ZED")):
@@ -339,7 +339,7 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
             why = (f"only {len(d.ids)} board points in the {cname} image (need {min_common})" if len(d.ids) < min_common
                    else f"the board points in the {cname} image lie on one line")
             log.warning("capture %s: %s; skipped", name, why)
-            return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+            return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
     if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
         dm, dz = _unmirror(spec, dm, mech, solve_pnp), _unmirror(spec, dz, zed.left, solve_pnp)
     T_mech_from_board, uv_m_all = _pnp_bias_corrected(spec, dm, mech, solve_pnp)
@@ -356,11 +356,11 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
     if len(common) < min_common:
         why = f"only {len(common)} board points seen by both cameras (need {min_common})"
         log.warning("capture %s: %s; skipped", name, why)
-        return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+        return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
     if collinear(X[common]):
         why = "the board points both cameras see lie on one line"
         log.warning("capture %s: %s; skipped", name, why)
-        return None, PoseReport(capture=name, status="skipped", reason=why, **counts)
+        return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
     blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)
     if blurred:
         log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
@@ -368,7 +368,7 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
     def fin(x: float) -> float | None:
         return float(x) if np.isfinite(x) else None
 
-    rep = PoseReport(capture=name, status="used", sharpness_mech_px=fin(dm.sharpness_px),
+    rep = PoseResult(capture=name, status="used", sharpness_mech_px=fin(dm.sharpness_px),
                      sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
     obs = PoseObs(name, uv_m_all[im], uv_z_all[iz], T_mech_from_board, T_zed_from_board, depth_mm, dm, dz, ids=common)
     return obs, rep
@@ -397,3 +397,4 @@ from gtforge.records.calibration import (  # noqa: E402,F401
     check_rig_matches_session,
     open_calibrated_session,
 )
+from gtforge.records.calibration import PoseReport  # noqa: E402,F401

@@ -32,7 +32,7 @@ from gtforge.records.evaluation import (
     DEPTH_REGIONS,
     DISP_ERROR_MAP_MAX_PX,
     REGIONS,
-    EvalReport,
+    EvalResult,
     SceneResult,
 )
 from gtforge.reports.evaluation import (
@@ -117,12 +117,12 @@ def _check_sigma_maps(ds: Path, ids: list[str]) -> None:
 def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path | None = None, split: str | None = None,
              max_disp_px: float | None = None, write_clouds: bool = False, params_count: int | None = None,
              progress: Callable[[str], None] | None = None, max_gt_sigma_px: float | None = None,
-             grades: GradeBins | None = None, fruit_size: bool = True) -> EvalReport:
+             grades: GradeBins | None = None, fruit_size: bool = True) -> EvalResult:
     """Evaluate ``predictor`` on every scene (or a split) of a built dataset.
 
     ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
-    any scoring and listed in ``EvalReport.missing``. ``fruit_size``: also measure every fruit's diameter, height
+    any scoring and listed in ``EvalResult.missing``. ``fruit_size``: also measure every fruit's diameter, height
     and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade confusion)."""
     ds = Path(dataset_dir)
     if not (ds / "manifest.json").is_file():
@@ -204,7 +204,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         raise InputError(ds, "scenes", "at least one scene with a prediction", "none",
                          "; ".join(f"{k}: {v}" for k, v in list(missing.items())[:3]))
 
-    rep = EvalReport(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds.resolve()),
+    rep = EvalResult(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds.resolve()),
                      scenes=[s.scene for s in per_scene], missing=missing, max_disp_px=max_disp_px,
                      model_source=getattr(predictor, "source", ""), gtforge_version=gtforge.__version__,
                      created=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
@@ -269,7 +269,7 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
     limits, and model names used by more than one result (their rows are then labelled with the folder)."""
 
     files = [Path(p) for p in result_files]
-    reports = [EvalReport.read(p) for p in files]
+    reports = [EvalResult.read(p) for p in files]
     warnings = comparison_warnings(reports, files)
     for w in warnings:
         log.warning(w)
@@ -282,3 +282,4 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
 
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
 from gtforge.records.evaluation import TABLE_REGIONS  # noqa: E402,F401
+from gtforge.records.evaluation import EvalReport  # noqa: E402,F401

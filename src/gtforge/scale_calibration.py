@@ -59,7 +59,7 @@ from gtforge.records.calibration import (
     ScaleCalibration,
     ScaleParams,
     ScaleTerm,
-    SceneScaleReport,
+    SceneScaleResult,
     open_calibrated_session,
 )
 from gtforge.records.dataset import BuildParams
@@ -388,7 +388,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     build = BuildParams()
     x = np.zeros(4)
     rig = apply_scale(rig_file, B_file, x)
-    reports = {s: SceneScaleReport(scene=s) for s in caps}
+    reports = {s: SceneScaleResult(scene=s) for s in caps}
     # a scene whose fruit moved between the captures (its texture shift over the fruit differs from the whole area's)
     # has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes, is kept)
     for s in list(caps):
@@ -513,3 +513,4 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
 
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
 from gtforge.core.scale_corrections import add_scale_sigma, corrected_right_image, scale_sigma_px, shown_disparity_px  # noqa: E402,F401
+from gtforge.records.calibration import SceneScaleReport  # noqa: E402,F401

@@ -25,7 +25,7 @@ from gtforge.core.gauges import (
     ORDER,
     GaugeLimits,
     GaugeParams,
-    GaugeReport,
+    GaugesResult,
     GaugeResult,
     GaugeSpec,
     _components,
@@ -46,7 +46,7 @@ from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import rectified_by
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, check_rig_matches_session
 from gtforge.records.dataset import BuildParams
-from gtforge.records.validation import PoseValidation, ValidateParams, ValidationReport
+from gtforge.records.validation import PoseValidation, ValidateParams, ValidationResult
 from gtforge.reports.gauges import write_gauges_html
 from gtforge.reports.validation import write_validation_report
 
@@ -212,7 +212,7 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
 
 def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: str | Path | None = None,
              params: ValidateParams | None = None, captures: list[str] | None = None, holdout: int = 0,
-             progress: Callable[[str], None] | None = None, gauges: bool = True) -> ValidationReport:
+             progress: Callable[[str], None] | None = None, gauges: bool = True) -> ValidationResult:
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
     ``holdout=K``: calibrate on all board captures but the last K and validate on those K; that calibration
@@ -287,7 +287,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     z_mean = float(np.nanmean(zerr))
     rect = meter.result() if meter is not None else None
     warnings += rect.warnings if rect is not None else []
-    rep = ValidationReport(
+    rep = ValidationResult(
         calibration_path=str(calib_path), session_dir=str(session_dir),
         thresholds={"xy_px": params.xy_threshold_px, "z_pct": params.z_threshold_pct},
         xy_mean_px=xy_mean, xy_median_px=float(np.median(e)), xy_rms_px=float(np.sqrt(np.mean(e ** 2))),
@@ -336,7 +336,7 @@ def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParam
 
 def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: str | Path | None = None,
                     params: GaugeParams | None = None, progress: Callable[[str], None] | None = None,
-                    write_html: bool = True) -> GaugeReport:
+                    write_html: bool = True) -> GaugesResult:
     """Measure every gauge of ``session_dir/gauges/gauges.yaml``; ``gauges.json``/``gauges.html`` go to ``out_dir``.
     ``params``: None takes ``gauges.yaml``'s ``params`` (or the defaults)."""
     import time
@@ -366,7 +366,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         results.append(res)
         maps[spec.capture] = arrays
     worst = max((r.status for r in results), key=lambda s: ORDER[s])
-    rep = GaugeReport(session_dir=str(session_dir), calibration_path=str(calibration), limits=gfile.limits,
+    rep = GaugesResult(session_dir=str(session_dir), calibration_path=str(calibration), limits=gfile.limits,
                       params=params, gauges=results, status=worst, time_s=time.perf_counter() - t0)
     if out_dir is not None:
         out = Path(out_dir)
@@ -380,3 +380,4 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
 from gtforge.records.validation import REFERENCE_XY_PX, REFERENCE_Z_PCT  # noqa: E402,F401
+from gtforge.records.validation import ValidationReport  # noqa: E402,F401

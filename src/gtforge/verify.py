@@ -57,7 +57,7 @@ from gtforge.infra.scheduling import prestart_pool, run_tasks
 from gtforge.io.formats import read_image, read_pfm, write_image
 from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
 from gtforge.records.dataset import Manifest, SceneMeta
-from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationReport, VerifyParams
+from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationResult, VerifyParams
 from gtforge.reports.verification import write_verification_report
 
 log = logging.getLogger("gtforge.verify")
@@ -372,7 +372,7 @@ def predicted_shift(depth_zed_mm: np.ndarray, rig: Rig, T_zed_from_mech_true: np
 
 def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, scenes: list[str] | None = None,
                    session_dir: str | Path | None = None, workers: int | None = None, scheduler: str | None = None,
-                   quarantine: bool = False, progress: Callable[[str], None] | None = None) -> VerificationReport:
+                   quarantine: bool = False, progress: Callable[[str], None] | None = None) -> VerificationResult:
     """Re-run the checks on an existing dataset (its manifest names the session and calibration); writes
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
     flagged scenes out of the split lists)."""
@@ -416,8 +416,8 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     old = {}
     rep_path = ds / "verification.json"
     if rep_path.is_file():
-        old = VerificationReport.read(rep_path).scenes
-    rep = VerificationReport(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})
+        old = VerificationResult.read(rep_path).scenes
+    rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})
     write_verification_report(rep, ds)
     man.flagged = rep.flagged
     man.quarantined = sorted(rep.flagged) if quarantine else []
@@ -494,3 +494,4 @@ def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: 
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
 from gtforge.core.photometric import estimate_shift  # noqa: E402,F401
 from gtforge.core.regions import REGION_NONE  # noqa: E402,F401
+from gtforge.records.verification import VerificationReport  # noqa: E402,F401

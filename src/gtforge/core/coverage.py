@@ -46,7 +46,7 @@ class PredictedPose(GTModel):
     sigma_trans_mm: float
 
 
-class CoverageReport(GTModel):
+class CoverageResult(GTModel):
     cameras: list[CameraCoverage]
     distance_mm_min: float  # board centre's depth in the ZED-left camera, over the used poses
     distance_mm_max: float
@@ -114,7 +114,7 @@ def _predict(cov: np.ndarray, info: np.ndarray) -> tuple[float, float]:
 
 def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: np.ndarray, mech, zed_cam, board,
                     cov: np.ndarray | None = None, rms_px: float | None = None, jack_scale: float | None = None,
-                    min_common: int = 6) -> CoverageReport:
+                    min_common: int = 6) -> CoverageResult:
     """Coverage of the used poses (``PoseObs`` with their refined ``T_mech_from_board``) and what to capture next."""
     X_all = board.corners_board()
     cams = []
@@ -174,7 +174,7 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
                 guidance.append(f"one more pose ({p.description}, {p.n_points_common} points in both images) is "
                                 f"predicted to bring the extrinsic's 1-sigma from {now_r:.4f} deg / {now_t:.3f} mm to "
                                 f"{p.sigma_rot_deg:.4f} deg / {p.sigma_trans_mm:.3f} mm")
-    return CoverageReport(cameras=cams, distance_mm_min=float(dist.min()), distance_mm_max=float(dist.max()),
+    return CoverageResult(cameras=cams, distance_mm_min=float(dist.min()), distance_mm_max=float(dist.max()),
                           tilt_vertical_axis_deg=[float(tilts[:, 0].min()), float(tilts[:, 0].max())],
                           tilt_horizontal_axis_deg=[float(tilts[:, 1].min()), float(tilts[:, 1].max())],
                           guidance=guidance, predictions=predictions)
@@ -229,3 +229,7 @@ def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_
     T[:3, 3] = p - T[:3, :3] @ centre_b
     label = "ZED" if cam_name == "zed" else "structured-light"
     yield T, f"a board centred near the {label} image's {corner} corner, cut by its border"
+
+
+# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
+CoverageReport = CoverageResult

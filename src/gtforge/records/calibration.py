@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import Field, PrivateAttr, model_serializer
 
 from gtforge.core.camera import Rig
-from gtforge.core.coverage import CoverageReport, coverage_report
+from gtforge.core.coverage import CoverageResult, coverage_report
 from gtforge.core.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
@@ -41,7 +41,7 @@ class CalibrateParams(GTModel):
 
 
 
-class PoseReport(GTModel):
+class PoseResult(GTModel):
     capture: str
     status: Literal["used", "skipped", "outlier"]
     reason: str = ""
@@ -145,7 +145,7 @@ class CalibrationFile(VersionedFile):
     sigma_trans_mm: float
     loo_transfer_mean_px: float | None = None
     loo_transfer_max_px: float | None = None
-    poses: list[PoseReport]
+    poses: list[PoseResult]
     methods: list[MethodResult] = Field(default_factory=list)
     residuals_by_region_px: dict[str, float] = Field(default_factory=dict)
     # Full covariance of the written extrinsic, parameterised as a left perturbation:
@@ -159,7 +159,7 @@ class CalibrationFile(VersionedFile):
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
-    coverage: CoverageReport | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
+    coverage: CoverageResult | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
     # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
     scale_calibration: ScaleCalibration | None = None
 
@@ -285,7 +285,7 @@ class ScaleTerm(GTModel):
 
 
 
-class SceneScaleReport(GTModel):
+class SceneScaleResult(GTModel):
     scene: str
     excluded: str = ""  # why the scene was left out ("": used)
     n_points: int = 0
@@ -310,5 +310,10 @@ class ScaleCalibration(GTModel):
     scenes_used: list[str]
     board_poses_used: list[str] = Field(default_factory=list)
     passes: int = 0
-    scenes: list[SceneScaleReport] = Field(default_factory=list)
+    scenes: list[SceneScaleResult] = Field(default_factory=list)
     time_s: float = 0.0
+
+
+# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
+PoseReport = PoseResult
+SceneScaleReport = SceneScaleResult

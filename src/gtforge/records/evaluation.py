@@ -1,4 +1,4 @@
-"""What evaluate writes: each scene's ``SceneResult`` and the run's ``EvalReport`` (results.json), the regions they
+"""What evaluate writes: each scene's ``SceneResult`` and the run's ``EvalResult`` (results.json), the regions they
 are scored over and the colour scales of the error maps. Read by the reports and by ``gtforge evaluate --compare``."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import ClassVar
 
 from pydantic import Field
 
-from gtforge.core.fruit_size import FruitSizeReport
+from gtforge.core.fruit_size import FruitSizeResult
 from gtforge.core.metrics import Metrics
 from gtforge.core.schema import VersionedFile
 
@@ -41,7 +41,7 @@ class SceneResult(VersionedFile):
 
 
 
-class EvalReport(VersionedFile):
+class EvalResult(VersionedFile):
 
     KIND: ClassVar[str] = "evaluation result (results.json from gtforge evaluate)"
     model: str
@@ -62,4 +62,8 @@ class EvalReport(VersionedFile):
     per_image_mean: dict[str, Metrics]
     per_scene: list[SceneResult]
     # per-fruit size, volume and grade (gtforge.core.fruit_size); absent in results written before it existed
-    fruit_size: "FruitSizeReport | None" = None
+    fruit_size: "FruitSizeResult | None" = None
+
+
+# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
+EvalReport = EvalResult

@@ -1,4 +1,4 @@
-"""What validate writes: ``validation.json`` (``ValidationReport``, one ``PoseValidation`` per board capture), its
+"""What validate writes: ``validation.json`` (``ValidationResult``, one ``PoseValidation`` per board capture), its
 thresholds and the published reference figures the report compares against, with their source."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import ClassVar
 
 from pydantic import Field
 
-from gtforge.core.gauges import GaugeReport
+from gtforge.core.gauges import GaugesResult
 from gtforge.core.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.targets import BoardModel
@@ -53,7 +53,7 @@ class PoseValidation(GTModel):
 
 
 
-class ValidationReport(VersionedFile):
+class ValidationResult(VersionedFile):
 
     KIND: ClassVar[str] = "validation report (validation.json from gtforge validate)"
     calibration_path: str
@@ -81,7 +81,11 @@ class ValidationReport(VersionedFile):
     # vertical disparity of the board corners in both rectified ZED images (gtforge.core.rectification)
     rectification: RectificationQuality | None = None
     # VDI/VDE 2634-2 figures on the session's gauge objects (gtforge.core.gauges); absent: no gauges/gauges.yaml
-    gauges: GaugeReport | None = None
+    gauges: GaugesResult | None = None
 
 
 REFERENCE_SOURCE = "Li et al., MI-ACVNet (MDPI, 2026)"  # where the published 0.56 px / 0.08 % come from
+
+
+# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
+ValidationReport = ValidationResult

@@ -16,7 +16,7 @@ import numpy as np
 
 from gtforge.core.metrics import Metrics
 from gtforge.infra.atomic import atomic_write_text
-from gtforge.records.evaluation import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalReport
+from gtforge.records.evaluation import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalResult
 from gtforge.reports.fruit_size import comparison_section, fruit_markdown, fruit_section
 from gtforge.reports.html import Section, note, standard_header, table, write_html
 
@@ -106,7 +106,7 @@ def preview_jpeg(rgb: np.ndarray) -> bytes:
 
 
 # ---- tables -------------------------------------------------------------------------------------
-def _uses_sigma(reports: list[EvalReport]) -> bool:
+def _uses_sigma(reports: list[EvalResult]) -> bool:
     return any(r.max_gt_sigma_px is not None for r in reports)
 
 
@@ -115,7 +115,7 @@ def _left_out_text(m: Metrics) -> str:
     return f"{m.n_gt_sigma_left_out} ({100.0 * m.n_gt_sigma_left_out / total:.1f} %)" if total else "0"
 
 
-def headers(reports: list[EvalReport]) -> list[str]:
+def headers(reports: list[EvalResult]) -> list[str]:
     h = ["model", "region", "GT pixels", "EPE (px)", "RMSE (px)", "Bad-0.5 (%)", "Bad-1.0 (%)", "Bad-2.0 (%)",
          "coverage (%)", "depth MAE (mm)", "time (ms/frame)"]
     if _uses_sigma(reports):
@@ -123,7 +123,7 @@ def headers(reports: list[EvalReport]) -> list[str]:
     return h
 
 
-def _rows(reports: list[EvalReport], labels: list[str] | None = None, regions=TABLE_REGIONS,
+def _rows(reports: list[EvalResult], labels: list[str] | None = None, regions=TABLE_REGIONS,
           left_out: Callable[[Metrics], object] = _left_out_text):
     sig = _uses_sigma(reports)
     for k, rep in enumerate(reports):
@@ -136,7 +136,7 @@ def _rows(reports: list[EvalReport], labels: list[str] | None = None, regions=TA
             yield row
 
 
-def _notes(reports: list[EvalReport]) -> list[str]:
+def _notes(reports: list[EvalResult]) -> list[str]:
     out = [POOLED_NOTE, DEPTH_NOTE]
     for rep in reports:
         if rep.max_gt_sigma_px is not None:
@@ -145,7 +145,7 @@ def _notes(reports: list[EvalReport]) -> list[str]:
     return out
 
 
-def tables_markdown(reports: list[EvalReport], labels: list[str] | None = None,
+def tables_markdown(reports: list[EvalResult], labels: list[str] | None = None,
                     warnings: list[str] | None = None) -> str:
     def cell(v):
         return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
@@ -159,7 +159,7 @@ def tables_markdown(reports: list[EvalReport], labels: list[str] | None = None,
     return "\n".join(lines) + "\n\n" + "\n\n".join(_notes(reports)) + "\n" + ("\n" + fruit if fruit else "")
 
 
-def write_tables(reports: list[EvalReport], out: Path, stem: str = "results", labels: list[str] | None = None,
+def write_tables(reports: list[EvalResult], out: Path, stem: str = "results", labels: list[str] | None = None,
                  warnings: list[str] | None = None) -> None:
     atomic_write_text(out / f"{stem}.md", tables_markdown(reports, labels, warnings))
     buf = io.StringIO()
@@ -174,7 +174,7 @@ def write_tables(reports: list[EvalReport], out: Path, stem: str = "results", la
 
 
 # ---- results.html -------------------------------------------------------------------------------
-def _report_header(rep: EvalReport) -> list[tuple[str, object]]:
+def _report_header(rep: EvalResult) -> list[tuple[str, object]]:
     return [("written", rep.created or None), ("gtforge version", rep.gtforge_version or None),
             ("dataset", rep.dataset_dir), ("model", rep.model_source or rep.model),
             ("provider", rep.provider), ("split", rep.split or "every scene"),
@@ -182,7 +182,7 @@ def _report_header(rep: EvalReport) -> list[tuple[str, object]]:
             ("max disparity scored (px)", rep.max_disp_px), ("max GT sigma scored (px)", rep.max_gt_sigma_px)]
 
 
-def _scene_maps(rep: EvalReport, out: Path, max_scenes: int) -> str:
+def _scene_maps(rep: EvalResult, out: Path, max_scenes: int) -> str:
     import base64
 
     worst = sorted(rep.per_scene, key=lambda s: -(s.metrics["all"].epe_px or 0.0))[:max_scenes]
@@ -210,7 +210,7 @@ def _scene_maps(rep: EvalReport, out: Path, max_scenes: int) -> str:
     return intro + "".join(rows)
 
 
-def write_eval_html(rep: EvalReport, out: Path, max_scenes: int = MAX_SCENES_SHOWN) -> Path:
+def write_eval_html(rep: EvalResult, out: Path, max_scenes: int = MAX_SCENES_SHOWN) -> Path:
     """``results.html``: header, pooled table, per-scene table (worst EPE first), error-map previews."""
     head = headers([rep])[1:-1]  # no model column (one model), no time column (in the heading)
     rows = [row[1:-1] for row in _rows([rep], regions=tuple(rep.pooled))]
@@ -237,7 +237,7 @@ def write_eval_html(rep: EvalReport, out: Path, max_scenes: int = MAX_SCENES_SHO
 
 
 # ---- compare ------------------------------------------------------------------------------------
-def row_labels(reports: list[EvalReport], files: list[Path]) -> list[str]:
+def row_labels(reports: list[EvalResult], files: list[Path]) -> list[str]:
     """Model names, with the result's folder added where two results share a name: as many of the folder's trailing
     path parts as tell those results apart (``SGBM [run1/evaluation]``, ``SGBM [run2/evaluation]``)."""
     names = [r.model for r in reports]
@@ -259,14 +259,14 @@ def row_labels(reports: list[EvalReport], files: list[Path]) -> list[str]:
     return labels
 
 
-def comparison_warnings(reports: list[EvalReport], files: list[Path]) -> list[str]:
+def comparison_warnings(reports: list[EvalResult], files: list[Path]) -> list[str]:
     """Why a side-by-side table may mislead: different datasets / scenes / scoring limits, repeated model names."""
     w = []
 
-    def differ(key: Callable[[EvalReport], object]) -> bool:
+    def differ(key: Callable[[EvalResult], object]) -> bool:
         return len({repr(key(r)) for r in reports}) > 1
 
-    def listing(key: Callable[[EvalReport], object]) -> str:
+    def listing(key: Callable[[EvalResult], object]) -> str:
         return "; ".join(f"{f}: {key(r)}" for r, f in zip(reports, files))
 
     hashes = [r.dataset_manifest_sha256 for r in reports]
@@ -289,7 +289,7 @@ def comparison_warnings(reports: list[EvalReport], files: list[Path]) -> list[st
     return w
 
 
-def write_comparison_html(reports: list[EvalReport], files: list[Path], labels: list[str], warnings: list[str],
+def write_comparison_html(reports: list[EvalResult], files: list[Path], labels: list[str], warnings: list[str],
                           path: Path) -> Path:
 
     sections = []

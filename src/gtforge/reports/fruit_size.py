@@ -7,8 +7,8 @@ from gtforge.infra.atomic import atomic_write_text
 from gtforge.reports.html import Section, note, table
 
 if TYPE_CHECKING:
-    from gtforge.core.fruit_size import FruitSizeReport, GradeAgreement
-    from gtforge.records.evaluation import EvalReport
+    from gtforge.core.fruit_size import FruitSizeResult, GradeAgreement
+    from gtforge.records.evaluation import EvalResult
 
 FRUIT_NOTE = ("Per fruit (connected fruit components of region.png): an ellipsoid resting on the table (one axis "
               "along the table's normal, lowest point on the table; the table fitted to the same source's background "
@@ -21,7 +21,7 @@ POOLED_HEADERS = ["model", "fruit", "diameter MAE (mm)", "diameter max (mm)", "v
                   "grade changed (%)", "GT vs truth: diameter MAE (mm)", "GT vs truth: volume MAPE (%)"]
 
 
-def pooled_rows(reports: list["EvalReport"], labels: list[str] | None = None) -> list[list]:
+def pooled_rows(reports: list["EvalResult"], labels: list[str] | None = None) -> list[list]:
     rows = []
     for k, rep in enumerate(reports):
         f = rep.fruit_size
@@ -36,7 +36,7 @@ def pooled_rows(reports: list["EvalReport"], labels: list[str] | None = None) ->
     return rows
 
 
-def fruit_markdown(reports: list["EvalReport"], labels: list[str] | None = None) -> str:
+def fruit_markdown(reports: list["EvalResult"], labels: list[str] | None = None) -> str:
     """The pooled fruit-size table (empty string when no result has one)."""
     rows = pooled_rows(reports, labels)
     if not rows:
@@ -63,7 +63,7 @@ def confusion_markdown(g: "GradeAgreement") -> str:
     return "\n".join(lines)
 
 
-def _scatter(f: "FruitSizeReport") -> str:
+def _scatter(f: "FruitSizeResult") -> str:
     from matplotlib.figure import Figure
 
     gt = [r.gt.diameter_mm for r in f.fruit if r.gt.ok and r.pred is not None and r.pred.ok]
@@ -103,7 +103,7 @@ def svg_img_tag(fig, alt: str) -> str:
     return f'<img style="max-width:460px" alt="{html.escape(alt)}" src="data:image/svg+xml;base64,{b64}"/>'
 
 
-def fruit_section(rep: "EvalReport") -> Section | None:
+def fruit_section(rep: "EvalResult") -> Section | None:
     f = rep.fruit_size
     if f is None:
         return None
@@ -135,7 +135,7 @@ def fruit_section(rep: "EvalReport") -> Section | None:
     return Section("Fruit size, volume and grade", body)
 
 
-def comparison_section(reports: list["EvalReport"], labels: list[str]) -> Section | None:
+def comparison_section(reports: list["EvalResult"], labels: list[str]) -> Section | None:
     rows = pooled_rows(reports, labels)
     if not rows:
         return None
@@ -148,7 +148,7 @@ FRUIT_CSV_HEADERS = ["scene", "fruit", "n_pixels", "gt_ok", "gt_diameter_mm", "g
                      "gt_diameter_error_mm", "gt_volume_error_pct", "grade_gt", "grade_pred", "grade_truth", "reason"]
 
 
-def write_fruit_csv(rep: "EvalReport", path) -> None:
+def write_fruit_csv(rep: "EvalResult", path) -> None:
     """``fruit_size.csv``: one row per fruit (what results.json's ``fruit_size.fruit`` holds)."""
     import csv
     import io

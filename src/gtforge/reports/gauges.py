@@ -10,7 +10,7 @@ import numpy as np
 from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, write_html
 
 if TYPE_CHECKING:
-    from gtforge.core.gauges import GaugeReport, GaugeResult
+    from gtforge.core.gauges import GaugesResult, GaugeResult
 
 GAUGE_NOTE = ("Ground truth (gt): the GT disparity turned back into 3-D, Z = f*B/(d + doffs), in the ZED-left frame; "
               "raw: the structured-light depth mapped into the same frame. Size error PS = fitted - calibrated diameter; "
@@ -77,7 +77,7 @@ def _plots(res: np.ndarray | None) -> str:
     return fig_to_img_tag(fig, width="840px", alt="gauge residual map and histogram")
 
 
-def gauge_sections(rep: "GaugeReport", maps: dict | None = None) -> list[Section]:
+def gauge_sections(rep: "GaugesResult", maps: dict | None = None) -> list[Section]:
     lim = rep.limits
     limits = table(["figure", "PASS up to (mm)", "WARN up to (mm)"], [
         ["size error |PS|", lim.size_pass_mm, lim.size_warn_mm], ["form error PF", lim.form_pass_mm, lim.form_warn_mm],
@@ -94,6 +94,6 @@ def gauge_sections(rep: "GaugeReport", maps: dict | None = None) -> list[Section
     return out
 
 
-def write_gauges_html(rep: "GaugeReport", maps: dict | None, path: Path) -> Path:
+def write_gauges_html(rep: "GaugesResult", maps: dict | None, path: Path) -> Path:
     header = standard_header(("session", rep.session_dir), ("calibration", rep.calibration_path))
     return write_html(path, "gtforge gauge validation", gauge_sections(rep, maps), header=header)

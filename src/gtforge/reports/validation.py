@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.records.validation import REFERENCE_SOURCE, REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationReport
+from gtforge.records.validation import REFERENCE_SOURCE, REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationResult
 from gtforge.reports import rectification as rectification_report
 from gtforge.reports.gauges import gauge_sections
 from gtforge.reports.html import (
@@ -45,7 +45,7 @@ def _legend_below(ax, ncol: int = 3) -> None:
 
 
 # ---- sections -----------------------------------------------------------------------------------
-def verdict_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
+def verdict_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
     def ok(flag: bool):
         return verdict_badge("pass" if flag else "fail")
 
@@ -67,7 +67,7 @@ def verdict_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
         "generated ZED-left depth against its true length (docs/pipeline.md, validate)."), status=status)
 
 
-def per_pose_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
+def per_pose_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
     """Per-pose means against the thresholds (the thresholds apply to means, not to single corners)."""
     plt = _plt()
     poses = rep.poses
@@ -95,7 +95,7 @@ def per_pose_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
     return Section("Per pose against the thresholds", fig_to_img_tag(fig, alt="per-pose means"))
 
 
-def field_of_view_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
+def field_of_view_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section | None:
     if not rep.corner_errors:
         return None
 
@@ -130,7 +130,7 @@ def field_of_view_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Sect
         "arrow give its length. The thresholds apply to means (plot above), not to single corners."))
 
 
-def poses_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
+def poses_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
     rows = [[p.capture, "yes" if p.used_for_calibration else "no", p.n_corners, p.xy_mean_px, p.xy_median_px,
              p.xy_rms_px, p.xy_max_px, p.z_diagonal_calc_mm, p.z_diagonal_true_mm, p.z_error_pct,
              p.z_pairs_mean_abs_pct, p.flatness_rms_mm]
@@ -143,18 +143,18 @@ def poses_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
         "board's; E_z = |D calc - D true| / D true. Pairs: every corner pair's distance error."))
 
 
-def skipped_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section:
+def skipped_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
     body = table(["capture", "reason"], list(rep.skipped.items())) if rep.skipped else "<p>none</p>"
     return Section("Skipped captures", body)
 
 
-def rectification_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
+def rectification_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section | None:
     """Vertical disparity of the board corners in both rectified ZED images."""
     return rectification_report.rectification_section(getattr(rep, "rectification", None), None, zed_cam.width_px, zed_cam.height_px)
 
 
-SectionBuilder = Callable[[ValidationReport, PinholeCamera], "Section | None"]
-def gauges_section(rep: ValidationReport, zed_cam: PinholeCamera) -> Section | None:
+SectionBuilder = Callable[[ValidationResult, PinholeCamera], "Section | None"]
+def gauges_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section | None:
     """The gauge objects' VDI/VDE 2634-2 figures (gauges.html has the residual maps and histograms)."""
     if rep.gauges is None:
         return None
@@ -169,7 +169,7 @@ SECTIONS: list[SectionBuilder] = [verdict_section, per_pose_section, field_of_vi
                                   skipped_section, rectification_section, gauges_section]
 
 
-def write_validation_report(rep: ValidationReport, out: Path, zed_cam: PinholeCamera,
+def write_validation_report(rep: ValidationResult, out: Path, zed_cam: PinholeCamera,
                             sections: list[SectionBuilder] | None = None) -> Path:
     """``validation.json`` and a self-contained ``validation.html`` built from ``sections`` (default ``SECTIONS``)."""
     out = Path(out)

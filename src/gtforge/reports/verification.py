@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 import gtforge
-from gtforge.records.verification import SceneVerification, VerificationReport
+from gtforge.records.verification import SceneVerification, VerificationResult
 from gtforge.reports.html import fig_to_img_tag, table, write_html
 
 
@@ -50,7 +50,7 @@ def _shift_map(sid: str, v: SceneVerification) -> str:
     return fig_to_img_tag(fig, "520px")
 
 
-def write_verification_html(rep: VerificationReport, out: Path) -> Path:
+def write_verification_html(rep: VerificationResult, out: Path) -> Path:
     p = rep.params
     items = sorted(rep.scenes.items(), key=_sort_key)
     n_flag = sum(v.status == "flagged" for v in rep.scenes.values())
@@ -96,7 +96,7 @@ def write_verification_html(rep: VerificationReport, out: Path) -> Path:
         ("Flagged scenes", "".join(flagged_parts) or "<p>none</p>")])
 
 
-def write_verification_report(report: VerificationReport, out_dir: str | Path) -> Path:
+def write_verification_report(report: VerificationResult, out_dir: str | Path) -> Path:
     """``verification.json`` + ``verification.html`` in ``out_dir``."""
 
     out = Path(out_dir)
