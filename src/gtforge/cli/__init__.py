@@ -5,6 +5,9 @@ Bad input (``InputError``) prints one line and exits with code 2; a FAIL verdict
 exits with 1; unexpected bugs keep their traceback.
 
 Over 500 lines on purpose: one short command per stage, its options' help beside it.
+
+Each command imports its stage inside its function (the package's only function-local gtforge imports): ``gtforge
+--help`` and a mistyped option answer without loading numba, OpenCV and SciPy.
 """
 from __future__ import annotations
 
