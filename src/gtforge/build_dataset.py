@@ -140,7 +140,6 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         sd, region, fruit = build_scene_arrays(cap.depth_mm, rig, params, cap.fruit_mask)
         decode_s = 0.0
         if yawed:
-
             cap.zed_right = corrected_right_image(cap.zed_right, rig)
         if params.verification:
             t = time.perf_counter()
@@ -271,7 +270,6 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                          f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
     dirs = session.select("scenes", scenes)
     if scheduler:
-
         check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
@@ -375,7 +373,6 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
 
 
 def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneMeta"]) -> None:
-
     scenes = {s: m.verification for s, m in sorted(metas.items()) if m.verification is not None}
     for s, v in scenes.items():  # overlays of scenes no longer flagged
         if v.status != "flagged":

@@ -67,7 +67,6 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
                 mech: PinholeCamera, zed: RectifiedStereo, board: BoardSpec,
                 blur_px: float) -> tuple[PoseObs | None, PoseResult]:
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-
         return detect_pose_target(name, texture, depth_mm, zed_left, mech, zed, board, blur_px)
     dm = detect_corners(texture, board)
     dz = detect_corners(zed_left, board)

@@ -216,10 +216,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     if fruit_size:
         rep.fruit_size = summarise(fruit_records, grades, time_ms_per_scene=float(np.median(fruit_ms)) if fruit_ms else None)
     if out is not None:
-
         write_tables([rep], out)
         if rep.fruit_size is not None:
-
             write_fruit_csv(rep, out / "fruit_size.csv")
         rep.write(out / "results.json")
         write_eval_html(rep, out)

@@ -200,7 +200,6 @@ class PredictionFolder:
         return None
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
-
         p = self.find(scene_id)
         if p is None:
             raise InputError(self.folder, scene_id, f"a prediction ({PREDICTION_NAMES.replace('<id>', scene_id)})",

@@ -113,7 +113,6 @@ def _check_board(board_model) -> None:
     if board_model.kind == "checkerboard":
         check_board_spec(board_model.spec())
     else:
-
         check_board_model(board_model)
 
 
@@ -121,7 +120,6 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
                   used_for_calibration: bool) -> tuple[PoseValidation | None, np.ndarray | None, str | None]:
     ids = None  # ChArUco / circle grids (gtforge.core.targets): the ids both cameras saw
     if getattr(board, "kind", "checkerboard") != "checkerboard":
-
         got = matched_points(name, texture, zed_left, rig.mech, rig.zed.left, board)
         if isinstance(got, str):
             return None, None, got
@@ -165,7 +163,6 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
         spacing_m = np.median(np.linalg.norm(np.diff(uv_mech_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
         spacing_z = np.median(np.linalg.norm(np.diff(uv_fit.reshape(board.rows, board.cols, 2), axis=1), axis=2))
     else:
-
         a, b = neighbour_pairs(board, ids)
         spacing_m = np.median(np.linalg.norm(uv_mech_fit[a] - uv_mech_fit[b], axis=1))
         spacing_z = np.median(np.linalg.norm(uv_fit[a] - uv_fit[b], axis=1))
@@ -304,7 +301,6 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     if gauges and (session.root / GAUGES_DIR / GAUGES_FILE).is_file():
         rep.gauges = validate_gauges(session_dir, calib_path, out_dir, progress=progress)
     if out_dir is not None:
-
         write_validation_report(rep, Path(out_dir), calib.rig.zed.left)
     return rep
 
@@ -373,7 +369,6 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         out.mkdir(parents=True, exist_ok=True)
         rep.write(out / "gauges.json")
         if write_html:
-
             write_gauges_html(rep, maps, out / "gauges.html")
     return rep
 

@@ -208,7 +208,6 @@ def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec, ids: np.
     """Median distance between neighbouring corners of one pose (mm); with ``ids`` (ChArUco, circle grids) the
     neighbours' distances scaled to the declared spacing (asymmetric grids' nearest neighbours are sqrt(2) apart)."""
     if ids is not None:
-
         a, b = neighbour_pairs(board, ids)
         Xb = board.corners_board()[ids]
         ratio = np.linalg.norm(corners_mech[a] - corners_mech[b], axis=1) / np.linalg.norm(Xb[a] - Xb[b], axis=1)

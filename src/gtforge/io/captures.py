@@ -509,7 +509,6 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
     if zed_right_correction is not None:
-
         rectification = corrected_rectification(rectification, zed_right_correction) if rectification is not None \
             else RightImageCorrection(zed_right_correction, zed)
     return Session(root, cfg, mech, zed, rectification, depth_cam, T_mech_from_depth)

@@ -234,7 +234,6 @@ def raw_matches(session: Session, dirs: list[Path], progress: Callable[[str], No
 
 
 def _default_reading() -> str:
-
     return DEFAULT_ZED_CONF_READING
 
 
