@@ -15,11 +15,10 @@ from gtforge.core.regions import occlusion_mask, region_sigma_stats, sgra_weight
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.layout import (
     KITTI_DISPARITY_DIRS,
-    built_as_asked,
     file_stamp,
     hash_inputs,
-    inputs_unchanged,
     landed_meta,
+    plan_scenes,
     scene_files,
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
@@ -250,7 +249,11 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                   strict: bool = False, scenes: list[str] | None = None, progress: bool = False,
                   scheduler: str | None = None) -> BuildSummary:
     """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.
-    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md)."""
+    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md).
+
+    The recipe: check the inputs; plan (``plan_scenes``: which scenes are up to date); build and land each of the
+    others (``build_one_scene`` on the pool: compute, write into a temporary folder, rename it into place); finish
+    (``finish_dataset``: verification report, views, splits, manifest, build report)."""
 
     t0 = time.perf_counter()
     prestart_pool(build_one_scene.__module__, workers, scheduler)  # (already started by the CLI)
@@ -273,23 +276,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
-    phash = params.output_hash()
-    todo, unchanged = [], []
-    expected = scene_files(params)
-    metas: dict[str, SceneMeta] = {}
-    for d in dirs:
-        meta_path = out / "scenes" / d.name / "meta.json"
-        if not overwrite and meta_path.exists():
-            try:
-                m = SceneMeta.read(meta_path)
-                files = [p for p in session.capture_files(d) if p.exists()]
-                if built_as_asked(m, meta_path.parent, phash, calib_sha, expected) and inputs_unchanged(m, files):
-                    unchanged.append(d.name)
-                    metas[d.name] = m
-                    continue
-            except InputError:
-                pass
-        todo.append(d)
+    phash, expected = params.output_hash(), scene_files(params)
+    todo, unchanged, metas = plan_scenes(session, dirs, out, phash, calib_sha, expected, overwrite)
     before = {d.name: file_stamp(out / "scenes" / d.name / "meta.json") for d in todo}
     failures: dict[str, str] = {}
     built: list[str] = []
@@ -335,6 +323,30 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             raise Interrupted(f"interrupted: {len(built)} scene(s) built in this run and complete, "
                               f"{len(args) - len(built) - len(failures)} not built; rerun the same command to "
                               f"resume") from None
+    splits, flagged, quarantined = finish_dataset(out, session_dir, calib_path, calib_sha, params, metas, failures,
+                                                  unchanged, recovered)
+    ok_ids = sorted(metas)
+    fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
+    if flagged:
+        log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
+                    ", left out of the split lists (--quarantine)" if quarantined else "",
+                    "; ".join(f"{k}: {v[0]}" + (f" (+{len(v) - 1} more)" if len(v) > 1 else "")
+                              for k, v in list(flagged.items())[:5]) + (" ..." if len(flagged) > 5 else ""),
+                    out / "verification.html")
+    empty = [k for k, v in splits.items() if not v]
+    if empty and ok_ids:
+        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): the list file(s) are empty; add scenes, "
+                    "set fruit_ids in session.yaml, or change --split", ", ".join(empty), len(ok_ids),
+                    len({fruit_ids[s] or s for s in ok_ids}))
+    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
+                        quarantined)
+
+
+def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
+                   metas: dict[str, SceneMeta], failures: dict[str, str], unchanged: list[str], recovered: list[str]
+                   ) -> tuple[dict[str, list[str]], dict[str, list[str]], list[str]]:
+    """After the scenes: verification.json/.html, the views a scene may lack, the split lists and views, the manifest
+    and the build report; stale entries removed. Returns ``(splits, flagged, quarantined)``."""
     # left by a worker process that died mid-scene (its scene was run again elsewhere); the locks after the views
     remove_stale_entries(out, locks=False)
     ok_ids = sorted(metas)
@@ -354,22 +366,9 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     write_lists(out, splits)
     write_split_views(out, splits, params)
     _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
-
     write_build_report(Manifest.read(out / "manifest.json"), out)
     remove_stale_entries(out)  # the scenes' released locks (unlock_writer)
-    if flagged:
-        log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
-                    ", left out of the split lists (--quarantine)" if quarantined else "",
-                    "; ".join(f"{k}: {v[0]}" + (f" (+{len(v) - 1} more)" if len(v) > 1 else "")
-                              for k, v in list(flagged.items())[:5]) + (" ..." if len(flagged) > 5 else ""),
-                    out / "verification.html")
-    empty = [k for k, v in splits.items() if not v]
-    if empty and ok_ids:
-        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): the list file(s) are empty; add scenes, "
-                    "set fruit_ids in session.yaml, or change --split", ", ".join(empty), len(ok_ids),
-                    len({fruit_ids[s] or s for s in ok_ids}))
-    return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
-                        quarantined)
+    return splits, flagged, quarantined
 
 
 def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneMeta"]) -> None:

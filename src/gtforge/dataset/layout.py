@@ -102,3 +102,26 @@ def built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, ex
     still has every scene file (none deleted since)."""
     return m.params_hash == phash and m.calibration_sha256 == calib_sha and \
         all((scene_dir / name).is_file() for name in expected)
+
+
+def plan_scenes(session, dirs: list[Path], out: Path, phash: str, calib_sha: str, expected: list[str],
+                overwrite: bool = False) -> tuple[list[Path], list[str], dict[str, SceneMeta]]:
+    """Which capture folders a build must (re)build: ``(todo, unchanged scene ids, their metas)``. A scene is
+    unchanged when its folder was built with these parameters and this calibration, holds every expected file, and
+    its inputs are unchanged (``inputs_unchanged``); ``overwrite`` rebuilds every scene."""
+    todo, unchanged, metas = [], [], {}
+    for d in dirs:
+        meta_path = out / "scenes" / d.name / "meta.json"
+        if not overwrite and meta_path.exists():
+            try:
+                m = SceneMeta.read(meta_path)
+                files = [p for p in session.capture_files(d) if p.exists()]
+                if built_as_asked(m, meta_path.parent, phash, calib_sha, expected) and inputs_unchanged(m, files):
+                    unchanged.append(d.name)
+                    metas[d.name] = m
+                    continue
+            except InputError:
+                pass
+        todo.append(d)
+    return todo, unchanged, metas
+
