@@ -75,7 +75,7 @@ def main():
             t = time.perf_counter()
             res = calibrate_observations(sub, subr, rig.mech, rig.zed, CalibrateParams())
             t_solve = time.perf_counter() - t
-            rot, tr = pose_difference(res.rig.T, rig.T_zed_from_mech)
+            rot, tr = pose_difference(res.rig.T_zed_from_mech, rig.T_zed_from_mech)
             T0, *_ = robust_initial_extrinsic([o.T_zed_from_board @ invert_T(o.T_mech_from_board) for o in sub],
                                               CalibrateParams())
             irot, itr = pose_difference(T0, rig.T_zed_from_mech)

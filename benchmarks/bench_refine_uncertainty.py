@@ -66,7 +66,7 @@ def main():
         c.rig = c.rig.model_copy(update={"T_zed_from_mech": T})
         c.write(true_path)
     true = CalibrationFile.read(true_path)
-    T_true = true.rig.T
+    T_true = true.rig.T_zed_from_mech
     pools = []
     for i in range(args.pools):
         p = wd / f"pool{201 + i}"
@@ -94,7 +94,7 @@ def main():
             start = wd / f"start_{p.name}_{j}.yaml"
             c.write(start)
             res = R.refine(p, start, None, params, scenes=names[j:j + args.k])
-            T = res.rig.T
+            T = res.rig.T_zed_from_mech
             s = open_session(p)
             pts = [R._scene_at(s.load_capture(s.root / "scenes" / n), true.rig.with_extrinsic(T), BuildParams(),
                                params)[0] for n in res.refinement.scenes_used]

@@ -39,7 +39,7 @@ def calibrate_views(views, rig, spec):
         if o is not None:
             obs.append(o)
     res = calibrate_observations(obs, reps, rig.mech, rig.zed, CalibrateParams(board=board_model_of(spec)))
-    rot, tr = pose_difference(res.rig.T, rig.T_zed_from_mech)
+    rot, tr = pose_difference(res.rig.T_zed_from_mech, rig.T_zed_from_mech)
     return res, rot, tr, len(obs)
 
 

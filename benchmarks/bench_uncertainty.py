@@ -128,8 +128,8 @@ def main():
                                      CalibrateParams(leave_one_out=True, square_check_pct=0))
         Ck = np.array(res.cov_extrinsic_rad_mm)
         scale = res.cov_jackknife_scale or 1.0
-        e = np.concatenate([Rotation.from_matrix(res.rig.T[:3, :3] @ Tb[:3, :3].T).as_rotvec(),
-                            res.rig.T[:3, 3] - Tb[:3, 3]])
+        e = np.concatenate([Rotation.from_matrix(res.rig.T_zed_from_mech[:3, :3] @ Tb[:3, :3].T).as_rotvec(),
+                            res.rig.T_zed_from_mech[:3, 3] - Tb[:3, 3]])
         nees.append(float(e @ np.linalg.solve(Ck, e)))
         nees_gn.append(float(e @ np.linalg.solve(Ck / scale, e)))
         scales.append(scale)

@@ -118,7 +118,7 @@ def main():
         use = ids[:n] + [f"{args.scenes:03d}"]  # plus the rolled fruit, which refinement must leave out
         t = time.perf_counter()
         res = refine(d, start, None, RefineParams(leave_one_out=False), scenes=use)
-        r, tr = pose_difference(res.rig.T, T)
+        r, tr = pose_difference(res.rig.T_zed_from_mech, T)
         print(f"| {n} (+1 rolled) | {r0:.4f} / {t0:.3f} | {r:.4f} / {tr:.3f} | "
               f"{', '.join(res.refinement.scenes_excluded) or 'none'} | {time.perf_counter() - t:.0f} |", flush=True)
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")

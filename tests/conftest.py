@@ -38,7 +38,7 @@ def true_calibration(session_dir, calibration, T_true, tmp_path_factory):
     from gtforge.records.calibration import CalibrationFile
 
     c = CalibrationFile.read(calibration[0])
-    c.rig = c.rig.model_copy(update={"T_zed_from_mech": T_true.tolist()})
+    c.rig = c.rig.with_extrinsic(T_true)
     path = tmp_path_factory.mktemp("calib_true") / "calibration.yaml"
     c.write(path)
     return path

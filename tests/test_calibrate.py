@@ -11,7 +11,7 @@ from gtforge.reports.calibration import write_calibration_report
 
 def test_calibration_recovers_the_true_extrinsic(calibration, T_true):
     path, res = calibration
-    rot, tr = pose_difference(res.rig.T, T_true)
+    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_true)
     assert rot < 0.05 and tr < 0.5, (rot, tr)  # issue target at 12 poses full res: 0.02 deg / 0.2 mm (benchmarks/)
     assert res.rms_px < 0.2 and res.max_px < 0.6
     assert 0 < res.sigma_rot_deg < 0.05 and 0 < res.sigma_trans_mm < 0.5
@@ -19,7 +19,7 @@ def test_calibration_recovers_the_true_extrinsic(calibration, T_true):
     assert len(res.captures_used) == 7 and all(p.status == "used" for p in res.poses)
     # the file round-trips and carries a schema version
     again = CalibrationFile.read(path)
-    np.testing.assert_allclose(again.rig.T, res.rig.T)
+    np.testing.assert_allclose(again.rig.T_zed_from_mech, res.rig.T_zed_from_mech)
     assert "schema_version: 1" in path.read_text()
 
 
@@ -56,7 +56,7 @@ def test_outlier_pose_is_rejected_and_use_depth_agrees(session_dir, T_true):
     bad = [p for p in res.poses if p.capture == obs[2].name][0]
     assert bad.status == "outlier"
     assert obs[2].name not in res.captures_used
-    rot, tr = pose_difference(res.rig.T, T_true)
+    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_true)
     assert rot < 0.05 and tr < 0.5
     assert [m.method for m in res.methods] == ["reprojection", "depth"] and res.method == "depth"
     assert res.methods[1].rot_diff_to_primary_deg < 0.05 and res.methods[1].trans_diff_to_primary_mm < 0.5

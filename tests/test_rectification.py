@@ -180,7 +180,7 @@ def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, ca
     # ground truth with the exact extrinsic (as tests/conftest.py): the chosen rectification makes it exact
     T_true = np.array(SyntheticTruth.read(raw_session / "truth" / "rig_truth.yaml").T_zed_from_mech)
     c = CalibrationFile.read(path)
-    c.rig = c.rig.model_copy(update={"T_zed_from_mech": T_true.tolist()})
+    c.rig = c.rig.with_extrinsic(T_true)
     c.write(tmp_path / "true_calibration.yaml")
     out = tmp_path / "dataset"
     summary = build_dataset(raw_session, tmp_path / "true_calibration.yaml", out, workers=1)

@@ -41,7 +41,7 @@ def test_refinement_recovers_the_extrinsic_from_scenes(refine_session, true_cali
     assert rot0 == pytest.approx(0.05, abs=0.002) and tr0 == pytest.approx(0.5, abs=0.01)
     out = tmp_path / "refined.yaml"
     res = refine(refine_session, start, out, RefineParams(leave_one_out=True))
-    rot, tr = pose_difference(res.rig.T, T_true)
+    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_true)
     assert rot < 0.005 and tr < 0.05, (rot, tr)  # issue target: within 0.005 deg and 0.05 mm from six scenes
     info = res.refinement
     assert info.scenes_used == ["000", "001", "002", "003", "004", "005"]
@@ -52,7 +52,7 @@ def test_refinement_recovers_the_extrinsic_from_scenes(refine_session, true_cali
     assert info.heldout_shift_after_mean_px < 0.05 < 0.3 < info.heldout_shift_before_mean_px
     # a normal calibration file that says where it came from, with its own covariance
     again = CalibrationFile.read(out)
-    np.testing.assert_allclose(again.rig.T, res.rig.T)
+    np.testing.assert_allclose(again.rig.T_zed_from_mech, res.rig.T_zed_from_mech)
     assert again.refinement.refined_from == str(start.resolve()) and again.cov_extrinsic_rad_mm is not None
     assert start.read_bytes() != out.read_bytes()
     sig = np.sqrt(np.diag(np.array(again.cov_extrinsic_rad_mm)))
@@ -61,7 +61,7 @@ def test_refinement_recovers_the_extrinsic_from_scenes(refine_session, true_cali
     # window-area covariance refine stored first gave 0.047 here: ~100x too large; this draw is 0.44 since the
     # reprojection is float64 again, 0.68-18.5 was the 0.5-99.5 % range); the jackknife factor is the
     # leave-one-scene-out one (>= 1), not the board calibration's
-    assert 0.30 < _nees(res.rig.T, T_true, again.cov_extrinsic_rad_mm) < 24.1
+    assert 0.30 < _nees(res.rig.T_zed_from_mech, T_true, again.cov_extrinsic_rad_mm) < 24.1
     assert again.cov_jackknife_scale is not None and again.cov_jackknife_scale >= 1.0
 
 
@@ -101,4 +101,4 @@ def test_refined_covariance_matches_the_errors(refine_session, true_calibration,
     assert CalibrationFile.read(start).cov_jackknife_scale is not None
     res = refine(refine_session, start, None, params, scenes=["000", "001", "002"])
     assert res.cov_jackknife_scale is None and res.refinement.sigma_jackknife_rot_deg is None
-    assert 0.68 < _nees(res.rig.T, T_true, res.cov_extrinsic_rad_mm) < 18.5
+    assert 0.68 < _nees(res.rig.T_zed_from_mech, T_true, res.cov_extrinsic_rad_mm) < 18.5

@@ -44,7 +44,7 @@ def test_calibration_covariance_matches_the_spread_of_errors(loo):
         C = np.array(res.cov_extrinsic_rad_mm)
         from scipy.spatial.transform import Rotation
 
-        T = res.rig.T
+        T = res.rig.T_zed_from_mech
         err = np.concatenate([Rotation.from_matrix(T[:3, :3] @ T_true[:3, :3].T).as_rotvec(), T[:3, 3] - T_true[:3, 3]])
         nees.append(err @ np.linalg.solve(C, err))
     assert 6 * 0.7 <= np.mean(nees) <= 6 * 1.3, np.mean(nees)  # issue target: about 6, within 30 %

@@ -21,8 +21,8 @@ def test_true_extrinsic_passes_with_tiny_errors(session_dir, true_calibration, t
 
 def test_perturbed_extrinsic_fails(session_dir, true_calibration, tmp_path):
     c = CalibrationFile.read(true_calibration)
-    T = T_from_rotvec(np.radians([0.0, 0.2, 0.0]), [0, 0, 0]) @ c.rig.T  # 0.2 deg about the ZED y axis
-    c.rig = c.rig.model_copy(update={"T_zed_from_mech": T.tolist()})
+    T = T_from_rotvec(np.radians([0.0, 0.2, 0.0]), [0, 0, 0]) @ c.rig.T_zed_from_mech  # 0.2 deg about the ZED y axis
+    c.rig = c.rig.with_extrinsic(T)
     path = tmp_path / "bad.yaml"
     c.write(path)
     rep = validate(session_dir, path, tmp_path / "out")
@@ -73,8 +73,7 @@ def test_noise_floor_and_board_model_figure(session_dir, true_calibration, tmp_p
     for p in rep.poses:
         assert 0.0 < p.detector_rms_zed_px < 0.2 and 0.0 < p.detector_rms_mech_px < 0.2
     c = CalibrationFile.read(true_calibration)
-    c.rig = c.rig.model_copy(update={"T_zed_from_mech": (T_from_rotvec(np.radians([0.0, 0.02, 0.0]), [0, 0, 0])
-                                                         @ c.rig.T).tolist()})
+    c.rig = c.rig.with_extrinsic(T_from_rotvec(np.radians([0.0, 0.02, 0.0]), [0, 0, 0]) @ c.rig.T_zed_from_mech)
     c.write(tmp_path / "off.yaml")
     off = validate(session_dir, tmp_path / "off.yaml")
     assert off.xy_model_mean_px > 0.1  # 0.02 deg at f = 426 px: 0.15 px

@@ -50,7 +50,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     calib_path = d / "calibration.yaml"
     cal = calibrate(session, calib_path, CalibrateParams(use_depth=True), exclude=held, progress=status)
     write_calibration_report(cal, d / "calibration_report")
-    rot_err, tr_err = pose_difference(cal.rig.T, T_true)
+    rot_err, tr_err = pose_difference(cal.rig.T_zed_from_mech, T_true)
     say(f"      RMS {cal.rms_px:.3f} px; sigma {cal.sigma_rot_deg:.4f} deg / {cal.sigma_trans_mm:.3f} mm; "
         f"vs truth: {rot_err:.4f} deg / {tr_err:.3f} mm; verdict {cal.verdict}")
     sr = cal.zed_self_rectification
@@ -70,7 +70,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
         say("[4/6] refine the extrinsic from the scenes' texture alignment")
         refined_path = d / "refined.yaml"
         ref = refine(session, calib_path, refined_path, RefineParams(leave_one_out=False), progress=status)
-        ref_err = pose_difference(ref.rig.T, T_true)
+        ref_err = pose_difference(ref.rig.T_zed_from_mech, T_true)
         say(f"      used {', '.join(ref.refinement.scenes_used)}; left out "
             f"{', '.join(ref.refinement.scenes_excluded) or 'none'}; vs truth: {ref_err[0]:.4f} deg / "
             f"{ref_err[1]:.3f} mm (board calibration: {rot_err:.4f} deg / {tr_err:.3f} mm)")

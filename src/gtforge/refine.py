@@ -247,7 +247,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
                          f"at least {params.min_scenes} scenes with textured ground truth", f"{len(pts)}",
                          "refinement needs several scenes; add scene captures")
     used = sorted(pts)
-    T = rig0.T
+    T = rig0.T_zed_from_mech
     cov = None
     flagged: dict[str, str] = {}
     # Solve; rebuild every scene's ground truth (and so its points and texture templates) with the result, verify
@@ -304,7 +304,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
         jack_scale = jackknife_scale(T, jack, cov)
         if jack_scale is not None:
             cov = cov * jack_scale
-    dr, dt = pose_difference(rig0.T, T)
+    dr, dt = pose_difference(rig0.T_zed_from_mech, T)
     info = RefinementInfo(refined_from=str(calib_path.resolve()), scenes_used=used,
                           scenes_excluded={s: r.reason for s, r in reports.items() if r.status != "used"},
                           change_rot_deg=dr, change_trans_mm=dt,

@@ -150,13 +150,13 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     ok = np.all(np.isfinite(P_mech), axis=1)
     if ok.sum() < 4:
         return None, None, "no depth around the board corners"
-    p_proj = rig.zed.left.project(transform_points(rig.T, P_mech[ok]))
+    p_proj = rig.zed.left.project(transform_points(rig.T_zed_from_mech, P_mech[ok]))
     diff = p_proj - dz.corners_uv[ok]
     e = np.linalg.norm(diff, axis=1)
     # the same with both detections replaced by their board models: what remains is ground-truth error
     P_model = lift_mech(uv_mech_fit)
     okm = np.all(np.isfinite(P_model), axis=1)
-    e_model = np.linalg.norm(rig.zed.left.project(transform_points(rig.T, P_model[okm])) - uv_fit[okm], axis=1)
+    e_model = np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech, P_model[okm])) - uv_fit[okm], axis=1)
     # noise floor: the mean XY error detector noise alone gives (2-D Gaussian: mean = sigma * sqrt(pi / 2)), the
     # texture camera's noise scaled into ZED pixels by the ratio of the board's corner spacings
     if ids is None:

@@ -10,11 +10,11 @@ import math
 from typing import ClassVar
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from gtforge.core import lens
 from gtforge.core.geometry import invert_T
-from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
+from gtforge.core.schema import GTModel, Matrix4, VersionedFile, _matrix4_array
 from gtforge.errors import InputError
 
 ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
@@ -241,31 +241,29 @@ class Rig(VersionedFile):
 
     KIND: ClassVar[str] = "rig description (cameras + T_zed_from_mech)"
 
+    model_config = ConfigDict(arbitrary_types_allowed=True)
+
     zed: RectifiedStereo
     mech: PinholeCamera
-    T_zed_from_mech: list[list[float]]
+    T_zed_from_mech: Matrix4  # float64 (4, 4), read-only
     depth_cam: PinholeCamera | None = None
-    T_mech_from_depth: list[list[float]] | None = None
+    T_mech_from_depth: Matrix4 | None = None
     # gtforge calibrate-scale: depth scale/offset and the right camera's yaw (None: none; docs/pipeline.md)
     scale_corrections: ScaleCorrections | None = None
 
-    @field_validator("T_zed_from_mech", mode="before")
-    @classmethod
-    def _T4(cls, v):
-        return matrix4_field(v)
+    def __eq__(self, other) -> bool:  # the poses are arrays: compare what the file would hold
+        return isinstance(other, Rig) and self.model_dump(mode="json") == other.model_dump(mode="json")
 
-    @field_validator("T_mech_from_depth", mode="before")
-    @classmethod
-    def _T4_opt(cls, v):
-        return None if v is None else matrix4_field(v)
+    __hash__ = None
 
     @property
     def T(self) -> np.ndarray:
+        """``T_zed_from_mech`` (a copy), by its name before round 3; it goes in the next release."""
         return np.array(self.T_zed_from_mech)
 
     @property
     def T_mech_from_zed(self) -> np.ndarray:
-        return invert_T(self.T)
+        return invert_T(self.T_zed_from_mech)
 
     @property
     def depth_camera(self) -> PinholeCamera:
@@ -278,7 +276,7 @@ class Rig(VersionedFile):
 
     @property
     def T_zed_from_depth(self) -> np.ndarray:
-        return self.T @ self.T_mech_from_depth_or_identity
+        return self.T_zed_from_mech @ self.T_mech_from_depth_or_identity
 
     @property
     def separate_depth_camera(self) -> bool:
@@ -296,7 +294,7 @@ class Rig(VersionedFile):
         return 0.0 if self.scale_corrections is None else self.scale_corrections.zed_right_yaw_deg
 
     def with_extrinsic(self, T_zed_from_mech: np.ndarray) -> "Rig":
-        return self.model_copy(update={"T_zed_from_mech": np.asarray(T_zed_from_mech, float).tolist()})
+        return self.model_copy(update={"T_zed_from_mech": _matrix4_array(T_zed_from_mech)})
 
 
 class StereoCalibrationFile(VersionedFile):

@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Annotated, Any, ClassVar, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, PlainSerializer, ValidationError, field_validator
 
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_text
@@ -89,3 +89,14 @@ def matrix4_field(v: Any) -> list[list[float]]:
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1) > 1e-5 or np.abs(a[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise ValueError("not a rigid transform (rotation part not orthonormal or last row not 0 0 0 1)")
     return a.tolist()
+
+
+def _matrix4_array(v: Any) -> np.ndarray:
+    a = np.array(matrix4_field(v), dtype=np.float64)
+    a.setflags(write=False)  # a pose held by a model is read-only: change it through the model (with_extrinsic)
+    return a
+
+
+# A 4x4 rigid transform held as a float64 array, written as a list of rows (the same file as ``matrix4_field``'s).
+Matrix4 = Annotated[np.ndarray, BeforeValidator(_matrix4_array),
+                    PlainSerializer(lambda a: np.asarray(a, np.float64).tolist(), return_type=list)]

@@ -213,7 +213,7 @@ def disparity_sigma(disparity_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, co
                                         and math.isfinite(texture_shift_px)) else 0.0
     out = np.empty(disp.shape, np.float32)  # each sigma computed in float64, rounded once on storing
     _sigma_kernel(disp, depth, span, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px, rig.zed.baseline_mm, cov,
-                  np.ascontiguousarray(rig.T[:3, 3]), np.ascontiguousarray(c_depth), np.ascontiguousarray(axis_depth),
+                  np.ascontiguousarray(rig.T_zed_from_mech[:3, 3]), np.ascontiguousarray(c_depth), np.ascontiguousarray(axis_depth),
                   params.depth_noise.a_mm,
                   params.depth_noise.b_mm_per_m2, params.curvature_radius_mm, shift, out)
     return out
@@ -309,7 +309,7 @@ def draw_ground_truth(depth_mech_mm: np.ndarray, rig: Rig, cov_extrinsic_rad_mm,
     ZED-left arrays, for checking coverage against exact truth (tests, benchmarks)."""
 
     C = np.asarray(cov_extrinsic_rad_mm, np.float64)
-    drawn = rig.with_extrinsic(perturb_left(rig.T, np.linalg.cholesky(C) @ rng.standard_normal(6)))
+    drawn = rig.with_extrinsic(perturb_left(rig.T_zed_from_mech, np.linalg.cholesky(C) @ rng.standard_normal(6)))
     noisy = depth_mech_mm + rng.normal(0, depth_noise_mm, depth_mech_mm.shape).astype(np.float32)
     depth, span = project_depth_to_camera(noisy, drawn.depth_camera, drawn.T_zed_from_depth, drawn.zed.left,
                                           ReprojectParams(), return_span=True)

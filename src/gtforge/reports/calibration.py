@@ -97,7 +97,7 @@ def summary_section(calib: CalibrationFile) -> Section:
     measured = getattr(calib, "square_size_measured_mm", None)
     if measured is not None:
         rows.append(["square size measured in the depth (mm)", measured])
-    rows.append(["T_zed_from_mech written (rotation | translation mm)", _matrix(calib.rig.T)])
+    rows.append(["T_zed_from_mech written (rotation | translation mm)", _matrix(calib.rig.T_zed_from_mech)])
     body = table(["quantity", "value"], rows, fmt="{:.4f}", cls="kv")
     if calib.method != "reprojection":
         body += note(f"The extrinsic written is the {calib.method} method's; the residual figures below (histogram, "
