@@ -7,9 +7,9 @@ import time
 import pytest
 import yaml
 
+from conftest import gtforge, one_line_error, tree_digest
 from gtforge.build_dataset import BuildParams, build_dataset
 from gtforge.reports.evaluation import row_labels
-from test_safety import gtforge, one_line_error, tree_digest
 
 
 def test_synth_and_demo_never_write_into_an_existing_folder(tmp_path, session_dir):

@@ -209,7 +209,7 @@ def test_reading_from_feature_matches_without_a_board(raw_session):
 
 def test_real_zed_mini_reading_from_feature_matches():
     """The real ZED Mini view (../shared/data): the inverse-rotation readings leave 3.6 px, the others 0.5 px (the
-    rest is the unit's residual rotation, which self-rectification removes: tests/test_selfcal.py)."""
+    rest is the unit's residual rotation, which self-rectification removes: tests/core/test_selfcal.py)."""
     from conftest import shared_data
     from gtforge.io.formats import read_image
     from gtforge.rectification import RawBoardPair, choose_reading_by_matches, match_points

@@ -2,10 +2,10 @@
 
 Bit for bit, NaN where NaN: on small synthetic scenes from the generator (a distorted depth camera denser than the
 target, one sparser than it, noisy depth under a strict slant bound, an undistorted depth camera, both ZED views of the
-one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/test_real_reprojection.py uses it).
+one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/core/test_real_reprojection.py uses it).
 A speed change that moves any depth by one bit, or draws one pixel more or less, fails here (docs/pipeline.md,
 "Speed work never changes results"). One numba thread throughout: the windowed multi-thread path is forced onto it
-once here (its chunks, windows and merge), and tests/test_real_reprojection.py holds a real four-thread run to the
+once here (its chunks, windows and merge), and tests/core/test_real_reprojection.py holds a real four-thread run to the
 one-thread image.
 """
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Boards are rendered by the generator (exact truth) at small sizes, inside their bounding box only
 (``render_board_views``); the extrinsic limits are the checkerboard's (0.05 deg / 0.5 mm at 7 poses, 0.4x:
-tests/test_calibrate.py) or tighter where the target allows.
+tests/stages/test_calibrate.py) or tighter where the target allows.
 """
 import cv2
 import numpy as np
@@ -254,7 +254,7 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     assert v.xy_mean_px < 0.3 and v.z_error_mean_pct < 0.5, (v.xy_mean_px, v.z_error_mean_pct)
     # a board option on the command line overrides session.yaml's field: a grid one column short is refused (it
     # would otherwise be found inside the plate's, numbered from either end), one line, exit code 2
-    from test_safety import gtforge, one_line_error
+    from conftest import gtforge, one_line_error
 
     r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--cols", "6")
     assert r.returncode == 2 and one_line_error(r) and "more circles beyond" in r.stderr, r.stderr

@@ -79,7 +79,8 @@ def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
     finally:
         numba.set_num_threads(previous)
     out = tmp_path / "many.npy"
-    child = (f"import sys, numba; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+    paths = [str(Path(__file__).parent), str(Path(__file__).parents[1])]  # this module's folder and conftest's
+    child = (f"import sys, numba; sys.path[:0] = {paths!r}; "
              "import test_real_reprojection as t; from gtforge import reproject; import numpy as np; "
              "assert numba.get_num_threads() >= reproject.MIN_PARALLEL_THREADS; z0, c0, c1, T, _, _ = t.motorcycle(); "
              f"np.save({str(out)!r}, reproject.project_depth_to_camera(z0, c0, T, c1))")
