@@ -130,7 +130,8 @@ def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     import gtforge.reproject as rp
 
     if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("numba has one thread here")
+        pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread here (one core): the windowed path needs 2; "
+                    "NUMBA_NUM_THREADS=2 runs it on one core")
     monkeypatch.setattr(rp, "MIN_PARALLEL_THREADS", 2)  # the windowed path with 2 threads
     rig, cap = fruit_cap
     before = numba.get_num_threads()
