@@ -14,6 +14,8 @@ import tifffile
 from conftest import gtforge, one_line_error, tree_digest
 from gtforge.calibrate import CalibrationFile
 
+pytestmark = pytest.mark.slow  # every test runs the real command on the shared session (conftest.py)
+
 
 def test_build_refuses_outputs_in_or_around_the_captures(session_dir, true_calibration, tmp_path):
     sess = tmp_path / "sess"

@@ -68,6 +68,7 @@ def test_middlebury_motorcycle_reprojection_is_no_worse(mode):
     assert got["epe_px"] > 0.05 and got["holes_pct"] > 0.5  # the figures are real, not an empty comparison
 
 
+@pytest.mark.slow
 def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
     """The windowed multi-thread path draws the same image as one thread on real depth. numba's thread count is fixed
     when it starts, so the four-thread run (above MIN_PARALLEL_THREADS, on any number of cores) is a child process."""

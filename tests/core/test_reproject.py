@@ -123,6 +123,7 @@ def test_mesh_span_is_the_winning_triangles_z_range():
         project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(mode="splat"), return_span=True)
 
 
+@pytest.mark.slow
 def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     # one thread rasterises straight into the image; several rasterise row chunks into windows and merge
     import numba

@@ -119,6 +119,7 @@ def test_middlebury_motorcycle():
     check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="Middlebury Motorcycle")
 
 
+@pytest.mark.slow
 def test_the_comparison_catches_float32_rays(monkeypatch):
     """The guard has teeth: the kernels fed float32-rounded ray planes (issue #26's speed change) differ from the
     reference on the real scene: measured 2026-12-02, mesh 18,173 pixels differ, 4,564 of them holes the reference

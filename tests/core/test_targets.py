@@ -68,6 +68,7 @@ def test_board_declaration_round_trips_and_old_files_still_load(tmp_path):
     assert CalibrationFile.read(tmp_path / "d.yaml").board == ch
 
 
+@pytest.mark.slow
 def test_charuco_truth_ids_and_corners(charuco_views):
     rig, full, part = charuco_views
     errs = []
@@ -92,6 +93,7 @@ def charuco_calibrations(charuco_views):
     return _calibrate(full, rig, CHARUCO)[0], _calibrate(full + part, rig, CHARUCO)[0]
 
 
+@pytest.mark.slow
 def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_calibrations):
     rig, full, part = charuco_views
     res_full, res_all = charuco_calibrations
@@ -113,6 +115,7 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_cali
 
 @pytest.mark.parametrize("spec, scale", [(CircleGridSpec(7, 5, 36.0, 18.0, False), 0.25),
                                          (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)], ids=["symmetric", "asymmetric"])
+@pytest.mark.slow
 def test_circle_grid_calibration(spec, scale):
     rig = default_rig(scale)
     rng = np.random.default_rng(5)
@@ -200,6 +203,7 @@ def test_impossible_declarations_are_refused(decl, match):
         check_board_model(BoardModel(**decl))
 
 
+@pytest.mark.slow
 def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, charuco_calibrations, tmp_path):
     from gtforge.reports.calibration import write_calibration_report
 
@@ -227,6 +231,7 @@ def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, c
     assert "Coverage and what to capture next" in html and "every corner has an id" in html
 
 
+@pytest.mark.slow
 def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp_path):
     from typer.testing import CliRunner
 

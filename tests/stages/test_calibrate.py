@@ -7,6 +7,8 @@ from gtforge.geometry import pose_difference
 from gtforge.io.captures import open_session
 from gtforge.reports.calibration import write_calibration_report
 
+pytestmark = pytest.mark.slow  # every test uses the shared session and its calibration (conftest.py: minutes)
+
 
 def test_calibration_recovers_the_true_extrinsic(calibration, T_true):
     path, res = calibration

@@ -7,6 +7,8 @@ from gtforge.errors import InputError
 from gtforge.geometry import T_from_rotvec, pose_difference
 from gtforge.refine import RefineParams, refine
 
+pytestmark = pytest.mark.slow  # every test uses the shared session and a refine session of its own
+
 
 def _nees(T, T_true, C):
     from scipy.spatial.transform import Rotation
