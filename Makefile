@@ -1,9 +1,9 @@
-# The two commands a newcomer needs:  make demo  and  make test
+# The two commands a newcomer needs:  make demo  and  make test  (make test-quick: the fast subset, while editing)
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.gtforge-installed
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test test-quick bench clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh $(VENV)
@@ -14,8 +14,11 @@ setup: $(STAMP)
 demo: $(STAMP)  ## set up, then run calibrate -> validate -> refine -> build-dataset -> evaluate on synthetic data
 	$(VENV)/bin/gtforge demo demo_out
 
-test: $(STAMP)  ## set up, then run the test suite
+test: $(STAMP)  ## set up, then run the whole test suite (what CI runs: .ci/run)
 	$(PY) -m pytest
+
+test-quick: $(STAMP)  ## set up, then run the tests not marked slow (under 2 minutes on a 2-core VM)
+	$(PY) -m pytest -m "not slow"
 
 bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same run; tables in benchmarks/RESULTS.md)
 	$(PY) benchmarks/bench_reproject.py

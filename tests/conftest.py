@@ -1,6 +1,10 @@
 """Shared fixtures: one small synthetic session rendered once per test run (exact truth beside it)."""
 from __future__ import annotations
 
+import hashlib
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -63,3 +67,27 @@ def shared_data(name: str) -> Path:
     if not path.is_dir():
         pytest.skip(f"real data {path} is absent (CI lays ../shared/data beside the clone)")
     return path
+
+
+# The real command as a user runs it, and what its tests check about the run (tests/cli/, tests/core/test_targets.py)
+def gtforge(*args, umask=None, timeout=600):
+    """Run the real command (``main()``: exit codes and one-line errors as a user sees them)."""
+    def pre():
+        if umask is not None:
+            os.umask(umask)
+    return subprocess.run([sys.executable, "-m", "gtforge.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, preexec_fn=pre)
+
+
+def tree_digest(root):
+    h = {}
+    for dirpath, _, files in os.walk(root):
+        for f in files:
+            p = os.path.join(dirpath, f)
+            h[os.path.relpath(p, root)] = hashlib.sha256(open(p, "rb").read()).hexdigest()
+    return h
+
+
+def one_line_error(r):
+    lines = [l for l in r.stderr.splitlines() if l.strip()]
+    return len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr

@@ -23,6 +23,7 @@ def board_caps():
     return rig, b, caps
 
 
+@pytest.mark.slow
 def test_truth_corners_match_opencv_detection(board_caps):
     rig, b, caps = board_caps
     errs = []
@@ -37,6 +38,7 @@ def test_truth_corners_match_opencv_detection(board_caps):
     assert e.max() < 0.5  # also proves the corner order matches the truth order in both cameras
 
 
+@pytest.mark.slow
 def test_corner_order_survives_180_degree_turn(board_caps):
     rig, b, caps = board_caps
     cap = caps[0]

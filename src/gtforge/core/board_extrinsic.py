@@ -228,7 +228,7 @@ def jackknife_scale(T: np.ndarray, T_loo: list[np.ndarray], cov: np.ndarray) -> 
     """``max(1, rms_i(C_jack[i, i] / cov[i, i]))`` over the six parameters, where ``C_jack`` is the jackknife
     covariance of the leave-one-out solutions ``T_loo`` around ``T`` (parameterised as ``cov``). None below 4.
 
-    Measured (benchmarks/bench_uncertainty.py, tests/test_uncertainty.py): the normalised squared error of the
+    Measured (benchmarks/bench_uncertainty.py, tests/core/test_uncertainty.py): the normalised squared error of the
     extrinsic averages 10.9 with the Jacobian covariance on rendered boards (correlated detector errors) and 7.6 once
     scaled; with independent corner noise 5.7 unscaled and 4.5 scaled (6 is right). The mean ratio gave 8.5 / 4.7,
     the largest 4.5 / 3.5."""

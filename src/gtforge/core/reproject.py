@@ -18,7 +18,7 @@ chunks are handed out dynamically so a thread on a busy core takes fewer. The re
 on the number of threads (the minimum is order-free).
 
 Over 500 lines on purpose: the kernels and their hand-inlined copies of ``_pixel`` stay side by side so that they
-change together (tests/test_reproject_reference.py pins every path to the float64 reference).
+change together (tests/core/test_reproject_reference.py pins every path to the float64 reference).
 """
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def _ray_planes(cam_json: str) -> tuple[np.ndarray, np.ndarray]:
     Not float32: its rounding (3e-8, 3e-5 px in the target image) is far above the pixel-centre tolerance ``_EPS``,
     so a centre lying on a triangle's edge (every centre of a row, where the target shares the depth camera's rows,
     as in a rectified pair) falls outside both triangles beside a rejected one. On Middlebury 2014 Motorcycle that
-    cost 1.4 % more holes and 0.02 px EPE (tests/test_real_reprojection.py) at no measurable gain in speed."""
+    cost 1.4 % more holes and 0.02 px EPE (tests/core/test_real_reprojection.py) at no measurable gain in speed."""
     rays = PinholeCamera.model_validate_json(cam_json).ray_grid()
     rx, ry = np.ascontiguousarray(rays[..., 0], np.float64), np.ascontiguousarray(rays[..., 1], np.float64)
     rx.setflags(write=False)

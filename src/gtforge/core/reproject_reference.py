@@ -22,7 +22,7 @@ Everything is float64 until the depth is stored, which is float32 as in the kern
 
 The arithmetic of every float64 expression is written in the same order as in the kernels (a different but equally
 exact order would move the last bit of some depths): the reference defines it, and the kernels must match it bit for
-bit (tests/test_reproject_reference.py). Pixel-centre candidates of a quad are the integer centres in the box of
+bit (tests/core/test_reproject_reference.py). Pixel-centre candidates of a quad are the integer centres in the box of
 its drawn triangles, widened by the tolerance. The kernels' one-pixel shortcut (a quad with four valid corners whose
 box holds one centre) tests the centre of the four corners' box instead, a box that holds the drawn triangles'
 box; a centre outside the latter passes the barycentric test only within about 1e-9 x the triangle's size beyond its

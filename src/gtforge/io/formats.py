@@ -254,7 +254,7 @@ TIFF_ROWS_PER_STRIP = 64
 @functools.lru_cache(maxsize=8)
 def _tiff_layout(shape: tuple[int, ...], dtype: str) -> tuple[bytes, bytes]:
     """``(bytes before, bytes after)`` the pixel data in the uncompressed TIFF ``tifffile.imwrite`` writes for an
-    array of this shape and dtype: it depends on nothing else (no date, no software tag; tests/test_formats.py checks
+    array of this shape and dtype: it depends on nothing else (no date, no software tag; tests/io/test_formats.py checks
     that the two give the same file), and its pixels are one contiguous run of the array's bytes in memory order."""
     f = io.BytesIO()
     a = np.zeros(shape, dtype)

@@ -6,6 +6,7 @@ from gtforge.records.calibration import CalibrationFile
 from gtforge.validate import bilinear_valid, validate
 
 
+@pytest.mark.slow
 def test_true_extrinsic_passes_with_tiny_errors(session_dir, true_calibration, tmp_path):
     rep = validate(session_dir, true_calibration, tmp_path)
     assert len(rep.poses) == 7
@@ -19,6 +20,7 @@ def test_true_extrinsic_passes_with_tiny_errors(session_dir, true_calibration, t
     assert (tmp_path / "validation.json").exists()
 
 
+@pytest.mark.slow
 def test_perturbed_extrinsic_fails(session_dir, true_calibration, tmp_path):
     c = CalibrationFile.read(true_calibration)
     T = T_from_rotvec(np.radians([0.0, 0.2, 0.0]), [0, 0, 0]) @ c.rig.T_zed_from_mech  # 0.2 deg about the ZED y axis
@@ -31,6 +33,7 @@ def test_perturbed_extrinsic_fails(session_dir, true_calibration, tmp_path):
     assert not rep.pass_xy and not rep.passed
 
 
+@pytest.mark.slow
 def test_holdout_calibrates_and_validates_on_unseen_poses(session_dir, true_calibration, tmp_path):
     before = true_calibration.read_bytes()
     rep = validate(session_dir, true_calibration, tmp_path / "out", holdout=2)
@@ -51,6 +54,7 @@ def test_bilinear_over_valid_neighbours_only():
     assert np.isnan(v[3])  # exactly on an invalid pixel: no valid support
 
 
+@pytest.mark.slow
 def test_cli_validate_exit_codes(session_dir, true_calibration, tmp_path):
     from typer.testing import CliRunner
 
@@ -64,6 +68,7 @@ def test_cli_validate_exit_codes(session_dir, true_calibration, tmp_path):
     assert strict.exit_code == 1 and "FAIL" in strict.output
 
 
+@pytest.mark.slow
 def test_noise_floor_and_board_model_figure(session_dir, true_calibration, tmp_path):
     """With the exact extrinsic, XY is the two corner detectors' noise: the reported floor predicts it, and the
     board-model figure (both detections replaced by per-pose fits) removes it, while a 0.02 deg error stays visible."""

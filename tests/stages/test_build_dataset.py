@@ -12,6 +12,7 @@ from gtforge.io.formats import read_image, read_kitti_disparity, read_pfm, write
 from gtforge.records.dataset import BuildParams, Manifest
 
 
+@pytest.mark.slow
 def test_dataset_matches_exact_truth(session_dir, dataset):
     out, summary = dataset
     assert summary.ok and summary.built == ["000", "001", "002"]
@@ -75,6 +76,7 @@ def test_dataset_matches_exact_truth(session_dir, dataset):
         assert (out / "eth3d" / "two_view_training_gt" / sid / "disp0GT.pfm").exists()
 
 
+@pytest.mark.slow
 def test_manifest_and_lists(dataset):
     out, _ = dataset
     m = Manifest.read(out / "manifest.json")
@@ -95,10 +97,12 @@ def test_manifest_and_lists(dataset):
     assert where["000"] == where["001"]
 
 
+@pytest.mark.slow
 def test_split_views_for_training_repositories(dataset):
     """views/<split>/: the folder layouts RAFT-Stereo / IGEV-Stereo read from a fixed root, as relative links."""
     out, _ = dataset
     m = Manifest.read(out / "manifest.json")
+    assert any(m.splits.values())  # not a pass on empty splits: some split has views to check
     for split, ids in m.splits.items():
         v = out / "views" / split
         if not ids:
@@ -137,6 +141,7 @@ def test_splits_group_by_fruit():
     assert sp == make_splits(ids, fruit, BuildParams(split_train=0.6, split_val=0.2, split_seed=3))
 
 
+@pytest.mark.slow
 def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibration, tmp_path):
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)
@@ -167,6 +172,7 @@ def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibrati
                          workers=1).built == ["000"]
 
 
+@pytest.mark.slow
 def test_no_verify_build_skips_the_image_decode_and_writes_the_same_files(session_dir, true_calibration, dataset,
                                                                          tmp_path):
     """--no-verify: the ZED PNGs and the texture are checked from their headers, not decoded (nothing else reads
@@ -192,6 +198,7 @@ def test_no_verify_build_skips_the_image_decode_and_writes_the_same_files(sessio
     assert "right.png [zed_right]: expected a readable image" in s2.failures["001"]
 
 
+@pytest.mark.slow
 def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, tmp_path):
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)
@@ -216,6 +223,7 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
     assert r.output.count("median 0.7") == 1  # the reason is reported once
 
 
+@pytest.mark.slow
 def test_crop_and_ply(session_dir, true_calibration, tmp_path):
     out = tmp_path / "ds"
     build_dataset(session_dir, true_calibration, out, BuildParams(crop_wh=(320, 240), ply=True, kitti=False, eth3d=False),
@@ -230,6 +238,7 @@ def test_crop_and_ply(session_dir, true_calibration, tmp_path):
     assert not (out / "kitti").exists()
 
 
+@pytest.mark.slow
 def test_kill_9_leaves_no_half_written_scene(session_dir, true_calibration, tmp_path):
     import signal
     import subprocess
@@ -260,6 +269,7 @@ def test_kill_9_leaves_no_half_written_scene(session_dir, true_calibration, tmp_
     assert not list((out / "scenes").glob(".*"))
 
 
+@pytest.mark.slow
 def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibration, tmp_path, monkeypatch):
     import time
     from pathlib import Path
@@ -302,6 +312,7 @@ def test_resume_trusts_size_and_mtime_only_when_safe(session_dir, true_calibrati
     assert build_dataset(sess, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
 
 
+@pytest.mark.slow
 def test_scene_of_an_older_meta_schema_is_rebuilt_and_its_manifest_refused(session_dir, true_calibration, tmp_path):
     """meta.json schema 1 (gtforge before the inputs' BLAKE3) recorded SHA-256s this gtforge cannot compare: a resume
     rebuilds that scene instead of trusting it, and reading such a file says which schema it has."""
@@ -580,6 +591,7 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
     assert "vmin=0\n" in middlebury_calib_text(zed, 80, 60, None)
 
 
+@pytest.mark.slow
 def test_no_right_gt_rebuild_leaves_no_right_view_file(dataset, session_dir, true_calibration, tmp_path):
     """`build-dataset --no-right-gt` over a dataset built with the right view's GT: every scene is rebuilt without
     disp1GT.pfm / mask1nocc.png, the KITTI view keeps no disp_occ_1 / disp_noc_1 file from the earlier build and the
@@ -610,6 +622,7 @@ def test_no_right_gt_rebuild_leaves_no_right_view_file(dataset, session_dir, tru
             assert (v / "disp_occ_0" / f"{sid}_10.png").exists() and not (v / "disp_occ_1" / f"{sid}_10.png").exists()
 
 
+@pytest.mark.slow
 def test_scene_locks_are_released_per_scene_and_deleted_at_the_end(session_dir, true_calibration, tmp_path,
                                                                     monkeypatch):
     """A scene's lock is released when the scene lands but its file stays until the run's end (a file deleted per
@@ -638,6 +651,7 @@ def test_scene_locks_are_released_per_scene_and_deleted_at_the_end(session_dir, 
     assert not [p.name for p in (out / "scenes").iterdir() if p.name.startswith(".")]  # none left after the run
 
 
+@pytest.mark.slow
 def test_a_scene_landed_by_a_worker_that_died_before_reporting_it_is_built(dataset, session_dir, true_calibration,
                                                                             tmp_path, monkeypatch):
     """A worker killed after its scene landed (before the result came back, or before the scene's views were

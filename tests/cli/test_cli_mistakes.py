@@ -6,13 +6,14 @@ import time
 
 import pytest
 import yaml
-from test_safety import gtforge, one_line_error, tree_digest
+from conftest import gtforge, one_line_error, tree_digest
 
 from gtforge.build_dataset import build_dataset
 from gtforge.records.dataset import BuildParams
 from gtforge.reports.evaluation import row_labels
 
 
+@pytest.mark.slow
 def test_synth_and_demo_never_write_into_an_existing_folder(tmp_path, session_dir):
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)
@@ -38,6 +39,7 @@ def _foreign_session(session_dir, tmp_path):
     return sess
 
 
+@pytest.mark.slow
 def test_a_calibration_of_another_session_is_one_line(session_dir, true_calibration, dataset, tmp_path):
     other = _foreign_session(session_dir, tmp_path)
     for args in (("refine", other, "-c", true_calibration, "-o", tmp_path / "refined.yaml"),
@@ -49,6 +51,7 @@ def test_a_calibration_of_another_session_is_one_line(session_dir, true_calibrat
     assert not (tmp_path / "refined.yaml").exists() and not (tmp_path / "ds").exists()
 
 
+@pytest.mark.slow
 def test_option_values_are_checked(session_dir, true_calibration, dataset, tmp_path):
     before = tree_digest(dataset[0])
     cases = [
@@ -72,6 +75,7 @@ def test_option_values_are_checked(session_dir, true_calibration, dataset, tmp_p
     assert tree_digest(dataset[0]) == before
 
 
+@pytest.mark.slow
 def test_outputs_must_be_folders_of_their_own(session_dir, true_calibration, dataset, tmp_path):
     before = tree_digest(dataset[0])
     a_file = tmp_path / "notes.txt"
@@ -89,6 +93,7 @@ def test_outputs_must_be_folders_of_their_own(session_dir, true_calibration, dat
     assert not (tmp_path / "ev").exists()
 
 
+@pytest.mark.slow
 def test_a_bad_scheduler_address_fails_fast_and_writes_nothing(session_dir, true_calibration, tmp_path):
     pytest.importorskip("distributed")
     for address, needle in (("foo", "the port is required"), ("tcp://no-such-host.invalid:8786", "not a known host")):
@@ -99,6 +104,7 @@ def test_a_bad_scheduler_address_fails_fast_and_writes_nothing(session_dir, true
     assert not (tmp_path / "ds").exists()
 
 
+@pytest.mark.slow
 def test_calibration_option_takes_the_calibrate_output_folder(session_dir, true_calibration, tmp_path):
     folder = tmp_path / "calib"
     folder.mkdir()
@@ -109,6 +115,7 @@ def test_calibration_option_takes_the_calibrate_output_folder(session_dir, true_
     assert r.returncode == 2 and one_line_error(r) and "got a folder" in r.stderr, r.stderr
 
 
+@pytest.mark.slow
 def test_resume_rebuilds_a_scene_with_a_deleted_file(session_dir, true_calibration, tmp_path):
     out = tmp_path / "ds"
     params = BuildParams(verification=False)
@@ -123,6 +130,7 @@ def test_resume_rebuilds_a_scene_with_a_deleted_file(session_dir, true_calibrati
     assert (out / "scenes" / "001" / "disp0GT.pfm").is_file()
 
 
+@pytest.mark.slow
 def test_verify_exits_1_when_a_scene_cannot_be_verified(session_dir, true_calibration, tmp_path):
     sess = tmp_path / "sess"
     shutil.copytree(session_dir, sess)

@@ -141,6 +141,7 @@ def _write_predictions(root, name, fn):
     return d
 
 
+@pytest.mark.slow
 def test_gt_fruit_size_matches_the_generators_fruit(small_dataset, tmp_path):
     """The ground truth labels' fitted fruit: diameter within 0.1 mm, volume within 0.5 % of the generator's."""
     pred = _write_predictions(small_dataset, "pred_gt", lambda s, gt, cal: gt)
@@ -165,6 +166,7 @@ def test_gt_fruit_size_matches_the_generators_fruit(small_dataset, tmp_path):
     assert float(rows[1].split(",")[4]) == f.fruit[0].gt.diameter_mm
 
 
+@pytest.mark.slow
 def test_disparity_scale_error_scales_every_size_exactly_and_grades_follow(small_dataset, tmp_path):
     """A prediction whose d + doffs is the GT's divided by s puts every point at s times its distance: diameters
     x s, volumes x s^3, exactly; the grades are those of s * D_GT."""
@@ -198,6 +200,7 @@ def test_disparity_scale_error_scales_every_size_exactly_and_grades_follow(small
     assert "Fruit size, volume and grade" in (tmp_path / "cmp" / "comparison.html").read_text()
 
 
+@pytest.mark.slow
 def test_constant_disparity_offset_gives_the_predicted_diameter_change(small_dataset):
     """A constant offset delta maps each point X to X / (1 + delta Z / (f B)) (a projective map, not a scaling).
     evaluate's figures equal the same fit on the generator's exact depth with the offset added (the prediction,
@@ -220,6 +223,7 @@ def test_constant_disparity_offset_gives_the_predicted_diameter_change(small_dat
         assert got.diameter_error_mm < 0 and 0.6 < got.diameter_error_mm / first_order < 1.1
 
 
+@pytest.mark.slow
 def test_results_without_fruit_size_still_load(small_dataset, tmp_path):
     pred = _write_predictions(small_dataset, "p_old", lambda s, gt, c: gt)
     rep = evaluate(small_dataset / "ds", PredictionFolder(pred, "old"), tmp_path / "ev", fruit_size=False)
@@ -230,6 +234,7 @@ def test_results_without_fruit_size_still_load(small_dataset, tmp_path):
     assert "diameter MAE" not in (tmp_path / "ev" / "results.md").read_text()
 
 
+@pytest.mark.slow
 def test_too_little_table_makes_a_fruit_not_measurable(small_dataset):
     s = _scenes(small_dataset)[0]
     cal = SceneCalib(s / "calib.txt")

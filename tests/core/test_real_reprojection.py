@@ -68,6 +68,7 @@ def test_middlebury_motorcycle_reprojection_is_no_worse(mode):
     assert got["epe_px"] > 0.05 and got["holes_pct"] > 0.5  # the figures are real, not an empty comparison
 
 
+@pytest.mark.slow
 def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
     """The windowed multi-thread path draws the same image as one thread on real depth. numba's thread count is fixed
     when it starts, so the four-thread run (above MIN_PARALLEL_THREADS, on any number of cores) is a child process."""
@@ -79,7 +80,8 @@ def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
     finally:
         numba.set_num_threads(previous)
     out = tmp_path / "many.npy"
-    child = (f"import sys, numba; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+    paths = [str(Path(__file__).parent), str(Path(__file__).parents[1])]  # this module's folder and conftest's
+    child = (f"import sys, numba; sys.path[:0] = {paths!r}; "
              "import test_real_reprojection as t; from gtforge.core import reproject; import numpy as np; "
              "assert numba.get_num_threads() >= reproject.MIN_PARALLEL_THREADS; z0, c0, c1, T, _, _ = t.motorcycle(); "
              f"np.save({str(out)!r}, reproject.project_depth_to_camera(z0, c0, T, c1))")

@@ -37,6 +37,7 @@ def test_cells_never_print_none_or_nan():
     assert fmt_value(np.float32(np.inf)) == MISSING and fmt_value(3) == "3"
 
 
+@pytest.mark.slow
 def test_calibration_summary_describes_the_written_calibration(depth_calibration):
     res, html = depth_calibration
     assert res.method == "depth" and [m.method for m in res.methods] == ["reprojection", "depth"]
@@ -55,6 +56,7 @@ def test_calibration_summary_describes_the_written_calibration(depth_calibration
     assert f"{depth.T_zed_from_mech[0][3]:+10.3f}" in html
 
 
+@pytest.mark.slow
 def test_calibration_report_verdict_units_and_no_none(depth_calibration):
     res, html = depth_calibration
     assert f'<h2 class="{res.verdict.lower()}">Verdict: {res.verdict}</h2>' in html
@@ -71,6 +73,7 @@ def test_calibration_report_verdict_units_and_no_none(depth_calibration):
     assert re.search(r"<h2>ZED-left residual vectors per view</h2><p class=\"note\">[^<]*</p><img [^>]*src=\"data:image/png", html)
 
 
+@pytest.mark.slow
 def test_calibration_report_is_a_list_of_sections(calibration, tmp_path):
     _, res = calibration
 
@@ -87,6 +90,7 @@ def test_calibration_report_is_a_list_of_sections(calibration, tmp_path):
     assert "Reprojection solve (the calibration written)" in html
 
 
+@pytest.mark.slow
 def test_validation_report(session_dir, true_calibration, tmp_path):
     rep = validate(session_dir, true_calibration, tmp_path, captures=["001", "005"])
     html = (tmp_path / "validation.html").read_text()

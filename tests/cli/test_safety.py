@@ -1,6 +1,5 @@
 """A user's captures are sacred, outputs are normal files, Ctrl-C stops cleanly, wrong settings are caught.
 Each test reproduces a fault a new user met (issue 11) through the command line."""
-import hashlib
 import os
 import shutil
 import signal
@@ -12,30 +11,10 @@ import numpy as np
 import pytest
 import tifffile
 
+from conftest import gtforge, one_line_error, tree_digest
 from gtforge.records.calibration import CalibrationFile
 
-
-def gtforge(*args, umask=None, timeout=600):
-    """Run the real command (``main()``: exit codes and one-line errors as a user sees them)."""
-    def pre():
-        if umask is not None:
-            os.umask(umask)
-    return subprocess.run([sys.executable, "-m", "gtforge.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, preexec_fn=pre)
-
-
-def tree_digest(root):
-    h = {}
-    for dirpath, _, files in os.walk(root):
-        for f in files:
-            p = os.path.join(dirpath, f)
-            h[os.path.relpath(p, root)] = hashlib.sha256(open(p, "rb").read()).hexdigest()
-    return h
-
-
-def one_line_error(r):
-    lines = [l for l in r.stderr.splitlines() if l.strip()]
-    return len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr
+pytestmark = pytest.mark.slow  # every test runs the real command on the shared session (conftest.py)
 
 
 def test_build_refuses_outputs_in_or_around_the_captures(session_dir, true_calibration, tmp_path):

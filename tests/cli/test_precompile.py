@@ -6,7 +6,11 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from gtforge.precompile import KERNELS
+
+pytestmark = pytest.mark.slow  # compiles every kernel into a cold cache, then builds the shared session
 
 
 def _cache_state(cache):

@@ -49,6 +49,7 @@ def _expected_epe(ds, value):
     return float(np.concatenate(errs).mean())
 
 
+@pytest.mark.slow
 def test_onnx_model_end_to_end_through_the_cli(dataset, tmp_path):
     ds, _ = dataset
     model = constant_onnx(tmp_path / "const.onnx", 35.0)
@@ -64,6 +65,7 @@ def test_onnx_model_end_to_end_through_the_cli(dataset, tmp_path):
     assert len(list((tmp_path / "ev" / "heatmaps").glob("*.png"))) == 6
 
 
+@pytest.mark.slow
 def test_six_channel_onnx_and_resize(dataset, tmp_path):
     ds, _ = dataset
     from gtforge.predictors import InputConvention
@@ -90,6 +92,7 @@ def test_onnx_with_unexpected_inputs_is_refused(tmp_path):
         OnnxModel(tmp_path / "bad.onnx")
 
 
+@pytest.mark.slow
 def test_sgbm_baseline_is_plausible(dataset, tmp_path):
     ds, _ = dataset
     rep = evaluate(ds, SGBM(), tmp_path, write_clouds=True)
@@ -110,6 +113,7 @@ def test_sgbm_baseline_is_plausible(dataset, tmp_path):
     assert "model name &#x27;SGBM&#x27; is used by 2 results" in chtml and chtml.count("<td>SGBM [b]</td>") == 6
 
 
+@pytest.mark.slow
 def test_results_html_is_small_with_colour_bars_and_header(dataset, tmp_path):
     """Issue 11 item 10: previews (JPEG, with colour bars) link full-size maps; header; depth-MAE note; no clouds."""
     ds, _ = dataset
@@ -152,6 +156,7 @@ def _constant_offset_predictions(ds, folder, offset_px, scenes=None):
     return folder
 
 
+@pytest.mark.slow
 def test_depth_error_map_is_scaled_to_the_data(dataset, tmp_path):
     """Issue 11 item 10: the fruit depth-error map's scale follows the errors (not a fixed 0-1 mm, solid red)."""
     from gtforge.io.middlebury import SceneCalib
@@ -176,6 +181,7 @@ def test_depth_error_map_is_scaled_to_the_data(dataset, tmp_path):
     assert f"fruit depth error, scale 0\u2013{top:g} mm" in html
 
 
+@pytest.mark.slow
 def test_prediction_folder_with_missing_and_wrong_size(dataset, tmp_path):
     ds, _ = dataset
     preds = tmp_path / "preds"
@@ -190,6 +196,7 @@ def test_prediction_folder_with_missing_and_wrong_size(dataset, tmp_path):
     assert "2 scene(s) excluded" in (tmp_path / "ev" / "results.html").read_text()
 
 
+@pytest.mark.slow
 def test_partial_predictions_are_reported_first_and_exit_nonzero(dataset, tmp_path):
     """Issue 11 item 9: predictions for only some scenes -> said before any table, exit code 1."""
     ds, _ = dataset
@@ -210,6 +217,7 @@ def test_partial_predictions_are_reported_first_and_exit_nonzero(dataset, tmp_pa
         evaluate(ds, PredictionFolder(empty), tmp_path / "ev2")
 
 
+@pytest.mark.slow
 def test_empty_split_says_why(dataset, tmp_path):
     """Issue 11 item 9: `evaluate --split val` on a split that came out empty says why (exit 2, one line)."""
     ds, summary = dataset
@@ -237,6 +245,7 @@ def _dataset_copy_with_sigma(ds, dst):
     return dst
 
 
+@pytest.mark.slow
 def test_max_gt_sigma_scores_only_certain_pixels(dataset, tmp_path):
     """Issue 10 consumer: --max-gt-sigma PX leaves out GT pixels whose sigma is not below PX and counts them."""
     ds0, _ = dataset
@@ -287,6 +296,7 @@ def test_max_gt_sigma_scores_only_certain_pixels(dataset, tmp_path):
     assert len(warnings) == 1 and "different scoring limits" in warnings[0]
 
 
+@pytest.mark.slow
 def test_compare_warns_about_different_datasets(dataset, tmp_path):
     """Issue 11 item 9: compare warns when results come from different datasets (and prints it on the CLI)."""
     ds0, _ = dataset
@@ -306,6 +316,7 @@ def test_compare_warns_about_different_datasets(dataset, tmp_path):
     assert "> warning: the results come from different datasets" in (tmp_path / "cmp" / "comparison.md").read_text()
 
 
+@pytest.mark.slow
 def test_loader_yields_training_arrays(dataset):
     ds, _ = dataset
     items = list(StereoDataset(ds, split=None))

@@ -39,6 +39,7 @@ def zed_mini():
             read_image(d / "left_sdk_rectified.png"), read_image(d / "right_sdk_rectified.png"))
 
 
+@pytest.mark.slow
 def test_real_zed_mini_self_rectified_at_most_the_sdk():
     """The factory values through OpenCV leave 0.44 px of median |vertical disparity| on this view; the vendor SDK's
     rectification 0.13 px (the same matcher; the README's 0.2 px is another matcher's figure). gtforge's
@@ -86,6 +87,7 @@ def raw_turned_session(tmp_path_factory):
 
 
 @pytest.mark.parametrize("fixture", ["turned_session", "raw_turned_session"])
+@pytest.mark.slow
 def test_synthetic_turned_right_camera_is_corrected(fixture, request):
     """Every capture's rows from 0.6-0.8 px apart to <= 0.05 px (re-matched after the correction); the correction
     undoes the turn about x and z; the turn about y is not applied (vertical disparity hardly sees it)."""
@@ -108,6 +110,7 @@ def test_synthetic_turned_right_camera_is_corrected(fixture, request):
         assert n > 50 and after_px <= 0.05, (d.name, after_px)
 
 
+@pytest.mark.slow
 def test_synthetic_without_error_changes_nothing(session_dir):
     """A session whose right camera is as its files say: every estimate within 2 sigma of zero, nothing applied, the
     images exactly as they were."""

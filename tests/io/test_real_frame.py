@@ -6,7 +6,7 @@ half-pixel shift.
 
 Regenerate the overlay in docs/images and print every figure docs/cameras.md quotes:
 
-    .venv/bin/python tests/test_real_frame.py --overlay docs/images/azure_kinect_overlay.jpg
+    .venv/bin/python tests/io/test_real_frame.py --overlay docs/images/azure_kinect_overlay.jpg
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from gtforge.io.captures import read_depth
 from gtforge.io.formats import read_image
 from gtforge.io.vendors import read_kinect_calibration
 
-DATA = Path(__file__).parent / "data" / "azure-kinect-frame"
+DATA = Path(__file__).parents[1] / "data" / "azure-kinect-frame"
 SEARCH_PX = 4  # shifts searched in x and y (this frame's x offset is -2.6 px)
 JUMP_RATIO = 1.05  # a depth edge: the far side is >= 5 % farther than the near (foreground) side
 GAP_PX = 8  # ... found within this many pixels across unrendered (NaN) pixels
@@ -308,5 +308,5 @@ if __name__ == "__main__":
         write_overlay(Path(sys.argv[2]))
         print(f"wrote {sys.argv[2]} ({Path(sys.argv[2]).stat().st_size / 1024:.0f} KiB)")
     elif len(sys.argv) != 1:
-        sys.exit("usage: python tests/test_real_frame.py [--overlay PATH.jpg]")
+        sys.exit("usage: python tests/io/test_real_frame.py [--overlay PATH.jpg]")
     report()

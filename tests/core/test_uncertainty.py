@@ -14,6 +14,7 @@ from gtforge.records.dataset import BuildParams, SceneMeta
 
 
 @pytest.mark.parametrize("loo", [False, True])
+@pytest.mark.slow
 def test_calibration_covariance_matches_the_spread_of_errors(loo):
     """Many calibrations of the same rig with fresh corner noise: the normalised squared error of the extrinsic,
     averaged, is about 6 (6 parameters) when the reported covariance is right. With leave-one-out on, the
@@ -73,6 +74,7 @@ def _coverage(session_dir, calibration, T_true, draws, noise_mm, cov_scale=1.0):
 
 
 @pytest.mark.parametrize("noise_mm,cov_scale", [(0.05, 1.0), (0.01, 25.0)])
+@pytest.mark.slow
 def test_sigma_map_coverage_per_region(session_dir, calibration, T_true, noise_mm, cov_scale):
     """A perturbed extrinsic drawn from the covariance, noisy depth: |GT - truth| is within 1 sigma for 68 % +- 10 %
     of the pixels and within 2 sigma for 95 % +- 5 %, on the fruit top, the fruit edge and the table (issue target).
@@ -85,6 +87,7 @@ def test_sigma_map_coverage_per_region(session_dir, calibration, T_true, noise_m
         assert 58 <= one <= 78 and 90 <= two <= 100, (name, one, two)
 
 
+@pytest.mark.slow
 def test_sigma_map_is_the_same_for_float32_and_float64_inputs(session_dir, calibration):
     """The kernel reads float32 maps without copying them to float64, widening each sample before any arithmetic:
     the same sigma map as float64 inputs; no covariance is a zero covariance, no span an all-NaN span."""
@@ -110,6 +113,7 @@ def test_sigma_map_is_the_same_for_float32_and_float64_inputs(session_dir, calib
         disparity_sigma(disp, depth, rig, C, None, span[1:])
 
 
+@pytest.mark.slow
 def test_sigma_is_written_and_larger_at_silhouettes(dataset):
     out, summary = dataset
     for sid in summary.built:
@@ -136,6 +140,7 @@ def test_sigma_is_written_and_larger_at_silhouettes(dataset):
     assert "sigma fruit edge" in html and "report/000_sigma.jpg" in html and "verification.html" in html
 
 
+@pytest.mark.slow
 def test_loader_and_confidence_weighted_loss(dataset):
     from gtforge.training import StereoDataset, sgra_loss, sigma_confidence, weighted_smooth_l1
 

@@ -123,6 +123,7 @@ def test_mesh_span_is_the_winning_triangles_z_range():
         project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(mode="splat"), return_span=True)
 
 
+@pytest.mark.slow
 def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     # one thread rasterises straight into the image; several rasterise row chunks into windows and merge
     import numba
@@ -130,7 +131,8 @@ def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     import gtforge.core.reproject as rp
 
     if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("numba has one thread here")
+        pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread here (one core): the windowed path needs 2; "
+                    "NUMBA_NUM_THREADS=2 runs it on one core")
     monkeypatch.setattr(rp, "MIN_PARALLEL_THREADS", 2)  # the windowed path with 2 threads
     rig, cap = fruit_cap
     before = numba.get_num_threads()

@@ -49,6 +49,7 @@ def _by(rep):
     return {g.capture: g for g in rep.gauges}
 
 
+@pytest.mark.slow
 def test_generator_writes_gauges_yaml_with_the_exact_sizes(exact):
     s, _, _ = exact
     g = GaugesFile.read(s / "gauges" / "gauges.yaml")
@@ -58,6 +59,7 @@ def test_generator_writes_gauges_yaml_with_the_exact_sizes(exact):
         assert np.linalg.norm(np.diff(z["centres_zed_mm"], axis=0)) == pytest.approx(240.0, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_exact_extrinsic_gives_sizes_within_005_mm(exact):
     s, _, rep = exact
     g = _by(rep)
@@ -93,6 +95,7 @@ def _copy_with_depth(src, dst, fn):
     return dst
 
 
+@pytest.mark.slow
 def test_form_error_is_what_the_depth_noise_and_the_sigma_map_predict(exact, tmp_path):
     """Depth noise of 0.05 mm put in (Gaussian along the depth camera's z, as the generator adds it): the raw depth's
     radial RMS is the noise model's, the GT's the sigma map's."""
@@ -114,6 +117,7 @@ def test_form_error_is_what_the_depth_noise_and_the_sigma_map_predict(exact, tmp
     assert g["sphere"].gt.spheres[0].form_rms_mm < g["sphere"].raw.spheres[0].form_rms_mm
 
 
+@pytest.mark.slow
 def test_depth_scale_error_of_01_pct_shows_in_size_and_spacing_as_predicted(exact, tmp_path):
     """Depth x 1.001 scales every point about the depth camera by 1.001: diameters +0.1 %, spacing +0.24 mm."""
     s0, c, rep0 = exact
@@ -130,6 +134,7 @@ def test_depth_scale_error_of_01_pct_shows_in_size_and_spacing_as_predicted(exac
     assert b["sphere_pair"].gt.spacing_error_mm == pytest.approx(0.24, abs=0.05)
 
 
+@pytest.mark.slow
 def test_extrinsic_error_of_005_deg_moves_the_gauges_rigidly(exact, tmp_path):
     """A 0.05 deg rotation error of T_zed_from_mech moves the labels rigidly: size, form and spacing do not change
     (these figures cannot see it), and the sphere centres move to exp(w) (c - t) + t as predicted."""
@@ -157,6 +162,7 @@ def _with_gauges_yaml(src, dst, gauges):
     return dst
 
 
+@pytest.mark.slow
 def test_unmeasurable_gauges_are_reported_per_object(exact, tmp_path):
     s0, c, _ = exact
     s = _with_gauges_yaml(s0, tmp_path / "s", [
@@ -177,6 +183,7 @@ def test_unmeasurable_gauges_are_reported_per_object(exact, tmp_path):
     ({"capture": "sphere", "kind": "sphere", "diameter_mm": -100.0}, "gauges.0.diameter_mm", "greater than 0"),
     ({"capture": "sphere_pair", "kind": "sphere_pair", "diameter_mm": 80.0}, "gauges.0", "needs centre_distance_mm"),
 ])
+@pytest.mark.slow
 def test_bad_gauges_yaml_is_a_one_line_error(exact, tmp_path, gauge, field, says):
     s0, c, _ = exact
     s = _with_gauges_yaml(s0, tmp_path / "s", [gauge])
@@ -190,6 +197,7 @@ def test_bad_gauges_yaml_is_a_one_line_error(exact, tmp_path, gauge, field, says
         assert r.returncode == 2 and says in msg and "Traceback" not in msg and len(msg.splitlines()) == 1, msg
 
 
+@pytest.mark.slow
 def test_gauges_only_on_the_command_line(exact, tmp_path):
     s, c, _ = exact
     from typer.testing import CliRunner
@@ -202,6 +210,7 @@ def test_gauges_only_on_the_command_line(exact, tmp_path):
     assert (tmp_path / "v" / "gauges.json").is_file() and (tmp_path / "v" / "gauges.html").is_file()
 
 
+@pytest.mark.slow
 def test_validation_page_has_the_gauge_section(exact):
     """validate() puts the gauge report into validation.json (``gauges``) and this section into validation.html."""
     from types import SimpleNamespace
@@ -217,6 +226,7 @@ def test_validation_page_has_the_gauge_section(exact):
     assert gauges_section(SimpleNamespace(gauges=None), None) is None
 
 
+@pytest.mark.slow
 def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
     """With 0.05 mm depth noise the raw depth's size and spacing errors are within 4 predicted sigmas (no bias in the
     raw depth), and the sigmas shrink with the number of points."""
@@ -235,6 +245,7 @@ def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
     assert big.n_points > small.n_points and big.size_sigma_predicted_mm < small.size_sigma_predicted_mm
 
 
+@pytest.mark.slow
 def test_synth_writes_gauges_and_validate_refuses_to_write_into_them(exact, tmp_path):
     from typer.testing import CliRunner
 
@@ -250,6 +261,7 @@ def test_synth_writes_gauges_and_validate_refuses_to_write_into_them(exact, tmp_
         validate_gauges(s, c, s / "gauges" / "out")
 
 
+@pytest.mark.slow
 def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibration, tmp_path):
     """gtforge validate on a session with boards and gauges: the board checks and the gauge figures in one run
     (validation.json ``gauges``, the validation.html section, the console lines)."""
@@ -272,6 +284,7 @@ def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibr
     assert (tmp_path / "v" / "gauges.html").is_file()
 
 
+@pytest.mark.slow
 def test_gauges_yaml_params_set_the_prediction(exact, tmp_path):
     s0, c, rep0 = exact
     s = _with_gauges_yaml(s0, tmp_path / "s", [{"capture": "sphere", "kind": "sphere", "diameter_mm": 100.0}])
@@ -285,6 +298,7 @@ def test_gauges_yaml_params_set_the_prediction(exact, tmp_path):
     assert sp.n_points < sp0.n_points and sp.form_rms_predicted_mm > 2 * sp0.form_rms_predicted_mm
 
 
+@pytest.mark.slow
 def test_ball_bar_whose_bar_joins_the_spheres(tmp_path):
     """Two 80 mm spheres 240 mm apart on a 12 mm bar: one component above the table, split in two, each sphere found
     among the bar's points by RANSAC of the calibrated size; the figures as without the bar."""

@@ -8,6 +8,8 @@ from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrateParams, CalibrationFile
 from gtforge.reports.calibration import write_calibration_report
 
+pytestmark = pytest.mark.slow  # every test uses the shared session and its calibration (conftest.py: minutes)
+
 
 def test_calibration_recovers_the_true_extrinsic(calibration, T_true):
     path, res = calibration

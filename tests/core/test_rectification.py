@@ -112,6 +112,7 @@ def test_conf_values_decode_exactly_and_readings_differ(tmp_path):
         f.rectification("as-is")
 
 
+@pytest.mark.slow
 def test_every_encoding_is_recognised_from_the_images(raw_session, raw_pairs, tmp_path):
     raw = default_raw_zed()
     for reading in ZED_CONF_READINGS:
@@ -146,6 +147,7 @@ def test_every_encoding_is_recognised_from_the_images(raw_session, raw_pairs, tm
         np.testing.assert_allclose(cv.reshape(-1, 2), ul, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, calibration, tmp_path):
     from gtforge.build_dataset import build_dataset
     from gtforge.io.formats import read_pfm
@@ -192,6 +194,7 @@ def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, ca
     assert np.mean(np.abs(gt - tr["zed_disparity_px"])[seen & ok]) <= 0.01
 
 
+@pytest.mark.slow
 def test_reading_from_feature_matches_without_a_board(raw_session):
     """No board seen whole in both raw images: every reading is scored on raw feature matches (scenes and boards
     alike). The conf was written under neg-all: neg-all wins (as-is gives the same maps but a right camera at -x), the
@@ -212,7 +215,7 @@ def test_reading_from_feature_matches_without_a_board(raw_session):
 
 def test_real_zed_mini_reading_from_feature_matches():
     """The real ZED Mini view (../shared/data): the inverse-rotation readings leave 3.6 px, the others 0.5 px (the
-    rest is the unit's residual rotation, which self-rectification removes: tests/test_selfcal.py)."""
+    rest is the unit's residual rotation, which self-rectification removes: tests/core/test_selfcal.py)."""
     from conftest import shared_data
 
     from gtforge.core.rectification import match_points
@@ -228,6 +231,7 @@ def test_real_zed_mini_reading_from_feature_matches():
     assert min(v for r, v in by.items() if r.endswith("+inv-rot")) > 3.0
 
 
+@pytest.mark.slow
 def test_scene_vertical_disparity_follows_the_reading(raw_session):
     right_reading = open_session(raw_session, SESSION_READING)
     cap = right_reading.load_capture(right_reading.capture_dirs("scenes")[0])
@@ -246,6 +250,7 @@ def test_scene_vertical_disparity_follows_the_reading(raw_session):
     assert moved.median_px == pytest.approx(good.median_px - 0.5, abs=0.05)
 
 
+@pytest.mark.slow
 def test_meter_measures_a_known_misalignment(raw_session, raw_pairs):
     s = open_session(raw_session, SESSION_READING)
     assert "neg-all" in rectified_by(s)
@@ -268,6 +273,7 @@ def test_meter_measures_a_known_misalignment(raw_session, raw_pairs):
     assert pv.disparity_median_px == pytest.approx(-3.0) and pts.shape == (BOARD.n_corners, 3)
 
 
+@pytest.mark.slow
 def test_a_conf_from_another_camera_is_reported(raw_pairs, tmp_path):
     raw = default_raw_zed()
     other = RawZed(raw.resolution, raw.left, raw.right, cv2.Rodrigues(np.array([[0.0031 + 0.004], [-0.0042], [0.0011]]))[0],
@@ -285,6 +291,7 @@ def test_a_conf_from_another_camera_is_reported(raw_pairs, tmp_path):
     np.testing.assert_allclose(per_corner["neg-all"], per_corner["as-is"], atol=1e-9)  # one line, two signs
 
 
+@pytest.mark.slow
 def test_session_yaml_override_is_used_scored_and_checked(raw_session, tmp_path):
     d = tmp_path / "s"
     d.mkdir()

@@ -8,6 +8,8 @@ import textwrap
 
 import pytest
 
+pytestmark = pytest.mark.slow  # a child Python starts a fork server preloading build-dataset, then pools from it
+
 SCRIPT = textwrap.dedent('''
     import json, os, sys, time
 

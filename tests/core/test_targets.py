@@ -2,7 +2,7 @@
 
 Boards are rendered by the generator (exact truth) at small sizes, inside their bounding box only
 (``render_board_views``); the extrinsic limits are the checkerboard's (0.05 deg / 0.5 mm at 7 poses, 0.4x:
-tests/test_calibrate.py) or tighter where the target allows.
+tests/stages/test_calibrate.py) or tighter where the target allows.
 """
 import cv2
 import numpy as np
@@ -70,6 +70,7 @@ def test_board_declaration_round_trips_and_old_files_still_load(tmp_path):
     assert CalibrationFile.read(tmp_path / "d.yaml").board == ch
 
 
+@pytest.mark.slow
 def test_charuco_truth_ids_and_corners(charuco_views):
     rig, full, part = charuco_views
     errs = []
@@ -94,6 +95,7 @@ def charuco_calibrations(charuco_views):
     return _calibrate(full, rig, CHARUCO)[0], _calibrate(full + part, rig, CHARUCO)[0]
 
 
+@pytest.mark.slow
 def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_calibrations):
     rig, full, part = charuco_views
     res_full, res_all = charuco_calibrations
@@ -115,6 +117,7 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_cali
 
 @pytest.mark.parametrize("spec, scale", [(CircleGridSpec(7, 5, 36.0, 18.0, False), 0.25),
                                          (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)], ids=["symmetric", "asymmetric"])
+@pytest.mark.slow
 def test_circle_grid_calibration(spec, scale):
     rig = default_rig(scale)
     rng = np.random.default_rng(5)
@@ -202,6 +205,7 @@ def test_impossible_declarations_are_refused(decl, match):
         check_board_model(BoardModel(**decl))
 
 
+@pytest.mark.slow
 def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, charuco_calibrations, tmp_path):
     from gtforge.reports.calibration import write_calibration_report
 
@@ -229,6 +233,7 @@ def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, c
     assert "Coverage and what to capture next" in html and "every corner has an id" in html
 
 
+@pytest.mark.slow
 def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp_path):
     from typer.testing import CliRunner
 
@@ -256,7 +261,7 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     assert v.xy_mean_px < 0.3 and v.z_error_mean_pct < 0.5, (v.xy_mean_px, v.z_error_mean_pct)
     # a board option on the command line overrides session.yaml's field: a grid one column short is refused (it
     # would otherwise be found inside the plate's, numbered from either end), one line, exit code 2
-    from test_safety import gtforge, one_line_error
+    from conftest import gtforge, one_line_error
 
     r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--cols", "6")
     assert r.returncode == 2 and one_line_error(r) and "more circles beyond" in r.stderr, r.stderr

@@ -113,6 +113,7 @@ def _assert_complete(out: Path, ids: list[str], reference: Path) -> None:
     assert listed == ids  # each scene in exactly one list, once
 
 
+@pytest.mark.slow
 def test_dask_build_is_byte_identical_to_local(session_dir, true_calibration, cluster, tmp_path):
     from typer.testing import CliRunner
 
@@ -146,6 +147,7 @@ def test_dask_build_is_byte_identical_to_local(session_dir, true_calibration, cl
     assert sum(not n.endswith((".json", ".html")) for n in local) > 40  # compared byte for byte
 
 
+@pytest.mark.slow
 def test_worker_killed_mid_build_loses_nothing(session_dir, true_calibration, dataset, cluster, tmp_path):
     lc, client = cluster
     _ready(client)
@@ -199,6 +201,7 @@ class KillOnScene(WorkerPlugin):
             os.kill(os.getpid(), signal.SIGKILL)
 
 
+@pytest.mark.slow
 def test_scene_that_keeps_killing_workers_is_listed_as_failed(session_dir, true_calibration, dataset, cluster,
                                                               tmp_path):
     from typer.testing import CliRunner
@@ -226,6 +229,7 @@ def test_scene_that_keeps_killing_workers_is_listed_as_failed(session_dir, true_
     _assert_complete(out, ["000", "001", "002"], dataset[0])
 
 
+@pytest.mark.slow
 def test_ctrl_c_cancels_the_cluster_tasks(session_dir, true_calibration, dataset, cluster, tmp_path):
     lc, client = cluster
     _ready(client)
@@ -256,6 +260,7 @@ def test_ctrl_c_cancels_the_cluster_tasks(session_dir, true_calibration, dataset
     _assert_complete(out, ids, dataset[0])
 
 
+@pytest.mark.slow
 def test_scheduler_errors_are_one_line(session_dir, true_calibration, tmp_path, monkeypatch):
     import socket
 

@@ -72,6 +72,7 @@ def errors_calibrated(errors_session, tmp_path_factory):
     return start, calibrate_scale(errors_session, start, out / "scaled.yaml", FAST)
 
 
+@pytest.mark.slow
 def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_calibrated):
     start, res = errors_calibrated
     info = res.scale_calibration
@@ -100,6 +101,7 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
     assert again.scale_calibration == info and again.rig == res.rig
 
 
+@pytest.mark.slow
 def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, errors_calibrated):
     """verify's stereo check, with the corrected rig and the re-rectified right image (as build-dataset writes im1)."""
     start, res = errors_calibrated
@@ -115,6 +117,7 @@ def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, 
     assert abs(biases["before"]) > 0.2 and abs(biases["after"]) < 0.02, biases
 
 
+@pytest.mark.slow
 def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_calibrated, tmp_path):
     """calib.txt's baseline is the corrected one, im1 the re-rectified right image, the labels the corrected GT, the
     scene's verification reads no stereo bias and the sigma map carries the scale terms."""
@@ -146,6 +149,7 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     assert abs(rep.scenes["000"].stereo["all"].disparity_bias_px) < 0.02
 
 
+@pytest.mark.slow
 def test_without_boards_baseline_and_depth_scale_are_not_separable(errors_session, errors_calibrated, tmp_path):
     """Through the CLI, --no-boards."""
     from typer.testing import CliRunner
@@ -172,6 +176,7 @@ def test_without_boards_baseline_and_depth_scale_are_not_separable(errors_sessio
     assert max(_gt_epe(errors_session, res)) <= 0.02
 
 
+@pytest.mark.slow
 def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
     """The shared error-free session: every correction within 2 sigma of zero, the GT unchanged within 0.002 px."""
     start = _known_calibration(session_dir, tmp_path / "start.yaml")

@@ -35,6 +35,7 @@ def _verify(session_dir, sid, rig, params=None):
     return ver, sd, cap
 
 
+@pytest.mark.slow
 def test_exact_extrinsic_scenes_verify_at_zero(dataset):
     out, summary = dataset
     rep = VerificationResult.read(out / "verification.json")
@@ -58,6 +59,7 @@ def test_exact_extrinsic_scenes_verify_at_zero(dataset):
     assert "0 flagged" in html and "Per scene, worst first" in html
 
 
+@pytest.mark.slow
 def test_moved_fruit_is_flagged_with_the_right_shift(moved_session, true_calibration, tmp_path):
     rig = CalibrationFile.read(true_calibration).rig
     for sid, motion in (("000", (0.5, 0.0, 0.0)), ("001", (0.3, -0.4, 0.0))):
@@ -81,6 +83,7 @@ def test_moved_fruit_is_flagged_with_the_right_shift(moved_session, true_calibra
         assert ver.texture_tiles and len(ver.texture_tiles) == 12  # shift map for flagged scenes
 
 
+@pytest.mark.slow
 def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_calibration, tmp_path):
     """At full resolution the checks run at half size: the flagged scene's overlay must still be drawn (it
     crashed on the shapes before). A work width of 300 px forces a factor 3 on this 883 px wide scene."""
@@ -102,6 +105,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
 
 
 @pytest.mark.parametrize("work_width_px", [1200, 300])
+@pytest.mark.slow
 def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true_calibration, work_width_px):
     """A build decodes the ZED images only down to zed_rows_used (the window around the GT, at factor 1 and 3 here):
     images cut there give exactly the figures of the whole images; one row shorter they are refused."""
@@ -131,6 +135,7 @@ def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true
     assert zed_rows_used(np.full_like(depth, np.nan), params) == H // f * f  # no GT: the whole image is the window
 
 
+@pytest.mark.slow
 def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibration, T_true):
     base = CalibrationFile.read(true_calibration).rig
     for axis in ([0.0, 0.05, 0.0], [0.05, 0.0, 0.0]):
@@ -143,6 +148,7 @@ def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibrat
         assert np.linalg.norm(got - predicted) < 0.05, (axis, got, predicted)  # issue target
 
 
+@pytest.mark.slow
 def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibration):
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(session_dir)
@@ -174,6 +180,7 @@ def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibratio
     assert ver.status == "not verifiable" and "blank" in ver.reasons[0]
 
 
+@pytest.mark.slow
 def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, true_calibration, tmp_path):
     from typer.testing import CliRunner
 

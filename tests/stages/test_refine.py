@@ -7,6 +7,8 @@ from gtforge.errors import InputError
 from gtforge.records.calibration import CalibrationFile
 from gtforge.refine import RefineParams, refine
 
+pytestmark = pytest.mark.slow  # every test uses the shared session and a refine session of its own
+
 
 def _nees(T, T_true, C):
     from scipy.spatial.transform import Rotation

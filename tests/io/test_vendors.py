@@ -22,7 +22,7 @@ from gtforge.io.vendors import (
     read_mecheye_intrinsics,
 )
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 KINECT_JSON = ROOT / "tests" / "data" / "azure-kinect-frame" / "calibration.json"
 MECHEYE_EXAMPLE = ROOT / "docs" / "examples" / "mecheye_intrinsics.yaml"
 

@@ -2,10 +2,10 @@
 
 Bit for bit, NaN where NaN: on small synthetic scenes from the generator (a distorted depth camera denser than the
 target, one sparser than it, noisy depth under a strict slant bound, an undistorted depth camera, both ZED views of the
-one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/test_real_reprojection.py uses it).
+one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/core/test_real_reprojection.py uses it).
 A speed change that moves any depth by one bit, or draws one pixel more or less, fails here (docs/pipeline.md,
 "Speed work never changes results"). One numba thread throughout: the windowed multi-thread path is forced onto it
-once here (its chunks, windows and merge), and tests/test_real_reprojection.py holds a real four-thread run to the
+once here (its chunks, windows and merge), and tests/core/test_real_reprojection.py holds a real four-thread run to the
 one-thread image.
 """
 from __future__ import annotations
@@ -119,6 +119,7 @@ def test_middlebury_motorcycle():
     check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="Middlebury Motorcycle")
 
 
+@pytest.mark.slow
 def test_the_comparison_catches_float32_rays(monkeypatch):
     """The guard has teeth: the kernels fed float32-rounded ray planes (issue #26's speed change) differ from the
     reference on the real scene: measured 2026-12-02, mesh 18,173 pixels differ, 4,564 of them holes the reference
