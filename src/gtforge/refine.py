@@ -28,7 +28,7 @@ from pydantic import Field
 
 from gtforge.core.board_extrinsic import jackknife_scale
 from gtforge.core.camera import Rig
-from gtforge.core.geometry import pose_difference, rotvec_between, transform_points
+from gtforge.core.geometry import perturb_left, pose_difference, rotvec_between, transform_points
 from gtforge.core.photometric import (
     interior_mask,
     local_normalize,
@@ -75,10 +75,7 @@ class ScenePoints:
     zed_norm: np.ndarray  # normalised ZED-left grey image
 
 
-def _perturbed(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
-    from gtforge.refine import _perturbed as p
-
-    return p(T0, x)
+_perturbed = perturb_left  # the name refine's tests use
 
 
 def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, texture: np.ndarray,
