@@ -5,9 +5,9 @@ infrared image often does not (an Azure Kinect's infrared and colour images diff
 normalisation, docs/cameras.md). Depth discontinuities need no texture: where the depth jumps, the colour image
 almost always has an edge too (a different surface behind). This module
 
-1. finds the foreground side of every depth jump in the depth camera's own pixel grid and places it half a depth
-   pixel beyond the last foreground pixel centre (where the silhouette lies on average) as a 3-D point
-   (``depth_edges``);
+1. renders the depth into the undistorted colour camera at the starting extrinsic (gtforge's mesh reprojection, the
+   surfaces ground truth is built from), finds the foreground side of every depth jump there, places it where the
+   silhouette lies on average and carries it back into the depth camera as a 3-D point (``depth_edges``);
 2. undistorts the colour image into a pinhole camera and makes two edge-strength images, ``|dI/dx|`` for the
    silhouettes between horizontal neighbours and ``|dI/dy|`` for those between vertical neighbours, Gaussian-blurred
    (``edge_strength``);
@@ -15,13 +15,14 @@ almost always has an edge too (a different surface behind). This module
    there (``edge_scores``): the same measure ``tests/test_real_frame.py`` uses to report the misalignment;
 4. maximises the score over a small left perturbation ``T = [exp(omega) R | t + delta_t]`` (docs/conventions.md)
    of the factory extrinsic, rotation only by default (``align_color_to_depth``): a coarse grid search
-   (``scipy.optimize.brute``) over the two rotations that shift the image, with wider blur, then Nelder-Mead over
-   the fitted parameters with the fine blur;
+   (``scipy.optimize.brute``) over the two rotations that shift the image, with wider blur, then Nelder-Mead and
+   Newton steps on a one-pixel-wide quadratic model of the score;
 5. says which parameters the one capture determines: the cluster-robust sandwich covariance
    ``H^-1 B H^-1`` of the score's maximiser (H: the score's Hessian; B: the outer products of the per-edge score
-   gradients summed over image tiles, because neighbouring edge samples see the same colour edge and are not
-   independent). A parameter whose 1-sigma moves the image by more than ``max_sigma_px`` is "not determined":
-   it is held at the factory value and the others are refitted, never guessed.
+   gradients summed over each connected edge structure, because one contour's samples share that contour's
+   offset and are one observation, not hundreds). Parameters are chosen one at a time (forward selection) while every chosen one keeps its
+   1-sigma within ``max_sigma_px``; a parameter never chosen is "not determined" and held at the factory value,
+   never guessed.
 
 Internally the parameters are scaled to pixels: a rotation by ``1 / f`` rad and a translation by ``Z_median / f`` mm
 move the image by about one pixel, so that one step size, one tolerance and one threshold fit all six.
@@ -56,7 +57,6 @@ class EdgeAlignmentParams(GTModel):
     search_step_px: float = Field(0.5, gt=0)  # ... in these steps
     fit_translation: bool = False  # one capture rarely separates a translation from a rotation
     max_sigma_px: float = Field(0.3, gt=0)  # "determined": 1 sigma moves the image by at most this much
-    cluster_px: int = Field(16, gt=0)  # edge samples within one such tile count as one observation (covariance)
     min_edges: int = Field(50, gt=0)
 
 
@@ -272,7 +272,7 @@ def _sandwich(problem: _Problem, theta: np.ndarray, strength, free: np.ndarray) 
     G = np.zeros((label.max() + 1, len(idx)))
     np.add.at(G, label, J)
     n_clusters = len(G)
-    B = G.T @ G * n_clusters / max(n_clusters - 1, 1)
+    B = G.T @ G * n_clusters / max(n_clusters - 1, 1)  # the usual small-sample factor
     w, V = np.linalg.eigh(-H)  # a maximum: -H positive definite
     good = w > 1e-6 * max(w.max(), 1e-30)
     Hinv = (V[:, good] / w[good]) @ V[:, good].T
@@ -341,8 +341,7 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
     problem = _Problem(edges, pinhole, T0, scale)
     fine = edge_strength(und, params.blur_sigma_px)
     coarse = edge_strength(und, params.coarse_blur_sigma_px)
-    zero = np.zeros(6)
-    score_initial = float(problem.scores(zero, fine).mean())
+    score_initial = float(problem.scores(np.zeros(6), fine).mean())
 
     # coarse: the two rotations that shift the image, on a grid of +-search_px
     def coarse_cost(t):
