@@ -7,11 +7,15 @@ half-pixel shift.
 Regenerate the overlay in docs/images and print every figure docs/cameras.md quotes:
 
     .venv/bin/python tests/io/test_real_frame.py --overlay docs/images/azure_kinect_overlay.jpg
+
+and, after the extrinsic's correction by gtforge.core.edge_alignment (tests/core/test_edge_alignment.py), the corrected
+figures and overlay:
+
+    .venv/bin/python tests/io/test_real_frame.py --corrected --overlay docs/images/azure_kinect_overlay_corrected.jpg
 """
 from __future__ import annotations
 
 import functools
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -263,10 +267,10 @@ def test_half_pixel_shift_is_detected():
 
 
 # ---- overlay for docs/images -------------------------------------------------------------------
-def write_overlay(path: Path) -> None:
+def write_overlay(path: Path, chain: Chain | None = None) -> None:
     from gtforge.infra.atomic import atomic_write_bytes
 
-    chain = chains()["correct"]
+    chain = chain or chains()["correct"]
     z, und, pinhole = render(chain)
     out = und.copy()
     tint = np.isfinite(z)
@@ -303,10 +307,40 @@ def report() -> None:
             print(f"  {what:17s} {depth:9s}: {off:+.2f} px ({n} edges)")
 
 
+def report_corrected() -> Chain:
+    """gtforge.core.edge_alignment's correction of the factory extrinsic, and the measure before and after it."""
+    from gtforge.core.edge_alignment import align_color_to_depth
+
+    k, depth, color = frame()
+    res = align_color_to_depth(depth, k.depth, color, k.color, k.T_color_from_depth)
+    names = ("omega_x", "omega_y", "omega_z")
+    for name, value, sigma, status in zip(names, res.omega_deg, res.sigma_omega_deg, res.status):
+        print(f"{name}: {value:+.3f} deg +- {sigma:.3f} ({status})")
+    print(f"correction {res.rotation_deg:.3f} deg, {res.n_edges} edges, mean edge strength {res.score_initial:.2f} -> "
+          f"{res.score_final:.2f}")
+    chain = Chain(k.depth, k.color, np.array(res.T_color_from_depth))
+    for name, a in (("factory", measured("correct")), ("corrected", alignment(chain))):
+        print(f"{name:10s} peak (dx, dy) = {a.peak_px}, sub-pixel ({a.subpixel_px[0]:+.2f}, {a.subpixel_px[1]:+.2f}) px, "
+              f"best score {a.score.max():.2f}, {a.n_edges} edges")
+    e = edge_samples(chain)
+    for what, sel in (("nearer than 500 mm", e.depth_mm < 500), ("500 mm or farther", e.depth_mm >= 500)):
+        for axis in (0, 1):
+            off, n = offset_1d(e, axis, sel)
+            print(f"  corrected, {'xy'[axis]} edges {what:18s}: {off:+.2f} px ({n} edges)")
+    return chain
+
+
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "--overlay":
-        write_overlay(Path(sys.argv[2]))
-        print(f"wrote {sys.argv[2]} ({Path(sys.argv[2]).stat().st_size / 1024:.0f} KiB)")
-    elif len(sys.argv) != 1:
-        sys.exit("usage: python tests/io/test_real_frame.py [--overlay PATH.jpg]")
-    report()
+    import argparse
+
+    ap = argparse.ArgumentParser(description="the real Azure Kinect frame's figures (docs/cameras.md)")
+    ap.add_argument("--overlay", type=Path, help="write the overlay JPEG here")
+    ap.add_argument("--corrected", action="store_true",
+                    help="correct the extrinsic with gtforge.core.edge_alignment; the overlay shows the corrected chain")
+    args = ap.parse_args()
+    corrected = report_corrected() if args.corrected else None
+    if args.overlay:
+        write_overlay(args.overlay, corrected)
+        print(f"wrote {args.overlay} ({args.overlay.stat().st_size / 1024:.0f} KiB)")
+    if not args.corrected:
+        report()
