@@ -2,16 +2,20 @@
 
     python scripts/compare_outputs.py RUN_A RUN_B
 
-RUN_A and RUN_B are two output folders of the same command (``gtforge demo``, ``gtforge synth`` + stages) made by two
-versions of gtforge, e.g. before and after a restructuring (docs/architecture.md, "Checking that a change keeps the
-outputs"). Images, PFM/TIFF maps, point clouds and arrays must be byte-identical. JSON and YAML files are compared as
-data after dropping the fields that record time (``time_s``, ``time_ms``, ``time_*_s``, ``hashed_at_ns``, ``mtime_ns``)
-and replacing each run's folder by ``RUN``; text files (HTML, Markdown, CSV, TXT) after the same replacement and with
-dates, clock times and durations masked. Exit status 0: the same; 1: a difference (each one listed).
+RUN_A and RUN_B are two output folders of the same commands (scripts/reference_outputs.sh) made by two versions of
+gtforge, e.g. before and after a restructuring (docs/architecture.md, "Checking that a change keeps the outputs").
+Images, PFM/TIFF maps, point clouds and arrays must be byte-identical. JSON and YAML files are compared as data after
+dropping the fields that record time (``time_s``, ``time_ms``, ``time_*``, ``created``, ``hashed_at_ns``,
+``mtime_ns``) and the hashes of files that hold such fields (``*_sha256``: a calibration file records its solve time),
+with each run's folder replaced by ``RUN``; text files (HTML, Markdown, CSV, logs) after the same replacement, with
+dates, clock times and durations masked, table columns headed by a time blanked, and embedded matplotlib SVGs compared
+without their drawing date and random ids. Exit status 0: the same; 1: a difference (each one listed).
 """
 from __future__ import annotations
 
 import argparse
+import base64
+import hashlib
 import json
 import re
 import sys
@@ -19,13 +23,29 @@ from pathlib import Path
 
 import yaml
 
-TIME_KEY = re.compile(r"^(time_s|time_ms|time_\w+_s|hashed_at_ns|mtime_ns)$")
+# fields that record when or how long; hashes of files that themselves hold such fields (a calibration's solve time)
+TIME_KEY = re.compile(r"^(time_s|time_ms|time_\w+|created|hashed_at_ns|mtime_ns|\w+_sha256)$")
 TEXT_SUFFIXES = {".html", ".md", ".csv", ".txt", ".log"}
 DATA_SUFFIXES = {".json", ".yaml", ".yml"}
 MASKS = [
-    (re.compile(r"\d{4}-\d{2}-\d{2}[ T]\d{2}:\d{2}(:\d{2}(\.\d+)?)?"), "<DATE>"),
-    (re.compile(r"\b\d+(\.\d+)? ?(ms|s)\b(?= *(<|\)|,|;|$|\|))"), "<DURATION>"),
+    (re.compile(r"\d{4}-\d{2}-\d{2}[ T]\d{2}:\d{2}(:\d{2}(\.\d+)?)?([+-]\d{2}:\d{2})?"), "<DATE>"),
+    (re.compile(r"\b\d+(\.\d+)? ?(ms|s)\b(?= *(<|\)|,|;|$|\||->|per\b))"), "<DURATION>"),
+    (re.compile(r"\b\d+(\.\d+)? ms/frame"), "<DURATION>/frame"),
+    (re.compile(r"(time \((?:s|ms)\)</th><td>)[^<]*"), r"\1<DURATION>"),
+    (re.compile(r"\b(in|took|done in) \d+(\.\d+)? s\b"), r"\1 <DURATION>"),
 ]
+SVG_URI = re.compile(r"data:image/svg\+xml;base64,([A-Za-z0-9+/=]+)")
+SVG_DATE = re.compile(rb"<dc:date>[^<]*</dc:date>")
+SVG_ID = re.compile(rb"\b[mp][0-9a-f]{8,12}\b")  # matplotlib's random ids of markers and clip paths
+
+
+def _svg_key(b64: str) -> str:
+    """An embedded matplotlib SVG without what changes from run to run: its date and its random ids (numbered in
+    order of appearance instead)."""
+    svg = SVG_DATE.sub(b"", base64.b64decode(b64))
+    ids: dict[bytes, bytes] = {}
+    svg = SVG_ID.sub(lambda m: ids.setdefault(m.group(0), b"id%d" % len(ids)), svg)
+    return hashlib.sha256(svg).hexdigest()
 
 
 def _drop_time(x):
@@ -48,20 +68,46 @@ def _data(path: Path, root: Path):
     return _drop_time(json.loads(s) if path.suffix == ".json" else yaml.safe_load(s))
 
 
+TABLE = re.compile(r"<table>.*?</table>", re.S)
+ROW = re.compile(r"<tr>(.*?)</tr>", re.S)
+CELL = re.compile(r"<t[hd][^>]*>.*?</t[hd]>", re.S)
+
+
+def _html_tables_without_time(s: str) -> str:
+    """Each HTML table's cells under a header that names a time (``time (ms)``) blanked."""
+    def table(m):
+        t = m.group(0)
+        head = ROW.search(t)
+        if head is None:
+            return t
+        drop = {i for i, c in enumerate(CELL.findall(head.group(1))) if "time" in c.lower()}
+        if not drop:
+            return t
+        return ROW.sub(lambda r: "<tr>" + "".join("<td></td>" if i in drop else c for i, c in
+                                                    enumerate(CELL.findall(r.group(1)))) + "</tr>", t)
+    return TABLE.sub(table, s)
+
+
 def _masked(s: str) -> str:
+    # an embedded matplotlib SVG carries the time it was drawn and random ids: compared without them
+    s = SVG_URI.sub(lambda m: "data:image/svg+xml;sha256," + _svg_key(m.group(1)), s)
+    s = _html_tables_without_time(s)
     for rx, sub in MASKS:
         s = rx.sub(sub, s)
     return s
 
 
-def _csv_without_time(s: str) -> str:
-    """A CSV's columns whose header names a time (``time_ms`` ...) blanked."""
-    lines = s.splitlines()
-    if not lines:
-        return s
-    head = lines[0].split(",")
-    drop = {i for i, h in enumerate(head) if TIME_KEY.match(h.strip())}
-    return "\n".join(",".join("" if i in drop else c for i, c in enumerate(ln.split(","))) for ln in lines)
+def _table_without_time(s: str, sep: str) -> str:
+    """A CSV's (``sep`` ",") or Markdown table's (``sep`` "|") columns whose header names a time blanked."""
+    out, drop = [], set()
+    for ln in s.splitlines():
+        cells = ln.split(sep)
+        if sep == "|" and not ln.startswith("|"):
+            drop = set()
+        elif not drop or (sep == "|" and any("time" in c.lower() for c in cells)):
+            drop = {i for i, c in enumerate(cells) if "time" in c.lower()} or drop
+        out.append(sep.join("" if i in drop else c for i, c in enumerate(cells)) if drop else ln)
+    return "\n".join(out)
 
 
 def compare(a: Path, b: Path) -> list[str]:
@@ -85,8 +131,9 @@ def compare(a: Path, b: Path) -> list[str]:
                 diffs.append(f"{rel}: data differ beyond time fields")
         elif suffix in TEXT_SUFFIXES:
             ta, tb = _text(pa, a), _text(pb, b)
-            if suffix == ".csv":
-                ta, tb = _csv_without_time(ta), _csv_without_time(tb)
+            if suffix in (".csv", ".md", ".log"):
+                sep = "," if suffix == ".csv" else "|"
+                ta, tb = _table_without_time(ta, sep), _table_without_time(tb, sep)
             ta, tb = _masked(ta), _masked(tb)
             if ta != tb:
                 la, lb = ta.splitlines(), tb.splitlines()

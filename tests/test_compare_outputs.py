@@ -1,0 +1,47 @@
+"""scripts/compare_outputs.py, the check that a restructuring kept every output: it must see a changed byte of a map
+or a changed value of a record, and must not see what only records when a run happened."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from gtforge.io.formats import write_pfm
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _compare():
+    spec = importlib.util.spec_from_file_location("compare_outputs", ROOT / "scripts" / "compare_outputs.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("compare_outputs", mod)
+    spec.loader.exec_module(mod)
+    return mod.compare
+
+
+def _run(root: Path, disp: np.ndarray, epe: float, time_s: float, date: str) -> Path:
+    (root / "scenes" / "000").mkdir(parents=True)
+    write_pfm(root / "scenes" / "000" / "disp0GT.pfm", disp)
+    (root / "meta.json").write_text(json.dumps({"scene": "000", "epe_px": epe, "time_s": time_s,
+                                                "session_dir": str(root / "session")}))
+    (root / "results.md").write_text(f"written {date}\n\n| model | EPE (px) | time (ms/frame) |\n|---|---|---|\n"
+                                     f"| SGBM | {epe} | {time_s * 1000:.1f} |\n")
+    return root
+
+
+def test_only_times_dates_and_folders_may_differ(tmp_path):
+    compare = _compare()
+    disp = np.linspace(10, 20, 48, dtype=np.float32).reshape(6, 8)
+    a = _run(tmp_path / "a", disp, 0.125, 1.5, "2026-12-02 14:00")
+    b = _run(tmp_path / "b", disp, 0.125, 9.25, "2026-12-03 09:30")
+    assert compare(a, b) == []
+    changed = disp.copy()
+    changed[3, 4] = np.nextafter(changed[3, 4], np.float32(np.inf))  # one ulp of one pixel
+    c = _run(tmp_path / "c", changed, 0.125, 1.5, "2026-12-02 14:00")
+    assert compare(a, c) == ["scenes/000/disp0GT.pfm: bytes differ"]
+    d = _run(tmp_path / "d", disp, 0.126, 1.5, "2026-12-02 14:00")
+    diffs = compare(a, d)
+    assert [x.split(":")[0] for x in diffs] == ["meta.json", "results.md"]
