@@ -28,6 +28,8 @@ its sigma, the covariance and the captures it came from) and applied through the
 
 Covariances: the scenes' is a tile sandwich (scores summed over ``cov_tile_px`` tiles, as refine's), the boards' a
 pose-clustered sandwich (a PnP pose's error moves all its corners together).
+
+Just over 500 lines: the physics above, the three measurements and their combination read together.
 """
 from __future__ import annotations
 

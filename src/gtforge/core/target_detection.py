@@ -1,6 +1,9 @@
 """Finding ChArUco and circle-grid targets (``gtforge.core.targets``) in an image: markers and interpolated corners
 refined to sub-pixel, circle centres with their perspective bias corrected, the pose from them, and one-line reasons
-when a target is not found (a wrong dictionary, a board too small for its markers, a grid cut by the border)."""
+when a target is not found (a wrong dictionary, a board too small for its markers, a grid cut by the border).
+
+Over 500 lines on purpose: both targets' detectors share the sub-pixel refinement, the layout checks and the
+diagnosis of a target that is not found."""
 from __future__ import annotations
 
 import logging
