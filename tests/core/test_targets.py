@@ -12,7 +12,14 @@ from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.board import BoardSpec
 from gtforge.core.geometry import pose_difference
 from gtforge.core.target_detection import circle_centre_bias, detect_charuco
-from gtforge.core.targets import BoardModel, CharucoSpec, CircleGridSpec, board_model_of, check_board_model
+from gtforge.core.targets import (
+    MIN_COMMON_CORNERS,
+    BoardModel,
+    CharucoSpec,
+    CircleGridSpec,
+    board_model_of,
+    check_board_model,
+)
 from gtforge.errors import InputError
 from gtforge.records.calibration import CalibrateParams, CalibrationFile
 from gtforge.synthetic import default_rig, random_board_pose, random_partial_board_pose, render_board_views
@@ -265,3 +272,28 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
 
     r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--cols", "6")
     assert r.returncode == 2 and one_line_error(r) and "more circles beyond" in r.stderr, r.stderr
+
+
+@pytest.mark.slow
+def test_a_session_with_partial_poses_calibrates_from_them(tmp_path):
+    """generate_session's ``partial_poses``: board captures cut by the texture camera's border, written as a session
+    like any other; calibrate uses them (fewer points in the texture image than on the board, all seen by both
+    cameras matched by id) and the extrinsic stays within the checkerboard's limits."""
+    from gtforge.calibrate import calibrate
+    from gtforge.synthetic import SyntheticTruth, generate_session
+
+    sess = generate_session(tmp_path / "s", n_board=4, n_scenes=0, scale=0.3, seed=7, board=CHARUCO,
+                            depth_noise_mm=0.0, image_noise=1.0, supersample=1, partial_poses=3)
+    assert sorted(p.name for p in (sess / "board").iterdir()) == ["000", "001", "002", "003", "004", "005", "006"]
+    cal = calibrate(sess, tmp_path / "cal.yaml", CalibrateParams(board=board_model_of(CHARUCO), leave_one_out=False))
+    by_name = {p.capture: p for p in cal.poses}
+    partial = [by_name[n] for n in ("004", "005", "006")]
+    assert all(p.status == "used" for p in partial), [(p.capture, p.status, p.reason) for p in partial]
+    n = CHARUCO.n_corners
+    # (the generator keeps >= 12 points inside both images; at this size fewer are detected, still calibrate's 6)
+    assert all(p.n_points_mech < n and MIN_COMMON_CORNERS <= p.n_points_common <= p.n_points_mech for p in partial), \
+        [(p.n_points_mech, p.n_points_common) for p in partial]
+    assert all(by_name[k].n_points_mech == n for k in ("000", "001", "002", "003") if by_name[k].status == "used")
+    truth = np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    rot, tr = pose_difference(cal.rig.T_zed_from_mech, truth)
+    assert rot < 0.05 and tr < 0.5, (rot, tr)
