@@ -38,6 +38,7 @@ from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import invert_T, perturb_left, rotation_angle_deg, transform_points
+from gtforge.core.photometric import to_gray
 from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.core.schema import GTModel, matrix4_field
 from gtforge.errors import InputError
@@ -174,8 +175,7 @@ def edge_strength(image: np.ndarray, blur_sigma_px: float) -> tuple[np.ndarray, 
     image's ``[v, u]`` sits at ``(u + 0.5, v)``, the y image's at ``(u, v + 0.5)`` (differences between
     neighbours). Direction matters: a silhouette between horizontal neighbours should meet a colour edge across x,
     not a horizontal texture line that happens to pass by. The blur makes the score smooth over a pixel or two."""
-    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    grey = grey.astype(np.float32)
+    grey = to_gray(image).astype(np.float32)
     gx = cv2.GaussianBlur(np.abs(np.diff(grey, axis=1)), (0, 0), blur_sigma_px)
     gy = cv2.GaussianBlur(np.abs(np.diff(grey, axis=0)), (0, 0), blur_sigma_px)
     return gx, gy
@@ -289,7 +289,7 @@ def _maximise(problem: _Problem, strength, theta0: np.ndarray, free: np.ndarray,
     """Nelder-Mead on the mean score over the ``free`` parameters (1 px initial steps); with ``polish``, then
     Newton steps on the one-pixel quadratic model (``_quadratic_model``), which find the centre of a flat top where
     Nelder-Mead stops anywhere on it."""
-    from scipy.optimize import minimize  # here, not at import: scipy adds 0.4 s to every process start
+    from scipy.optimize import minimize  # here, not at import: importing scipy slows every process start
 
     idx = np.flatnonzero(free)
     score = _restrict(lambda t: problem.scores(t, strength).mean(), theta0, idx)
@@ -320,7 +320,7 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
     ``depth_mm`` (float, NaN invalid) on ``depth_cam``'s grid; ``color_rgb`` from ``color_cam`` (lens model
     applied here); ``T_color_from_depth`` the starting (factory) extrinsic. The module docstring says how; the
     result says which parameters the capture determined (the others are held at their initial values)."""
-    from scipy.optimize import brute  # here, not at import: scipy adds 0.4 s to every process start
+    from scipy.optimize import brute  # here, not at import: importing scipy slows every process start
 
     T0 = np.asarray(T_color_from_depth, np.float64)
     matrix4_field(T0)

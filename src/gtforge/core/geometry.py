@@ -167,7 +167,7 @@ def perturb_left(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
 def rotvec_between(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     """``omega`` (rad) with ``R_b = exp(omega) R_a``: the rotation part of the left perturbation (``perturb_left``)
     that takes ``T_a`` to ``T_b``."""
-    from scipy.spatial.transform import Rotation  # scipy adds ~0.4 s to a process start; build workers never need it
+    from scipy.spatial.transform import Rotation  # here, not at import: build workers never need scipy
 
     return Rotation.from_matrix(T_b[:3, :3] @ T_a[:3, :3].T).as_rotvec()
 
