@@ -19,11 +19,11 @@ import numpy as np
 
 from gtforge.core.board import BoardSpec, Detection, PoseObs, detect_corners, solve_pnp
 from gtforge.core.board_extrinsic import (
-    _rms,
     board_corners_from_depth,
     jackknife_scale,
     joint_refine,
     measured_square_size_mm,
+    rms_px,
     robust_initial_extrinsic,
     transfer_error,
 )
@@ -31,7 +31,7 @@ from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
 from gtforge.core.rectification import RectificationMeter
 from gtforge.core.selfcal import SelfRectifyParams
-from gtforge.core.target_detection import _pnp_bias_corrected, _unmirror, detect_target
+from gtforge.core.target_detection import detect_target, pnp_bias_corrected, unmirror_symmetric_grid
 from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, check_board_model, collinear
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
@@ -137,7 +137,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
     region_res: dict[str, list[float]] = {}
     for i, o in enumerate(used):
         r = rep_by_name[o.name]
-        r.rms_mech_px, r.rms_zed_px = _rms(ref.res_mech[i]), _rms(ref.res_zed[i])
+        r.rms_mech_px, r.rms_zed_px = rms_px(ref.res_mech[i]), rms_px(ref.res_zed[i])
         e = np.concatenate([np.linalg.norm(ref.res_mech[i], axis=1), np.linalg.norm(ref.res_zed[i], axis=1)])
         r.max_px = float(e.max())
         allres.append(e)
@@ -169,7 +169,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
     jack_scale = jackknife_scale(T_final, loo_T, ref.cov_extrinsic)
     cov = cov * (jack_scale or 1.0)
     methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
-                            rms_zed_px=_rms(np.concatenate([np.reshape(r, (-1, 2)) for r in ref.res_zed])))]
+                            rms_zed_px=rms_px(np.concatenate([np.reshape(r, (-1, 2)) for r in ref.res_zed])))]
     method = "reprojection"
     verdict_reasons: list[str] = []
     fail = False
@@ -257,7 +257,7 @@ def _depth_method(used: list[PoseObs], corners_depth: dict[str, np.ndarray], zed
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
         cov = None
-    return T, _rms(res), cov
+    return T, rms_px(res), cov
 
 
 def calibrate(session_dir: str | Path, out_path: str | Path | None = None, params: CalibrateParams | None = None,
@@ -340,16 +340,16 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
             log.warning("capture %s: %s; skipped", name, why)
             return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
     if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
-        dm, dz = _unmirror(spec, dm, mech, solve_pnp), _unmirror(spec, dz, zed.left, solve_pnp)
-    T_mech_from_board, uv_m_all = _pnp_bias_corrected(spec, dm, mech, solve_pnp)
-    T_zed_from_board, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+        dm, dz = unmirror_symmetric_grid(spec, dm, mech, solve_pnp), unmirror_symmetric_grid(spec, dz, zed.left, solve_pnp)
+    T_mech_from_board, uv_m_all = pnp_bias_corrected(spec, dm, mech, solve_pnp)
+    T_zed_from_board, uv_z_all = pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
     if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
         # a symmetric grid has a 180-degree ambiguity: each camera may have numbered it from the other end. The
         # cameras look the same way (their relative rotation about the view axis is far below 90 degrees), so the
         # board's x axis points the same way in both; flip the ZED's numbering when it does not
         if T_mech_from_board[:3, 0] @ T_zed_from_board[:3, 0] < 0:
             dz = Detection(dz.corners_uv[::-1].copy(), dz.sharpness_px, dz.method, dz.pattern_contrast, dz.ids)
-            T_zed_from_board, uv_z_all = _pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
+            T_zed_from_board, uv_z_all = pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
     common, im, iz = np.intersect1d(dm.ids, dz.ids, return_indices=True)
     counts["n_points_common"] = len(common)
     if len(common) < min_common:
@@ -391,9 +391,9 @@ def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
 from gtforge.core.board_extrinsic import Refined  # noqa: E402,F401
 from gtforge.records.calibration import (  # noqa: E402,F401
+    PoseReport,  # noqa: E402,F401
     RefinementInfo,
     SceneRefinement,
     check_rig_matches_session,
     open_calibrated_session,
 )
-from gtforge.records.calibration import PoseReport  # noqa: E402,F401

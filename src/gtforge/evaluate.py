@@ -279,5 +279,4 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
 
 
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.records.evaluation import TABLE_REGIONS  # noqa: E402,F401
-from gtforge.records.evaluation import EvalReport  # noqa: E402,F401
+from gtforge.records.evaluation import TABLE_REGIONS, EvalReport  # noqa: E402,F401,I001

@@ -25,13 +25,13 @@ from gtforge.core.gauges import (
     ORDER,
     GaugeLimits,
     GaugeParams,
-    GaugesResult,
     GaugeResult,
     GaugeSpec,
-    _components,
-    _measure_raw,
+    GaugesResult,
     disparity_points,
+    gauge_components,
     gauge_status,
+    measure_raw_depth,
     measure_source,
     read_gauges_file,
 )
@@ -313,7 +313,7 @@ def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParam
     bp = BuildParams(fruit_height_mm=params.min_height_mm, min_component_frac=0.2)
     sd, _, fg = build_scene_arrays(depth_mm, rig, bp)
     P = disparity_points(sd.disparity_px, rig.zed)
-    masks = _components(fg, params.erosion_px)
+    masks = gauge_components(fg, params.erosion_px)
     # stated per-pixel sigma of the GT disparity (no extrinsic term: it moves the object rigidly), as depth along z
     sig_d = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, None,
                             UncertaintyParams(depth_noise=params.depth_noise), sd.span_mm)
@@ -323,7 +323,7 @@ def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParam
     gt, res_gt = measure_source(spec, P, masks, sig_z, np.zeros(3), np.array([0.0, 0.0, 1.0]), params, "gt")
     raw = None
     if gt.measurable:
-        raw = _measure_raw(spec, gt, depth_mm, rig, P, fg, params)
+        raw = measure_raw_depth(spec, gt, depth_mm, rig, P, fg, params)
     status, reasons = gauge_status(spec, gt, limits)
     return GaugeResult(capture=spec.capture, kind=spec.kind, spec=spec, gt=gt, raw=raw, status=status,
                        reasons=reasons), {"residual_gt_mm": res_gt}
@@ -374,5 +374,8 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
 
 # Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.records.validation import REFERENCE_XY_PX, REFERENCE_Z_PCT  # noqa: E402,F401
-from gtforge.records.validation import ValidationReport  # noqa: E402,F401
+from gtforge.records.validation import (  # noqa: E402,F401
+    REFERENCE_XY_PX,
+    REFERENCE_Z_PCT,
+    ValidationReport,  # noqa: E402,F401
+)

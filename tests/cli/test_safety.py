@@ -10,8 +10,8 @@ import time
 import numpy as np
 import pytest
 import tifffile
-
 from conftest import gtforge, one_line_error, tree_digest
+
 from gtforge.records.calibration import CalibrationFile
 
 pytestmark = pytest.mark.slow  # every test runs the real command on the shared session (conftest.py)

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from gtforge.core.camera import Rig
-from gtforge.core.gauges import GaugeParams, GaugesResult, GaugesFile, read_gauges_file, summary_lines
+from gtforge.core.gauges import GaugeParams, GaugesFile, GaugesResult, read_gauges_file, summary_lines
 from gtforge.core.uncertainty import DepthNoiseModel
 from gtforge.errors import InputError
 from gtforge.io.captures import read_depth

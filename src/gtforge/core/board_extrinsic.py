@@ -219,7 +219,7 @@ def measured_square_size_mm(corners_mech: np.ndarray, board: BoardSpec, ids: np.
 
 
 
-def _rms(a: np.ndarray) -> float:
+def rms_px(a: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(a.reshape(-1, 2) ** 2, axis=1))))
 
 

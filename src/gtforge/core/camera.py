@@ -14,7 +14,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from gtforge.core import lens
 from gtforge.core.geometry import invert_T
-from gtforge.core.schema import GTModel, Matrix4, VersionedFile, _matrix4_array
+from gtforge.core.schema import GTModel, Matrix4, VersionedFile, matrix4_array
 from gtforge.errors import InputError
 
 ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
@@ -294,7 +294,7 @@ class Rig(VersionedFile):
         return 0.0 if self.scale_corrections is None else self.scale_corrections.zed_right_yaw_deg
 
     def with_extrinsic(self, T_zed_from_mech: np.ndarray) -> "Rig":
-        return self.model_copy(update={"T_zed_from_mech": _matrix4_array(T_zed_from_mech)})
+        return self.model_copy(update={"T_zed_from_mech": matrix4_array(T_zed_from_mech)})
 
 
 class StereoCalibrationFile(VersionedFile):

@@ -184,7 +184,7 @@ def depth_points_in_zed(depth_mm: np.ndarray, rig) -> np.ndarray:
     return transform_points(rig.T_zed_from_depth, P.reshape(-1, 3)).reshape(P.shape)
 
 
-def _components(mask: np.ndarray, erosion_px: int) -> list[np.ndarray]:
+def gauge_components(mask: np.ndarray, erosion_px: int) -> list[np.ndarray]:
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     order = sorted(range(1, n), key=lambda k: -stats[k, cv2.CC_STAT_AREA])
     out = []
@@ -361,7 +361,7 @@ def gauge_status(spec: GaugeSpec, gt: SourceFigures, lim: GaugeLimits) -> tuple[
     return worst, reasons
 
 
-def _measure_raw(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, P_gt: np.ndarray, fg: np.ndarray,
+def measure_raw_depth(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, P_gt: np.ndarray, fg: np.ndarray,
                  params: GaugeParams) -> SourceFigures:
     """The raw depth map's points in the ZED-left frame, the object's taken within ``gate_mm`` of the GT fit and
     ``min_height_mm`` above the GT's table, eroded on the depth image like the GT's."""
@@ -384,7 +384,7 @@ def _measure_raw(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, rig, 
             with np.errstate(invalid="ignore"):
                 masks.append(above & (np.abs(r - s.diameter_mm / 2) < params.gate_mm))
     else:
-        f = fit_plane_lsq(P_gt[_components(fg, params.erosion_px)[0] & np.all(np.isfinite(P_gt), axis=-1)])
+        f = fit_plane_lsq(P_gt[gauge_components(fg, params.erosion_px)[0] & np.all(np.isfinite(P_gt), axis=-1)])
         with np.errstate(invalid="ignore"):
             masks.append(above & (np.abs(Q @ f.normal - f.offset_mm) < params.gate_mm))
     if params.erosion_px:

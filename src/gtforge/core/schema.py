@@ -91,12 +91,12 @@ def matrix4_field(v: Any) -> list[list[float]]:
     return a.tolist()
 
 
-def _matrix4_array(v: Any) -> np.ndarray:
+def matrix4_array(v: Any) -> np.ndarray:
     a = np.array(matrix4_field(v), dtype=np.float64)
     a.setflags(write=False)  # a pose held by a model is read-only: change it through the model (with_extrinsic)
     return a
 
 
 # A 4x4 rigid transform held as a float64 array, written as a list of rows (the same file as ``matrix4_field``'s).
-Matrix4 = Annotated[np.ndarray, BeforeValidator(_matrix4_array),
+Matrix4 = Annotated[np.ndarray, BeforeValidator(matrix4_array),
                     PlainSerializer(lambda a: np.asarray(a, np.float64).tolist(), return_type=list)]

@@ -14,7 +14,7 @@ import numpy as np
 from gtforge.core.board import Detection, detect_corners
 from gtforge.core.geometry import transform_points
 from gtforge.core.photometric import to_gray
-from gtforge.core.targets import ARUCO_DICTIONARIES, CharucoSpec, CircleGridSpec, _dictionary, neighbour_pairs
+from gtforge.core.targets import ARUCO_DICTIONARIES, CharucoSpec, CircleGridSpec, aruco_dictionary, neighbour_pairs
 from gtforge.errors import InputError
 
 log = logging.getLogger("gtforge.core.targets")
@@ -67,7 +67,7 @@ def _layout_fits(obj_xy: np.ndarray, img_uv: np.ndarray, tol_px: float) -> tuple
 
 
 def _markers(gray: np.ndarray, dictionary: str):
-    det = cv2.aruco.ArucoDetector(_dictionary(dictionary), cv2.aruco.DetectorParameters())
+    det = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), cv2.aruco.DetectorParameters())
     corners, ids, _ = det.detectMarkers(gray)
     if ids is None:
         return [], np.zeros(0, int)
@@ -112,7 +112,7 @@ def diagnose_charuco(gray: np.ndarray, spec: CharucoSpec, cam=None, where: str =
     decl = (f"{spec.squares_x}x{spec.squares_y} {spec.dictionary}"
             + (" legacy" if spec.legacy_pattern else ""))
     corners, ids = _markers(gray, _family_largest(spec.dictionary))
-    dict_size = _dictionary(spec.dictionary).bytesList.shape[0]
+    dict_size = aruco_dictionary(spec.dictionary).bytesList.shape[0]
     if len(ids) < 4:
         best = None
         for name in ARUCO_DICTIONARIES:
@@ -526,7 +526,7 @@ def detect_target(image: np.ndarray, spec, cam=None, where: str = "board") -> De
 
 
 
-def _pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarray, np.ndarray]:
+def pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarray, np.ndarray]:
     """PnP from a detection; for circles, the centroids are corrected for the perspective bias at the PnP pose and
     solved again (the bias changes by far less than itself between the two poses). Returns (T, uv used)."""
     X = spec.corners_board()[det.ids]
@@ -540,7 +540,7 @@ def _pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarra
 
 
 
-def _unmirror(spec: CircleGridSpec, det: Detection, cam, solve_pnp) -> Detection:
+def unmirror_symmetric_grid(spec: CircleGridSpec, det: Detection, cam, solve_pnp) -> Detection:
     """A symmetric grid's numbering may come back mirrored (rows counted from the other side): PnP then puts the
     board's z axis (into the board) towards the camera, a board seen from behind. Count the rows the other way."""
     X = spec.corners_board()

@@ -95,7 +95,7 @@ def board_model_of(spec) -> BoardModel:
     return BoardModel(cols=spec.cols, rows=spec.rows, square_size_mm=spec.square_size_mm)
 
 
-def _dictionary(name: str):
+def aruco_dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
 
@@ -119,7 +119,7 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
                              f"({board.square_size_mm:g} mm)", repr(board.marker_size_mm), "measure a marker's black "
                              "outline on the print (--marker-mm)")
         n_markers = (board.cols * board.rows) // 2
-        size = _dictionary(board.dictionary).bytesList.shape[0]
+        size = aruco_dictionary(board.dictionary).bytesList.shape[0]
         if n_markers > size:
             raise InputError(None, f"{where}.dictionary", f"a dictionary with at least {n_markers} markers for a "
                              f"{board.cols}x{board.rows} board", f"{board.dictionary} ({size} markers)")
@@ -139,7 +139,7 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
 # ---- ChArUco ---------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=16)
 def _cv_charuco(sx: int, sy: int, s: float, m: float, dictionary: str, legacy: bool):
-    b = cv2.aruco.CharucoBoard((sx, sy), s, m, _dictionary(dictionary))
+    b = cv2.aruco.CharucoBoard((sx, sy), s, m, aruco_dictionary(dictionary))
     b.setLegacyPattern(legacy)
     return b
 
