@@ -57,6 +57,12 @@ class EdgeAlignmentParams(GTModel):
     search_px: float = Field(6.0, gt=0)  # coarse grid: image shifts within +-search_px ...
     search_step_px: float = Field(0.5, gt=0)  # ... in these steps
     fit_translation: bool = False  # one capture rarely separates a translation from a rotation
+    # which edges: the depth silhouettes, the depth camera's own texture (texture_edges), or both; "auto": both
+    # when a texture is given, else silhouettes
+    edges: Literal["auto", "silhouettes", "texture", "both"] = "auto"
+    texture_top_fraction: float = Field(0.2, gt=0, le=1)  # texture edges: the strongest gradients kept
+    texture_max_relief: float = Field(0.02, gt=0)  # ... on surfaces whose depth changes < 2 % across the edge
+    texture_min_length_px: int = Field(20, ge=1)  # ... in contours of at least this many pixels (not speckle)
     max_sigma_px: float = Field(0.3, gt=0)  # "determined": 1 sigma moves the image by at most this much
     min_edges: int = Field(50, gt=0)
 
@@ -77,6 +83,7 @@ class EdgeAlignmentResult(GTModel):
     sigma_delta_t_mm: list[float] = Field(min_length=3, max_length=3)
     rotation_deg: float  # angle of the applied correction
     n_edges: int
+    edge_kinds: list[Literal["silhouettes", "texture"]]  # what the edges were
     score_initial: float  # mean colour edge strength at the depth edges (grey levels / px), factory extrinsic
     score_final: float
     f_px: float  # the colour pinhole's mean focal length (the pixel scale of the parameters)
@@ -105,6 +112,13 @@ class DepthEdges:
 
     def subset(self, keep: np.ndarray) -> "DepthEdges":
         return DepthEdges(self.pts_depth_mm[keep], self.axis[keep], self.side[keep], self.structure[keep])
+
+    def __add__(self, other: "DepthEdges") -> "DepthEdges":
+        """Both sets; ``other``'s structures renumbered after this one's (a contour stays one observation)."""
+        shift = int(self.structure.max()) + 1 if len(self) else 0
+        return DepthEdges(np.concatenate([self.pts_depth_mm, other.pts_depth_mm]),
+                          np.concatenate([self.axis, other.axis]), np.concatenate([self.side, other.side]),
+                          np.concatenate([self.structure, other.structure + shift]))
 
 
 def depth_edges(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_depth: np.ndarray,
@@ -156,6 +170,75 @@ def depth_edges(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_dep
                       np.concatenate(sides), labels[vu[:, 0], vu[:, 1]])
 
 
+def texture_edges(texture: np.ndarray, depth_mm: np.ndarray, depth_cam: PinholeCamera,
+                  T_color_from_depth: np.ndarray, pinhole: PinholeCamera, top_fraction: float = 0.2,
+                  max_relief: float = 0.02, min_length_px: int = 20, tile_px: int = 16) -> DepthEdges:
+    """The edges of the depth camera's own image (an infrared image, a structured-light camera's 2-D texture:
+    ``texture`` pixel-aligned with ``depth_mm``) as 3-D points in the depth camera.
+
+    The texture's grey levels go through ``log1p`` (an infrared image spans four decades; a ratio is what a
+    reflectance edge keeps from one camera to the other) and a 0.7 px blur. An edge between horizontal (vertical)
+    neighbours is a local maximum along u (v) of ``|difference|`` among the ``top_fraction`` strongest, on a surface
+    (both neighbours' depths valid and within ``max_relief`` of each other: a texture edge on a depth jump belongs to
+    the silhouettes), placed by a parabola through the maximum and its neighbours, back-projected at the mean of the
+    two depths. A point the colour camera does not see (the depth rendered into ``pinhole`` at
+    ``T_color_from_depth`` is more than ``max_relief`` nearer at its pixel) is dropped, and so is a connected
+    component of edge pixels shorter than ``min_length_px`` (speckle). Structures (the covariance's observations):
+    a connected component's piece within one ``tile_px`` square of the depth image."""
+    depth_cam.check_image_size(np.shape(texture), None, "texture (must be pixel-aligned with the depth)")
+    grey = np.log1p(np.maximum(to_gray(texture).astype(np.float64), 0.0))
+    grey = cv2.GaussianBlur(grey, (0, 0), 0.7)
+    pts, axes, sides, pix = [], [], [], []
+    for axis in (0, 1):
+        g = np.diff(grey if axis == 0 else grey.T, axis=1)
+        zz = depth_mm if axis == 0 else depth_mm.T
+        a = np.abs(g)
+        z0, z1 = zz[:, :-1].astype(np.float64), zz[:, 1:].astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            surface = np.isfinite(z0) & np.isfinite(z1) & (np.abs(z1 - z0) < max_relief * np.minimum(z0, z1))
+        if not surface.any():
+            continue
+        threshold = np.quantile(a[surface], 1.0 - top_fraction)
+        peak = np.zeros_like(surface)
+        peak[:, 1:-1] = (a[:, 1:-1] > a[:, :-2]) & (a[:, 1:-1] >= a[:, 2:]) & (a[:, 1:-1] > threshold)
+        r, c = np.nonzero(surface & peak)
+        f0, f1, f2 = a[r, c - 1], a[r, c], a[r, c + 1]
+        curvature = f0 - 2 * f1 + f2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            offset = np.where(curvature < 0, 0.5 * (f0 - f2) / curvature, 0.0)
+        along = c + 0.5 + np.clip(offset, -0.5, 0.5)  # the difference [c] sits between pixels c and c + 1
+        uv = np.column_stack([along, r]) if axis == 0 else np.column_stack([r, along])
+        pts.append(depth_cam.unproject(uv.astype(np.float64), 0.5 * (z0[r, c] + z1[r, c])))
+        axes.append(np.full(len(r), axis, np.int8))
+        sides.append(np.where(g[r, c] > 0, 1, -1).astype(np.int8))
+        pix.append(np.column_stack([r, c]) if axis == 0 else np.column_stack([c, r]))
+    if not pts:
+        return DepthEdges(np.zeros((0, 3)), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int64))
+    P, vu = np.concatenate(pts), np.concatenate(pix)
+    mask = np.zeros(np.shape(depth_mm), np.uint8)
+    mask[vu[:, 0], vu[:, 1]] = 1
+    _, labels = cv2.connectedComponents(cv2.dilate(mask, np.ones((3, 3), np.uint8)), connectivity=8)
+    component = labels[vu[:, 0], vu[:, 1]]
+    _, inverse, counts = np.unique(component, return_inverse=True, return_counts=True)
+    long_enough = counts[inverse] >= min_length_px  # speckle and noise make short pieces
+    # one observation: a component's piece within one tile of tile_px. Texture edges join into networks that
+    # span the image, and a handful of giant structures would leave the sandwich's B near 0 at the maximiser
+    tile = (vu[:, 0] // tile_px) * (np.shape(depth_mm)[1] // tile_px + 1) + vu[:, 1] // tile_px
+    _, structure = np.unique(np.column_stack([component, tile]), axis=0, return_inverse=True)
+    edges = DepthEdges(P, np.concatenate(axes), np.concatenate(sides), structure.ravel()).subset(long_enough)
+    P = edges.pts_depth_mm
+    # seen by the colour camera: the rendered surface at its pixel is this one, not a nearer one
+    z_color = transform_points(T_color_from_depth, P)[:, 2]
+    uv = np.round(pinhole.project(transform_points(T_color_from_depth, P))).astype(np.int64)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < pinhole.width_px) & (uv[:, 1] >= 0) & (uv[:, 1] < pinhole.height_px)
+    seen = np.zeros(len(P), bool)
+    rendered = project_depth_to_camera(depth_mm, depth_cam, T_color_from_depth, pinhole, ReprojectParams())
+    zr = rendered[uv[inside, 1], uv[inside, 0]]
+    with np.errstate(invalid="ignore"):
+        seen[inside] = np.abs(zr - z_color[inside]) < max_relief * z_color[inside]
+    return edges.subset(seen)
+
+
 def undistort_image(image: np.ndarray, cam: PinholeCamera) -> tuple[np.ndarray, PinholeCamera]:
     """The image resampled into the pinhole version of ``cam`` (same K, no distortion): every pinhole pixel's ray
     through gtforge's lens model into the raw image, bilinear (``cv2.remap``). Edges are scored in a pinhole
@@ -204,8 +287,11 @@ def edge_scores(edges: DepthEdges, T_color_from_depth: np.ndarray, pinhole: Pinh
         y = uv[m, 1] - (0.5 if axis == 1 else 0.0)
         if not m.any():  # (cv2.remap refuses an empty map)
             continue
-        out[m] = cv2.remap(strength[axis], x.astype(np.float32)[:, None], y.astype(np.float32)[:, None],
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)[:, 0]
+        # cv2.remap takes maps under 32767 rows and columns: the samples go in as rows of 1024
+        n = len(x)
+        rows = -(-n // 1024)
+        xm, ym = (np.pad(a.astype(np.float32), (0, rows * 1024 - n)).reshape(rows, 1024) for a in (x, y))
+        out[m] = cv2.remap(strength[axis], xm, ym, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT).ravel()[:n]
     return out
 
 
@@ -314,18 +400,33 @@ def _maximise(problem: _Problem, strength, theta0: np.ndarray, free: np.ndarray,
 
 def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_rgb: np.ndarray,
                          color_cam: PinholeCamera, T_color_from_depth: np.ndarray,
-                         params: EdgeAlignmentParams = EdgeAlignmentParams()) -> EdgeAlignmentResult:
-    """Refine ``T_color_from_depth`` so that the depth map's silhouettes land on the colour image's edges.
+                         params: EdgeAlignmentParams = EdgeAlignmentParams(),
+                         texture: np.ndarray | None = None) -> EdgeAlignmentResult:
+    """Refine ``T_color_from_depth`` so that the depth map's silhouettes (and, with ``texture``, the edges of the
+    depth camera's own image) land on the colour image's edges.
 
     ``depth_mm`` (float, NaN invalid) on ``depth_cam``'s grid; ``color_rgb`` from ``color_cam`` (lens model
-    applied here); ``T_color_from_depth`` the starting (factory) extrinsic. The module docstring says how; the
-    result says which parameters the capture determined (the others are held at their initial values)."""
+    applied here); ``T_color_from_depth`` the starting (factory) extrinsic; ``texture`` the depth camera's own image
+    (infrared, or a structured-light camera's 2-D image), pixel-aligned with the depth. ``params.edges`` says which
+    edges are used. The module docstring says how; the result says which parameters the capture determined (the
+    others are held at their initial values)."""
     from scipy.optimize import brute  # here, not at import: importing scipy slows every process start
 
     T0 = np.asarray(T_color_from_depth, np.float64)
     matrix4_field(T0)
+    kinds = {"auto": ["silhouettes", "texture"] if texture is not None else ["silhouettes"],
+             "silhouettes": ["silhouettes"], "texture": ["texture"],
+             "both": ["silhouettes", "texture"]}[params.edges]
+    if "texture" in kinds and texture is None:
+        raise InputError(None, "texture", f"the depth camera's own image for edges={params.edges!r}", "none given",
+                         "pass the infrared / 2-D texture image, or use edges='silhouettes'")
     und, pinhole = undistort_image(color_rgb, color_cam)
-    edges = depth_edges(depth_mm, depth_cam, T0, pinhole, params.jump_ratio, params.gap_px)
+    edges = DepthEdges(np.zeros((0, 3)), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int64))
+    if "silhouettes" in kinds:
+        edges = edges + depth_edges(depth_mm, depth_cam, T0, pinhole, params.jump_ratio, params.gap_px)
+    if "texture" in kinds:
+        edges = edges + texture_edges(texture, depth_mm, depth_cam, T0, pinhole, params.texture_top_fraction,
+                                      params.texture_max_relief, params.texture_min_length_px)
     # keep the edges that stay inside the image over the whole search (a fixed set: a smooth objective)
     uv = project_edges(edges, T0, pinhole)
     margin = params.search_px + 3 * params.coarse_blur_sigma_px + 2
@@ -380,6 +481,6 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
         T_color_from_depth_initial=T0, T_color_from_depth=T,
         omega_deg=np.degrees(value[:3]).tolist(), delta_t_mm=value[3:].tolist(), status=status,
         sigma_omega_deg=np.degrees(sigma_phys[:3]).tolist(), sigma_delta_t_mm=sigma_phys[3:].tolist(),
-        rotation_deg=rotation_angle_deg(T[:3, :3] @ T0[:3, :3].T), n_edges=len(edges),
+        rotation_deg=rotation_angle_deg(T[:3, :3] @ T0[:3, :3].T), n_edges=len(edges), edge_kinds=kinds,
         score_initial=score_initial, score_final=float(problem.scores(theta, fine).mean()),
         f_px=f_px, median_depth_mm=z_med)
