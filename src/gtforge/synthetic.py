@@ -23,7 +23,7 @@ import numpy as np
 from gtforge.core.board import BoardSpec
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.core.gauges import GaugesFile, GaugeSpec
-from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, transform_points
+from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, perturb_left, transform_points
 from gtforge.core.schema import VersionedFile
 from gtforge.core.targets import board_model_of, collinear
 from gtforge.io.cameras import check_zed_conf_reading, write_zed_conf
@@ -562,7 +562,8 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
                      partial_poses: int = 0, partial_camera: str = "mech",
                      zed_right_rotation_error_rad: tuple[float, float, float] | None = None,
                      zed_baseline_error_frac: float = 0.0, right_yaw_deg: float = 0.0,
-                     depth_scale_error_frac: float = 0.0, depth_offset_mm: float = 0.0) -> Path:
+                     depth_scale_error_frac: float = 0.0, depth_offset_mm: float = 0.0,
+                     depth_pose_error_deg: tuple[float, float, float] | None = None) -> Path:
     """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``.
 
     ``zed_right_rotation_error_rad``: the right ZED image is rendered from a camera turned by this rotation vector
@@ -579,7 +580,9 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     Errors in the files the pipeline trusts (issue #25; all 0: the files are exact): ``zed_baseline_error_frac`` the
     ZED's true baseline is ``(1 + it)`` times what zed_calibration.yaml says; ``right_yaw_deg`` the right camera is
     turned about its y axis (the right images are rendered so, the truth is the ideal rectified pair's);
-    ``depth_scale_error_frac`` / ``depth_offset_mm`` the depth map reads ``(1 + k) z + offset``. The truth
+    ``depth_scale_error_frac`` / ``depth_offset_mm`` the depth map reads ``(1 + k) z + offset``;
+    ``depth_pose_error_deg`` (``two_camera`` only) session.yaml's ``T_mech_from_depth`` is the true one turned by this
+    rotation vector (deg, the left perturbation of docs/conventions.md; truth/ keeps the true one). The truth
     (``zed_disparity_px``...) is what the images show with the true baseline, ``f * B_true / Z - doffs``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -626,6 +629,10 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         fruit_ids[cap.name] = f"fruit{i // 2:02d}"
         if progress:
             progress(f"scene {cap.name}")
+    if depth_pose_error_deg is not None:
+        if not two_camera:
+            raise ValueError("depth_pose_error_deg needs two_camera=True (a separate depth camera)")
+        T_md = perturb_left(rig.T_mech_from_depth, np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
     extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
     if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets)
         extra["board"] = board_model_of(board)

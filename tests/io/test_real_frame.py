@@ -307,12 +307,17 @@ def report() -> None:
             print(f"  {what:17s} {depth:9s}: {off:+.2f} px ({n} edges)")
 
 
-def report_corrected() -> Chain:
-    """gtforge.core.edge_alignment's correction of the factory extrinsic, and the measure before and after it."""
-    from gtforge.core.edge_alignment import align_color_to_depth
+def report_corrected(infrared: Path | None = None) -> Chain:
+    """gtforge.core.edge_alignment's correction of the factory extrinsic (with ``infrared``: from that image's edges
+    as the texture, alone), and the measure before and after it."""
+    from gtforge.core.edge_alignment import EdgeAlignmentParams, align_color_to_depth
 
     k, depth, color = frame()
-    res = align_color_to_depth(depth, k.depth, color, k.color, k.T_color_from_depth)
+    if infrared is None:
+        res = align_color_to_depth(depth, k.depth, color, k.color, k.T_color_from_depth)
+    else:
+        res = align_color_to_depth(depth, k.depth, color, k.color, k.T_color_from_depth,
+                                   EdgeAlignmentParams(edges="texture"), texture=read_image(infrared, expect="uint16"))
     names = ("omega_x", "omega_y", "omega_z")
     for name, value, sigma, status in zip(names, res.omega_deg, res.sigma_omega_deg, res.status):
         print(f"{name}: {value:+.3f} deg +- {sigma:.3f} ({status})")
@@ -337,8 +342,9 @@ if __name__ == "__main__":
     ap.add_argument("--overlay", type=Path, help="write the overlay JPEG here")
     ap.add_argument("--corrected", action="store_true",
                     help="correct the extrinsic with gtforge.core.edge_alignment; the overlay shows the corrected chain")
+    ap.add_argument("--infrared", type=Path, help="with --corrected: the depth camera's infrared image as the texture")
     args = ap.parse_args()
-    corrected = report_corrected() if args.corrected else None
+    corrected = report_corrected(args.infrared) if args.corrected else None
     if args.overlay:
         write_overlay(args.overlay, corrected)
         print(f"wrote {args.overlay} ({args.overlay.stat().st_size / 1024:.0f} KiB)")

@@ -1,4 +1,5 @@
-"""Refine ``T_color_from_depth`` from one capture by putting the depth map's silhouettes on the colour image's edges.
+"""Refine ``T_color_from_depth`` from one capture by putting the depth map's silhouettes (and the depth camera's own
+image's edges) on the colour image's edges.
 
 Photometric alignment (``gtforge.refine``) needs a texture that looks like the colour image; a depth camera's own
 infrared image often does not (an Azure Kinect's infrared and colour images differ too much for local
@@ -7,7 +8,9 @@ almost always has an edge too (a different surface behind). This module
 
 1. renders the depth into the undistorted colour camera at the starting extrinsic (gtforge's mesh reprojection, the
    surfaces ground truth is built from), finds the foreground side of every depth jump there, places it where the
-   silhouette lies on average and carries it back into the depth camera as a 3-D point (``depth_edges``);
+   silhouette lies on average and carries it back into the depth camera as a 3-D point (``depth_edges``); with the
+   depth camera's own image (infrared, a structured-light camera's 2-D texture: pixel-aligned with the depth), its
+   edges on surfaces too (``texture_edges``; docs/cameras.md measures both on the real Azure Kinect frame);
 2. undistorts the colour image into a pinhole camera and makes two edge-strength images, ``|dI/dx|`` for the
    silhouettes between horizontal neighbours and ``|dI/dy|`` for those between vertical neighbours, Gaussian-blurred
    (``edge_strength``);
