@@ -68,6 +68,9 @@ class EdgeAlignmentParams(GTModel):
     texture_min_length_px: int = Field(20, ge=1)  # ... in contours of at least this many pixels (not speckle)
     max_sigma_px: float = Field(0.3, gt=0)  # "determined": 1 sigma moves the image by at most this much
     min_edges: int = Field(50, gt=0)
+    # the covariance counts an edge structure (of >= 10 samples) as one observation, and G structures leave at most
+    # G - 1 directions in the sandwich's B: k parameters are determined only from k + this many structures
+    min_extra_structures: int = Field(3, ge=1)
 
 
 class EdgeAlignmentResult(GTModel):
@@ -86,6 +89,7 @@ class EdgeAlignmentResult(GTModel):
     sigma_delta_t_mm: list[float] = Field(min_length=3, max_length=3)
     rotation_deg: float  # angle of the applied correction
     n_edges: int
+    n_structures: int  # edge structures of >= 10 samples (the covariance's observations)
     edge_kinds: list[Literal["silhouettes", "texture"]]  # what the edges were
     score_initial: float  # mean colour edge strength at the depth edges (grey levels / px), factory extrinsic
     score_final: float
@@ -456,6 +460,8 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
     # fine: forward selection. Each round fits every candidate parameter together with those already chosen and
     # keeps the candidate that raises the score most among those whose fit leaves every chosen parameter
     # determined (1-sigma <= max_sigma_px); it stops when none does. What is never chosen stays at its initial value.
+    _, structure_sizes = np.unique(edges.structure, return_counts=True)
+    n_structures = int((structure_sizes >= 10).sum())
     fitted = np.array([True] * 3 + [params.fit_translation] * 3)
     initial = np.array([start[0], start[1], 0, 0, 0, 0.0])
     determined = np.zeros(6, bool)
@@ -465,6 +471,8 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
         for k in np.flatnonzero(fitted & ~determined):
             free = determined.copy()
             free[k] = True
+            if n_structures < free.sum() + params.min_extra_structures:  # too few observations for the sandwich
+                continue
             t = np.where(determined, theta, 0.0)
             t[k] = initial[k]
             t = _maximise(problem, coarse, t, free, polish=False)
@@ -484,6 +492,6 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
         T_color_from_depth_initial=T0, T_color_from_depth=T,
         omega_deg=np.degrees(value[:3]).tolist(), delta_t_mm=value[3:].tolist(), status=status,
         sigma_omega_deg=np.degrees(sigma_phys[:3]).tolist(), sigma_delta_t_mm=sigma_phys[3:].tolist(),
-        rotation_deg=rotation_angle_deg(T[:3, :3] @ T0[:3, :3].T), n_edges=len(edges), edge_kinds=kinds,
+        rotation_deg=rotation_angle_deg(T[:3, :3] @ T0[:3, :3].T), n_edges=len(edges), n_structures=n_structures, edge_kinds=kinds,
         score_initial=score_initial, score_final=float(problem.scores(theta, fine).mean()),
         f_px=f_px, median_depth_mm=z_med)
