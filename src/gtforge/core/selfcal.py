@@ -54,6 +54,10 @@ class SelfRectifyParams(GTModel):
     disagree_px: float = Field(0.3, gt=0)  # |median residual row offset| of one capture after the common fit
     apply_min_px: float = Field(0.03, ge=0)  # the correction's largest vertical move over the image
     max_features: int = Field(8000, ge=100)  # SIFT features per image
+    # a yaw (rotation about y) moves rows by psi x y: where the matches determine it within this 1-sigma, it is fitted
+    # with the rest and left out of the correction (calibrate-scale measures the yaw from disparities), so that it
+    # does not leak into the focal scale and the roll, which also move columns; else the 3-parameter fit
+    yaw_nuisance_max_sigma_deg: float = Field(0.005, ge=0)
 
 
 class ZedRightCorrection(GTModel):
@@ -190,6 +194,10 @@ def fit_self_rectification(matches: list[Matches], stereo: RectifiedStereo, para
     pr = np.concatenate([m.right_uv for m in used])
     theta, cov, _ = _robust_fit(pl, pr, stereo, with_omega_y=False)
     theta4, cov4, _ = _robust_fit(pl, pr, stereo, with_omega_y=True)
+    yaw_nuisance = bool(np.sqrt(max(cov4[1, 1], 0.0)) <= np.radians(params.yaw_nuisance_max_sigma_deg))
+    if yaw_nuisance:  # (omega_x, omega_z, s) of the 4-parameter fit, the yaw fitted but not applied
+        keep = [0, 2, 3]
+        theta, cov = theta4[keep], cov4[np.ix_(keep, keep)]
     corr = ZedRightCorrection(rotvec_rad=[float(theta[0]), 0.0, float(theta[1])], focal_scale=float(theta[2]))
     H = corr.homography(stereo)
     rows = []
@@ -224,8 +232,11 @@ def fit_self_rectification(matches: list[Matches], stereo: RectifiedStereo, para
             status="not needed", reason=f"the fitted correction moves no pixel by more than {move:.3f} px "
             f"(threshold {params.apply_min_px} px{'' if significant else ', and it is within 3 sigma of zero'}): "
             "the images are left as they are", **fields)
+    yaw_note = (f"; the yaw the rows show ({np.degrees(theta4[1]):+.4f} +- {np.degrees(np.sqrt(cov4[1, 1])):.4f} deg) "
+                "was fitted with them and left to calibrate-scale, which measures it from disparities"
+                if yaw_nuisance else "")
     return ZedSelfRectification(status="applied", reason="the captures determine the right camera's residual "
-                                "rotation (about x and z) and focal scale", correction=corr, **fields)
+                                "rotation (about x and z) and focal scale" + yaw_note, correction=corr, **fields)
 
 
 # ---- applying it ---------------------------------------------------------------------------------------------------
