@@ -42,6 +42,10 @@ CASES = {
     "depth offset +0.5 mm": dict(depth_offset_mm=0.5),
     "combined": dict(zed_baseline_error_frac=0.003, right_yaw_deg=0.15, depth_scale_error_frac=-0.002,
                      depth_offset_mm=0.5),
+    # the same and the right camera turned 0.15 deg about x and z as well (the self-rectification's errors)
+    "all combined": dict(zed_baseline_error_frac=0.003, right_yaw_deg=0.15, depth_scale_error_frac=-0.002,
+                         depth_offset_mm=0.5, zed_right_rotation_error_rad=(0.0026179938779914945, 0.0,
+                                                                            0.0026179938779914945)),
 }
 
 
