@@ -478,6 +478,14 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
                          f"more circles beyond its {side} edge", "a larger grid: count the circles per row (--cols) "
                          "and the rows (--rows) on the plate")
     uv = refine_circle_centres(gray, uv, r_px)
+    # findCirclesGrid can return a grid with a stray blob in it and the circles after it numbered wrongly (seen on the
+    # generator's texture images at 0.3x); such a grid is not used: one homography of the declared layout must put
+    # every centre within a quarter spacing (a wrong id is a spacing off; lens distortion is removed first)
+    frac, _ = _layout_fits(spec.corners_board()[:, :2], _undistorted_px(uv, cam), max(1.0, 0.25 * float(np.median(nn_px))))
+    if frac < 1.0:
+        log.info("%s: a circle grid off the declared layout (%d of %d centres) not used", where,
+                 int(round((1 - frac) * spec.n_corners)), spec.n_corners)
+        return None
     H, W = gray.shape
     hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
     mask = np.zeros(gray.shape, np.uint8)
