@@ -31,8 +31,8 @@ from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
 from gtforge.core.rectification import RectificationMeter
 from gtforge.core.selfcal import SelfRectifyParams
-from gtforge.core.target_detection import detect_target, pnp_bias_corrected, unmirror_symmetric_grid
-from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, check_board_model, collinear
+from gtforge.core.target_detection import PairSkipped, detect_target, match_target_views
+from gtforge.core.targets import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
@@ -276,10 +276,8 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         session.refuse_output_inside_captures(out_path)
     dirs = session.select("board", captures, exclude)
 
-    checker = params.board.kind == "checkerboard"
-    # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it);
-    # the rectification is measured on full checkerboards only (other targets: not yet, docs/targets.md)
-    session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress) if checker else (session, None)
+    # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)
+    session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress)
     selfcal = None
     if params.self_rectify:
         # every capture with both images: the scenes' texture constrains the rows as well as the boards
@@ -289,7 +287,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         if selfcal.correction is not None:
             session = open_session(session_dir, zed_conf_reading=zed_conf.reading if zed_conf else None,
                                    zed_right_correction=selfcal.correction)
-    meter = RectificationMeter(board, session.zed.left, rectified_by(session)) if checker else None
+    meter = RectificationMeter(board, session.zed.left, rectified_by(session), zed_right=session.zed.right)
     obs, reports = [], []
     for k, d in enumerate(dirs):
         if progress:
@@ -300,13 +298,12 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         reports.append(rep)
         if o is not None:
             obs.append(o)
-            if meter is not None:
-                meter.add(d.name, cap.zed_right, left_uv=o.zed_uv)
+            meter.add(d.name, cap.zed_right, left_detection=o.det_zed)
     result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress, session.depth_cam,
                                     session.T_mech_from_depth)
     result.attach_coverage()
     result.session_dir = str(Path(session_dir).resolve())
-    result.zed_conf, result.rectification = zed_conf, (meter.result() if meter is not None else None)
+    result.zed_conf, result.rectification = zed_conf, meter.result()
     result.zed_self_rectification = selfcal
     stereo_warnings = (zed_conf.warnings if zed_conf else []) + (result.rectification.warnings if result.rectification else [])
     if selfcal is not None and selfcal.status == "not determined":
@@ -331,35 +328,15 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
         which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
         log.warning("capture %s: board not found in the %s image; skipped", name, which)
         return None, PoseResult(capture=name, status="skipped", reason=f"board not found in the {which} image")
-    X = spec.corners_board()
     counts = dict(n_points_mech=len(dm.ids), n_points_zed=len(dz.ids))
-    for d, cam, cname in ((dm, mech, "structured-light"), (dz, zed.left, "ZED")):
-        if len(d.ids) < min_common or collinear(X[d.ids]):
-            why = (f"only {len(d.ids)} board points in the {cname} image (need {min_common})" if len(d.ids) < min_common
-                   else f"the board points in the {cname} image lie on one line")
-            log.warning("capture %s: %s; skipped", name, why)
-            return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
-    if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
-        dm, dz = unmirror_symmetric_grid(spec, dm, mech, solve_pnp), unmirror_symmetric_grid(spec, dz, zed.left, solve_pnp)
-    T_mech_from_board, uv_m_all = pnp_bias_corrected(spec, dm, mech, solve_pnp)
-    T_zed_from_board, uv_z_all = pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
-    if isinstance(spec, CircleGridSpec) and not spec.asymmetric:
-        # a symmetric grid has a 180-degree ambiguity: each camera may have numbered it from the other end. The
-        # cameras look the same way (their relative rotation about the view axis is far below 90 degrees), so the
-        # board's x axis points the same way in both; flip the ZED's numbering when it does not
-        if T_mech_from_board[:3, 0] @ T_zed_from_board[:3, 0] < 0:
-            dz = Detection(dz.corners_uv[::-1].copy(), dz.sharpness_px, dz.method, dz.pattern_contrast, dz.ids)
-            T_zed_from_board, uv_z_all = pnp_bias_corrected(spec, dz, zed.left, solve_pnp)
-    common, im, iz = np.intersect1d(dm.ids, dz.ids, return_indices=True)
-    counts["n_points_common"] = len(common)
-    if len(common) < min_common:
-        why = f"only {len(common)} board points seen by both cameras (need {min_common})"
-        log.warning("capture %s: %s; skipped", name, why)
-        return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
-    if collinear(X[common]):
-        why = "the board points both cameras see lie on one line"
-        log.warning("capture %s: %s; skipped", name, why)
-        return None, PoseResult(capture=name, status="skipped", reason=why, **counts)
+    pair = match_target_views(spec, dm, mech, dz, zed.left, ("structured-light", "ZED"), min_common)
+    if isinstance(pair, PairSkipped):
+        log.warning("capture %s: %s; skipped", name, pair.reason)
+        if pair.n_common is not None:
+            counts["n_points_common"] = pair.n_common
+        return None, PoseResult(capture=name, status="skipped", reason=pair.reason, **counts)
+    counts["n_points_common"] = len(pair.ids)
+    dm, dz = pair.det_a, pair.det_b
     blurred = bool(dm.sharpness_px > blur_px or dz.sharpness_px > blur_px)
     if blurred:
         log.warning("capture %s: blurred board (edge width %.1f / %.1f px)", name, dm.sharpness_px, dz.sharpness_px)
@@ -369,7 +346,7 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
 
     rep = PoseResult(capture=name, status="used", sharpness_mech_px=fin(dm.sharpness_px),
                      sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
-    obs = PoseObs(name, uv_m_all[im], uv_z_all[iz], T_mech_from_board, T_zed_from_board, depth_mm, dm, dz, ids=common)
+    obs = PoseObs(name, pair.uv_a, pair.uv_b, pair.T_a_from_board, pair.T_b_from_board, depth_mm, dm, dz, ids=pair.ids)
     return obs, rep
 
 

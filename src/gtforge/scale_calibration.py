@@ -12,7 +12,8 @@ through a right camera turned by ``psi`` about its y axis. With ``B_true = (1 + 
   scene, one Gauss-Newton solve): the sum ``b + k`` (a 1/Z term), ``c`` (1/Z^2) and ``psi`` (a constant plus the
   x^2 curvature). ``b`` and ``k`` are **not separable** from scenes: only their sum.
 * **Boards, ZED** (``board_zed_measurement``): the corners' stereo disparity against their depth from PnP in the
-  ZED-left image (which uses the board's known square size, not the baseline): ``b`` and ``psi``.
+  ZED-left image (which uses the board's known square size, not the baseline): ``b`` and ``psi``. Any target
+  (``board_measurements``): left and right points matched by id, circle centres bias-corrected in each image.
 * **Boards, depth** (``board_depth_measurement``): the depth camera's z at each corner's ray against the corner's z
   from PnP in the texture image (the known square size again): ``z_depth - z_pnp = k z + c``: ``k`` and ``c``.
 
@@ -42,7 +43,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from gtforge.core.board import detect_corners, solve_pnp
+from gtforge.core.board import solve_pnp
 from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.geometry import invert_T, transform_points
 from gtforge.core.photometric import (
@@ -53,7 +54,10 @@ from gtforge.core.photometric import (
     textured_mask,
     to_gray,
 )
+from gtforge.core.rectification import matched_board_points
 from gtforge.core.scale_corrections import apply_homography, spline_coefficients, spline_sample, yaw_homography
+from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_corrected, unmirror_symmetric_grid
+from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.records.calibration import (
@@ -300,7 +304,14 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
 
 def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
                        progress: Callable[[str], None] | None = None) -> list[BoardMeasurement]:
-    """Detect the board in every board capture (texture, ZED left and right images) and measure from them."""
+    """Detect the board in every board capture (texture, ZED left and right images) and measure from them.
+
+    Any target (``gtforge.core.targets``). ZED: the left and right points matched by id
+    (``gtforge.core.rectification.matched_board_points``: a symmetric grid numbered alike, circle centres corrected
+    for their perspective bias at each image's own PnP pose, so the right points are where the circles' centres show);
+    the corners' ZED-left coordinates from PnP on every left point. Depth: PnP on every point the texture image shows.
+    A view with fewer than 6 points (``MIN_COMMON_CORNERS``; left and right: in common) or collinear ones is left out,
+    with the reason logged."""
 
     X = board.corners_board()
     zed_poses, depth_poses = [], []
@@ -308,15 +319,26 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
         if progress:
             progress(f"board {d.name} ({k + 1}/{len(dirs)})")
         cap = session.load_capture(d)
-        dl = detect_corners(cap.zed_left, board)
-        dr = detect_corners(cap.zed_right, board) if cap.zed_right is not None else None
+        dl = detect_target(cap.zed_left, board, rig.zed.left, where=f"{d.name}: ZED-left image")
+        dr = detect_target(cap.zed_right, board, rig.zed.right, where=f"{d.name}: ZED-right image") \
+            if cap.zed_right is not None else None
         if dl is not None and dr is not None:
-            T_zb = solve_pnp(X, dl.corners_uv, rig.zed.left)
-            zed_poses.append((d.name, transform_points(T_zb, X), dl.corners_uv, dr.corners_uv))
-        dm = detect_corners(cap.mech_texture, board)
+            pair = matched_board_points(board, dl, rig.zed.left, dr, rig.zed.right)
+            if isinstance(pair, PairSkipped):
+                log.info("board capture %s: ZED left/right %s; not used", d.name, pair.reason)
+            else:
+                zed_poses.append((d.name, transform_points(pair.T_a_from_board, X[pair.ids]), pair.uv_a, pair.uv_b))
+        dm = detect_target(cap.mech_texture, board, rig.mech, where=f"{d.name}: structured-light image")
         if dm is not None and cap.depth_mm is not None:
-            T_mb = solve_pnp(X, dm.corners_uv, rig.mech)
-            depth_poses.append((d.name, transform_points(T_mb, X), cap.depth_mm))
+            ids = np.arange(len(dm.corners_uv)) if dm.ids is None else dm.ids
+            if len(ids) < MIN_COMMON_CORNERS or collinear(X[ids]):
+                log.info("board capture %s: %d board points in the structured-light image%s; not used for the depth",
+                         d.name, len(ids), "" if len(ids) < MIN_COMMON_CORNERS else ", on one line")
+                continue
+            if isinstance(board, CircleGridSpec) and not board.asymmetric:
+                dm = unmirror_symmetric_grid(board, dm, rig.mech, solve_pnp)
+            T_mb, _ = pnp_bias_corrected(board, dm, rig.mech, solve_pnp)
+            depth_poses.append((d.name, transform_points(T_mb, X[ids]), cap.depth_mm))
     out = [m for m in (board_zed_measurement(zed_poses, rig),
                        board_depth_measurement(depth_poses, rig, params.board_depth_window_px)) if m is not None]
     return out

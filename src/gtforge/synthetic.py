@@ -745,7 +745,8 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
                              raw: RawZed | None = None, conf_rotation_error_rad: tuple[float, float, float] | None = None,
                              progress=None) -> Path:
     """A capture session with raw ZED images (``left.png``/``right.png`` straight off the sensor) and
-    ``SN<serial>.conf`` written under ``reading``; ``session.yaml`` says ``zed_rectified: false``.
+    ``SN<serial>.conf`` written under ``reading``; ``session.yaml`` says ``zed_rectified: false`` (and declares
+    ``board`` when it is another target than the checkerboard: ChArUco, circle grids).
     ``truth/`` as in ``generate_session`` (in the true rectified frame) plus ``raw_zed_truth.yaml``."""
 
     raw = raw or default_raw_zed()
@@ -785,7 +786,9 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
         fruit_ids[cap.name] = f"fruit{i // 2:02d}"
         if progress:
             progress(f"scene {cap.name}")
-    SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids).write(out / "session.yaml")
+    # another target than the checkerboard: session.yaml declares it (as generate_session)
+    extra = {} if isinstance(board, BoardSpec) else {"board": board_model_of(board)}
+    SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
 
 

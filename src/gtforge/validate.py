@@ -246,9 +246,8 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     if calib.zed_conf is not None or calib.zed_right_correction is not None:
         session = calib.open_session(session_dir)
     check_rig_matches_session(calib.rig, session, calib_path)  # as every other stage (a calibration of another rig)
-    # the rectification is measured on whole checkerboards only (docs/targets.md)
-    meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session)) if board_model.kind == "checkerboard" \
-        else None
+    # the rectification on the board points (any target: matched by id, circle centres bias-corrected; docs/targets.md)
+    meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session), zed_right=calib.rig.zed.right)
     warnings = []
     used = set(calib.captures_used)
     poses, vecs, skipped = [], [], {}
@@ -258,8 +257,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         cap = session.load_capture(d, need_right=False)
         pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, calib.rig, board, params,
                                      d.name in used)
-        if meter is not None:
-            meter.add(d.name, cap.zed_right, left_image=cap.zed_left)
+        meter.add(d.name, cap.zed_right, left_image=cap.zed_left)
         if err:
             skipped[d.name] = err
             log.warning("capture %s: %s; skipped", d.name, err)
@@ -282,7 +280,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     zerr = np.array([p.z_error_pct for p in poses])
     xy_mean = float(e.mean())
     z_mean = float(np.nanmean(zerr))
-    rect = meter.result() if meter is not None else None
+    rect = meter.result()
     warnings += rect.warnings if rect is not None else []
     rep = ValidationResult(
         calibration_path=str(calib_path), session_dir=str(session_dir),

@@ -266,6 +266,10 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     v = validate(sess, out, tmp_path / "val")
     assert v.board.kind == "circles_symmetric" and len(v.poses) >= 3
     assert v.xy_mean_px < 0.3 and v.z_error_mean_pct < 0.5, (v.xy_mean_px, v.z_error_mean_pct)
+    # the rectification check on the circle centres (matched by id, bias-corrected, numbered alike left and right): the
+    # generator's rectification is exact
+    for q in (cal.rectification, v.rectification):
+        assert q is not None and len(q.poses) >= 3 and q.overall.fit_mean_abs_px < 0.03 and not q.warnings, q
     # a board option on the command line overrides session.yaml's field: a grid one column short is refused (it
     # would otherwise be found inside the plate's, numbered from either end), one line, exit code 2
     from conftest import gtforge, one_line_error
@@ -297,3 +301,159 @@ def test_a_session_with_partial_poses_calibrates_from_them(tmp_path):
     truth = np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech)
     rot, tr = pose_difference(cal.rig.T_zed_from_mech, truth)
     assert rot < 0.05 and tr < 0.5, (rot, tr)
+
+
+# ---- the rectification check, the SN.conf reading and calibrate-scale's boards on every target (issue #29) --------
+# 60 mm squares: about 28 px at 0.3x, where the masked refinement works (OpenCV's corners, kept on smaller squares, are
+# 0.15-0.2 px off on oblique poses: too coarse to tell a 0.3 % baseline or two SN.conf readings apart)
+CHARUCO_60 = CharucoSpec(6, 4, 60.0, 45.0, "DICT_4X4_50")
+SYMMETRIC = CircleGridSpec(7, 5, 36.0, 18.0, False)
+RIGHT_ROTATION_ERROR_RAD = (0.0008, 0.0, 0.0015)  # the right ZED camera pitched and rolled against its file
+SCALE_ERRORS = dict(zed_baseline_error_frac=0.003, depth_scale_error_frac=-0.002, depth_offset_mm=0.5)
+
+
+@pytest.fixture(scope="module")
+def charuco_stereo_session(tmp_path_factory):
+    """6 ChArUco poses at 0.3x (ZED 662x373) with a baseline 0.3 % longer than the file's and a depth map reading
+    0.2 % short plus 0.5 mm; the rectification itself is exact."""
+    from gtforge.synthetic import generate_session
+
+    return generate_session(tmp_path_factory.mktemp("charuco_stereo"), n_board=6, n_scenes=0, scale=0.3, seed=5,
+                            board=CHARUCO_60, depth_noise_mm=0.03, image_noise=1.0, supersample=2, **SCALE_ERRORS)
+
+
+@pytest.fixture(scope="module")
+def circles_stereo_session(tmp_path_factory):
+    """4 symmetric circle-grid poses at 0.3x whose right ZED image comes from a camera turned by
+    ``RIGHT_ROTATION_ERROR_RAD`` against the rectified model in zed_calibration.yaml: 0.2-0.4 px of true vertical
+    disparity, varying across the image."""
+    from gtforge.synthetic import generate_session
+
+    return generate_session(tmp_path_factory.mktemp("circles_stereo"), n_board=4, n_scenes=0, scale=0.3, seed=5,
+                            board=SYMMETRIC, depth_noise_mm=0.0, image_noise=1.0, supersample=2,
+                            zed_right_rotation_error_rad=RIGHT_ROTATION_ERROR_RAD)
+
+
+def _meter(session, spec, right_of=lambda img: img):
+    from gtforge.core.rectification import RectificationMeter
+    from gtforge.io.captures import open_session
+
+    s = open_session(session)
+    meter = RectificationMeter(spec, s.zed.left, "x", zed_right=s.zed.right)
+    for d in s.capture_dirs("board"):
+        cap = s.load_capture(d)
+        meter.add(d.name, right_of(cap.zed_right), left_image=cap.zed_left)
+    return meter
+
+
+def _true_vertical_disparity(session, spec, capture: str, uv_left: np.ndarray, R_right_err=np.eye(3)) -> np.ndarray:
+    """Exact ``v_left - v_right`` of the board points the meter measured (``uv_left``: its left points; each is matched
+    to the nearest true left projection, so a symmetric grid's numbering does not matter)."""
+    from gtforge.core.geometry import transform_points
+    from gtforge.io.captures import open_session
+    from gtforge.synthetic import SyntheticTruth
+
+    s = open_session(session)
+    T_zm = np.array(SyntheticTruth.read(session / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    tr = np.load(session / "truth" / f"board_{capture}.npz")
+    X = transform_points(T_zm @ tr["T_mech_from_board"], spec.corners_board())
+    uv_l = s.zed.left.project(X)
+    uv_r = s.zed.right.project((X - [s.zed.baseline_mm, 0.0, 0.0]) @ np.asarray(R_right_err).T)
+    near = np.linalg.norm(uv_left[:, None] - uv_l[None], axis=2)
+    k = np.argmin(near, axis=1)
+    assert near[np.arange(len(k)), k].max() < 0.5 and len(set(k)) == len(k)
+    return uv_l[k, 1] - uv_r[k, 1]
+
+
+@pytest.mark.slow
+def test_rectification_meter_on_charuco_and_circle_grids_against_truth(charuco_stereo_session, circles_stereo_session):
+    """The meter on targets other than the checkerboard: ChArUco corners matched by id, circle centres bias-corrected
+    in each image, a symmetric grid's right numbering turned to the left one's; every figure against the exact
+    vertical disparity of the points measured."""
+    # ChArUco, exact rectification: the truth is 0 everywhere
+    q = _meter(charuco_stereo_session, CHARUCO_60).result()
+    assert len(q.poses) == 6 and not q.skipped and not q.warnings
+    assert q.overall.fit_mean_abs_px < 0.03 and abs(q.overall.mean_px) < 0.01, q.overall
+    assert q.overall.n_points >= 6 * 12
+    # the right image one pixel lower (exactly: rows moved, no interpolation): v_left - v_right drops by 1 px
+    def lower(img):
+        out = img.copy()
+        out[1:] = img[:-1]
+        return out
+
+    qs = _meter(charuco_stereo_session, CHARUCO_60, lower).result()
+    assert len(qs.poses) == 6 and qs.overall.mean_px == pytest.approx(q.overall.mean_px - 1.0, abs=0.01)
+    assert qs.overall.fit_mean_abs_px == pytest.approx(1.0, abs=0.03) and "0.15 px" in qs.warnings[0]
+    # symmetric circles, right camera turned: 0.2-0.4 px of true vertical disparity, measured per pose
+    R = cv2.Rodrigues(np.asarray(RIGHT_ROTATION_ERROR_RAD).reshape(3, 1))[0]
+    meter = _meter(circles_stereo_session, SYMMETRIC)
+    qc = meter.result()
+    assert len(qc.poses) == 4 and not qc.skipped and qc.overall.n_points == 4 * SYMMETRIC.n_corners
+    truth = []
+    for pv, pts in zip(meter.poses, meter.points):
+        dv_true = _true_vertical_disparity(circles_stereo_session, SYMMETRIC, pv.capture, pts[:, :2], R)
+        truth.append(dv_true)
+        assert np.abs(pts[:, 2] - dv_true).mean() < 0.05, pv.capture  # per point, detector noise included
+        assert pv.mean_px == pytest.approx(dv_true.mean(), abs=0.02), (pv.capture, pv.mean_px, dv_true.mean())
+    truth = np.concatenate(truth)
+    assert 0.15 < truth.mean() < 0.4 and qc.overall.mean_px == pytest.approx(truth.mean(), abs=0.01)
+    assert qc.overall.fit_mean_abs_px == pytest.approx(np.abs(truth).mean(), abs=0.01) and qc.warnings
+
+
+@pytest.mark.slow
+def test_calibrate_scale_board_measurements_on_charuco(charuco_stereo_session):
+    """calibrate-scale's two board measurements on ChArUco captures: the baseline from the left/right corners (matched
+    by id) against the ZED-left PnP depth, the depth scale and offset from the texture image's PnP against the depth
+    map; each within 2 sigma of the generator's errors, the baseline's sigma small enough to see its 0.3 %."""
+    from gtforge.core.camera import Rig
+    from gtforge.io.captures import open_session
+    from gtforge.records.calibration import ScaleParams
+    from gtforge.scale_calibration import IB, IC, IK, IY, board_measurements
+    from gtforge.synthetic import SyntheticTruth
+
+    s = open_session(charuco_stereo_session)
+    truth = SyntheticTruth.read(charuco_stereo_session / "truth" / "rig_truth.yaml")
+    rig = Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=np.array(truth.T_zed_from_mech))
+    zed_m, depth_m = board_measurements(s, s.capture_dirs("board"), rig, CHARUCO_60, ScaleParams())
+    assert zed_m.A[0, IB] == 1 and zed_m.A[1, IY] == 1 and depth_m.A[0, IK] == 1 and depth_m.A[1, IC] == 1
+    assert len(zed_m.poses) == 6 and len(depth_m.poses) == 6
+    sig_z, sig_d = np.sqrt(np.diag(zed_m.C)), np.sqrt(np.diag(depth_m.C))
+    b, yaw = zed_m.y
+    assert abs(b - SCALE_ERRORS["zed_baseline_error_frac"]) < 2 * sig_z[0] and sig_z[0] < 0.0015, (b, sig_z)
+    assert abs(yaw) < 2 * sig_z[1], (yaw, sig_z)
+    k, c = depth_m.y
+    assert abs(k - SCALE_ERRORS["depth_scale_error_frac"]) < 2 * sig_d[0] and sig_d[0] < 0.001, (k, sig_d)
+    assert abs(c - SCALE_ERRORS["depth_offset_mm"]) < 2 * sig_d[1], (c, sig_d)
+
+
+@pytest.mark.slow
+def test_zed_conf_reading_from_charuco_board_pairs(tmp_path):
+    """A raw ZED session (VGA, distorted) with ChArUco boards: the corners both raw images show, matched by id,
+    choose the reading of the SN.conf under each of the eight encodings; calibrate records it (chosen by the board
+    images) and measures the rectification on the ChArUco corners."""
+    from gtforge.calibrate import calibrate
+    from gtforge.io.cameras import ZED_CONF_READINGS, read_zed_conf
+    from gtforge.io.captures import open_session
+    from gtforge.io.zed_rectification import choose_reading, detect_raw_pairs
+    from gtforge.synthetic import default_raw_zed, generate_raw_zed_session, write_raw_zed_conf
+
+    sess = generate_raw_zed_session(tmp_path / "raw", reading="neg-all", n_board=4, n_scenes=0, seed=5,
+                                    board=CHARUCO_60, supersample=2)
+    s = open_session(sess)
+    pairs, skipped = detect_raw_pairs(s, s.capture_dirs("board"), CHARUCO_60)
+    assert len(pairs) == 4 and not skipped
+    assert all(MIN_COMMON_CORNERS <= len(p.ids) <= CHARUCO_60.n_corners for p in pairs)
+    raw = default_raw_zed()
+    for reading in ZED_CONF_READINGS:
+        f = read_zed_conf(write_raw_zed_conf(tmp_path / f"SN_{reading}.conf", raw, reading), 672)
+        choice = choose_reading(f, pairs, CHARUCO_60)
+        assert choice.reading == reading and choice.chosen_by == "board images", (reading, choice.reading)
+        eligible = [c for c in choice.candidates if c.eligible]
+        assert eligible[0].vertical.fit_mean_abs_px < 0.04
+        # the next reading (a rotation or translation read another way) is a measurably different rectification
+        assert eligible[1].vertical.fit_mean_abs_px > eligible[0].vertical.fit_mean_abs_px + 0.015
+    cal = calibrate(sess, tmp_path / "cal.yaml", CalibrateParams(board=board_model_of(CHARUCO_60), leave_one_out=False))
+    assert cal.zed_conf.reading == "neg-all" and cal.zed_conf.chosen_by == "board images"
+    assert cal.zed_conf.captures == ["000", "001", "002", "003"]
+    q = cal.rectification
+    assert q is not None and len(q.poses) == 4 and q.overall.fit_mean_abs_px < 0.05, q

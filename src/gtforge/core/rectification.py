@@ -1,8 +1,11 @@
 """How well the ZED pair is rectified, and which SN.conf reading the images support.
 
 **Vertical disparity** is ``v_left - v_right`` (px) of one scene point in the two rectified images; a
-perfectly rectified pair has 0 everywhere. On board captures the points are the board's inner corners,
-detected in both images. Two figures per set of corners:
+perfectly rectified pair has 0 everywhere. On board captures the points are the board's points (checkerboard
+or ChArUco corners, circle centres: any target of ``gtforge.core.targets``), detected in both images and matched
+by id (a ChArUco board cut by the border gives the corners both images show). Circle centres are corrected for
+their perspective bias in each image at that image's own PnP pose first (``matched_board_points``). Two figures
+per set of points:
 
 * from the detected corners as they are (``mean_abs_px``, ``max_abs_px``...): includes corner-detector
   noise (a few hundredths of a pixel per image);
@@ -11,12 +14,12 @@ detected in both images. Two figures per set of corners:
   rectification's own error. Decisions (the SN.conf reading, the warning threshold) use this one.
 
 **SN.conf reading** (``gtforge.io.cameras.ZED_CONF_READINGS``, docs/conventions.md): with raw images and
-an SN.conf, the board corners are detected once per raw image; each candidate reading is evaluated by
-mapping those raw corners through its rectification (lens model inverted, ``R1``/``R2`` applied,
-projected with ``P1``/``P2``: the same mapping ``cv2.undistortPoints(R=, P=)`` performs, with the
-inverse solved to 1e-9 px by ``gtforge.core.lens``) and the reading with the smallest vertical disparity is
-kept. A reading whose rectified right camera sits at ``-x`` contradicts the images (their disparities
-are positive) and is not eligible.
+an SN.conf, the board points are detected once per raw image (and matched by id; circle centres corrected at
+each raw image's PnP pose, lens included); each candidate reading is evaluated by mapping those raw points
+through its rectification (lens model inverted, ``R1``/``R2`` applied, projected with ``P1``/``P2``: the
+same mapping ``cv2.undistortPoints(R=, P=)`` performs, with the inverse solved to 1e-9 px by
+``gtforge.core.lens``) and the reading with the smallest vertical disparity is kept. A reading whose rectified
+right camera sits at ``-x`` contradicts the images (their disparities are positive) and is not eligible.
 
 Scenes have no board: ``scene_vertical_disparity`` measures the same quantity on SIFT matches refined by
 pyramidal Lucas-Kanade tracking (forward-backward checked).
@@ -30,10 +33,12 @@ import cv2
 import numpy as np
 from pydantic import Field, PrivateAttr
 
-from gtforge.core.board import BoardSpec, detect_corners
+from gtforge.core.board import BoardSpec, Detection
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.photometric import to_gray
 from gtforge.core.schema import GTModel
+from gtforge.core.target_detection import PairSkipped, TargetPair, detect_target, match_target_views
+from gtforge.core.targets import MIN_COMMON_CORNERS
 
 if TYPE_CHECKING:
     pass
@@ -112,16 +117,19 @@ def _by_region(points: np.ndarray, width_px: int, height_px: int) -> dict[str, R
     return out
 
 
-def board_pose_vertical_disparity(capture: str, left_uv: np.ndarray, right_uv: np.ndarray,
-                                  board: BoardSpec) -> tuple[PoseVerticalDisparity, np.ndarray]:
-    """One pose: the board's corners ``(N, 2)`` in the rectified left and right images (board order).
+def board_pose_vertical_disparity(capture: str, left_uv: np.ndarray, right_uv: np.ndarray, board: BoardSpec,
+                                  ids: np.ndarray | None = None) -> tuple[PoseVerticalDisparity, np.ndarray]:
+    """One pose: the board's points ``(N, 2)`` in the rectified left and right images, ``ids`` (indices into
+    ``board.corners_board()``; ``None``: every point, in board order) the same for both.
 
     Returns the figures and the ``(N, 3)`` points ``(u_left, v_left, v_left - v_right)``."""
     left_uv = np.asarray(left_uv, np.float64).reshape(-1, 2)
     right_uv = np.asarray(right_uv, np.float64).reshape(-1, 2)
-    if left_uv.shape != right_uv.shape or len(left_uv) != board.n_corners:
-        raise ValueError(f"{left_uv.shape=} and {right_uv.shape=} but expected ({board.n_corners}, 2) each")
-    Xb = board.corners_board()[:, :2].reshape(-1, 1, 2)
+    n = board.n_corners if ids is None else len(ids)
+    if left_uv.shape != right_uv.shape or len(left_uv) != n or n < 4:
+        raise ValueError(f"{left_uv.shape=} and {right_uv.shape=} but expected ({n}, 2) each, at least 4 points")
+    X = board.corners_board() if ids is None else board.corners_board()[ids]
+    Xb = X[:, :2].reshape(-1, 1, 2)
     fitted = []
     for uv in (left_uv, right_uv):
         H, _ = cv2.findHomography(Xb, uv.reshape(-1, 1, 2), 0)
@@ -133,38 +141,69 @@ def board_pose_vertical_disparity(capture: str, left_uv: np.ndarray, right_uv: n
     return pv, np.column_stack([left_uv, dv])
 
 
-class RectificationMeter:
-    """Collects the board corners of both rectified images pose by pose; ``result()`` summarises.
+def matched_board_points(spec, left: Detection, left_cam: PinholeCamera, right: Detection, right_cam: PinholeCamera,
+                         min_common: int = MIN_COMMON_CORNERS) -> TargetPair | PairSkipped:
+    """A pose's left and right detections (any target) matched by id for the vertical disparity.
 
-    ``add`` detects the board in the right image (and in the left one unless its corners are given)."""
+    Circle centres: the centroid of a circle's image is not the image of its centre (``circle_centre_bias``). The two
+    cameras see each circle from 63 mm apart, so the bias is mostly, not wholly, common to both (measured on the
+    generator at 0.3x: biases up to 0.11 px per image differ between left and right by up to 0.0002 px vertically and
+    0.011 px horizontally). Each image's centroids are corrected at that image's own PnP pose (its camera:
+    ``left_cam``/``right_cam``, lens included for raw images) before left and right are compared. A symmetric circle
+    grid's right numbering is turned to the left one's (``gtforge.core.target_detection.match_target_views``)."""
+    return match_target_views(spec, left, left_cam, right, right_cam, ("left", "right"), min_common)
+
+
+class RectificationMeter:
+    """Collects the board points of both rectified images pose by pose; ``result()`` summarises.
+
+    Any target (``gtforge.core.targets``): the left and right points are matched by id; a pose with fewer than 6
+    common points (``MIN_COMMON_CORNERS``) or collinear ones is skipped with the reason; circle centres are
+    corrected for their perspective bias in each image (``matched_board_points``). ``add`` detects the board in the
+    right image (and in the left one unless its detection or points are given). ``zed_right``: the rectified right
+    camera (``RectifiedStereo.right``), for the right image's PnP (circle-centre bias, a symmetric grid's numbering);
+    default ``zed_left``, which differs only by ``doffs_px``."""
 
     def __init__(self, board: BoardSpec, zed_left: PinholeCamera, rectified_by: str,
-                 threshold_px: float = VERTICAL_WARN_PX):
+                 threshold_px: float = VERTICAL_WARN_PX, zed_right: PinholeCamera | None = None):
         self.board, self.cam, self.rectified_by, self.threshold_px = board, zed_left, rectified_by, threshold_px
+        self.cam_right = zed_right if zed_right is not None else zed_left
         self.poses: list[PoseVerticalDisparity] = []
         self.points: list[np.ndarray] = []
         self.skipped: dict[str, str] = {}
 
     def add(self, capture: str, right_image: np.ndarray | None, left_uv: np.ndarray | None = None,
-            left_image: np.ndarray | None = None) -> PoseVerticalDisparity | None:
+            left_image: np.ndarray | None = None, left_detection: Detection | None = None) -> PoseVerticalDisparity | None:
+        """``left_detection``: the left image's detection (with ids; calibrate's); ``left_uv``: every board point in
+        board order (a whole board); else ``left_image`` is searched."""
         if right_image is None:
             self.skipped[capture] = "no right image"
             return None
-        if left_uv is None:
+        if left_detection is None and left_uv is not None:
+            left_uv = np.asarray(left_uv, np.float64).reshape(-1, 2)
+            if len(left_uv) != self.board.n_corners:
+                raise ValueError(f"{left_uv.shape=} but expected ({self.board.n_corners}, 2): give left_detection "
+                                 "for a partial view")
+            left_detection = Detection(left_uv, float("nan"), "given", 0.0, np.arange(len(left_uv)))
+        if left_detection is None:
             if left_image is None:
-                raise ValueError("give left_uv or left_image")
-            det = detect_corners(left_image, self.board)
-            if det is None:
+                raise ValueError("give left_detection, left_uv or left_image")
+            left_detection = detect_target(left_image, self.board, self.cam, where=f"{capture}: ZED-left image")
+            if left_detection is None:
                 self.skipped[capture] = "board not found in the left image"
                 return None
-            left_uv = det.corners_uv
-        det_r = detect_corners(right_image, self.board)
+        det_r = detect_target(right_image, self.board, self.cam_right, where=f"{capture}: ZED-right image")
         if det_r is None:
             self.skipped[capture] = "board not found in the right image"
             log.warning("capture %s: board not found in the rectified right image; its vertical disparity is not measured",
                         capture)
             return None
-        pv, pts = board_pose_vertical_disparity(capture, left_uv, det_r.corners_uv, self.board)
+        pair = matched_board_points(self.board, left_detection, self.cam, det_r, self.cam_right)
+        if isinstance(pair, PairSkipped):
+            self.skipped[capture] = pair.reason
+            log.warning("capture %s: %s; its vertical disparity is not measured", capture, pair.reason)
+            return None
+        pv, pts = board_pose_vertical_disparity(capture, pair.uv_a, pair.uv_b, self.board, pair.ids)
         self.poses.append(pv)
         self.points.append(pts)
         return pv

@@ -7,14 +7,23 @@ diagnosis of a target that is not found."""
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from gtforge.core.board import Detection, detect_corners
+from gtforge.core.board import Detection, detect_corners, solve_pnp
 from gtforge.core.geometry import transform_points
 from gtforge.core.photometric import to_gray
-from gtforge.core.targets import ARUCO_DICTIONARIES, CharucoSpec, CircleGridSpec, aruco_dictionary, neighbour_pairs
+from gtforge.core.targets import (
+    ARUCO_DICTIONARIES,
+    MIN_COMMON_CORNERS,
+    CharucoSpec,
+    CircleGridSpec,
+    aruco_dictionary,
+    collinear,
+    neighbour_pairs,
+)
 from gtforge.errors import InputError
 
 log = logging.getLogger("gtforge.core.targets")
@@ -478,6 +487,14 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
                          f"more circles beyond its {side} edge", "a larger grid: count the circles per row (--cols) "
                          "and the rows (--rows) on the plate")
     uv = refine_circle_centres(gray, uv, r_px)
+    # findCirclesGrid can return a grid with a stray blob in it and the circles after it numbered wrongly (seen on the
+    # generator's texture images at 0.3x); such a grid is not used: one homography of the declared layout must put
+    # every centre within a quarter spacing (a wrong id is a spacing off; lens distortion is removed first)
+    frac, _ = _layout_fits(spec.corners_board()[:, :2], _undistorted_px(uv, cam), max(1.0, 0.25 * float(np.median(nn_px))))
+    if frac < 1.0:
+        log.info("%s: a circle grid off the declared layout (%d of %d centres) not used", where,
+                 int(round((1 - frac) * spec.n_corners)), spec.n_corners)
+        return None
     H, W = gray.shape
     hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
     mask = np.zeros(gray.shape, np.uint8)
@@ -549,3 +566,71 @@ def unmirror_symmetric_grid(spec: CircleGridSpec, det: Detection, cam, solve_pnp
         return det
     uv = det.corners_uv.reshape(spec.rows, spec.cols, 2)[::-1].reshape(-1, 2).copy()
     return Detection(uv, det.sharpness_px, det.method, det.pattern_contrast, det.ids)
+
+
+@dataclass
+class TargetPair:
+    """One pose of a target seen by two cameras (``a``, ``b``), its points matched by id (``match_target_views``).
+
+    ``det_a``/``det_b`` are the detections as numbered for the match (a symmetric grid: unmirrored, ``b``'s numbering
+    turned to ``a``'s); ``uv_*_all`` all of a camera's points in its ``det_*.ids`` order and ``uv_a``/``uv_b`` the
+    common ones (``ids``, sorted), circle centres corrected for the perspective bias at that camera's own PnP pose
+    (``T_*_from_board``, solved on all of its points)."""
+
+    ids: np.ndarray
+    uv_a: np.ndarray
+    uv_b: np.ndarray
+    T_a_from_board: np.ndarray
+    T_b_from_board: np.ndarray
+    det_a: Detection
+    det_b: Detection
+    uv_a_all: np.ndarray
+    uv_b_all: np.ndarray
+
+
+@dataclass
+class PairSkipped:
+    """Why a pose's two views cannot be matched: ``reason`` (one line); ``n_common`` the ids both saw, when the
+    two views passed their own checks."""
+
+    reason: str
+    n_common: int | None = None
+
+
+def match_target_views(spec, det_a: Detection, cam_a, det_b: Detection, cam_b, names: tuple[str, str] = ("a", "b"),
+                       min_common: int = MIN_COMMON_CORNERS) -> TargetPair | PairSkipped:
+    """Match two cameras' detections of one pose by id (any target; a checkerboard's ids are all its corners).
+
+    Each view needs ``min_common`` points not on one line (else its PnP is not unique), the two together as many
+    common ones, not on one line either; otherwise the reason comes back (``names``: the cameras' names in it,
+    e.g. "structured-light", "ZED"). Circle centres are corrected for the perspective bias at each camera's own PnP
+    pose (``pnp_bias_corrected``). A symmetric circle grid is numbered alike in both: each view's mirrored numbering
+    is undone (``unmirror_symmetric_grid``), then, as the two cameras look the same way (their relative rotation about
+    the view axis is far below 90 degrees), ``b``'s numbering is reversed when the board's x axis points the other way
+    in it than in ``a``. ``cam_a``/``cam_b`` must model the images the points were found in (lens included)."""
+
+    X = spec.corners_board()
+    det_a, det_b = (d if d.ids is not None else Detection(d.corners_uv, d.sharpness_px, d.method,
+                                                          d.pattern_contrast, np.arange(len(d.corners_uv)))
+                    for d in (det_a, det_b))
+    for d, name in ((det_a, names[0]), (det_b, names[1])):
+        if len(d.ids) < min_common:
+            return PairSkipped(f"only {len(d.ids)} board points in the {name} image (need {min_common})")
+        if collinear(X[d.ids]):
+            return PairSkipped(f"the board points in the {name} image lie on one line")
+    symmetric = isinstance(spec, CircleGridSpec) and not spec.asymmetric
+    if symmetric:
+        det_a = unmirror_symmetric_grid(spec, det_a, cam_a, solve_pnp)
+        det_b = unmirror_symmetric_grid(spec, det_b, cam_b, solve_pnp)
+    T_a, uv_a_all = pnp_bias_corrected(spec, det_a, cam_a, solve_pnp)
+    T_b, uv_b_all = pnp_bias_corrected(spec, det_b, cam_b, solve_pnp)
+    if symmetric and T_a[:3, 0] @ T_b[:3, 0] < 0:
+        det_b = Detection(det_b.corners_uv[::-1].copy(), det_b.sharpness_px, det_b.method, det_b.pattern_contrast,
+                          det_b.ids)
+        T_b, uv_b_all = pnp_bias_corrected(spec, det_b, cam_b, solve_pnp)
+    common, ia, ib = np.intersect1d(det_a.ids, det_b.ids, return_indices=True)
+    if len(common) < min_common:
+        return PairSkipped(f"only {len(common)} board points seen by both cameras (need {min_common})", len(common))
+    if collinear(X[common]):
+        return PairSkipped("the board points both cameras see lie on one line", len(common))
+    return TargetPair(common, uv_a_all[ia], uv_b_all[ib], T_a, T_b, det_a, det_b, uv_a_all, uv_b_all)

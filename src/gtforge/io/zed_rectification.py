@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from gtforge.core.board import BoardSpec, detect_corners
+from gtforge.core.board import BoardSpec
 from gtforge.core.rectification import (
     TIE_PX,
     VERTICAL_WARN_PX,
@@ -23,10 +23,12 @@ from gtforge.core.rectification import (
     _stats,
     board_pose_vertical_disparity,
     match_points,
+    matched_board_points,
     rectify_points,
 )
 from gtforge.core.schema import GTModel
 from gtforge.core.selfcal import Matches, SelfRectifyParams, ZedSelfRectification, fit_self_rectification
+from gtforge.core.target_detection import PairSkipped, detect_target
 from gtforge.errors import InputError
 from gtforge.io.cameras import (
     DEFAULT_ZED_CONF_READING,
@@ -55,11 +57,13 @@ def rectified_by(session: Session) -> str:
 
 @dataclass
 class RawBoardPair:
-    """The board's corners detected in one raw (unrectified) left/right pair, board order."""
+    """The board's points detected in one raw (unrectified) left/right pair, matched by id (circle centres
+    corrected for their perspective bias in each raw image); also carries raw feature matches (``ids`` None)."""
 
     capture: str
     left_uv: np.ndarray  # (N, 2) raw left pixels
     right_uv: np.ndarray  # (N, 2) raw right pixels
+    ids: np.ndarray | None = None  # indices into the board's corners_board(); None: every point, board order
 
 
 
@@ -94,8 +98,8 @@ class ZedConfChoice(GTModel):
 
 def score_readings(factory: ZedFactoryCalibration, pairs: list[RawBoardPair], board: BoardSpec,
                    readings: tuple[str, ...] = ZED_CONF_READINGS) -> tuple[list[ReadingScore], dict[str, np.ndarray]]:
-    """Every reading's vertical disparity on the raw board corners (best eligible first), and each reading's
-    ``(N,)`` per-corner ``v_left - v_right`` (for comparing two readings' rectifications)."""
+    """Every reading's vertical disparity on the raw board points (best eligible first), and each reading's
+    ``(N,)`` per-point ``v_left - v_right`` (for comparing two readings' rectifications)."""
     if not pairs:
         raise ValueError("no raw board pairs to score the readings on")
     scores, per_corner = [], {}
@@ -105,7 +109,7 @@ def score_readings(factory: ZedFactoryCalibration, pairs: list[RawBoardPair], bo
         for p in pairs:
             ul = rectify_points(factory.left, p.left_uv, sr.R_rect_from_raw_left, sr.P_left)
             ur = rectify_points(factory.right, p.right_uv, sr.R_rect_from_raw_right, sr.P_right)
-            pv, _ = board_pose_vertical_disparity(p.capture, ul, ur, board)
+            pv, _ = board_pose_vertical_disparity(p.capture, ul, ur, board, p.ids)
             dvs.append(ul[:, 1] - ur[:, 1])
             fits.append(np.full(len(ul), pv.fit_mean_abs_px))
             disp.append(pv.disparity_median_px)
@@ -130,7 +134,7 @@ def choose_reading(factory: ZedFactoryCalibration, pairs: list[RawBoardPair], bo
         check_zed_conf_reading(override)
     if not pairs:
         reading = override or _default_reading()
-        warn = ("no board capture shows the whole board in both raw ZED images: the SN.conf reading could not be "
+        warn = ("no board capture shows the board in both raw ZED images: the SN.conf reading could not be "
                 f"checked; '{reading}' is used" + ("" if override else " (the default)"))
         log.warning(warn)
         return ZedConfChoice(conf_file=conf, resolution=factory.resolution, reading=reading,
@@ -139,8 +143,8 @@ def choose_reading(factory: ZedFactoryCalibration, pairs: list[RawBoardPair], bo
                              captures=[], candidates=[], warnings=[warn])
     scores, per_corner = score_readings(factory, pairs, board)
     eligible = [s for s in scores if s.eligible]
-    disp = np.median([board_pose_vertical_disparity(p.capture, p.left_uv, p.right_uv, board)[0].disparity_median_px
-                      for p in pairs])
+    disp = np.median([board_pose_vertical_disparity(p.capture, p.left_uv, p.right_uv, board, p.ids)[0]
+                      .disparity_median_px for p in pairs])
     if not eligible or disp <= 0:
         raise InputError(factory.path, "board captures", "the board further right in the left raw image than in the "
                          "right one (positive disparity)", f"median raw disparity {disp:.1f} px",
@@ -183,7 +187,7 @@ def choose_reading(factory: ZedFactoryCalibration, pairs: list[RawBoardPair], bo
 
 def choose_reading_by_matches(factory: ZedFactoryCalibration, matches: list[RawBoardPair],
                               threshold_px: float = VERTICAL_WARN_PX) -> ZedConfChoice | None:
-    """Without a board seen whole in both raw images: every reading scored on feature matches between the raw left
+    """Without a board seen in both raw images: every reading scored on feature matches between the raw left
     and right images (``match_points(rectified=False)``), the one with the smallest median |vertical disparity|
     kept. ``None`` where there are too few matches (fewer than 30) or no reading puts the right camera at +x."""
     pairs = [m for m in matches if len(m.left_uv)]
@@ -240,19 +244,31 @@ def _default_reading() -> str:
 
 def detect_raw_pairs(session: Session, dirs: list[Path], board: BoardSpec,
                      progress: Callable[[str], None] | None = None) -> tuple[list[RawBoardPair], dict[str, str]]:
-    """The board's corners in the raw left and right images of each capture in ``dirs`` (detected once)."""
+    """The board's points in the raw left and right images of each capture in ``dirs`` (detected once), matched by
+    id: any target of ``gtforge.core.targets`` (``gtforge.core.rectification.matched_board_points``: circle centres
+    corrected at each raw image's PnP pose with the conf's lens models, which no reading changes; a symmetric grid
+    numbered alike). A capture whose board is not found, or that gives fewer than 6 common points or collinear ones,
+    is left out with the reason."""
+    factory = getattr(getattr(session, "rectification", None), "factory", None)
+    if factory is None:
+        raise ValueError("detect_raw_pairs needs a session with raw ZED images and an SN.conf")
     raw = dataclasses.replace(session, rectification=None)
     pairs, skipped = [], {}
     for k, d in enumerate(dirs):
         if progress:
             progress(f"raw ZED corners {d.name} ({k + 1}/{len(dirs)})")
         cap = raw.load_capture(d, need_right=True)
-        dl = detect_corners(cap.zed_left, board)
-        dr = detect_corners(cap.zed_right, board) if dl is not None and cap.zed_right is not None else None
+        dl = detect_target(cap.zed_left, board, factory.left, where=f"{d.name}: raw ZED-left image")
+        dr = detect_target(cap.zed_right, board, factory.right, where=f"{d.name}: raw ZED-right image") \
+            if dl is not None and cap.zed_right is not None else None
         if dl is None or dr is None:
             skipped[d.name] = f"board not found in the raw {'left' if dl is None else 'right'} ZED image"
             continue
-        pairs.append(RawBoardPair(d.name, dl.corners_uv, dr.corners_uv))
+        pair = matched_board_points(board, dl, factory.left, dr, factory.right)
+        if isinstance(pair, PairSkipped):
+            skipped[d.name] = f"raw ZED images: {pair.reason}"
+            continue
+        pairs.append(RawBoardPair(d.name, pair.uv_a, pair.uv_b, pair.ids))
     return pairs, skipped
 
 
@@ -260,7 +276,7 @@ def detect_raw_pairs(session: Session, dirs: list[Path], board: BoardSpec,
 def settle_zed_conf_reading(session: Session, dirs: list[Path], board: BoardSpec,
                             threshold_px: float = VERTICAL_WARN_PX,
                             progress: Callable[[str], None] | None = None) -> tuple[Session, ZedConfChoice | None]:
-    """For raw ZED images + SN.conf: choose the reading from the board captures in ``dirs`` (or take
+    """For raw ZED images + SN.conf: choose the reading from the board captures in ``dirs`` (any target; or take
     session.yaml's ``zed_conf_reading``, still scored) and return the session re-opened with it.
     Other sessions come back unchanged, with ``None``."""
 
@@ -271,7 +287,7 @@ def settle_zed_conf_reading(session: Session, dirs: list[Path], board: BoardSpec
     override = getattr(session.config, "zed_conf_reading", None)
     choice = None
     if not pairs and override is None:
-        # no board seen whole in both raw images: the readings are decided on feature matches, scenes included
+        # no board usable in both raw images: the readings are decided on feature matches, scenes included
         scene_root = session.root / session.config.scenes_dir
         scenes = session.capture_dirs("scenes") if scene_root.is_dir() and any(scene_root.iterdir()) else []
         choice = choose_reading_by_matches(rect.factory, raw_matches(session, list(dirs) + scenes, progress),

@@ -130,5 +130,5 @@ def summary_lines(q: RectificationQuality | None, choice: ZedConfChoice | None =
         lines.append(f"ZED vertical disparity on {len(q.poses)} poses: mean {o.fit_mean_abs_px:.3f} px (fitted corners), "
                      f"{o.mean_abs_px:.3f} px (detected; max {o.max_abs_px:.3f} px); threshold {q.threshold_px} px")
     else:
-        lines.append("ZED vertical disparity: not measured (no right image with the whole board)")
+        lines.append("ZED vertical disparity: not measured (the board was not found in any right image)")
     return lines
