@@ -359,15 +359,48 @@ def _blob_detectors(gray: np.ndarray, spec: CircleGridSpec):
 
 
 
-def refine_circle_centres(gray: np.ndarray, uv: np.ndarray, radius_px: np.ndarray, iters: int = 3) -> np.ndarray:
+def circle_radii_px(gray: np.ndarray, uv: np.ndarray, spacing_px: np.ndarray) -> np.ndarray:
+    """Each circle's own radius (px) as the image shows it: the pixels darker than half way between the circle's
+    darkest and the white around it, connected to its centre, inside half its spacing to its neighbours, taken as
+    a disk's area (a symmetric blur moves the half-way contour little). NaN where that window shows no contrast.
+    Needed where a circle is larger than the declared diameter: a marker dot twice the others' size (ROS-Industrial's
+    modified circle grid), or a diameter declared too small."""
+    g = gray.astype(np.float64)
+    H, W = g.shape
+    out = np.full(len(uv), np.nan)
+    for k, ((u0, v0), s) in enumerate(zip(uv, spacing_px)):
+        R = max(3.0, 0.5 * s)
+        x0, x1 = int(max(0, np.floor(u0 - R))), int(min(W - 1, np.ceil(u0 + R)))
+        y0, y1 = int(max(0, np.floor(v0 - R))), int(min(H - 1, np.ceil(v0 + R)))
+        patch = g[y0:y1 + 1, x0:x1 + 1]
+        yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+        inwin = (xx - u0) ** 2 + (yy - v0) ** 2 <= R * R
+        lo, hi = np.percentile(patch[inwin], 2), np.percentile(patch[inwin], 98)
+        if hi - lo < 10:
+            continue
+        _, lab = cv2.connectedComponents(((patch < 0.5 * (lo + hi)) & inwin).astype(np.uint8), connectivity=8)
+        c = lab[int(np.clip(round(v0) - y0, 0, lab.shape[0] - 1)), int(np.clip(round(u0) - x0, 0, lab.shape[1] - 1))]
+        if c == 0:
+            continue
+        out[k] = np.sqrt((lab == c).sum() / np.pi)
+    return out
+
+
+
+def refine_circle_centres(gray: np.ndarray, uv: np.ndarray, radius_px: np.ndarray, iters: int = 3,
+                          max_window_px: np.ndarray | None = None) -> np.ndarray:
     """Darkness-weighted centroids (the centroid of the dark disk's area, blur-invariant for a symmetric blur)
-    in windows of 1.5 radii, re-centred ``iters`` times; the weight is the darkness below the local white level,
-    clipped at 0 and with the noise floor's 10 % removed so the white around the circle weighs nothing."""
+    in windows of 1.5 radii (at most ``max_window_px``: short of the neighbours), re-centred ``iters`` times; the
+    weight is the darkness below the local white level, clipped at 0 and with the noise floor's 10 % removed so the
+    white around the circle weighs nothing. The window must hold the whole disk and white around it: a window
+    inside a larger dark disk has only noise and shading to weigh and walks off by pixels."""
     g = gray.astype(np.float64)
     H, W = g.shape
     out = uv.astype(np.float64).copy()
     for k in range(len(out)):
         R = max(3.0, 1.5 * radius_px[k])
+        if max_window_px is not None:
+            R = max(3.0, min(R, max_window_px[k]))
         for _ in range(iters):
             u0, v0 = out[k]
             x0, x1 = int(max(0, np.floor(u0 - R))), int(min(W - 1, np.ceil(u0 + R)))
@@ -437,15 +470,62 @@ def _grid_continues(gray: np.ndarray, spec: CircleGridSpec, uv: np.ndarray, r_px
              "right": pos(np.arange(spec.rows), np.full(spec.rows, spec.cols)),
              "top": pos(np.full(spec.cols, -2 if spec.asymmetric else -1), np.arange(spec.cols)),
              "bottom": pos(np.full(spec.cols, spec.rows + (1 if spec.asymmetric else 0)), np.arange(spec.cols))}
-    for side, xy in sides.items():
-        p = cv2.perspectiveTransform(xy.reshape(-1, 1, 2), Hm).reshape(-1, 2)
+    def circle_at(p):
+        # as dark as the grid's circles, inside a ring that is white all round (the plate), not table or border
         c = sample(p)
         rg = sample((p[:, None, :] + ring[None]).reshape(-1, 2)).reshape(len(p), -1)
-        # as dark as the grid's circles, inside a ring that is white all round (the plate), not table or border
-        circles = (c >= 0) & (c < dark + 0.3 * (white - dark)) & ((rg > mid).sum(1) >= len(t) - 1)
+        return (c >= 0) & (c < dark + 0.3 * (white - dark)) & ((rg > mid).sum(1) >= len(t) - 1)
+
+    # the homography of a flat grid misplaces the positions beyond it under lens distortion or a bent plate (a
+    # wide-angle lens: by a radius, OpenCV's circles7.png), so each position is also tried at the darkest point
+    # near it: in the image blurred by a radius (a disk's darkest point is then its centre), within 0.3 of the
+    # position's distance to the grid (one spacing there; the grid's own circles are farther)
+    gs = cv2.GaussianBlur(gray, (0, 0), max(1.0, r_px)).astype(np.float32)
+    for side, xy in sides.items():
+        p = cv2.perspectiveTransform(xy.reshape(-1, 1, 2), Hm).reshape(-1, 2)
+        reach = 0.3 * np.linalg.norm(p[:, None] - uv[None], axis=2).min(1)
+        n = max(1, int(np.ceil(reach.max() / max(1.0, r_px / 2))))
+        o = np.mgrid[-n:n + 1, -n:n + 1].reshape(2, -1).T.astype(np.float64) / n
+        o = o[np.hypot(o[:, 0], o[:, 1]) <= 1]
+        near = (p[:, None, :] + o[None] * reach[:, None, None]).reshape(-1, 2).astype(np.float32)
+        vals = cv2.remap(gs, near[:, 0].reshape(-1, 1), near[:, 1].reshape(-1, 1), cv2.INTER_LINEAR,
+                         borderValue=-1).reshape(len(p), -1)
+        darkest = near.reshape(len(p), -1, 2)[np.arange(len(p)), np.argmin(np.where(vals < 0, np.inf, vals), 1)]
+        circles = circle_at(p) | circle_at(darkest.astype(np.float64))
         if circles.sum() >= max(2, len(p) // 2):
             return side
     return None
+
+
+
+def grid_is_regular(uv: np.ndarray, spec: CircleGridSpec, max_ratio: float = 0.5) -> bool:
+    """Whether ``findCirclesGrid``'s points form the declared grid in order: along every row and column (every
+    other row for asymmetric grids, whose rows alternate) the second difference of consecutive centres stays below
+    ``max_ratio`` of their spacing; an asymmetric grid's row between two others also lies half way between its
+    neighbours in them (its stagger is to the declared side). Perspective and lens distortion keep these under
+    0.16 in real photos (wide-angle lens, steep views); the grid finder's clustering mode can return points out of
+    order and twice the same circle (ratios of several), and on an asymmetric grid with an even row count, rows
+    paired the wrong way round (the stagger to the other side)."""
+    P = uv.reshape(spec.rows, spec.cols, 2)
+    worst = 0.0
+    if spec.cols >= 3:
+        sd = np.linalg.norm(P[:, :-2] - 2 * P[:, 1:-1] + P[:, 2:], axis=2)
+        worst = max(worst, float((sd / np.maximum(np.linalg.norm(P[:, 2:] - P[:, :-2], axis=2) / 2, 1e-9)).max()))
+    st = 2 if spec.asymmetric else 1
+    if spec.rows >= 2 * st + 1:
+        sd = np.linalg.norm(P[:-2 * st] - 2 * P[st:-st] + P[2 * st:], axis=2)
+        worst = max(worst, float((sd / np.maximum(np.linalg.norm(P[2 * st:] - P[:-2 * st], axis=2) / 2, 1e-9)).max()))
+    if spec.asymmetric and spec.rows >= 3 and spec.cols >= 2:
+        # circle (i+1, j) at ((2j + (i+1)%2) s, (i+1) s) is the midpoint of (i, j) and (i+2, j+1) for even i, of
+        # (i, j) and (i+2, j-1) for odd i
+        for i in range(spec.rows - 2):
+            if i % 2 == 0:
+                a, m, b = P[i, :-1], P[i + 1, :-1], P[i + 2, 1:]
+            else:
+                a, m, b = P[i, 1:], P[i + 1, 1:], P[i + 2, :-1]
+            off = np.linalg.norm(m - (a + b) / 2, axis=1) / np.maximum(np.linalg.norm(b - a, axis=1) / 2, 1e-9)
+            worst = max(worst, float(off.max()))
+    return worst < max_ratio
 
 
 
@@ -460,6 +540,9 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
         for blob in _blob_detectors(img, spec):
             for fl in (flags, flags | cv2.CALIB_CB_CLUSTERING):
                 ok, c = cv2.findCirclesGrid(img, spec.pattern_size, flags=fl, blobDetector=blob)
+                if ok and not grid_is_regular(c.reshape(-1, 2).astype(np.float64), spec):
+                    log.debug("%s: findCirclesGrid's points are not a regular grid in order; trying on", where)
+                    ok = False
                 if ok:
                     break
             if ok:
@@ -480,13 +563,18 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
     np.add.at(cnt, a, 1)
     np.add.at(cnt, b, 1)
     nn_mm = spec.square_size_mm * (np.sqrt(2) if spec.asymmetric else 1.0)
-    r_px = sp / np.maximum(cnt, 1) * (spec.diameter_mm / 2) / nn_mm
+    spacing_px = sp / np.maximum(cnt, 1)
+    # each circle's size as the image shows it (a larger marker dot, a diameter declared wrong), the declared one
+    # where it cannot be measured
+    own = circle_radii_px(gray, uv, spacing_px)
+    r_px = np.where(np.isfinite(own), own, spacing_px * (spec.diameter_mm / 2) / nn_mm)
     side = _grid_continues(gray, spec, uv, float(np.median(r_px)))
     if side is not None:
         raise InputError(where, "board.cols/rows", f"a {spec.cols}x{spec.rows} circle grid",
                          f"more circles beyond its {side} edge", "a larger grid: count the circles per row (--cols) "
                          "and the rows (--rows) on the plate")
-    uv = refine_circle_centres(gray, uv, r_px)
+    # windows from each circle's own size, kept short of its neighbours' edges
+    uv = refine_circle_centres(gray, uv, r_px, max_window_px=spacing_px - float(np.median(r_px)))
     # findCirclesGrid can return a grid with a stray blob in it and the circles after it numbered wrongly (seen on the
     # generator's texture images at 0.3x); such a grid is not used: one homography of the declared layout must put
     # every centre within a quarter spacing (a wrong id is a spacing off; lens distortion is removed first)

@@ -129,6 +129,10 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
     if board.kind == "circles_symmetric" and board.cols == board.rows:
         raise InputError(None, f"{where}.cols/rows", "a symmetric grid with different counts per row and column",
                          f"{board.cols}x{board.rows}", "a square grid looks the same turned by 90 degrees")
+    if board.kind == "circles_asymmetric" and board.rows % 2 == 0:
+        raise InputError(None, f"{where}.cols/rows", "an asymmetric grid with an odd row count (OpenCV's pattern "
+                         "is 4x11)", f"{board.cols}x{board.rows}", "with an even row count it looks the same turned "
+                         "by 180 degrees; OpenCV's grid finder then numbers it from either end, or out of order")
     d = board.circle_diameter_mm or 0.5 * board.square_size_mm
     nn = board.square_size_mm * (np.sqrt(2) if board.kind == "circles_asymmetric" else 1.0)
     if not 0 < d < nn:
