@@ -37,7 +37,7 @@ except ImportError:  # pragma: no cover
 import gtforge
 from gtforge.core.geometry import finite_box, mask_bounding_box
 from gtforge.core.reproject import right_view_disparity
-from gtforge.core.scale_corrections import add_scale_sigma, corrected_right_image
+from gtforge.core.scale_corrections import add_scale_sigma
 from gtforge.core.uncertainty import disparity_sigma
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
@@ -130,16 +130,14 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         calib = cached_calibration(calib_path, calib_sha)
         session = cached_session(session_dir, calib)
         rig = calib.rig  # checked against the session by build_dataset before any worker starts
-        # calibrate-scale's right-camera yaw: im1 is the right image re-rectified (decoded whole, written re-encoded)
-        yawed = rig.zed_right_yaw_deg != 0.0
         # image content is needed by verification, a crop (re-encoded im0/im1) and the PLY's colours only; for
-        # verification alone the images are decoded once the ground truth says how many ZED rows the checks read
-        cap = session.load_capture(cap_dir, decode_images=bool(params.crop_wh) or params.ply or yawed)
+        # verification alone the images are decoded once the ground truth says how many ZED rows the checks read.
+        # A right image the session corrects (self-rectification, calibrate-scale's yaw: one resampling, in the
+        # session) is decoded whole and written re-encoded as im1
+        cap = session.load_capture(cap_dir, decode_images=bool(params.crop_wh) or params.ply)
         t_read = time.perf_counter()
         sd, region, fruit = build_scene_arrays(cap.depth_mm, rig, params, cap.fruit_mask)
         decode_s = 0.0
-        if yawed:
-            cap.zed_right = corrected_right_image(cap.zed_right, rig)
         if params.verification:
             t = time.perf_counter()
             texture, zed_left, zed_right = session.decoded_images(cap, zed_rows_used(sd.depth_mm, params.verify))
@@ -176,7 +174,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
         with private_folder(tmp), background_writes():
             t = time.perf_counter()
             for name, img, src in (("im0.png", left, cap.zed_left_file),
-                                   ("im1.png", right, None if yawed else cap.zed_right_file)):
+                                   ("im1.png", right, cap.zed_right_file)):
                 if src is not None and crop is None:
                     atomic_copy_file(src, tmp / name)  # the input is already this RGB PNG: no re-encode
                 else:

@@ -38,7 +38,6 @@ from gtforge.core.photometric import (
     to_gray,
 )
 from gtforge.core.render import render_texture
-from gtforge.core.scale_corrections import corrected_right_image
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
@@ -105,11 +104,9 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
 def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     """One scene with the extrinsic of ``rig``: its ground truth built once, verified, and its points for the solve."""
     sd, region, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
-    zed_right = cap.zed_right
-    if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image re-rectified, as build writes it
-
-        zed_right = corrected_right_image(zed_right, rig)
-    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, zed_right,
+    # (the right image as build writes it: the session applied the calibration's corrections, calibrate-scale's yaw
+    # included)
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
                           cap.mech_texture, rig, params.verify)
     return scene_points(cap.name, sd.depth_mm, sd.disparity_px, cap.mech_texture, cap.zed_left, rig, params), ver
 

@@ -25,7 +25,9 @@ others solved again). ``b`` and ``k`` without a board measurement of either are 
 to the baseline, which keeps the disparity labels, depth0.tiff and calib.txt consistent with each other (see
 docs/pipeline.md). The result is stored in the calibration file (``CalibrationFile.scale_calibration``: every term,
 its sigma, the covariance and the captures it came from) and applied through the rig: ``rig.zed.baseline_mm``, and
-``rig.scale_corrections`` (depth undone before reprojection, right image re-rectified by the yaw's homography).
+``rig.scale_corrections`` (depth undone before reprojection; the yaw's homography composed with the ZED
+self-rectification into the one resampling of the right image that opening the session makes,
+``CalibrationFile.open_session``).
 
 Covariances: the scenes' is a tile sandwich (scores summed over ``cov_tile_px`` tiles, as refine's), the boards' a
 pose-clustered sandwich (a PnP pose's error moves all its corners together).
@@ -394,7 +396,8 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
         raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
                          "one already corrected", "run calibrate-scale on the board (or refined) calibration")
-    # the session as the calibration sees it: its SN.conf reading and ZED self-rectification
+    # the session as the calibration sees it: its SN.conf reading and ZED self-rectification (no yaw yet: a calibration
+    # with one is refused above), so the yaw is measured on the right images as the self-rectification leaves them
     calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "scaled.yaml")
     rig_file = calib.rig
     B_file = rig_file.zed.baseline_mm

@@ -242,9 +242,10 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     board_model = params.board or calib.board  # the calibration's board unless overridden
     board = board_model.spec()
     _check_board(board_model)
-    # raw ZED images + SN.conf, a self-rectified ZED: rectify as the calibration did
+    # raw ZED images + SN.conf, a self-rectified ZED: rectify as the calibration did (the rectification calibrate
+    # made and measured: without calibrate-scale's yaw, as validate has always measured it)
     if calib.zed_conf is not None or calib.zed_right_correction is not None:
-        session = calib.open_session(session_dir)
+        session = calib.open_session(session_dir, right_yaw=False)
     check_rig_matches_session(calib.rig, session, calib_path)  # as every other stage (a calibration of another rig)
     # the rectification on the board points (any target: matched by id, circle centres bias-corrected; docs/targets.md)
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session), zed_right=calib.rig.zed.right)
@@ -337,7 +338,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
     t0 = time.perf_counter()
     calib = CalibrationFile.read(calibration)
-    session = calib.open_session(session_dir)  # (the gauges use the depth and the left image only)
+    session = calib.open_session(session_dir, right_yaw=False)  # (the gauges use the depth and the left image only)
     check_rig_matches_session(calib.rig, session, calibration)
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())

@@ -49,7 +49,6 @@ from gtforge.core.photometric import (
 )
 from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
 from gtforge.core.render import render_texture
-from gtforge.core.scale_corrections import corrected_right_image
 from gtforge.dataset.views import final_splits, write_lists, write_split_views
 from gtforge.dataset.worker_cache import cached_session
 from gtforge.errors import InputError
@@ -444,10 +443,7 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
         if not folder.is_dir():
             raise InputError(folder, None, "the capture this scene was built from", "no such folder",
                              "verification needs the session's captures (pass --session if they moved)")
-        cap = session.load_capture(folder)
-        if rig.zed_right_yaw_deg != 0.0:  # calibrate-scale's yaw: the right image as the dataset's im1 has it
-
-            cap.zed_right = corrected_right_image(cap.zed_right, rig)
+        cap = session.load_capture(folder)  # the right image as the dataset's im1 has it (every correction applied)
         disp = read_pfm(s / "disp0GT.pfm")
         mask = read_image(s / "mask0nocc.png")
         region = read_image(s / "region.png")

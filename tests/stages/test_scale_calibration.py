@@ -14,6 +14,7 @@ from gtforge.core.scale_corrections import (
     shown_disparity_px,
     yaw_homography,
 )
+from gtforge.core.selfcal import corrected_right
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
@@ -103,24 +104,27 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
 
 @pytest.mark.slow
 def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, errors_calibrated):
-    """verify's stereo check, with the corrected rig and the re-rectified right image (as build-dataset writes im1)."""
+    """verify's stereo check, with the corrected rig and the right image the calibration's session gives (the yaw
+    applied in its one resampling, as build-dataset writes im1)."""
     start, res = errors_calibrated
-    s = open_session(errors_session)
-    cap = s.load_capture(s.select("scenes", None)[0])
     biases = {}
     for name, calib in (("before", CalibrationFile.read(start)), ("after", res)):
+        s = calib.open_session(errors_session)
+        cap = s.load_capture(s.select("scenes", None)[0])
         rig = calib.rig
         sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
-        ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left,
-                              corrected_right_image(cap.zed_right, rig), cap.mech_texture, rig)
+        ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right,
+                              cap.mech_texture, rig)
         biases[name] = ver.stereo["all"].disparity_bias_px
     assert abs(biases["before"]) > 0.2 and abs(biases["after"]) < 0.02, biases
 
 
 @pytest.mark.slow
 def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_calibrated, tmp_path):
-    """calib.txt's baseline is the corrected one, im1 the re-rectified right image, the labels the corrected GT, the
-    scene's verification reads no stereo bias and the sigma map carries the scale terms."""
+    """calib.txt's baseline is the corrected one, im1 the right image corrected for the yaw (the session's one
+    resampling: for these images, rectified before gtforge with the yaw alone, exactly calibrate-scale's former
+    re-rectification), the labels the corrected GT, the scene's verification reads no stereo bias and the sigma map
+    carries the scale terms."""
     from gtforge.build_dataset import build_dataset
     from gtforge.core.scale_corrections import scale_sigma_px
     from gtforge.io.formats import read_image, read_pfm
@@ -135,6 +139,10 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     s = open_session(errors_session)
     cap = s.load_capture(s.select("scenes", None)[0])
     np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected_right_image(cap.zed_right, res.rig))
+    corrected = res.open_session(errors_session).load_capture(s.select("scenes", None)[0])
+    np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected.zed_right)
+    np.testing.assert_array_equal(read_image(sc / "im0.png"), cap.zed_left)
+    assert (sc / "im0.png").read_bytes() == (errors_session / "scenes" / "000" / "left.png").read_bytes()  # copied
     sd, _, _ = build_scene_arrays(cap.depth_mm, res.rig, BuildParams(), cap.fruit_mask)
     np.testing.assert_array_equal(read_pfm(sc / "disp0GT.pfm"), sd.disparity_px)
     meta = __import__("json").loads((sc / "meta.json").read_text())
@@ -195,6 +203,69 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
         assert np.mean(np.abs(a[m] - b[m])) < 0.002
 
 
+# ---- both corrections of the right camera: the self-rectification and the yaw, in one resampling -----------------
+@pytest.fixture(scope="module")
+def both_session(tmp_path_factory):
+    """5 board poses + 2 fruit scenes at 0.3x whose right camera is turned by a yaw of 0.15 deg and then by a residual
+    rotation (0.1, 0.05, -0.08) deg: the self-rectification's and calibrate-scale's errors at once."""
+    d = tmp_path_factory.mktemp("both_errors")
+    generate_session(d, n_board=5, n_scenes=2, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
+                     supersample=2, right_yaw_deg=0.15, zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
+    return d
+
+
+@pytest.mark.slow
+def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
+    """A session with both errors through self-rectification, calibrate-scale, build-dataset and verify: calibrate-scale
+    measures its yaw on the self-rectified images (the session it opens has no yaw), build-dataset's im1 is the
+    session's one resampling, and verify's stereo check of the dataset reads as well as the former two-pass im1
+    (self-rectified, then re-rectified for the yaw), checked on the same labels.
+
+    Measured with this session (verify, region "all", scenes 000 / 001): disparity bias -0.0070 / -0.0075 px (one
+    resampling) against -0.0118 / -0.0109 px (two), vertical disparity -0.0027 / +0.0017 px against -0.0103 / -0.0055
+    px, bad matches 0.01 / 0.01 % against 0.03 / 0.01 %. (The CLI chain calibrate, calibrate-scale, build-dataset,
+    verify on the same errors with 6 poses and 3 scenes, the commit before against this one: bias -0.0041, -0.0062,
+    -0.0049 -> -0.0060, -0.0060, -0.0058 px; vertical -0.0129, -0.0145, -0.0133 -> -0.0047, -0.0073, -0.0061 px; the
+    fruit's bias +0.078, +0.081, +0.085 -> +0.070, +0.072, +0.076 px; im1's mean gradient energy 26.5-27.0 ->
+    31.7-32.4.)"""
+    from gtforge.build_dataset import build_dataset
+    from gtforge.io.formats import read_image
+    from gtforge.io.zed_rectification import self_rectify
+    from gtforge.verify import verify_dataset
+
+    s = open_session(both_session)
+    selfcal = self_rectify(s, s.capture_dirs("board") + s.capture_dirs("scenes"))
+    assert selfcal.status == "applied", selfcal.reason
+    start = CalibrationFile.read(_known_calibration(both_session, tmp_path / "known.yaml"))
+    start.zed_self_rectification = selfcal
+    start.write(tmp_path / "start.yaml")
+    # calibrate-scale opens the session with the self-rectification and without a yaw
+    opened = start.open_session(both_session)
+    assert opened.rectification.correction == selfcal.correction and not hasattr(opened.rectification, "right_yaw_deg")
+    res = calibrate_scale(both_session, tmp_path / "start.yaml", tmp_path / "scaled.yaml", FAST)
+    yaw = res.rig.zed_right_yaw_deg
+    assert res.scale_calibration.terms["zed_right_yaw_deg"].status == "applied" and abs(yaw - 0.15) < 0.05, yaw
+    out = tmp_path / "ds"
+    build_dataset(both_session, tmp_path / "scaled.yaml", out, workers=1)
+    rep = verify_dataset(out, workers=1)
+    once = res.open_session(both_session)
+    assert once.rectification.right_yaw_deg == yaw and once.rectification.correction == selfcal.correction
+    self_only = res.open_session(both_session, right_yaw=False)
+    for d in s.select("scenes", None):
+        cap = once.load_capture(d)
+        np.testing.assert_array_equal(read_image(out / "scenes" / d.name / "im1.png"), cap.zed_right)
+        two = corrected_right_image(self_only.load_capture(d).zed_right, res.rig)
+        sd, region, _ = build_scene_arrays(cap.depth_mm, res.rig, BuildParams(), cap.fruit_mask)
+        ver_two, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, two,
+                                  cap.mech_texture, res.rig)
+        a, b = rep.scenes[d.name].stereo["all"], ver_two.stereo["all"]
+        print(f"scene {d.name}: bias {a.disparity_bias_px:+.4f} px (one resampling) {b.disparity_bias_px:+.4f} px (two); "
+              f"vertical {a.vertical_px:+.4f} / {b.vertical_px:+.4f} px; bad matches {a.bad_match_pct:.2f} / "
+              f"{b.bad_match_pct:.2f} %")
+        assert abs(a.disparity_bias_px) < 0.02 and abs(a.disparity_bias_px) <= abs(b.disparity_bias_px) + 0.003
+        assert abs(a.vertical_px) <= abs(b.vertical_px) + 0.002 and a.bad_match_pct <= b.bad_match_pct + 0.1
+
+
 def test_a_calibration_without_the_fields_changes_nothing(tmp_path):
     """Old files: no scale_corrections, no scale_calibration -> the depth and the right image pass through as they
     are, calib.txt as before."""
@@ -209,6 +280,9 @@ def test_a_calibration_without_the_fields_changes_nothing(tmp_path):
     assert old.rig.corrected_depth_mm(depth) is depth
     img = np.zeros((8, 9, 3), np.uint8)
     assert corrected_right_image(img, old.rig) is img
+    # the session's rectification: none, as before (no self-rectification, no yaw)
+    assert old.zed_right_correction is None and old.rig.zed_right_yaw_deg == 0.0
+    assert corrected_right(None, old.rig.zed, old.zed_right_correction, old.rig.zed_right_yaw_deg) is None
     assert middlebury_calib_text(old.rig.zed, 10, 10, None) == middlebury_calib_text(sr.zed, 10, 10, None)
     # a second correction on a corrected file is refused (they would compound)
     p = CalibrationFile.model_validate({**c.model_dump(), "rig": {**c.rig.model_dump(),

@@ -211,9 +211,10 @@ class ScaleCorrections(GTModel):
     * ``depth_scale`` / ``depth_offset_mm``: the depth map reads ``depth_scale * z + depth_offset_mm`` for a true
       z-depth z (mm); every stage that reprojects the depth first undoes it, ``z = (depth - offset) / scale``.
     * ``zed_right_yaw_deg``: the right camera is turned by this about its y axis relative to the rectified right
-      camera (``T_actual_from_rectified = R_y(yaw)``); the right image is re-rectified by the homography
+      camera (``T_actual_from_rectified = R_y(yaw)``); the right image is corrected by the homography
       ``K_right R_y(yaw) K_right^-1`` (rectified pixel -> pixel of the image as captured) before it is written or
-      compared (``gtforge.core.scale_corrections.corrected_right_image``)."""
+      compared: composed with the ZED self-rectification into the one resampling of the right image that opening the
+      session makes (``CalibrationFile.open_session``, ``gtforge.core.selfcal.corrected_right``)."""
 
     depth_scale: float = Field(1.0, gt=0)
     depth_offset_mm: float = 0.0

@@ -1,6 +1,8 @@
 """Applying calibrate-scale's corrections (``Rig.scale_corrections``; ``gtforge.scale_calibration`` estimates them):
-the right image re-rectified for the right camera's yaw, the ground truth's sigma widened by the terms' covariance,
-and the disparity a turned right camera shows (the generator's truth)."""
+the right camera's yaw as a homography (``yaw_homography``; the session folds it into its one resampling of the right
+image, ``gtforge.core.selfcal.corrected_right``), the ground truth's sigma widened by the terms' covariance, and the
+disparity a turned right camera shows (the generator's truth). ``corrected_right_image`` is the second resampling the
+stages did before the yaw went into the session's (kept as the reference the single resampling is compared with)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -16,11 +18,15 @@ if TYPE_CHECKING:
 def yaw_homography(rig: Rig, yaw_rad: float) -> np.ndarray:
     """``H``: rectified right pixel -> pixel of the right image as captured by a right camera turned by ``yaw_rad``
     about its y axis (``K_r R_y(yaw) K_r^-1``, homogeneous)."""
-    K = rig.zed.right.K
+    return right_yaw_homography(rig.zed.right.K, yaw_rad)
+
+
+def right_yaw_homography(K_right: np.ndarray, yaw_rad: float) -> np.ndarray:
+    """``yaw_homography`` for the rectified right camera matrix ``K_right``."""
+    K = K_right
     c, s = np.cos(yaw_rad), np.sin(yaw_rad)
     R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     return K @ R @ np.linalg.inv(K)
-
 
 
 def apply_homography(H: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -50,22 +56,34 @@ def spline_sample(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
 
 
 
+def resample_image(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
+    """An ``out_hw`` image whose pixels (row-major) are ``image`` sampled at ``(us, vs)`` (flat, one per output pixel):
+    cubic B-spline at the exact positions (``spline_sample``), black where a position is outside ``image``, rounded to
+    its type. One resampling of the right image, whatever its corrections (``gtforge.core.selfcal.corrected_right``)."""
+    h, w = image.shape[:2]
+    img = np.asarray(image)
+    stack = img[None] if img.ndim == 2 else np.moveaxis(img, 2, 0)
+    out = spline_sample(spline_coefficients(stack), us, vs)
+    inside = (us >= 0) & (us <= w - 1) & (vs >= 0) & (vs <= h - 1)
+    out = np.where(inside[None], out, 0.0)
+    out = np.clip(np.round(out), 0, 255).astype(img.dtype).reshape((-1, *out_hw))
+    return out[0] if img.ndim == 2 else np.ascontiguousarray(np.moveaxis(out, 0, 2))
+
+
 def corrected_right_image(image: np.ndarray | None, rig: Rig) -> np.ndarray | None:
     """The right image re-rectified for ``rig.scale_corrections``' yaw (the image itself when none): each rectified
-    pixel sampled (cubic B-spline, exact positions; black outside) where the turned camera saw it."""
+    pixel sampled (cubic B-spline, exact positions; black outside) where the turned camera saw it.
+
+    The second resampling the stages used to make of a right image the session had already rectified; the session now
+    folds the yaw into its own (``CalibrationFile.open_session``). Kept as the reference of that two-pass path: for
+    an image rectified before gtforge with the yaw alone it is exactly what the session gives."""
     yaw = rig.zed_right_yaw_deg
     if image is None or yaw == 0.0:
         return image
     h, w = image.shape[:2]
     vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
     us, vs = apply_homography(yaw_homography(rig, np.radians(yaw)), uu.ravel(), vv.ravel())
-    img = np.asarray(image)
-    stack = img[None] if img.ndim == 2 else np.moveaxis(img, 2, 0)
-    out = spline_sample(spline_coefficients(stack), us, vs)
-    inside = (us >= 0) & (us <= w - 1) & (vs >= 0) & (vs <= h - 1)
-    out = np.where(inside[None], out, 0.0)
-    out = np.clip(np.round(out), 0, 255).astype(img.dtype).reshape((-1, h, w))
-    return out[0] if img.ndim == 2 else np.ascontiguousarray(np.moveaxis(out, 0, 2))
+    return resample_image(image, us, vs, (h, w))
 
 
 

@@ -12,7 +12,8 @@ points matched between the rectified left and right images must lie on the same 
 ``H = K_s R_delta K^-1`` (``K``: the rectified right camera, ``K_s``: the same with ``f (1 + s)``), which maps a pixel
 of the current right image to the corrected one. For raw images + SN.conf the correction is folded into the
 rectification maps (one interpolation, as before); for images rectified before gtforge (the ZED SDK) the right image
-is warped by ``H``.
+is warped by ``H``. calibrate-scale's yaw of the right camera (``Rig.scale_corrections``) goes into the same
+resampling (``corrected_right``): a right image is interpolated once, whatever its corrections.
 
 **What vertical disparity determines.** To first order a right pixel ``(x, y)`` (normalised) moves vertically by
 ``f (omega_x (1 + y^2) - omega_y x y - omega_z x + s y)``: ``omega_x`` (the constant offset), ``omega_z`` (the slope
@@ -40,6 +41,7 @@ from pydantic import Field
 from scipy.optimize import least_squares
 
 from gtforge.core.camera import RectifiedStereo
+from gtforge.core.scale_corrections import apply_homography, resample_image, right_yaw_homography
 from gtforge.core.schema import GTModel
 
 if TYPE_CHECKING:
@@ -254,16 +256,79 @@ class RightImageCorrection:
                                          flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
-def corrected_rectification(rect, correction: ZedRightCorrection):
+def corrected_rectification(rect, correction: ZedRightCorrection | None, right_yaw_deg: float = 0.0):
     """A ``ZedRectification`` (raw images + SN.conf) whose right maps include ``correction``: for a corrected pixel
-    ``p`` the raw ray is ``(R_delta R_rect_from_raw_right)^T K_s^-1 p`` (module docstring), one interpolation."""
+    ``p`` the raw ray is ``(R_delta R_rect_from_raw_right)^T K_s^-1 p`` (module docstring), one interpolation.
+
+    ``right_yaw_deg`` (calibrate-scale's yaw, ``corrected_right``): the maps also undo it, ``p`` sampling the
+    self-corrected image at ``H_yaw p``, so the raw ray is ``(R_delta R_rect)^T K_s^-1 H_yaw p``; the right image is
+    then sampled with cubic B-splines (``ZedRectification.right_interpolation``, the kernel of the yaw's own
+    resampling before it went into the maps). ``correction`` may then be None (the yaw alone)."""
     import dataclasses
 
-    K_s = correction.K_right(rect.stereo)
-    K_s[0, 0] *= 1.0 + correction.focal_scale
-    K_s[1, 1] *= 1.0 + correction.focal_scale
-    R_right = correction.R_delta() @ rect.R_rect_from_raw_right
+    if correction is None and right_yaw_deg == 0.0:
+        return rect
+    if correction is not None:
+        K_s = correction.K_right(rect.stereo)
+        K_s[0, 0] *= 1.0 + correction.focal_scale
+        K_s[1, 1] *= 1.0 + correction.focal_scale
+        R_right = correction.R_delta() @ rect.R_rect_from_raw_right
+    else:
+        K_s, R_right = rect.stereo.right.K, rect.R_rect_from_raw_right
     f = rect.factory
     size = f.size_wh
+    extra = {}
+    if right_yaw_deg != 0.0:
+        # initUndistortRectifyMap takes any 3x3 "new camera matrix" A: the ray of pixel p is (A R)^-1 p
+        K_s = np.linalg.inv(right_yaw_homography(rect.stereo.right.K, np.radians(right_yaw_deg))) @ K_s
+        extra = {"right_yaw_deg": float(right_yaw_deg), "right_interpolation": "cubic-bspline"}
     maps_r = cv2.initUndistortRectifyMap(f.right.K, f.right.dist, R_right, K_s, size, cv2.CV_32FC1)
-    return dataclasses.replace(rect, maps_right=maps_r, R_rect_from_raw_right=R_right, correction=correction)
+    return dataclasses.replace(rect, maps_right=maps_r, R_rect_from_raw_right=R_right, correction=correction, **extra)
+
+
+def right_sampling_homography(stereo: RectifiedStereo, correction: ZedRightCorrection | None,
+                              right_yaw_deg: float) -> np.ndarray:
+    """``M``: a pixel of the corrected right image -> the pixel of the right image as rectified before gtforge that
+    it shows. The self-rectification maps an image pixel ``q`` to ``H q`` (``ZedRightCorrection.homography``);
+    calibrate-scale measured its yaw on that self-corrected image, whose pixel ``H_yaw p``
+    (``gtforge.core.scale_corrections.yaw_homography``: ideal rectified pixel -> turned camera's pixel) shows what the
+    ideal right camera sees at ``p``. So ``M = H^-1 H_yaw``: the yaw is undone first, then the self-rectification."""
+    H_yaw = right_yaw_homography(stereo.right.K, np.radians(right_yaw_deg))
+    return H_yaw if correction is None else np.linalg.inv(correction.homography(stereo)) @ H_yaw
+
+
+@dataclass
+class CorrectedRightImage:
+    """Images rectified before gtforge (ZED SDK) with calibrate-scale's yaw, and the self-rectification when it was
+    applied: the left image as it is, the right one resampled once (cubic B-spline at ``right_sampling_homography``'s
+    exact positions, black outside; with the yaw alone exactly what the stages' second resampling gave,
+    ``gtforge.core.scale_corrections.corrected_right_image``)."""
+
+    stereo: RectifiedStereo
+    correction: ZedRightCorrection | None
+    right_yaw_deg: float
+    inner: object | None = None  # not used: images come rectified
+    left_unchanged: bool = True  # the left image is the file's pixels (Session.load_capture keeps it verbatim)
+
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, w = right.shape[:2]
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+        us, vs = apply_homography(right_sampling_homography(self.stereo, self.correction, self.right_yaw_deg),
+                                  uu.ravel(), vv.ravel())
+        return left, resample_image(right, us, vs, (h, w))
+
+
+def corrected_right(rect, stereo: RectifiedStereo, correction: ZedRightCorrection | None, right_yaw_deg: float = 0.0):
+    """What a session rectifies its ZED images with, given the right camera's corrections a calibration recorded:
+    the self-rectification (``correction``) and calibrate-scale's yaw (``right_yaw_deg``), in one resampling of the
+    right image. ``rect``: the SN.conf rectification of raw images (None: images rectified before gtforge).
+
+    Neither: ``rect`` as it is. The self-rectification alone: as before the yaw joined it (folded into the maps, or
+    ``RightImageCorrection``'s warp). With the yaw: ``corrected_rectification``'s maps, or ``CorrectedRightImage``."""
+    if right_yaw_deg == 0.0:
+        if correction is None:
+            return rect
+        return corrected_rectification(rect, correction) if rect is not None else RightImageCorrection(correction, stereo)
+    if rect is not None:
+        return corrected_rectification(rect, correction, right_yaw_deg)
+    return CorrectedRightImage(stereo, correction, float(right_yaw_deg))

@@ -11,10 +11,11 @@ WORKER_CACHE: dict = {}
 
 
 def cached_session(session_dir: str, calib: CalibrationFile):
-    """The session as ``calib`` sees it (``CalibrationFile.open_session``: the SN.conf reading and the ZED
-    self-rectification it recorded)."""
+    """The session as ``calib`` sees it (``CalibrationFile.open_session``: the SN.conf reading, the ZED
+    self-rectification and calibrate-scale's yaw of the right camera it recorded)."""
     corr = calib.zed_right_correction
-    key = (session_dir, calib.zed_conf_reading, corr.model_dump_json() if corr is not None else None)
+    key = (session_dir, calib.zed_conf_reading, corr.model_dump_json() if corr is not None else None,
+           calib.rig.zed_right_yaw_deg)
     hit = WORKER_CACHE.get(key)
     if hit is None or hit[1] != session_stamp(hit[0]):
         session = calib.open_session(session_dir)

@@ -27,6 +27,7 @@ from gtforge.core.camera import (
     RectifiedStereo,
     StereoCalibrationFile,
 )
+from gtforge.core.scale_corrections import resample_image
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_text
 
@@ -316,10 +317,19 @@ class ZedRectification:
     reading: str = DEFAULT_ZED_CONF_READING
     factory: ZedFactoryCalibration | None = None
     correction: object | None = None  # gtforge.core.selfcal.ZedRightCorrection folded into the right maps
+    # calibrate-scale's yaw of the right camera folded into the right maps too (gtforge.core.selfcal.corrected_right)
+    right_yaw_deg: float = 0.0
+    # how the right image is sampled at its maps: bilinear (cv2.remap), or cubic B-spline at the exact positions
+    # (gtforge.core.scale_corrections.resample_image) when the yaw is folded in: the kernel the yaw's own resampling had
+    right_interpolation: Literal["linear", "cubic-bspline"] = "linear"
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return (cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
-                cv2.remap(right_raw, *self.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
+        left = cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if self.right_interpolation == "cubic-bspline":
+            mx, my = self.maps_right
+            return left, resample_image(right_raw, mx.ravel().astype(np.float64), my.ravel().astype(np.float64),
+                                        mx.shape)
+        return left, cv2.remap(right_raw, *self.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
 def resolution_from_eye_width(width_px: int, path=None) -> str:

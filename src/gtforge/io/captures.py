@@ -19,7 +19,7 @@ from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
-from gtforge.core.selfcal import RightImageCorrection, corrected_rectification
+from gtforge.core.selfcal import corrected_right
 from gtforge.core.targets import BoardModel
 from gtforge.errors import InputError
 from gtforge.infra.digest import blake3_hex
@@ -262,8 +262,9 @@ class Session:
     config: SessionFile
     mech: PinholeCamera  # the texture camera (2D image)
     zed: RectifiedStereo
-    # ZedRectification when raw images + SN.conf; gtforge.core.selfcal.RightImageCorrection for images rectified before
-    # gtforge with a self-rectification applied; None: the images are used as they are
+    # ZedRectification when raw images + SN.conf; for images rectified before gtforge with a correction of the right
+    # camera, gtforge.core.selfcal.RightImageCorrection (the self-rectification) or CorrectedRightImage (with
+    # calibrate-scale's yaw); None: the images are used as they are
     rectification: object | None
     depth_cam: PinholeCamera | None = None  # the depth map's camera when it is not the texture camera
     T_mech_from_depth: np.ndarray | None = None
@@ -400,7 +401,8 @@ class Session:
                 self.zed.left.check_image_size(right.shape, src_right, "ZED right image")
             if self.rectification is not None and right is not None:
                 left, right = self.rectification.rectify(left, right)
-                verbatim = [None, None]
+                # (a correction of the right camera alone may leave the left image the file's pixels)
+                verbatim = [verbatim[0] if getattr(self.rectification, "left_unchanged", False) else None, None]
         mask = None
         if (folder / f.fruit_mask).exists():
             mask = read_image(folder / f.fruit_mask, field="fruit_mask",
@@ -466,7 +468,8 @@ def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[in
     return h is not None and (h[0], h[1]) == tuple(size_wh) and h[2] == 8 and h[3] in colour_types and h[4]
 
 
-def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_right_correction=None) -> Session:
+def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_right_correction=None,
+                 zed_right_yaw_deg: float = 0.0) -> Session:
     """Read ``session.yaml`` (optional) and the camera files of a capture session.
 
     ``zed_conf_reading``: the SN.conf reading a calibration file recorded (``CalibrationFile.zed_conf``);
@@ -474,7 +477,9 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
     ``zed_right_correction``: the right camera's correction a calibration file recorded
     (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to the
-    right image of images rectified before gtforge."""
+    right image of images rectified before gtforge. ``zed_right_yaw_deg``: calibrate-scale's yaw of the right camera
+    (``Rig.scale_corrections``), composed with it into the same single resampling of the right image
+    (``gtforge.core.selfcal.corrected_right``)."""
 
     root = Path(root)
     if not root.is_dir():
@@ -508,9 +513,7 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
             rectification = None  # SDK-rectified images with the factory conf: only the model is used
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
-    if zed_right_correction is not None:
-        rectification = corrected_rectification(rectification, zed_right_correction) if rectification is not None \
-            else RightImageCorrection(zed_right_correction, zed)
+    rectification = corrected_right(rectification, zed, zed_right_correction, zed_right_yaw_deg)
     return Session(root, cfg, mech, zed, rectification, depth_cam, T_mech_from_depth)
 
 

@@ -48,6 +48,8 @@ def rectified_by(session: Session) -> str:
     rect = getattr(session, "rectification", None)
     corrected = "" if getattr(rect, "correction", None) is None else \
         ", the right camera corrected by gtforge's self-rectification"
+    if getattr(rect, "right_yaw_deg", 0.0):
+        corrected += f", the right camera's yaw ({rect.right_yaw_deg:+.4f} deg, calibrate-scale) undone"
     if rect is not None and getattr(rect, "factory", None) is not None:
         return (f"by gtforge, from {rect.factory.path.name} read as '{rect.reading}': "
                 f"{describe_zed_conf_reading(rect.reading)}{corrected}")

@@ -174,12 +174,16 @@ class CalibrationFile(VersionedFile):
         s = self.zed_self_rectification
         return s.correction if s is not None and s.status == "applied" else None
 
-    def open_session(self, session_dir: str | Path):
-        """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading and
-        the self-rectification's correction."""
+    def open_session(self, session_dir: str | Path, right_yaw: bool = True):
+        """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading, and
+        the right image corrected for the self-rectification and calibrate-scale's yaw (``rig.scale_corrections``)
+        in one resampling (``gtforge.core.selfcal.corrected_right``): the right image every stage reads is the
+        dataset's im1, and no stage resamples it again. ``right_yaw=False``: without the yaw (the right image as
+        calibrate-scale measured the yaw on, and as validate measures the rectification)."""
 
         return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
-                            zed_right_correction=self.zed_right_correction)
+                            zed_right_correction=self.zed_right_correction,
+                            zed_right_yaw_deg=self.rig.zed_right_yaw_deg if right_yaw else 0.0)
     # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
     # the conf reading chosen from the board images (gtforge.core.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None
