@@ -244,16 +244,22 @@ def fit_self_rectification(matches: list[Matches], stereo: RectifiedStereo, para
 # ---- applying it ---------------------------------------------------------------------------------------------------
 @dataclass
 class RightImageCorrection:
-    """Images rectified before gtforge (ZED SDK): the left image as it is, the right one warped by ``H``."""
+    """Images rectified before gtforge (ZED SDK): the left image as it is, the right one resampled at ``H^-1 p``
+    (cubic B-spline at the exact positions, ``resample_image``). Not ``cv2.warpPerspective``: OpenCV's warps and
+    remaps round every sample position to 1/32 px, and on a session whose right camera was turned 0.15 deg about x
+    and z that rounding alone took calibrate-scale's baseline to +0.47 % (truth +0.30 %, 7 sigma) and its yaw 5 sigma
+    off (docs/design/accuracy.md)."""
 
     correction: ZedRightCorrection
     stereo: RectifiedStereo
     inner: object | None = None  # not used: images come rectified
+    left_unchanged: bool = True  # the left image is the file's pixels (Session.load_capture keeps it verbatim)
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         h, w = right.shape[:2]
-        return left, cv2.warpPerspective(right, self.correction.homography(self.stereo), (w, h),
-                                         flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+        us, vs = apply_homography(right_sampling_homography(self.stereo, self.correction, 0.0), uu.ravel(), vv.ravel())
+        return left, resample_image(right, us, vs, (h, w))
 
 
 def corrected_rectification(rect, correction: ZedRightCorrection | None, right_yaw_deg: float = 0.0):
@@ -261,9 +267,9 @@ def corrected_rectification(rect, correction: ZedRightCorrection | None, right_y
     ``p`` the raw ray is ``(R_delta R_rect_from_raw_right)^T K_s^-1 p`` (module docstring), one interpolation.
 
     ``right_yaw_deg`` (calibrate-scale's yaw, ``corrected_right``): the maps also undo it, ``p`` sampling the
-    self-corrected image at ``H_yaw p``, so the raw ray is ``(R_delta R_rect)^T K_s^-1 H_yaw p``; the right image is
-    then sampled with cubic B-splines (``ZedRectification.right_interpolation``, the kernel of the yaw's own
-    resampling before it went into the maps). ``correction`` may then be None (the yaw alone)."""
+    self-corrected image at ``H_yaw p``, so the raw ray is ``(R_delta R_rect)^T K_s^-1 H_yaw p``. ``correction`` may
+    then be None (the yaw alone). The right image is sampled at the maps with cubic B-splines at the exact positions
+    (``ZedRectification.interpolation``; why not ``cv2.remap``: ``RightImageCorrection``)."""
     import dataclasses
 
     if correction is None and right_yaw_deg == 0.0:
@@ -277,11 +283,12 @@ def corrected_rectification(rect, correction: ZedRightCorrection | None, right_y
         K_s, R_right = rect.stereo.right.K, rect.R_rect_from_raw_right
     f = rect.factory
     size = f.size_wh
-    extra = {}
+    # the right image sampled at its maps' exact positions (cv2.remap rounds them to 1/32 px: RightImageCorrection)
+    extra = {"interpolation": "cubic-bspline"}
     if right_yaw_deg != 0.0:
         # initUndistortRectifyMap takes any 3x3 "new camera matrix" A: the ray of pixel p is (A R)^-1 p
         K_s = np.linalg.inv(right_yaw_homography(rect.stereo.right.K, np.radians(right_yaw_deg))) @ K_s
-        extra = {"right_yaw_deg": float(right_yaw_deg), "right_interpolation": "cubic-bspline"}
+        extra["right_yaw_deg"] = float(right_yaw_deg)
     maps_r = cv2.initUndistortRectifyMap(f.right.K, f.right.dist, R_right, K_s, size, cv2.CV_32FC1)
     return dataclasses.replace(rect, maps_right=maps_r, R_rect_from_raw_right=R_right, correction=correction, **extra)
 
