@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 
 setup: $(STAMP)
 
-demo: $(STAMP)  ## set up, then run calibrate -> validate -> refine -> build-dataset -> evaluate on synthetic data
+demo: $(STAMP)  ## set up, then run calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> evaluate on synthetic data
 	$(VENV)/bin/gtforge demo demo_out
 
 test: $(STAMP)  ## set up, then run the whole test suite (what CI runs: .ci/run)

@@ -221,9 +221,11 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     session's one resampling, and verify's stereo check of the dataset reads as well as the former two-pass im1
     (self-rectified, then re-rectified for the yaw), checked on the same labels.
 
-    Measured with this session (verify, region "all", scenes 000 / 001): disparity bias -0.0070 / -0.0075 px (one
-    resampling) against -0.0118 / -0.0109 px (two), vertical disparity -0.0027 / +0.0017 px against -0.0103 / -0.0055
-    px, bad matches 0.01 / 0.01 % against 0.03 / 0.01 %. (The CLI chain calibrate, calibrate-scale, build-dataset,
+    Measured with this session (verify, region "all", scenes 000 / 001): disparity bias +0.0007 / -0.0018 px (one
+    resampling) against -0.0012 / -0.0026 px (two, both by cubic B-spline), vertical disparity -0.0022 / -0.0016 px
+    against -0.0014 / -0.0027 px; the terms: yaw 0.2025 +- 0.0020 deg (truth 0.20), baseline, depth scale and offset
+    within 1.2 sigma of 0. With OpenCV's bilinear first pass and the three-parameter self-rectification (before the
+    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate, calibrate-scale, build-dataset,
     verify on the same errors with 6 poses and 3 scenes, the commit before against this one: bias -0.0041, -0.0062,
     -0.0049 -> -0.0060, -0.0060, -0.0058 px; vertical -0.0129, -0.0145, -0.0133 -> -0.0047, -0.0073, -0.0061 px; the
     fruit's bias +0.078, +0.081, +0.085 -> +0.070, +0.072, +0.076 px; im1's mean gradient energy 26.5-27.0 ->
@@ -244,7 +246,14 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     assert opened.rectification.correction == selfcal.correction and not hasattr(opened.rectification, "right_yaw_deg")
     res = calibrate_scale(both_session, tmp_path / "start.yaml", tmp_path / "scaled.yaml", FAST)
     yaw = res.rig.zed_right_yaw_deg
-    assert res.scale_calibration.terms["zed_right_yaw_deg"].status == "applied" and abs(yaw - 0.15) < 0.05, yaw
+    # the yaw the disparities show: 0.15 deg and the residual rotation's 0.05 deg about y, which the self-rectification
+    # fits from the rows but leaves to calibrate-scale; no baseline or depth error (each within 3 sigma of 0)
+    terms = res.scale_calibration.terms
+    print({k: (t.estimate, t.sigma, t.status) for k, t in terms.items()})
+    assert terms["zed_right_yaw_deg"].status == "applied"
+    assert abs(terms["zed_right_yaw_deg"].estimate - 0.20) < 3 * terms["zed_right_yaw_deg"].sigma + 0.001, yaw
+    for k in ("zed_baseline_frac", "depth_scale_frac", "depth_offset_mm"):
+        assert terms[k].estimate is None or abs(terms[k].estimate) < 3 * terms[k].sigma, (k, terms[k])
     out = tmp_path / "ds"
     build_dataset(both_session, tmp_path / "scaled.yaml", out, workers=1)
     rep = verify_dataset(out, workers=1)
