@@ -66,7 +66,8 @@ def resample_image(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tu
     out = spline_sample(spline_coefficients(stack), us, vs)
     inside = (us >= 0) & (us <= w - 1) & (vs >= 0) & (vs <= h - 1)
     out = np.where(inside[None], out, 0.0)
-    out = np.clip(np.round(out), 0, 255).astype(img.dtype).reshape((-1, *out_hw))
+    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else np.inf  # 8- or 16-bit images
+    out = np.clip(np.round(out), 0, top).astype(img.dtype).reshape((-1, *out_hw))
     return out[0] if img.ndim == 2 else np.ascontiguousarray(np.moveaxis(out, 0, 2))
 
 
