@@ -242,10 +242,10 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     board_model = params.board or calib.board  # the calibration's board unless overridden
     board = board_model.spec()
     _check_board(board_model)
-    # raw ZED images + SN.conf, a self-rectified ZED: rectify as the calibration did (the rectification calibrate
-    # made and measured: without calibrate-scale's yaw, as validate has always measured it)
-    if calib.zed_conf is not None or calib.zed_right_correction is not None:
-        session = calib.open_session(session_dir, right_yaw=False)
+    # raw ZED images + SN.conf, a self-rectified ZED, calibrate-scale's yaw: the pair as every stage and the dataset
+    # get it, so that the rectification measured below is the dataset's
+    if calib.zed_conf is not None or calib.zed_right_correction is not None or calib.rig.zed_right_yaw_deg != 0.0:
+        session = calib.open_session(session_dir)
     check_rig_matches_session(calib.rig, session, calib_path)  # as every other stage (a calibration of another rig)
     # the rectification on the board points (any target: matched by id, circle centres bias-corrected; docs/targets.md)
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session), zed_right=calib.rig.zed.right)
