@@ -2,6 +2,7 @@
 stereo training code reads without glue (docs/dataset-format.md). Parallel, resumable, atomic."""
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -119,6 +120,21 @@ def _crop_window(fruit: np.ndarray, crop_wh: tuple[int, int]) -> tuple[int, int,
     return x0, y0, cw, ch
 
 
+# What a scene's files are made with beyond its parameters: the ZED right image of a calibration that corrects the
+# right camera is resampled once, by cubic B-spline at the exact positions (round 3; before, OpenCV's warp and a
+# second resampling for the yaw). Such scenes are rebuilt on resume; the others' files are the same as before.
+RIGHT_IMAGE_RESAMPLING = "one exact cubic B-spline resampling (round 3)"
+
+
+def scene_params_hash(params: BuildParams, calib) -> str:
+    """The hash a scene's meta.json records and a resumed build compares (``BuildParams.output_hash``, with
+    ``RIGHT_IMAGE_RESAMPLING`` where the calibration corrects the right camera)."""
+    h = params.output_hash()
+    if calib.zed_right_correction is not None or calib.rig.zed_right_yaw_deg != 0.0:
+        h = hashlib.sha256((h + RIGHT_IMAGE_RESAMPLING).encode()).hexdigest()[:16]
+    return h
+
+
 def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: str, calib_sha: str, out_dir: str,
                     params_json: str) -> tuple[str, str | None, dict | None]:
     """Worker: build capture ``capture_dir`` into ``scenes/<sid>/`` atomically.
@@ -221,7 +237,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 write_s += time.perf_counter() - t
             inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
             meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
-                             calibration_sha256=calib_sha, params_hash=params.output_hash(), input_blake3=inputs,
+                             calibration_sha256=calib_sha, params_hash=scene_params_hash(params, calib), input_blake3=inputs,
                              input_stamps=stamps, stats=stats, crop_xywh=crop,
                              fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
                              verification=verification,
@@ -274,7 +290,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         check_scheduler_address(scheduler)  # before anything is written
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
-    phash, expected = params.output_hash(), scene_files(params)
+    phash, expected = scene_params_hash(params, calib), scene_files(params)
     todo, unchanged, metas = plan_scenes(session, dirs, out, phash, calib_sha, expected, overwrite)
     before = {d.name: file_stamp(out / "scenes" / d.name / "meta.json") for d in todo}
     failures: dict[str, str] = {}

@@ -689,3 +689,26 @@ def test_a_scene_landed_by_a_worker_that_died_before_reporting_it_is_built(datas
         assert (kitti / d / "001_10.png").read_bytes() == (ref / d / "001_10.png").read_bytes()
     assert (out / "scenes" / "001" / "disp0GT.pfm").read_bytes() == \
         (dataset[0] / "scenes" / "001" / "disp0GT.pfm").read_bytes()
+
+
+def test_scenes_of_a_right_corrected_calibration_are_rebuilt_after_the_resampling_changed():
+    """A dataset built before the right image's one exact resampling (round 3) has the older im1: its scenes'
+    recorded hash no longer matches where the calibration corrects the right camera, so a resumed build redoes them;
+    without a correction the hash is the parameters' own, and nothing is rebuilt."""
+    from gtforge.build_dataset import scene_params_hash
+    from gtforge.core.camera import Rig, ScaleCorrections
+    from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
+    from gtforge.records.calibration import CalibrationFile
+    from gtforge.synthetic import default_rig
+
+    r = default_rig(0.3)
+    plain = CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech, T_zed_from_mech=r.T_zed_from_mech))
+    params = BuildParams()
+    assert scene_params_hash(params, plain) == params.output_hash()
+    yawed = plain.model_copy(update=dict(rig=Rig.model_validate(
+        {**plain.rig.model_dump(), "scale_corrections": ScaleCorrections(zed_right_yaw_deg=0.05).model_dump()})))
+    selfcal = plain.model_copy(update=dict(zed_self_rectification=ZedSelfRectification(
+        status="applied", reason="", correction=ZedRightCorrection(rotvec_rad=[0.001, 0.0, 0.0]))))
+    for c in (yawed, selfcal):
+        assert scene_params_hash(params, c) != params.output_hash()
+        assert scene_params_hash(params, c) == scene_params_hash(params, c)
