@@ -194,12 +194,13 @@ def fit_self_rectification(matches: list[Matches], stereo: RectifiedStereo, para
                                     "texture, or the right images are missing", **base)
     pl = np.concatenate([m.left_uv for m in used])
     pr = np.concatenate([m.right_uv for m in used])
-    theta, cov, _ = _robust_fit(pl, pr, stereo, with_omega_y=False)
     theta4, cov4, _ = _robust_fit(pl, pr, stereo, with_omega_y=True)
     yaw_nuisance = bool(np.sqrt(max(cov4[1, 1], 0.0)) <= np.radians(params.yaw_nuisance_max_sigma_deg))
     if yaw_nuisance:  # (omega_x, omega_z, s) of the 4-parameter fit, the yaw fitted but not applied
         keep = [0, 2, 3]
         theta, cov = theta4[keep], cov4[np.ix_(keep, keep)]
+    else:
+        theta, cov, _ = _robust_fit(pl, pr, stereo, with_omega_y=False)
     corr = ZedRightCorrection(rotvec_rad=[float(theta[0]), 0.0, float(theta[1])], focal_scale=float(theta[2]))
     H = corr.homography(stereo)
     rows = []
@@ -242,26 +243,6 @@ def fit_self_rectification(matches: list[Matches], stereo: RectifiedStereo, para
 
 
 # ---- applying it ---------------------------------------------------------------------------------------------------
-@dataclass
-class RightImageCorrection:
-    """Images rectified before gtforge (ZED SDK): the left image as it is, the right one resampled at ``H^-1 p``
-    (cubic B-spline at the exact positions, ``resample_image``). Not ``cv2.warpPerspective``: OpenCV's warps and
-    remaps round every sample position to 1/32 px, and on a session whose right camera was turned 0.15 deg about x
-    and z that rounding alone took calibrate-scale's baseline to +0.47 % (truth +0.30 %, 7 sigma) and its yaw 5 sigma
-    off (docs/design/accuracy.md)."""
-
-    correction: ZedRightCorrection
-    stereo: RectifiedStereo
-    inner: object | None = None  # not used: images come rectified
-    left_unchanged: bool = True  # the left image is the file's pixels (Session.load_capture keeps it verbatim)
-
-    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h, w = right.shape[:2]
-        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-        us, vs = apply_homography(right_sampling_homography(self.stereo, self.correction, 0.0), uu.ravel(), vv.ravel())
-        return left, resample_image(right, us, vs, (h, w))
-
-
 def corrected_rectification(rect, correction: ZedRightCorrection | None, right_yaw_deg: float = 0.0):
     """A ``ZedRectification`` (raw images + SN.conf) whose right maps include ``correction``: for a corrected pixel
     ``p`` the raw ray is ``(R_delta R_rect_from_raw_right)^T K_s^-1 p`` (module docstring), one interpolation.
@@ -325,13 +306,24 @@ class CorrectedRightImage:
         return left, resample_image(right, us, vs, (h, w))
 
 
+class RightImageCorrection(CorrectedRightImage):
+    """The self-rectification alone on images rectified before gtforge: ``CorrectedRightImage`` without a yaw, the
+    right image resampled at ``H^-1 p``. Not ``cv2.warpPerspective``: OpenCV's warps and remaps round every sample
+    position to 1/32 px, and on a session whose right camera was turned 0.15 deg about x and z that rounding alone
+    took calibrate-scale's baseline to +0.47 % (truth +0.30 %, 7 sigma) and its yaw 5 sigma off
+    (docs/design/accuracy.md)."""
+
+    def __init__(self, correction: ZedRightCorrection, stereo: RectifiedStereo):
+        super().__init__(stereo, correction, 0.0)
+
+
 def corrected_right(rect, stereo: RectifiedStereo, correction: ZedRightCorrection | None, right_yaw_deg: float = 0.0):
     """What a session rectifies its ZED images with, given the right camera's corrections a calibration recorded:
     the self-rectification (``correction``) and calibrate-scale's yaw (``right_yaw_deg``), in one resampling of the
     right image. ``rect``: the SN.conf rectification of raw images (None: images rectified before gtforge).
 
     Neither: ``rect`` as it is. The self-rectification alone: as before the yaw joined it (folded into the maps, or
-    ``RightImageCorrection``'s warp). With the yaw: ``corrected_rectification``'s maps, or ``CorrectedRightImage``."""
+    ``RightImageCorrection``'s resampling). With the yaw: ``corrected_rectification``'s maps, or ``CorrectedRightImage``."""
     if right_yaw_deg == 0.0:
         if correction is None:
             return rect
