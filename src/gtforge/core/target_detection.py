@@ -359,6 +359,16 @@ def _blob_detectors(gray: np.ndarray, spec: CircleGridSpec):
 
 
 
+def _disk_window(g: np.ndarray, u0: float, v0: float, R: float):
+    """The pixels of ``g`` within ``R`` of ``(u0, v0)``: ``(patch, xx, yy, inwin)`` over the bounding box cut to the
+    image, ``inwin`` the disk's mask in it."""
+    H, W = g.shape
+    x0, x1 = int(max(0, np.floor(u0 - R))), int(min(W - 1, np.ceil(u0 + R)))
+    y0, y1 = int(max(0, np.floor(v0 - R))), int(min(H - 1, np.ceil(v0 + R)))
+    yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+    return g[y0:y1 + 1, x0:x1 + 1], xx, yy, (xx - u0) ** 2 + (yy - v0) ** 2 <= R * R
+
+
 def circle_radii_px(gray: np.ndarray, uv: np.ndarray, spacing_px: np.ndarray) -> np.ndarray:
     """Each circle's own radius (px) as the image shows it: the pixels darker than half way between the circle's
     darkest and the white around it, connected to its centre, inside half its spacing to its neighbours, taken as
@@ -366,15 +376,10 @@ def circle_radii_px(gray: np.ndarray, uv: np.ndarray, spacing_px: np.ndarray) ->
     Needed where a circle is larger than the declared diameter: a marker dot twice the others' size (ROS-Industrial's
     modified circle grid), or a diameter declared too small."""
     g = gray.astype(np.float64)
-    H, W = g.shape
     out = np.full(len(uv), np.nan)
     for k, ((u0, v0), s) in enumerate(zip(uv, spacing_px)):
-        R = max(3.0, 0.5 * s)
-        x0, x1 = int(max(0, np.floor(u0 - R))), int(min(W - 1, np.ceil(u0 + R)))
-        y0, y1 = int(max(0, np.floor(v0 - R))), int(min(H - 1, np.ceil(v0 + R)))
-        patch = g[y0:y1 + 1, x0:x1 + 1]
-        yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-        inwin = (xx - u0) ** 2 + (yy - v0) ** 2 <= R * R
+        patch, xx, yy, inwin = _disk_window(g, u0, v0, max(3.0, 0.5 * s))
+        x0, y0 = xx[0, 0], yy[0, 0]
         lo, hi = np.percentile(patch[inwin], 2), np.percentile(patch[inwin], 98)
         if hi - lo < 10:
             continue
@@ -395,19 +400,13 @@ def refine_circle_centres(gray: np.ndarray, uv: np.ndarray, radius_px: np.ndarra
     white around the circle weighs nothing. The window must hold the whole disk and white around it: a window
     inside a larger dark disk has only noise and shading to weigh and walks off by pixels."""
     g = gray.astype(np.float64)
-    H, W = g.shape
     out = uv.astype(np.float64).copy()
     for k in range(len(out)):
         R = max(3.0, 1.5 * radius_px[k])
         if max_window_px is not None:
             R = max(3.0, min(R, max_window_px[k]))
         for _ in range(iters):
-            u0, v0 = out[k]
-            x0, x1 = int(max(0, np.floor(u0 - R))), int(min(W - 1, np.ceil(u0 + R)))
-            y0, y1 = int(max(0, np.floor(v0 - R))), int(min(H - 1, np.ceil(v0 + R)))
-            patch = g[y0:y1 + 1, x0:x1 + 1]
-            yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-            inwin = (xx - u0) ** 2 + (yy - v0) ** 2 <= R * R
+            patch, xx, yy, inwin = _disk_window(g, *out[k], R)
             white, black = np.percentile(patch[inwin], 95), np.percentile(patch[inwin], 2)
             if white - black < 10:
                 break
