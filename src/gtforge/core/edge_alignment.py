@@ -128,8 +128,25 @@ class DepthEdges:
                           np.concatenate([self.structure, other.structure + shift]))
 
 
+def render_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_depth: np.ndarray,
+                 pinhole: PinholeCamera) -> np.ndarray:
+    """The depth rendered into ``pinhole`` at ``T_color_from_depth`` (mesh mode; ``rendered_z_mm`` of
+    ``depth_edges`` and ``texture_edges``, which ``align_color_to_depth`` renders once for both)."""
+    return project_depth_to_camera(depth_mm, depth_cam, T_color_from_depth, pinhole, ReprojectParams())
+
+
+def _edge_components(vu: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``(N,)`` label of each edge pixel ``vu`` (N, 2) ``(v, u)``: the connected components of the edge pixels
+    (8-connected, across one-pixel breaks)."""
+    mask = np.zeros(shape, np.uint8)
+    mask[vu[:, 0], vu[:, 1]] = 1
+    _, labels = cv2.connectedComponents(cv2.dilate(mask, np.ones((3, 3), np.uint8)), connectivity=8)
+    return labels[vu[:, 0], vu[:, 1]]
+
+
 def depth_edges(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_depth: np.ndarray,
-                pinhole: PinholeCamera, jump_ratio: float = 1.05, gap_px: int = 8) -> DepthEdges:
+                pinhole: PinholeCamera, jump_ratio: float = 1.05, gap_px: int = 8,
+                rendered_z_mm: np.ndarray | None = None) -> DepthEdges:
     """The foreground side of every depth silhouette the colour camera sees, as 3-D points in the depth camera.
 
     The depth is rendered into ``pinhole`` (the undistorted colour camera) at ``T_color_from_depth`` by gtforge's
@@ -143,7 +160,7 @@ def depth_edges(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_dep
     foreground pixel, back-projected at the foreground's depth and carried into the depth camera's frame, where it
     stays fixed while the pose is refined. ``tests/io/test_real_frame.py`` measures the misalignment with the same
     edges (its own copy of this rule)."""
-    z = project_depth_to_camera(depth_mm, depth_cam, T_color_from_depth, pinhole, ReprojectParams())
+    z = rendered_z_mm if rendered_z_mm is not None else render_depth(depth_mm, depth_cam, T_color_from_depth, pinhole)
     half_px = (0.5 * pinhole.fx_px / depth_cam.fx_px, 0.5 * pinhole.fy_px / depth_cam.fy_px)
     uv_all, z_all, axes, sides, pix = [], [], [], [], []
     for axis in (0, 1):
@@ -170,16 +187,14 @@ def depth_edges(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_dep
     pts_color = pinhole.unproject(np.concatenate(uv_all).astype(np.float64), np.concatenate(z_all))
     # structures: the connected components of the edge pixels (8-connected, across one-pixel breaks)
     vu = np.concatenate(pix)
-    mask = np.zeros(z.shape, np.uint8)
-    mask[vu[:, 0], vu[:, 1]] = 1
-    _, labels = cv2.connectedComponents(cv2.dilate(mask, np.ones((3, 3), np.uint8)), connectivity=8)
     return DepthEdges(transform_points(invert_T(T_color_from_depth), pts_color), np.concatenate(axes),
-                      np.concatenate(sides), labels[vu[:, 0], vu[:, 1]])
+                      np.concatenate(sides), _edge_components(vu, z.shape))
 
 
 def texture_edges(texture: np.ndarray, depth_mm: np.ndarray, depth_cam: PinholeCamera,
                   T_color_from_depth: np.ndarray, pinhole: PinholeCamera, top_fraction: float = 0.2,
-                  max_relief: float = 0.02, min_length_px: int = 20, tile_px: int = 16) -> DepthEdges:
+                  max_relief: float = 0.02, min_length_px: int = 20, tile_px: int = 16,
+                  rendered_z_mm: np.ndarray | None = None) -> DepthEdges:
     """The edges of the depth camera's own image (an infrared image, a structured-light camera's 2-D texture:
     ``texture`` pixel-aligned with ``depth_mm``) as 3-D points in the depth camera.
 
@@ -222,10 +237,7 @@ def texture_edges(texture: np.ndarray, depth_mm: np.ndarray, depth_cam: PinholeC
     if not pts:
         return DepthEdges(np.zeros((0, 3)), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int64))
     P, vu = np.concatenate(pts), np.concatenate(pix)
-    mask = np.zeros(np.shape(depth_mm), np.uint8)
-    mask[vu[:, 0], vu[:, 1]] = 1
-    _, labels = cv2.connectedComponents(cv2.dilate(mask, np.ones((3, 3), np.uint8)), connectivity=8)
-    component = labels[vu[:, 0], vu[:, 1]]
+    component = _edge_components(vu, np.shape(depth_mm))
     _, inverse, counts = np.unique(component, return_inverse=True, return_counts=True)
     long_enough = counts[inverse] >= min_length_px  # speckle and noise make short pieces
     # one observation: a component's piece within one tile of tile_px. Texture edges join into networks that
@@ -239,7 +251,8 @@ def texture_edges(texture: np.ndarray, depth_mm: np.ndarray, depth_cam: PinholeC
     uv = np.round(pinhole.project(transform_points(T_color_from_depth, P))).astype(np.int64)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < pinhole.width_px) & (uv[:, 1] >= 0) & (uv[:, 1] < pinhole.height_px)
     seen = np.zeros(len(P), bool)
-    rendered = project_depth_to_camera(depth_mm, depth_cam, T_color_from_depth, pinhole, ReprojectParams())
+    rendered = rendered_z_mm if rendered_z_mm is not None else render_depth(depth_mm, depth_cam, T_color_from_depth,
+                                                                             pinhole)
     zr = rendered[uv[inside, 1], uv[inside, 0]]
     with np.errstate(invalid="ignore"):
         seen[inside] = np.abs(zr - z_color[inside]) < max_relief * z_color[inside]
@@ -429,11 +442,13 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
                          "pass the infrared / 2-D texture image, or use edges='silhouettes'")
     und, pinhole = undistort_image(color_rgb, color_cam)
     edges = DepthEdges(np.zeros((0, 3)), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int64))
+    rendered = render_depth(depth_mm, depth_cam, T0, pinhole)
     if "silhouettes" in kinds:
-        edges = edges + depth_edges(depth_mm, depth_cam, T0, pinhole, params.jump_ratio, params.gap_px)
+        edges = edges + depth_edges(depth_mm, depth_cam, T0, pinhole, params.jump_ratio, params.gap_px, rendered)
     if "texture" in kinds:
         edges = edges + texture_edges(texture, depth_mm, depth_cam, T0, pinhole, params.texture_top_fraction,
-                                      params.texture_max_relief, params.texture_min_length_px)
+                                      params.texture_max_relief, params.texture_min_length_px,
+                                      rendered_z_mm=rendered)
     # keep the edges that stay inside the image over the whole search (a fixed set: a smooth objective)
     uv = project_edges(edges, T0, pinhole)
     margin = params.search_px + 3 * params.coarse_blur_sigma_px + 2
