@@ -306,15 +306,21 @@ class CorrectedRightImage:
         return left, resample_image(right, us, vs, (h, w))
 
 
-class RightImageCorrection(CorrectedRightImage):
-    """The self-rectification alone on images rectified before gtforge: ``CorrectedRightImage`` without a yaw, the
-    right image resampled at ``H^-1 p``. Not ``cv2.warpPerspective``: OpenCV's warps and remaps round every sample
-    position to 1/32 px, and on a session whose right camera was turned 0.15 deg about x and z that rounding alone
-    took calibrate-scale's baseline to +0.47 % (truth +0.30 %, 7 sigma) and its yaw 5 sigma off
-    (docs/design/accuracy.md)."""
+@dataclass
+class RightImageCorrection:
+    """The self-rectification alone on images rectified before gtforge: the right image resampled at ``H^-1 p``, as
+    ``CorrectedRightImage`` does without a yaw (whose ``rectify`` it calls). Not ``cv2.warpPerspective``: OpenCV's warps
+    and remaps round every sample position to 1/32 px, and on a session whose right camera was turned 0.15 deg about
+    x and z that rounding alone took calibrate-scale's baseline to +0.47 % (truth +0.30 %, 7 sigma) and its yaw 5 sigma
+    off (docs/design/accuracy.md)."""
 
-    def __init__(self, correction: ZedRightCorrection, stereo: RectifiedStereo):
-        super().__init__(stereo, correction, 0.0)
+    correction: ZedRightCorrection
+    stereo: RectifiedStereo
+    inner: object | None = None  # not used: images come rectified
+    left_unchanged: bool = True  # the left image is the file's pixels (Session.load_capture keeps it verbatim)
+
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return CorrectedRightImage(self.stereo, self.correction, 0.0).rectify(left, right)
 
 
 def corrected_right(rect, stereo: RectifiedStereo, correction: ZedRightCorrection | None, right_yaw_deg: float = 0.0):
