@@ -2,8 +2,9 @@
 
 One session per error kind, alone and combined, at the issue's limits: ZED baseline +0.3 %, right camera turned
 0.15 deg about its vertical axis, depth scale -0.2 %, depth offset +0.5 mm; all of them with the right camera also
-turned 0.15 deg about x and z ("all combined": calibrate's self-rectification removes those first); and one without
-any error. Each is calibrated from the exact extrinsic (a perfect board calibration: only the scale terms are off)
+turned 0.15 deg about x and z ("all combined": calibrate's self-rectification removes those first); a separate depth
+camera turned (0.1, -0.15, 0.1) deg against session.yaml, alone and with all the others; and one without any error
+(for the separate depth camera too: "depth camera exact"). Each is calibrated from the exact extrinsic (a perfect board calibration: only the scale terms are off)
 with the board captures and without them. Printed per row: every term's estimate +- 1-sigma (status), the GT's mean EPE against
 what the images show (the right image corrected for the applied yaw in the session's one resampling, as
 build-dataset writes im1) before and after, and verify's stereo disparity bias (scene 000) before and after.
@@ -47,6 +48,14 @@ CASES = {
     "all combined": dict(zed_baseline_error_frac=0.003, right_yaw_deg=0.15, depth_scale_error_frac=-0.002,
                          depth_offset_mm=0.5, zed_right_rotation_error_rad=(0.0026179938779914945, 0.0,
                                                                             0.0026179938779914945)),
+    # a unit with a separate depth camera (two_camera_rig) whose session.yaml pose is turned by (0.1, -0.15, 0.1) deg
+    "depth camera exact": dict(two_camera=True),
+    "depth camera turned": dict(two_camera=True, depth_pose_error_deg=(0.1, -0.15, 0.1)),
+    "all combined and depth camera turned": dict(zed_baseline_error_frac=0.003, right_yaw_deg=0.15,
+                                                 depth_scale_error_frac=-0.002, depth_offset_mm=0.5,
+                                                 zed_right_rotation_error_rad=(0.0026179938779914945, 0.0,
+                                                                               0.0026179938779914945),
+                                                 two_camera=True, depth_pose_error_deg=(0.1, -0.15, 0.1)),
 }
 
 
@@ -75,7 +84,8 @@ def known_calibration(sess: Path, self_rectify: bool = False) -> Path:
         print(cal.zed_self_rectification.summary_line())
         cal = cal.model_copy(update=dict(rig=cal.rig.with_extrinsic(np.array(tr.T_zed_from_mech))))
         return cal.write(sess / "known.yaml")
-    rig = Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=np.array(tr.T_zed_from_mech))
+    rig = Rig(zed=s.zed, mech=s.mech, depth_cam=s.depth_cam, T_mech_from_depth=s.T_mech_from_depth,
+              T_zed_from_mech=np.array(tr.T_zed_from_mech))
     return CalibrationFile.known_extrinsic(rig).write(sess / "known.yaml")
 
 

@@ -1,5 +1,5 @@
 """The disparity-scale terms a vertical check cannot see (issue #25): the ZED's baseline scale, the right camera's yaw
-(rotation about its vertical axis), the depth camera's scale and offset.
+(rotation about its vertical axis), the depth camera's scale and offset, and a separate depth camera's rotation.
 
 Physics. The ground truth labels ``d_gt = f B / Z_depth - doffs``; the images show ``d_img = f B_true / Z - doffs``
 through a right camera turned by ``psi`` about its y axis. With ``B_true = (1 + b) B``, ``Z_depth = (1 + k) Z + c``::
@@ -10,12 +10,14 @@ through a right camera turned by ``psi`` about its y axis. With ``B_true = (1 + 
 
 * **Scenes** (the GT disparity against the images' own photometric disparity, every textured GT pixel of every
   scene, one Gauss-Newton solve): the sum ``b + k`` (a 1/Z term), ``c`` (1/Z^2) and ``psi`` (a constant plus the
-  x^2 curvature). ``b`` and ``k`` are **not separable** from scenes: only their sum.
+  x^2 curvature). ``b`` and ``k`` are **not separable** from scenes: only their sum. With a separate depth camera,
+  its rotation ``omega`` too: each label moves by ``depth_pose_jacobian_px . omega`` (the surface tilted and slid).
 * **Boards, ZED** (``board_zed_measurement``): the corners' stereo disparity against their depth from PnP in the
   ZED-left image (which uses the board's known square size, not the baseline): ``b`` and ``psi``. Any target
   (``board_measurements``): left and right points matched by id, circle centres bias-corrected in each image.
 * **Boards, depth** (``board_depth_measurement``): the depth camera's z at each corner's ray against the corner's z
-  from PnP in the texture image (the known square size again): ``z_depth - z_pnp = k z + c``: ``k`` and ``c``.
+  from PnP in the texture image (the known square size again): ``z_depth - z_pnp = k z + c``: ``k`` and ``c``
+  (with a separate depth camera, as a function of its rotation).
 
 ``calibrate_scale`` combines the three (generalised least squares, each with its covariance), rebuilds every scene's
 ground truth with the result and solves again until the correction stops moving. A term is applied only when the
@@ -32,7 +34,7 @@ self-rectification into the one resampling of the right image that opening the s
 Covariances: the scenes' is a tile sandwich (scores summed over ``cov_tile_px`` tiles, as refine's), the boards' a
 pose-clustered sandwich (a PnP pose's error moves all its corners together).
 
-Just over 500 lines: the physics above, the three measurements and their combination read together.
+About 600 lines: the physics above, the three measurements and their combination read together.
 """
 from __future__ import annotations
 
@@ -47,7 +49,7 @@ import numpy as np
 
 from gtforge.core.board import solve_pnp
 from gtforge.core.camera import Rig, ScaleCorrections
-from gtforge.core.geometry import invert_T, transform_points
+from gtforge.core.geometry import invert_T, perturb_left, transform_points
 from gtforge.core.photometric import (
     even_subset,
     interior_mask,
@@ -57,7 +59,13 @@ from gtforge.core.photometric import (
     to_gray,
 )
 from gtforge.core.rectification import matched_board_points
-from gtforge.core.scale_corrections import apply_homography, spline_coefficients, spline_sample, yaw_homography
+from gtforge.core.scale_corrections import (
+    apply_homography,
+    depth_pose_jacobian_px,
+    spline_coefficients,
+    spline_sample,
+    yaw_homography,
+)
 from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_corrected, unmirror_symmetric_grid
 from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
@@ -76,8 +84,11 @@ from gtforge.verify import verify_scene
 log = logging.getLogger("gtforge.scale_calibration")
 
 # the parameters, in this order everywhere (vectors, covariance rows/columns)
-PARAMS = ("zed_baseline_frac", "zed_right_yaw_deg", "depth_scale_frac", "depth_offset_mm")
+# (the depth camera's rotation, the last three, only for a rig with a separate depth camera)
+PARAMS = ("zed_baseline_frac", "zed_right_yaw_deg", "depth_scale_frac", "depth_offset_mm",
+          "depth_pose_rx_deg", "depth_pose_ry_deg", "depth_pose_rz_deg")
 IB, IY, IK, IC = range(4)
+IP = slice(4, 7)  # the left perturbation of T_mech_from_depth (rad here, deg in the file)
 COARSE_SIGMA_PX = 1.5  # the coarse pass's blur: brings shifts of a few px into the fine pass's reach
 
 
@@ -96,11 +107,14 @@ class ScenePixels:
     left_blur: np.ndarray  # the same of the normalised left image blurred (the coarse pass)
     right_stack: np.ndarray  # (3, H, W) B-spline coefficients of the normalised right image (as captured) and of
     # its x and y gradients
+    g_pose: np.ndarray | None = None  # (N, 3) d(GT)/d(depth camera rotation) px/rad; None: one camera
 
 
 def scene_pixels(name: str, depth_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
-                 zed_left: np.ndarray, zed_right: np.ndarray, params: ScaleParams) -> ScenePixels | None:
-    """The textured GT pixels of one scene away from depth edges (as verify's stereo check selects them)."""
+                 zed_left: np.ndarray, zed_right: np.ndarray, params: ScaleParams,
+                 rig: Rig | None = None) -> ScenePixels | None:
+    """The textured GT pixels of one scene away from depth edges (as verify's stereo check selects them); with a
+    ``rig`` that has a separate depth camera, the GT's sensitivity to that camera's rotation there."""
     sigma = params.verify.norm_sigma_px
     nl = local_normalize(to_gray(zed_left).astype(np.float32), None, sigma)
     nr = local_normalize(to_gray(zed_right).astype(np.float32), None, sigma)
@@ -117,23 +131,31 @@ def scene_pixels(name: str, depth_mm: np.ndarray, disparity_px: np.ndarray, nono
     v, u = v[keep], u[keep]
     stack = spline_coefficients([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
                                  cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)])
+    g_pose = None
+    if rig is not None and rig.separate_depth_camera:
+        d = disparity_px.astype(np.float64)  # (interior_mask: both neighbours have GT)
+        g_pose = depth_pose_jacobian_px(u, v, depth_mm[v, u], 0.5 * (d[v, u + 1] - d[v, u - 1]),
+                                        0.5 * (d[v + 1, u] - d[v - 1, u]), rig)
     return ScenePixels(name, u, v, disparity_px[v, u].astype(np.float64), depth_mm[v, u].astype(np.float64),
                        nl[v, u].astype(np.float64),
                        cv2.GaussianBlur(nl, (0, 0), COARSE_SIGMA_PX)[v, u].astype(np.float64),
-                       stack)
+                       stack, g_pose)
 
 
 def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, tile_px: float | None = None,
                   blurred: np.ndarray | None = None):
-    """Normal equations of one scene at ``theta = (ds, dc_mm, yaw_rad)`` (increments of the scale sum and the
-    offset relative to the GT's rig, the yaw in total) plus the scene's nuisances (vertical offset, gain, offset):
-    ``(H 6x6, g 6, S 6x6 or None, residuals)``."""
+    """Normal equations of one scene at ``theta = (ds, dc_mm, yaw_rad[, omega_rad (3)], dy0)`` (increments of the
+    scale sum, the offset and the depth camera's rotation relative to the GT's rig, the yaw in total) plus the scene's
+    nuisances (vertical offset ``dy0``, gain, offset): ``(H, g, S or None, residuals)`` over ``theta``, gain, offset."""
     zed = rig.zed
     f, fb = zed.f_px, zed.f_px * zed.baseline_mm
     g_s = fb / sp.z_mm  # d(d)/d(scale sum)
     g_c = fb / sp.z_mm ** 2  # d(d)/d(offset mm)
-    ds, dc, yaw, dy0 = theta
-    xr = sp.u - sp.d_gt - (ds * g_s + dc * g_c)  # where the rectified right image shows the left pixel
+    ds, dc, yaw, dy0 = theta[0], theta[1], theta[2], theta[-1]
+    shift = ds * g_s + dc * g_c
+    if sp.g_pose is not None:
+        shift = shift + sp.g_pose @ theta[3:6]
+    xr = sp.u - sp.d_gt - shift  # where the rectified right image shows the left pixel
     yr = sp.v.astype(np.float64)
     H = yaw_homography(rig, yaw)
     ua, va = apply_homography(H, xr, yr)
@@ -144,7 +166,10 @@ def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, ti
     # d(ua, va)/d(yaw) at the rectified position (to first order in yaw: f (1 + x^2), f x y)
     x = (xr - zed.right.cx_px) / f
     y = (yr - zed.right.cy_px) / f
-    J = np.stack([-gx * g_s, -gx * g_c, gx * f * (1 + x * x) + gy * f * x * y, gy, left, np.ones_like(x)], axis=1)
+    cols = [-gx * g_s, -gx * g_c, gx * f * (1 + x * x) + gy * f * x * y]
+    if sp.g_pose is not None:
+        cols += [-gx * sp.g_pose[:, 0], -gx * sp.g_pose[:, 1], -gx * sp.g_pose[:, 2]]
+    J = np.stack(cols + [gy, left, np.ones_like(x)], axis=1)
     r = w_ - left
     wt = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
     Jw = J * wt[:, None]
@@ -153,56 +178,72 @@ def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, ti
         psi = Jw * r[:, None]
         tile = (np.floor(sp.v / tile_px).astype(np.int64) * 100000 + np.floor(sp.u / tile_px).astype(np.int64))
         _, idx = np.unique(tile, return_inverse=True)
-        g = np.stack([np.bincount(idx.ravel(), weights=psi[:, j]) for j in range(6)], axis=1)
+        g = np.stack([np.bincount(idx.ravel(), weights=psi[:, j]) for j in range(J.shape[1])], axis=1)
         S = g.T @ g
     return Jw.T @ J, Jw.T @ r, S, r
 
 
+def pose_effect_px(scenes: list[ScenePixels]) -> np.ndarray:
+    """RMS over the scenes' pixels of how many px one rad of each depth-camera rotation component moves the GT (zeros
+    with one camera)."""
+    g = [sp.g_pose for sp in scenes if sp.g_pose is not None]
+    return np.sqrt(np.mean(np.concatenate(g) ** 2, axis=0)) if g else np.zeros(3)
+
+
 def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_rad: float
                  ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Gauss-Newton (Huber IRLS, coarse pass on blurred images first) over ``(ds, dc_mm, yaw_rad)`` and each scene's
-    nuisances. Returns (the three, their 3x3 tile-sandwich covariance, each scene's nuisance vector)."""
+    """Gauss-Newton (Huber IRLS, coarse pass on blurred images first) over ``(ds, dc_mm, yaw_rad)`` (and, with a
+    separate depth camera, its rotation ``omega_rad``) and each scene's nuisances. Returns (the 3 or 6, their
+    tile-sandwich covariance, each scene's nuisance vector)."""
     n = len(scenes)
-    theta = np.array([0.0, 0.0, yaw0_rad])
+    m = 6 if any(sp.g_pose is not None for sp in scenes) else 3
+    theta = np.zeros(m)
+    theta[2] = yaw0_rad
     nuis = [np.zeros(3) for _ in scenes]  # dy0, (gain, offset re-estimated at each step)
+    # a step's size in px of disparity (the stop test)
+    step_px = np.r_[100.0, 0.2, 1100.0, pose_effect_px(scenes)][:m]
     # (blurring the coefficients blurs the spline they describe the same way)
     blurred = [np.stack([cv2.GaussianBlur(a, (0, 0), COARSE_SIGMA_PX) for a in sp.right_stack]) for sp in scenes]
+
+    def index(k: int) -> np.ndarray:
+        return np.r_[0:m, m + 3 * k: m + 3 + 3 * k]
+
     for level in (0, 1):
         for _ in range(params.iterations if level else 8):
-            A = np.zeros((3 + 3 * n, 3 + 3 * n))
-            g = np.zeros(3 + 3 * n)
+            A = np.zeros((m + 3 * n, m + 3 * n))
+            g = np.zeros(m + 3 * n)
             for k, sp in enumerate(scenes):
                 Hk, gk, _, _ = _scene_system(sp, np.r_[theta, nuis[k][0]], rig, params.huber,
                                              blurred=None if level else blurred[k])
-                idx = np.r_[0:3, 3 + 3 * k: 6 + 3 * k]
+                idx = index(k)
                 A[np.ix_(idx, idx)] += Hk
                 g[idx] += gk
             scale = np.sqrt(np.maximum(np.diag(A), 1e-30))
             step = -np.linalg.solve(A / np.outer(scale, scale), g / scale) / scale
-            theta = theta + step[:3]
+            theta = theta + step[:m]
             for k in range(n):
-                nuis[k][0] += step[3 + 3 * k]
+                nuis[k][0] += step[m + 3 * k]
             # stop when the step moves disparities by < 1e-4 px
-            if abs(step[0]) * 100 + abs(step[1]) * 0.2 + abs(step[2]) * 1100 < 1e-4 and level:
+            if float(np.abs(step[:m]) @ step_px) < 1e-4 and level:
                 break
     # covariance: H^-1 S H^-1 (cluster-robust over tiles)
-    A = np.zeros((3 + 3 * n, 3 + 3 * n))
+    A = np.zeros((m + 3 * n, m + 3 * n))
     S = np.zeros_like(A)
     for k, sp in enumerate(scenes):
         Hk, _, Sk, _ = _scene_system(sp, np.r_[theta, nuis[k][0]], rig, params.huber, float(params.cov_tile_px))
-        idx = np.r_[0:3, 3 + 3 * k: 6 + 3 * k]
+        idx = index(k)
         A[np.ix_(idx, idx)] += Hk
         S[np.ix_(idx, idx)] += Sk
     Ai = np.linalg.inv(A)
-    C = (Ai @ S @ Ai)[:3, :3]
+    C = (Ai @ S @ Ai)[:m, :m]
     return theta, 0.5 * (C + C.T), nuis
 
 
 # ---- boards --------------------------------------------------------------------------------------
 @dataclass
 class BoardMeasurement:
-    """A linear(ised) measurement ``A x ~ y`` of the four parameters with covariance ``C`` (``x`` in PARAMS' order,
-    yaw in rad here)."""
+    """A linear(ised) measurement ``A x ~ y`` of the parameters with covariance ``C`` (``x`` in PARAMS' order, angles
+    in rad here)."""
 
     A: np.ndarray
     y: np.ndarray
@@ -251,7 +292,7 @@ def board_zed_measurement(poses: list[tuple[str, np.ndarray, np.ndarray, np.ndar
         x = x + dx
         if np.abs(dx[:2]).max() < 1e-9:
             break
-    A = np.zeros((2, 4))
+    A = np.zeros((2, len(PARAMS)))
     A[0, IB], A[1, IY] = 1.0, 1.0
     return BoardMeasurement(A, x[:2], C[:2, :2], "boards: corner disparity against ZED-left PnP depth",
                             [p[0] for p in poses])
@@ -281,9 +322,17 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
                             ) -> BoardMeasurement | None:
     """``k`` and ``c`` from board corners: ``poses`` are (name, corners in the texture camera's frame from PnP in the
     texture image (N, 3) mm, the raw depth map). Each corner's depth-camera z against the depth map's z along its
-    ray: ``z_depth - z = k z + c``."""
-    zs, dz, cl, names = [], [], [], []
-    T_dm = invert_T(rig.T_mech_from_depth_or_identity)
+    ray: ``z_depth - z = k z + c``.
+
+    With a separate depth camera, turning it by ``omega`` (``depth_pose_jacobian_px``'s rotation) also moves the
+    board's plane along that ray, ``(z / h) omega . (n x q)`` (``n``, ``h``: the board's plane ``n . X = h`` in the
+    depth camera, ``n`` in the texture camera's axes; ``q`` the corner from the depth camera's centre). The fit stays
+    ``(k, c)``; the measurement says what it equals, ``(k, c) + P omega`` (``P``: the fit applied to that motion).
+    Not ``omega`` itself: a PnP pose error moves a board's corners by a plane, as ``omega`` does, so only the poses
+    tell them apart, and the pose-clustered covariance of five parameters from five poses is singular."""
+    zs, dz, jp, cl, names = [], [], [], [], []
+    T_md = rig.T_mech_from_depth_or_identity
+    T_dm = invert_T(T_md)
     cam = rig.depth_camera
     for i, (name, X_mech, depth) in enumerate(poses):
         X = transform_points(T_dm, X_mech)
@@ -291,16 +340,23 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
         ok = np.isfinite(zm)
         if ok.sum() < 10:
             continue
+        q = X_mech - T_md[:3, 3]
+        n_mech = np.linalg.svd(X_mech - X_mech.mean(axis=0))[2][2]  # the board's normal (its corners' plane)
+        h = q @ n_mech  # (the same in the depth camera's frame: a rotation and its centre)
         zs.append(X[ok, 2])
         dz.append(zm[ok] - X[ok, 2])
+        jp.append((X[ok, 2] / h[ok])[:, None] * np.cross(n_mech, q[ok]))
         cl.append(np.full(ok.sum(), i))
         names.append(name)
     if len(names) < 3:
         return None
     z = np.concatenate(zs)
-    x, C = _cluster_ls(np.stack([z, np.ones_like(z)], axis=1), np.concatenate(dz), np.concatenate(cl))
-    A = np.zeros((2, 4))
+    J = np.stack([z, np.ones_like(z)], axis=1)
+    x, C = _cluster_ls(J, np.concatenate(dz), np.concatenate(cl))
+    A = np.zeros((2, len(PARAMS)))
     A[0, IK], A[1, IC] = 1.0, 1.0
+    if rig.separate_depth_camera:
+        A[:, IP] = np.linalg.lstsq(J, np.concatenate(jp), rcond=None)[0]
     return BoardMeasurement(A, x, C, "boards: depth map against texture-camera PnP depth", names)
 
 
@@ -353,6 +409,10 @@ def combine(measurements: list[tuple[np.ndarray, np.ndarray, np.ndarray]], free:
     ``(A, y, C)`` says ``A x ~ y`` with covariance ``C``. Returns (x with 0 where not free, covariance with zero rows
     there)."""
     idx = np.flatnonzero(free)
+    x = np.zeros(len(free))
+    cov = np.zeros((len(free), len(free)))
+    if not len(idx):
+        return x, cov
     H = np.zeros((len(idx), len(idx)))
     g = np.zeros(len(idx))
     for A, y, C in measurements:
@@ -360,8 +420,6 @@ def combine(measurements: list[tuple[np.ndarray, np.ndarray, np.ndarray]], free:
         W = np.linalg.inv(C)
         H += Ai.T @ W @ Ai
         g += Ai.T @ W @ y
-    x = np.zeros(4)
-    cov = np.zeros((4, 4))
     Hi = np.linalg.inv(H)
     x[idx] = Hi @ g
     cov[np.ix_(idx, idx)] = Hi
@@ -369,18 +427,23 @@ def combine(measurements: list[tuple[np.ndarray, np.ndarray, np.ndarray]], free:
 
 
 def apply_scale(rig: Rig, baseline_file_mm: float, x: np.ndarray) -> Rig:
-    """The rig with the parameters ``x`` (PARAMS' order, yaw in rad) applied: the baseline ``(1 + b)`` times the
-    file's, and the depth scale/offset and yaw in ``scale_corrections``."""
+    """The rig with the parameters ``x`` (PARAMS' order, angles in rad) applied: the baseline ``(1 + b)`` times the
+    file's, the depth scale/offset and yaw in ``scale_corrections``, and a separate depth camera's rotation as the
+    left perturbation of ``T_mech_from_depth`` (``perturb_left``: about the depth camera's centre)."""
     zed = rig.zed.model_copy(update={"baseline_mm": baseline_file_mm * (1.0 + x[IB])})
     corr = ScaleCorrections(depth_scale=1.0 + x[IK], depth_offset_mm=float(x[IC]),
                             zed_right_yaw_deg=float(np.degrees(x[IY])))
-    return Rig.model_validate({**rig.model_dump(), "zed": zed.model_dump(), "scale_corrections": corr.model_dump()})
+    update = {"zed": zed.model_dump(), "scale_corrections": corr.model_dump()}
+    if np.any(x[IP]):
+        update["T_mech_from_depth"] = perturb_left(rig.T_mech_from_depth_or_identity, np.r_[x[IP], 0.0, 0.0, 0.0])
+    return Rig.model_validate({**rig.model_dump(), **update})
 
 
-def _disparity_effect_px(rig: Rig, z_mm: float) -> np.ndarray:
-    """How many px one unit of each parameter moves a disparity at depth ``z_mm`` (yaw per rad)."""
+def _disparity_effect_px(rig: Rig, z_mm: float, pose_px: np.ndarray) -> np.ndarray:
+    """How many px one unit of each parameter moves a disparity at depth ``z_mm`` (angles per rad; the depth camera's
+    rotation: ``pose_px``, ``pose_effect_px``)."""
     fb = rig.zed.f_px * rig.zed.baseline_mm
-    return np.array([fb / z_mm, rig.zed.f_px, fb / z_mm, fb / z_mm ** 2])
+    return np.r_[fb / z_mm, rig.zed.f_px, fb / z_mm, fb / z_mm ** 2, pose_px]
 
 
 def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None = None,
@@ -413,8 +476,9 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     dirs = session.select("scenes", scenes)
     caps = {d.name: session.load_capture(d) for d in dirs}
     build = BuildParams()
-    x = np.zeros(4)
+    x = np.zeros(len(PARAMS))
     rig = apply_scale(rig_file, B_file, x)
+    separate = rig_file.separate_depth_camera
     reports = {s: SceneScaleResult(scene=s) for s in caps}
     # a scene whose fruit moved between the captures (its texture shift over the fruit differs from the whole area's)
     # has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes, is kept)
@@ -430,8 +494,9 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                                    f"{np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px):.2f} px (did it move?)")
             del caps[s]
     # without a board measurement of b or of k, scenes see only b + k: one term, carried by b
-    free = np.array([True, True, have_k or have_b, True])
-    cov = np.zeros((4, 4))
+    # the depth camera's rotation: only a separate depth camera has one of its own (else it is the extrinsic's)
+    free = np.array([True, True, have_k or have_b, True] + [separate] * 3)
+    cov = np.zeros((len(PARAMS), len(PARAMS)))
     z_med = 650.0
     passes = 0
     determined = free.copy()
@@ -442,7 +507,8 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
             if progress:
                 progress(f"pass {outer + 1}: scene {s}")
             sd, _, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
-            sp = scene_pixels(s, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right, params)
+            sp = scene_pixels(s, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right, params,
+                              rig)
             if sp is not None:
                 pix.append(sp)
                 reports[s].n_points = len(sp.u)
@@ -456,30 +522,34 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                 fb = rig.zed.f_px * rig.zed.baseline_mm
                 reports[sp.name].disparity_bias_before_px = float(np.mean(
                     theta[0] * fb / sp.z_mm + theta[1] * fb / sp.z_mm ** 2
+                    + (0.0 if sp.g_pose is None else sp.g_pose @ theta[3:6])
                     - (apply_homography(yaw_homography(rig, theta[2]), sp.u - sp.d_gt, sp.v)[0] - (sp.u - sp.d_gt))))
         # the scenes measure (b + k, c, yaw) as increments on the current rig (b and k carried additively: their
         # product is below 1e-5)
-        A_s = np.zeros((3, 4))
+        A_s = np.zeros((len(theta), len(PARAMS)))
         A_s[0, IB] = A_s[0, IK] = 1.0
         A_s[1, IC] = A_s[2, IY] = 1.0
         y_s = np.array([x[IB] + x[IK] + theta[0], x[IC] + theta[1] * (1.0 + x[IK]), theta[2]])
+        if len(theta) > 3:  # the depth camera's rotation, an increment on the current rig's
+            A_s[3:, IP] = np.eye(3)
+            y_s = np.r_[y_s, x[IP] + theta[3:]]
         meas = [(A_s, y_s, C_s)] + [(m.A, m.y, m.C) for m in boards]
         determined = free.copy()
         x_new, cov = combine(meas, determined)
-        eff = _disparity_effect_px(rig, z_med)
+        eff = _disparity_effect_px(rig, z_med, pose_effect_px(pix))
         for _ in range(4):  # leave out what the data do not determine, solve again without it
             bad = determined & (np.sqrt(np.maximum(np.diag(cov), 0)) * eff > params.max_sigma_px)
             if not bad.any():
                 break
             determined &= ~bad
-            x_new, cov = combine(meas, determined) if determined.any() else (np.zeros(4), np.zeros((4, 4)))
+            x_new, cov = combine(meas, determined)
         x_est, cov_est, applied = x_new, cov, determined.copy()
         while applied.any():  # hold the least significant term at 0 while any is within apply_z sigma of it
             z = np.where(applied, np.abs(x_new) / np.sqrt(np.maximum(np.diag(cov), 1e-300)), np.inf)
             if z.min() > params.apply_z:
                 break
             applied[int(np.argmin(z))] = False
-            x_new, cov = combine(meas, applied) if applied.any() else (np.zeros(4), np.zeros((4, 4)))
+            x_new, cov = combine(meas, applied)
         moved = float(np.abs((x_new - x) * eff).max())
         x = x_new
         rig = apply_scale(rig_file, B_file, x)
@@ -491,18 +561,19 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     # carry, applied or not); applied: x
     sig = np.sqrt(np.maximum(np.diag(cov_est), 0))
     src_scene = "scenes: stereo consistency"
-    srcs = {IB: [src_scene], IY: [src_scene], IK: [], IC: [src_scene]}
+    srcs = {i: [] if i == IK else [src_scene] for i in range(len(PARAMS))}
     for m in boards:
-        for i in range(4):
+        for i in range(len(PARAMS)):
             if m.A[:, i].any():
                 srcs[i].append(m.source)
     if not have_k and have_b:  # k from the scenes' b + k less the boards' b
         srcs[IK] = [src_scene] + [m.source for m in boards if m.A[:, IB].any()]
     if not have_b and have_k:  # b from the scenes' b + k less the boards' k
         srcs[IB] += [m.source for m in boards if m.A[:, IK].any()]
-    unit = np.array([1.0, np.degrees(1.0), 1.0, 1.0])  # yaw to degrees in the file
+    unit = np.array([1.0, np.degrees(1.0), 1.0, 1.0] + [np.degrees(1.0)] * 3)  # angles to degrees in the file
+    n_out = len(PARAMS) if separate else 4  # the depth camera's rotation: only with a separate depth camera
     terms = {}
-    for i, name in enumerate(PARAMS):
+    for i, name in enumerate(PARAMS[:n_out]):
         if applied[i]:
             terms[name] = ScaleTerm(value=float(x[i] * unit[i]), estimate=float(x_est[i] * unit[i]),
                                     sigma=float(sig[i] * unit[i]), status="applied", sources=srcs[i])
@@ -521,14 +592,16 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     if not free[IK] and determined[IB]:
         terms[PARAMS[IB]].reason = ("the sum of the baseline and depth scales (not separable without board captures)"
                                     + ("" if applied[IB] else f"; within {params.apply_z:g} sigma of 0: not applied"))
-    D = np.diag(unit)
-    covariance = (D @ cov_est @ D)
+    D = np.diag(unit[:n_out])
+    covariance = (D @ cov_est[:n_out, :n_out] @ D)
     s_var = cov_est[IB, IB] + cov_est[IK, IK] + 2 * cov_est[IB, IK]
     info = ScaleCalibration(
         calibrated_from=str(calib_path.resolve()), terms=terms, covariance=covariance.tolist(),
         combined_scale_frac=float(x_est[IB] + x_est[IK]),
         combined_scale_sigma_frac=float(np.sqrt(s_var)) if determined[IB] else None,
-        baseline_file_mm=B_file, scenes_used=[sp.name for sp in pix],
+        baseline_file_mm=B_file,
+        T_mech_from_depth_file=rig_file.T_mech_from_depth_or_identity.tolist() if separate else None,
+        scenes_used=[sp.name for sp in pix],
         board_poses_used=sorted({p for m in boards for p in m.poses}), passes=passes,
         scenes=[reports[s] for s in sorted(reports)], time_s=time.perf_counter() - t0)
     out = calib.model_copy(update=dict(rig=rig, scale_calibration=info))

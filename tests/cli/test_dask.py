@@ -167,7 +167,11 @@ def test_worker_killed_mid_build_loses_nothing(session_dir, true_calibration, da
     deadline = time.time() + 120
     while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")):
         time.sleep(0.02)
-    busy = {w: keys for w, keys in client.processing().items() if keys}
+    busy: dict = {}
+    while time.time() < deadline and not busy:  # a worker between two scenes holds none: wait for one that does
+        busy = {w: keys for w, keys in client.processing().items() if keys}
+        time.sleep(0.01)
+    assert busy, "no worker was building a scene after the first one landed"
     victim = sorted(busy)[0]
     pid = client.run(os.getpid, workers=[victim])[victim]
     os.kill(pid, signal.SIGKILL)  # the worker process, mid-scene; its nanny starts a new one

@@ -37,7 +37,8 @@ def _known_calibration(session: Path, out: Path) -> Path:
     error left is one of the scale terms)."""
     s = open_session(session)
     tr = SyntheticTruth.read(session / "truth" / "rig_truth.yaml")
-    rig = Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=np.array(tr.T_zed_from_mech))
+    rig = Rig(zed=s.zed, mech=s.mech, depth_cam=s.depth_cam, T_mech_from_depth=s.T_mech_from_depth,
+              T_zed_from_mech=np.array(tr.T_zed_from_mech))
     return CalibrationFile.known_extrinsic(rig).write(out)
 
 
@@ -339,3 +340,96 @@ def test_scale_sigma_is_the_covariance_propagated():
     x = (np.arange(z.shape[1]) - rig.zed.left.cx_px) / f
     expect = np.sqrt((1e-4 * fb / 600) ** 2 + (np.radians(1e-3) * f * (1 + x * x)) ** 2 + (0.1 * fb / 600 ** 2) ** 2)
     np.testing.assert_allclose(s[1], expect, rtol=1e-12)
+
+
+# ---- a separate depth camera's pose (issue #25): session.yaml's T_mech_from_depth turned by this (deg)
+POSE_ERROR_DEG = (0.1, -0.15, 0.1)
+
+
+@pytest.fixture(scope="module")
+def pose_session(tmp_path_factory):
+    """A rig with a separate depth camera (``two_camera_rig``, 45 mm beside the texture camera) whose session.yaml
+    pose is turned by POSE_ERROR_DEG, on top of every error of ERRORS; 5 boards + 3 scenes at 0.3x."""
+    d = tmp_path_factory.mktemp("scale_pose")
+    generate_session(d, n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
+                     supersample=2, two_camera=True, depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
+    return d
+
+
+def test_depth_pose_jacobian_is_the_ground_truths_change(pose_session):
+    """``depth_pose_jacobian_px`` against the GT rebuilt with the depth camera turned (0.05 deg about each axis in
+    turn): the first-order change at every smooth GT pixel."""
+    from gtforge.core.geometry import perturb_left
+    from gtforge.core.photometric import interior_mask, smooth_depth_mask
+    from gtforge.core.scale_corrections import depth_pose_jacobian_px
+
+    rig = CalibrationFile.read(_known_calibration(pose_session, pose_session.parent / "jac.yaml")).rig
+    s = open_session(pose_session)
+    cap = s.load_capture(s.select("scenes", None)[0])
+    sd, _, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
+    d = sd.disparity_px.astype(np.float64)
+    ok = interior_mask(np.isfinite(d) & sd.nonoccluded, 3) & smooth_depth_mask(sd.disparity_px)
+    v, u = np.nonzero(ok)
+    J = depth_pose_jacobian_px(u, v, sd.depth_mm[v, u], 0.5 * (d[v, u + 1] - d[v, u - 1]),
+                               0.5 * (d[v + 1, u] - d[v - 1, u]), rig)
+    h = np.radians(0.05)
+    for axis in range(3):
+        w = np.zeros(6)
+        w[axis] = h
+        turned = Rig.model_validate({**rig.model_dump(), "T_mech_from_depth": perturb_left(rig.T_mech_from_depth, w)})
+        sd2, _, _ = build_scene_arrays(cap.depth_mm, turned, BuildParams(), cap.fruit_mask)
+        change = sd2.disparity_px[v, u].astype(np.float64) - d[v, u]
+        fin = np.isfinite(change)
+        predicted = J[fin, axis] * h
+        # the change is 0.01-0.03 px RMS; the first-order prediction within 5 % of it (the GT slopes by central
+        # differences of a meshed, noisy depth)
+        rms = np.sqrt(np.mean(change[fin] ** 2))
+        assert rms > 0.002, (axis, rms)  # (about z the surface only slides along itself: the slopes see it)
+        assert np.sqrt(np.mean((change[fin] - predicted) ** 2)) < 0.05 * rms, axis
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("boards", [True, False])
+def test_separate_depth_cameras_pose_is_recovered(pose_session, tmp_path, boards):
+    """Every error of ERRORS plus the depth camera turned by POSE_ERROR_DEG: calibrate-scale estimates its rotation
+    (the correction is the inverse turn) with the four other terms, and the labels match what the images show."""
+    start = _known_calibration(pose_session, tmp_path / "start.yaml")
+    res = calibrate_scale(pose_session, start, tmp_path / "scaled.yaml", FAST.model_copy(update={"use_boards": boards}))
+    info = res.scale_calibration
+    truth = dict(zed_baseline_frac=ERRORS["zed_baseline_error_frac"], zed_right_yaw_deg=ERRORS["right_yaw_deg"],
+                 depth_scale_frac=ERRORS["depth_scale_error_frac"], depth_offset_mm=ERRORS["depth_offset_mm"],
+                 depth_pose_rx_deg=-POSE_ERROR_DEG[0], depth_pose_ry_deg=-POSE_ERROR_DEG[1],
+                 depth_pose_rz_deg=-POSE_ERROR_DEG[2])
+    if not boards:  # the scenes see only the sum of the two scales, carried by the baseline
+        truth["zed_baseline_frac"] += truth.pop("depth_scale_frac")
+        assert info.terms["depth_scale_frac"].status == "not separable"
+    for name, t in truth.items():
+        term = info.terms[name]
+        assert term.status in ("applied", "not significant"), (name, term)
+        assert abs(term.estimate - t) < 3 * term.sigma, (name, term.estimate, term.sigma, t)
+    for axis in "xy":  # the two the scenes see through the surface's depth: applied
+        assert info.terms[f"depth_pose_r{axis}_deg"].status == "applied"
+    C = np.array(info.covariance)
+    assert C.shape == (7, 7)
+    np.testing.assert_allclose(np.sqrt(np.diag(C)), [info.terms[n].sigma or 0.0 for n in info.terms], rtol=1e-9)
+    # applied through the rig's depth camera pose, the file's kept
+    applied = np.radians([info.terms[f"depth_pose_r{a}_deg"].value for a in "xyz"])
+    from gtforge.core.geometry import perturb_left
+
+    file_T = np.array(info.T_mech_from_depth_file)
+    np.testing.assert_allclose(res.rig.T_mech_from_depth, perturb_left(file_T, np.r_[applied, 0, 0, 0]), atol=1e-12)
+    before, after = _gt_epe(pose_session, CalibrationFile.read(start)), _gt_epe(pose_session, res)
+    assert min(before) > 0.5 and max(after) <= 0.01, (before, after)
+    # the sigma map carries the rotation's covariance: the pose block alone gives |J_pose| sigma (deg -> rad)
+    from gtforge.core.scale_corrections import depth_pose_jacobian_image
+
+    pose_only = np.zeros((7, 7))
+    pose_only[4:, 4:] = C[4:, 4:]
+    s = open_session(pose_session)
+    cap = s.load_capture(s.select("scenes", None)[0])
+    sd, _, _ = build_scene_arrays(cap.depth_mm, res.rig, BuildParams(), cap.fruit_mask)
+    m = np.isfinite(sd.disparity_px)
+    got = scale_sigma_px(sd.depth_mm, res.rig, info.model_copy(update={"covariance": pose_only.tolist()}))[m]
+    Jp = depth_pose_jacobian_image(sd.depth_mm, res.rig)[m] * np.pi / 180
+    np.testing.assert_allclose(got, np.sqrt(np.einsum("ni,ij,nj->n", Jp, C[4:, 4:], Jp)), rtol=1e-9)
+    assert 0.001 < np.median(got) < 0.05  # the rotation's sigma, tens of mdeg, in px

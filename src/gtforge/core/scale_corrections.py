@@ -88,18 +88,57 @@ def corrected_right_image(image: np.ndarray | None, rig: Rig) -> np.ndarray | No
 
 
 
+def depth_pose_jacobian_px(u: np.ndarray, v: np.ndarray, z_mm: np.ndarray, du: np.ndarray, dv: np.ndarray,
+                           rig: Rig) -> np.ndarray:
+    """(N, 3) px per rad: how the ground truth at ZED-left pixels ``(u, v)`` (GT depth ``z_mm``, the GT disparity's
+    slopes ``du``, ``dv`` per px there) changes when the depth camera is turned by ``omega`` (the left perturbation of
+    ``rig.T_mech_from_depth``, ``gtforge.core.geometry.perturb_left``: a rotation about the depth camera's centre,
+    axes of the texture camera).
+
+    A depth point ``X`` moves by ``dX_mech = omega x (X_mech - t_mech_from_depth)``; the label at a fixed pixel changes
+    by its own disparity change less the GT's slope times its image motion, ``(dd/dX - grad d . du/dX) dX``
+    (the sigma map's rule, docs/design/accuracy.md)."""
+    zed = rig.zed
+    f, fb = zed.f_px, zed.f_px * zed.baseline_mm
+    xn = (np.asarray(u, np.float64) - zed.left.cx_px) / f
+    yn = (np.asarray(v, np.float64) - zed.left.cy_px) / f
+    z = np.asarray(z_mm, np.float64)
+    X_zed = np.stack([xn * z, yn * z, z], axis=-1)
+    T_mech_from_zed = np.linalg.inv(rig.T_zed_from_mech)
+    q = X_zed @ T_mech_from_zed[:3, :3].T + T_mech_from_zed[:3, 3] - rig.T_mech_from_depth_or_identity[:3, 3]
+    # d(label)/d(X_zed): dd/dX less the slopes times du/dX, dv/dX (f / Z (1, 0, -x), f / Z (0, 1, -y))
+    a = np.stack([-du * f / z, -dv * f / z, -fb / z ** 2 + (du * xn + dv * yn) * f / z], axis=-1)
+    w = a @ rig.T_zed_from_mech[:3, :3]  # the same per mm of motion in the texture camera's axes
+    return np.cross(q, w)  # w . (omega x q) = omega . (q x w)
+
+
+def depth_pose_jacobian_image(depth_mm: np.ndarray, rig: Rig) -> np.ndarray:
+    """``depth_pose_jacobian_px`` at every ZED-left pixel of a GT depth image (H, W, 3); slopes by central differences
+    of ``f B / Z`` (0 where a neighbour has no depth)."""
+    zed = rig.zed
+    z = np.asarray(depth_mm, np.float64)
+    d = zed.f_px * zed.baseline_mm / z
+    dv, du = np.gradient(d)
+    v, u = np.mgrid[0:z.shape[0], 0:z.shape[1]].astype(np.float64)
+    return depth_pose_jacobian_px(u, v, z, np.nan_to_num(du), np.nan_to_num(dv), rig)
+
+
 def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
     """Each GT pixel's 1-sigma (px) from the applied scale terms' covariance: ``sqrt(J C J^T)`` with
-    ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units)."""
+    ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units), and
+    with a separate depth camera's rotation (a 7x7 covariance) its ``depth_pose_jacobian_image`` per degree."""
     zed = rig.zed
     fb = zed.f_px * zed.baseline_mm
     z = np.asarray(depth_mm, np.float64)
     x = (np.arange(z.shape[1], dtype=np.float64)[None, :] - zed.left.cx_px) / zed.f_px
     J = [fb / z, np.broadcast_to(zed.f_px * (1 + x * x) * np.pi / 180.0, z.shape), fb / z, fb / z ** 2]
     C = np.asarray(info.covariance, np.float64)
+    if len(C) > 4:
+        Jp = depth_pose_jacobian_image(z, rig) * (np.pi / 180.0)
+        J += [Jp[..., 0], Jp[..., 1], Jp[..., 2]]
     var = np.zeros(z.shape)
-    for i in range(4):
-        for j in range(4):
+    for i in range(len(C)):
+        for j in range(len(C)):
             if C[i, j] != 0.0:
                 var += J[i] * C[i, j] * J[j]
     return np.sqrt(np.maximum(var, 0.0))

@@ -303,14 +303,19 @@ class ScaleCalibration(GTModel):
     method: str = "scene stereo consistency (photometric Gauss-Newton) + board PnP, stereo and depth"
     calibrated_from: str
     # conventions: the ZED's true baseline = (1 + zed_baseline_frac) x the file's; the right camera turned by
-    # zed_right_yaw_deg about its y axis; the depth map reads (1 + depth_scale_frac) z + depth_offset_mm
+    # zed_right_yaw_deg about its y axis; the depth map reads (1 + depth_scale_frac) z + depth_offset_mm; a separate
+    # depth camera's true pose is T_mech_from_depth_file turned by the rotation vector depth_pose_r{x,y,z}_deg about its
+    # centre, axes of the texture camera (the left perturbation, gtforge.core.geometry.perturb_left)
     terms: dict[str, ScaleTerm]
-    # 4x4 over PARAMS' order (fraction, deg, fraction, mm); rows/columns of a term not determined are 0
+    # over PARAMS' order (fraction, deg, fraction, mm, then, with a separate depth camera, its rotation in deg: 7x7,
+    # else 4x4); rows/columns of a term not determined are 0
     covariance: list[list[float]]
     # b + k (what scenes alone determine) with its sigma
     combined_scale_frac: float
     combined_scale_sigma_frac: float | None
     baseline_file_mm: float  # the baseline before this correction (rig.zed.baseline_mm now holds the corrected one)
+    # a separate depth camera's pose before this correction (rig.T_mech_from_depth now holds the corrected one)
+    T_mech_from_depth_file: list[list[float]] | None = None
     scenes_used: list[str]
     board_poses_used: list[str] = Field(default_factory=list)
     passes: int = 0
