@@ -68,3 +68,27 @@ def test_synth_prints_progress_off_terminal(tmp_path):
     assert r.exit_code == 0, r.output
     lines = r.output.splitlines()
     assert lines[:2] == ["board 000", "scene 000"] and lines[-1] == f"wrote {tmp_path / 's'}"
+
+
+@pytest.mark.slow
+def test_a_separate_depth_cameras_pose_through_the_commands(tmp_path):
+    """synth renders a unit whose depth camera is turned against session.yaml; calibrate then calibrate-scale (the
+    README's order) print and write its rotation, the correction being the inverse turn."""
+    from gtforge.records.calibration import CalibrationFile
+
+    sess = tmp_path / "s"
+    r = CliRunner().invoke(app, ["synth", str(sess), "--boards", "5", "--scenes", "3", "--scale", "0.3", "--seed", "5",
+                                 "--separate-depth-camera", "--depth-pose-error-deg", "0.1,-0.15,0.1"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(tmp_path / "calib.yaml"), "--no-loo"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["calibrate-scale", str(sess), "-c", str(tmp_path / "calib.yaml"),
+                                 "-o", str(tmp_path / "scaled.yaml")])
+    assert r.exit_code == 0, r.output
+    lines = {ln.split(":")[0].strip(): ln for ln in r.output.splitlines() if ln.startswith("  depth_pose_r")}
+    assert set(lines) == {"depth_pose_rx_deg", "depth_pose_ry_deg", "depth_pose_rz_deg"}, r.output
+    info = CalibrationFile.read(tmp_path / "scaled.yaml").scale_calibration
+    for axis, truth in zip("xyz", (-0.1, 0.15, -0.1)):
+        t = info.terms[f"depth_pose_r{axis}_deg"]
+        assert abs(t.estimate - truth) < 3 * t.sigma and t.sigma < 0.08, (axis, t)
+    assert info.terms["depth_pose_rx_deg"].status == "applied" and "[applied]" in lines["depth_pose_rx_deg"]

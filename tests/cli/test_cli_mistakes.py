@@ -154,3 +154,14 @@ def test_compare_tells_same_named_results_apart(tmp_path):
     assert labels == ["SGBM [run1/evaluation]", "SGBM [run2/evaluation]", "net"]
     same = tmp_path / "evaluation" / "results.json"
     assert row_labels([R("SGBM"), R("SGBM")], [same, same]) == ["SGBM [evaluation #1]", "SGBM [evaluation #2]"]
+
+
+def test_synth_refuses_a_depth_pose_error_it_cannot_render(tmp_path):
+    """A malformed rotation, or one for a unit without a separate depth camera: one line naming the option, nothing
+    written."""
+    r = gtforge("synth", tmp_path / "a", "--scale", "0.1", "--depth-pose-error-deg", "0.1,0.2")
+    assert r.returncode == 2 and one_line_error(r) and "--depth-pose-error-deg" in r.stderr, r.stderr
+    assert "'0.1,0.2'" in r.stderr
+    r = gtforge("synth", tmp_path / "a", "--scale", "0.1", "--depth-pose-error-deg", "0.1,0.2,0")
+    assert r.returncode == 2 and one_line_error(r) and "add --separate-depth-camera" in r.stderr, r.stderr
+    assert not (tmp_path / "a").exists()

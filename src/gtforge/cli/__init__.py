@@ -508,18 +508,39 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                               help="The right ZED camera is turned by this about its vertical axis."),
           depth_scale_error_pct: float = typer.Option(0.0, metavar="PCT",
                                                       help="The depth map reads this much long (%)."),
-          depth_offset_mm: float = typer.Option(0.0, metavar="MM", help="The depth map reads this much far (mm).")
+          depth_offset_mm: float = typer.Option(0.0, metavar="MM", help="The depth map reads this much far (mm)."),
+          separate_depth_camera: bool = typer.Option(False, "--separate-depth-camera",
+                                                     help="The structured-light unit's depth map comes from its own "
+                                                          "camera, 45 mm beside the texture camera (session.yaml "
+                                                          "names it)."),
+          depth_pose_error_deg: Optional[str] = typer.Option(
+              None, metavar="X,Y,Z", help="With --separate-depth-camera: session.yaml's depth camera pose is the true "
+                                          "one turned by this rotation vector (deg; calibrate-scale's test).")
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
 
+    import math
+
+    pose_error = None
+    if depth_pose_error_deg is not None:
+        try:
+            pose_error = tuple(float(x) for x in depth_pose_error_deg.split(","))
+        except ValueError:
+            pose_error = ()
+        if len(pose_error) != 3 or not all(math.isfinite(a) for a in pose_error):
+            raise InputError(None, "--depth-pose-error-deg", "three angles 'X,Y,Z' in deg such as 0.1,-0.15,0.1",
+                             repr(depth_pose_error_deg))
+        if not separate_depth_camera:
+            raise InputError(None, "--depth-pose-error-deg", "--separate-depth-camera with it",
+                             "a rig with one camera", "add --separate-depth-camera")
     require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
                      zed_baseline_error_frac=baseline_error_pct / 100.0, right_yaw_deg=right_yaw_deg,
                      depth_scale_error_frac=depth_scale_error_pct / 100.0, depth_offset_mm=depth_offset_mm,
-                     progress=_progress_lines)
+                     two_camera=separate_depth_camera, depth_pose_error_deg=pose_error, progress=_progress_lines)
     if gauges:
         from gtforge.synthetic import generate_gauges
 
