@@ -340,12 +340,13 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
         ok = np.isfinite(zm)
         if ok.sum() < 10:
             continue
-        q = X_mech - T_md[:3, 3]
-        n_mech = np.linalg.svd(X_mech - X_mech.mean(axis=0))[2][2]  # the board's normal (its corners' plane)
-        h = q @ n_mech  # (the same in the depth camera's frame: a rotation and its centre)
         zs.append(X[ok, 2])
         dz.append(zm[ok] - X[ok, 2])
-        jp.append((X[ok, 2] / h[ok])[:, None] * np.cross(n_mech, q[ok]))
+        if rig.separate_depth_camera:
+            q = X_mech[ok] - T_md[:3, 3]
+            n_mech = np.linalg.svd(X_mech - X_mech.mean(axis=0))[2][2]  # the board's normal (its corners' plane)
+            h = q @ n_mech  # (the same in the depth camera's frame: a rotation and its centre)
+            jp.append((X[ok, 2] / h)[:, None] * np.cross(n_mech, q))
         cl.append(np.full(ok.sum(), i))
         names.append(name)
     if len(names) < 3:

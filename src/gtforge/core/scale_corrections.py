@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from gtforge.core.camera import Rig
+from gtforge.core.geometry import invert_T
 
 if TYPE_CHECKING:
     from gtforge.records.calibration import ScaleCalibration
@@ -104,7 +105,7 @@ def depth_pose_jacobian_px(u: np.ndarray, v: np.ndarray, z_mm: np.ndarray, du: n
     yn = (np.asarray(v, np.float64) - zed.left.cy_px) / f
     z = np.asarray(z_mm, np.float64)
     X_zed = np.stack([xn * z, yn * z, z], axis=-1)
-    T_mech_from_zed = np.linalg.inv(rig.T_zed_from_mech)
+    T_mech_from_zed = invert_T(rig.T_zed_from_mech)
     q = X_zed @ T_mech_from_zed[:3, :3].T + T_mech_from_zed[:3, 3] - rig.T_mech_from_depth_or_identity[:3, 3]
     # d(label)/d(X_zed): dd/dX less the slopes times du/dX, dv/dX (f / Z (1, 0, -x), f / Z (0, 1, -y))
     a = np.stack([-du * f / z, -dv * f / z, -fb / z ** 2 + (du * xn + dv * yn) * f / z], axis=-1)
