@@ -280,7 +280,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
     out = require_output_folder(out_dir, "--output")
-    session.refuse_output_inside_captures(out)
+    session.refuse_output_over_inputs(out)
     if params.crop_wh and (params.crop_wh[0] > session.zed.left.width_px
                            or params.crop_wh[1] > session.zed.left.height_px):
         raise InputError(None, "--crop", f"at most the ZED image size, {session.zed.left.width_px}x"

@@ -273,7 +273,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     board = params.board.spec()
     if out_path is not None:
         out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
+        session.refuse_output_over_inputs(out_path)
     dirs = session.select("board", captures, exclude)
 
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)

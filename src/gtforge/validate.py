@@ -222,7 +222,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         _check_board(params.board)
     session = open_session(session_dir)
     if out_dir is not None:
-        session.refuse_output_inside_captures(out_dir)
+        session.refuse_output_over_inputs(out_dir)
     dirs = session.select("board", captures)
     if holdout:
         if holdout > len(dirs) - 3:
@@ -343,7 +343,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())
     if out_dir is not None:
-        session.refuse_output_inside_captures(out_dir)
+        session.refuse_output_over_inputs(out_dir)
         g = (session.root / GAUGES_DIR).resolve()
         o = Path(out_dir).resolve()
         if o == g or g in o.parents:

@@ -136,6 +136,10 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     params = _options(CalibrateParams, **({"board": _options(BoardModel, **given)} if given else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     output = calibration_output_path(output)
+    if report_dir is not None:
+        from gtforge.io.captures import open_session
+
+        open_session(session).refuse_output_over_inputs(report_dir, "--report-dir")
     res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
     rep = write_calibration_report(res, report_dir or output.parent / (output.stem + "_report"))
     n_used = len(res.captures_used)

@@ -274,15 +274,38 @@ class Session:
         return self.depth_cam if self.depth_cam is not None else self.mech
 
     def capture_roots(self) -> list[Path]:
-        """The folders that hold captures (``board/``, ``scenes/``), as named in the session."""
-        return [self.root / self.config.board_dir, self.root / self.config.scenes_dir]
+        """The folders that hold captures (``board/``, ``scenes/``, ``gauges/``), as named in the session."""
+        return [self.root / self.config.board_dir, self.root / self.config.scenes_dir, self.root / "gauges"]
 
-    def refuse_output_inside_captures(self, out: str | Path, option: str = "--output") -> None:
-        """Refuse an output path that lies in, or contains, a capture folder (captures are never written).
+    def session_files(self) -> list[Path]:
+        """The files the session reads besides its captures: ``session.yaml`` and every file it names (the texture
+        and depth cameras' intrinsics, the ZED calibration or SN.conf, the right camera's info)."""
+        c = self.config
+        names = [c.mech_intrinsics, c.depth_intrinsics, c.zed_calibration, c.zed_right_info]
+        return [self.root / "session.yaml"] + [self.root / n for n in names if n]
+
+    def refuse_output_over_inputs(self, out: str | Path, option: str = "--output") -> None:
+        """Refuse an output path that lies in, or contains, a capture folder, or that is a file the session reads
+        (``session_files``): a session's inputs are never written, under any spelling of the path (relative, ``..``,
+        symbolic or hard links).
 
         Symlinked captures count with both their name and their target."""
         out_abs = Path(os.path.abspath(out))
         out_real = Path(os.path.realpath(out))
+        for f in self.session_files():
+            if not (f.exists() or f.is_symlink()):
+                continue
+            same = out_real == Path(os.path.realpath(f)) or out_abs == Path(os.path.abspath(f))
+            if not same and out_real.exists():
+                try:
+                    same = os.path.samefile(out_real, f)
+                except OSError:
+                    same = False
+            if same:
+                raise InputError(out, option, "a path that is not one of the session's own files",
+                                 f"the session's {f.name} ({os.path.realpath(f)})",
+                                 "the session's files are never written; write the output beside the session, "
+                                 "e.g. -o calib.yaml")
         protected: list[Path] = []
         for croot in self.capture_roots():
             if croot.is_dir():

@@ -241,7 +241,7 @@ def open_calibrated_session(session_dir: str | Path, calibration: str | Path, ou
     check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
         out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
+        session.refuse_output_over_inputs(out_path)
         if Path(out_path).resolve() == calib_path.resolve():
             raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
                              "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
