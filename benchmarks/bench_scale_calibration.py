@@ -29,6 +29,7 @@ import numpy as np
 from gtforge.core.camera import Rig
 from gtforge.core.scale_corrections import shown_disparity_px
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
@@ -91,7 +92,7 @@ def known_calibration(sess: Path, self_rectify: bool = False) -> Path:
 
 def figures(sess: Path, calib: CalibrationFile) -> tuple[float, float, float]:
     """(mean EPE against what the images show over the scenes, the largest scene's, scene 000's stereo bias)."""
-    s = calib.open_session(sess)  # the right image corrected for calib's yaw, as build-dataset writes im1
+    s = open_with_calibration(sess, calib)  # the right image corrected for calib's yaw, as build-dataset writes im1
     yaw_true = SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").zed_right_yaw_deg
     epes, bias = [], float("nan")
     for d in s.select("scenes", None):

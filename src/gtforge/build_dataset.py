@@ -45,6 +45,7 @@ from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_fo
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import check_scheduler_address, prestart_pool, release_written_pages, run_tasks
 from gtforge.infra.unbuffered import background_writes
+from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.formats import (
     write_image,
     write_label_png,
@@ -53,7 +54,7 @@ from gtforge.io.formats import (
     write_tiff_float,
 )
 from gtforge.io.outputs import require_output_folder
-from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
+from gtforge.records.calibration import CalibrationFile
 from gtforge.records.verification import VerificationResult
 from gtforge.reports.build import write_build_report
 from gtforge.reports.verification import write_verification_report
@@ -276,7 +277,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
-    session = calib.open_session(session_dir)
+    session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
     out = require_output_folder(out_dir, "--output")
@@ -401,11 +402,3 @@ def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, pa
              session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in sorted(metas)},
              failures=failures, splits=splits or {}, flagged=flagged or {},
              quarantined=quarantined or []).write(out / "manifest.json")
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, REGION_NONE, fruit_regions  # noqa: E402,F401
-from gtforge.dataset.layout import STAMP_MARGIN_NS  # noqa: E402,F401
-from gtforge.dataset.views import make_splits  # noqa: E402,F401
-from gtforge.records.dataset import InputStamp  # noqa: E402,F401
-from gtforge.verify import verify_one_scene  # noqa: E402,F401

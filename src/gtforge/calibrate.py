@@ -34,6 +34,7 @@ from gtforge.core.selfcal import SelfRectifyParams
 from gtforge.core.target_detection import PairSkipped, detect_target, match_target_views
 from gtforge.core.targets import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import calibration_output_path, session_board
 from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
 from gtforge.records.calibration import (
@@ -41,8 +42,6 @@ from gtforge.records.calibration import (
     CalibrationFile,
     MethodResult,
     PoseResult,
-    calibration_output_path,
-    session_board,
 )
 
 # scipy is imported inside the functions that use it: importing it slows every process start, and the
@@ -363,14 +362,3 @@ def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
     dm = Detection(o.mech_uv, o.det_mech.sharpness_px, o.det_mech.method, o.det_mech.pattern_contrast, o.ids)
     dz = Detection(o.zed_uv, o.det_zed.sharpness_px, o.det_zed.method, o.det_zed.pattern_contrast, o.ids)
     return dm, dz, o.ids
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.board_extrinsic import Refined  # noqa: E402,F401
-from gtforge.records.calibration import (  # noqa: E402,F401
-    PoseReport,  # noqa: E402,F401
-    RefinementInfo,
-    SceneRefinement,
-    check_rig_matches_session,
-    open_calibrated_session,
-)

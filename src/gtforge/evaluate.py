@@ -276,7 +276,3 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
     write_tables(reports, out, "comparison", labels=labels, warnings=warnings)
     write_comparison_html(reports, files, labels, warnings, out / "comparison.html")
     return tables_markdown(reports, labels=labels, warnings=warnings), warnings
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.records.evaluation import TABLE_REGIONS, EvalReport  # noqa: E402,F401,I001

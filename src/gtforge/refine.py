@@ -41,7 +41,8 @@ from gtforge.core.render import render_texture
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
-from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement, open_calibrated_session
+from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import VerifyParams
 from gtforge.verify import verify_scene
@@ -219,7 +220,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     t0 = time.perf_counter()
     params = params or RefineParams()
     calib_path = Path(calibration)
-    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "refined.yaml")
+    calib = CalibrationFile.read(calib_path)
+    session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "refined.yaml")
     rig0 = calib.rig
     build = BuildParams()
     dirs = session.select("scenes", scenes)

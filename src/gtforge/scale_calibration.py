@@ -70,13 +70,13 @@ from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_c
 from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import open_calibrated_session
 from gtforge.records.calibration import (
     CalibrationFile,
     ScaleCalibration,
     ScaleParams,
     ScaleTerm,
     SceneScaleResult,
-    open_calibrated_session,
 )
 from gtforge.records.dataset import BuildParams
 from gtforge.verify import verify_scene
@@ -462,7 +462,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                          "one already corrected", "run calibrate-scale on the board (or refined) calibration")
     # the session as the calibration sees it: its SN.conf reading and ZED self-rectification (no yaw yet: a calibration
     # with one is refused above), so the yaw is measured on the right images as the self-rectification leaves them
-    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "scaled.yaml")
+    session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "scaled.yaml")
     rig_file = calib.rig
     B_file = rig_file.zed.baseline_mm
     # the boards first: absolute measurements, independent of the scenes' GT
@@ -610,8 +610,3 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     if out_path is not None:
         out.write(out_path)
     return out
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.scale_corrections import add_scale_sigma, corrected_right_image, scale_sigma_px, shown_disparity_px  # noqa: E402,F401
-from gtforge.records.calibration import SceneScaleReport  # noqa: E402,F401

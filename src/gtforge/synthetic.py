@@ -23,7 +23,14 @@ import numpy as np
 from gtforge.core.board import BoardSpec
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.core.gauges import GaugesFile, GaugeSpec
-from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, perturb_left, transform_points
+from gtforge.core.geometry import (
+    T_from_rotvec,
+    invert_T,
+    look_at_T_cam_from_world,
+    make_T,
+    perturb_left,
+    transform_points,
+)
 from gtforge.core.schema import VersionedFile
 from gtforge.core.targets import board_model_of, collinear
 from gtforge.io.cameras import check_zed_conf_reading, write_zed_conf
@@ -1026,7 +1033,3 @@ def render_board_views(name: str, rig, board, T_world_from_board: np.ndarray, rn
     X = board.corners_board()
     return BoardViews(name, tex, depth, left, T_mb, rig.mech.project(transform_points(T_mb, X)),
                       rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_world_from_board, X)))
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.board import GridCounts  # noqa: E402,F401

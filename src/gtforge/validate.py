@@ -42,9 +42,10 @@ from gtforge.core.targets import BoardModel, check_board_model, neighbour_pairs
 from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import rectified_by
-from gtforge.records.calibration import CalibrateParams, CalibrationFile, check_rig_matches_session
+from gtforge.records.calibration import CalibrateParams, CalibrationFile
 from gtforge.records.dataset import BuildParams
 from gtforge.records.validation import PoseValidation, ValidateParams, ValidationResult
 from gtforge.reports.gauges import write_gauges_html
@@ -245,7 +246,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     # raw ZED images + SN.conf, a self-rectified ZED, calibrate-scale's yaw: the pair as every stage and the dataset
     # get it, so that the rectification measured below is the dataset's
     if calib.zed_conf is not None or calib.zed_right_correction is not None or calib.rig.zed_right_yaw_deg != 0.0:
-        session = calib.open_session(session_dir)
+        session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)  # as every other stage (a calibration of another rig)
     # the rectification on the board points (any target: matched by id, circle centres bias-corrected; docs/targets.md)
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session), zed_right=calib.rig.zed.right)
@@ -338,7 +339,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
     t0 = time.perf_counter()
     calib = CalibrationFile.read(calibration)
-    session = calib.open_session(session_dir, right_yaw=False)  # (the gauges use the depth and the left image only)
+    session = open_with_calibration(session_dir, calib, right_yaw=False)  # (the gauges use the depth and the left image only)
     check_rig_matches_session(calib.rig, session, calibration)
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())
@@ -370,11 +371,3 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         if write_html:
             write_gauges_html(rep, maps, out / "gauges.html")
     return rep
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.records.validation import (  # noqa: E402,F401
-    REFERENCE_XY_PX,
-    REFERENCE_Z_PCT,
-    ValidationReport,  # noqa: E402,F401
-)

@@ -17,6 +17,7 @@ from gtforge.core.scale_corrections import (
 from gtforge.core.selfcal import corrected_right
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.calibration import CalibrationFile, ScaleParams
@@ -110,7 +111,7 @@ def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, 
     start, res = errors_calibrated
     biases = {}
     for name, calib in (("before", CalibrationFile.read(start)), ("after", res)):
-        s = calib.open_session(errors_session)
+        s = open_with_calibration(errors_session, calib)
         cap = s.load_capture(s.select("scenes", None)[0])
         rig = calib.rig
         sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
@@ -140,7 +141,7 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     s = open_session(errors_session)
     cap = s.load_capture(s.select("scenes", None)[0])
     np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected_right_image(cap.zed_right, res.rig))
-    corrected = res.open_session(errors_session).load_capture(s.select("scenes", None)[0])
+    corrected = open_with_calibration(errors_session, res).load_capture(s.select("scenes", None)[0])
     np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected.zed_right)
     np.testing.assert_array_equal(read_image(sc / "im0.png"), cap.zed_left)
     assert (sc / "im0.png").read_bytes() == (errors_session / "scenes" / "000" / "left.png").read_bytes()  # copied
@@ -243,7 +244,7 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     start.zed_self_rectification = selfcal
     start.write(tmp_path / "start.yaml")
     # calibrate-scale opens the session with the self-rectification and without a yaw
-    opened = start.open_session(both_session)
+    opened = open_with_calibration(both_session, start)
     assert opened.rectification.correction == selfcal.correction and not hasattr(opened.rectification, "right_yaw_deg")
     res = calibrate_scale(both_session, tmp_path / "start.yaml", tmp_path / "scaled.yaml", FAST)
     yaw = res.rig.zed_right_yaw_deg
@@ -258,9 +259,9 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     out = tmp_path / "ds"
     build_dataset(both_session, tmp_path / "scaled.yaml", out, workers=1)
     rep = verify_dataset(out, workers=1)
-    once = res.open_session(both_session)
+    once = open_with_calibration(both_session, res)
     assert once.rectification.right_yaw_deg == yaw and once.rectification.correction == selfcal.correction
-    self_only = res.open_session(both_session, right_yaw=False)
+    self_only = open_with_calibration(both_session, res, right_yaw=False)
     for d in s.select("scenes", None):
         cap = once.load_capture(d)
         np.testing.assert_array_equal(read_image(out / "scenes" / d.name / "im1.png"), cap.zed_right)

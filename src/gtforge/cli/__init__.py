@@ -126,7 +126,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
     from gtforge.core.targets import BoardModel
-    from gtforge.records.calibration import CalibrateParams, calibration_output_path
+    from gtforge.io.calibrated_session import calibration_output_path
+    from gtforge.records.calibration import CalibrateParams
     from gtforge.reports.calibration import write_calibration_report
 
     given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
@@ -300,7 +301,7 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     if info.heldout_shift_after_mean_px is not None:
         out.print(f"cross-validation: held-out scenes {info.heldout_shift_before_mean_px:.3f} -> "
                   f"{info.heldout_shift_after_mean_px:.3f} px mean |texture shift|")
-    from gtforge.records.calibration import calibration_output_path
+    from gtforge.io.calibrated_session import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output)}")
 
@@ -332,7 +333,7 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
                   + (f"; from {', '.join(t.sources)}" if t.sources else ""))
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
               f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
-    from gtforge.records.calibration import calibration_output_path
+    from gtforge.io.calibrated_session import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output)}")
 
@@ -522,10 +523,10 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                           "one turned by this rotation vector (deg; calibrate-scale's test).")
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
+    import math
+
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
-
-    import math
 
     pose_error = None
     if depth_pose_error_deg is not None:

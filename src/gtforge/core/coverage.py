@@ -229,7 +229,3 @@ def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_
     T[:3, 3] = p - T[:3, :3] @ centre_b
     label = "ZED" if cam_name == "zed" else "structured-light"
     yield T, f"a board centred near the {label} image's {corner} corner, cut by its border"
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-CoverageReport = CoverageResult

@@ -367,7 +367,3 @@ def summarise(records: list[FruitRecord], grades: GradeBins | None = None, const
             rep.grades_gt_vs_truth = grade_agreement(grades, [r.grade_truth for r in records],
                                                      [r.grade_gt for r in records])
     return rep
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-FruitSizeReport = FruitSizeResult

@@ -423,7 +423,3 @@ def summary_lines(rep: GaugesResult) -> list[str]:
 
 
 GaugesFile.model_rebuild()
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-GaugeReport = GaugesResult

@@ -5,15 +5,19 @@ disparity a turned right camera shows (the generator's truth). ``corrected_right
 stages did before the yaw went into the session's (kept as the reference the single resampling is compared with)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import invert_T
 
-if TYPE_CHECKING:
-    from gtforge.records.calibration import ScaleCalibration
+
+class ScaleCovariance(Protocol):
+    """What the sigma map needs of calibrate-scale's record (``gtforge.records.calibration.ScaleCalibration``): the
+    applied terms' covariance in the file's units (4x4, or 7x7 with a separate depth camera's rotation)."""
+
+    covariance: list[list[float]]
 
 
 def yaw_homography(rig: Rig, yaw_rad: float) -> np.ndarray:
@@ -124,7 +128,7 @@ def depth_pose_jacobian_image(depth_mm: np.ndarray, rig: Rig) -> np.ndarray:
     return depth_pose_jacobian_px(u, v, z, np.nan_to_num(du), np.nan_to_num(dv), rig)
 
 
-def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCovariance) -> np.ndarray:
     """Each GT pixel's 1-sigma (px) from the applied scale terms' covariance: ``sqrt(J C J^T)`` with
     ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units), and
     with a separate depth camera's rotation (a 7x7 covariance) its ``depth_pose_jacobian_image`` per degree."""
@@ -146,7 +150,7 @@ def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np
 
 
 
-def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCovariance) -> np.ndarray:
     """``sigma_px`` (float32, +inf where no GT) with the scale terms' sigma added in quadrature."""
     s = scale_sigma_px(depth_mm, rig, info)
     with np.errstate(invalid="ignore"):

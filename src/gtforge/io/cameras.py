@@ -259,10 +259,6 @@ class ZedFactoryCalibration:
         T = {"neg-x": np.array([-t[0], t[1], t[2]]), "neg-all": -t, "as-is": t, "right-centre": -R @ t}[base]
         return R, T
 
-    def extrinsics(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
-        """The name ``R_t_right_from_left`` had before round 3; it goes in the next release."""
-        return self.R_t_right_from_left(reading)
-
     def stereo_rectify(self, reading: str = DEFAULT_ZED_CONF_READING) -> StereoRectifyResult:
         R, T = self.R_t_right_from_left(reading)
         size = self.size_wh

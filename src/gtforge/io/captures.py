@@ -224,11 +224,6 @@ class Capture:
     # the input files read whole to build the arrays above, by name: the BLAKE3 of exactly the bytes decoded
     read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
 
-    @property
-    def mech_depth_mm(self) -> np.ndarray:
-        """``depth_mm``'s name before round 3 (it is on the depth camera's grid); it goes in the next release."""
-        return self.depth_mm
-
 
 @dataclass(frozen=True)
 class ReadRecord:

@@ -483,7 +483,3 @@ def read_ply_points(path: str | Path) -> np.ndarray:
     import open3d as o3d
 
     return np.asarray(o3d.io.read_point_cloud(str(path)).points)
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.photometric import to_gray  # noqa: E402,F401

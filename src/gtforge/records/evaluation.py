@@ -63,7 +63,3 @@ class EvalResult(VersionedFile):
     per_scene: list[SceneResult]
     # per-fruit size, volume and grade (gtforge.core.fruit_size); absent in results written before it existed
     fruit_size: "FruitSizeResult | None" = None
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-EvalReport = EvalResult
