@@ -1,24 +1,55 @@
-"""Shared fixtures: one small synthetic session rendered once per test run (exact truth beside it)."""
+"""Shared fixtures: the synthetic sessions rendered once per test run, whichever pytest-xdist worker asks first
+(``made_once``), with exact truth beside them."""
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
+import pickle
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
 
+import gtforge.synthetic
 from gtforge.synthetic import SyntheticTruth, generate_session
+
+# the generator's version: its source (a change to it renders every cached session again)
+GENERATOR_VERSION = hashlib.sha256(Path(gtforge.synthetic.__file__).read_bytes()).hexdigest()[:12]
+
+
+def made_once(tmp_path_factory, name: str, make: Callable[[Path], object], **key) -> Path:
+    """The folder ``make(folder)`` fills, made once per test run and shared by every worker of the run (pytest-xdist
+    workers wait for the first to finish; a worker's own files go elsewhere). The folder name carries the generator's
+    version and ``key`` (the arguments it was made with). Tests must not write into it: they copy it first."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "made-once"
+    root.mkdir(exist_ok=True)
+    digest = hashlib.sha256(repr((GENERATOR_VERSION, sorted(key.items()))).encode()).hexdigest()[:12]
+    out = root / f"{name}-{digest}"
+    with open(root / f"{name}-{digest}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root / f"{name}-{digest}.done").exists():
+            shutil.rmtree(out, ignore_errors=True)
+            make(out)
+            (root / f"{name}-{digest}.done").touch()
+    return out
+
+
+def synthetic_session(tmp_path_factory, name: str, **kwargs) -> Path:
+    """``generate_session(folder, **kwargs)``, once per test run (``made_once``)."""
+    return made_once(tmp_path_factory, name, lambda d: generate_session(d, **kwargs), **kwargs)
 
 
 @pytest.fixture(scope="session")
 def session_dir(tmp_path_factory):
     """7 board poses + 3 fruit scenes at 0.4x resolution, noise-free depth (ZED 883x497, mech 768x480)."""
-    d = tmp_path_factory.mktemp("session")
-    generate_session(d, n_board=7, n_scenes=3, scale=0.4, seed=11, depth_noise_mm=0.0, image_noise=1.0)
-    return d
+    return synthetic_session(tmp_path_factory, "session", n_board=7, n_scenes=3, scale=0.4, seed=11,
+                             depth_noise_mm=0.0, image_noise=1.0)
 
 
 @pytest.fixture(scope="session")
@@ -31,9 +62,12 @@ def calibration(session_dir, tmp_path_factory):
     from gtforge.calibrate import calibrate
     from gtforge.records.calibration import CalibrateParams
 
-    path = tmp_path_factory.mktemp("calib") / "calibration.yaml"
-    res = calibrate(session_dir, path, CalibrateParams(use_depth=False))
-    return path, res
+    def make(d):
+        res = calibrate(session_dir, d / "calibration.yaml", CalibrateParams(use_depth=False))
+        (d / "result.pickle").write_bytes(pickle.dumps(res))  # as calibrate returned it (report inputs included)
+
+    folder = made_once(tmp_path_factory, "calib", make, session=str(session_dir))
+    return folder / "calibration.yaml", pickle.loads((folder / "result.pickle").read_bytes())
 
 
 @pytest.fixture(scope="session")

@@ -28,6 +28,7 @@ from gtforge.core.board_extrinsic import (
     transfer_error,
 )
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
+from gtforge.core.coverage import coverage_report
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
 from gtforge.core.rectification import RectificationMeter
 from gtforge.core.selfcal import SelfRectifyParams
@@ -44,8 +45,7 @@ from gtforge.records.calibration import (
     PoseResult,
 )
 
-# scipy is imported inside the functions that use it: importing it slows every process start, and the
-# build-dataset workers, which import this module for CalibrationFile, never need it
+# scipy is imported inside the functions that use it: importing it slows every process start
 
 log = logging.getLogger("gtforge.calibrate")
 
@@ -90,9 +90,11 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
 def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: PinholeCamera,
                            zed: RectifiedStereo, params: CalibrateParams,
                            progress: Callable[[str], None] | None = None, depth_cam: PinholeCamera | None = None,
-                           T_mech_from_depth: np.ndarray | None = None) -> CalibrationFile:
+                           T_mech_from_depth: np.ndarray | None = None, coverage: bool = False) -> CalibrationFile:
     """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place.
-    ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera."""
+    ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera. ``coverage``: also
+    fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage; a few
+    tenths of a second)."""
     t0 = time.perf_counter()
     board = params.board.spec()
     if len(obs) < params.min_poses:
@@ -220,11 +222,11 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
         verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
         residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
         time_s=time.perf_counter() - t0)
-    # what gtforge.core.coverage needs (calibrate() attaches the coverage report; other callers may: attach_coverage)
-    result._coverage_inputs = dict(used=used, T_mech_from_board=ref.T_mech_from_board, T_zed_from_mech=ref.T_zed_from_mech,
-                                   mech=mech, zed_cam=zed.left, board=board,
-                                   cov=cov if np.all(np.isfinite(cov)) else None,
-                                   rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
+    if coverage:
+        result.coverage = coverage_report(used=used, T_mech_from_board=ref.T_mech_from_board,
+                                          T_zed_from_mech=ref.T_zed_from_mech, mech=mech, zed_cam=zed.left, board=board,
+                                          cov=cov if np.all(np.isfinite(cov)) else None,
+                                          rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
     result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result
@@ -299,8 +301,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
             obs.append(o)
             meter.add(d.name, cap.zed_right, left_detection=o.det_zed)
     result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress, session.depth_cam,
-                                    session.T_mech_from_depth)
-    result.attach_coverage()
+                                    session.T_mech_from_depth, coverage=True)
     result.session_dir = str(Path(session_dir).resolve())
     result.zed_conf, result.rectification = zed_conf, meter.result()
     result.zed_self_rectification = selfcal

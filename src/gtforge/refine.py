@@ -75,7 +75,6 @@ class ScenePoints:
     zed_norm: np.ndarray  # normalised ZED-left grey image
 
 
-_perturbed = perturb_left  # the name refine's tests use
 
 
 def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, texture: np.ndarray,
@@ -201,7 +200,7 @@ def solve_extrinsic(scenes: list[ScenePoints], T0: np.ndarray, rig: Rig, params:
         except np.linalg.LinAlgError:
             raise InputError(None, "scenes", "scenes whose texture constrains the extrinsic", "a singular system",
                              "add scenes with texture over the whole image") from None
-        T = _perturbed(T, step[:6])
+        T = perturb_left(T, step[:6])
         if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:6]).max() < 1e-5:
             break
     # Not s^2 H^-1 times the normalisation window's area (pi (2 sigma)^2 = 113 px, "one independent sample per

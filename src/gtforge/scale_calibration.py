@@ -331,11 +331,11 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
     Not ``omega`` itself: a PnP pose error moves a board's corners by a plane, as ``omega`` does, so only the poses
     tell them apart, and the pose-clustered covariance of five parameters from five poses is singular."""
     zs, dz, jp, cl, names = [], [], [], [], []
-    T_md = rig.T_mech_from_depth_or_identity
-    T_dm = invert_T(T_md)
+    T_mech_from_depth = rig.T_mech_from_depth_or_identity
+    T_depth_from_mech = invert_T(T_mech_from_depth)
     cam = rig.depth_camera
     for i, (name, X_mech, depth) in enumerate(poses):
-        X = transform_points(T_dm, X_mech)
+        X = transform_points(T_depth_from_mech, X_mech)
         zm = depth_at_rays(depth, cam.project(X), half_px)
         ok = np.isfinite(zm)
         if ok.sum() < 10:
@@ -343,7 +343,7 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
         zs.append(X[ok, 2])
         dz.append(zm[ok] - X[ok, 2])
         if rig.separate_depth_camera:
-            q = X_mech[ok] - T_md[:3, 3]
+            q = X_mech[ok] - T_mech_from_depth[:3, 3]
             n_mech = np.linalg.svd(X_mech - X_mech.mean(axis=0))[2][2]  # the board's normal (its corners' plane)
             h = q @ n_mech  # (the same in the depth camera's frame: a rotation and its centre)
             jp.append((X[ok, 2] / h)[:, None] * np.cross(n_mech, q))

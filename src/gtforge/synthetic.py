@@ -604,12 +604,12 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     rig.depth_scale, rig.depth_offset_mm = 1.0 + depth_scale_error_frac, float(depth_offset_mm)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
     StereoCalibrationFile(zed=rig.zed_file or rig.zed).write(out / "zed_calibration.yaml")
-    T_md = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
+    T_mech_from_depth_rows = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
     if two_camera:
         CameraFile(camera=rig.depth_cam).write(out / "depth_intrinsics.yaml")
     SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
                    board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
-                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_md,
+                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_mech_from_depth_rows,
                    zed_baseline_true_mm=rig.zed.baseline_mm if rig.zed_file is not None else None,
                    zed_right_yaw_deg=float(right_yaw_deg), depth_scale=rig.depth_scale,
                    depth_offset_mm=rig.depth_offset_mm).write(out / "truth" / "rig_truth.yaml")
@@ -639,8 +639,8 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     if depth_pose_error_deg is not None:
         if not two_camera:
             raise ValueError("depth_pose_error_deg needs two_camera=True (a separate depth camera)")
-        T_md = perturb_left(rig.T_mech_from_depth, np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
-    extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
+        T_mech_from_depth_rows = perturb_left(rig.T_mech_from_depth, np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
+    extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_mech_from_depth_rows) if two_camera else {}
     if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets)
         extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")

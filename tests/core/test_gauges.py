@@ -14,7 +14,7 @@ from gtforge.errors import InputError
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import write_tiff_float
 from gtforge.records.calibration import CalibrationFile
-from gtforge.refine import _perturbed
+from gtforge.core.geometry import perturb_left
 from gtforge.synthetic import default_rig, generate_gauges, generate_session
 from gtforge.validate import validate_gauges
 
@@ -141,7 +141,7 @@ def test_extrinsic_error_of_005_deg_moves_the_gauges_rigidly(exact, tmp_path):
     s, _, rep0 = exact
     T = default_rig(SCALE).T_zed_from_mech
     w = np.radians(0.05) * np.array([0.6, 0.8, 0.0])
-    T_err = _perturbed(T, np.r_[w, 0.0, 0.0, 0.0])
+    T_err = perturb_left(T, np.r_[w, 0.0, 0.0, 0.0])
     rep = validate_gauges(s, _calib(tmp_path / "c.yaml", T_err), None)
     a, b = _by(rep0), _by(rep)
     R_w = T_err[:3, :3] @ T[:3, :3].T

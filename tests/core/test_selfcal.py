@@ -7,7 +7,7 @@ import functools
 import cv2
 import numpy as np
 import pytest
-from conftest import shared_data
+from conftest import synthetic_session, shared_data
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig, ScaleCorrections
 from gtforge.core.geometry import make_T
@@ -33,7 +33,6 @@ from gtforge.synthetic import (
     default_rig,
     finish_image,
     generate_raw_zed_session,
-    generate_session,
     random_fruit_scene,
     raw_zed_rig,
     render_image,
@@ -93,7 +92,7 @@ def test_real_zed_mini_sdk_rectified_pair():
 @pytest.fixture(scope="module")
 def turned_session(tmp_path_factory):
     """Images rectified before gtforge (as the ZED SDK delivers them) whose right camera is turned by ERR_RAD."""
-    return generate_session(tmp_path_factory.mktemp("turned"), n_board=1, n_scenes=2, scale=0.3, seed=5,
+    return synthetic_session(tmp_path_factory, "turned", n_board=1, n_scenes=2, scale=0.3, seed=5,
                             depth_noise_mm=0.0, image_noise=1.0, supersample=2, zed_right_rotation_error_rad=ERR_RAD)
 
 

@@ -7,6 +7,7 @@ tests/stages/test_calibrate.py) or tighter where the target allows.
 import cv2
 import numpy as np
 import pytest
+from conftest import synthetic_session
 
 from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.board import BoardSpec
@@ -40,7 +41,7 @@ def _detect_all(views, rig, spec):
 def _calibrate(views, rig, spec, loo=False):
     obs, reps = _detect_all(views, rig, spec)
     res = calibrate_observations(obs, reps, rig.mech, rig.zed,
-                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo)).attach_coverage()
+                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo), coverage=True)
     return res, obs
 
 
@@ -375,9 +376,8 @@ SCALE_ERRORS = dict(zed_baseline_error_frac=0.003, depth_scale_error_frac=-0.002
 def charuco_stereo_session(tmp_path_factory):
     """6 ChArUco poses at 0.3x (ZED 662x373) with a baseline 0.3 % longer than the file's and a depth map reading
     0.2 % short plus 0.5 mm; the rectification itself is exact."""
-    from gtforge.synthetic import generate_session
 
-    return generate_session(tmp_path_factory.mktemp("charuco_stereo"), n_board=6, n_scenes=0, scale=0.3, seed=5,
+    return synthetic_session(tmp_path_factory, "charuco_stereo", n_board=6, n_scenes=0, scale=0.3, seed=5,
                             board=CHARUCO_60, depth_noise_mm=0.03, image_noise=1.0, supersample=2, **SCALE_ERRORS)
 
 
@@ -386,9 +386,8 @@ def circles_stereo_session(tmp_path_factory):
     """4 symmetric circle-grid poses at 0.3x whose right ZED image comes from a camera turned by
     ``RIGHT_ROTATION_ERROR_RAD`` against the rectified model in zed_calibration.yaml: 0.2-0.4 px of true vertical
     disparity, varying across the image."""
-    from gtforge.synthetic import generate_session
 
-    return generate_session(tmp_path_factory.mktemp("circles_stereo"), n_board=4, n_scenes=0, scale=0.3, seed=5,
+    return synthetic_session(tmp_path_factory, "circles_stereo", n_board=4, n_scenes=0, scale=0.3, seed=5,
                             board=SYMMETRIC, depth_noise_mm=0.0, image_noise=1.0, supersample=2,
                             zed_right_rotation_error_rad=RIGHT_ROTATION_ERROR_RAD)
 

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import synthetic_session
 
 from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.scale_corrections import (
@@ -23,7 +24,7 @@ from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.scale_calibration import calibrate_scale
-from gtforge.synthetic import SyntheticTruth, default_rig, generate_session
+from gtforge.synthetic import SyntheticTruth, default_rig
 from gtforge.verify import verify_scene
 
 # the combined errors of the session below, at the issue's limits: baseline +0.3 %, right-camera yaw 0.15 deg,
@@ -62,10 +63,8 @@ def _gt_epe(session: Path, calib: CalibrationFile) -> list[float]:
 @pytest.fixture(scope="module")
 def errors_session(tmp_path_factory):
     """5 board poses + 3 fruit scenes at 0.3x (ZED 662x373) with every error kind at once."""
-    d = tmp_path_factory.mktemp("scale_errors")
-    generate_session(d, n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
+    return synthetic_session(tmp_path_factory, "scale_errors", n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
                      supersample=2, **ERRORS)
-    return d
 
 
 @pytest.fixture(scope="module")
@@ -210,10 +209,8 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
 def both_session(tmp_path_factory):
     """5 board poses + 2 fruit scenes at 0.3x whose right camera is turned by a yaw of 0.15 deg and then by a residual
     rotation (0.1, 0.05, -0.08) deg: the self-rectification's and calibrate-scale's errors at once."""
-    d = tmp_path_factory.mktemp("both_errors")
-    generate_session(d, n_board=5, n_scenes=2, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
+    return synthetic_session(tmp_path_factory, "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
                      supersample=2, right_yaw_deg=0.15, zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
-    return d
 
 
 @pytest.mark.slow
@@ -351,10 +348,8 @@ POSE_ERROR_DEG = (0.1, -0.15, 0.1)
 def pose_session(tmp_path_factory):
     """A rig with a separate depth camera (``two_camera_rig``, 45 mm beside the texture camera) whose session.yaml
     pose is turned by POSE_ERROR_DEG, on top of every error of ERRORS; 5 boards + 3 scenes at 0.3x."""
-    d = tmp_path_factory.mktemp("scale_pose")
-    generate_session(d, n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
+    return synthetic_session(tmp_path_factory, "scale_pose", n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
                      supersample=2, two_camera=True, depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
-    return d
 
 
 def test_depth_pose_jacobian_is_the_ground_truths_change(pose_session):

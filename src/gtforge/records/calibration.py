@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import Field, PrivateAttr, model_serializer
 
 from gtforge.core.camera import Rig
-from gtforge.core.coverage import CoverageResult, coverage_report
+from gtforge.core.coverage import CoverageResult
 from gtforge.core.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
@@ -181,16 +181,6 @@ class CalibrationFile(VersionedFile):
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
     _residuals: dict = PrivateAttr(default_factory=dict)
-    _coverage_inputs: dict = PrivateAttr(default_factory=dict)
-
-    def attach_coverage(self) -> "CalibrationFile":
-        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage) from
-        the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
-        (a few tenths of a second)."""
-
-        if self._coverage_inputs:
-            self.coverage = coverage_report(**self._coverage_inputs)
-        return self
 
 
 
