@@ -14,7 +14,9 @@ from gtforge.predictors import PredictionFolder
 from gtforge.records.calibration import CalibrationFile
 from gtforge.synthetic import default_rig, generate_session
 
-d = Path(sys.argv[1]); scale = float(sys.argv[2]); n = int(sys.argv[3])
+d = Path(sys.argv[1])
+scale = float(sys.argv[2])
+n = int(sys.argv[3])
 if not (d / "ds").exists():
     generate_session(d / "s", n_board=0, n_scenes=n, scale=scale, seed=1, depth_noise_mm=0.03, supersample=1)
     r = default_rig(scale)

@@ -200,8 +200,10 @@ def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_
     theta = np.zeros(m)
     theta[2] = yaw0_rad
     nuis = [np.zeros(3) for _ in scenes]  # dy0, (gain, offset re-estimated at each step)
-    # a step's size in px of disparity (the stop test)
-    step_px = np.r_[100.0, 0.2, 1100.0, pose_effect_px(scenes)][:m]
+    # a step's size in px of disparity at the scenes' median depth (the stop test), in theta's order (ds, dc_mm, yaw)
+    fb = rig.zed.f_px * rig.zed.baseline_mm
+    z_mm = float(np.median(np.concatenate([sp.z_mm for sp in scenes])))
+    step_px = np.r_[fb / z_mm, fb / z_mm ** 2, rig.zed.f_px, pose_effect_px(scenes)][:m]
     # (blurring the coefficients blurs the spline they describe the same way)
     blurred = [np.stack([cv2.GaussianBlur(a, (0, 0), COARSE_SIGMA_PX) for a in sp.right_stack]) for sp in scenes]
 
@@ -498,7 +500,6 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     # the depth camera's rotation: only a separate depth camera has one of its own (else it is the extrinsic's)
     free = np.array([True, True, have_k or have_b, True] + [separate] * 3)
     cov = np.zeros((len(PARAMS), len(PARAMS)))
-    z_med = 650.0
     passes = 0
     determined = free.copy()
     for outer in range(params.outer_iterations):
