@@ -21,7 +21,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("dataset", ("gtforge.dataset",)),
     ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
                 "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
-    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.cli")),
+    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.holdout", "gtforge.cli")),
 ]
 
 
@@ -64,6 +64,18 @@ def test_no_import_goes_up_a_layer(graph):
     ups = [f"{m}:{line} imports {tgt} ({LAYERS[g.layer_of(tgt, LAYERS)][0]} is above "
            f"{LAYERS[g.layer_of(m, LAYERS)][0]})" for m, line, tgt in g.upward(edges, LAYERS)]
     assert ups == []
+
+
+STAGES = ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset", "gtforge.verify",
+          "gtforge.validate", "gtforge.evaluate")
+
+
+def test_stages_stand_side_by_side(graph):
+    """No stage imports another: what two stages share (a scene's verification, board detection) sits below them, and
+    a recipe (cli, demo, holdout, run) chains them."""
+    _, _, edges = graph
+    ties = [f"{m}:{line} imports {tgt}" for m in STAGES for tgt, line, _ in edges.get(m, []) if tgt in STAGES]
+    assert ties == []
 
 
 def test_the_checker_sees_a_circle_and_an_upward_import(tmp_path):

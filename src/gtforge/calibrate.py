@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.core.board import BoardSpec, Detection, PoseObs, detect_corners, solve_pnp
+from gtforge.core.board import BoardSpec, PoseObs, detect_corners, solve_pnp
 from gtforge.core.board_extrinsic import (
     board_corners_from_depth,
     jackknife_scale,
@@ -348,18 +348,3 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
                      sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
     obs = PoseObs(name, pair.uv_a, pair.uv_b, pair.T_a_from_board, pair.T_b_from_board, depth_mm, dm, dz, ids=pair.ids)
     return obs, rep
-
-
-def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
-                   min_common: int = MIN_COMMON_CORNERS) -> tuple[Detection, Detection, np.ndarray] | str:
-    """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
-    circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
-    reason the pose cannot be used."""
-
-    zed = RectifiedStereo(left=zed_cam, baseline_mm=1.0)
-    o, rep = detect_pose_target(name, texture, None, zed_left, mech, zed, spec, float("inf"), min_common)
-    if o is None:
-        return rep.reason
-    dm = Detection(o.mech_uv, o.det_mech.sharpness_px, o.det_mech.method, o.det_mech.pattern_contrast, o.ids)
-    dz = Detection(o.zed_uv, o.det_zed.sharpness_px, o.det_zed.method, o.det_zed.pattern_contrast, o.ids)
-    return dm, dz, o.ids

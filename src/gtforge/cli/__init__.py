@@ -386,7 +386,13 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
         board = _options(BoardModel, **{**base.model_dump(), **{k: v for k, v in (
             ("cols", cols), ("rows", rows), ("square_size_mm", square_mm)) if v is not None}})
     params = _options(ValidateParams, board=board, xy_threshold_px=xy_threshold_px, z_threshold_pct=z_threshold_pct)
-    rep = run(session, calibration, output, params, captures.split(",") if captures else None, holdout, _status)
+    names = captures.split(",") if captures else None
+    if holdout:
+        from gtforge.holdout import validate_holdout
+
+        rep = validate_holdout(session, holdout, output, params, names, _status)
+    else:
+        rep = run(session, calibration, output, params, names, progress=_status)
     out.print(f"XY reprojection: mean {rep.xy_mean_px:.3f} px (median {rep.xy_median_px:.3f}, max {rep.xy_max_px:.3f}); "
               f"published {REFERENCE_XY_PX} px; threshold {xy_threshold_px} -> {'PASS' if rep.pass_xy else 'FAIL'}")
     out.print(f"  corner detectors' noise floor {rep.xy_noise_floor_px:.3f} px; with it removed (board models): "

@@ -721,3 +721,21 @@ def match_target_views(spec, det_a: Detection, cam_a, det_b: Detection, cam_b, n
     if collinear(X[common]):
         return PairSkipped("the board points both cameras see lie on one line", len(common))
     return TargetPair(common, uv_a_all[ia], uv_b_all[ib], T_a, T_b, det_a, det_b, uv_a_all, uv_b_all)
+
+
+def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
+                   min_common: int = MIN_COMMON_CORNERS) -> tuple[Detection, Detection, np.ndarray] | str:
+    """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
+    circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
+    reason the pose cannot be used (as calibrate's ``detect_pose_target`` gives it)."""
+    dm = detect_target(texture, spec, mech, where=f"{name}: structured-light image")
+    dz = detect_target(zed_left, spec, zed_cam, where=f"{name}: ZED-left image")
+    if dm is None or dz is None:
+        which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
+        return f"board not found in the {which} image"
+    pair = match_target_views(spec, dm, mech, dz, zed_cam, ("structured-light", "ZED"), min_common)
+    if isinstance(pair, PairSkipped):
+        return pair.reason
+    dm, dz = pair.det_a, pair.det_b
+    return (Detection(pair.uv_a, dm.sharpness_px, dm.method, dm.pattern_contrast, pair.ids),
+            Detection(pair.uv_b, dz.sharpness_px, dz.method, dz.pattern_contrast, pair.ids), pair.ids)
