@@ -1,4 +1,5 @@
-"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.gauges against the generator's exact sizes."""
+"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.gauges against the generator's exact \
+sizes."""
 import shutil
 import subprocess
 import sys
@@ -240,7 +241,8 @@ def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
         assert 0.001 < sp.size_sigma_predicted_mm < 0.02
         assert abs(sp.size_error_mm) <= 4 * sp.size_sigma_predicted_mm
     pair = g["sphere_pair"].raw
-    assert 0 < pair.spacing_sigma_predicted_mm < 0.02 and abs(pair.spacing_error_mm) <= 4 * pair.spacing_sigma_predicted_mm
+    assert (0 < pair.spacing_sigma_predicted_mm < 0.02
+            and abs(pair.spacing_error_mm) <= 4 * pair.spacing_sigma_predicted_mm)
     big, small = g["sphere"].raw.spheres[0], g["sphere_pair"].raw.spheres[0]
     assert big.n_points > small.n_points and big.size_sigma_predicted_mm < small.size_sigma_predicted_mm
 

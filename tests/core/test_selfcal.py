@@ -1,4 +1,5 @@
-"""ZED self-rectification (gtforge.core.selfcal): on a real ZED Mini pair against the vendor SDK's own rectification, on the
+"""ZED self-rectification (gtforge.core.selfcal): on a real ZED Mini pair against the vendor SDK's own \
+rectification, on the
 generator's rectified and raw sessions with a right camera turned against its files (exact truth), and its refusals."""
 from __future__ import annotations
 
@@ -400,7 +401,8 @@ def test_resample_image_is_exact_and_keeps_16_bit_values():
     from gtforge.core.scale_corrections import resample_image
 
     vv, uu = np.mgrid[0:40, 0:50].astype(np.float64)
-    for img in ((uu * 1000 + vv).astype(np.uint16), (np.random.default_rng(0).random((40, 50, 3)) * 255).astype(np.uint8)):
+    for img in ((uu * 1000 + vv).astype(np.uint16),
+                (np.random.default_rng(0).random((40, 50, 3)) * 255).astype(np.uint8)):
         np.testing.assert_array_equal(resample_image(img, uu.ravel(), vv.ravel(), (40, 50)), img)
     ramp = uu * 1000.0  # 1000 grey levels per pixel along u: a 1/64 px error would show as 15
     shifted = resample_image(ramp.astype(np.uint16), uu.ravel() + 0.3, vv.ravel(), (40, 50)).astype(float)

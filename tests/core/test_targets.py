@@ -83,7 +83,8 @@ def test_charuco_truth_ids_and_corners(charuco_views):
     rig, full, part = charuco_views
     errs = []
     for v in full + part:
-        for img, truth, cam in ((v.mech_texture, v.corners_mech_uv, rig.mech), (v.zed_left, v.corners_zed_uv, rig.zed.left)):
+        for img, truth, cam in ((v.mech_texture, v.corners_mech_uv, rig.mech),
+                                (v.zed_left, v.corners_zed_uv, rig.zed.left)):
             d = detect_charuco(img, CHARUCO, cam)
             assert d is not None
             # every id is where the truth puts that corner: a wrong id would be a square (>10 px) off
@@ -112,7 +113,8 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_cali
     # with the cut poses: within the checkerboard's limits at this size, and better than the whole boards alone,
     # both as reported (sigma) and against the truth
     assert rot_a < 0.05 and tr_a < 0.5, (rot_a, tr_a)
-    assert res_all.sigma_rot_deg < 0.8 * res_full.sigma_rot_deg and res_all.sigma_trans_mm < 0.8 * res_full.sigma_trans_mm
+    assert (res_all.sigma_rot_deg < 0.8 * res_full.sigma_rot_deg
+            and res_all.sigma_trans_mm < 0.8 * res_full.sigma_trans_mm)
     assert rot_a < rot_f and tr_a < tr_f, (rot_f, tr_f, rot_a, tr_a)
     # every cut pose was used, with only the corners both cameras saw
     by = {p.capture: p for p in res_all.poses}
@@ -124,7 +126,8 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_cali
 
 
 @pytest.mark.parametrize("spec, scale", [(CircleGridSpec(7, 5, 36.0, 18.0, False), 0.25),
-                                         (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)], ids=["symmetric", "asymmetric"])
+                                         (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)],
+                         ids=["symmetric", "asymmetric"])
 @pytest.mark.slow
 def test_circle_grid_calibration(spec, scale):
     rig = default_rig(scale)
@@ -241,7 +244,8 @@ def test_declared_board_matches_the_flat_print():
     # markers of another dictionary
     (("DICT_5X5_100", 7, 5, False), dict(dictionary="DICT_4X4_50"), r"board.dictionary.*5X5"),
     # ids beyond the declared dictionary's size (the example)
-    (("DICT_5X5_100", 12, 12, False), dict(dictionary="DICT_5X5_50", cols=8, rows=8), r"saw ids up to 7\d: a DICT_5X5_100"),
+    (("DICT_5X5_100", 12, 12, False), dict(dictionary="DICT_5X5_50", cols=8, rows=8),
+     r"saw ids up to 7\d: a DICT_5X5_100"),
     # a larger board than declared
     (("DICT_4X4_50", 10, 8, False), dict(), r"board.cols/rows.*saw ids up to 39"),
     # a smaller board than declared: same ids, other places
@@ -261,7 +265,8 @@ def test_board_mismatch_is_a_one_line_error(shown, declared, match):
 
 @pytest.mark.parametrize("decl, match", [
     (dict(kind="charuco", cols=7, rows=5, marker_size_mm=30), "dictionary"),
-    (dict(kind="charuco", cols=7, rows=5, marker_size_mm=45, dictionary="DICT_4X4_50", square_size_mm=40), "marker_size_mm"),
+    (dict(kind="charuco", cols=7, rows=5, marker_size_mm=45, dictionary="DICT_4X4_50", square_size_mm=40),
+     "marker_size_mm"),
     (dict(kind="charuco", cols=12, rows=12, marker_size_mm=15, dictionary="DICT_4X4_50"), "at least 72 markers"),
     (dict(kind="circles_symmetric", cols=6, rows=6), "90 degrees"),
     (dict(kind="circles_asymmetric", cols=4, rows=11, circle_diameter_mm=40), "diameter"),
@@ -318,7 +323,8 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     assert "capture next" in r.output and "circle spacing measured in the depth: 36.0" in r.output
     cal = CalibrationFile.read(out)
     assert cal.board.kind == "circles_symmetric" and cal.coverage is not None
-    rot, tr = pose_difference(cal.rig.T_zed_from_mech, np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
+    rot, tr = pose_difference(cal.rig.T_zed_from_mech,
+                              np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
     assert rot < 0.05 and tr < 0.5, (rot, tr)
     # validate measures the ground truth on the same target (XY reprojection px, Z geometric %)
     from gtforge.validate import validate

@@ -1,4 +1,5 @@
-"""Per-pixel GT uncertainty (gtforge.core.uncertainty) and the calibration covariance it starts from, against exact truth."""
+"""Per-pixel GT uncertainty (gtforge.core.uncertainty) and the calibration covariance it starts from, against exact \
+truth."""
 import numpy as np
 import pytest
 
@@ -38,7 +39,8 @@ def test_calibration_covariance_matches_the_spread_of_errors():
         for i, T_wb in enumerate(poses):
             T_mb = rig.T_mech_from_world @ T_wb
             uv_m = rig.mech.project(transform_points(T_mb, X)) + noise.normal(0, 0.08, (len(X), 2))
-            uv_z = rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_wb, X)) + noise.normal(0, 0.08, (len(X), 2))
+            uv_z = (rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_wb, X))
+                    + noise.normal(0, 0.08, (len(X), 2)))
             obs.append(PoseObs(f"{i:03d}", uv_m, uv_z, solve_pnp(X, uv_m, rig.mech), solve_pnp(X, uv_z, rig.zed.left)))
             reps.append(PoseResult(capture=f"{i:03d}", status="used"))
         res = calibrate_observations(obs, reps, rig.mech, rig.zed, CalibrateParams(leave_one_out=True,
@@ -192,7 +194,8 @@ def test_sigma_stats_by_label_counts_as_numpy_does():
                                       n_labels, np.float32(0.1))
         np.testing.assert_array_equal(hist2, hist)
         np.testing.assert_array_equal(over2, over)
-        assert over.sum() < (v >= np.float32(0.1)).sum()  # float32(0.1) itself is not above 0.1 (numpy's float32 compare)
+        # float32(0.1) itself is not above 0.1 (numpy's float32 compare)
+        assert over.sum() < (v >= np.float32(0.1)).sum()
     st = sigma_stats_by_label(s, labels, {"in": (1,), "none": (7,)})
     assert st["none"].median_px is None and 0 < st["in"].over_0_1_px_pct < 100
     with pytest.raises(ValueError, match="labels.shape"):

@@ -63,8 +63,8 @@ def _gt_epe(session: Path, calib: CalibrationFile) -> list[float]:
 @pytest.fixture(scope="module")
 def errors_session(tmp_path_factory):
     """5 board poses + 3 fruit scenes at 0.3x (ZED 662x373) with every error kind at once."""
-    return synthetic_session(tmp_path_factory, "scale_errors", n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
-                     supersample=2, **ERRORS)
+    return synthetic_session(tmp_path_factory, "scale_errors", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                     depth_noise_mm=0.03, image_noise=1.0, supersample=2, **ERRORS)
 
 
 @pytest.fixture(scope="module")
@@ -209,8 +209,9 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
 def both_session(tmp_path_factory):
     """5 board poses + 2 fruit scenes at 0.3x whose right camera is turned by a yaw of 0.15 deg and then by a residual
     rotation (0.1, 0.05, -0.08) deg: the self-rectification's and calibrate-scale's errors at once."""
-    return synthetic_session(tmp_path_factory, "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
-                     supersample=2, right_yaw_deg=0.15, zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
+    return synthetic_session(tmp_path_factory, "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5,
+                     depth_noise_mm=0.03, image_noise=1.0, supersample=2, right_yaw_deg=0.15,
+                     zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
 
 
 @pytest.mark.slow
@@ -224,7 +225,8 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     resampling) against -0.0012 / -0.0026 px (two, both by cubic B-spline), vertical disparity -0.0022 / -0.0016 px
     against -0.0014 / -0.0027 px; the terms: yaw 0.2025 +- 0.0020 deg (truth 0.20), baseline, depth scale and offset
     within 1.2 sigma of 0. With OpenCV's bilinear first pass and the three-parameter self-rectification (before the
-    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate, calibrate-scale, build-dataset,
+    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate, \
+calibrate-scale, build-dataset,
     verify on the same errors with 6 poses and 3 scenes, the commit before against this one: bias -0.0041, -0.0062,
     -0.0049 -> -0.0060, -0.0060, -0.0058 px; vertical -0.0129, -0.0145, -0.0133 -> -0.0047, -0.0073, -0.0061 px; the
     fruit's bias +0.078, +0.081, +0.085 -> +0.070, +0.072, +0.076 px; im1's mean gradient energy 26.5-27.0 ->
@@ -267,7 +269,8 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
         ver_two, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, two,
                                   cap.mech_texture, res.rig)
         a, b = rep.scenes[d.name].stereo["all"], ver_two.stereo["all"]
-        print(f"scene {d.name}: bias {a.disparity_bias_px:+.4f} px (one resampling) {b.disparity_bias_px:+.4f} px (two); "
+        print(f"scene {d.name}: bias {a.disparity_bias_px:+.4f} px (one resampling) "
+              f"{b.disparity_bias_px:+.4f} px (two); "
               f"vertical {a.vertical_px:+.4f} / {b.vertical_px:+.4f} px; bad matches {a.bad_match_pct:.2f} / "
               f"{b.bad_match_pct:.2f} %")
         assert abs(a.disparity_bias_px) < 0.02 and abs(a.disparity_bias_px) <= abs(b.disparity_bias_px) + 0.003
@@ -348,8 +351,9 @@ POSE_ERROR_DEG = (0.1, -0.15, 0.1)
 def pose_session(tmp_path_factory):
     """A rig with a separate depth camera (``two_camera_rig``, 45 mm beside the texture camera) whose session.yaml
     pose is turned by POSE_ERROR_DEG, on top of every error of ERRORS; 5 boards + 3 scenes at 0.3x."""
-    return synthetic_session(tmp_path_factory, "scale_pose", n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
-                     supersample=2, two_camera=True, depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
+    return synthetic_session(tmp_path_factory, "scale_pose", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                     depth_noise_mm=0.03, image_noise=1.0, supersample=2, two_camera=True,
+                     depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
 
 
 def test_depth_pose_jacobian_is_the_ground_truths_change(pose_session):

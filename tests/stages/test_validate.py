@@ -63,8 +63,8 @@ def test_cli_validate_exit_codes(session_dir, true_calibration, tmp_path):
     ok = CliRunner().invoke(app, ["validate", str(session_dir), "-c", str(true_calibration), "-o", str(tmp_path / "a"),
                                   "--captures", "000,001"])
     assert ok.exit_code == 0 and "PASS" in ok.output
-    strict = CliRunner().invoke(app, ["validate", str(session_dir), "-c", str(true_calibration), "-o", str(tmp_path / "b"),
-                                      "--captures", "000,001", "--xy-threshold-px", "0.001"])
+    strict = CliRunner().invoke(app, ["validate", str(session_dir), "-c", str(true_calibration),
+                                      "-o", str(tmp_path / "b"), "--captures", "000,001", "--xy-threshold-px", "0.001"])
     assert strict.exit_code == 1 and "FAIL" in strict.output
 
 

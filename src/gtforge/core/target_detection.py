@@ -93,7 +93,8 @@ def _family_largest(dictionary: str) -> str:
 
 
 def _marker_side_px(corners) -> float:
-    return float(np.median([np.linalg.norm(np.diff(np.vstack([c.reshape(4, 2), c.reshape(4, 2)[:1]]), axis=0), axis=1).mean()
+    return float(np.median([np.linalg.norm(np.diff(np.vstack([c.reshape(4, 2), c.reshape(4, 2)[:1]]), axis=0),
+                                           axis=1).mean()
                             for c in corners]))
 
 
@@ -149,7 +150,8 @@ def diagnose_charuco(gray: np.ndarray, spec: CharucoSpec, cam=None, where: str =
     if len(ids) and beyond(dict_size):
         fam = spec.dictionary.rsplit("_", 1)[0]
         raise InputError(where, "board.dictionary", f"marker ids below {dict_size} ({spec.dictionary})",
-                         f"ids up to {ids.max()}", f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
+                         f"ids up to {ids.max()}",
+                         f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
                          "dictionary, or a larger board?")
     if len(ids) and beyond(spec.n_markers):
         sx, sy = spec.squares_x + 1, spec.squares_y + 1
@@ -577,7 +579,8 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
     # findCirclesGrid can return a grid with a stray blob in it and the circles after it numbered wrongly (seen on the
     # generator's texture images at 0.3x); such a grid is not used: one homography of the declared layout must put
     # every centre within a quarter spacing (a wrong id is a spacing off; lens distortion is removed first)
-    frac, _ = _layout_fits(spec.corners_board()[:, :2], _undistorted_px(uv, cam), max(1.0, 0.25 * float(np.median(nn_px))))
+    frac, _ = _layout_fits(spec.corners_board()[:, :2], _undistorted_px(uv, cam),
+                           max(1.0, 0.25 * float(np.median(nn_px))))
     if frac < 1.0:
         log.info("%s: a circle grid off the declared layout (%d of %d centres) not used", where,
                  int(round((1 - frac) * spec.n_corners)), spec.n_corners)

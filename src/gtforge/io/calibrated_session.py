@@ -31,7 +31,8 @@ def session_board(session, given: BoardModel, given_explicitly: bool) -> BoardMo
         return given
     if not given_explicitly:
         return declared
-    return BoardModel.model_validate({**declared.model_dump(), **{k: getattr(given, k) for k in given.model_fields_set}})
+    return BoardModel.model_validate({**declared.model_dump(),
+                                      **{k: getattr(given, k) for k in given.model_fields_set}})
 
 
 def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,

@@ -161,7 +161,8 @@ def load_zed_rectified(path: str | Path, right_path: str | Path | None = None) -
         doffs = P[0, 2] - left.cx_px
         src = rp
     elif "baseline_mm" in data:
-        baseline_mm, doffs, src = float(np.ravel(data["baseline_mm"])[0]), float(np.ravel(data.get("doffs_px", 0.0))[0]), path
+        baseline_mm, doffs, src = (float(np.ravel(data["baseline_mm"])[0]),
+                                   float(np.ravel(data.get("doffs_px", 0.0))[0]), path)
     elif any(k in data for k in ("projection_matrix_right", "P2")):
         P = _matrix(data, ("projection_matrix_right", "P2"), (3, 4), path)
         baseline_mm, doffs, src = -P[0, 3] / P[0, 0], P[0, 2] - left.cx_px, path
@@ -286,7 +287,8 @@ class ZedFactoryCalibration:
         baseline_mm = sr.baseline_signed_mm
         if baseline_mm <= 0:
             raise InputError(self.path, "STEREO.Baseline", "a right camera at +x after rectification",
-                             f"baseline {baseline_mm:.3f} mm under the reading '{reading}' ({describe_zed_conf_reading(reading)})",
+                             f"baseline {baseline_mm:.3f} mm under the reading '{reading}' "
+                             f"({describe_zed_conf_reading(reading)})",
                              "choose another zed_conf_reading in session.yaml, or let gtforge calibrate choose it "
                              "from the board captures (docs/conventions.md)")
         rect = RectifiedStereo(left=PinholeCamera.from_K(sr.P_left[:, :3], *size), baseline_mm=float(baseline_mm),

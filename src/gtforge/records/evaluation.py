@@ -26,7 +26,8 @@ DISP_ERROR_MAP_MAX_PX = 2.0  # colour scale of the disparity error maps (the Bad
 
 
 
-DEPTH_ERROR_MAP_PERCENTILE = 95.0  # the fruit depth-error map's scale: this percentile of the scene's errors, rounded up
+# the fruit depth-error map's scale: this percentile of the scene's errors, rounded up
+DEPTH_ERROR_MAP_PERCENTILE = 95.0
 
 
 
