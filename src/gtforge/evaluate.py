@@ -123,8 +123,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
     any scoring and listed in ``EvalResult.missing``. ``fruit_size``: also measure every fruit's diameter, height
-    and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade \
-confusion)."""
+    and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade
+    confusion)."""
     ds = Path(dataset_dir)
     if not (ds / "manifest.json").is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",

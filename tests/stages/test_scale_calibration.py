@@ -225,8 +225,8 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     resampling) against -0.0012 / -0.0026 px (two, both by cubic B-spline), vertical disparity -0.0022 / -0.0016 px
     against -0.0014 / -0.0027 px; the terms: yaw 0.2025 +- 0.0020 deg (truth 0.20), baseline, depth scale and offset
     within 1.2 sigma of 0. With OpenCV's bilinear first pass and the three-parameter self-rectification (before the
-    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate, \
-calibrate-scale, build-dataset,
+    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate,
+    calibrate-scale, build-dataset,
     verify on the same errors with 6 poses and 3 scenes, the commit before against this one: bias -0.0041, -0.0062,
     -0.0049 -> -0.0060, -0.0060, -0.0058 px; vertical -0.0129, -0.0145, -0.0133 -> -0.0047, -0.0073, -0.0061 px; the
     fruit's bias +0.078, +0.081, +0.085 -> +0.070, +0.072, +0.076 px; im1's mean gradient energy 26.5-27.0 ->

@@ -189,8 +189,8 @@ class _Window:
 
 def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray, step: int = 1) -> np.ndarray:
     """``(N, 3)`` ZED-left points (mm) of the masked pixels with a finite, positive ``d + doffs``; ``calib``: a
-    ``gtforge.io.middlebury.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and \
-column only."""
+    ``gtforge.io.middlebury.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column
+    only."""
     v, u = np.nonzero(mask[::step, ::step])
     v, u = v * step, u * step
     d = disp[v, u].astype(np.float64) + calib.doffs_px

@@ -494,8 +494,8 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
     ``zed_right_correction``: the right camera's correction a calibration file recorded
-    (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied \
-to the
+    (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to
+    the
     right image of images rectified before gtforge. ``zed_right_yaw_deg``: calibrate-scale's yaw of the right camera
     (``Rig.scale_corrections``), composed with it into the same single resampling of the right image
     (``gtforge.core.selfcal.corrected_right``)."""
