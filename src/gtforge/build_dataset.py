@@ -260,7 +260,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
 
 # ---- the stage --------------------------------------------------------------------------------
 def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str | Path,
-                  params: BuildParams | None = None, workers: int | None = None, overwrite: bool = False,
+                  params: BuildParams | None = None, *, workers: int | None = None, overwrite: bool = False,
                   strict: bool = False, scenes: list[str] | None = None, progress: bool = False,
                   scheduler: str | None = None) -> BuildSummary:
     """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.

@@ -218,7 +218,8 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     params = _options(BuildParams, mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
                       max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
                       verification=verification, right_gt=right_gt, quarantine=quarantine)
-    s = run(session, calibration, output, params, workers, overwrite, strict, progress=True, scheduler=scheduler)
+    s = run(session, calibration, output, params, workers=workers, overwrite=overwrite, strict=strict, progress=True,
+            scheduler=scheduler)
     failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
     out.print(f"built {len(s.built)}, unchanged {len(s.skipped_unchanged)}, failed {len(s.failures)}{failed} "
               f"in {s.time_s:.1f} s -> {s.out_dir}")
