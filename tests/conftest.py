@@ -1,55 +1,40 @@
-"""Shared fixtures: the synthetic sessions rendered once per test run, whichever pytest-xdist worker asks first
-(``made_once``), with exact truth beside them."""
+"""Shared fixtures: the synthetic sessions (exact truth beside them) and the shared calibration, made once per test run
+for every pytest-xdist worker (tests/made_once.py). The tests that need none of them run first, while a background
+process makes those the collected tests need, in the order they will be needed."""
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import os
 import pickle
-import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
+from made_once import SPECS, make_calibration, make_session, session_spec
 
-import gtforge.synthetic
-from gtforge.synthetic import SyntheticTruth, generate_session
+from gtforge.synthetic import SyntheticTruth
 
-# the generator's version: its source (a change to it renders every cached session again)
-GENERATOR_VERSION = hashlib.sha256(Path(gtforge.synthetic.__file__).read_bytes()).hexdigest()[:12]
-
-
-def made_once(tmp_path_factory, name: str, make: Callable[[Path], object], **key) -> Path:
-    """The folder ``make(folder)`` fills, made once per test run and shared by every worker of the run (pytest-xdist
-    workers wait for the first to finish; a worker's own files go elsewhere). The folder name carries the generator's
-    version and ``key`` (the arguments it was made with). Tests must not write into it: they copy it first."""
-    base = tmp_path_factory.getbasetemp()
-    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "made-once"
-    root.mkdir(exist_ok=True)
-    digest = hashlib.sha256(repr((GENERATOR_VERSION, sorted(key.items()))).encode()).hexdigest()[:12]
-    out = root / f"{name}-{digest}"
-    with open(root / f"{name}-{digest}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (root / f"{name}-{digest}.done").exists():
-            shutil.rmtree(out, ignore_errors=True)
-            make(out)
-            (root / f"{name}-{digest}.done").touch()
-    return out
+SHARED = session_spec("session_dir", "session", n_board=7, n_scenes=3, scale=0.4, seed=11, depth_noise_mm=0.0,
+                      image_noise=1.0)
 
 
-def synthetic_session(tmp_path_factory, name: str, **kwargs) -> Path:
-    """``generate_session(folder, **kwargs)``, once per test run (``made_once``)."""
-    return made_once(tmp_path_factory, name, lambda d: generate_session(d, **kwargs), **kwargs)
+def made_once_root(config) -> Path:
+    """Where this run's shared folders are made (``made_once``): beside the workers' own temporary folders."""
+    base = config._tmp_path_factory.getbasetemp()
+    return (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "made-once"
+
+
+def synthetic_session(request, spec: tuple[str, dict]) -> Path:
+    """The synthetic session ``spec`` (``session_spec``) declares, made once per test run."""
+    return make_session(made_once_root(request.config), *spec)
 
 
 @pytest.fixture(scope="session")
-def session_dir(tmp_path_factory):
+def session_dir(request):
     """7 board poses + 3 fruit scenes at 0.4x resolution, noise-free depth (ZED 883x497, mech 768x480)."""
-    return synthetic_session(tmp_path_factory, "session", n_board=7, n_scenes=3, scale=0.4, seed=11,
-                             depth_noise_mm=0.0, image_noise=1.0)
+    return synthetic_session(request, SHARED)
 
 
 @pytest.fixture(scope="session")
@@ -58,15 +43,9 @@ def T_true(session_dir):
 
 
 @pytest.fixture(scope="session")
-def calibration(session_dir, tmp_path_factory):
-    from gtforge.calibrate import calibrate
-    from gtforge.records.calibration import CalibrateParams
-
-    def make(d):
-        res = calibrate(session_dir, d / "calibration.yaml", CalibrateParams(use_depth=False))
-        (d / "result.pickle").write_bytes(pickle.dumps(res))  # as calibrate returned it (report inputs included)
-
-    folder = made_once(tmp_path_factory, "calib", make, session=str(session_dir))
+def calibration(session_dir, request):
+    """The shared session calibrated (its file, and the result as ``calibrate`` returned it), once per test run."""
+    folder = make_calibration(made_once_root(request.config), session_dir)
     return folder / "calibration.yaml", pickle.loads((folder / "result.pickle").read_bytes())
 
 
@@ -125,3 +104,38 @@ def tree_digest(root):
 def one_line_error(r):
     lines = [l for l in r.stderr.splitlines() if l.strip()]
     return len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr
+
+
+PREFETCH = "calibration"  # besides SPECS' fixtures: the shared session's calibration
+
+
+@pytest.hookimpl(trylast=True)  # after -m / -k have deselected
+def pytest_collection_modifyitems(session, config, items):
+    """Light tests first, then the tests of each shared folder together, in the order a background process (started
+    once per run) makes the folders."""
+    order: list[str] = []
+    for item in items:
+        for f in item.fixturenames:
+            if (f in SPECS or f == PREFETCH) and f not in order:
+                order.append(f)
+
+    def first_heavy(item) -> int:
+        used = [order.index(f) for f in item.fixturenames if f in order]
+        return min(used) if used else -1
+
+    items.sort(key=first_heavy)
+    if not order or config.option.collectonly or os.environ.get("PYTEST_XDIST_WORKER", "gw0") != "gw0":
+        return
+    root = made_once_root(config)
+    jobs = [(str(root), "calib", SPECS["session_dir"]) if f == PREFETCH else (str(root), *SPECS[f]) for f in order]
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("made_once.py"))], stdin=subprocess.PIPE)
+    proc.stdin.write(pickle.dumps(jobs))
+    proc.stdin.close()
+    config._gtforge_prefetch = proc
+
+
+def pytest_sessionfinish(session, exitstatus):
+    proc = getattr(session.config, "_gtforge_prefetch", None)
+    if proc is not None and proc.poll() is None:  # the run ended first (a failure with -x, Ctrl-C)
+        proc.terminate()
+        proc.wait()

@@ -8,7 +8,8 @@ import functools
 import cv2
 import numpy as np
 import pytest
-from conftest import synthetic_session, shared_data
+from conftest import shared_data, synthetic_session
+from made_once import session_spec
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig, ScaleCorrections
 from gtforge.core.geometry import make_T
@@ -90,11 +91,15 @@ def test_real_zed_mini_sdk_rectified_pair():
 
 
 # ---- the generator, exact truth ---------------------------------------------------------------------------------
+TURNED_SESSION_SPEC = session_spec("turned_session", "turned", n_board=1, n_scenes=2, scale=0.3, seed=5,
+                                   depth_noise_mm=0.0, image_noise=1.0, supersample=2,
+                                   zed_right_rotation_error_rad=ERR_RAD)
+
+
 @pytest.fixture(scope="module")
-def turned_session(tmp_path_factory):
+def turned_session(request):
     """Images rectified before gtforge (as the ZED SDK delivers them) whose right camera is turned by ERR_RAD."""
-    return synthetic_session(tmp_path_factory, "turned", n_board=1, n_scenes=2, scale=0.3, seed=5,
-                            depth_noise_mm=0.0, image_noise=1.0, supersample=2, zed_right_rotation_error_rad=ERR_RAD)
+    return synthetic_session(request, TURNED_SESSION_SPEC)
 
 
 @pytest.fixture(scope="module")

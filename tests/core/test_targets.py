@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.board import BoardSpec
@@ -378,24 +379,29 @@ RIGHT_ROTATION_ERROR_RAD = (0.0008, 0.0, 0.0015)  # the right ZED camera pitched
 SCALE_ERRORS = dict(zed_baseline_error_frac=0.003, depth_scale_error_frac=-0.002, depth_offset_mm=0.5)
 
 
+CHARUCO_STEREO_SESSION_SPEC = session_spec("charuco_stereo_session", "charuco_stereo", n_board=6, n_scenes=0, scale=0.3,
+                                           seed=5, board=CHARUCO_60, depth_noise_mm=0.03, image_noise=1.0,
+                                           supersample=2, **SCALE_ERRORS)
+
+
 @pytest.fixture(scope="module")
-def charuco_stereo_session(tmp_path_factory):
+def charuco_stereo_session(request):
     """6 ChArUco poses at 0.3x (ZED 662x373) with a baseline 0.3 % longer than the file's and a depth map reading
     0.2 % short plus 0.5 mm; the rectification itself is exact."""
+    return synthetic_session(request, CHARUCO_STEREO_SESSION_SPEC)
 
-    return synthetic_session(tmp_path_factory, "charuco_stereo", n_board=6, n_scenes=0, scale=0.3, seed=5,
-                            board=CHARUCO_60, depth_noise_mm=0.03, image_noise=1.0, supersample=2, **SCALE_ERRORS)
+
+CIRCLES_STEREO_SESSION_SPEC = session_spec("circles_stereo_session", "circles_stereo", n_board=4, n_scenes=0, scale=0.3,
+                                           seed=5, board=SYMMETRIC, depth_noise_mm=0.0, image_noise=1.0, supersample=2,
+                                           zed_right_rotation_error_rad=RIGHT_ROTATION_ERROR_RAD)
 
 
 @pytest.fixture(scope="module")
-def circles_stereo_session(tmp_path_factory):
+def circles_stereo_session(request):
     """4 symmetric circle-grid poses at 0.3x whose right ZED image comes from a camera turned by
     ``RIGHT_ROTATION_ERROR_RAD`` against the rectified model in zed_calibration.yaml: 0.2-0.4 px of true vertical
     disparity, varying across the image."""
-
-    return synthetic_session(tmp_path_factory, "circles_stereo", n_board=4, n_scenes=0, scale=0.3, seed=5,
-                            board=SYMMETRIC, depth_noise_mm=0.0, image_noise=1.0, supersample=2,
-                            zed_right_rotation_error_rad=RIGHT_ROTATION_ERROR_RAD)
+    return synthetic_session(request, CIRCLES_STEREO_SESSION_SPEC)
 
 
 def _meter(session, spec, right_of=lambda img: img):

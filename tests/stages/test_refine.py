@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.geometry import T_from_rotvec, pose_difference
 from gtforge.errors import InputError
@@ -18,11 +19,16 @@ def _nees(T, T_true, C):
     return float(e @ np.linalg.solve(np.asarray(C), e))
 
 
+REFINE_SESSION_SPEC = session_spec("refine_session", "refine", n_board=0, n_scenes=7, scale=0.4, seed=31,
+                                   depth_noise_mm=0.03, image_noise=1.5, fruit_motion_mm={6: (0.6, 0.2, 0.0)},
+                                   supersample=2)
+
+
 @pytest.fixture(scope="module")
-def refine_session(tmp_path_factory):
-    """Six fruit scenes and one whose fruit rolled 0.63 mm between the captures (0.4x, the shared rig)."""
-    return synthetic_session(tmp_path_factory, "refine", n_board=0, n_scenes=7, scale=0.4, seed=31,
-                             depth_noise_mm=0.03, image_noise=1.5, fruit_motion_mm={6: (0.6, 0.2, 0.0)})
+def refine_session(request):
+    """Six fruit scenes and one whose fruit rolled 0.63 mm between the captures (0.4x, the shared rig; 2x2 rays a
+    pixel)."""
+    return synthetic_session(request, REFINE_SESSION_SPEC)
 
 
 def _start(true_calibration, T_true, tmp_path, rot_deg, trans_mm):

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.scale_corrections import (
@@ -60,11 +61,14 @@ def _gt_epe(session: Path, calib: CalibrationFile) -> list[float]:
     return out
 
 
+ERRORS_SESSION_SPEC = session_spec("errors_session", "scale_errors", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                                   depth_noise_mm=0.03, image_noise=1.0, supersample=2, **ERRORS)
+
+
 @pytest.fixture(scope="module")
-def errors_session(tmp_path_factory):
+def errors_session(request):
     """5 board poses + 3 fruit scenes at 0.3x (ZED 662x373) with every error kind at once."""
-    return synthetic_session(tmp_path_factory, "scale_errors", n_board=5, n_scenes=3, scale=0.3, seed=5,
-                     depth_noise_mm=0.03, image_noise=1.0, supersample=2, **ERRORS)
+    return synthetic_session(request, ERRORS_SESSION_SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -205,13 +209,16 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
 
 
 # ---- both corrections of the right camera: the self-rectification and the yaw, in one resampling -----------------
+BOTH_SESSION_SPEC = session_spec("both_session", "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5,
+                                 depth_noise_mm=0.03, image_noise=1.0, supersample=2, right_yaw_deg=0.15,
+                                 zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
+
+
 @pytest.fixture(scope="module")
-def both_session(tmp_path_factory):
+def both_session(request):
     """5 board poses + 2 fruit scenes at 0.3x whose right camera is turned by a yaw of 0.15 deg and then by a residual
     rotation (0.1, 0.05, -0.08) deg: the self-rectification's and calibrate-scale's errors at once."""
-    return synthetic_session(tmp_path_factory, "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5,
-                     depth_noise_mm=0.03, image_noise=1.0, supersample=2, right_yaw_deg=0.15,
-                     zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
+    return synthetic_session(request, BOTH_SESSION_SPEC)
 
 
 @pytest.mark.slow
@@ -347,13 +354,16 @@ def test_scale_sigma_is_the_covariance_propagated():
 POSE_ERROR_DEG = (0.1, -0.15, 0.1)
 
 
+POSE_SESSION_SPEC = session_spec("pose_session", "scale_pose", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                                 depth_noise_mm=0.03, image_noise=1.0, supersample=2, two_camera=True,
+                                 depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
+
+
 @pytest.fixture(scope="module")
-def pose_session(tmp_path_factory):
+def pose_session(request):
     """A rig with a separate depth camera (``two_camera_rig``, 45 mm beside the texture camera) whose session.yaml
     pose is turned by POSE_ERROR_DEG, on top of every error of ERRORS; 5 boards + 3 scenes at 0.3x."""
-    return synthetic_session(tmp_path_factory, "scale_pose", n_board=5, n_scenes=3, scale=0.3, seed=5,
-                     depth_noise_mm=0.03, image_noise=1.0, supersample=2, two_camera=True,
-                     depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
+    return synthetic_session(request, POSE_SESSION_SPEC)
 
 
 def test_depth_pose_jacobian_is_the_ground_truths_change(pose_session):
