@@ -19,8 +19,9 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("records", ("gtforge.records",)),
     ("reports", ("gtforge.reports",)),
     ("dataset", ("gtforge.dataset",)),
-    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
-                "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
+    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.align_depth", "gtforge.refine",
+                "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors",
+                "gtforge.training")),
     ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.holdout", "gtforge.cli")),
 ]
 

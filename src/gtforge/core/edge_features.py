@@ -98,10 +98,14 @@ def depth_edges(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_color_from_dep
             axes.append(np.full(len(r), axis, np.int8))
             sides.append(np.full(len(r), side, np.int8))
     pts_color = pinhole.unproject(np.concatenate(uv_all).astype(np.float64), np.concatenate(z_all))
-    # structures: the connected components of the edge pixels (8-connected, across one-pixel breaks)
+    # structures: the connected components of the edge pixels (8-connected, across one-pixel breaks), each split by
+    # direction and side: an object's left, right, upper and lower silhouettes meet different colour edges (a
+    # board's or a fruit's one contour would otherwise be one observation of a 2-D shift)
     vu = np.concatenate(pix)
-    return DepthEdges(transform_points(invert_T(T_color_from_depth), pts_color), np.concatenate(axes),
-                      np.concatenate(sides), _edge_components(vu, z.shape))
+    axis, side = np.concatenate(axes), np.concatenate(sides)
+    key = np.column_stack([_edge_components(vu, z.shape), axis, side])
+    _, structure = np.unique(key, axis=0, return_inverse=True) if len(key) else (None, np.zeros(0, np.int64))
+    return DepthEdges(transform_points(invert_T(T_color_from_depth), pts_color), axis, side, structure.ravel())
 
 
 def texture_edges(texture: np.ndarray, depth_mm: np.ndarray, depth_cam: PinholeCamera,
