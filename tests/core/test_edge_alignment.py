@@ -134,7 +134,8 @@ def test_synthetic_error_is_recovered_from_the_depth_cameras_texture(edges):
     assert res.edge_kinds == (["texture"] if edges == "texture" else ["silhouettes", "texture"])
     assert res.status == ["determined"] * 3 + ["not fitted"] * 3
     assert np.all(np.abs(np.array(res.omega_deg) + ERROR_DEG) < 0.01)
-    assert np.all(np.array(res.sigma_omega_deg) < 0.01)
+    # (the floor edge_bias_px = 0.05 px alone is 0.0094 deg at f = 306 px)
+    assert np.all(np.array(res.sigma_omega_deg) < 0.012)
     rot_deg, _ = pose_difference(np.array(res.T_color_from_depth), T_COLOR_FROM_DEPTH)
     assert rot_deg < 0.012  # measured 0.009 (texture), 0.007 (both); the silhouettes alone: 0.014
 
@@ -162,9 +163,13 @@ def test_too_few_edge_structures_determine_nothing(tmp_path):
     res = align_color_to_depth(cap.depth_mm, s.depth_camera, cap.mech_texture, s.mech, s.T_mech_from_depth)
     assert res.n_structures < 6 and res.status[:3] == ["not determined"] * 3
     np.testing.assert_array_equal(np.array(res.T_color_from_depth), s.T_mech_from_depth)
+    # not determined, but said: the factory pose is kept and the offset it leaves is in the warnings
+    assert res.decision == "not determined" and "structures" in res.reason
+    assert np.hypot(*res.offset_before_px) > 1 and any("factory extrinsic is kept" in w for w in res.warnings)
     depth, color = synthetic_pair()
+    n = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH).n_structures
     res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH,
-                               EdgeAlignmentParams(min_extra_structures=7))  # 7 structures of >= 10 samples
+                               EdgeAlignmentParams(min_extra_structures=n))  # not even one parameter
     assert res.status[:3] == ["not determined"] * 3
 
 
@@ -211,13 +216,21 @@ def test_real_frame_edges_land_on_colour_edges():
 
 
 def test_real_frame_parameters_are_not_guessed():
-    """A stricter threshold leaves nothing determined: every parameter stays at the factory value."""
+    """A stricter threshold leaves no parameter determined; the rotation about the vertical axis, 8 sigma off the
+    factory value, is still applied ("estimated": the factory value is the worse guess), the others stay at the
+    factory values. With a threshold no parameter meets and a significance nothing reaches, the factory pose is
+    kept and the result says why, and how far off it leaves the edges."""
     trf, k, _ = real_result()
     _, depth, color = trf.frame()
     res = align_color_to_depth(depth, k.depth, color, k.color, k.T_color_from_depth,
                                EdgeAlignmentParams(max_sigma_px=0.05))
+    assert res.status[:3] == ["not determined", "estimated", "not determined"] and res.decision == "applied"
+    assert res.omega_deg[0] == res.omega_deg[2] == 0.0 and abs(res.offset_after_px[0]) < 0.3
+    res = align_color_to_depth(depth, k.depth, color, k.color, k.T_color_from_depth,
+                               EdgeAlignmentParams(max_sigma_px=0.05, apply_z=1e6))
     assert res.status[:3] == ["not determined"] * 3 and res.omega_deg == [0.0, 0.0, 0.0]
     np.testing.assert_array_equal(np.array(res.T_color_from_depth), k.T_color_from_depth)
+    assert res.decision == "not determined" and any("-2.60, -0.09) px" in w for w in res.warnings), res.warnings
 
 
 @pytest.mark.parametrize("edges", ["texture", "both"])

@@ -350,7 +350,7 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
                 boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
                 search_px: float = typer.Option(6.0, help="First coarse search range (px); widened while the best "
                                                           "shift is on its border."),
-                apply_z: float = typer.Option(2.0, help="Apply the correction when it is more than this many sigma "
+                apply_z: float = typer.Option(3.0, help="Apply the correction when it is more than this many sigma "
                                                         "from the factory pose.")) -> None:
     """Refine a separate depth camera's pose (T_mech_from_depth: Azure Kinect, Orbbec, PrimeSense-class units) by
     putting every capture's depth silhouettes on the texture image's edges; writes a calibration file with the
