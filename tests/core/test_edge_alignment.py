@@ -254,3 +254,35 @@ def test_real_frame_refined_from_its_own_infrared_image(edges):
     assert -0.24 < res.omega_deg[1] < -0.17 and res.sigma_omega_deg[1] < 0.03
     after = trf.alignment(trf.Chain(k.depth, k.color, np.array(res.T_color_from_depth)))
     assert abs(after.subpixel_px[0]) <= 0.3 and abs(after.subpixel_px[1]) <= 0.3  # from -2.60 px
+
+
+@pytest.mark.parametrize("shift_px", [(8.8, 4.1), (-9.0, -10.0)])
+def test_real_frame_far_off_factory_pose_is_found(shift_px):
+    """The second sensor's case (docs/cameras.md): the depth edges (+8.8, +4.1) px off the colour edges, beyond the
+    first +-6 px grid and diagonal (no one rotation explains it). The frame's corrected pose turned so that its
+    edges lie ``shift_px`` off: the search widens to +-12 px, the joint start fits both rotations together, and the
+    correction is applied although the frame alone leaves some above max_sigma_px ("estimated"). Measured (colour
+    minus depth edges): (-9.61, -3.82) px before, (-0.11, +0.10) after by test_real_frame.py's own measure, 50
+    sigma; (+9.59, +10.11) before, (-0.01, +0.03) after, 36 sigma."""
+    trf, k, res = real_result()
+    _, depth, color = trf.frame()
+    f = res.f_px
+    T_good = np.array(res.T_color_from_depth)
+    T_bad = perturb(T_good, np.array([-shift_px[1] / f, shift_px[0] / f, 0.0]), np.zeros(3))
+    bad = align_color_to_depth(depth, k.depth, color, k.color, T_bad)
+    assert bad.search_px == 12 and bad.search_interior and bad.decision == "applied"
+    assert np.hypot(*bad.offset_before_px) > 9 and np.hypot(*bad.offset_after_px) < 0.2
+    after = trf.alignment(trf.Chain(k.depth, k.color, np.array(bad.T_color_from_depth)), R=6)
+    assert abs(after.subpixel_px[0]) <= 0.3 and abs(after.subpixel_px[1]) <= 0.3
+
+
+def test_real_frame_beyond_the_search_says_so():
+    """The (+8.8, +4.1) px case with the search held at +-6 px (the old grid): its best point is on the border, so
+    "not determined", the reason names the border, the factory pose is kept and a warning gives the offset."""
+    trf, k, res = real_result()
+    _, depth, color = trf.frame()
+    T_bad = perturb(np.array(res.T_color_from_depth), np.array([-4.1, 8.8, 0.0]) / res.f_px, np.zeros(3))
+    bad = align_color_to_depth(depth, k.depth, color, k.color, T_bad, EdgeAlignmentParams(max_search_px=6))
+    assert not bad.search_interior and bad.decision == "not determined" and "border" in bad.reason
+    np.testing.assert_array_equal(np.array(bad.T_color_from_depth), T_bad)
+    assert any("factory extrinsic is kept" in w for w in bad.warnings)

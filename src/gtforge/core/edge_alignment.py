@@ -458,10 +458,11 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
     # the pixel offsets, per capture and all together, before and after
     fine_strengths = [c.strength(fine) for c in caps]
     applied = decision == "applied"
-    per_cap_before = {c.name: edge_offset_px(c.edges, T0, pinhole, c.strength(fine)) for c in caps}
+    R0 = int(np.ceil(np.abs(start).max())) + 4  # the factory pose's offset: at least as far as the coarse search's
+    per_cap_before = {c.name: edge_offset_px(c.edges, T0, pinhole, c.strength(fine), R0) for c in caps}
     per_cap_after = per_cap if applied else per_cap_before  # (the pose applied is the estimate or the factory one)
     one = len(caps) == 1
-    before_all = per_cap_before[caps[0].name] if one else _offset_all(caps, T0, pinhole, fine_strengths)
+    before_all = per_cap_before[caps[0].name] if one else _offset_all(caps, T0, pinhole, fine_strengths, R0)
     after_all = per_cap_after[caps[0].name] if one else _offset_all(caps, T, pinhole, fine_strengths)
     by_name = {c.name: c for c in caps}
     for r in reports:
@@ -499,9 +500,10 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
         offset_after_px=[after_all.dx_px, after_all.dy_px], captures=reports, warnings=warnings)
 
 
-def _offset_all(caps: list[_Cap], T: np.ndarray, pinhole: PinholeCamera, strengths) -> EdgeOffset:
+def _offset_all(caps: list[_Cap], T: np.ndarray, pinhole: PinholeCamera, strengths, radius_px: int = 4) -> EdgeOffset:
     """The offset of every capture's edges together (each capture's edges read its own colour image)."""
-    return points_offset_px([(project_edges(c.edges, T, pinhole), c.edges.axis, st) for c, st in zip(caps, strengths)])
+    return points_offset_px([(project_edges(c.edges, T, pinhole), c.edges.axis, st) for c, st in zip(caps, strengths)],
+                            radius_px)
 
 
 def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_rgb: np.ndarray,
