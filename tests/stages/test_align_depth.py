@@ -133,13 +133,18 @@ def _captures(session: Path):
 
 
 def test_a_knocked_capture_shows(session):
-    """One capture's depth shifted by 4 depth pixels (the rig knocked between captures): flagged, its offset after the
-    fit named; the others stay within 0.3 px."""
+    """One capture's depth shifted by 4 depth pixels (the rig knocked between captures): flagged, left out of the
+    fit with the reason and its offset; the others then fit alone and stay within 0.3 px."""
     s, caps = _captures(session)
     caps[2].depth_mm = np.roll(caps[2].depth_mm, 4, axis=1)
     r = align_captures(caps, s.mech, s.T_mech_from_depth)
     flagged = [c.name for c in r.captures if c.disagrees]
     assert flagged == [caps[2].name] and any(caps[2].name in w for w in r.warnings)
+    # left out of the fit, which the other three then make alone: they land within 0.3 px, it stays ~6 px off
+    knocked = r.captures[2]
+    assert "left out of the fit" in knocked.excluded and np.hypot(*knocked.offset_after_px) > 3
+    assert all(np.hypot(*c.offset_after_px) < 0.3 for c in r.captures if c is not knocked)
+    assert r.decision == "applied" and len(r.captures) == 4
 
 
 def test_bad_input(session, tmp_path):

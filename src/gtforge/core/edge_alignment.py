@@ -34,16 +34,26 @@ move the image by about one pixel, so that one step size, one tolerance and one 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.edge_features import (DepthEdges, EdgeOffset, depth_edges, edge_offset_px, edge_scores,
-                                        edge_strength, perturb, points_offset_px, project_edges, render_depth,
-                                        texture_edges, undistort_image)
+from gtforge.core.edge_features import (
+    DepthEdges,
+    EdgeOffset,
+    depth_edges,
+    edge_offset_px,
+    edge_strength,
+    points_offset_px,
+    project_edges,
+    render_depth,
+    texture_edges,
+    undistort_image,
+)
+from gtforge.core.edge_fit import _Cap, _maximise, _Problem, _sandwich, _significance_sigma
 from gtforge.core.geometry import rotation_angle_deg
 from gtforge.core.schema import GTModel, matrix4_field
 from gtforge.errors import InputError
@@ -159,130 +169,6 @@ class EdgeCapture:
 
 
 # ---- the estimator -----------------------------------------------------------------------------
-@dataclass
-class _Cap:
-    name: str
-    edges: DepthEdges
-    undistorted: np.ndarray
-    strengths: dict = field(default_factory=dict)
-
-    def strength(self, blur: float):
-        if blur not in self.strengths:
-            self.strengths[blur] = edge_strength(self.undistorted, blur)
-        return self.strengths[blur]
-
-
-@dataclass
-class _Problem:
-    """The captures' edges; ``theta`` (6,) the perturbation in pixel units (``scale``)."""
-
-    caps: list[_Cap]
-    pinhole: PinholeCamera
-    T0: np.ndarray
-    scale: np.ndarray  # (6,) theta * scale = (omega rad, delta_t mm)
-
-    @property
-    def structure(self) -> np.ndarray:
-        out, shift = [], 0
-        for c in self.caps:
-            out.append(c.edges.structure + shift)
-            shift += int(c.edges.structure.max()) + 1 if len(c.edges) else 0
-        return np.concatenate(out)
-
-    def pose(self, theta: np.ndarray) -> np.ndarray:
-        p = np.asarray(theta, float) * self.scale
-        return perturb(self.T0, p[:3], p[3:])
-
-    def scores(self, theta: np.ndarray, blur: float) -> np.ndarray:
-        T = self.pose(theta)
-        return np.concatenate([edge_scores(c.edges, T, self.pinhole, c.strength(blur)) for c in self.caps])
-
-
-def _quadratic_model(f, theta: np.ndarray, step_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Gradient and Hessian of ``f`` (a scalar, or a vector per edge for the gradient) by central differences
-    one pixel wide, on purpose: the score is a mean of bilinear samples, kinked at every pixel and flat-topped
-    where structures disagree by a pixel or two, and ``tests/io/test_real_frame.py`` locates its peak the same way
-    (a parabola through the maximum and its neighbours one pixel away). An adaptive differentiation
-    (``scipy.differentiate``) would chase the kinks."""
-    n, h = len(theta), step_px
-    E = np.eye(n) * h
-    f0 = f(theta)
-    fp = [f(theta + E[k]) for k in range(n)]
-    fm = [f(theta - E[k]) for k in range(n)]
-    grad = np.stack([(fp[k] - fm[k]) / (2 * h) for k in range(n)], axis=-1)
-    H = np.zeros((n, n) + np.shape(f0))
-    for k in range(n):
-        H[k, k] = (fp[k] - 2 * f0 + fm[k]) / h**2
-        for m in range(k):
-            H[k, m] = H[m, k] = (f(theta + E[k] + E[m]) - f(theta + E[k] - E[m]) - f(theta - E[k] + E[m])
-                                 + f(theta - E[k] - E[m])) / (4 * h**2)
-    return grad, H
-
-
-def _restrict(f, theta: np.ndarray, idx: np.ndarray):
-    def g(t):
-        full = theta.copy()
-        full[idx] = t
-        return f(full)
-    return g
-
-
-def _sandwich(problem: _Problem, theta: np.ndarray, blur: float, free: np.ndarray) -> np.ndarray:
-    """Covariance (pixel units, 6x6, inf outside ``free``) of the score maximiser over the ``free`` parameters,
-    the others held: the cluster-robust sandwich ``H^-1 B H^-1`` of an M-estimator. ``H`` is the Hessian of the
-    summed score; ``B`` sums, over the connected edge structures (one contour each: its samples see the same colour
-    edge and share its offset, so a contour is one observation, not hundreds), the outer product of the
-    structure's summed per-edge score gradient. Structures that disagree (a table edge whose colour transition
-    lies 3 px below its depth silhouette beside a window sill that matches) make the variance large. A direction
-    in which the score does not curve down (``H`` not negative definite) gets an infinite variance."""
-    idx = np.flatnonzero(free)
-    per_edge = _restrict(lambda t: problem.scores(t, blur), theta, idx)
-    J, _ = _quadratic_model(per_edge, theta[idx])
-    _, H = _quadratic_model(lambda t: per_edge(t).sum(), theta[idx])
-    _, label = np.unique(problem.structure, return_inverse=True)
-    G = np.zeros((label.max() + 1, len(idx)))
-    np.add.at(G, label, J)
-    n_clusters = len(G)
-    B = G.T @ G * n_clusters / max(n_clusters - 1, 1)  # the usual small-sample factor
-    w, V = np.linalg.eigh(-H)  # a maximum: -H positive definite
-    good = w > 1e-6 * max(w.max(), 1e-30)
-    Hinv = (V[:, good] / w[good]) @ V[:, good].T
-    cov = Hinv @ B @ Hinv
-    undetermined = (np.abs(V[:, ~good]) > 0.05).any(axis=1)  # loads on a direction without curvature
-    cov[undetermined, :] = np.inf
-    cov[:, undetermined] = np.inf
-    full = np.full((6, 6), np.inf)
-    full[np.ix_(idx, idx)] = cov
-    return full
-
-
-def _maximise(problem: _Problem, blur: float, theta0: np.ndarray, free: np.ndarray, polish: bool) -> np.ndarray:
-    """Nelder-Mead on the mean score over the ``free`` parameters (1 px initial steps); with ``polish``, then
-    Newton steps on the one-pixel quadratic model (``_quadratic_model``), which find the centre of a flat top where
-    Nelder-Mead stops anywhere on it."""
-    from scipy.optimize import minimize  # here, not at import: importing scipy slows every process start
-
-    idx = np.flatnonzero(free)
-    score = _restrict(lambda t: problem.scores(t, blur).mean(), theta0, idx)
-    simplex = theta0[idx] + np.vstack([np.zeros(len(idx)), np.eye(len(idx))])
-    t = minimize(lambda t: -score(t), theta0[idx], method="Nelder-Mead",
-                 options=dict(initial_simplex=simplex, xatol=0.005, fatol=1e-7, maxiter=4000)).x
-    for _ in range(10 if polish else 0):
-        g, H = _quadratic_model(score, t)
-        w = np.linalg.eigvalsh(H)
-        if w.max() >= 0:  # not a maximum of the quadratic model: keep Nelder-Mead's point
-            break
-        step = -np.linalg.solve(H, g)
-        if np.abs(step).max() > 1.0:  # beyond the pixel the model describes
-            break
-        t = t + step
-        if np.abs(step).max() < 0.005:
-            break
-    out = theta0.copy()
-    out[idx] = t
-    return out
-
-
 def _prepare(cap: EdgeCapture, color_cam: PinholeCamera, T0: np.ndarray, kinds: list[str],
              params: EdgeAlignmentParams) -> _Cap:
     """A capture's edges (at the factory extrinsic) and undistorted colour image; InputError for a blank image."""
@@ -332,15 +218,6 @@ def _coarse_search(problem: _Problem, params: EdgeAlignmentParams) -> tuple[np.n
     return centre, float(r), bool(interior)
 
 
-def _significance_sigma(x: np.ndarray, cov: np.ndarray) -> float:
-    """``x`` against 0 with covariance ``cov``: the chi-square's tail as a two-sided normal sigma."""
-    from scipy.stats import chi2, norm  # here, not at import: importing scipy slows every process start
-
-    q = float(x @ np.linalg.solve(cov, x))
-    p = chi2.sf(q, len(x)) if q > 0 else 1.0
-    return float(norm.isf(0.5 * p)) if p > 1e-300 else float(np.sqrt(q))  # (far out in the tail: about sqrt(q))
-
-
 def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_color_from_depth: np.ndarray,
                    params: EdgeAlignmentParams = EdgeAlignmentParams()) -> EdgeAlignmentResult:
     """Refine ``T_color_from_depth`` (shared by every capture) from the edges of all ``captures`` together (the
@@ -380,6 +257,25 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
         raise InputError(None, "depth", f"at least {params.min_edges} depth edges inside the colour image",
                          f"{n_edges}", "a scene with objects in front of a background, seen by both cameras")
     caps = [c for c in caps if len(c.edges)]
+    base = [(r.name, r.excluded) for r in reports]
+    res = _fit(caps, base, T0, pinhole, params, kinds_used, {})
+    # a capture that disagrees with the others after the joint fit (a knocked rig, a moved object) pulls the fit
+    # towards itself: left out, and the others fitted again (it is still measured and reported)
+    bad = {c.name: c.offset_after_px for c in res.captures if c.disagrees and not c.excluded}
+    if bad and res.decision == "applied" and len(caps) - len(bad) >= 2:
+        left_out = {n: f"left out of the fit: its edges lay ({o[0]:+.2f}, {o[1]:+.2f}) px off after the joint fit "
+                       f"with the others (> {params.disagree_px:g} px: a knocked rig or a moved object?)"
+                    for n, o in bad.items()}
+        res = _fit(caps, base, T0, pinhole, params, kinds_used, left_out)
+    return res
+
+
+def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinhole: PinholeCamera,
+         params: EdgeAlignmentParams, kinds_used: set, left_out: dict[str, str]) -> EdgeAlignmentResult:
+    """The fit on the captures not ``left_out`` (name -> why); every capture measured and reported."""
+    reports = [CaptureAlignment(name=n, excluded=e or left_out.get(n, "")) for n, e in base]
+    caps = [c for c in all_caps if c.name not in left_out]
+    n_edges = sum(len(c.edges) for c in caps)
     f_px = 0.5 * (pinhole.fx_px + pinhole.fy_px)
     z_med = float(np.median(np.concatenate([c.edges.pts_depth_mm[:, 2] for c in caps])))
     scale = np.array([1 / f_px] * 3 + [z_med / f_px] * 3)
@@ -455,16 +351,18 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
             decision = "not significant"
             reason = f"the correction is {significance:.1f} sigma from the factory value (<= {params.apply_z:g}): kept"
     T = problem.pose(applied_theta)
-    # the pixel offsets, per capture and all together, before and after
+    # the pixel offsets, per capture (the left-out ones too) and all together (those fitted), before and after
     fine_strengths = [c.strength(fine) for c in caps]
     applied = decision == "applied"
     R0 = int(np.ceil(np.abs(start).max())) + 4  # the factory pose's offset: at least as far as the coarse search's
-    per_cap_before = {c.name: edge_offset_px(c.edges, T0, pinhole, c.strength(fine), R0) for c in caps}
+    per_cap.update({c.name: edge_offset_px(c.edges, T_est, pinhole, c.strength(fine), R0) for c in all_caps
+                    if c.name in left_out})
+    per_cap_before = {c.name: edge_offset_px(c.edges, T0, pinhole, c.strength(fine), R0) for c in all_caps}
     per_cap_after = per_cap if applied else per_cap_before  # (the pose applied is the estimate or the factory one)
     one = len(caps) == 1
     before_all = per_cap_before[caps[0].name] if one else _offset_all(caps, T0, pinhole, fine_strengths, R0)
     after_all = per_cap_after[caps[0].name] if one else _offset_all(caps, T, pinhole, fine_strengths)
-    by_name = {c.name: c for c in caps}
+    by_name = {c.name: c for c in all_caps}
     for r in reports:
         c = by_name.get(r.name)
         if c is None:
@@ -477,7 +375,10 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
         r.offset_before_px, r.offset_after_px = [b.dx_px, b.dy_px], [a.dx_px, a.dy_px]
         r.offset_after_interior = a.interior
         r.disagrees = a.magnitude_px > params.disagree_px or not a.interior
-        if r.disagrees:
+        if r.name in left_out:
+            warnings.append(f"capture {r.name}: {left_out[r.name]}; after the others' fit ({a.dx_px:+.2f}, "
+                            f"{a.dy_px:+.2f}) px")
+        elif r.disagrees:
             warnings.append(f"capture {r.name}: its edges lie ({a.dx_px:+.2f}, {a.dy_px:+.2f}) px off the colour "
                             f"edges after the fit (> {params.disagree_px:g} px): a knocked rig or a moved object?")
     if decision != "applied" and before_all.magnitude_px > params.disagree_px:
@@ -516,3 +417,8 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
     ``params.edges`` says which edges are used."""
     return align_captures([EdgeCapture("frame", depth_mm, depth_cam, color_rgb, texture)], color_cam,
                           T_color_from_depth, params)
+
+
+
+# The pieces (gtforge.core.edge_features) stay importable from here, as before issue 40 moved them.
+from gtforge.core.edge_features import edge_scores, perturb  # noqa: E402,F401
