@@ -421,4 +421,4 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
 
 
 # The pieces (gtforge.core.edge_features) stay importable from here, as before issue 40 moved them.
-from gtforge.core.edge_features import edge_scores, perturb  # noqa: E402,F401
+from gtforge.core.edge_features import edge_scores, perturb  # noqa: F401
