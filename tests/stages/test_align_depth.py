@@ -188,3 +188,20 @@ def test_the_command(session, tmp_path, monkeypatch, capsys):
     cap = capsys.readouterr()
     assert "edge offset (colour - depth) all captures: before" in cap.out and (tmp_path / "a.yaml").is_file()
     assert cap.err.strip().startswith("error:") and len(cap.err.strip().splitlines()) == 1
+
+
+def test_build_dataset_adds_the_rotations_sigma(session, aligned, tmp_path):
+    """build-dataset with the aligned calibration: disp0GT_sigma.pfm is the one without ``depth_alignment`` (same rig)
+    with ``depth_pose_sigma_px`` added in quadrature."""
+    from gtforge.build_dataset import build_dataset
+    from gtforge.io.formats import read_pfm
+
+    _, res, path = aligned
+    plain = res.model_copy(update={"depth_alignment": None}).write(tmp_path / "plain.yaml")
+    params = BuildParams(verification=False, right_gt=False)
+    sig = {}
+    for name, calib in (("aligned", path), ("plain", plain)):
+        build_dataset(session, calib, tmp_path / name, params, workers=1, scenes=["000"])
+        sig[name] = read_pfm(tmp_path / name / "scenes" / "000" / "disp0GT_sigma.pfm").astype(np.float64)
+    m = np.isfinite(sig["plain"])
+    assert np.all(sig["aligned"][m] >= sig["plain"][m] - 1e-6) and np.median(sig["aligned"][m] - sig["plain"][m]) > 0
