@@ -286,6 +286,8 @@ def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinh
 
     # coarse: the two rotations that shift the image, on a grid that widens until its best point is interior
     start, search_r, interior = _coarse_search(problem, params)
+    for c in caps:  # the wider blurs of the search are done with (a session's dozens of captures hold the rest)
+        c.strengths = {b: v for b, v in c.strengths.items() if b in (fine, coarse)}
     fitted = np.array([True] * 3 + [params.fit_translation] * 3)
     theta = np.array([start[0], start[1], 0, 0, 0, 0.0])
     free = fitted.copy()
