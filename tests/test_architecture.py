@@ -67,8 +67,8 @@ def test_no_import_goes_up_a_layer(graph):
     assert ups == []
 
 
-STAGES = ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset", "gtforge.verify",
-          "gtforge.validate", "gtforge.evaluate")
+STAGES = ("gtforge.calibrate", "gtforge.align_depth", "gtforge.scale_calibration", "gtforge.refine",
+          "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate")
 
 
 def test_stages_stand_side_by_side(graph):

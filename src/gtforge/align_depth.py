@@ -85,7 +85,8 @@ def summary_lines(info: DepthAlignment) -> list[str]:
         lines.append(f"  {n}: {r.omega_deg[k]:+.3f}{sig} deg [{r.status[k]}]")
     lines.append(f"  edge offset (colour - depth) all captures: before ({r.offset_before_px[0]:+.2f}, "
                  f"{r.offset_before_px[1]:+.2f}) px, after ({r.offset_after_px[0]:+.2f}, "
-                 f"{r.offset_after_px[1]:+.2f}) px; {r.n_edges} edges, {r.n_structures} structures, search +-{r.search_px:g} px")
+                 f"{r.offset_after_px[1]:+.2f}) px; {r.n_edges} edges, {r.n_structures} structures, "
+                 f"search +-{r.search_px:g} px")
     for c in r.captures:
         if c.excluded:
             lines.append(f"  {c.name}: not used ({c.excluded})")

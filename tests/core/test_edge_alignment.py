@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.edge_alignment import EdgeAlignmentParams, align_color_to_depth, depth_edges, perturb, undistort_image
+from gtforge.core.edge_alignment import EdgeAlignmentParams, align_color_to_depth
+from gtforge.core.edge_features import depth_edges, perturb, undistort_image
 from gtforge.core.geometry import T_from_rotvec, look_at_T_cam_from_world, make_T, pose_difference
 from gtforge.errors import InputError
 from gtforge.synthetic import PlaneObject, Scene, SpheroidObject, ValueNoise, finish_image, raycast_depth, render_image
@@ -143,7 +144,8 @@ def test_synthetic_error_is_recovered_from_the_depth_cameras_texture(edges):
 def test_texture_mistakes_are_refused():
     depth, color = synthetic_pair()
     with pytest.raises(InputError, match="texture"):
-        align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH, EdgeAlignmentParams(edges="texture"))
+        align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH,
+                             EdgeAlignmentParams(edges="texture"))
     with pytest.raises(InputError, match="pixel-aligned"):
         align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH, texture=synthetic_texture()[:-2])
 

@@ -421,6 +421,3 @@ def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_r
                           T_color_from_depth, params)
 
 
-
-# The pieces (gtforge.core.edge_features) stay importable from here, as before issue 40 moved them.
-from gtforge.core.edge_features import edge_scores, perturb  # noqa: F401
