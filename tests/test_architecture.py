@@ -19,8 +19,9 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("records", ("gtforge.records",)),
     ("reports", ("gtforge.reports",)),
     ("dataset", ("gtforge.dataset",)),
-    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
-                "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
+    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.align_depth", "gtforge.refine",
+                "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors",
+                "gtforge.training")),
     ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.holdout", "gtforge.cli")),
 ]
 
@@ -66,8 +67,8 @@ def test_no_import_goes_up_a_layer(graph):
     assert ups == []
 
 
-STAGES = ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset", "gtforge.verify",
-          "gtforge.validate", "gtforge.evaluate")
+STAGES = ("gtforge.calibrate", "gtforge.align_depth", "gtforge.scale_calibration", "gtforge.refine",
+          "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate")
 
 
 def test_stages_stand_side_by_side(graph):

@@ -38,7 +38,7 @@ except ImportError:  # pragma: no cover
 import gtforge
 from gtforge.core.geometry import finite_box, mask_bounding_box
 from gtforge.core.reproject import right_view_disparity
-from gtforge.core.scale_corrections import add_scale_sigma
+from gtforge.core.scale_corrections import add_depth_pose_sigma, add_scale_sigma
 from gtforge.core.uncertainty import disparity_sigma
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
@@ -228,6 +228,9 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 shift = verification.texture_all.magnitude_px if verification is not None else None
                 sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm,
                                         params.uncertainty, sd.span_mm, shift)
+                if calib.depth_alignment is not None:  # the depth camera's rotation's uncertainty (align-depth)
+                    sigma = add_depth_pose_sigma(sigma, sd.depth_mm, rig,
+                                                 calib.depth_alignment.result.covariance_rad_mm)
                 if calib.scale_calibration is not None:  # the scale terms' uncertainty (calibrate-scale)
 
                     sigma = add_scale_sigma(sigma, sd.depth_mm, rig, calib.scale_calibration)

@@ -339,6 +339,37 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
     out.print(f"wrote {calibration_output_path(output)}")
 
 
+@app.command("align-depth")
+def align_depth(session: Path = typer.Argument(..., help="Capture session folder (scenes/ and board/ captures)."),
+                calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
+                                                 help="The calibration whose depth camera pose to refine "
+                                                      "(gtforge calibrate)."),
+                output: str = typer.Option("aligned.yaml", "--output", "-o", metavar="PATH",
+                                           help="Calibration YAML to write (never the input file)."),
+                scenes: Optional[str] = typer.Option(None, metavar="IDS",
+                                                     help="Comma-separated scene ids (default: all)."),
+                boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
+                search_px: float = typer.Option(6.0, help="First coarse search range (px); widened while the best "
+                                                          "shift is on its border."),
+                apply_z: float = typer.Option(3.0, help="Apply the correction when it is more than this many sigma "
+                                                        "from the factory pose.")) -> None:
+    """Refine a separate depth camera's pose (T_mech_from_depth: Azure Kinect, Orbbec, PrimeSense-class units) by
+    putting every capture's depth silhouettes on the texture image's edges; writes a calibration file with the
+    corrected pose and its covariance (its 'depth_alignment' says what was found, and each capture's pixel offset
+    before and after). Run it after calibrate, before calibrate-scale."""
+    from gtforge.align_depth import align_depth as run
+    from gtforge.align_depth import summary_lines
+    from gtforge.core.edge_alignment import EdgeAlignmentParams
+    from gtforge.io.calibrated_session import calibration_output_path
+
+    params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z)
+    res = run(session, calibration, output, params, scenes.split(",") if scenes else None, use_boards=boards,
+              progress=_status)
+    for line in summary_lines(res.depth_alignment):
+        out.print(line)
+    out.print(f"wrote {calibration_output_path(output)}")
+
+
 @app.command()
 def validate(session: Path = typer.Argument(..., help="Capture session folder (board/ captures)."),
              calibration: Optional[Path] = typer.Option(None, "--calibration", "-c",

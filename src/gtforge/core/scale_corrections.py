@@ -159,6 +159,26 @@ def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: 
 
 
 
+def depth_pose_sigma_px(depth_mm: np.ndarray, rig: Rig, cov_rad_mm) -> np.ndarray:
+    """Each GT pixel's 1-sigma (px) from the covariance of a separate depth camera's rotation (the left perturbation
+    of ``rig.T_mech_from_depth``; a 6x6 ``(omega rad, delta_t mm)`` covariance whose rotation block is used, as
+    ``gtforge align-depth`` writes it): ``sqrt(J C J^T)`` with ``J = depth_pose_jacobian_image`` (per rad)."""
+    C = np.asarray(cov_rad_mm, np.float64)[:3, :3]
+    z = np.asarray(depth_mm, np.float64)
+    if not C.any():
+        return np.zeros(z.shape)
+    J = depth_pose_jacobian_image(z, rig)
+    return np.sqrt(np.maximum(np.einsum("...i,ij,...j->...", J, C, J), 0.0))
+
+
+def add_depth_pose_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, cov_rad_mm) -> np.ndarray:
+    """``sigma_px`` (float32, +inf where no GT) with ``depth_pose_sigma_px`` added in quadrature."""
+    s = depth_pose_sigma_px(depth_mm, rig, cov_rad_mm)
+    with np.errstate(invalid="ignore"):
+        out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
+    return out.astype(np.float32)
+
+
 def shown_disparity_px(disp_true_px: np.ndarray, rig: Rig, yaw_true_deg: float) -> np.ndarray:
     """What the dataset's pair shows (synthetic truth): the left image against the right image re-rectified with
     ``rig``'s yaw when the right camera is really turned by ``yaw_true_deg``; ``disp_true_px`` is the ideal rectified

@@ -16,6 +16,7 @@ from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
 from gtforge.core.targets import BoardModel
 from gtforge.io.zed_rectification import ZedConfChoice
+from gtforge.records.depth_alignment import DepthAlignment
 from gtforge.records.verification import VerifyParams
 
 
@@ -160,6 +161,8 @@ class CalibrationFile(VersionedFile):
     coverage: CoverageResult | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
     # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
     scale_calibration: ScaleCalibration | None = None
+    # set by gtforge align-depth: a separate depth camera's pose from the captures' edges (applied in rig)
+    depth_alignment: DepthAlignment | None = None
 
     @property
     def zed_conf_reading(self) -> str | None:
