@@ -36,12 +36,12 @@ from gtforge.core.geometry import finite_box, mask_bounding_box, transform_point
 from gtforge.core.photometric import (
     MAX_POINTS,
     ShiftAligner,
+    block_noise,
     ShiftEstimate,
     even_subset,
     interior_mask,
     local_normalize,
     pixels_of,
-    sample_cubic,
     sample_spline,
     smooth_depth_mask,
     spline_prefilter,
@@ -198,14 +198,20 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         if max(abs(b), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
             continue
+        # the noise floor: the last linearisation solved per band of pixels (block_noise; A, w_ are at the solution
+        # within 1e-4 px)
+        noise = block_noise(A, w_ - lv, 2)
         # vertical disparity v_left - v_right, as gtforge.core.rectification reports it for board corners
         out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
-                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n)
+                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n,
+                                   disparity_bias_noise_px=None if noise is None else float(noise[0]),
+                                   vertical_noise_px=None if noise is None else float(noise[1]))
     return out
 
 
 def _scaled_shift(e: ShiftEstimate, f: int) -> ShiftEstimate:
-    return e if e.dx_px is None else e.model_copy(update={"dx_px": e.dx_px * f, "dy_px": e.dy_px * f})
+    return e if e.dx_px is None else e.model_copy(update={
+        k: None if getattr(e, k) is None else getattr(e, k) * f for k in ("dx_px", "dy_px", "dx_noise_px", "dy_noise_px")})
 
 
 def _area(a: np.ndarray, f: int) -> np.ndarray:
@@ -323,9 +329,9 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
-        stereo = {k: v.model_copy(update={"disparity_bias_px": None if v.disparity_bias_px is None
-                                          else v.disparity_bias_px * f,
-                                          "vertical_px": None if v.vertical_px is None else v.vertical_px * f})
+        stereo = {k: v.model_copy(update={key: None if getattr(v, key) is None else getattr(v, key) * f
+                                          for key in ("disparity_bias_px", "vertical_px", "disparity_bias_noise_px",
+                                                      "vertical_noise_px")})
                   for k, v in stereo.items()}
         tile_fn = tile_shifts
 
@@ -419,7 +425,10 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     old = {}
     rep_path = ds / "verification.json"
     if rep_path.is_file():
-        old = VerificationResult.read(rep_path).scenes
+        try:
+            old = VerificationResult.read(rep_path).scenes
+        except InputError as exc:  # an older schema (figures of a biased sampler, no noise floors): not merged
+            log.warning("%s: not kept (%s); only the scenes verified now are reported", rep_path, exc)
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})
     write_verification_report(rep, ds)
     man.flagged = rep.flagged

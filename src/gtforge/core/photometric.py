@@ -17,6 +17,11 @@ class ShiftEstimate(GTModel):
     dy_px: float | None = None
     correlation: float | None = None  # ZNCC of the normalised images after alignment
     n_pixels: int = 0
+    # noise floors (1 sigma) of the figures above: what exact labels give on this scene, from the spread of the
+    # estimates of NOISE_BLOCKS bands of the pixels (``block_noise``); None where not measured
+    dx_noise_px: float | None = None
+    dy_noise_px: float | None = None
+    correlation_noise: float | None = None
 
     @property
     def magnitude_px(self) -> float | None:
@@ -246,7 +251,7 @@ class ShiftAligner:
     """Translation ``d`` with ``img(u + d) ~ ref(u)`` over any mask of pixels (both images already normalised).
 
     Inverse-compositional Lucas-Kanade (the Hessian from ``ref``'s gradients) with a free gain and offset, ``img``
-    sampled by cubic splines at the mask's points only; a coarse pass on copies blurred by 2 px first, so shifts of a
+    sampled by cubic B-splines (``sample_spline``, phase-unbiased) at the mask's points only; a coarse pass on copies blurred by 2 px first, so shifts of a
     few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
 
     SIGMAS = (2.0, 0.0)
@@ -259,7 +264,7 @@ class ShiftAligner:
             r = cv2.GaussianBlur(ref, (0, 0), sigma) if sigma else ref
             i = cv2.GaussianBlur(img, (0, 0), sigma) if sigma else img
             self.levels.append((r, cv2.Sobel(r, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8), np.ascontiguousarray(i, np.float32)))
+                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8), spline_prefilter(i)))
 
     def align(self, mask: np.ndarray, min_pixels: int = 400, iterations: int = 30, tol_px: float = 1e-4,
               max_points: int = MAX_POINTS) -> ShiftEstimate:
@@ -289,20 +294,57 @@ class ShiftAligner:
             except np.linalg.LinAlgError:
                 return ShiftEstimate(n_pixels=n)
             for _ in range(iterations):
-                step = inv @ (At @ (sample_cubic(coeffs, uf + d[0], vf + d[1]) - rv))
+                step = inv @ (At @ (sample_spline(coeffs, uf + d[0], vf + d[1]) - rv))
                 d -= step[:2]  # inverse composition of a translation
                 if np.abs(d).max() > 20:  # diverged: nothing to align
                     return ShiftEstimate(n_pixels=n)
                 if np.abs(step[:2]).max() < tol:
                     break
-        w = sample_cubic(self.levels[-1][3], uf + d[0], vf + d[1])
+        w = sample_spline(self.levels[-1][3], uf + d[0], vf + d[1])
         rv = take_at(self.ref, idx).astype(np.float64)
         a, b = rv - rv.mean(), w - w.mean()
         # plain sums, not BLAS dot products: the same digits whatever the thread count (builds are byte-identical)
         saa, sbb, sab = float(np.sum(a * a)), float(np.sum(b * b)), float(np.sum(a * b))
         zncc = sab / np.sqrt(saa * sbb) if saa > 0 and sbb > 0 else None
-        return ShiftEstimate(dx_px=float(d[0]), dy_px=float(d[1]), correlation=zncc, n_pixels=n)
+        # noise floors: the last linearisation per band of pixels (block_noise), the correlation's over the same bands
+        noise = block_noise(At.T, w - rv, 2)
+        edges = np.linspace(0, len(w), NOISE_BLOCKS + 1).astype(np.int64)
+        zb = []
+        for i0, i1 in zip(edges[:-1], edges[1:]):
+            ab, bb = rv[i0:i1] - rv[i0:i1].mean(), w[i0:i1] - w[i0:i1].mean()
+            den = float(np.sum(ab * ab)) * float(np.sum(bb * bb))
+            if den > 0:
+                zb.append(float(np.sum(ab * bb)) / math.sqrt(den))
+        zn = float(np.std(zb, ddof=1) / math.sqrt(len(zb))) if noise is not None and len(zb) > 2 else None
+        return ShiftEstimate(dx_px=float(d[0]), dy_px=float(d[1]), correlation=zncc, n_pixels=n,
+                             dx_noise_px=None if noise is None else float(noise[0]),
+                             dy_noise_px=None if noise is None else float(noise[1]), correlation_noise=zn)
 
+
+
+# the noise floor of an estimate: the pixels (row-major order) are cut into this many bands of consecutive pixels,
+# each solved alone at the estimate; the spread of the bands' solutions / sqrt(NOISE_BLOCKS) is the estimate's 1 sigma
+# (image noise, texture and the match's own artefacts, the pixels' spatial correlation included within a band)
+NOISE_BLOCKS = 16
+
+
+def block_noise(A: np.ndarray, r: np.ndarray, n_params: int) -> np.ndarray | None:
+    """1-sigma noise of the first ``n_params`` unknowns of the least-squares step ``argmin |A x + r|`` at a converged
+    solution (``A`` (N, p) the linearised model, ``r`` (N,) the residuals, rows in row-major pixel order): the
+    standard error of ``NOISE_BLOCKS`` bands' own solutions. A handful of small solves: cheap beside the estimate.
+    None when there are too few rows."""
+    n = len(r)
+    if n < NOISE_BLOCKS * 4 * A.shape[1]:
+        return None
+    edges = np.linspace(0, n, NOISE_BLOCKS + 1).astype(np.int64)
+    sols = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        Ab, rb = A[a:b], r[a:b]
+        try:
+            sols.append(np.linalg.solve(Ab.T @ Ab, -(Ab.T @ rb))[:n_params])
+        except np.linalg.LinAlgError:
+            return None
+    return np.std(np.array(sols), axis=0, ddof=1) / math.sqrt(NOISE_BLOCKS)
 
 
 def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixels: int = 400) -> ShiftEstimate:
