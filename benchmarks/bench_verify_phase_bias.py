@@ -1,0 +1,164 @@
+"""Verify's figures on exact labels, whatever the disparity's sub-pixel phase (issue #41).
+
+Runs against whichever gtforge is importable, so the same command gives the figures before and after a change
+(``PYTHONPATH=<checkout>/src``); noise floors print as "-" where a gtforge has none.
+
+* ``sweep``: a fronto-parallel textured plane (400x200, band-limited texture, 8-bit images rendered exactly) whose
+  disparity runs through the sub-pixel phases 0.0 .. 0.9 px, and a slanted plane (disparity 20 + phase + 0.03 u +
+  0.01 v px); stereo disparity bias and vertical disparity per phase, and verify's time per call.
+* ``synthetic``: the generator's fruit scenes with exact labels (built with the true extrinsic): every figure, per
+  region, and verify's time per scene. ``--scale 1.0`` is the issue's ZED 2K (the checks at half resolution).
+* ``middlebury``: the Middlebury 2014 pair (``../shared/data/middlebury2014-motorcycle-Q``) with its dense truth
+  (disp0GT, mask0nocc) as the labels: the stereo figures (no texture camera there).
+
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_verify_phase_bias.py sweep
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_verify_phase_bias.py synthetic [--scale 0.4] [--scenes 3]
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_verify_phase_bias.py middlebury
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def band_limited_texture(seed: int = 0, n: int = 300, fmax: float = 0.45):
+    """A texture ``T(x, y)`` (grey levels around 128) as a sum of cosines below ``fmax`` cycles/px, each attenuated as
+    a pixel's box integrates it: the image of a plane can be rendered exactly at any sub-pixel position."""
+    rng = np.random.default_rng(seed)
+    f = rng.uniform(-fmax, fmax, (n, 2))
+    f = f[np.hypot(*f.T) < fmax]
+    amp = 40 * np.exp(-(np.hypot(*f.T) / 0.25) ** 2) * np.sinc(f[:, 0]) * np.sinc(f[:, 1])
+    phase = rng.uniform(0, 2 * np.pi, len(f))
+
+    def T(x, y):
+        out = np.full(np.shape(x), 128.0)
+        for (fx, fy), a, p in zip(f, amp, phase):
+            out += a * np.cos(2 * np.pi * (fx * x + fy * y) + p)
+        return out
+
+    return T
+
+
+def plane_pair(T, d0: float, slope_u: float = 0.0, slope_v: float = 0.0, shape=(200, 400)):
+    """8-bit left and right images of a plane whose disparity is ``d0 + slope_u u + slope_v v`` (left pixels), and
+    that disparity (exact labels): the right pixel ``x`` shows the left pixel ``u`` with ``u - d(u, v) = x``."""
+    H, W = shape
+    v, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    u_of_x = (x + d0 + slope_v * v) / (1.0 - slope_u)
+
+    def q(a):
+        return np.clip(np.round(a), 0, 255).astype(np.uint8)
+
+    disp = (d0 + slope_u * x + slope_v * v).astype(np.float32)  # at left pixel (v, x)
+    return q(T(x, v)), q(T(u_of_x, v)), disp
+
+
+def _fmt(x, spec="{:+.4f}"):
+    return "-" if x is None else spec.format(x)
+
+
+def _stereo_row(st):
+    return (f"{_fmt(st.disparity_bias_px)} ± {_fmt(getattr(st, 'disparity_bias_noise_px', None), '{:.4f}')}  "
+            f"{_fmt(st.vertical_px)} ± {_fmt(getattr(st, 'vertical_noise_px', None), '{:.4f}')}")
+
+
+def sweep() -> None:
+    from gtforge.core.regions import REGION_BG
+    from gtforge.records.verification import VerifyParams
+    from gtforge.verify import stereo_consistency
+
+    T = band_limited_texture()
+    for name, su, sv in (("fronto-parallel", 0.0, 0.0), ("slanted 0.03 u + 0.01 v", 0.03, 0.01)):
+        print(f"\n{name}: phase | disparity bias ± noise | vertical ± noise (px) | time")
+        worst, times = 0.0, []
+        for ph in np.arange(10) / 10:
+            L, R, disp = plane_pair(T, 20.0 + ph, su, sv)
+            ok = np.ones(disp.shape, bool)
+            region = np.full(disp.shape, REGION_BG, np.uint8)
+            stereo_consistency(L, R, disp, ok, region, VerifyParams())  # (compiles on the first call)
+            t = time.perf_counter()
+            st = stereo_consistency(L, R, disp, ok, region, VerifyParams())["all"]
+            times.append(time.perf_counter() - t)
+            worst = max(worst, abs(st.disparity_bias_px))
+            print(f"  {ph:.1f}  {_stereo_row(st)}  {times[-1] * 1e3:.0f} ms")
+        print(f"  max |bias| {worst:.4f} px; median time {np.median(times) * 1e3:.0f} ms")
+
+
+def synthetic(scale: float, n_scenes: int, workdir: Path) -> None:
+    from gtforge.core.camera import Rig
+    from gtforge.dataset.ground_truth import build_scene_arrays
+    from gtforge.io.captures import open_session
+    from gtforge.records.dataset import BuildParams
+    from gtforge.synthetic import SyntheticTruth, generate_session
+    from gtforge.verify import verify_scene
+
+    d = workdir / f"fruit_{scale}_{n_scenes}"
+    if not (d / "done").exists():
+        generate_session(d, n_board=0, n_scenes=n_scenes, scale=scale, seed=11, depth_noise_mm=0.0, image_noise=1.0)
+        (d / "done").write_text("")
+    s = open_session(d)
+    truth = SyntheticTruth.read(d / "truth" / "rig_truth.yaml")
+    rig = Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=truth.T_zed_from_mech)
+    for i in range(n_scenes):
+        cap = s.load_capture(s.root / "scenes" / f"{i:03d}")
+        sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), None)
+        args = (sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, cap.zed_right, cap.mech_texture,
+                rig)
+        verify_scene(*args)
+        t = time.perf_counter()
+        ver, _ = verify_scene(*args)
+        dt = time.perf_counter() - t
+        print(f"scene {i:03d} ({cap.zed_left.shape[1]}x{cap.zed_left.shape[0]}, {dt * 1e3:.0f} ms): {ver.status}")
+        for name, e in (("all", ver.texture_all), ("fruit", ver.texture_fruit)):
+            print(f"  texture {name:10s} dx {_fmt(e.dx_px)} ± {_fmt(getattr(e, 'dx_noise_px', None), '{:.4f}')}  "
+                  f"dy {_fmt(e.dy_px)} ± {_fmt(getattr(e, 'dy_noise_px', None), '{:.4f}')}  "
+                  f"corr {_fmt(e.correlation, '{:.4f}')} ± {_fmt(getattr(e, 'correlation_noise', None), '{:.4f}')}")
+        for name, st in ver.stereo.items():
+            print(f"  stereo  {name:10s} bias, vertical: {_stereo_row(st)}")
+
+
+def middlebury(folder: Path) -> None:
+    from gtforge.core.regions import REGION_BG
+    from gtforge.io.formats import read_image, read_pfm
+    from gtforge.records.verification import VerifyParams
+    from gtforge.verify import stereo_consistency
+
+    left, right = read_image(folder / "im0.png"), read_image(folder / "im1.png")
+    disp = read_pfm(folder / "disp0GT.pfm")
+    noc = read_image(folder / "mask0nocc.png") == 255
+    region = np.full(disp.shape, REGION_BG, np.uint8)
+    stereo_consistency(left, right, disp, noc, region, VerifyParams())
+    t = time.perf_counter()
+    st = stereo_consistency(left, right, disp, noc, region, VerifyParams())["all"]
+    dt = time.perf_counter() - t
+    print(f"Middlebury 2014 {folder.name} ({left.shape[1]}x{left.shape[0]}), disp0GT as labels, {dt * 1e3:.0f} ms:")
+    print(f"  stereo bias, vertical: {_stereo_row(st)}; bad matches {st.bad_match_pct:.2f} % of {st.n_pixels} px")
+    # the same with the truth moved by whole and half pixels: where each phase's bias is measured from
+    for off in (0.25, 0.5):
+        st = stereo_consistency(left, right, disp + off, noc, region, VerifyParams())["all"]
+        print(f"  labels + {off} px: bias {_fmt(st.disparity_bias_px)} (expect {-off:+.4f})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("what", choices=["sweep", "synthetic", "middlebury"])
+    ap.add_argument("--scale", type=float, default=0.4)
+    ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/gtforge_bench_phase_bias"))
+    ap.add_argument("--data", type=Path,
+                    default=Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury2014-motorcycle-Q")
+    a = ap.parse_args()
+    if a.what == "sweep":
+        sweep()
+    elif a.what == "synthetic":
+        a.workdir.mkdir(parents=True, exist_ok=True)
+        synthetic(a.scale, a.scenes, a.workdir)
+    else:
+        middlebury(a.data)
+
+
+if __name__ == "__main__":
+    main()
