@@ -24,36 +24,55 @@ from pathlib import Path
 import numpy as np
 
 
-def band_limited_texture(seed: int = 0, n: int = 300, fmax: float = 0.45):
-    """A texture ``T(x, y)`` (grey levels around 128) as a sum of cosines below ``fmax`` cycles/px, each attenuated as
-    a pixel's box integrates it: the image of a plane can be rendered exactly at any sub-pixel position."""
-    rng = np.random.default_rng(seed)
-    f = rng.uniform(-fmax, fmax, (n, 2))
-    f = f[np.hypot(*f.T) < fmax]
-    amp = 40 * np.exp(-(np.hypot(*f.T) / 0.25) ** 2) * np.sinc(f[:, 0]) * np.sinc(f[:, 1])
-    phase = rng.uniform(0, 2 * np.pi, len(f))
+class BandLimitedTexture:
+    """A texture (grey levels around 128) as a sum of cosines below ``fmax`` cycles/px, each attenuated as a pixel's
+    box integrates it: the image of a plane can be rendered exactly at any sub-pixel position."""
 
-    def T(x, y):
+    def __init__(self, seed: int = 0, n: int = 300, fmax: float = 0.45):
+        rng = np.random.default_rng(seed)
+        f = rng.uniform(-fmax, fmax, (n, 2))
+        self.f = f[np.hypot(*f.T) < fmax]
+        self.amp = 40 * np.exp(-(np.hypot(*self.f.T) / 0.25) ** 2) * np.sinc(self.f[:, 0]) * np.sinc(self.f[:, 1])
+        self.phase = rng.uniform(0, 2 * np.pi, len(self.f))
+
+    def __call__(self, x, y):
         out = np.full(np.shape(x), 128.0)
-        for (fx, fy), a, p in zip(f, amp, phase):
+        for (fx, fy), a, p in zip(self.f, self.amp, self.phase):
             out += a * np.cos(2 * np.pi * (fx * x + fy * y) + p)
         return out
 
-    return T
+    def affine(self, shape, u: tuple[float, float, float], v: tuple[float, float, float]) -> np.ndarray:
+        """The texture at ``(u0 + u1 x + u2 y, v0 + v1 x + v2 y)`` for every pixel ``(y, x)`` of an image of ``shape``:
+        each cosine of an affine position is separable in ``x`` and ``y`` (one complex matrix product)."""
+        H, W = shape
+        fx, fy = self.f[:, 0], self.f[:, 1]
+        kx = 2 * np.pi * (fx * u[1] + fy * v[1])
+        ky = 2 * np.pi * (fx * u[2] + fy * v[2])
+        k0 = 2 * np.pi * (fx * u[0] + fy * v[0]) + self.phase
+        rows = self.amp * np.exp(1j * (np.arange(H)[:, None] * ky + k0))  # (H, n)
+        cols = np.exp(1j * np.arange(W)[:, None] * kx)  # (W, n)
+        return 128.0 + (rows @ cols.T).real
 
 
-def plane_pair(T, d0: float, slope_u: float = 0.0, slope_v: float = 0.0, shape=(200, 400)):
+def band_limited_texture(seed: int = 0, n: int = 300, fmax: float = 0.45) -> BandLimitedTexture:
+    return BandLimitedTexture(seed, n, fmax)
+
+
+def plane_pair(T: BandLimitedTexture, d0: float, slope_u: float = 0.0, slope_v: float = 0.0, shape=(200, 400),
+               right_dy: float = 0.0):
     """8-bit left and right images of a plane whose disparity is ``d0 + slope_u u + slope_v v`` (left pixels), and
-    that disparity (exact labels): the right pixel ``x`` shows the left pixel ``u`` with ``u - d(u, v) = x``."""
+    that disparity (exact labels): the right pixel ``x`` shows the left pixel ``u`` with ``u - d(u, v) = x``.
+    ``right_dy``: the right image shows the scene that much lower (its row ``y`` shows the left row ``y - right_dy``)."""
     H, W = shape
-    v, x = np.mgrid[0:H, 0:W].astype(np.float64)
-    u_of_x = (x + d0 + slope_v * v) / (1.0 - slope_u)
 
     def q(a):
         return np.clip(np.round(a), 0, 255).astype(np.uint8)
 
+    v, x = np.mgrid[0:H, 0:W].astype(np.float64)
     disp = (d0 + slope_u * x + slope_v * v).astype(np.float32)  # at left pixel (v, x)
-    return q(T(x, v)), q(T(u_of_x, v)), disp
+    k = 1.0 / (1.0 - slope_u)  # u = (x + d0 + slope_v y') k at the right pixel (y, x), y' = y - right_dy
+    right = T.affine(shape, ((d0 - slope_v * right_dy) * k, k, slope_v * k), (-right_dy, 0.0, 1.0))
+    return q(T.affine(shape, (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))), q(right), disp
 
 
 def _fmt(x, spec="{:+.4f}"):
