@@ -139,3 +139,32 @@ def test_the_noise_floor_is_the_spread_of_the_figure():
     for spread, floor in ((np.std(b, ddof=1), np.mean(nb)), (np.std(dv, ddof=1), np.mean(nv))):
         assert floor / 2.5 < spread < floor * 2.5, (spread, floor)
     assert abs(np.mean(b)) < 3 * np.mean(nb), (np.mean(b), np.mean(nb))
+
+
+def test_noise_floors_in_the_record_and_the_html_report(tmp_path):
+    """verification.json (schema 2) carries each figure's noise floor, the HTML prints it beside the figure; a
+    verification.json of schema 1 (figures of the biased sampler, no floors) is refused with the reason."""
+    import json
+
+    from gtforge.core.photometric import ShiftEstimate
+    from gtforge.errors import InputError
+    from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationResult
+    from gtforge.reports.verification import write_verification_report
+
+    shift = ShiftEstimate(dx_px=0.011, dy_px=-0.002, correlation=0.97, n_pixels=5000, dx_noise_px=0.004,
+                          dy_noise_px=0.003, correlation_noise=0.001)
+    st = StereoEstimate(disparity_bias_px=0.0123, vertical_px=-0.001, bad_match_pct=0.2, n_pixels=5000,
+                        disparity_bias_noise_px=0.0021, vertical_noise_px=0.0017)
+    rep = VerificationResult(dataset_dir=str(tmp_path), params=VerifyParams(), scenes={
+        "000": SceneVerification(status="ok", texture_all=shift, texture_fruit=shift, stereo={"all": st, "fruit": st})})
+    write_verification_report(rep, tmp_path)
+    back = VerificationResult.read(tmp_path / "verification.json")
+    assert back == rep and back.schema_version == 2
+    assert back.scenes["000"].stereo["all"].disparity_bias_noise_px == 0.0021
+    html = (tmp_path / "verification.html").read_text()
+    assert "+0.012 ± 0.002" in html and "+0.011 ± 0.004" in html and "0.97 ± 0.001" in html and "noise floor" in html
+    old = json.loads((tmp_path / "verification.json").read_text())
+    old["schema_version"] = 1
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    with pytest.raises(InputError, match="schema_version"):
+        VerificationResult.read(tmp_path / "old.json")
