@@ -4,8 +4,9 @@ Runs against whichever gtforge is importable, so the same command gives the figu
 (``PYTHONPATH=<checkout>/src``); noise floors print as "-" where a gtforge has none.
 
 * ``sweep``: a fronto-parallel textured plane (400x200, band-limited texture, 8-bit images rendered exactly) whose
-  disparity runs through the sub-pixel phases 0.0 .. 0.9 px, and a slanted plane (disparity 20 + phase + 0.03 u +
-  0.01 v px); stereo disparity bias and vertical disparity per phase, and verify's time per call.
+  disparity runs through the sub-pixel phases 0.0 .. 0.9 px, a slanted plane (disparity 20 + phase + 0.03 u +
+  0.01 v px), and the fronto-parallel plane at twice the size checked at half resolution as verify does a ZED 2K
+  (phase of the reduced disparity); stereo disparity bias and vertical disparity per phase, verify's time per call.
 * ``synthetic``: the generator's fruit scenes with exact labels (built with the true extrinsic): every figure, per
   region, and verify's time per scene. ``--scale 1.0`` is the issue's ZED 2K (the checks at half resolution).
 * ``middlebury``: the Middlebury 2014 pair (``../shared/data/middlebury2014-motorcycle-Q``) with its dense truth
@@ -75,6 +76,17 @@ def plane_pair(T: BandLimitedTexture, d0: float, slope_u: float = 0.0, slope_v: 
     return q(T.affine(shape, (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))), q(right), disp
 
 
+def labelled_inside(disp: np.ndarray, margin_px: int = 16) -> np.ndarray:
+    """``disp`` with NaN (no label) where the pixel or its match lies within ``margin_px`` of an image border (a
+    scene's ground truth lies inside its images; at the images' own borders local normalisation sees a different
+    neighbourhood in each image)."""
+    H, W = disp.shape
+    v, u = np.mgrid[0:H, 0:W]
+    inside = ((u - disp >= margin_px) & (u < W - margin_px) & (u - disp < W - margin_px) & (u >= margin_px)
+              & (v >= margin_px) & (v < H - margin_px))
+    return np.where(inside, disp, np.nan).astype(np.float32)
+
+
 def _fmt(x, spec="{:+.4f}"):
     return "-" if x is None else spec.format(x)
 
@@ -87,20 +99,29 @@ def _stereo_row(st):
 def sweep() -> None:
     from gtforge.core.regions import REGION_BG
     from gtforge.records.verification import VerifyParams
-    from gtforge.verify import stereo_consistency
+    from gtforge.verify import _area, stereo_consistency
 
     T = band_limited_texture()
-    for name, su, sv in (("fronto-parallel", 0.0, 0.0), ("slanted 0.03 u + 0.01 v", 0.03, 0.01)):
+    for name, su, sv, f in (("fronto-parallel", 0.0, 0.0, 1), ("slanted 0.03 u + 0.01 v", 0.03, 0.01, 1),
+                            ("fronto-parallel, 800x400 checked at half resolution (verify's factor 2 on a ZED 2K)",
+                             0.0, 0.0, 2)):
         print(f"\n{name}: phase | disparity bias ± noise | vertical ± noise (px) | time")
         worst, times = 0.0, []
         for ph in np.arange(10) / 10:
-            L, R, disp = plane_pair(T, 20.0 + ph, su, sv)
+            L, R, disp = plane_pair(T, f * (20.0 + ph), su, sv, shape=(200 * f, 400 * f))
+            if f > 1:  # as verify_scene reduces the images (figures below in the full-resolution pixels)
+                L, R, disp = _area(L, f), _area(R, f), (disp[::f, ::f] / f).astype(np.float32)
+            disp = labelled_inside(disp)
             ok = np.ones(disp.shape, bool)
             region = np.full(disp.shape, REGION_BG, np.uint8)
             stereo_consistency(L, R, disp, ok, region, VerifyParams())  # (compiles on the first call)
             t = time.perf_counter()
             st = stereo_consistency(L, R, disp, ok, region, VerifyParams())["all"]
             times.append(time.perf_counter() - t)
+            if f > 1:
+                st = st.model_copy(update={k: None if getattr(st, k, None) is None else getattr(st, k) * f
+                                           for k in ("disparity_bias_px", "vertical_px", "disparity_bias_noise_px",
+                                                     "vertical_noise_px") if k in type(st).model_fields})
             worst = max(worst, abs(st.disparity_bias_px))
             print(f"  {ph:.1f}  {_stereo_row(st)}  {times[-1] * 1e3:.0f} ms")
         print(f"  max |bias| {worst:.4f} px; median time {np.median(times) * 1e3:.0f} ms")
