@@ -410,6 +410,15 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     unknown = [s for s in ids if s not in man.scenes]
     if unknown:
         raise InputError(man_path, "scenes", "scenes of this dataset", ", ".join(unknown))
+    old = {}
+    rep_path = ds / "verification.json"
+    if rep_path.is_file():
+        try:
+            old = VerificationResult.read(rep_path).scenes
+        except InputError as exc:  # an older schema (figures of a biased sampler, no noise floors): not merged
+            if set(ids) != set(man.scenes):
+                log.warning("%s cannot be merged (%s): every scene is verified again", rep_path, exc)
+                ids = sorted(man.scenes)
     args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json()) for sid in ids]
     results: dict[str, SceneVerification] = {}
 
@@ -422,13 +431,6 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler,
               lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
                                              .model_dump(mode="json")))
-    old = {}
-    rep_path = ds / "verification.json"
-    if rep_path.is_file():
-        try:
-            old = VerificationResult.read(rep_path).scenes
-        except InputError as exc:  # an older schema (figures of a biased sampler, no noise floors): not merged
-            log.warning("%s: not kept (%s); only the scenes verified now are reported", rep_path, exc)
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})
     write_verification_report(rep, ds)
     man.flagged = rep.flagged
