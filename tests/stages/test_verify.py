@@ -211,6 +211,13 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     # a looser threshold lets them through
     r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1", "--max-shift-px", "2"])
     assert r.exit_code == 0 and "0 flagged" in r.output
+    # a verification.json of schema 1 (figures before issue 41) cannot be merged: verifying one scene verifies all
+    old = json.loads((out / "verification.json").read_text())
+    old["schema_version"] = 1
+    (out / "verification.json").write_text(json.dumps(old))
+    rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
+    assert sorted(rep.scenes) == ["000", "001", "clean"] and sorted(rep.flagged) == ["000", "001"]
+    assert VerificationResult.read(out / "verification.json").schema_version == 2
     # the captures moved away: a per-scene reason, no traceback; a missing session: one-line error, exit 2
     shutil.rmtree(sess / "scenes" / "clean")
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
