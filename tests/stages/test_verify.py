@@ -48,6 +48,13 @@ def test_exact_extrinsic_scenes_verify_at_zero(dataset):
         for region in ("all", "fruit", "background"):
             st = v.stereo[region]
             assert abs(st.disparity_bias_px) < 0.03 and abs(st.vertical_px) < 0.03, (sid, region, st)
+            # issue 41: zero within the noise floor each figure reports (a few thousandths of a pixel here)
+            assert 0 < st.disparity_bias_noise_px < 0.01 and 0 < st.vertical_noise_px < 0.01, (sid, region, st)
+            assert abs(st.disparity_bias_px) < 4 * st.disparity_bias_noise_px + 0.005, (sid, region, st)
+            assert abs(st.vertical_px) < 4 * st.vertical_noise_px + 0.005, (sid, region, st)
+        for e in (v.texture_all, v.texture_fruit):
+            assert 0 < e.dx_noise_px < 0.02 and 0 < e.dy_noise_px < 0.02 and 0 < e.correlation_noise < 0.02, (sid, e)
+            assert abs(e.dx_px) < 4 * e.dx_noise_px + 0.005 and abs(e.dy_px) < 4 * e.dy_noise_px + 0.005, (sid, e)
         assert v.stereo["all"].bad_match_pct < 1.0
     man = Manifest.read(out / "manifest.json")
     assert man.flagged == {} and man.scenes["000"].verification.status == "ok"
