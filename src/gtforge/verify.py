@@ -36,8 +36,8 @@ from gtforge.core.geometry import finite_box, mask_bounding_box, transform_point
 from gtforge.core.photometric import (
     MAX_POINTS,
     ShiftAligner,
-    block_noise,
     ShiftEstimate,
+    block_noise,
     even_subset,
     interior_mask,
     local_normalize,

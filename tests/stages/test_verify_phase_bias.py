@@ -24,7 +24,7 @@ from gtforge.records.verification import VerifyParams
 from gtforge.verify import stereo_consistency
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-from bench_verify_phase_bias import band_limited_texture, labelled_inside, plane_pair  # noqa: E402
+from bench_verify_phase_bias import band_limited_texture, labelled_inside, plane_pair
 
 PHASES = np.arange(10) / 10
 TOL_PX = 0.005
@@ -48,7 +48,7 @@ def _keys_bias(L, R, disp):
     its Sobel gradients (``sample_cubic``), at the same pixels."""
     nl = local_normalize(L.astype(np.float32), None, 3.0)
     nr = local_normalize(R.astype(np.float32), None, 3.0)
-    H, W = disp.shape
+    W = disp.shape[1]
     x_match = np.arange(W)[None, :] - disp
     use = interior_mask(np.ones(disp.shape, bool), 2) & (x_match > 3) & (x_match < W - 4) & textured_mask(nl)
     use[:4], use[-4:] = False, False

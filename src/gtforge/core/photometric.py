@@ -3,6 +3,7 @@ the pixels a gradient method can use, cubic sampling, and the translation betwee
 Lucas-Kanade). Used by verify (texture shift, stereo consistency), refine and calibrate-scale."""
 from __future__ import annotations
 
+import itertools
 import math
 
 import cv2
@@ -310,7 +311,7 @@ class ShiftAligner:
         noise = block_noise(At.T, w - rv, 2)
         edges = np.linspace(0, len(w), NOISE_BLOCKS + 1).astype(np.int64)
         zb = []
-        for i0, i1 in zip(edges[:-1], edges[1:]):
+        for i0, i1 in itertools.pairwise(edges):
             ab, bb = rv[i0:i1] - rv[i0:i1].mean(), w[i0:i1] - w[i0:i1].mean()
             den = float(np.sum(ab * ab)) * float(np.sum(bb * bb))
             if den > 0:
@@ -338,7 +339,7 @@ def block_noise(A: np.ndarray, r: np.ndarray, n_params: int) -> np.ndarray | Non
         return None
     edges = np.linspace(0, n, NOISE_BLOCKS + 1).astype(np.int64)
     sols = []
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in itertools.pairwise(edges):
         Ab, rb = A[a:b], r[a:b]
         try:
             sols.append(np.linalg.solve(Ab.T @ Ab, -(Ab.T @ rb))[:n_params])
