@@ -14,6 +14,7 @@ Runs against whichever gtforge is importable, so the same command gives the figu
 
     PYTHONPATH=src .venv/bin/python benchmarks/bench_verify_phase_bias.py sweep
     PYTHONPATH=src .venv/bin/python benchmarks/bench_verify_phase_bias.py synthetic [--scale 0.4] [--scenes 3]
+        [--frontal-disparity-px 37.2]  (the ZED straight above the table: one disparity phase over the table)
     PYTHONPATH=src .venv/bin/python benchmarks/bench_verify_phase_bias.py middlebury
 """
 from __future__ import annotations
@@ -127,15 +128,28 @@ def sweep() -> None:
         print(f"  max |bias| {worst:.4f} px; median time {np.median(times) * 1e3:.0f} ms")
 
 
-def synthetic(scale: float, n_scenes: int, workdir: Path) -> None:
+def synthetic(scale: float, n_scenes: int, workdir: Path, frontal_disparity_px: float | None = None) -> None:
+    import gtforge.synthetic as synth
     from gtforge.core.camera import Rig
+    from gtforge.core.geometry import look_at_T_cam_from_world
     from gtforge.dataset.ground_truth import build_scene_arrays
     from gtforge.io.captures import open_session
     from gtforge.records.dataset import BuildParams
     from gtforge.synthetic import SyntheticTruth, generate_session
     from gtforge.verify import verify_scene
 
-    d = workdir / f"fruit_{scale}_{n_scenes}"
+    d = workdir / f"fruit_{scale}_{n_scenes}" if frontal_disparity_px is None else \
+        workdir / f"fruit_{scale}_{n_scenes}_frontal_{frontal_disparity_px}"
+    if frontal_disparity_px is not None:  # the issue's scenes: the ZED straight above the table (one disparity)
+        default_rig = synth.default_rig
+
+        def frontal_rig(scale: float = 1.0, distance_mm: float = 650.0):
+            rig = default_rig(scale, distance_mm)
+            dist = rig.zed.left.fx_px * rig.zed.baseline_mm / frontal_disparity_px
+            rig.T_zed_from_world = look_at_T_cam_from_world([-40.0, 0.0, dist], [-40.0, 0.0, 0.0], up_world=(0, 1, 0))
+            return rig
+
+        synth.default_rig = frontal_rig
     if not (d / "done").exists():
         generate_session(d, n_board=0, n_scenes=n_scenes, scale=scale, seed=11, depth_noise_mm=0.0, image_noise=1.0)
         (d / "done").write_text("")
@@ -188,6 +202,8 @@ def main() -> None:
     ap.add_argument("what", choices=["sweep", "synthetic", "middlebury"])
     ap.add_argument("--scale", type=float, default=0.4)
     ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--frontal-disparity-px", type=float, default=None,
+                    help="synthetic: the ZED straight above the table, at this disparity (the issue's 74.2 at 2K)")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/gtforge_bench_phase_bias"))
     ap.add_argument("--data", type=Path,
                     default=Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury2014-motorcycle-Q")
@@ -196,7 +212,7 @@ def main() -> None:
         sweep()
     elif a.what == "synthetic":
         a.workdir.mkdir(parents=True, exist_ok=True)
-        synthetic(a.scale, a.scenes, a.workdir)
+        synthetic(a.scale, a.scenes, a.workdir, a.frontal_disparity_px)
     else:
         middlebury(a.data)
 
