@@ -209,9 +209,15 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     return out
 
 
+def _pm(noise_px: float | None) -> str:
+    """`` ± noise`` for a figure's reason (its noise floor), empty when not measured."""
+    return "" if noise_px is None else f" ± {noise_px:.3f}"
+
+
 def _scaled_shift(e: ShiftEstimate, f: int) -> ShiftEstimate:
     return e if e.dx_px is None else e.model_copy(update={
-        k: None if getattr(e, k) is None else getattr(e, k) * f for k in ("dx_px", "dy_px", "dx_noise_px", "dy_noise_px")})
+        k: None if getattr(e, k) is None else getattr(e, k) * f
+        for k in ("dx_px", "dy_px", "dx_noise_px", "dy_noise_px")})
 
 
 def _area(a: np.ndarray, f: int) -> np.ndarray:
@@ -351,10 +357,11 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
                            "(the scene changed between the captures?)")
     for name, s in stereo.items():
         if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
-            reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f} px "
-                           f"(> {params.max_disparity_bias_px} px)")
+            reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f}"
+                           f"{_pm(s.disparity_bias_noise_px)} px (> {params.max_disparity_bias_px} px)")
         if name == "all" and s.vertical_px is not None and abs(s.vertical_px) > params.max_vertical_px:
-            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f} px (> {params.max_vertical_px} px; "
+            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f}{_pm(s.vertical_noise_px)} px "
+                           f"(> {params.max_vertical_px} px; "
                            "is the rectification the calibration's?)")
         if name == "all" and s.bad_match_pct is not None and s.bad_match_pct > params.max_bad_match_pct:
             reasons.append(f"stereo: {s.bad_match_pct:.1f} % of textured pixels match clearly better off the "
