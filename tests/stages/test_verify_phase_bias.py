@@ -178,3 +178,17 @@ def test_noise_floors_in_the_record_and_the_html_report(tmp_path):
     (tmp_path / "old.json").write_text(json.dumps(old))
     with pytest.raises(InputError, match="schema_version"):
         VerificationResult.read(tmp_path / "old.json")
+
+
+def test_spline_prefilter_is_scipys():
+    """The compiled prefilter gives scipy's mirror-mode coefficients (scale_corrections.spline_coefficients), also for
+    images of 2 and 3 pixels and stacks."""
+    from gtforge.core.scale_corrections import spline_coefficients
+
+    rng = np.random.default_rng(0)
+    for shape in ((30, 40), (2, 5), (5, 2), (3, 3), (1, 4), (61, 29)):
+        a = rng.random(shape) * 255
+        ref = spline_coefficients(a[None])[0]
+        np.testing.assert_allclose(spline_prefilter(a), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    stack = rng.random((2, 20, 30))
+    np.testing.assert_allclose(spline_prefilter(stack), spline_coefficients(stack), atol=1e-10)

@@ -138,13 +138,61 @@ def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def spline_prefilter(img: np.ndarray) -> np.ndarray:
     """Cubic B-spline coefficients of ``img`` (H, W), or of each image of a stack (K, H, W), float64 (mirror
-    boundary, as ``gtforge.core.scale_corrections.spline_coefficients``): what ``sample_spline`` interpolates."""
-    from scipy import ndimage
-
+    boundary): what ``sample_spline`` interpolates. The same coefficients as ``gtforge.core.scale_corrections
+    .spline_coefficients`` (scipy's ``spline_filter``, ``mode="mirror"``; within 1e-12 relative), by a compiled
+    recursive filter several times faster."""
     a = np.asarray(img, np.float64)
-    if a.ndim == 2:
-        return ndimage.spline_filter(a, order=3, mode="mirror")
-    return np.stack([ndimage.spline_filter(x, order=3, mode="mirror") for x in a])
+    stack = a.reshape((-1,) + a.shape[-2:])
+    out = np.empty(stack.shape, np.float64)
+    for i, x in enumerate(stack):
+        cols = np.array(x, np.float64)  # along the columns (axis 0), in place
+        _bspline_axis0(cols)
+        rows = np.ascontiguousarray(cols.T)  # then along the rows
+        _bspline_axis0(rows)
+        out[i] = rows.T
+    return out.reshape(a.shape)
+
+
+@numba.njit(cache=True)
+def _bspline_axis0(c):
+    """In place: the cubic B-spline prefilter of every column of ``c`` (N, M) along axis 0 (Unser's causal and
+    anti-causal recursions with pole sqrt(3) - 2, whole-sample mirror boundary, gain 6), the inner loop along the
+    contiguous rows."""
+    N, M = c.shape
+    if N == 1:
+        return
+    z = math.sqrt(3.0) - 2.0
+    for j in range(M):
+        c[0, j] *= 6.0
+    for k in range(1, N):
+        for j in range(M):
+            c[k, j] *= 6.0
+    # causal initialisation: sum_k z^k s~(k) over the mirror-extended signal's period 2N - 2 (/(1 - z^(2N-2))), or
+    # the first terms where z^k is below double precision
+    period = 2 * N - 2
+    horizon = min(period, 40)
+    first = np.zeros(M)
+    zk = 1.0
+    for k in range(horizon):
+        kk = k if k < N else period - k
+        for j in range(M):
+            first[j] += zk * c[kk, j]
+        zk *= z
+    scale = 1.0 / (1.0 - z ** period) if horizon == period else 1.0
+    last_prev = np.empty(M)
+    for j in range(M):
+        c[0, j] = first[j] * scale
+    for k in range(1, N):
+        for j in range(M):
+            c[k, j] += z * c[k - 1, j]
+    # anti-causal initialisation (mirror): z / (z^2 - 1) (c+[N-1] + z c+[N-2])
+    f = z / (z * z - 1.0)
+    for j in range(M):
+        last_prev[j] = c[N - 1, j]
+        c[N - 1, j] = f * (c[N - 1, j] + z * c[N - 2, j])
+    for k in range(N - 2, -1, -1):
+        for j in range(M):
+            c[k, j] = z * (c[k + 1, j] - c[k, j])
 
 
 @numba.njit(cache=True, inline="always")
