@@ -179,7 +179,6 @@ def _bspline_axis0(c):
             first[j] += zk * c[kk, j]
         zk *= z
     scale = 1.0 / (1.0 - z ** period) if horizon == period else 1.0
-    last_prev = np.empty(M)
     for j in range(M):
         c[0, j] = first[j] * scale
     for k in range(1, N):
@@ -188,7 +187,6 @@ def _bspline_axis0(c):
     # anti-causal initialisation (mirror): z / (z^2 - 1) (c+[N-1] + z c+[N-2])
     f = z / (z * z - 1.0)
     for j in range(M):
-        last_prev[j] = c[N - 1, j]
         c[N - 1, j] = f * (c[N - 1, j] + z * c[N - 2, j])
     for k in range(N - 2, -1, -1):
         for j in range(M):
