@@ -299,8 +299,8 @@ class ShiftAligner:
     """Translation ``d`` with ``img(u + d) ~ ref(u)`` over any mask of pixels (both images already normalised).
 
     Inverse-compositional Lucas-Kanade (the Hessian from ``ref``'s gradients) with a free gain and offset, ``img``
-    sampled by cubic B-splines (``sample_spline``, phase-unbiased) at the mask's points only; a coarse pass on copies blurred by 2 px first, so shifts of a
-    few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
+    sampled at the mask's points only, by cubic B-spline (``sample_spline``, phase-unbiased) in the fine pass; a
+    coarse pass on copies blurred by 2 px first (Keys' cubic), so shifts of a few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
 
     SIGMAS = (2.0, 0.0)
     COARSE_TOL_PX = 0.01
@@ -312,7 +312,11 @@ class ShiftAligner:
             r = cv2.GaussianBlur(ref, (0, 0), sigma) if sigma else ref
             i = cv2.GaussianBlur(img, (0, 0), sigma) if sigma else img
             self.levels.append((r, cv2.Sobel(r, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8), spline_prefilter(i)))
+                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8),
+                                # the coarse pass only brings the fine one near its solution: Keys' cubic there (no
+                                # prefilter); the fine pass, which gives the figure, samples the B-spline
+                                spline_prefilter(i) if sigma == self.SIGMAS[-1]
+                                else np.ascontiguousarray(i, np.float32)))
 
     def align(self, mask: np.ndarray, min_pixels: int = 400, iterations: int = 30, tol_px: float = 1e-4,
               max_points: int = MAX_POINTS) -> ShiftEstimate:
@@ -342,7 +346,9 @@ class ShiftAligner:
             except np.linalg.LinAlgError:
                 return ShiftEstimate(n_pixels=n)
             for _ in range(iterations):
-                step = inv @ (At @ (sample_spline(coeffs, uf + d[0], vf + d[1]) - rv))
+                sampled = sample_spline(coeffs, uf + d[0], vf + d[1]) if level == len(self.levels) - 1 else \
+                    sample_cubic(coeffs, uf + d[0], vf + d[1])
+                step = inv @ (At @ (sampled - rv))
                 d -= step[:2]  # inverse composition of a translation
                 if np.abs(d).max() > 20:  # diverged: nothing to align
                     return ShiftEstimate(n_pixels=n)
