@@ -13,12 +13,15 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
 * **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
   Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
   (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
-  ``gtforge.core.rectification`` reports it for board corners), per region. A textured pixel's match is "clearly worse" when the
-  5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps of 0.5 px) by
-  more than ``bad_match_ratio``; their share is reported.
+  ``gtforge.core.rectification`` reports it for board corners), per region. The right image is sampled by cubic
+  B-spline with its own derivatives (``sample_spline``): phase-unbiased, where Keys' cubic convolution read a false
+  bias on surfaces of one disparity phase (a fronto-parallel table, issue 41). A textured pixel's match is "clearly
+  worse" when the 5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps
+  of 0.5 px) by more than ``bad_match_ratio``; their share is reported.
 
-A scene is **flagged** when a figure passes its threshold (``VerifyParams``, documented defaults in px at the
-dataset's resolution). Nothing here changes the ground truth.
+Every figure comes with its noise floor (``*_noise_px``, ``correlation_noise``: 1 sigma, what exact labels give on
+this scene; ``gtforge.core.photometric.block_noise``). A scene is **flagged** when a figure passes its threshold
+(``VerifyParams``, documented defaults in px at the dataset's resolution). Nothing here changes the ground truth.
 """
 from __future__ import annotations
 
@@ -84,6 +87,10 @@ class Window(NamedTuple):
 # sigma 3 px: 12 px), the aligner's 2 px blur (8 px), Sobel and cubic taps (3 px) and shifts of a few px, so that every
 # figure is the one computed on the whole image.
 WINDOW_MARGIN_PX = 32
+# Gaussian blur (work px) of both normalised images before the stereo check's Gauss-Newton: takes out the texture near
+# the Nyquist frequency, where every cubic interpolator's error depends on the sub-pixel phase (and where a reduction
+# by the work factor aliases); with the B-spline sampling it leaves at most 0.002 px of phase-dependent bias on the
+# textured-plane sweep (docs/design/accuracy.md, issue 41)
 STEREO_BLUR_PX = 1.0
 
 
