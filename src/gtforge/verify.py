@@ -13,12 +13,15 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
 * **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
   Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
   (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
-  ``gtforge.core.rectification`` reports it for board corners), per region. A textured pixel's match is "clearly worse" when the
-  5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps of 0.5 px) by
-  more than ``bad_match_ratio``; their share is reported.
+  ``gtforge.core.rectification`` reports it for board corners), per region. The right image is sampled by cubic
+  B-spline with its own derivatives (``sample_spline``): phase-unbiased, where Keys' cubic convolution read a false
+  bias on surfaces of one disparity phase (a fronto-parallel table, issue 41). A textured pixel's match is "clearly
+  worse" when the 5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps
+  of 0.5 px) by more than ``bad_match_ratio``; their share is reported.
 
-A scene is **flagged** when a figure passes its threshold (``VerifyParams``, documented defaults in px at the
-dataset's resolution). Nothing here changes the ground truth.
+Every figure comes with its noise floor (``*_noise_px``, ``correlation_noise``: 1 sigma, what exact labels give on
+this scene; ``gtforge.core.photometric.block_noise``). A scene is **flagged** when a figure passes its threshold
+(``VerifyParams``, documented defaults in px at the dataset's resolution). Nothing here changes the ground truth.
 """
 from __future__ import annotations
 
@@ -37,12 +40,14 @@ from gtforge.core.photometric import (
     MAX_POINTS,
     ShiftAligner,
     ShiftEstimate,
+    block_noise,
     even_subset,
     interior_mask,
     local_normalize,
     pixels_of,
-    sample_cubic,
+    sample_spline,
     smooth_depth_mask,
+    spline_prefilter,
     take_at,
     textured_mask,
     to_gray,
@@ -83,6 +88,11 @@ class Window(NamedTuple):
 # sigma 3 px: 12 px), the aligner's 2 px blur (8 px), Sobel and cubic taps (3 px) and shifts of a few px, so that every
 # figure is the one computed on the whole image.
 WINDOW_MARGIN_PX = 32
+# Gaussian blur (work px) of both normalised images before the stereo check's Gauss-Newton: takes out the texture near
+# the Nyquist frequency, where every cubic interpolator's error depends on the sub-pixel phase (and where a reduction
+# by the work factor aliases); with the B-spline sampling it leaves at most 0.002 px of phase-dependent bias on the
+# textured-plane sweep (docs/design/accuracy.md, issue 41)
+STEREO_BLUR_PX = 1.0
 
 
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
@@ -151,9 +161,10 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     v, u, idx = pixels_of(use)
     reg = take_at(region, idx)
     regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
-    # the right image, its gradients: one stack, sampled together
-    right = np.stack([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                      cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)])
+    # the right image as a cubic B-spline (sampled with its own derivatives: phase-unbiased, sample_spline; Keys'
+    # cubic convolution and Sobel gradients gave up to +-0.03 px of false bias depending on the disparity's phase)
+    right = spline_prefilter(cv2.GaussianBlur(nr, (0, 0), STEREO_BLUR_PX) if STEREO_BLUR_PX else nr)
+    nl_gn = cv2.GaussianBlur(nl, (0, 0), STEREO_BLUR_PX) if STEREO_BLUR_PX else nl
     # share of clearly worse matches: 5x5 SAD of the normalised images at GT and at GT +- 0.5, +- 1 px, over the used
     # pixels' bounding box + 2 px (the SAD window)
     worse = np.zeros(len(v), bool)  # at the used pixels (v, u)
@@ -182,10 +193,10 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         keep = even_subset(n, MAX_POINTS)
         vk, uk, xr = vs[keep], us[keep], xr[keep]
         b, dy = 0.0, 0.0
-        lv = take_at(nl, vk * w + uk).astype(np.float64)
+        lv = take_at(nl_gn, vk * w + uk).astype(np.float64)
         yr = vk.astype(np.float64)
         for _ in range(20):
-            w_, wx, wy = sample_cubic(right, xr - b, yr + dy)
+            w_, wx, wy = sample_spline(right, xr - b, yr + dy, derivs=True)
             # right(u - d - b, v + dy): d/db = -gx, d/d(dy) = +gy
             A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
             step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
@@ -195,14 +206,26 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         if max(abs(b), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
             continue
+        # the noise floor: the last linearisation solved per band of pixels (block_noise; A, w_ are at the solution
+        # within 1e-4 px)
+        noise = block_noise(A, w_ - lv, 2)
         # vertical disparity v_left - v_right, as gtforge.core.rectification reports it for board corners
         out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
-                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n)
+                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n,
+                                   disparity_bias_noise_px=None if noise is None else float(noise[0]),
+                                   vertical_noise_px=None if noise is None else float(noise[1]))
     return out
 
 
+def _pm(noise_px: float | None) -> str:
+    """`` ± noise`` for a figure's reason (its noise floor), empty when not measured."""
+    return "" if noise_px is None else f" ± {noise_px:.3f}"
+
+
 def _scaled_shift(e: ShiftEstimate, f: int) -> ShiftEstimate:
-    return e if e.dx_px is None else e.model_copy(update={"dx_px": e.dx_px * f, "dy_px": e.dy_px * f})
+    return e if e.dx_px is None else e.model_copy(update={
+        k: None if getattr(e, k) is None else getattr(e, k) * f
+        for k in ("dx_px", "dy_px", "dx_noise_px", "dy_noise_px")})
 
 
 def _area(a: np.ndarray, f: int) -> np.ndarray:
@@ -320,9 +343,9 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
-        stereo = {k: v.model_copy(update={"disparity_bias_px": None if v.disparity_bias_px is None
-                                          else v.disparity_bias_px * f,
-                                          "vertical_px": None if v.vertical_px is None else v.vertical_px * f})
+        stereo = {k: v.model_copy(update={key: None if getattr(v, key) is None else getattr(v, key) * f
+                                          for key in ("disparity_bias_px", "vertical_px", "disparity_bias_noise_px",
+                                                      "vertical_noise_px")})
                   for k, v in stereo.items()}
         tile_fn = tile_shifts
 
@@ -342,10 +365,11 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
                            "(the scene changed between the captures?)")
     for name, s in stereo.items():
         if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
-            reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f} px "
-                           f"(> {params.max_disparity_bias_px} px)")
+            reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f}"
+                           f"{_pm(s.disparity_bias_noise_px)} px (> {params.max_disparity_bias_px} px)")
         if name == "all" and s.vertical_px is not None and abs(s.vertical_px) > params.max_vertical_px:
-            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f} px (> {params.max_vertical_px} px; "
+            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f}{_pm(s.vertical_noise_px)} px "
+                           f"(> {params.max_vertical_px} px; "
                            "is the rectification the calibration's?)")
         if name == "all" and s.bad_match_pct is not None and s.bad_match_pct > params.max_bad_match_pct:
             reasons.append(f"stereo: {s.bad_match_pct:.1f} % of textured pixels match clearly better off the "
@@ -401,6 +425,15 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     unknown = [s for s in ids if s not in man.scenes]
     if unknown:
         raise InputError(man_path, "scenes", "scenes of this dataset", ", ".join(unknown))
+    old = {}
+    rep_path = ds / "verification.json"
+    if rep_path.is_file():
+        try:
+            old = VerificationResult.read(rep_path).scenes
+        except InputError as exc:  # an older schema (figures of a biased sampler, no noise floors): not merged
+            if set(ids) != set(man.scenes):
+                log.warning("%s cannot be merged (%s): every scene is verified again", rep_path, exc)
+                ids = sorted(man.scenes)
     args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json()) for sid in ids]
     results: dict[str, SceneVerification] = {}
 
@@ -413,10 +446,6 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler,
               lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
                                              .model_dump(mode="json")))
-    old = {}
-    rep_path = ds / "verification.json"
-    if rep_path.is_file():
-        old = VerificationResult.read(rep_path).scenes
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})
     write_verification_report(rep, ds)
     man.flagged = rep.flagged

@@ -50,6 +50,13 @@ def test_exact_extrinsic_scenes_verify_at_zero(dataset):
         for region in ("all", "fruit", "background"):
             st = v.stereo[region]
             assert abs(st.disparity_bias_px) < 0.03 and abs(st.vertical_px) < 0.03, (sid, region, st)
+            # issue 41: zero within the noise floor each figure reports (a few thousandths of a pixel here)
+            assert 0 < st.disparity_bias_noise_px < 0.01 and 0 < st.vertical_noise_px < 0.01, (sid, region, st)
+            assert abs(st.disparity_bias_px) < 4 * st.disparity_bias_noise_px + 0.005, (sid, region, st)
+            assert abs(st.vertical_px) < 4 * st.vertical_noise_px + 0.005, (sid, region, st)
+        for e in (v.texture_all, v.texture_fruit):
+            assert 0 < e.dx_noise_px < 0.02 and 0 < e.dy_noise_px < 0.02 and 0 < e.correlation_noise < 0.02, (sid, e)
+            assert abs(e.dx_px) < 4 * e.dx_noise_px + 0.005 and abs(e.dy_px) < 4 * e.dy_noise_px + 0.005, (sid, e)
         assert v.stereo["all"].bad_match_pct < 1.0
     man = Manifest.read(out / "manifest.json")
     assert man.flagged == {} and man.scenes["000"].verification.status == "ok"
@@ -213,6 +220,13 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     # a looser threshold lets them through
     r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1", "--max-shift-px", "2"])
     assert r.exit_code == 0 and "0 flagged" in r.output
+    # a verification.json of schema 1 (figures before issue 41) cannot be merged: verifying one scene verifies all
+    old = json.loads((out / "verification.json").read_text())
+    old["schema_version"] = 1
+    (out / "verification.json").write_text(json.dumps(old))
+    rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
+    assert sorted(rep.scenes) == ["000", "001", "clean"] and sorted(rep.flagged) == ["000", "001"]
+    assert VerificationResult.read(out / "verification.json").schema_version == 2
     # the captures moved away: a per-scene reason, no traceback; a missing session: one-line error, exit 2
     shutil.rmtree(sess / "scenes" / "clean")
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
