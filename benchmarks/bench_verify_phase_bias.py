@@ -99,8 +99,8 @@ def _stereo_row(st):
 
 def sweep() -> None:
     from gtforge.core.regions import REGION_BG
+    from gtforge.dataset.scene_verification import _area, stereo_consistency
     from gtforge.records.verification import VerifyParams
-    from gtforge.verify import _area, stereo_consistency
 
     T = band_limited_texture()
     for name, su, sv, f in (("fronto-parallel", 0.0, 0.0, 1), ("slanted 0.03 u + 0.01 v", 0.03, 0.01, 1),
@@ -133,10 +133,10 @@ def synthetic(scale: float, n_scenes: int, workdir: Path, frontal_disparity_px: 
     from gtforge.core.camera import Rig
     from gtforge.core.geometry import look_at_T_cam_from_world
     from gtforge.dataset.ground_truth import build_scene_arrays
+    from gtforge.dataset.scene_verification import verify_scene
     from gtforge.io.captures import open_session
     from gtforge.records.dataset import BuildParams
     from gtforge.synthetic import SyntheticTruth, generate_session
-    from gtforge.verify import verify_scene
 
     d = workdir / f"fruit_{scale}_{n_scenes}" if frontal_disparity_px is None else \
         workdir / f"fruit_{scale}_{n_scenes}_frontal_{frontal_disparity_px}"
@@ -179,9 +179,9 @@ def synthetic(scale: float, n_scenes: int, workdir: Path, frontal_disparity_px: 
 
 def middlebury(folder: Path) -> None:
     from gtforge.core.regions import REGION_BG
+    from gtforge.dataset.scene_verification import stereo_consistency
     from gtforge.io.formats import read_image, read_pfm
     from gtforge.records.verification import VerifyParams
-    from gtforge.verify import stereo_consistency
 
     left, right = read_image(folder / "im0.png"), read_image(folder / "im1.png")
     disp = read_pfm(folder / "disp0GT.pfm")

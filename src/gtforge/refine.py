@@ -41,12 +41,12 @@ from gtforge.core.photometric import (
 from gtforge.core.render import render_texture
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
 from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import VerifyParams
-from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.refine")
 

@@ -9,12 +9,12 @@ from made_once import session_spec
 
 from gtforge.core.geometry import T_from_rotvec
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import predicted_shift, verify_scene
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams, Manifest
 from gtforge.records.verification import VerificationResult, VerifyParams
-from gtforge.verify import predicted_shift, verify_dataset, verify_scene
-
+from gtforge.verify import verify_dataset
 
 MOVED_SESSION_SPEC = session_spec("moved_session", "moved", n_board=0, n_scenes=2, scale=0.4, seed=21,
                                   depth_noise_mm=0.03, image_noise=1.5, fruit_motion_mm={0: (0.5, 0.0, 0.0), 1: (0.3,
@@ -98,7 +98,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
     crashed on the shapes before). A work width of 300 px forces a factor 3 on this 883 px wide scene."""
     import cv2
 
-    from gtforge.verify import write_verification_overlay
+    from gtforge.dataset.scene_verification import write_verification_overlay
 
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(moved_session)
@@ -118,7 +118,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
 def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true_calibration, work_width_px):
     """A build decodes the ZED images only down to zed_rows_used (the window around the GT, at factor 1 and 3 here):
     images cut there give exactly the figures of the whole images; one row shorter they are refused."""
-    from gtforge.verify import zed_rows_used
+    from gtforge.dataset.scene_verification import zed_rows_used
 
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(session_dir)

@@ -20,8 +20,8 @@ from gtforge.core.photometric import (
     textured_mask,
 )
 from gtforge.core.regions import REGION_BG
+from gtforge.dataset.scene_verification import stereo_consistency
 from gtforge.records.verification import VerifyParams
-from gtforge.verify import stereo_consistency
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from bench_verify_phase_bias import band_limited_texture, labelled_inside, plane_pair
@@ -95,7 +95,7 @@ def test_stereo_figures_read_zero_at_every_disparity_phase(texture, slope, f):
     """Exact labels, disparity 20 + phase (+ slope): |bias| and |vertical| <= 0.005 px at each of 10 phases, with a
     noise floor of a few thousandths. ``f = 2``: images twice the size reduced as verify reduces a ZED 2K (the phase
     is the reduced disparity's; figures in full-resolution pixels: Keys gave up to 0.13 px there)."""
-    from gtforge.verify import _area
+    from gtforge.dataset.scene_verification import _area
 
     for ph in PHASES:
         L, R, disp = plane_pair(texture, f * (20.0 + ph), *slope, shape=(200 * f, 400 * f))
@@ -204,9 +204,9 @@ def test_a_fruit_scene_on_a_fronto_parallel_table_verifies_at_zero(tmp_path, mon
     from gtforge.core.camera import Rig
     from gtforge.core.geometry import look_at_T_cam_from_world
     from gtforge.dataset.ground_truth import build_scene_arrays
+    from gtforge.dataset.scene_verification import verify_scene
     from gtforge.io.captures import open_session
     from gtforge.records.dataset import BuildParams
-    from gtforge.verify import verify_scene
 
     default_rig = synth.default_rig
 
