@@ -30,6 +30,8 @@ from gtforge.core.board_extrinsic import jackknife_scale
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import perturb_left, pose_difference, rotvec_between, transform_points
 from gtforge.core.photometric import (
+    even_subset,
+    huber_system,
     interior_mask,
     local_normalize,
     sample_spline,
@@ -93,9 +95,8 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
     v, u = np.nonzero(use)
     if len(v) < vp.min_pixels:
         return None
-    if len(v) > params.points_per_scene:
-        keep = np.linspace(0, len(v) - 1, params.points_per_scene).round().astype(np.int64)
-        v, u = v[keep], u[keep]
+    keep = even_subset(len(v), params.points_per_scene)
+    v, u = v[keep], u[keep]
     cam = rig.zed.left
     z = depth_zed_mm[v, u].astype(np.float64)
     X_zed = cam.unproject(np.stack([u, v], axis=1), z)
@@ -137,17 +138,8 @@ def _scene_system(sp: ScenePoints, T: np.ndarray, rig: Rig, params: RefineParams
     # X = exp(w) R X_mech + t + dt: dX/dw = -[R X_mech]x, dX/ddt = I
     dI_dw = np.cross(RX, dI_dX)  # (a . (-[p]x w)) = (p x a) . w
     J = np.concatenate([dI_dw, dI_dX, -sp.value[:, None], -np.ones((len(r), 1))], axis=1)
-    w = np.where(np.abs(r) <= params.huber, 1.0, params.huber / np.maximum(np.abs(r), 1e-12))
-    Jw = J * w[:, None]
-    S = None
-    if tile_px is not None:
-        psi = Jw * r[:, None]  # each point's score
-        tx = np.floor(u / tile_px).astype(np.int64)
-        ty = np.floor(v / tile_px).astype(np.int64)
-        _, tile = np.unique(ty * (int(sp.zed_norm.shape[1] / tile_px) + 2) + tx, return_inverse=True)
-        g = np.stack([np.bincount(tile.ravel(), weights=psi[:, j]) for j in range(psi.shape[1])], axis=1)
-        S = g.T @ g
-    return Jw.T @ J, Jw.T @ r, float(np.sum(w * r * r)), len(r), S
+    H, g, w, S = huber_system(J, r, params.huber, u, v, tile_px)
+    return H, g, float(np.sum(w * r * r)), len(r), S
 
 
 def _assemble(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams, tile_px: float | None = None):

@@ -52,6 +52,7 @@ from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.geometry import invert_T, perturb_left, transform_points
 from gtforge.core.photometric import (
     even_subset,
+    huber_system,
     interior_mask,
     local_normalize,
     smooth_depth_mask,
@@ -171,16 +172,8 @@ def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, ti
         cols += [-gx * sp.g_pose[:, 0], -gx * sp.g_pose[:, 1], -gx * sp.g_pose[:, 2]]
     J = np.stack(cols + [gy, left, np.ones_like(x)], axis=1)
     r = w_ - left
-    wt = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
-    Jw = J * wt[:, None]
-    S = None
-    if tile_px is not None:
-        psi = Jw * r[:, None]
-        tile = (np.floor(sp.v / tile_px).astype(np.int64) * 100000 + np.floor(sp.u / tile_px).astype(np.int64))
-        _, idx = np.unique(tile, return_inverse=True)
-        g = np.stack([np.bincount(idx.ravel(), weights=psi[:, j]) for j in range(J.shape[1])], axis=1)
-        S = g.T @ g
-    return Jw.T @ J, Jw.T @ r, S, r
+    H, g, _, S = huber_system(J, r, huber, sp.u, sp.v, tile_px)
+    return H, g, S, r
 
 
 def pose_effect_px(scenes: list[ScenePixels]) -> np.ndarray:

@@ -415,3 +415,27 @@ def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
 
 def to_gray(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+
+
+# tile keys ty * TILE_KEY + tx sort as (ty, tx): the tiles' order, and so the sums below, do not depend on the image size
+TILE_KEY = 1 << 32
+
+
+def huber_system(J: np.ndarray, r: np.ndarray, huber: float, u: np.ndarray | None = None,
+                 v: np.ndarray | None = None, tile_px: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """One Gauss-Newton step's Huber-IRLS normal equations for residuals ``r`` with Jacobian ``J`` (photometric fits:
+    refine's extrinsic, calibrate-scale's terms): ``(J^T W J, J^T W r, w, S)``, ``w`` the Huber weights. With
+    ``tile_px``, ``S`` sums the outer products of the score summed over ``tile_px``-square tiles of the image the
+    points ``(u, v)`` lie in: the cluster-robust "meat" of the sandwich covariance ``H^-1 S H^-1`` (neighbouring pixels'
+    residuals are correlated; tiles are about independent)."""
+    w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
+    Jw = J * w[:, None]
+    S = None
+    if tile_px is not None:
+        psi = Jw * r[:, None]  # each point's score
+        tile = np.floor(v / tile_px).astype(np.int64) * TILE_KEY + np.floor(u / tile_px).astype(np.int64)
+        _, idx = np.unique(tile, return_inverse=True)
+        g = np.stack([np.bincount(idx.ravel(), weights=psi[:, j]) for j in range(J.shape[1])], axis=1)
+        S = g.T @ g
+    return Jw.T @ J, Jw.T @ r, w, S
