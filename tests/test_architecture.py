@@ -20,8 +20,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("reports", ("gtforge.reports",)),
     ("dataset", ("gtforge.dataset",)),
     ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
-                "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
-    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.cli")),
+                "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training",
+                "gtforge.importer")),
+    ("recipes", ("gtforge.synthetic", "gtforge.synthetic_recordings", "gtforge.demo", "gtforge.precompile",
+                 "gtforge.cli")),
 ]
 
 

@@ -27,9 +27,9 @@ BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 # Topic defaults, most specific first (zed-ros2-wrapper 4.x and 5.x, realsense-ros 4.x with and without the doubled
 # namespace, ROS 1 wrappers); a user's --*-topic replaces the list. ``*`` matches one or more name components.
 LEFT_TOPICS = ("*/left/image_rect_color", "*/left/color/rect/image", "*/left/image_rect_gray", "*/left/image_rect",
-               "*/left/image_raw", "*/infra1/image_rect_raw")
+               "*/left/image_raw")
 RIGHT_TOPICS = ("*/right/image_rect_color", "*/right/color/rect/image", "*/right/image_rect_gray",
-                "*/right/image_rect", "*/right/image_raw", "*/infra2/image_rect_raw")
+                "*/right/image_rect", "*/right/image_raw")
 DEPTH_TOPICS = ("*/aligned_depth_to_color/image_raw", "*/depth/image_rect_raw", "*/depth/image_raw",
                 "*/depth_registered/image_raw", "*/depth/depth_registered", "*/depth/image", "*/Depth_0/image/data")
 COLOR_TOPICS = ("*/color/image_raw", "*/color/image_rect_color", "*/rgb/image_raw", "*/rgb/image_rect_color",
