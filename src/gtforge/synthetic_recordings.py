@@ -74,8 +74,12 @@ def _shifted(a: np.ndarray, px: int) -> np.ndarray:
 def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, storage: str = "mcap", fps: float = 15.0,
                           still_frames: int = 4, motion_frames: int = 2, jumps: tuple[int, ...] = (),
                           depth_clock_s: float = 1000.0, stereo_clock_s: float = 4321.0, phase_ms: float = 7.0,
-                          jitter_ms: float = 2.0, depth_encoding: str = "32FC1", seed: int = 0) -> RecordingsTruth:
-    """Write ``out_dir/rgbd`` and ``out_dir/zed`` (rosbag2 folders) from the hand-laid session ``session_dir``."""
+                          jitter_ms: float = 2.0, depth_encoding: str = "32FC1", seed: int = 0,
+                          captures: list[str] | None = None, info_camera: PinholeCamera | None = None) -> RecordingsTruth:
+    """Write ``out_dir/rgbd`` and ``out_dir/zed`` (rosbag2 folders) from the hand-laid session ``session_dir``.
+
+    ``captures``: these capture folders only (``board/000``...; default all, boards first); ``info_camera``: the
+    depth camera's camera_info says this camera instead of the session's (a wrong file, for the error tests)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     session_dir, out_dir = Path(session_dir), Path(out_dir)
@@ -83,7 +87,7 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
     rng = np.random.default_rng(seed)
     mech = CameraFile.read(session_dir / "mech_intrinsics.yaml").camera
     zed = StereoCalibrationFile.read(session_dir / "zed_calibration.yaml").zed
-    caps = [f"{k}/{p.name}" for k in ("board", "scenes") for p in sorted((session_dir / k).glob("[0-9]*"))]
+    caps = captures or [f"{k}/{p.name}" for k in ("board", "scenes") for p in sorted((session_dir / k).glob("[0-9]*"))]
     # the timeline: per frame, the capture shown and the image shift (0 = still)
     timeline: list[tuple[str, int]] = []
     for i, c in enumerate(caps):
@@ -132,8 +136,8 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
                     msgs = {"color": _image(ts, t, "camera_color_optical_frame", tex,
                                             "rgb8" if tex.ndim == 3 else "mono8"),
                             "depth": _image(ts, t, "camera_color_optical_frame", depth, enc),
-                            "color_info": _info(ts, t, "camera_color_optical_frame", mech),
-                            "depth_info": _info(ts, t, "camera_color_optical_frame", mech)}
+                            "color_info": _info(ts, t, "camera_color_optical_frame", info_camera or mech),
+                            "depth_info": _info(ts, t, "camera_color_optical_frame", info_camera or mech)}
                 else:
                     t = int(t_zed[k])
 
