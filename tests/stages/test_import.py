@@ -187,3 +187,32 @@ def test_without_the_extra_the_error_names_it(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(InputError, match=r"gtforge\[recordings\]"):
         Bag(tmp_path / "x.bag")
+
+
+@pytest.mark.slow
+def test_import_calibrate_build_gives_the_hand_laid_ground_truth(session_dir, calibration, tmp_path):
+    """The conftest session (7 boards, 3 scenes, 0.4x) recorded and imported, then calibrate -> build-dataset on both:
+    the same extrinsic and the same ground truth (EPE to each other <= 0.001 px), as exact against the truth."""
+    from gtforge.build_dataset import build_dataset
+    from gtforge.calibrate import calibrate
+    from gtforge.io.formats import read_pfm
+    from gtforge.records.calibration import CalibrateParams
+
+    recs = write_ros2_recordings(session_dir, tmp_path / "rec", storage="mcap", jumps=(8,))
+    imported = tmp_path / "imported"
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], imported,
+                          ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    assert (s.boards, s.scenes) == (7, 3)
+    res = calibrate(imported, tmp_path / "calibration.yaml", CalibrateParams(use_depth=False, leave_one_out=False))
+    assert np.abs(res.rig.T_zed_from_mech - calibration[1].rig.T_zed_from_mech).max() < 1e-6
+    epe = {}
+    for name, sess, calib in (("hand", session_dir, calibration[0]), ("imported", imported,
+                                                                       tmp_path / "calibration.yaml")):
+        out = tmp_path / f"ds_{name}"
+        build_dataset(sess, calib, out, workers=1, scenes=["000"])
+        epe[name] = read_pfm(out / "scenes" / "000" / "disp0GT.pfm")
+    ok = np.isfinite(epe["hand"]) & np.isfinite(epe["imported"])
+    assert np.array_equal(np.isfinite(epe["hand"]), np.isfinite(epe["imported"]))
+    assert np.abs(epe["hand"] - epe["imported"])[ok].mean() <= 0.001
+    truth = np.load(session_dir / "truth" / "scene_000.npz")["zed_disparity_px"]
+    assert np.abs(epe["imported"] - truth)[ok & np.isfinite(truth)].mean() < 0.05
