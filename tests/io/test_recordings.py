@@ -184,3 +184,18 @@ def test_camera_info_models_and_stereo_baseline():
     assert s.baseline_mm == pytest.approx(63.0) and s.doffs_px == pytest.approx(2.0)
     with pytest.raises(InputError, match="rectified right camera"):
         stereo_from_infos(info("plumb_bob", [0] * 5), info("plumb_bob", [0] * 5), "f", ("l", "r"))
+
+
+def test_raw_stereo_topics_are_rectified_with_their_camera_info():
+    from gtforge.io.ros_recordings import _rectify_map
+
+    K = np.array([[300.0, 0, 80], [0, 300, 60], [0, 0, 1]])
+    D = np.array([-0.2, 0.05, 0.001, -0.001, 0.0])
+    img = np.random.default_rng(2).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    img = cv2.GaussianBlur(img, (7, 7), 2)
+    info = _Msg(K=K.ravel(), D=D, R=np.eye(3).ravel(), P=np.c_[K, np.zeros(3)].ravel(), width=160, height=120)
+    out = _rectify_map(info)(img)
+    ref = cv2.undistort(img, K, D)
+    assert np.abs(out.astype(int) - ref)[10:-10, 10:-10].mean() < 1.0
+    info.D = np.zeros(5)
+    assert _rectify_map(info) is None  # nothing to undo

@@ -118,9 +118,33 @@ def _ros_stereo(bag: Bag, topics: Topics) -> StereoRecording | None:
         raise InputError(bag.path, "camera_info", f"CameraInfo beside {left_t} and {right_t}", "missing",
                          "record the left and right camera_info topics")
     stereo = stereo_from_infos(infos[0], infos[1], bag.path, (left_t, right_t))
-    left, right = bag.stream(left_t), bag.stream(right_t)
+    maps = [None, None] if "rect" in left_t and "rect" in right_t else [_rectify_map(i) for i in infos]
+    left, right = bag.stream(left_t, transform=maps[0]), bag.stream(right_t, transform=maps[1])
     left.camera = right.camera = stereo.left
-    return StereoRecording(bag.path, left, right, stereo, notes=[f"topics {left_t}, {right_t}"])
+    notes = [f"topics {left_t}, {right_t}"]
+    if maps[0] is not None or maps[1] is not None:
+        notes.append("raw stereo images rectified with each camera_info's K, D, R, P (cv2.initUndistortRectifyMap)")
+    return StereoRecording(bag.path, left, right, stereo, notes=notes)
+
+
+def _rectify_map(info):
+    """Raw images (a topic without 'rect') with a lens model or a rectifying rotation: remapped onto P's camera,
+    as image_proc's rectify does; None when there is nothing to undo."""
+    import cv2
+
+    K = np.asarray(info.K if hasattr(info, "K") else info.k, np.float64).reshape(3, 3)
+    D = np.asarray(info.D if hasattr(info, "D") else info.d, np.float64).ravel()
+    R = np.asarray(info.R if hasattr(info, "R") else info.r, np.float64).reshape(3, 3)
+    P = np.asarray(info.P if hasattr(info, "P") else info.p, np.float64).reshape(3, 4)
+    if not np.any(R):
+        R = np.eye(3)
+    if not np.any(D) and np.allclose(R, np.eye(3)) and np.allclose(K, P[:, :3]):
+        return None
+    mx, my = cv2.initUndistortRectifyMap(K, D, R, P[:, :3], (int(info.width), int(info.height)), cv2.CV_32FC1)
+
+    def rectify(img):
+        return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return rectify
 
 
 @dataclass
