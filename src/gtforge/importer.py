@@ -170,7 +170,6 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
                              "give --clock-offset-ms (stereo clock minus depth clock), or check the recordings")
     drops: Counter = Counter()
     pairs: list[Pair] = []
-    used_left: set[int] = set()
     for i, t in enumerate(td):
         k = _nearest(tt, int(t))
         skew = abs(int(tt[k]) - int(t))
@@ -184,7 +183,7 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
             ts = int(t + offset)
             left = _nearest(tl, ts)
             s2 = abs(int(tl[left]) - ts)
-            if s2 > tol or left in used_left:
+            if s2 > tol:
                 drops["skew"] += 1
                 continue
             if not tr.size or abs(int(tr[right := _nearest(tr, int(tl[left]))]) - int(tl[left])) > tol:
@@ -196,15 +195,12 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
         if not still:
             drops["motion"] += 1
             continue
-        if left is not None:
-            used_left.add(left)
         pairs.append(Pair(i, k, left, right, skew, seg))
     best: dict[tuple[int, int], Pair] = {}
     for p in pairs:
         if p.segment not in best or p.skew_ns < best[p.segment].skew_ns:
             best[p.segment] = p
     kept = sorted(best.values(), key=lambda p: p.depth)
-    drops["motion"] += 0
     n_same = len(pairs) - len(kept)  # the same still stretch: not dropped, one capture taken from it
     kept_every = kept[::params.every]
     if params.max_captures is not None:
@@ -233,7 +229,10 @@ def _write_rig_files(folder: Path, rgbd: RgbdRecording, stereo: StereoRecording 
         if rgbd.depth_camera is not None:
             CameraFile(camera=rgbd.depth_camera).write(folder / "depth_intrinsics.yaml")
             extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=rgbd.T_texture_from_depth.tolist())
-    if stereo is not None:
+    if stereo is not None and stereo.calibration_file is not None:
+        atomic_write_bytes(folder / stereo.calibration_file.name, stereo.calibration_file.read_bytes())
+        extra["zed_calibration"] = stereo.calibration_file.name
+    elif stereo is not None:
         StereoCalibrationFile(zed=stereo.stereo).write(folder / "zed_calibration.yaml")
     SessionFile(board=board, **extra).write(folder / "session.yaml")
 
@@ -292,7 +291,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         spec = board.spec()
         partial = session.parent / f".{session.name}.import-partial"
         stamp = json.dumps({"sources": [str(p.resolve()) for p in paths], "params": params.model_dump(mode="json"),
-                            "topics": topics.__dict__, "add": add})
+                            "topics": {k: str(v) for k, v in topics.__dict__.items()}, "add": add})
         if partial.is_dir() and (partial / ".plan").is_file() and (partial / ".plan").read_text() != stamp:
             shutil.rmtree(partial)
         partial.mkdir(parents=True, exist_ok=True)

@@ -75,11 +75,14 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
                           still_frames: int = 4, motion_frames: int = 2, jumps: tuple[int, ...] = (),
                           depth_clock_s: float = 1000.0, stereo_clock_s: float = 4321.0, phase_ms: float = 7.0,
                           jitter_ms: float = 2.0, depth_encoding: str = "32FC1", seed: int = 0,
-                          captures: list[str] | None = None, info_camera: PinholeCamera | None = None) -> RecordingsTruth:
+                          captures: list[str] | None = None, info_camera: PinholeCamera | None = None,
+                          zed_export: bool = False) -> RecordingsTruth:
     """Write ``out_dir/rgbd`` and ``out_dir/zed`` (rosbag2 folders) from the hand-laid session ``session_dir``.
 
     ``captures``: these capture folders only (``board/000``...; default all, boards first); ``info_camera``: the
-    depth camera's camera_info says this camera instead of the session's (a wrong file, for the error tests)."""
+    depth camera's camera_info says this camera instead of the session's (a wrong file, for the error tests);
+    ``zed_export``: the stereo camera as a ZED SDK export folder instead (``out_dir/zed/left%06d.png`` ... BGRA, its
+    clock: frame index / fps) beside the session's ``zed_calibration.yaml``."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     session_dir, out_dir = Path(session_dir), Path(out_dir)
@@ -115,7 +118,18 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
                             left=read_image(d / "left.png"), right=read_image(d / "right.png"))
         return cache[c]
 
-    for name, topics in (("rgbd", RGBD_TOPICS), ("zed", ZED_TOPICS)):
+    if zed_export:
+        import cv2
+
+        (out_dir / "zed").mkdir(parents=True)
+        for k, (c, shift) in enumerate(timeline):
+            a = load(c)
+            for side in ("left", "right"):
+                img = _shifted(a[side], shift)
+                cv2.imwrite(str(out_dir / "zed" / f"{side}{k:06d}.png"),
+                            np.dstack([img[..., ::-1], np.full(img.shape[:2], 255, np.uint8)]))
+        stereo_clock_s, phase_ms = 0.0, 0.0
+    for name, topics in (("rgbd", RGBD_TOPICS),) + ((("zed", ZED_TOPICS),) if not zed_export else ()):
         with Writer(out_dir / name, version=9, storage_plugin=plugin) as w:
             conns = {}
             for role, ns in topics.items():

@@ -245,3 +245,18 @@ def test_an_interrupted_import_resumes_with_the_captures_already_written(hand, r
     assert len(s.captures) == 4 and not partial.exists()
     assert (out / "board" / "000" / "left.png").stat().st_mtime_ns == stamp  # reused, not written again
     _same_session(hand, out, s.captures)
+
+
+def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
+    recs = write_ros2_recordings(hand, tmp_path / "rec", zed_export=True, motion_frames=3, seed=2)
+    assert (recs.stereo_bag / "left000000.png").is_file()
+    out = tmp_path / "session"
+    r = gtforge("import", recs.rgbd_bag, recs.stereo_bag, "-o", out, "--fps", "15",
+                "--zed-calibration", hand / "zed_calibration.yaml")
+    assert r.returncode == 0, r.stderr
+    run = ImportRecord.read(out / "import.json").runs[0]
+    assert run.clock_offset_source == "motion events"
+    assert abs(run.clock_offset_ms - recs.clock_offset_ms) < 1000 / 15 / 2
+    _same_session(hand, out, [p.capture for p in run.pairs])
+    r = gtforge("import", recs.rgbd_bag, recs.stereo_bag, "-o", tmp_path / "s2", "--fps", "15")
+    assert r.returncode == 2 and one_line_error(r) and "--zed-calibration" in r.stderr

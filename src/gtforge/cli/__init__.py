@@ -490,6 +490,27 @@ def compare(results: List[Path] = typer.Argument(..., help="results.json files f
     out.print(f"wrote {output / 'comparison.html'} (and .md, .csv)")
 
 
+def _progress_bar():
+    """A rich progress bar fed by a stage's ``progress("what: i/n")`` messages (interactive terminals only)."""
+    import contextlib
+    import re
+
+    from rich.progress import Progress
+
+    if not console.is_terminal:
+        return contextlib.nullcontext(), lambda msg: None
+    bar, tasks = Progress(console=console, transient=True), {}
+
+    def tick(msg: str) -> None:
+        m = re.match(r"(.*?)(\d+)/(\d+)$", msg)
+        if m:
+            key = m.group(1).split(":")[0].strip()
+            if key not in tasks:
+                tasks[key] = bar.add_task(key, total=int(m.group(3)))
+            bar.update(tasks[key], completed=int(m.group(2)))
+    return bar, tick
+
+
 @app.command("import")
 def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera's recording (RealSense .bag, Azure "
                                                    "Kinect .mkv, ROS 1/2 bag: .bag, .db3, .mcap or a rosbag2 folder) "
@@ -511,6 +532,9 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             right_topic: Optional[str] = typer.Option(None, help="Rectified right image topic."),
             depth_unit: Optional[str] = typer.Option(None, metavar="mm|m", help="Depth unit (default: by encoding: "
                                                      "16-bit mm, 32FC1 m)."),
+            fps: Optional[float] = typer.Option(None, help="Frame rate of a ZED SDK export folder (left%06d.png)."),
+            zed_calibration: Optional[Path] = typer.Option(None, metavar="FILE", help="A ZED SDK export folder's "
+                                                           "calibration: SN<serial>.conf or rectified YAML."),
             board: Optional[str] = typer.Option(None, metavar="KIND", help="The calibration target the board "
                                                 "captures show (default checkerboard 12x9, 20 mm)."),
             cols: Optional[int] = typer.Option(None, help="Board columns (as calibrate)."),
@@ -541,8 +565,10 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
     params = _options(ImportParams, max_skew_ms=max_skew_ms, still_threshold=still_threshold, clock_offset_ms=offset,
                       estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
                       board=_options(BoardModel, **given) if given else None)
-    s = import_recordings(recordings, output, params, Topics(depth_topic, color_topic, left_topic, right_topic,
-                                                             depth_unit), add=add, progress=_status)
+    bar, tick = _progress_bar()
+    with bar:
+        s = import_recordings(recordings, output, params, Topics(depth_topic, color_topic, left_topic, right_topic,
+                                                                 depth_unit, fps, zed_calibration), add=add, progress=tick)
     t = Table(title=f"imported into {s.session}")
     for c in ("captures", "boards", "scenes", *(f"dropped: {k}" for k in s.dropped)):
         t.add_column(c, justify="right")

@@ -74,6 +74,7 @@ class StereoRecording:
     right: Stream
     stereo: RectifiedStereo
     notes: list[str] = field(default_factory=list)
+    calibration_file: Path | None = None  # an SN<serial>.conf copied into the session as its zed_calibration
 
 
 def require_extra(module: str):

@@ -6,9 +6,11 @@ is whatever its topics hold (a stereo pair: left/right images with their CameraI
 them; an RGB-D camera: depth + colour, as realsense-ros records them), one bag may hold both."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from gtforge.errors import InputError
@@ -19,8 +21,10 @@ from gtforge.io.recordings import (
     LEFT_TOPICS,
     RIGHT_TOPICS,
     Bag,
+    Frame,
     RgbdRecording,
     StereoRecording,
+    Stream,
     camera_from_info,
     check_size,
     depth_mm,
@@ -31,6 +35,56 @@ from gtforge.io.recordings import (
 )
 
 
+ZED_EXPORT = re.compile(r"^(left|right)(\d+)\.(png|jpg|jpeg)$", re.IGNORECASE)
+
+
+def is_zed_export(path: Path) -> bool:
+    return path.is_dir() and not (path / "metadata.yaml").is_file() and any(ZED_EXPORT.match(f.name)
+                                                                               for f in path.iterdir())
+
+
+def read_zed_export(folder: Path, fps: float | None, calibration: Path | None) -> StereoRecording:
+    """A ZED SDK export folder (``left%06d.png`` / ``right%06d.png``, BGRA or BGR, rectified by the SDK): frame ``i``
+    at ``i / fps`` on the folder's own clock; the calibration the user names (``SN<serial>.conf``: OpenCV's rectified
+    model of it, the conf copied into the session; or a rectified YAML gtforge reads)."""
+    from gtforge.io.cameras import load_zed_rectified, read_zed_conf
+
+    files: dict[str, dict[int, Path]] = {"left": {}, "right": {}}
+    for f in folder.iterdir():
+        m = ZED_EXPORT.match(f.name)
+        if m:
+            files[m.group(1).lower()][int(m.group(2))] = f
+    both = sorted(set(files["left"]) & set(files["right"]))
+    if not both:
+        raise InputError(folder, "left/right", "left%06d.png and right%06d.png with the same numbers", "no pair")
+    if fps is None or fps <= 0:
+        raise InputError(folder, "--fps", "the frame rate of the ZED export (its images carry no time)", "none",
+                         "pass --fps (e.g. 15)")
+    if calibration is None:
+        raise InputError(folder, "--zed-calibration", "the ZED's calibration (SN<serial>.conf or rectified YAML)",
+                         "none", "pass --zed-calibration SN12345.conf")
+
+    def rgb(path):
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise InputError(path, None, "a readable image", "undecodable", "the file may be truncated")
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def stream(side):
+        return Stream(side, [Frame(int(round(i * 1e9 / fps)), (lambda p: lambda: rgb(p))(files[side][i]))
+                             for i in both])
+    left, right = stream("left"), stream("right")
+    first = left.frames[0].decode()
+    calibration = Path(calibration)
+    if calibration.suffix.lower() == ".conf":
+        stereo, copy = read_zed_conf(calibration, first.shape[1]).rectification().stereo, calibration
+    else:
+        stereo, copy = load_zed_rectified(calibration), None
+    left.camera = right.camera = stereo.left
+    return StereoRecording(folder, left, right, stereo, notes=[f"ZED export, {fps:g} fps, {calibration.name}"],
+                           calibration_file=copy)
+
+
 @dataclass
 class Topics:
     """The user's topic choices (None: the defaults of gtforge.io.recordings) and the depth unit override."""
@@ -39,6 +93,8 @@ class Topics:
     left: str | None = None
     right: str | None = None
     depth_unit: str | None = None  # None: by encoding (16-bit mm, 32FC1 m)
+    fps: float | None = None  # a ZED export folder's frame rate
+    zed_calibration: Path | None = None  # a ZED export folder's calibration
 
 
 def _pats(given: str | None, defaults):
@@ -130,8 +186,6 @@ def _ros_stereo(bag: Bag, topics: Topics) -> StereoRecording | None:
 def _rectify_map(info):
     """Raw images (a topic without 'rect') with a lens model or a rectifying rotation: remapped onto P's camera,
     as image_proc's rectify does; None when there is nothing to undo."""
-    import cv2
-
     K = np.asarray(info.K if hasattr(info, "K") else info.k, np.float64).reshape(3, 3)
     D = np.asarray(info.D if hasattr(info, "D") else info.d, np.float64).ravel()
     R = np.asarray(info.R if hasattr(info, "R") else info.r, np.float64).reshape(3, 3)
@@ -165,6 +219,9 @@ def open_recordings(paths: list[Path], topics: Topics = Topics()) -> Opened:
         p = Path(p)
         if p.suffix.lower() == ".mkv":
             rgbd_c.append(read_kinect_mkv(p))
+            continue
+        if is_zed_export(p):
+            stereo_c.append(read_zed_export(p, topics.fps, topics.zed_calibration))
             continue
         if p.suffix.lower() in (".svo", ".svo2"):
             raise InputError(p, None, "a recording gtforge reads", "a ZED SVO file",
