@@ -199,3 +199,22 @@ def test_raw_stereo_topics_are_rectified_with_their_camera_info():
     assert np.abs(out.astype(int) - ref)[10:-10, 10:-10].mean() < 1.0
     info.D = np.zeros(5)
     assert _rectify_map(info) is None  # nothing to undo
+
+
+def test_topic_choice_lists_the_candidates_and_svo_is_refused_with_a_hint(tmp_path):
+    from gtforge.io.recordings import DEPTH_TOPICS, LEFT_TOPICS
+    from gtforge.io.ros_recordings import open_recordings
+
+    bag = object.__new__(Bag)
+    bag.path = tmp_path / "x.mcap"
+    img = "sensor_msgs/msg/Image"
+    bag.topics = {"/zed/zed_node/left/image_rect_color": img, "/zed2/zed_node/left/image_rect_color": img,
+                  "/camera/camera/depth/image_rect_raw": img, "/camera/camera/depth/image_rect_raw/compressedDepth":
+                  "sensor_msgs/msg/CompressedImage", "/camera/camera/depth/camera_info": "sensor_msgs/msg/CameraInfo"}
+    with pytest.raises(InputError, match="/zed/zed_node/left/image_rect_color, /zed2/zed_node") as e:
+        bag.match(LEFT_TOPICS, role="left")
+    assert "--left-topic" in str(e.value)
+    assert bag.match(DEPTH_TOPICS, role="depth") == "/camera/camera/depth/image_rect_raw"  # raw before compressed
+    (tmp_path / "a.svo2").write_bytes(b"x")
+    with pytest.raises(InputError, match="ZED SDK"):
+        open_recordings([tmp_path / "a.svo2"])
