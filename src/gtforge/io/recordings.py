@@ -282,19 +282,30 @@ class Bag:
         return None
 
     def stream(self, topic: str, lenient: bool = False, transform=None) -> Stream:
-        """The topic's frames, stamped with header.stamp; decoded on demand (the serialised bytes kept)."""
-        frames = []
-        for conn, t_bag, raw in self.messages([topic]):
-            frames.append(Frame(_stamp_ns(raw, conn, self, lenient) or t_bag,
-                                _decoder(self, conn, bytes(raw), lenient, transform)))
-        frames.sort(key=lambda f: f.t_ns)
-        return Stream(topic, frames)
+        return self.streams([topic], lenient, {topic: transform})[topic]
+
+    def streams(self, topics: list[str], lenient: bool = False, transforms: dict | None = None) -> dict[str, Stream]:
+        """The topics' frames (one pass over the bag), stamped with header.stamp; decoded on demand (the serialised
+        bytes kept)."""
+        transforms = transforms or {}
+        frames: dict[str, list[Frame]] = {t: [] for t in topics}
+        for conn, t_bag, raw in self.messages(list(topics)):
+            frames[conn.topic].append(Frame(_stamp_ns(raw, conn, self, lenient) or t_bag,
+                                            _decoder(self, conn, bytes(raw), lenient, transforms.get(conn.topic))))
+        for f in frames.values():
+            f.sort(key=lambda f: f.t_ns)
+        return {t: Stream(t, f) for t, f in frames.items()}
 
 
 def _stamp_ns(raw, conn, bag: Bag, lenient: bool) -> int:
-    if conn.msgtype in IMAGE_TYPES and not conn.msgtype.endswith("CompressedImage") and bag.reader.is2 is False:
-        # ROS 1 Header: seq (uint32), stamp (uint32 sec, uint32 nsec): read without deserialising the pixels
-        sec, nsec = struct.unpack_from("<II", raw, 4)
+    """header.stamp read from the serialised bytes (every sensor_msgs image starts with its Header): ROS 1
+    ``seq, sec, nsec`` (uint32), ROS 2 CDR ``sec`` (int32), ``nanosec`` (uint32) after the 4-byte encapsulation."""
+    if conn.msgtype in IMAGE_TYPES and len(raw) >= 12:
+        if bag.reader.is2:
+            little = raw[1] == 1  # CDR_LE
+            sec, nsec = struct.unpack_from("<iI" if little else ">iI", raw, 4)
+        else:
+            sec, nsec = struct.unpack_from("<II", raw, 4)
         return sec * 1_000_000_000 + nsec
     m = bag.deserialize(raw, conn, lenient)
     return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
@@ -343,8 +354,8 @@ def read_realsense(bag: Bag) -> RgbdRecording:
         cams[t] = camera_from_info(info, path, info_t)
     tf_t = tex_t.replace("/image/data", "/tf/0")
     T = quat_T_mm(*(lambda m: (m.translation, m.rotation))(bag.first(tf_t))) if tf_t in bag.topics else None
-    depth = bag.stream(depth_t, lenient=True)
-    tex = bag.stream(tex_t, lenient=True)
+    got = bag.streams([depth_t, tex_t], lenient=True)
+    depth, tex = got[depth_t], got[tex_t]
     depth.camera, tex.camera = cams[depth_t], cams[tex_t]
     for f in depth.frames:
         f.decode = (lambda d: lambda: depth_mm(d(), "mm", scale_mm, path, depth_t))(f.decode)

@@ -119,8 +119,8 @@ def _ros_rgbd(bag: Bag, topics: Topics) -> RgbdRecording | None:
             raise InputError(bag.path, f"{t} camera_info", "a CameraInfo topic beside the image", "none",
                              "record the camera_info topics too")
         cams[t] = camera_from_info(info, bag.path, t)
-    depth = bag.stream(depth_t)
-    tex = bag.stream(color_t)
+    got = bag.streams([depth_t, color_t])
+    depth, tex = got[depth_t], got[color_t]
     depth.camera, tex.camera = cams[depth_t], cams[color_t]
     unit = topics.depth_unit
 
@@ -175,7 +175,8 @@ def _ros_stereo(bag: Bag, topics: Topics) -> StereoRecording | None:
                          "record the left and right camera_info topics")
     stereo = stereo_from_infos(infos[0], infos[1], bag.path, (left_t, right_t))
     maps = [None, None] if "rect" in left_t and "rect" in right_t else [_rectify_map(i) for i in infos]
-    left, right = bag.stream(left_t, transform=maps[0]), bag.stream(right_t, transform=maps[1])
+    got = bag.streams([left_t, right_t], transforms={left_t: maps[0], right_t: maps[1]})
+    left, right = got[left_t], got[right_t]
     left.camera = right.camera = stereo.left
     notes = [f"topics {left_t}, {right_t}"]
     if maps[0] is not None or maps[1] is not None:
