@@ -28,11 +28,12 @@ from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
 from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
-from gtforge.io.recordings import Frame, RgbdRecording, StereoRecording, Stream
+from gtforge.io.recordings import RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
 from gtforge.records.imports import ImportParams, ImportRecord, ImportRun, PairRecord, SourceFile
 
 THUMB_W = 160
+FETCH_BATCH = 16  # captures whose images are read in one pass over the recordings
 REASONS = ("skew", "motion", "no image", "every/max")
 
 
@@ -69,20 +70,26 @@ def _thumb(img: np.ndarray) -> np.ndarray:
     return cv2.resize(img.astype(np.float32), (img.shape[1] // f, img.shape[0] // f), interpolation=cv2.INTER_AREA)
 
 
-def motion_scores(stream: Stream, progress=None) -> np.ndarray:
-    """Per frame: the largest mean |grey difference| to its neighbours (0 for a lone frame)."""
-    thumbs = []
-    for i, f in enumerate(stream.frames):
-        thumbs.append(_thumb(f.decode()))
-        if progress and i % 25 == 0:
-            progress(f"stillness {stream.name}: frame {i + 1}/{len(stream.frames)}")
-    d = np.array([float(np.mean(np.abs(a - b))) if a.shape == b.shape else np.inf
-                  for a, b in zip(thumbs[:-1], thumbs[1:])])
-    s = np.zeros(len(thumbs))
-    if d.size:
-        s[:-1] = d
-        s[1:] = np.maximum(s[1:], d)
-    return s
+def motion_scores(streams: list[Stream], progress=None) -> list[np.ndarray]:
+    """Per stream, per frame: the largest mean |grey difference| to its neighbours (0 for a lone frame). Every frame
+    is read once (one pass per recording), only its reduced copy kept."""
+    thumbs = [[None] * len(s.frames) for s in streams]
+    where = {id(s): i for i, s in enumerate(streams)}
+    total, n = sum(len(s.frames) for s in streams), 0
+    for s, k, img in iter_frames((s, k) for s in streams for k in range(len(s.frames))):
+        thumbs[where[id(s)]][k] = _thumb(img)
+        n += 1
+        if progress and (n % 25 == 0 or n == total):
+            progress(f"stillness: frame {n}/{total}")
+    out = []
+    for th in thumbs:
+        d = np.array([float(np.mean(np.abs(a - b))) if a.shape == b.shape else np.inf for a, b in zip(th[:-1], th[1:])])
+        m = np.zeros(len(th))
+        if d.size:
+            m[:-1] = d
+            m[1:] = np.maximum(m[1:], d)
+        out.append(m)
+    return out
 
 
 def _segments(still: np.ndarray) -> np.ndarray:
@@ -133,8 +140,8 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
     td, tt = _times(rgbd.depth), _times(rgbd.texture)
     if not td.size or not tt.size:
         raise InputError(rgbd.path, rgbd.depth.name if not td.size else rgbd.texture.name, "frames", "none")
-    tex_m = motion_scores(rgbd.texture, progress)
-    tex_still = tex_m <= params.still_threshold
+    scores = motion_scores([rgbd.texture] + ([stereo.left] if stereo is not None else []), progress)
+    tex_still = scores[0] <= params.still_threshold
     tex_seg = _segments(tex_still)
     tol = params.max_skew_ms * 1e6
     offset, source = 0.0, "one clock"
@@ -142,8 +149,7 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
         tl, tr = _times(stereo.left), _times(stereo.right)
         if not tl.size:
             raise InputError(stereo.path, stereo.left.name, "frames", "none")
-        left_m = motion_scores(stereo.left, progress)
-        left_still = left_m <= params.still_threshold
+        left_still = scores[1] <= params.still_threshold
         left_seg = _segments(left_still)
         if stereo.path == rgbd.path:
             source = "one clock"
@@ -237,23 +243,35 @@ def _write_rig_files(folder: Path, rgbd: RgbdRecording, stereo: StereoRecording 
     SessionFile(board=board, **extra).write(folder / "session.yaml")
 
 
-def _write_capture(folder: Path, rgbd: RgbdRecording, stereo: StereoRecording | None, p: Pair) -> None:
+def _requests(rgbd: RgbdRecording, stereo: StereoRecording | None, p: Pair) -> dict[str, tuple[Stream, int]]:
+    req = {"tex": (rgbd.texture, p.texture), "depth": (rgbd.depth, p.depth)}
+    if rgbd.ir is not None and rgbd.ir is not rgbd.texture:
+        req["ir"] = (rgbd.ir, _nearest(_times(rgbd.ir), rgbd.depth.frames[p.depth].t_ns))
+    if stereo is not None:
+        req.update(left=(stereo.left, p.left), right=(stereo.right, p.right))
+    return req
+
+
+def _fetch(rgbd: RgbdRecording, stereo: StereoRecording | None, pairs: list[Pair]) -> list[dict[str, np.ndarray]]:
+    """The images of these pairs (one pass per recording)."""
+    reqs = [_requests(rgbd, stereo, p) for p in pairs]
+    got = {(id(s), k): a for s, k, a in iter_frames({(id(s), k): (s, k) for r in reqs for s, k in r.values()}.values())}
+    return [{name: got[(id(s), k)] for name, (s, k) in r.items()} for r in reqs]
+
+
+def _write_capture(folder: Path, images: dict[str, np.ndarray]) -> None:
     tmp = folder.parent / f".{folder.name}.partial"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    tex = rgbd.texture.frames[p.texture].decode()
+    tex = images["tex"]
     write_image(tmp / "2DImage.png", tex) if tex.dtype == np.uint8 else write_png16(tmp / "2DImage.png", tex)
-    write_tiff_float(tmp / "DepthMap.tiff", rgbd.depth.frames[p.depth].decode())
-    if rgbd.ir is not None and rgbd.ir is not rgbd.texture:
-        write_png16(tmp / "IR.png", _same_time(rgbd.ir, rgbd.depth.frames[p.depth]).decode())
-    if stereo is not None:
-        write_image(tmp / "left.png", stereo.left.frames[p.left].decode())
-        write_image(tmp / "right.png", stereo.right.frames[p.right].decode())
+    write_tiff_float(tmp / "DepthMap.tiff", images["depth"])
+    if "ir" in images:
+        write_png16(tmp / "IR.png", images["ir"])
+    if "left" in images:
+        write_image(tmp / "left.png", images["left"])
+        write_image(tmp / "right.png", images["right"])
     os.replace(tmp, folder)
-
-
-def _same_time(s: Stream, f: Frame) -> Frame:
-    return s.frames[_nearest(_times(s), f.t_ns)]
 
 
 def _is_board(img: np.ndarray, spec) -> bool:
@@ -301,15 +319,18 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         start = {"board": _next_index(session / "board") if add else 0,
                  "scenes": _next_index(session / "scenes") if add else 0}
         names, records, kinds = [], [], {}
+        batch: list[dict[str, np.ndarray]] = []
         for n, p in enumerate(kept):
+            if n % FETCH_BATCH == 0:
+                batch = _fetch(rgbd, stereo, kept[n:n + FETCH_BATCH])
             if progress:
                 progress(f"capture {n + 1}/{len(kept)}")
-            tex = rgbd.texture.frames[p.texture].decode()
-            kind = "board" if params.classify and _is_board(tex, spec) else "scenes"
+            images = batch[n % FETCH_BATCH]
+            kind = "board" if params.classify and _is_board(images["tex"], spec) else "scenes"
             name = f"{kind}/{start[kind]:03d}"
             start[kind] += 1
             if not (partial / name).is_dir():
-                _write_capture(partial / name, rgbd, stereo, p)
+                _write_capture(partial / name, images)
             names.append(name)
             kinds[name] = kind
             records.append(PairRecord(capture=name, t_depth_ns=rgbd.depth.frames[p.depth].t_ns,

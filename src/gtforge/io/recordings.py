@@ -3,8 +3,8 @@
 Azure Kinect ``.mkv`` (PyAV). What a recording holds, not what a session makes of it: ``gtforge.importer`` pairs the
 frames and writes the session (docs/capture-layout.md, "From recordings").
 
-Frames decode lazily (``Frame.decode()``): a recording is indexed once, and only the frames a session keeps are
-decoded. In memory, as everywhere in gtforge: depth float32 mm with NaN invalid, colour RGB uint8."""
+Frames decode lazily: a bag is indexed once (timestamps only, nothing kept in memory), then read again for the frames
+a step needs (``iter_frames``: one pass per bag for every stream asked for; ``Frame.decode()``: one frame). In memory, as everywhere in gtforge: depth float32 mm with NaN invalid, colour RGB uint8."""
 from __future__ import annotations
 
 import re
@@ -41,13 +41,34 @@ IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 class Frame:
     t_ns: int  # the device's stamp (header.stamp, Kinect device time): the recording's own clock
     decode: Callable[[], np.ndarray]
+    ordinal: int = -1  # a bag's frame: its place among the topic's messages in the bag
 
 
 @dataclass
 class Stream:
     name: str  # topic or track
-    frames: list[Frame]
+    frames: list[Frame]  # in time order
     camera: PinholeCamera | None = None
+    bag: Bag | None = None  # frames read from this bag (else each Frame decodes itself)
+    lenient: bool = False
+    post: list[Callable[[np.ndarray], np.ndarray]] = field(default_factory=list)  # after decoding (bag frames)
+
+    def convert(self, a: np.ndarray) -> np.ndarray:
+        for f in self.post:
+            a = f(a)
+        return a
+
+
+def iter_frames(requests):
+    """``(stream, index)`` pairs -> ``(stream, index, array)`` in any order: one pass per bag for all its streams."""
+    by_bag: dict[int, tuple] = {}
+    for s, k in requests:
+        if s.bag is None:
+            yield s, k, s.frames[k].decode()
+        else:
+            by_bag.setdefault(id(s.bag), (s.bag, {}))[1].setdefault(id(s), (s, set()))[1].add(k)
+    for bag, wants in by_bag.values():
+        yield from bag.fetch(list(wants.values()))
 
 
 @dataclass
@@ -285,16 +306,36 @@ class Bag:
         return self.streams([topic], lenient, {topic: transform})[topic]
 
     def streams(self, topics: list[str], lenient: bool = False, transforms: dict | None = None) -> dict[str, Stream]:
-        """The topics' frames (one pass over the bag), stamped with header.stamp; decoded on demand (the serialised
-        bytes kept)."""
+        """The topics' frames stamped with header.stamp (one pass over the bag, the pixels not kept)."""
         transforms = transforms or {}
-        frames: dict[str, list[Frame]] = {t: [] for t in topics}
+        stamps: dict[str, list[int]] = {t: [] for t in topics}
         for conn, t_bag, raw in self.messages(list(topics)):
-            frames[conn.topic].append(Frame(_stamp_ns(raw, conn, self, lenient) or t_bag,
-                                            _decoder(self, conn, bytes(raw), lenient, transforms.get(conn.topic))))
-        for f in frames.values():
-            f.sort(key=lambda f: f.t_ns)
-        return {t: Stream(t, f) for t, f in frames.items()}
+            stamps[conn.topic].append(_stamp_ns(raw, conn, self, lenient) or t_bag)
+        out = {}
+        for t, ts in stamps.items():
+            s = Stream(t, [], bag=self, lenient=lenient, post=[transforms[t]] if transforms.get(t) else [])
+            s.frames = [Frame(ts[o], (lambda s, k: lambda: next(iter_frames([(s, k)]))[2])(s, k), o)
+                        for k, o in enumerate(sorted(range(len(ts)), key=ts.__getitem__))]
+            out[t] = s
+        return out
+
+    def fetch(self, wants: list[tuple[Stream, set[int]]]):
+        """One pass over the bag: ``(stream, index, array)`` for the frames asked for."""
+        by_topic = {s.name: (s, {s.frames[k].ordinal: k for k in ks}) for s, ks in wants}
+        seen = dict.fromkeys(by_topic, -1)
+        left = sum(len(w) for _, w in by_topic.values())
+        for conn, _, raw in self.messages(list(by_topic)):
+            seen[conn.topic] += 1
+            s, want = by_topic[conn.topic]
+            k = want.get(seen[conn.topic])
+            if k is None:
+                continue
+            msg = self.deserialize(raw, conn, s.lenient)
+            dec = decode_compressed if conn.msgtype.endswith("CompressedImage") else decode_image
+            yield s, k, s.convert(dec(msg, self.path, conn.topic))
+            left -= 1
+            if not left:
+                return
 
 
 def _stamp_ns(raw, conn, bag: Bag, lenient: bool) -> int:
@@ -309,14 +350,6 @@ def _stamp_ns(raw, conn, bag: Bag, lenient: bool) -> int:
         return sec * 1_000_000_000 + nsec
     m = bag.deserialize(raw, conn, lenient)
     return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
-
-
-def _decoder(bag: Bag, conn, raw: bytes, lenient: bool, transform):
-    def decode():
-        msg = bag.deserialize(raw, conn, lenient)
-        a = (decode_compressed if conn.msgtype.endswith("CompressedImage") else decode_image)(msg, bag.path, conn.topic)
-        return transform(a) if transform else a
-    return decode
 
 
 def check_size(cam: PinholeCamera, img: np.ndarray, path, topic: str) -> None:
@@ -357,8 +390,7 @@ def read_realsense(bag: Bag) -> RgbdRecording:
     got = bag.streams([depth_t, tex_t], lenient=True)
     depth, tex = got[depth_t], got[tex_t]
     depth.camera, tex.camera = cams[depth_t], cams[tex_t]
-    for f in depth.frames:
-        f.decode = (lambda d: lambda: depth_mm(d(), "mm", scale_mm, path, depth_t))(f.decode)
+    depth.post.append(lambda a: depth_mm(a, "mm", scale_mm, path, depth_t))
     return RgbdRecording(path, "realsense", depth, tex, cams[depth_t], cams[tex_t], T,
                          notes=[f"depth units {scale_mm:g} mm per count"])
 

@@ -128,8 +128,7 @@ def _ros_rgbd(bag: Bag, topics: Topics) -> RgbdRecording | None:
         u = unit or ("m" if a.dtype == np.float32 else "mm")
         return depth_mm(a, u, 1.0, bag.path, depth_t)
 
-    for f in depth.frames:
-        f.decode = (lambda d: lambda: to_mm(d()))(f.decode)
+    depth.post.append(to_mm)
     registered = "aligned" in depth_t or "registered" in depth_t or cams[depth_t] == cams[color_t]
     T = None
     if not registered:
