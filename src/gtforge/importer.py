@@ -13,9 +13,9 @@ import json
 import os
 import shutil
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -76,8 +76,8 @@ def motion_scores(streams: list[Stream], progress=None) -> list[np.ndarray]:
     thumbs = [[None] * len(s.frames) for s in streams]
     where = {id(s): i for i, s in enumerate(streams)}
     total, n = sum(len(s.frames) for s in streams), 0
-    for s, k, img in iter_frames((s, k) for s in streams for k in range(len(s.frames))):
-        thumbs[where[id(s)]][k] = _thumb(img)
+    for st, k, img in iter_frames((x, k) for x in streams for k in range(len(x.frames))):
+        thumbs[where[id(st)]][k] = _thumb(img)
         n += 1
         if progress and (n % 25 == 0 or n == total):
             progress(f"stillness: frame {n}/{total}")
@@ -281,12 +281,13 @@ def _is_board(img: np.ndarray, spec) -> bool:
         return False
 
 
-def import_recordings(paths: list[str | Path], session: str | Path, params: ImportParams = ImportParams(),
-                      topics: Topics = Topics(), add: bool = False,
+def import_recordings(paths: list[str | Path], session: str | Path, params: ImportParams | None = None,
+                      topics: Topics | None = None, add: bool = False,
                       progress: Callable[[str], None] | None = None) -> ImportSummary:
     """Write ``session`` (docs/capture-layout.md) from one depth recording and optionally one stereo recording."""
     paths = [Path(p) for p in paths]
     session = Path(session)
+    params, topics = params or ImportParams(), topics or Topics()
     for p in paths:
         if p.resolve() == session.resolve() or session.resolve().is_relative_to(p.resolve() if p.is_dir() else p):
             raise InputError(session, "output", "a session folder outside the recordings", "inside a recording",

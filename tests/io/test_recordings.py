@@ -14,9 +14,9 @@ from tests.conftest import shared_data
 pytest.importorskip("rosbags")
 pytest.importorskip("av")
 
-from gtforge.errors import InputError  # noqa: E402
-from gtforge.io.formats import read_image  # noqa: E402
-from gtforge.io.recordings import (  # noqa: E402
+from gtforge.errors import InputError
+from gtforge.io.formats import read_image
+from gtforge.io.recordings import (
     Bag,
     camera_from_info,
     decode_compressed,
@@ -25,7 +25,7 @@ from gtforge.io.recordings import (  # noqa: E402
     read_realsense,
     stereo_from_infos,
 )
-from gtforge.io.vendors import read_kinect_calibration  # noqa: E402
+from gtforge.io.vendors import read_kinect_calibration
 
 RS_BAG = "realsense_d435_single_depth_color_640x480.bag"
 

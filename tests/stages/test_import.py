@@ -18,12 +18,12 @@ from tests.conftest import gtforge, one_line_error, shared_data
 pytest.importorskip("rosbags")
 pytest.importorskip("av")
 
-from gtforge.errors import InputError  # noqa: E402
-from gtforge.importer import import_recordings  # noqa: E402
-from gtforge.io.captures import read_depth  # noqa: E402
-from gtforge.records.imports import ImportParams, ImportRecord  # noqa: E402
-from gtforge.synthetic import generate_session  # noqa: E402
-from gtforge.synthetic_recordings import write_ros2_recordings  # noqa: E402
+from gtforge.errors import InputError
+from gtforge.importer import import_recordings
+from gtforge.io.captures import read_depth
+from gtforge.records.imports import ImportParams, ImportRecord
+from gtforge.synthetic import generate_session
+from gtforge.synthetic_recordings import write_ros2_recordings
 
 CAPTURE_FILES = ("2DImage.png", "left.png", "right.png")  # byte for byte; the depth went through metres (32FC1)
 

@@ -34,7 +34,6 @@ from gtforge.io.recordings import (
     stereo_from_infos,
 )
 
-
 ZED_EXPORT = re.compile(r"^(left|right)(\d+)\.(png|jpg|jpeg)$", re.IGNORECASE)
 
 
@@ -212,8 +211,9 @@ class Opened:
             b.close()
 
 
-def open_recordings(paths: list[Path], topics: Topics = Topics()) -> Opened:
+def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     """The depth camera's and the stereo camera's recordings among ``paths`` (one or two files/folders)."""
+    topics = topics or Topics()
     rgbd_c, stereo_c, bags = [], [], []
     for p in paths:
         p = Path(p)
