@@ -218,3 +218,59 @@ def test_topic_choice_lists_the_candidates_and_svo_is_refused_with_a_hint(tmp_pa
     (tmp_path / "a.svo2").write_bytes(b"x")
     with pytest.raises(InputError, match="ZED SDK"):
         open_recordings([tmp_path / "a.svo2"])
+
+
+def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
+    """realsense-ros without align_depth: depth/image_rect_raw on the depth camera, the pose from /tf_static's tree."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from gtforge.core.camera import PinholeCamera
+    from gtforge.core.geometry import invert_T
+    from gtforge.io.ros_recordings import open_recordings
+    from gtforge.synthetic_recordings import _header, _image, _info
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    cam = PinholeCamera.from_K(np.array([[50.0, 0, 16], [0, 50, 12], [0, 0, 1]]), 32, 24, np.zeros(0))
+    dcam = cam.model_copy(update={"fx_px": 45.0, "fy_px": 45.0})
+    depth = np.full((24, 32), 800, np.uint16)
+    color = np.zeros((24, 32, 3), np.uint8)
+
+    def tf(parent, child, xyz, q):
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=_header(ts, 0, parent), child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1],
+                                                                                                  z=xyz[2]),
+                                                       rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1],
+                                                                                                  z=q[2], w=q[3])))
+    opt = (-0.5, 0.5, -0.5, 0.5)  # camera_*_frame -> optical frame (x forward -> z forward)
+    tfs = [tf("camera_link", "camera_depth_frame", (0, 0, 0), (0, 0, 0, 1)),
+           tf("camera_depth_frame", "camera_depth_optical_frame", (0, 0, 0), opt),
+           tf("camera_link", "camera_color_frame", (0.0005, 0.015, 0.0001), (0, 0, 0.0087265, 0.9999619)),
+           tf("camera_color_frame", "camera_color_optical_frame", (0, 0, 0), opt)]
+    with Writer(tmp_path / "rs", version=9) as w:
+        def put(topic, msgtype, msg):
+            c = w.add_connection(topic, msgtype, typestore=ts)
+            w.write(c, 1, ts.serialize_cdr(msg, msgtype))
+        put("/tf_static", "tf2_msgs/msg/TFMessage", T["tf2_msgs/msg/TFMessage"](transforms=tfs))
+        for ns, frame, img, enc, c in (("depth", "camera_depth_optical_frame", depth, "16UC1", dcam),
+                                       ("color", "camera_color_optical_frame", color, "rgb8", cam)):
+            put(f"/camera/camera/{ns}/image_rect_raw" if ns == "depth" else "/camera/camera/color/image_raw",
+                "sensor_msgs/msg/Image", _image(ts, 5, frame, img, enc))
+            put(f"/camera/camera/{ns}/camera_info", "sensor_msgs/msg/CameraInfo", _info(ts, 5, frame, c))
+    o = open_recordings([tmp_path / "rs"])
+    try:
+        from gtforge.io.recordings import quat_T_mm
+
+        def Tq(xyz, q):
+            return quat_T_mm(T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
+                             T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        T_link_from_depth = Tq((0, 0, 0), (0, 0, 0, 1)) @ Tq((0, 0, 0), opt)
+        T_link_from_color = Tq((0.0005, 0.015, 0.0001), (0, 0, 0.0087265, 0.9999619)) @ Tq((0, 0, 0), opt)
+        expected = invert_T(T_link_from_color) @ T_link_from_depth
+        assert np.allclose(o.rgbd.T_texture_from_depth, expected, atol=1e-9)
+        assert abs(o.rgbd.T_texture_from_depth[0, 3] - 15.0) < 0.2  # the colour camera 15 mm to the depth's left
+        assert o.rgbd.depth_camera == dcam and np.nanmedian(o.rgbd.depth.frames[0].decode()) == 800
+    finally:
+        o.close()

@@ -140,22 +140,29 @@ def _ros_rgbd(bag: Bag, topics: Topics) -> RgbdRecording | None:
 
 
 def _tf_static(bag: Bag, color_t: str, depth_t: str):
-    """A first guess of T_color_from_depth from /tf_static: the frames of the two CameraInfo headers, if one
-    transform joins them directly."""
+    """A first guess of T_color_from_depth from /tf_static: the frames of the two CameraInfo headers joined through
+    the static transform tree (realsense-ros: camera_link -> camera_*_frame -> camera_*_optical_frame)."""
     if "/tf_static" not in bag.topics:
         return None
     from gtforge.core.geometry import invert_T
     from gtforge.io.recordings import quat_T_mm
 
     cf, df = bag.info_for(color_t).header.frame_id, bag.info_for(depth_t).header.frame_id
+    edges: dict[str, dict[str, np.ndarray]] = {}
     for conn, _, raw in bag.messages(["/tf_static"]):
         for tr in bag.deserialize(raw, conn).transforms:
             T = quat_T_mm(tr.transform.translation, tr.transform.rotation)  # T_parent_from_child
-            if (tr.header.frame_id, tr.child_frame_id) == (cf, df):
-                return T
-            if (tr.header.frame_id, tr.child_frame_id) == (df, cf):
-                return invert_T(T)
-    return None
+            edges.setdefault(tr.header.frame_id, {})[tr.child_frame_id] = T
+            edges.setdefault(tr.child_frame_id, {})[tr.header.frame_id] = invert_T(T)
+    T_color_from = {cf: np.eye(4)}  # breadth first from the colour frame
+    todo = [cf]
+    while todo:
+        f = todo.pop(0)
+        for g, T_f_from_g in edges.get(f, {}).items():
+            if g not in T_color_from:
+                T_color_from[g] = T_color_from[f] @ T_f_from_g
+                todo.append(g)
+    return T_color_from.get(df)
 
 
 def _images(bag: Bag) -> list[str]:
