@@ -306,7 +306,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             raise InputError(paths[0], "captures", "at least one still, paired capture",
                              f"none ({', '.join(f'{k} {v}' for k, v in dropped.items() if v)})",
                              "raise --max-skew-ms or --still-threshold, or check the clock offset")
-        board = params.board or BoardModel()
+        board = params.board
+        if board is None and add and (session / "session.yaml").is_file():
+            board = SessionFile.read(session / "session.yaml").board  # the session's own target
+        board = board or BoardModel()
         spec = board.spec()
         partial = session.parent / f".{session.name}.import-partial"
         stamp = json.dumps({"sources": [str(p.resolve()) for p in paths], "params": params.model_dump(mode="json"),

@@ -274,3 +274,20 @@ def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
         assert o.rgbd.depth_camera == dcam and np.nanmedian(o.rgbd.depth.frames[0].decode()) == 800
     finally:
         o.close()
+
+
+def test_kinect_colour_formats():
+    from gtforge.io.recordings import _kinect_color
+
+    rgb = np.random.default_rng(3).integers(0, 255, (8, 12, 3), dtype=np.uint8)
+    bgra = np.dstack([rgb[..., ::-1], np.full((8, 12), 255, np.uint8)])
+    assert np.array_equal(_kinect_color(bgra.tobytes(), "BGRA", 12, 8, "f"), rgb)
+    nv12 = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_I420)  # same planes as NV12 for a flat check of the shape
+    assert _kinect_color(nv12.tobytes(), "NV12", 12, 8, "f").shape == (8, 12, 3)
+    yuy2 = np.zeros((8, 12, 2), np.uint8) + 128
+    assert _kinect_color(yuy2.tobytes(), "YUY2", 12, 8, "f").shape == (8, 12, 3)
+    smooth = np.dstack([*np.meshgrid(np.arange(16) * 10, np.arange(16) * 12), np.full((16, 16), 90)]).astype(np.uint8)
+    jpg = cv2.imencode(".jpg", smooth[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    assert np.abs(_kinect_color(jpg, "MJPG", 16, 16, "f").astype(int) - smooth).mean() < 3
+    with pytest.raises(InputError, match="MJPG, NV12"):
+        _kinect_color(b"\x00" * 10, "H264", 12, 8, "f")
