@@ -258,5 +258,8 @@ def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     assert run.clock_offset_source == "motion events"
     assert abs(run.clock_offset_ms - recs.clock_offset_ms) < 1000 / 15 / 2
     _same_session(hand, out, [p.capture for p in run.pairs])
-    r = gtforge("import", recs.rgbd_bag, recs.stereo_bag, "-o", tmp_path / "s2", "--fps", "15")
-    assert r.returncode == 2 and one_line_error(r) and "--zed-calibration" in r.stderr
+    from gtforge.io.ros_recordings import Topics
+
+    with pytest.raises(InputError, match="--zed-calibration"):
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s2", topics=Topics(fps=15.0))
+    assert not (tmp_path / "s2").exists()
