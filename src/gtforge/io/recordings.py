@@ -3,7 +3,7 @@
 Azure Kinect ``.mkv`` (PyAV). What a recording holds, not what a session makes of it: ``gtforge.importer`` pairs the
 frames and writes the session (docs/capture-layout.md, "From recordings").
 
-Frames decode lazily: a bag is indexed once (timestamps only, nothing kept in memory), then read again for the frames
+Frames decode lazily: a bag (or a Kinect .mkv) is indexed once (timestamps only, nothing kept in memory), then read again for the frames
 a step needs (``iter_frames``: one pass per bag for every stream asked for; ``Frame.decode()``: one frame). In memory, as everywhere in gtforge: depth float32 mm with NaN invalid, colour RGB uint8."""
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ class Stream:
     name: str  # topic or track
     frames: list[Frame]  # in time order
     camera: PinholeCamera | None = None
-    bag: Bag | None = None  # frames read from this bag (else each Frame decodes itself)
+    source: Bag | KinectMkv | None = None  # frames read again from here (``fetch``); None: each Frame decodes itself
     lenient: bool = False
     post: list[Callable[[np.ndarray], np.ndarray]] = field(default_factory=list)  # after decoding (bag frames)
 
@@ -63,10 +63,10 @@ def iter_frames(requests):
     """``(stream, index)`` pairs -> ``(stream, index, array)`` in any order: one pass per bag for all its streams."""
     by_bag: dict[int, tuple] = {}
     for s, k in requests:
-        if s.bag is None:
+        if s.source is None:
             yield s, k, s.frames[k].decode()
         else:
-            by_bag.setdefault(id(s.bag), (s.bag, {}))[1].setdefault(id(s), (s, set()))[1].add(k)
+            by_bag.setdefault(id(s.source), (s.source, {}))[1].setdefault(id(s), (s, set()))[1].add(k)
     for bag, wants in by_bag.values():
         yield from bag.fetch(list(wants.values()))
 
@@ -313,10 +313,7 @@ class Bag:
             stamps[conn.topic].append(_stamp_ns(raw, conn, self, lenient) or t_bag)
         out = {}
         for t, ts in stamps.items():
-            s = Stream(t, [], bag=self, lenient=lenient, post=[transforms[t]] if transforms.get(t) else [])
-            s.frames = [Frame(ts[o], (lambda s, k: lambda: next(iter_frames([(s, k)]))[2])(s, k), o)
-                        for k, o in enumerate(sorted(range(len(ts)), key=ts.__getitem__))]
-            out[t] = s
+            out[t] = _indexed_stream(t, ts, self, lenient=lenient, post=[transforms[t]] if transforms.get(t) else [])
         return out
 
     def fetch(self, wants: list[tuple[Stream, set[int]]]):
@@ -336,6 +333,14 @@ class Bag:
             left -= 1
             if not left:
                 return
+
+
+def _indexed_stream(name: str, stamps: list[int], source, **kw) -> Stream:
+    """A stream of ``source``'s frames in time order, each knowing its place in the source (``ordinal``)."""
+    s = Stream(name, [], source=source, **kw)
+    s.frames = [Frame(stamps[o], (lambda k: lambda: next(iter_frames([(s, k)]))[2])(k), o)
+                for k, o in enumerate(sorted(range(len(stamps)), key=stamps.__getitem__))]
+    return s
 
 
 def _stamp_ns(raw, conn, bag: Bag, lenient: bool) -> int:
@@ -422,12 +427,12 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
                          "record with k4arecorder (it embeds the device calibration)")
     if "DEPTH" not in tracks:
         raise InputError(path, "DEPTH track", "a depth track", f"tracks {sorted(tracks)}", "record with depth on")
-    packets = {k: [] for k in tracks}
+    stamps: dict[str, list[int]] = {k: [] for k in tracks}
     index = {s.index: k for k, s in tracks.items()}
     try:
         for pkt in container.demux(list(tracks.values())):
             if pkt.size and pkt.pts is not None:
-                packets[index[pkt.stream.index]].append((int(round(pkt.pts * pkt.time_base * 1e9)), bytes(pkt)))
+                stamps[index[pkt.stream.index]].append(int(round(pkt.pts * pkt.time_base * 1e9)))
     except Exception as exc:
         raise InputError(path, "packets", "a complete recording", f"{type(exc).__name__}",
                          "the file may be truncated") from None
@@ -441,22 +446,18 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
     def b16g(buf: bytes, w=w, h=h):
         return np.frombuffer(buf, ">u2", count=w * h).reshape(h, w).astype(np.uint16)
 
-    def mk(kind):
-        return Stream(kind, [Frame(t, (lambda b: lambda: b16g(b))(b)) for t, b in packets[kind]])
-
-    depth = mk("DEPTH")
-    raw_depth = depth.frames
-    depth.frames = [Frame(f.t_ns, (lambda d: lambda: depth_mm(d(), "mm", 1.0, path, "DEPTH"))(f.decode))
-                    for f in raw_depth]
-    ir = mk("IR") if "IR" in tracks else None
+    decoders = {"DEPTH": b16g, "IR": b16g}
+    cmode = "720P"
     if ctrack is not None:
         cw, ch = ctrack.codec_context.width, ctrack.codec_context.height
         tag = ctrack.codec_context.codec_tag if ctrack.codec_context.codec_tag else ""
         cmode = KINECT_COLOR_MODES.get(ch)
-        texture = Stream("COLOR", [Frame(t, (lambda b: lambda: _kinect_color(b, tag, cw, ch, path))(b))
-                                   for t, b in packets["COLOR"]])
-    else:  # depth-only recording: the IR image is the texture (pixel-aligned with the depth)
-        cmode, texture = "720P", ir
+        decoders["COLOR"] = lambda b: _kinect_color(b, tag, cw, ch, path)
+    source = KinectMkv(path, {k: s.index for k, s in tracks.items()}, decoders)
+    depth = _indexed_stream("DEPTH", stamps["DEPTH"], source, post=[lambda a: depth_mm(a, "mm", 1.0, path, "DEPTH")])
+    ir = _indexed_stream("IR", stamps["IR"], source) if "IR" in tracks else None
+    # depth-only recording: the IR image is the texture (pixel-aligned with the depth)
+    texture = _indexed_stream("COLOR", stamps["COLOR"], source) if ctrack is not None else ir
     k = kinect_calibration_from_dict(data, path, dmode, cmode)
     depth.camera = k.depth
     if ctrack is None:
@@ -470,6 +471,34 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
     rec.notes.append(f"depth mode {dmode}, colour mode {cmode}")
     container.close()
     return rec
+
+
+class KinectMkv:
+    """A Kinect recording's tracks, demuxed again for the frames asked for (the packets are not kept)."""
+
+    def __init__(self, path: Path, tracks: dict[str, int], decoders: dict[str, Callable[[bytes], np.ndarray]]):
+        self.path, self.tracks, self.decoders = path, tracks, decoders
+
+    def fetch(self, wants: list[tuple[Stream, set[int]]]):
+        av = require_extra("av")
+        by_track = {s.name: (s, {s.frames[k].ordinal: k for k in ks}) for s, ks in wants}
+        name_of = {self.tracks[n]: n for n in by_track}
+        seen = dict.fromkeys(by_track, -1)
+        left = sum(len(w) for _, w in by_track.values())
+        with av.open(str(self.path)) as c:
+            for pkt in c.demux([c.streams[self.tracks[n]] for n in by_track]):
+                if not pkt.size or pkt.pts is None:
+                    continue
+                name = name_of[pkt.stream.index]
+                seen[name] += 1
+                s, want = by_track[name]
+                k = want.get(seen[name])
+                if k is None:
+                    continue
+                yield s, k, s.convert(self.decoders[name](bytes(pkt)))
+                left -= 1
+                if not left:
+                    return
 
 
 def _kinect_color(buf: bytes, tag: str, w: int, h: int, path) -> np.ndarray:
