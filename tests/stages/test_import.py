@@ -263,3 +263,11 @@ def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     with pytest.raises(InputError, match="--zed-calibration"):
         import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s2", topics=Topics(fps=15.0))
     assert not (tmp_path / "s2").exists()
+
+
+def test_every_and_no_classify(recs, tmp_path):
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s",
+                          ImportParams(clock_offset_ms=recs.clock_offset_ms, every=2, classify=False))
+    assert s.captures == ["scenes/000", "scenes/001"] and s.dropped["every/max"] == 2
+    t_left = [p.t_left_ns for p in ImportRecord.read(tmp_path / "s" / "import.json").runs[0].pairs]
+    assert t_left == sorted(t_left)
