@@ -64,7 +64,8 @@ def test_mcap_recordings_import_to_the_hand_laid_session(hand, recs, tmp_path):
     run = rec.runs[0]
     assert run.streams == {"depth": "/camera/camera/aligned_depth_to_color/image_raw",
                            "texture": "/camera/camera/color/image_raw",
-                           "left": "/zed/zed_node/left/image_rect_color", "right": "/zed/zed_node/right/image_rect_color"}
+                           "left": "/zed/zed_node/left/image_rect_color",
+                           "right": "/zed/zed_node/right/image_rect_color"}
     assert {Path(f.path).name for f in run.sources} >= {"rgbd.mcap", "zed.mcap", "metadata.yaml"}
     # 20 frames: 4 captures x 4 still frames + 2 x 2 moving frames (none at the jump, none after the last); dropped:
     # the 4 moving ones and the 6 still frames beside a moving frame or the jump (the recording's first and last
@@ -217,7 +218,8 @@ def test_import_calibrate_build_gives_the_hand_laid_ground_truth(session_dir, ca
     truth = np.load(session_dir / "truth" / "scene_000.npz")["zed_disparity_px"]
     t_ok = ok & np.isfinite(truth)
     print(f"imported vs hand-laid GT: mean {diff.mean():.2e} px, max {diff.max():.2e} px; EPE to truth: imported "
-          f"{np.abs(epe['imported'] - truth)[t_ok].mean():.4f} px, hand-laid {np.abs(epe['hand'] - truth)[t_ok].mean():.4f}"
+          f"{np.abs(epe['imported'] - truth)[t_ok].mean():.4f} px, "
+          f"hand-laid {np.abs(epe['hand'] - truth)[t_ok].mean():.4f}"
           f" px; extrinsic max |dT| {np.abs(res.rig.T_zed_from_mech - calibration[1].rig.T_zed_from_mech).max():.1e}")
     assert diff.mean() <= 0.001
     assert np.abs(epe["imported"] - truth)[t_ok].mean() < 0.05

@@ -541,7 +541,8 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             rows: Optional[int] = typer.Option(None, help="Board rows (as calibrate)."),
             square_mm: Optional[float] = typer.Option(None, help="Square size or circle spacing (mm)."),
             classify: bool = typer.Option(True, "--classify/--no-classify",
-                                          help="Put captures showing the board into board/ (else all in scenes/).")) -> None:
+                                          help="Put captures showing the board into board/ (else all in scenes/).")
+            ) -> None:
     """Write a capture session (docs/capture-layout.md, "From recordings") from sensor recordings."""
     from rich.table import Table
 
@@ -566,9 +567,9 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
                       estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
                       board=_options(BoardModel, **given) if given else None)
     bar, tick = _progress_bar()
+    topics = Topics(depth_topic, color_topic, left_topic, right_topic, depth_unit, fps, zed_calibration)
     with bar:
-        s = import_recordings(recordings, output, params, Topics(depth_topic, color_topic, left_topic, right_topic,
-                                                                 depth_unit, fps, zed_calibration), add=add, progress=tick)
+        s = import_recordings(recordings, output, params, topics, add=add, progress=tick)
     t = Table(title=f"imported into {s.session}")
     for c in ("captures", "boards", "scenes", *(f"dropped: {k}" for k in s.dropped)):
         t.add_column(c, justify="right")

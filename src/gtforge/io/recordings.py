@@ -3,8 +3,10 @@
 Azure Kinect ``.mkv`` (PyAV). What a recording holds, not what a session makes of it: ``gtforge.importer`` pairs the
 frames and writes the session (docs/capture-layout.md, "From recordings").
 
-Frames decode lazily: a bag (or a Kinect .mkv) is indexed once (timestamps only, nothing kept in memory), then read again for the frames
-a step needs (``iter_frames``: one pass per bag for every stream asked for; ``Frame.decode()``: one frame). In memory, as everywhere in gtforge: depth float32 mm with NaN invalid, colour RGB uint8."""
+Frames decode lazily: a bag (or a Kinect .mkv) is indexed once (timestamps only, nothing kept in memory), then read
+again for the frames a step needs (``iter_frames``: one pass per recording for every stream asked for;
+``Frame.decode()``: one frame). In memory, as everywhere in gtforge: depth float32 mm with NaN invalid, colour RGB
+uint8."""
 from __future__ import annotations
 
 import re
