@@ -74,7 +74,8 @@ def main():
     rng = np.random.default_rng(0)
 
     print("\n## 1. texture shift with the exact extrinsic (px; 0 is right; target |shift| <= 0.05)")
-    print("| depth noise (mm) | image noise (grey) | mean |shift| all | max |shift| all | max |shift| fruit | max |stereo bias| |")
+    print("| depth noise (mm) | image noise (grey) | mean |shift| all | max |shift| all | max |shift| fruit "
+          "| max |stereo bias| |")
     print("|---|---|---|---|---|---|")
     for dn in (0.0, 0.03, 0.1):
         for im in (0.5, 1.5, 4.0):

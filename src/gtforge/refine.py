@@ -41,7 +41,8 @@ from gtforge.core.render import render_texture
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
-from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement, open_calibrated_session
+from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import VerifyParams
 from gtforge.verify import verify_scene
@@ -74,7 +75,6 @@ class ScenePoints:
     zed_norm: np.ndarray  # normalised ZED-left grey image
 
 
-_perturbed = perturb_left  # the name refine's tests use
 
 
 def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, texture: np.ndarray,
@@ -200,7 +200,7 @@ def solve_extrinsic(scenes: list[ScenePoints], T0: np.ndarray, rig: Rig, params:
         except np.linalg.LinAlgError:
             raise InputError(None, "scenes", "scenes whose texture constrains the extrinsic", "a singular system",
                              "add scenes with texture over the whole image") from None
-        T = _perturbed(T, step[:6])
+        T = perturb_left(T, step[:6])
         if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:6]).max() < 1e-5:
             break
     # Not s^2 H^-1 times the normalisation window's area (pi (2 sigma)^2 = 113 px, "one independent sample per
@@ -219,7 +219,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     t0 = time.perf_counter()
     params = params or RefineParams()
     calib_path = Path(calibration)
-    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "refined.yaml")
+    calib = CalibrationFile.read(calib_path)
+    session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "refined.yaml")
     rig0 = calib.rig
     build = BuildParams()
     dirs = session.select("scenes", scenes)

@@ -53,8 +53,9 @@ from gtforge.dataset.views import final_splits, write_lists, write_split_views
 from gtforge.dataset.worker_cache import cached_session
 from gtforge.errors import InputError
 from gtforge.infra.scheduling import prestart_pool, run_tasks
+from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.formats import read_image, read_pfm, write_image
-from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
+from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import Manifest, SceneMeta
 from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationResult, VerifyParams
 from gtforge.reports.verification import write_verification_report
@@ -393,7 +394,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
                          f"{calib} (no such file)", "restore it; verification needs the rig it was built with")
 
     cal = CalibrationFile.read(calib)
-    check_rig_matches_session(cal.rig, cal.open_session(sess), calib,
+    check_rig_matches_session(cal.rig, open_with_calibration(sess, cal), calib,
                               f"is {sess} the session this dataset was built from?")
     params = params or man.params.verify
     ids = sorted(scenes or man.scenes)
@@ -485,9 +486,3 @@ def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: 
     if scale < 1.0:
         rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     write_image(path, rgb)
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.photometric import estimate_shift  # noqa: E402,F401
-from gtforge.core.regions import REGION_NONE  # noqa: E402,F401
-from gtforge.records.verification import VerificationReport  # noqa: E402,F401

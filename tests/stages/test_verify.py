@@ -4,6 +4,8 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.geometry import T_from_rotvec
 from gtforge.dataset.ground_truth import build_scene_arrays
@@ -14,16 +16,16 @@ from gtforge.records.verification import VerificationResult, VerifyParams
 from gtforge.verify import predicted_shift, verify_dataset, verify_scene
 
 
+MOVED_SESSION_SPEC = session_spec("moved_session", "moved", n_board=0, n_scenes=2, scale=0.4, seed=21,
+                                  depth_noise_mm=0.03, image_noise=1.5, fruit_motion_mm={0: (0.5, 0.0, 0.0), 1: (0.3,
+                                  -0.4, 0.0)}, supersample=2)
+
+
 @pytest.fixture(scope="module")
-def moved_session(tmp_path_factory):
+def moved_session(request):
     """Two fruit scenes whose fruit rolled between the structured-light and the ZED capture (0.5 mm in the table
     plane), same rig as the shared session (0.4x)."""
-    from gtforge.synthetic import generate_session
-
-    d = tmp_path_factory.mktemp("moved")
-    generate_session(d, n_board=0, n_scenes=2, scale=0.4, seed=21, depth_noise_mm=0.03, image_noise=1.5,
-                     fruit_motion_mm={0: (0.5, 0.0, 0.0), 1: (0.3, -0.4, 0.0)})
-    return d
+    return synthetic_session(request, MOVED_SESSION_SPEC)
 
 
 def _verify(session_dir, sid, rig, params=None):

@@ -65,7 +65,3 @@ class VerificationResult(VersionedFile):
     @property
     def flagged(self) -> dict[str, list[str]]:
         return {s: v.reasons for s, v in self.scenes.items() if v.status == "flagged"}
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-VerificationReport = VerificationResult
