@@ -31,13 +31,13 @@ import numpy as np
 from gtforge.core.camera import Rig
 from gtforge.core.scale_corrections import shown_disparity_px
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, generate_session
-from gtforge.verify import verify_scene
 
 CASES = {
     "none": {},

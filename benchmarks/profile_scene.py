@@ -107,7 +107,7 @@ def main():
     T_l = rig.T_zed_from_depth
     T_r = zed.T_zedr_from_zed @ T_l
     try:  # gtforge >= issue 12's round 5: a build decodes the ZED images down to the rows verification reads
-        from gtforge.verify import zed_rows_used
+        from gtforge.dataset.scene_verification import zed_rows_used
 
         zed_rows = zed_rows_used(project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp), params.verify)
         h_zed = f" (decode, rows 0-{zed_rows} of {zed.left.height_px})"
@@ -131,7 +131,7 @@ def main():
                             lambda: bd.fruit_regions(depth_l, zed, params, cap.fruit_mask))
     weight = measure("compute", "SGRA weights", lambda: bd.sgra_weights(region, params))
     if getattr(params, "verification", False):
-        from gtforge.verify import verify_scene
+        from gtforge.dataset.scene_verification import verify_scene
 
         measure("compute", "verification (texture alignment + stereo consistency)",
                 lambda: verify_scene(depth_l, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,

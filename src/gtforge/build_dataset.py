@@ -23,12 +23,12 @@ from gtforge.dataset.layout import (
     scene_files,
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
+from gtforge.dataset.scene_verification import write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_scene_views, write_split_views
 from gtforge.dataset.worker_cache import cached_calibration, cached_session
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
 from gtforge.reports.build import write_sigma_thumbnail
-from gtforge.verify import write_verification_overlay
 
 try:
     import fcntl  # scene writer locks (POSIX); without it stale folders are removed unconditionally
@@ -40,6 +40,7 @@ from gtforge.core.geometry import finite_box, mask_bounding_box
 from gtforge.core.reproject import right_view_disparity
 from gtforge.core.scale_corrections import add_depth_pose_sigma, add_scale_sigma
 from gtforge.core.uncertainty import disparity_sigma
+from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
 from gtforge.infra.digest import sha256_file
@@ -58,7 +59,6 @@ from gtforge.records.calibration import CalibrationFile
 from gtforge.records.verification import VerificationResult
 from gtforge.reports.build import write_build_report
 from gtforge.reports.verification import write_verification_report
-from gtforge.verify import verify_scene, zed_rows_used
 
 if TYPE_CHECKING:
     pass

@@ -69,6 +69,7 @@ from gtforge.core.scale_corrections import (
 from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_corrected, unmirror_symmetric_grid
 from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
 from gtforge.records.calibration import (
@@ -79,7 +80,6 @@ from gtforge.records.calibration import (
     SceneScaleResult,
 )
 from gtforge.records.dataset import BuildParams
-from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.scale_calibration")
 

@@ -86,9 +86,9 @@ def test_refined_covariance_matches_the_errors(refine_session, true_calibration,
     0.014 deg / 0.14 mm off): the normalised squared error of the extrinsic, e^T C^-1 e, averages about 6 (six
     parameters) when the reported covariance is right; six draws of chi2(6) average within 2.9-10.1 (99 %). Then a
     refinement without leave-one-out: its covariance has no jackknife factor (None), not the board file's."""
+    from gtforge.core.geometry import perturb_left
     from gtforge.io.captures import open_session
     from gtforge.records.dataset import BuildParams
-    from gtforge.core.geometry import perturb_left
     from gtforge.refine import _scene_at, solve_extrinsic
 
     calib = CalibrationFile.read(true_calibration)

@@ -18,6 +18,7 @@ from gtforge.core.scale_corrections import (
 )
 from gtforge.core.selfcal import corrected_right
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
@@ -26,7 +27,6 @@ from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, default_rig
-from gtforge.verify import verify_scene
 
 # the combined errors of the session below, at the limits: baseline +0.3 %, right-camera yaw 0.15 deg,
 # depth scale -0.2 % and offset +0.5 mm
