@@ -21,8 +21,9 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("dataset", ("gtforge.dataset",)),
     ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.align_depth", "gtforge.refine",
                 "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors",
-                "gtforge.training")),
-    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.holdout", "gtforge.cli")),
+                "gtforge.training", "gtforge.importer")),
+    ("recipes", ("gtforge.synthetic", "gtforge.synthetic_recordings", "gtforge.demo", "gtforge.precompile",
+                 "gtforge.holdout", "gtforge.cli")),
 ]
 
 
@@ -68,7 +69,7 @@ def test_no_import_goes_up_a_layer(graph):
 
 
 STAGES = ("gtforge.calibrate", "gtforge.align_depth", "gtforge.scale_calibration", "gtforge.refine",
-          "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate")
+          "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.importer")
 
 
 def test_stages_stand_side_by_side(graph):

@@ -533,6 +533,97 @@ def compare(results: List[Path] = typer.Argument(..., help="results.json files f
     out.print(f"wrote {output / 'comparison.html'} (and .md, .csv)")
 
 
+def _progress_bar():
+    """A rich progress bar fed by a stage's ``progress("what: i/n")`` messages (interactive terminals only)."""
+    import contextlib
+    import re
+
+    from rich.progress import Progress
+
+    if not console.is_terminal:
+        return contextlib.nullcontext(), lambda msg: None
+    bar, tasks = Progress(console=console, transient=True), {}
+
+    def tick(msg: str) -> None:
+        m = re.match(r"(.*?)(\d+)/(\d+)$", msg)
+        if m:
+            key = m.group(1).split(":")[0].strip()
+            if key not in tasks:
+                tasks[key] = bar.add_task(key, total=int(m.group(3)))
+            bar.update(tasks[key], completed=int(m.group(2)))
+    return bar, tick
+
+
+@app.command("import")
+def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera's recording (RealSense .bag, Azure "
+                                                   "Kinect .mkv, ROS 1/2 bag: .bag, .db3, .mcap or a rosbag2 folder) "
+                                                   "and, optionally, the stereo camera's (a ROS bag)."),
+            output: Path = typer.Option(..., "--output", "-o", metavar="SESSION", help="Session folder to write."),
+            add: bool = typer.Option(False, "--add", help="Add the captures to an existing session."),
+            max_skew_ms: float = typer.Option(20.0, help="Largest time difference between the frames of a capture."),
+            still_threshold: float = typer.Option(2.0, help="A frame is still when its mean grey difference to its "
+                                                  "neighbours is below this (0-255 levels)."),
+            clock_offset_ms: Optional[str] = typer.Option(None, metavar="MS|auto", help="Stereo clock minus depth "
+                                                          "clock (default: 0 where the clocks overlap, else "
+                                                          "estimated from motion events); auto: always estimate."),
+            every: int = typer.Option(1, min=1, help="Keep every N-th still capture."),
+            max_captures: Optional[int] = typer.Option(None, min=1, help="Keep at most this many captures."),
+            depth_topic: Optional[str] = typer.Option(None, help="Depth image topic (default: realsense-ros names)."),
+            color_topic: Optional[str] = typer.Option(None, help="Colour image topic beside the depth."),
+            left_topic: Optional[str] = typer.Option(None, help="Rectified left image topic (default: "
+                                                     "zed-ros2-wrapper names)."),
+            right_topic: Optional[str] = typer.Option(None, help="Rectified right image topic."),
+            depth_unit: Optional[str] = typer.Option(None, metavar="mm|m", help="Depth unit (default: by encoding: "
+                                                     "16-bit mm, 32FC1 m)."),
+            fps: Optional[float] = typer.Option(None, help="Frame rate of a ZED SDK export folder (left%06d.png)."),
+            zed_calibration: Optional[Path] = typer.Option(None, metavar="FILE", help="A ZED SDK export folder's "
+                                                           "calibration: SN<serial>.conf or rectified YAML."),
+            board: Optional[str] = typer.Option(None, metavar="KIND", help="The calibration target the board "
+                                                "captures show (default checkerboard 12x9, 20 mm)."),
+            cols: Optional[int] = typer.Option(None, help="Board columns (as calibrate)."),
+            rows: Optional[int] = typer.Option(None, help="Board rows (as calibrate)."),
+            square_mm: Optional[float] = typer.Option(None, help="Square size or circle spacing (mm)."),
+            classify: bool = typer.Option(True, "--classify/--no-classify",
+                                          help="Put captures showing the board into board/ (else all in scenes/).")
+            ) -> None:
+    """Write a capture session (docs/capture-layout.md, "From recordings") from sensor recordings."""
+    from rich.table import Table
+
+    from gtforge.core.targets import BoardModel
+    from gtforge.importer import import_recordings
+    from gtforge.io.ros_recordings import Topics
+    from gtforge.records.imports import ImportParams
+
+    if depth_unit not in (None, "mm", "m"):
+        raise InputError(None, "--depth-unit", "mm or m", repr(depth_unit))
+    offset, estimate = None, False
+    if clock_offset_ms is not None:
+        if clock_offset_ms == "auto":
+            estimate = True
+        else:
+            try:
+                offset = float(clock_offset_ms)
+            except ValueError:
+                raise InputError(None, "--clock-offset-ms", "a number of ms or auto", repr(clock_offset_ms)) from None
+    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm).items() if v is not None}
+    params = _options(ImportParams, max_skew_ms=max_skew_ms, still_threshold=still_threshold, clock_offset_ms=offset,
+                      estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
+                      board=_options(BoardModel, **given) if given else None)
+    bar, tick = _progress_bar()
+    topics = Topics(depth_topic, color_topic, left_topic, right_topic, depth_unit, fps, zed_calibration)
+    with bar:
+        s = import_recordings(recordings, output, params, topics, add=add, progress=tick)
+    t = Table(title=f"imported into {s.session}")
+    for c in ("captures", "boards", "scenes", *(f"dropped: {k}" for k in s.dropped)):
+        t.add_column(c, justify="right")
+    t.add_row(str(len(s.captures)), str(s.boards), str(s.scenes), *map(str, s.dropped.values()))
+    out.print(t)
+    out.print(f"clock offset {s.clock_offset_ms:.1f} ms ({s.clock_offset_source}); provenance in "
+              f"{s.session / 'import.json'}")
+    for w in s.warnings:
+        console.print(f"warning: {w}")
+
+
 @app.command()
 def synth(output: Path = typer.Argument(..., help="Folder for the synthetic session."),
           boards: int = typer.Option(8, metavar="N", min=0, help="Checkerboard captures."),

@@ -1,0 +1,384 @@
+"""``gtforge import``: recordings -> a capture session (docs/capture-layout.md, "From recordings").
+
+Plan, then write. The plan pairs every depth frame with the nearest texture frame of its own recording and with the
+nearest stereo frame of the other recording (after the clock offset), keeps a pair only where every frame in it is
+*still* (no change beyond ``still_threshold`` to its neighbours in its own stream), and keeps one pair (the smallest
+skew) per still stretch: one capture per pose or scene. Kept pairs showing the session's board go to ``board/``,
+the rest to ``scenes/``. The session is written in a hidden folder beside ``SESSION`` and renamed into place when
+complete (``--add``: each capture folder renamed in); an interrupted import leaves that folder, and rerunning the same
+command reuses the capture folders already finished in it."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gtforge.core.camera import CameraFile, StereoCalibrationFile
+from gtforge.core.target_detection import detect_target
+from gtforge.core.targets import BoardModel
+from gtforge.errors import InputError
+from gtforge.infra.atomic import atomic_write_bytes
+from gtforge.infra.digest import blake3_file
+from gtforge.io.captures import SessionFile
+from gtforge.io.formats import write_image, write_png16, write_tiff_float
+from gtforge.io.recordings import RgbdRecording, StereoRecording, Stream, iter_frames
+from gtforge.io.ros_recordings import Topics, open_recordings
+from gtforge.records.imports import ImportParams, ImportRecord, ImportRun, PairRecord, SourceFile
+
+THUMB_W = 160
+FETCH_BATCH = 16  # captures whose images are read in one pass over the recordings
+REASONS = ("skew", "motion", "no image", "every/max")
+
+
+@dataclass
+class Pair:
+    depth: int  # frame indices
+    texture: int
+    left: int | None
+    right: int | None
+    skew_ns: int
+    segment: tuple[int, int]
+
+
+@dataclass
+class ImportSummary:
+    session: Path
+    captures: list[str]
+    boards: int
+    scenes: int
+    dropped: dict[str, int]
+    clock_offset_ms: float
+    clock_offset_source: str
+    warnings: list[str]
+
+
+# ---- stillness ----------------------------------------------------------------------------------
+def _thumb(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    if img.dtype != np.uint8:
+        hi = float(np.percentile(img, 99)) or 1.0
+        img = np.clip(img.astype(np.float32) * (255.0 / hi), 0, 255)
+    f = max(1, img.shape[1] // THUMB_W)
+    return cv2.resize(img.astype(np.float32), (img.shape[1] // f, img.shape[0] // f), interpolation=cv2.INTER_AREA)
+
+
+def motion_scores(streams: list[Stream], progress=None) -> list[np.ndarray]:
+    """Per stream, per frame: the largest mean |grey difference| to its neighbours (0 for a lone frame). Every frame
+    is read once (one pass per recording), only its reduced copy kept."""
+    thumbs = [[None] * len(s.frames) for s in streams]
+    where = {id(s): i for i, s in enumerate(streams)}
+    total, n = sum(len(s.frames) for s in streams), 0
+    for st, k, img in iter_frames((x, k) for x in streams for k in range(len(x.frames))):
+        thumbs[where[id(st)]][k] = _thumb(img)
+        n += 1
+        if progress and (n % 25 == 0 or n == total):
+            progress(f"stillness: frame {n}/{total}")
+    out = []
+    for th in thumbs:
+        d = np.array([float(np.mean(np.abs(a - b))) if a.shape == b.shape else np.inf for a, b in zip(th[:-1], th[1:])])
+        m = np.zeros(len(th))
+        if d.size:
+            m[:-1] = d
+            m[1:] = np.maximum(m[1:], d)
+        out.append(m)
+    return out
+
+
+def _segments(still: np.ndarray) -> np.ndarray:
+    """Still stretch id per frame: frames separated by a moving frame get different ids."""
+    return np.cumsum(~still)
+
+
+def estimate_clock_offset(t_a: np.ndarray, moving_a: np.ndarray, t_b: np.ndarray, moving_b: np.ndarray,
+                          tol_ns: float) -> tuple[float | None, int]:
+    """Offset (ns, clock b minus clock a) that best lines up the starts of motion in the two streams."""
+    def onsets(t, m):
+        m = np.asarray(m, bool)
+        return t[1:][m[1:] & ~m[:-1]] if m.size > 1 else t[:0]
+
+    ea, eb = onsets(t_a, moving_a)[:60], onsets(t_b, moving_b)[:60]
+    if ea.size < 2 or eb.size < 2:
+        return None, 0
+    best = (0, None)
+    for c in (eb[None, :] - ea[:, None]).ravel():
+        diff = np.abs((ea + c)[:, None] - eb[None, :]).min(axis=1)
+        n = int((diff <= tol_ns).sum())
+        if n > best[0]:
+            best = (n, c)
+    n, c = best
+    if n < 2:
+        return None, n
+    j = np.abs((ea + c)[:, None] - eb[None, :]).argmin(axis=1)
+    d = eb[j] - ea
+    return float(np.median(d[np.abs(d - c) <= tol_ns])), n
+
+
+# ---- planning -----------------------------------------------------------------------------------
+def _nearest(t: np.ndarray, x: int) -> int:
+    i = int(np.searchsorted(t, x))
+    if i == 0:
+        return 0
+    if i == t.size:
+        return t.size - 1
+    return i if t[i] - x < x - t[i - 1] else i - 1
+
+
+def _times(s: Stream) -> np.ndarray:
+    return np.array([f.t_ns for f in s.frames], np.int64)
+
+
+def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: ImportParams, progress=None):
+    """The kept pairs (one per still stretch), the drop counts, and the clock offset used (ns) with its source."""
+    td, tt = _times(rgbd.depth), _times(rgbd.texture)
+    if not td.size or not tt.size:
+        raise InputError(rgbd.path, rgbd.depth.name if not td.size else rgbd.texture.name, "frames", "none")
+    scores = motion_scores([rgbd.texture] + ([stereo.left] if stereo is not None else []), progress)
+    tex_still = scores[0] <= params.still_threshold
+    tex_seg = _segments(tex_still)
+    tol = params.max_skew_ms * 1e6
+    offset, source = 0.0, "one clock"
+    if stereo is not None:
+        tl, tr = _times(stereo.left), _times(stereo.right)
+        if not tl.size:
+            raise InputError(stereo.path, stereo.left.name, "frames", "none")
+        left_still = scores[1] <= params.still_threshold
+        left_seg = _segments(left_still)
+        if stereo.path == rgbd.path:
+            source = "one clock"
+        elif params.clock_offset_ms is not None:
+            offset, source = params.clock_offset_ms * 1e6, "given"
+        else:
+            overlap = min(tt[-1], tl[-1]) - max(tt[0], tl[0])
+            if overlap > 0 and not params.estimate_clock_offset:
+                source = "overlap"
+            else:
+                period = float(np.median(np.diff(tl))) if tl.size > 1 else tol
+                est, n = estimate_clock_offset(tt, ~tex_still, tl, ~left_still, 1.5 * period)
+                if est is None:
+                    raise InputError(stereo.path, "clock", "two recordings whose clocks overlap (or >= 2 motion "
+                                     "events both saw)", f"depth clock {tt[0] / 1e9:.3f}-{tt[-1] / 1e9:.3f} s, "
+                                     f"stereo clock {tl[0] / 1e9:.3f}-{tl[-1] / 1e9:.3f} s, {n} common events",
+                                     "give --clock-offset-ms (stereo clock minus depth clock)")
+                offset, source = est, "motion events"
+        lo, hi = max(tt[0] + offset, tl[0]), min(tt[-1] + offset, tl[-1])
+        if hi < lo - tol:
+            raise InputError(stereo.path, "clock", "recordings that overlap in time (after the clock offset)",
+                             f"depth {(tt[0] + offset) / 1e9:.3f}-{(tt[-1] + offset) / 1e9:.3f} s, stereo "
+                             f"{tl[0] / 1e9:.3f}-{tl[-1] / 1e9:.3f} s (offset {offset / 1e6:.1f} ms)",
+                             "give --clock-offset-ms (stereo clock minus depth clock), or check the recordings")
+    drops: Counter = Counter()
+    pairs: list[Pair] = []
+    for i, t in enumerate(td):
+        k = _nearest(tt, int(t))
+        skew = abs(int(tt[k]) - int(t))
+        if skew > tol:
+            drops["skew"] += 1
+            continue
+        left = right = None
+        seg = (int(tex_seg[k]), 0)
+        still = bool(tex_still[k])
+        if stereo is not None:
+            ts = int(t + offset)
+            left = _nearest(tl, ts)
+            s2 = abs(int(tl[left]) - ts)
+            if s2 > tol:
+                drops["skew"] += 1
+                continue
+            if not tr.size or abs(int(tr[right := _nearest(tr, int(tl[left]))]) - int(tl[left])) > tol:
+                drops["no image"] += 1
+                continue
+            skew = max(skew, s2, abs(int(tr[right]) - int(tl[left])))
+            seg = (seg[0], int(left_seg[left]))
+            still = still and bool(left_still[left])
+        if not still:
+            drops["motion"] += 1
+            continue
+        pairs.append(Pair(i, k, left, right, skew, seg))
+    best: dict[tuple[int, int], Pair] = {}
+    for p in pairs:
+        if p.segment not in best or p.skew_ns < best[p.segment].skew_ns:
+            best[p.segment] = p
+    kept = sorted(best.values(), key=lambda p: p.depth)
+    n_same = len(pairs) - len(kept)  # the same still stretch: not dropped, one capture taken from it
+    kept_every = kept[::params.every]
+    if params.max_captures is not None:
+        kept_every = kept_every[:params.max_captures]
+    drops["every/max"] += len(kept) - len(kept_every)
+    return kept_every, {r: drops.get(r, 0) for r in REASONS}, offset, source, n_same
+
+
+# ---- writing ------------------------------------------------------------------------------------
+def _sources(paths: list[Path]) -> list[SourceFile]:
+    out = []
+    for p in paths:
+        files = sorted(q for q in Path(p).rglob("*") if q.is_file()) if Path(p).is_dir() else [Path(p)]
+        out += [SourceFile(path=str(q.resolve()), size_bytes=q.stat().st_size, blake3=blake3_file(q)) for q in files]
+    return out
+
+
+def _write_rig_files(folder: Path, rgbd: RgbdRecording, stereo: StereoRecording | None, board: BoardModel | None):
+    extra = {}
+    if rgbd.kinect_calibration is not None and rgbd.depth_camera is not None:
+        atomic_write_bytes(folder / "mech_intrinsics.json", rgbd.kinect_calibration)
+        extra = dict(mech_intrinsics="mech_intrinsics.json", kinect_depth_mode=rgbd.kinect_modes[0],
+                     kinect_color_mode=rgbd.kinect_modes[1])
+    else:
+        CameraFile(camera=rgbd.texture_camera).write(folder / "mech_intrinsics.yaml")
+        if rgbd.depth_camera is not None:
+            CameraFile(camera=rgbd.depth_camera).write(folder / "depth_intrinsics.yaml")
+            extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=rgbd.T_texture_from_depth.tolist())
+    if stereo is not None and stereo.calibration_file is not None:
+        atomic_write_bytes(folder / stereo.calibration_file.name, stereo.calibration_file.read_bytes())
+        extra["zed_calibration"] = stereo.calibration_file.name
+    elif stereo is not None:
+        StereoCalibrationFile(zed=stereo.stereo).write(folder / "zed_calibration.yaml")
+    SessionFile(board=board, **extra).write(folder / "session.yaml")
+
+
+def _requests(rgbd: RgbdRecording, stereo: StereoRecording | None, p: Pair) -> dict[str, tuple[Stream, int]]:
+    req = {"tex": (rgbd.texture, p.texture), "depth": (rgbd.depth, p.depth)}
+    if rgbd.ir is not None and rgbd.ir is not rgbd.texture:
+        req["ir"] = (rgbd.ir, _nearest(_times(rgbd.ir), rgbd.depth.frames[p.depth].t_ns))
+    if stereo is not None:
+        req.update(left=(stereo.left, p.left), right=(stereo.right, p.right))
+    return req
+
+
+def _fetch(rgbd: RgbdRecording, stereo: StereoRecording | None, pairs: list[Pair]) -> list[dict[str, np.ndarray]]:
+    """The images of these pairs (one pass per recording)."""
+    reqs = [_requests(rgbd, stereo, p) for p in pairs]
+    got = {(id(s), k): a for s, k, a in iter_frames({(id(s), k): (s, k) for r in reqs for s, k in r.values()}.values())}
+    return [{name: got[(id(s), k)] for name, (s, k) in r.items()} for r in reqs]
+
+
+def _write_capture(folder: Path, images: dict[str, np.ndarray]) -> None:
+    tmp = folder.parent / f".{folder.name}.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    tex = images["tex"]
+    write_image(tmp / "2DImage.png", tex) if tex.dtype == np.uint8 else write_png16(tmp / "2DImage.png", tex)
+    write_tiff_float(tmp / "DepthMap.tiff", images["depth"])
+    if "ir" in images:
+        write_png16(tmp / "IR.png", images["ir"])
+    if "left" in images:
+        write_image(tmp / "left.png", images["left"])
+        write_image(tmp / "right.png", images["right"])
+    os.replace(tmp, folder)
+
+
+def _is_board(img: np.ndarray, spec) -> bool:
+    try:
+        return detect_target(img, spec) is not None
+    except InputError:
+        return False
+
+
+def import_recordings(paths: list[str | Path], session: str | Path, params: ImportParams | None = None,
+                      topics: Topics | None = None, add: bool = False,
+                      progress: Callable[[str], None] | None = None) -> ImportSummary:
+    """Write ``session`` (docs/capture-layout.md) from one depth recording and optionally one stereo recording."""
+    paths = [Path(p) for p in paths]
+    session = Path(session)
+    params, topics = params or ImportParams(), topics or Topics()
+    for p in paths:
+        if p.resolve() == session.resolve() or session.resolve().is_relative_to(p.resolve() if p.is_dir() else p):
+            raise InputError(session, "output", "a session folder outside the recordings", "inside a recording",
+                             "gtforge never writes into a recording's folder")
+    exists = session.is_dir() and any(session.iterdir())
+    if exists and not add:
+        raise InputError(session, "output", "a new or empty session folder", "a non-empty folder",
+                         "pass --add to add these recordings' captures to it")
+    if session.exists() and not session.is_dir():
+        raise InputError(session, "output", "a folder", "a file")
+    opened = open_recordings(paths, topics)
+    try:
+        rgbd, stereo = opened.rgbd, opened.stereo
+        kept, dropped, offset, source, n_same = plan_pairs(rgbd, stereo, params, progress)
+        if not kept:
+            raise InputError(paths[0], "captures", "at least one still, paired capture",
+                             f"none ({', '.join(f'{k} {v}' for k, v in dropped.items() if v)})",
+                             "raise --max-skew-ms or --still-threshold, or check the clock offset")
+        board = params.board
+        if board is None and add and (session / "session.yaml").is_file():
+            board = SessionFile.read(session / "session.yaml").board  # the session's own target
+        board = board or BoardModel()
+        spec = board.spec()
+        partial = session.parent / f".{session.name}.import-partial"
+        stamp = json.dumps({"sources": [str(p.resolve()) for p in paths], "params": params.model_dump(mode="json"),
+                            "topics": {k: str(v) for k, v in topics.__dict__.items()}, "add": add})
+        if partial.is_dir() and (partial / ".plan").is_file() and (partial / ".plan").read_text() != stamp:
+            shutil.rmtree(partial)
+        partial.mkdir(parents=True, exist_ok=True)
+        (partial / ".plan").write_text(stamp)
+        if not add:
+            _write_rig_files(partial, rgbd, stereo, params.board)
+        start = {"board": _next_index(session / "board") if add else 0,
+                 "scenes": _next_index(session / "scenes") if add else 0}
+        names, records, kinds = [], [], {}
+        batch: list[dict[str, np.ndarray]] = []
+        for n, p in enumerate(kept):
+            if n % FETCH_BATCH == 0:
+                batch = _fetch(rgbd, stereo, kept[n:n + FETCH_BATCH])
+            if progress:
+                progress(f"capture {n + 1}/{len(kept)}")
+            images = batch[n % FETCH_BATCH]
+            kind = "board" if params.classify and _is_board(images["tex"], spec) else "scenes"
+            name = f"{kind}/{start[kind]:03d}"
+            start[kind] += 1
+            if not (partial / name).is_dir():
+                _write_capture(partial / name, images)
+            names.append(name)
+            kinds[name] = kind
+            records.append(PairRecord(capture=name, t_depth_ns=rgbd.depth.frames[p.depth].t_ns,
+                                      t_texture_ns=rgbd.texture.frames[p.texture].t_ns,
+                                      t_left_ns=None if p.left is None else stereo.left.frames[p.left].t_ns,
+                                      t_right_ns=None if p.right is None else stereo.right.frames[p.right].t_ns,
+                                      skew_ms=p.skew_ns / 1e6))
+        streams = {"depth": rgbd.depth.name, "texture": rgbd.texture.name}
+        if stereo is not None:
+            streams.update(left=stereo.left.name, right=stereo.right.name)
+        warnings = [] if stereo is not None else ["no stereo recording: the captures have no left.png/right.png"]
+        run = ImportRun(sources=_sources(paths), depth_recording=str(rgbd.path.resolve()),
+                        stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
+                        notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "
+                                                                               "kept captures' stretches"],
+                        params=params, clock_offset_ms=offset / 1e6, clock_offset_source=source, pairs=records,
+                        dropped=dropped)
+        _land(partial, session, run, add)
+    finally:
+        opened.close()
+    return ImportSummary(session, names, sum(k == "board" for k in kinds.values()),
+                         sum(k == "scenes" for k in kinds.values()), dropped, offset / 1e6, source, warnings)
+
+
+def _next_index(folder: Path) -> int:
+    ids = [int(p.name) for p in folder.glob("[0-9][0-9][0-9]*") if p.name.isdigit()] if folder.is_dir() else []
+    return max(ids, default=-1) + 1
+
+
+def _land(partial: Path, session: Path, run: ImportRun, add: bool) -> None:
+    """Move the finished import into place: the whole folder (new session) or each capture folder (``add``)."""
+    previous = []
+    if add and (session / "import.json").is_file():
+        previous = ImportRecord.read(session / "import.json").runs
+    (partial / ".plan").unlink()
+    if not add:
+        ImportRecord(runs=[run]).write(partial / "import.json")
+        if session.is_dir():
+            session.rmdir()  # empty (checked before)
+        os.replace(partial, session)
+        return
+    for kind in ("board", "scenes"):
+        for cap in sorted((partial / kind).glob("*")) if (partial / kind).is_dir() else []:
+            (session / kind).mkdir(parents=True, exist_ok=True)
+            os.replace(cap, session / kind / cap.name)
+    ImportRecord(runs=previous + [run]).write(session / "import.json")
+    shutil.rmtree(partial)

@@ -1,0 +1,170 @@
+"""A synthetic session recorded as ROS 2 bags (``.mcap`` or ``.db3``): the exact captures of a hand-laid session
+(``gtforge.synthetic.generate_session``) played as two cameras' streams, each on its own clock, for
+``gtforge import`` to turn back into that session (tests/stages/test_import.py).
+
+The depth camera's bag holds what realsense-ros records (``/camera/camera/color/image_raw`` rgb8,
+``/camera/camera/aligned_depth_to_color/image_raw`` 32FC1 metres or 16UC1 mm, their camera_info); the stereo
+camera's what zed-ros2-wrapper records (``/zed/zed_node/{left,right}/image_rect_color`` bgra8 and camera_info, P of
+the rectified pair). The timeline: every capture held still for ``still_frames`` frames, then ``motion_frames``
+frames of the rig moving (the images shifted), except after the captures in ``jumps``: there the next capture
+follows at once (a scene moved between two frames, no motion frames). Both cameras run at ``fps`` with their own
+clock origin, a phase offset and timing jitter."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gtforge.core.camera import CameraFile, PinholeCamera, StereoCalibrationFile
+from gtforge.io.captures import read_depth, read_texture
+from gtforge.io.formats import read_image
+
+RGBD_TOPICS = {"color": "/camera/camera/color", "depth": "/camera/camera/aligned_depth_to_color"}
+ZED_TOPICS = {"left": "/zed/zed_node/left", "right": "/zed/zed_node/right"}
+
+
+@dataclass
+class RecordingsTruth:
+    rgbd_bag: Path
+    stereo_bag: Path
+    clock_offset_ms: float  # stereo clock minus depth clock (the true one)
+    captures: list[str]  # the hand-laid capture (board/000 ...) of every still stretch, in time order
+    frame_capture: list[str | None] = field(default_factory=list)  # per frame: the capture shown, None in motion
+
+
+def _ros_types():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def _header(ts, t_ns: int, frame_id: str):
+    T = ts.types
+    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=int(t_ns // 1_000_000_000),
+                                                                          nanosec=int(t_ns % 1_000_000_000)),
+                                    frame_id=frame_id)
+
+
+def _image(ts, t_ns: int, frame_id: str, a: np.ndarray, encoding: str):
+    a = np.ascontiguousarray(a)
+    h, w = a.shape[:2]
+    data = a.view(np.uint8).reshape(-1)
+    return ts.types["sensor_msgs/msg/Image"](header=_header(ts, t_ns, frame_id), height=h, width=w,
+                                             encoding=encoding, is_bigendian=0, step=data.size // h, data=data)
+
+
+def _info(ts, t_ns: int, frame_id: str, cam: PinholeCamera, P: np.ndarray | None = None):
+    T = ts.types
+    D = np.asarray(cam.dist_coeffs, np.float64)
+    model = "rational_polynomial" if D.size == 8 else "plumb_bob"
+    D = D if D.size in (5, 8) else np.zeros(5)
+    K = np.array([[cam.fx_px, 0, cam.cx_px], [0, cam.fy_px, cam.cy_px], [0, 0, 1.0]])
+    P = np.c_[K, np.zeros(3)] if P is None else P
+    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return T["sensor_msgs/msg/CameraInfo"](header=_header(ts, t_ns, frame_id), height=cam.height_px,
+                                           width=cam.width_px, distortion_model=model, d=D, k=K.ravel(),
+                                           r=np.eye(3).ravel(), p=P.ravel(), binning_x=0, binning_y=0, roi=roi)
+
+
+def _shifted(a: np.ndarray, px: int) -> np.ndarray:
+    return np.roll(a, px, axis=1)
+
+
+def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, storage: str = "mcap", fps: float = 15.0,
+                          still_frames: int = 4, motion_frames: int = 2, jumps: tuple[int, ...] = (),
+                          depth_clock_s: float = 1000.0, stereo_clock_s: float = 4321.0, phase_ms: float = 7.0,
+                          jitter_ms: float = 2.0, depth_encoding: str = "32FC1", seed: int = 0,
+                          captures: list[str] | None = None, info_camera: PinholeCamera | None = None,
+                          zed_export: bool = False) -> RecordingsTruth:
+    """Write ``out_dir/rgbd`` and ``out_dir/zed`` (rosbag2 folders) from the hand-laid session ``session_dir``.
+
+    ``captures``: these capture folders only (``board/000``...; default all, boards first); ``info_camera``: the
+    depth camera's camera_info says this camera instead of the session's (a wrong file, for the error tests);
+    ``zed_export``: the stereo camera as a ZED SDK export folder instead (``out_dir/zed/left%06d.png`` ... BGRA, its
+    clock: frame index / fps) beside the session's ``zed_calibration.yaml``."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    session_dir, out_dir = Path(session_dir), Path(out_dir)
+    ts = _ros_types()
+    rng = np.random.default_rng(seed)
+    mech = CameraFile.read(session_dir / "mech_intrinsics.yaml").camera
+    zed = StereoCalibrationFile.read(session_dir / "zed_calibration.yaml").zed
+    caps = captures or [f"{k}/{p.name}" for k in ("board", "scenes") for p in sorted((session_dir / k).glob("[0-9]*"))]
+    # the timeline: per frame, the capture shown and the image shift (0 = still)
+    timeline: list[tuple[str, int]] = []
+    for i, c in enumerate(caps):
+        timeline += [(c, 0)] * still_frames
+        if i not in jumps and i < len(caps) - 1:
+            timeline += [(c, 9 * (j + 1)) for j in range(motion_frames)]
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    period = 1e9 / fps
+    t_true = np.arange(len(timeline)) * period
+    t_depth = (depth_clock_s * 1e9 + t_true + rng.uniform(-jitter_ms, jitter_ms, t_true.size) * 1e6).astype(np.int64)
+    t_zed = (stereo_clock_s * 1e9 + t_true + phase_ms * 1e6
+             + rng.uniform(-jitter_ms, jitter_ms, t_true.size) * 1e6).astype(np.int64)
+    P_left = np.array([[zed.left.fx_px, 0, zed.left.cx_px, 0], [0, zed.left.fy_px, zed.left.cy_px, 0], [0, 0, 1, 0]])
+    P_right = P_left.copy()
+    P_right[0, 2] += zed.doffs_px
+    P_right[0, 3] = -zed.left.fx_px * zed.baseline_mm / 1000.0
+    right_cam = zed.left.model_copy(update={"cx_px": zed.left.cx_px + zed.doffs_px})
+    cache: dict[str, dict[str, np.ndarray]] = {}
+
+    def load(c):
+        if c not in cache:
+            d = session_dir / c
+            cache.clear()
+            cache[c] = dict(tex=read_texture(d / "2DImage.png"), depth=read_depth(d / "DepthMap.tiff"),
+                            left=read_image(d / "left.png"), right=read_image(d / "right.png"))
+        return cache[c]
+
+    if zed_export:
+        import cv2
+
+        (out_dir / "zed").mkdir(parents=True)
+        for k, (c, shift) in enumerate(timeline):
+            a = load(c)
+            for side in ("left", "right"):
+                img = _shifted(a[side], shift)
+                cv2.imwrite(str(out_dir / "zed" / f"{side}{k:06d}.png"),
+                            np.dstack([img[..., ::-1], np.full(img.shape[:2], 255, np.uint8)]))
+        stereo_clock_s, phase_ms = 0.0, 0.0
+    for name, topics in (("rgbd", RGBD_TOPICS),) + ((("zed", ZED_TOPICS),) if not zed_export else ()):
+        with Writer(out_dir / name, version=9, storage_plugin=plugin) as w:
+            conns = {}
+            for role, ns in topics.items():
+                conns[role] = w.add_connection(f"{ns}/image_raw" if name == "rgbd" else f"{ns}/image_rect_color",
+                                               "sensor_msgs/msg/Image", typestore=ts)
+                conns[role + "_info"] = w.add_connection(f"{ns}/camera_info", "sensor_msgs/msg/CameraInfo",
+                                                         typestore=ts)
+            for k, (c, shift) in enumerate(timeline):
+                a = load(c)
+                if name == "rgbd":
+                    t = int(t_depth[k])
+                    depth = _shifted(a["depth"], shift)
+                    if depth_encoding == "32FC1":
+                        depth, enc = (depth / np.float32(1000.0)).astype(np.float32), "32FC1"
+                    else:
+                        depth, enc = np.nan_to_num(np.round(depth), nan=0).astype(np.uint16), depth_encoding
+                    tex = _shifted(a["tex"], shift)
+                    msgs = {"color": _image(ts, t, "camera_color_optical_frame", tex,
+                                            "rgb8" if tex.ndim == 3 else "mono8"),
+                            "depth": _image(ts, t, "camera_color_optical_frame", depth, enc),
+                            "color_info": _info(ts, t, "camera_color_optical_frame", info_camera or mech),
+                            "depth_info": _info(ts, t, "camera_color_optical_frame", info_camera or mech)}
+                else:
+                    t = int(t_zed[k])
+
+                    def bgra(img):
+                        return np.dstack([img[..., 2::-1], np.full(img.shape[:2], 255, np.uint8)])
+
+                    msgs = {"left": _image(ts, t, "zed_left_camera_optical_frame", bgra(_shifted(a["left"], shift)),
+                                           "bgra8"),
+                            "right": _image(ts, t, "zed_left_camera_optical_frame",
+                                            bgra(_shifted(a["right"], shift)), "bgra8"),
+                            "left_info": _info(ts, t, "zed_left_camera_optical_frame", zed.left, P_left),
+                            "right_info": _info(ts, t, "zed_right_camera_optical_frame", right_cam, P_right)}
+                for role, m in msgs.items():
+                    w.write(conns[role], t + 1000, ts.serialize_cdr(m, m.__msgtype__))
+    return RecordingsTruth(out_dir / "rgbd", out_dir / "zed", (stereo_clock_s - depth_clock_s) * 1e3 + phase_ms,
+                           caps, [c if s == 0 else None for c, s in timeline])

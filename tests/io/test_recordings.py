@@ -1,0 +1,293 @@
+"""Recordings read as gtforge reads captures (gtforge.io.recordings): the real Azure Kinect .mkv against the frames
+extracted from it (../shared/data/azure-kinect-frame), the real RealSense .bag against its own camera_info, a
+librealsense >= 2.49 bag (4 bytes after each Image), and the ROS encodings one by one."""
+from __future__ import annotations
+
+import struct
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.conftest import shared_data
+
+pytest.importorskip("rosbags")
+pytest.importorskip("av")
+
+from gtforge.errors import InputError
+from gtforge.io.formats import read_image
+from gtforge.io.recordings import (
+    Bag,
+    camera_from_info,
+    decode_compressed,
+    decode_image,
+    read_kinect_mkv,
+    read_realsense,
+    stereo_from_infos,
+)
+from gtforge.io.vendors import read_kinect_calibration
+
+RS_BAG = "realsense_d435_single_depth_color_640x480.bag"
+
+
+def test_azure_kinect_mkv_matches_the_extracted_frame():
+    rec_dir, frame_dir = shared_data("recordings"), shared_data("azure-kinect-frame")
+    r = read_kinect_mkv(rec_dir / "azure_kinect_recording.mkv")
+    assert [len(s.frames) for s in (r.depth, r.texture, r.ir)] == [1, 1, 1]
+    assert r.depth.frames[0].t_ns == r.texture.frames[0].t_ns == 463_945_000  # device time, us -> ns
+    depth = r.depth.frames[0].decode()
+    png = read_image(frame_dir / "depth_nfov_unbinned_mm.png")
+    assert depth.dtype == np.float32 and np.array_equal(np.isnan(depth), png == 0)
+    assert np.array_equal(np.nan_to_num(depth).astype(np.uint16), png)  # b16g big-endian, lossless
+    assert np.array_equal(r.ir.frames[0].decode(), read_image(frame_dir / "ir_nfov_unbinned.png"))
+    color = r.texture.frames[0].decode()
+    jpg = read_image(frame_dir / "color_720p.jpg")
+    assert color.shape == jpg.shape and np.abs(color.astype(int) - jpg).mean() < 1.0  # the same JPEG
+    k = read_kinect_calibration(frame_dir / "calibration.json", "NFOV_UNBINNED", "720P")
+    assert r.depth_camera == k.depth and r.texture_camera == k.color
+    assert np.allclose(r.T_texture_from_depth, k.T_color_from_depth, atol=0, rtol=0)
+    assert r.kinect_modes == ("NFOV_UNBINNED", "720P")
+
+
+def test_realsense_bag_depth_in_mm_and_intrinsics_match_its_camera_info():
+    path = shared_data("recordings") / RS_BAG
+    bag = Bag(path)
+    try:
+        r = read_realsense(bag)
+        infos = {t: bag.first(t) for t in bag.topics if t.endswith("/info/camera_info")}
+        raw = None
+        for conn, _, data in bag.messages(["/device_0/sensor_0/Depth_0/image/data"]):
+            raw = decode_image(bag.deserialize(data, conn), path, conn.topic)
+            break
+        depth = r.depth.frames[0].decode()  # frames decode while the bag is open
+        color = r.texture.frames[0].decode()
+    finally:
+        bag.close()
+    d_info = infos["/device_0/sensor_0/Depth_0/info/camera_info"]
+    c_info = infos["/device_0/sensor_1/Color_0/info/camera_info"]
+    for cam, info in ((r.depth_camera, d_info), (r.texture_camera, c_info)):
+        assert (cam.width_px, cam.height_px) == (info.width, info.height)
+        assert np.array_equal(cam.K, np.asarray(info.K, np.float64).reshape(3, 3))
+    assert [len(r.depth.frames), len(r.texture.frames)] == [2, 1]
+    assert raw.dtype == np.uint16 and depth.shape == (480, 640)
+    # depth units 0.001 m per count: the counts are mm, 0 invalid
+    assert np.array_equal(np.nan_to_num(depth).astype(np.uint16), raw)
+    assert 300 < np.nanmedian(depth) < 5000
+    assert color.shape == (480, 640, 3)
+    T = r.T_texture_from_depth  # the colour camera sits ~15 mm along the depth camera's x axis (D435)
+    assert 10 < T[0, 3] < 20 and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+
+
+def _ros1_bag(path, extra_bytes: bool):
+    """A librealsense-layout ROS 1 bag, 4 bytes after each Image when ``extra_bytes`` (librealsense >= 2.49)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    depth = (np.arange(48, dtype=np.uint16).reshape(6, 8) * 10 + 500)
+    color = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
+
+    def header(t):
+        return T["std_msgs/msg/Header"](seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=t, nanosec=5), frame_id="")
+
+    def image(t, a, enc):
+        data = a.view(np.uint8).reshape(-1)
+        return T["sensor_msgs/msg/Image"](header=header(t), height=6, width=8, encoding=enc, is_bigendian=0,
+                                          step=data.size // 6, data=data)
+
+    def info(fx):
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return T["sensor_msgs/msg/CameraInfo"](header=header(0), height=6, width=8, distortion_model="Brown Conrady",
+                                               D=np.zeros(5), K=np.array([fx, 0, 4, 0, fx, 3, 0, 0, 1.0]),
+                                               R=np.zeros(9), P=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
+    with Writer(path) as w:
+        def put(topic, msgtype, msg, t=1):
+            c = w.add_connection(topic, msgtype, typestore=ts)
+            data = bytes(ts.serialize_ros1(msg, msgtype))
+            w.write(c, t * 1_000_000_000, data + (struct.pack("<f", 0.001) if extra_bytes and "Image" in msgtype
+                                                  else b""))
+        put("/device_0/sensor_0/Depth_0/image/data", "sensor_msgs/msg/Image", image(1, depth, "mono16"))
+        put("/device_0/sensor_1/Color_0/image/data", "sensor_msgs/msg/Image", image(1, color, "rgb8"))
+        put("/device_0/sensor_0/Depth_0/info/camera_info", "sensor_msgs/msg/CameraInfo", info(10.0))
+        put("/device_0/sensor_1/Color_0/info/camera_info", "sensor_msgs/msg/CameraInfo", info(12.0))
+        put("/device_0/sensor_0/option/Depth_Units/value", "std_msgs/msg/Float32", T["std_msgs/msg/Float32"](data=1e-4))
+    return depth, color
+
+
+@pytest.mark.parametrize("extra_bytes", [False, True])
+def test_realsense_bag_from_librealsense_2_49_reads_too(tmp_path, extra_bytes):
+    depth, color = _ros1_bag(tmp_path / "rs.bag", extra_bytes)
+    bag = Bag(tmp_path / "rs.bag")
+    try:
+        r = read_realsense(bag)
+        d = r.depth.frames[0].decode()
+        c = r.texture.frames[0].decode()
+    finally:
+        bag.close()
+    assert r.depth.frames[0].t_ns == 1_000_000_005
+    assert np.allclose(d, depth * np.float32(0.1))  # Depth_Units 1e-4 m per count: 0.1 mm
+    assert np.array_equal(c, color) and r.T_texture_from_depth is None
+    assert r.depth_camera.fx_px == 10.0 and r.texture_camera.fx_px == 12.0
+
+
+class _Msg:
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def test_image_encodings():
+    rgb = np.random.default_rng(0).integers(0, 255, (5, 7, 3), dtype=np.uint8)
+
+    def msg(a, enc, big=False, pad=0):
+        rows = a.reshape(a.shape[0], -1).view(np.uint8)
+        rows = np.hstack([rows, np.zeros((a.shape[0], pad), np.uint8)])
+        return _Msg(encoding=enc, is_bigendian=int(big), height=a.shape[0], width=a.shape[1], step=rows.shape[1],
+                    data=rows.ravel())
+    assert np.array_equal(decode_image(msg(rgb, "rgb8", pad=3), "f", "t"), rgb)
+    assert np.array_equal(decode_image(msg(np.ascontiguousarray(rgb[..., ::-1]), "bgr8"), "f", "t"), rgb)
+    bgra = np.dstack([rgb[..., ::-1], np.full(rgb.shape[:2], 255, np.uint8)])
+    assert np.array_equal(decode_image(msg(bgra, "bgra8"), "f", "t"), rgb)
+    d16 = np.arange(35, dtype=np.uint16).reshape(5, 7) * 300
+    assert np.array_equal(decode_image(msg(d16.astype(">u2"), "16UC1", big=True), "f", "t"), d16)
+    f32 = (d16 / 1000).astype(np.float32)
+    assert np.array_equal(decode_image(msg(f32, "32FC1", pad=4), "f", "t"), f32)
+    with pytest.raises(InputError, match="truncated"):
+        m = msg(rgb, "rgb8")
+        m.data = m.data[:-10]
+        decode_image(m, "f", "t")
+    with pytest.raises(InputError, match="yuv422"):
+        decode_image(msg(rgb, "yuv422"), "f", "t")
+
+
+def test_compressed_and_compressed_depth():
+    rgb = np.random.default_rng(1).integers(0, 255, (6, 9, 3), dtype=np.uint8)
+    png = cv2.imencode(".png", rgb[..., ::-1])[1]
+    assert np.array_equal(decode_compressed(_Msg(format="png", data=png), "f", "t"), rgb)
+    d16 = (np.arange(54, dtype=np.uint16).reshape(6, 9) + 400)
+    body = struct.pack("<iff", 0, 0.0, 0.0) + cv2.imencode(".png", d16)[1].tobytes()
+    out = decode_compressed(_Msg(format="16UC1; compressedDepth png", data=np.frombuffer(body, np.uint8)), "f", "t")
+    assert np.array_equal(out, d16)
+
+
+def test_camera_info_models_and_stereo_baseline():
+    def info(model, D, P=None, w=640, h=480):
+        K = [500.0, 0, 320, 0, 500, 240, 0, 0, 1]
+        return _Msg(distortion_model=model, D=np.asarray(D, float), K=np.asarray(K), width=w, height=h,
+                    P=np.asarray(P if P is not None else [500.0, 0, 320, 0, 0, 500, 240, 0, 0, 0, 1, 0]))
+    assert camera_from_info(info("plumb_bob", [0.1, 0, 0, 0, 0]), "f", "t").dist_coeffs[0] == 0.1
+    assert len(camera_from_info(info("rational_polynomial", [0.1] * 8), "f", "t").dist_coeffs) == 8
+    with pytest.raises(InputError, match="equidistant"):
+        camera_from_info(info("equidistant", [0.1] * 4), "f", "t")
+    right = info("plumb_bob", [0] * 5, [500.0, 0, 322, -500 * 0.063, 0, 500, 240, 0, 0, 0, 1, 0])
+    s = stereo_from_infos(info("plumb_bob", [0] * 5), right, "f", ("l", "r"))
+    assert s.baseline_mm == pytest.approx(63.0) and s.doffs_px == pytest.approx(2.0)
+    with pytest.raises(InputError, match="rectified right camera"):
+        stereo_from_infos(info("plumb_bob", [0] * 5), info("plumb_bob", [0] * 5), "f", ("l", "r"))
+
+
+def test_raw_stereo_topics_are_rectified_with_their_camera_info():
+    from gtforge.io.ros_recordings import _rectify_map
+
+    K = np.array([[300.0, 0, 80], [0, 300, 60], [0, 0, 1]])
+    D = np.array([-0.2, 0.05, 0.001, -0.001, 0.0])
+    img = np.random.default_rng(2).integers(0, 255, (120, 160, 3), dtype=np.uint8)
+    img = cv2.GaussianBlur(img, (7, 7), 2)
+    info = _Msg(K=K.ravel(), D=D, R=np.eye(3).ravel(), P=np.c_[K, np.zeros(3)].ravel(), width=160, height=120)
+    out = _rectify_map(info)(img)
+    ref = cv2.undistort(img, K, D)
+    assert np.abs(out.astype(int) - ref)[10:-10, 10:-10].mean() < 1.0
+    info.D = np.zeros(5)
+    assert _rectify_map(info) is None  # nothing to undo
+
+
+def test_topic_choice_lists_the_candidates_and_svo_is_refused_with_a_hint(tmp_path):
+    from gtforge.io.recordings import DEPTH_TOPICS, LEFT_TOPICS
+    from gtforge.io.ros_recordings import open_recordings
+
+    bag = object.__new__(Bag)
+    bag.path = tmp_path / "x.mcap"
+    img = "sensor_msgs/msg/Image"
+    bag.topics = {"/zed/zed_node/left/image_rect_color": img, "/zed2/zed_node/left/image_rect_color": img,
+                  "/camera/camera/depth/image_rect_raw": img, "/camera/camera/depth/image_rect_raw/compressedDepth":
+                  "sensor_msgs/msg/CompressedImage", "/camera/camera/depth/camera_info": "sensor_msgs/msg/CameraInfo"}
+    with pytest.raises(InputError, match="/zed/zed_node/left/image_rect_color, /zed2/zed_node") as e:
+        bag.match(LEFT_TOPICS, role="left")
+    assert "--left-topic" in str(e.value)
+    assert bag.match(DEPTH_TOPICS, role="depth") == "/camera/camera/depth/image_rect_raw"  # raw before compressed
+    (tmp_path / "a.svo2").write_bytes(b"x")
+    with pytest.raises(InputError, match="ZED SDK"):
+        open_recordings([tmp_path / "a.svo2"])
+
+
+def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
+    """realsense-ros without align_depth: depth/image_rect_raw on the depth camera, the pose from /tf_static's tree."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from gtforge.core.camera import PinholeCamera
+    from gtforge.core.geometry import invert_T
+    from gtforge.io.ros_recordings import open_recordings
+    from gtforge.synthetic_recordings import _header, _image, _info
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    cam = PinholeCamera.from_K(np.array([[50.0, 0, 16], [0, 50, 12], [0, 0, 1]]), 32, 24, np.zeros(0))
+    dcam = cam.model_copy(update={"fx_px": 45.0, "fy_px": 45.0})
+    depth = np.full((24, 32), 800, np.uint16)
+    color = np.zeros((24, 32, 3), np.uint8)
+
+    def tf(parent, child, xyz, q):
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=_header(ts, 0, parent), child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1],
+                                                                                                  z=xyz[2]),
+                                                       rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1],
+                                                                                                  z=q[2], w=q[3])))
+    opt = (-0.5, 0.5, -0.5, 0.5)  # camera_*_frame -> optical frame (x forward -> z forward)
+    tfs = [tf("camera_link", "camera_depth_frame", (0, 0, 0), (0, 0, 0, 1)),
+           tf("camera_depth_frame", "camera_depth_optical_frame", (0, 0, 0), opt),
+           tf("camera_link", "camera_color_frame", (0.0005, 0.015, 0.0001), (0, 0, 0.0087265, 0.9999619)),
+           tf("camera_color_frame", "camera_color_optical_frame", (0, 0, 0), opt)]
+    with Writer(tmp_path / "rs", version=9) as w:
+        def put(topic, msgtype, msg):
+            c = w.add_connection(topic, msgtype, typestore=ts)
+            w.write(c, 1, ts.serialize_cdr(msg, msgtype))
+        put("/tf_static", "tf2_msgs/msg/TFMessage", T["tf2_msgs/msg/TFMessage"](transforms=tfs))
+        for ns, frame, img, enc, c in (("depth", "camera_depth_optical_frame", depth, "16UC1", dcam),
+                                       ("color", "camera_color_optical_frame", color, "rgb8", cam)):
+            put(f"/camera/camera/{ns}/image_rect_raw" if ns == "depth" else "/camera/camera/color/image_raw",
+                "sensor_msgs/msg/Image", _image(ts, 5, frame, img, enc))
+            put(f"/camera/camera/{ns}/camera_info", "sensor_msgs/msg/CameraInfo", _info(ts, 5, frame, c))
+    o = open_recordings([tmp_path / "rs"])
+    try:
+        from gtforge.io.recordings import quat_T_mm
+
+        def Tq(xyz, q):
+            return quat_T_mm(T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
+                             T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        T_link_from_depth = Tq((0, 0, 0), (0, 0, 0, 1)) @ Tq((0, 0, 0), opt)
+        T_link_from_color = Tq((0.0005, 0.015, 0.0001), (0, 0, 0.0087265, 0.9999619)) @ Tq((0, 0, 0), opt)
+        expected = invert_T(T_link_from_color) @ T_link_from_depth
+        assert np.allclose(o.rgbd.T_texture_from_depth, expected, atol=1e-9)
+        assert abs(o.rgbd.T_texture_from_depth[0, 3] - 15.0) < 0.2  # the colour camera 15 mm to the depth's left
+        assert o.rgbd.depth_camera == dcam and np.nanmedian(o.rgbd.depth.frames[0].decode()) == 800
+    finally:
+        o.close()
+
+
+def test_kinect_colour_formats():
+    from gtforge.io.recordings import _kinect_color
+
+    rgb = np.random.default_rng(3).integers(0, 255, (8, 12, 3), dtype=np.uint8)
+    bgra = np.dstack([rgb[..., ::-1], np.full((8, 12), 255, np.uint8)])
+    assert np.array_equal(_kinect_color(bgra.tobytes(), "BGRA", 12, 8, "f"), rgb)
+    nv12 = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_I420)  # same planes as NV12 for a flat check of the shape
+    assert _kinect_color(nv12.tobytes(), "NV12", 12, 8, "f").shape == (8, 12, 3)
+    yuy2 = np.zeros((8, 12, 2), np.uint8) + 128
+    assert _kinect_color(yuy2.tobytes(), "YUY2", 12, 8, "f").shape == (8, 12, 3)
+    smooth = np.dstack([*np.meshgrid(np.arange(16) * 10, np.arange(16) * 12), np.full((16, 16), 90)]).astype(np.uint8)
+    jpg = cv2.imencode(".jpg", smooth[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    assert np.abs(_kinect_color(jpg, "MJPG", 16, 16, "f").astype(int) - smooth).mean() < 3
+    with pytest.raises(InputError, match="MJPG, NV12"):
+        _kinect_color(b"\x00" * 10, "H264", 12, 8, "f")

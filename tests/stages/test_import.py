@@ -1,0 +1,275 @@
+"""``gtforge import`` with exact truth: a synthetic session (gtforge.synthetic) played as two ROS 2 recordings
+(gtforge.synthetic_recordings: a zed-ros2-wrapper-like stereo bag and a realsense-ros-like RGB-D bag, own clocks,
+jitter, frames in motion, a scene that changes between two frames) and imported back: the session written is the
+hand-laid one file for file, in-motion frames are dropped and no capture mixes the frames of two scenes. Bad input
+through the real command: one-line errors, exit 2, nothing written."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import gtforge, one_line_error, shared_data
+
+pytest.importorskip("rosbags")
+pytest.importorskip("av")
+
+from gtforge.errors import InputError
+from gtforge.importer import import_recordings
+from gtforge.io.captures import read_depth
+from gtforge.records.imports import ImportParams, ImportRecord
+from gtforge.synthetic import generate_session
+from gtforge.synthetic_recordings import write_ros2_recordings
+
+CAPTURE_FILES = ("2DImage.png", "left.png", "right.png")  # byte for byte; the depth went through metres (32FC1)
+
+
+@pytest.fixture(scope="module")
+def hand(tmp_path_factory):
+    """2 board poses + 2 scenes at 0.25x, noise-free depth (the hand-laid session)."""
+    d = tmp_path_factory.mktemp("hand")
+    generate_session(d, n_board=2, n_scenes=2, scale=0.25, seed=3, depth_noise_mm=0.0, image_noise=1.0,
+                     supersample=1)
+    return d
+
+
+@pytest.fixture(scope="module")
+def recs(hand, tmp_path_factory):
+    """The session as .mcap recordings; scenes/000 -> scenes/001 at once (no motion frames between: index 2)."""
+    return write_ros2_recordings(hand, tmp_path_factory.mktemp("rec"), storage="mcap", jumps=(2,))
+
+
+def _same_session(hand: Path, imported: Path, captures: list[str]):
+    assert sorted(captures) == sorted(f"{k}/{p.name}" for k in ("board", "scenes") for p in (hand / k).glob("0*"))
+    for c in captures:
+        for f in CAPTURE_FILES:
+            assert (imported / c / f).read_bytes() == (hand / c / f).read_bytes(), f"{c}/{f}"
+        a, b = read_depth(imported / c / "DepthMap.tiff"), read_depth(hand / c / "DepthMap.tiff")
+        assert np.array_equal(np.isnan(a), np.isnan(b))
+        assert np.nanmax(np.abs(a - b) / b) <= 1.2e-7  # mm -> m -> mm in float32: at most one rounding
+    for f in ("mech_intrinsics.yaml", "zed_calibration.yaml"):
+        assert (imported / f).read_bytes() == (hand / f).read_bytes(), f
+
+
+def test_mcap_recordings_import_to_the_hand_laid_session(hand, recs, tmp_path):
+    out = tmp_path / "session"
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], out, ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    assert (s.boards, s.scenes) == (2, 2) and s.clock_offset_source == "given"
+    _same_session(hand, out, s.captures)
+    rec = ImportRecord.read(out / "import.json")
+    run = rec.runs[0]
+    assert run.streams == {"depth": "/camera/camera/aligned_depth_to_color/image_raw",
+                           "texture": "/camera/camera/color/image_raw",
+                           "left": "/zed/zed_node/left/image_rect_color",
+                           "right": "/zed/zed_node/right/image_rect_color"}
+    assert {Path(f.path).name for f in run.sources} >= {"rgbd.mcap", "zed.mcap", "metadata.yaml"}
+    # 20 frames: 4 captures x 4 still frames + 2 x 2 moving frames (none at the jump, none after the last); dropped:
+    # the 4 moving ones and the 6 still frames beside a moving frame or the jump (the recording's first and last
+    # have one neighbour, which is still)
+    assert run.dropped["motion"] == 4 + 6 and run.dropped["skew"] == 0
+    assert all(p.skew_ms <= run.params.max_skew_ms for p in run.pairs)
+    # the moved scene: no capture takes its depth frame and its ZED frame from the two sides of the jump
+    t0 = (np.array([p.t_depth_ns for p in run.pairs]), np.array([p.t_left_ns for p in run.pairs]))
+    assert len(set(t0[0])) == len(set(t0[1])) == 4
+    assert not list(tmp_path.glob(".*import-partial"))
+
+
+def test_db3_recordings_through_the_command_with_an_estimated_clock_offset(hand, tmp_path):
+    recs = write_ros2_recordings(hand, tmp_path / "rec", storage="db3", motion_frames=3, seed=5)
+    out = tmp_path / "session"
+    r = gtforge("import", recs.rgbd_bag / "rgbd.db3", recs.stereo_bag, "-o", out)
+    assert r.returncode == 0, r.stderr
+    assert "motion events" in r.stdout and "captures" in r.stdout
+    run = ImportRecord.read(out / "import.json").runs[0]
+    assert abs(run.clock_offset_ms - recs.clock_offset_ms) < 1000 / 15 / 2  # within half a frame
+    _same_session(hand, out, [p.capture for p in run.pairs])
+
+
+def test_add_to_an_existing_session_and_refuse_without_add(recs, tmp_path):
+    out = tmp_path / "session"
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=2)
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
+    before = sorted(x.relative_to(out) for x in out.rglob("*"))
+    with pytest.raises(InputError, match="--add"):
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
+    assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p, add=True)
+    assert s.captures == ["board/002", "board/003"]
+    rec = ImportRecord.read(out / "import.json")
+    assert len(rec.runs) == 2 and rec.runs[0].dropped["every/max"] == 2
+
+
+def test_real_recordings_import_through_the_command(tmp_path):
+    rec_dir, frame_dir = shared_data("recordings"), shared_data("azure-kinect-frame")
+    from gtforge.io.captures import read_depth
+    from gtforge.io.formats import read_image
+
+    before = sorted(os.listdir(rec_dir))
+    r = gtforge("import", rec_dir / "azure_kinect_recording.mkv", "-o", tmp_path / "k")
+    assert r.returncode == 0, r.stderr
+    cap = tmp_path / "k" / "scenes" / "000"
+    png = read_image(frame_dir / "depth_nfov_unbinned_mm.png")
+    assert np.array_equal(np.nan_to_num(read_depth(cap / "DepthMap.tiff")).astype(np.uint16), png)
+    assert np.array_equal(read_image(cap / "IR.png"), read_image(frame_dir / "ir_nfov_unbinned.png"))
+    assert json.loads((tmp_path / "k" / "mech_intrinsics.json").read_text()) == \
+        json.loads((frame_dir / "calibration.json").read_text())  # the attachment, as the frame's folder has it
+    from gtforge.io.captures import SessionFile
+    from gtforge.io.vendors import load_structured_light_cameras, read_kinect_calibration
+
+    sf = SessionFile.read(tmp_path / "k" / "session.yaml")
+    cams = load_structured_light_cameras(tmp_path / "k" / sf.mech_intrinsics, depth_mode=sf.kinect_depth_mode,
+                                         color_mode=sf.kinect_color_mode)
+    k = read_kinect_calibration(frame_dir / "calibration.json", "NFOV_UNBINNED", "720P")
+    assert (cams.texture, cams.depth) == (k.color, k.depth)
+    color = read_image(cap / "2DImage.png")
+    assert np.abs(color.astype(int) - read_image(frame_dir / "color_720p.jpg")).mean() < 1.0
+    r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs",
+                "--max-skew-ms", "150")
+    assert r.returncode == 0, r.stderr
+    run = json.loads((tmp_path / "rs" / "import.json").read_text())["runs"][0]
+    assert run["dropped"]["skew"] == 1 and len(run["pairs"]) == 1  # 2 depth frames, 1 colour frame 101 ms away
+    assert sorted(os.listdir(rec_dir)) == before  # nothing written beside the recordings
+
+
+def _truncated(recs, tmp_path):
+    d = tmp_path / "trunc"
+    shutil.copytree(recs.rgbd_bag, d)
+    f = d / "rgbd.mcap"
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    return [d, recs.stereo_bag], []
+
+
+def _wrong_resolution(recs, tmp_path):
+    from gtforge.core.camera import CameraFile
+
+    hand = Path(recs.hand)
+    cam = CameraFile.read(hand / "mech_intrinsics.yaml").camera
+    wrong = cam.model_copy(update={"width_px": cam.width_px * 2, "height_px": cam.height_px * 2})
+    bad = write_ros2_recordings(hand, tmp_path / "wrong", captures=["board/000"], info_camera=wrong)
+    return [bad.rgbd_bag, bad.stereo_bag], []
+
+
+def _metres_as_mm(recs, tmp_path):
+    return [recs.rgbd_bag, recs.stereo_bag], ["--depth-unit", "mm", "--clock-offset-ms", str(recs.clock_offset_ms)]
+
+
+BAD = {
+    "truncated bag": (_truncated, "truncated"),
+    "no depth topic": (lambda recs, tmp: ([recs.stereo_bag], []), "depth"),
+    "32FC1 declared mm": (_metres_as_mm, "metres"),
+    "intrinsics of another resolution": (_wrong_resolution, "another resolution"),
+    "clocks never overlapping": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--clock-offset-ms", "0"]),
+                                 "overlap"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_input_is_a_one_line_error_and_writes_nothing(hand, recs, tmp_path, case):
+    recs.hand = hand
+    make, words = BAD[case]
+    paths, opts = make(recs, tmp_path)
+    out = tmp_path / "out" / "session"
+    r = gtforge("import", *paths, "-o", out, *opts)
+    assert r.returncode == 2, r.stderr
+    assert one_line_error(r), r.stderr
+    assert words in r.stderr
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_without_the_extra_the_error_names_it(monkeypatch, tmp_path):
+    import sys
+
+    from gtforge.io.recordings import Bag
+
+    monkeypatch.setitem(sys.modules, "rosbags", None)
+    with pytest.raises(InputError, match=r"gtforge\[recordings\]"):
+        Bag(tmp_path / "x.bag")
+
+
+@pytest.mark.slow
+def test_import_calibrate_build_gives_the_hand_laid_ground_truth(session_dir, calibration, tmp_path):
+    """The conftest session (7 boards, 3 scenes, 0.4x) recorded and imported, then calibrate -> build-dataset on both:
+    the same extrinsic and the same ground truth (EPE to each other <= 0.001 px), as exact against the truth."""
+    from gtforge.build_dataset import build_dataset
+    from gtforge.calibrate import calibrate
+    from gtforge.io.formats import read_pfm
+    from gtforge.records.calibration import CalibrateParams
+
+    recs = write_ros2_recordings(session_dir, tmp_path / "rec", storage="mcap", jumps=(8,))
+    imported = tmp_path / "imported"
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], imported,
+                          ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    assert (s.boards, s.scenes) == (7, 3)
+    res = calibrate(imported, tmp_path / "calibration.yaml", CalibrateParams(use_depth=False, leave_one_out=False))
+    assert np.abs(res.rig.T_zed_from_mech - calibration[1].rig.T_zed_from_mech).max() < 1e-6
+    epe = {}
+    for name, sess, calib in (("hand", session_dir, calibration[0]), ("imported", imported,
+                                                                       tmp_path / "calibration.yaml")):
+        out = tmp_path / f"ds_{name}"
+        build_dataset(sess, calib, out, workers=1, scenes=["000"])
+        epe[name] = read_pfm(out / "scenes" / "000" / "disp0GT.pfm")
+    ok = np.isfinite(epe["hand"]) & np.isfinite(epe["imported"])
+    assert np.array_equal(np.isfinite(epe["hand"]), np.isfinite(epe["imported"]))
+    diff = np.abs(epe["hand"] - epe["imported"])[ok]
+    truth = np.load(session_dir / "truth" / "scene_000.npz")["zed_disparity_px"]
+    t_ok = ok & np.isfinite(truth)
+    print(f"imported vs hand-laid GT: mean {diff.mean():.2e} px, max {diff.max():.2e} px; EPE to truth: imported "
+          f"{np.abs(epe['imported'] - truth)[t_ok].mean():.4f} px, "
+          f"hand-laid {np.abs(epe['hand'] - truth)[t_ok].mean():.4f}"
+          f" px; extrinsic max |dT| {np.abs(res.rig.T_zed_from_mech - calibration[1].rig.T_zed_from_mech).max():.1e}")
+    assert diff.mean() <= 0.001
+    assert np.abs(epe["imported"] - truth)[t_ok].mean() < 0.05
+
+
+def test_an_interrupted_import_resumes_with_the_captures_already_written(hand, recs, tmp_path):
+    out = tmp_path / "session"
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_third(msg):
+        if msg == "capture 3/4":
+            raise Stop
+
+    with pytest.raises(Stop):
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p, progress=stop_at_third)
+    assert not out.exists()
+    partial = tmp_path / ".session.import-partial"
+    done = sorted(str(x.relative_to(partial)) for x in partial.glob("*/0*"))
+    assert done == ["board/000", "board/001"]
+    stamp = (partial / "board" / "000" / "left.png").stat().st_mtime_ns
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
+    assert len(s.captures) == 4 and not partial.exists()
+    assert (out / "board" / "000" / "left.png").stat().st_mtime_ns == stamp  # reused, not written again
+    _same_session(hand, out, s.captures)
+
+
+def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
+    recs = write_ros2_recordings(hand, tmp_path / "rec", zed_export=True, motion_frames=3, seed=2)
+    assert (recs.stereo_bag / "left000000.png").is_file()
+    out = tmp_path / "session"
+    r = gtforge("import", recs.rgbd_bag, recs.stereo_bag, "-o", out, "--fps", "15",
+                "--zed-calibration", hand / "zed_calibration.yaml")
+    assert r.returncode == 0, r.stderr
+    run = ImportRecord.read(out / "import.json").runs[0]
+    assert run.clock_offset_source == "motion events"
+    assert abs(run.clock_offset_ms - recs.clock_offset_ms) < 1000 / 15 / 2
+    _same_session(hand, out, [p.capture for p in run.pairs])
+    from gtforge.io.ros_recordings import Topics
+
+    with pytest.raises(InputError, match="--zed-calibration"):
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s2", topics=Topics(fps=15.0))
+    assert not (tmp_path / "s2").exists()
+
+
+def test_every_and_no_classify(recs, tmp_path):
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s",
+                          ImportParams(clock_offset_ms=recs.clock_offset_ms, every=2, classify=False))
+    assert s.captures == ["scenes/000", "scenes/001"] and s.dropped["every/max"] == 2
+    t_left = [p.t_left_ns for p in ImportRecord.read(tmp_path / "s" / "import.json").runs[0].pairs]
+    assert t_left == sorted(t_left)
