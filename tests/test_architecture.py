@@ -21,7 +21,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("dataset", ("gtforge.dataset",)),
     ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
                 "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
-    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.precompile", "gtforge.cli")),
+    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.run", "gtforge.precompile", "gtforge.cli")),
 ]
 
 

@@ -96,6 +96,36 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Show info
 
 
 @app.command()
+def run(session: Path = typer.Argument(..., help="Capture session folder (docs/capture-layout.md)."),
+        output: Path = typer.Option(..., "--output", "-o", metavar="DIR",
+                                    help="Folder for every stage's output and the certificate (index.html)."),
+        calibration: Optional[Path] = typer.Option(None, "--calibration", "-c", metavar="FILE",
+                                                   help="Use this calibration instead of calibrating (needed when "
+                                                        "the session has no board captures)."),
+        use_depth: bool = typer.Option(False, "--use-depth", help="calibrate --use-depth."),
+        loo: bool = typer.Option(True, "--loo/--no-loo", help="Leave-one-out cross-validation in calibrate and "
+                                 "refine (--no-loo saves time)."),
+        calibration_scenes: Optional[str] = typer.Option(
+            None, metavar="IDS", help="Comma-separated scene ids calibrate-scale and refine use (default: all)."),
+        refine_: bool = typer.Option(True, "--refine/--no-refine", help="Refine the extrinsic from the scenes."),
+        quarantine: bool = typer.Option(False, "--quarantine", help="Leave flagged scenes out of the split lists "
+                                        "(the run then passes with a warning)."),
+        workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores).")) -> None:
+    """Run the whole chain: calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> verify, and write
+    the dataset certificate (OUTPUT/index.html). A rerun redoes only what changed.
+
+    Exit code 0: every check passed; 1: a quality check failed (named); 2: bad input."""
+    from gtforge.run import RunOptions, run_session
+
+    opts = _options(RunOptions, calibration=str(calibration) if calibration else None, use_depth=use_depth, loo=loo,
+                    calibration_scenes=calibration_scenes.split(",") if calibration_scenes else None,
+                    refine=refine_, quarantine=quarantine, workers=workers)
+    res = run_session(session, output, opts, say=out.print, progress=_status)
+    if res.exit_code:
+        raise typer.Exit(res.exit_code)
+
+
+@app.command()
 def calibrate(session: Path = typer.Argument(..., help="Capture session folder (docs/capture-layout.md)."),
               output: str = typer.Option("calibration.yaml", "--output", "-o", metavar="PATH",
                                          help="Calibration YAML to write (a folder: calibration.yaml inside it)."),
