@@ -225,14 +225,14 @@ class _Run:
         for k, (name, step) in enumerate(zip(STAGES, steps), 1):
             try:
                 step(k, ctx)
+                if after_stage is not None:
+                    after_stage(name)
             except (KeyboardInterrupt, Interrupted):
                 self.save()
-                done = [s for s in STAGES[:k - 1]]
-                self.say(f"interrupted during {name}: {', '.join(done) or 'no stage'} complete and recorded in "
-                         f"{out / STATE}; run the same command again to resume from {name}")
+                self.say(f"interrupted during or right after {name}: every stage recorded in {out / STATE} is "
+                         "complete (each writes its files whole); run the same command again to resume: it redoes "
+                         "only what is not")
                 raise
-            if after_stage is not None:
-                after_stage(name)
         cert = write_certificate(out, self.state, self.root)
         self.say(f"certificate: {cert.verdict}" + "".join(f"\n  - {r}" for r in cert.verdict_reasons)
                  + f"\n  {out / 'index.html'} (and certificate.json)")
