@@ -36,7 +36,7 @@ from gtforge.records.certificate import Certificate
 from gtforge.records.dataset import BuildParams, SceneMeta
 from gtforge.records.run import STAGES, FileHash, RunState, StageRecord
 from gtforge.refine import RefineParams, refine
-from gtforge.reports.calibration import write_calibration_report
+from gtforge.reports.calibration import scale_term_lines, write_calibration_report
 from gtforge.reports.certificate import write_certificate
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.validate import validate, validate_gauges
@@ -427,18 +427,6 @@ class _Run:
         self.say(f"      {len(rep.scenes)} scene(s): {len(rep.flagged)} flagged -> {verdict}")
         self.done(name, options, inputs, [ds / "verification.json"], verdict=verdict, reasons=reasons,
                   detail={"verified": todo}, t0=t0)
-
-
-def scale_term_lines(info) -> list[str]:
-    """calibrate-scale's terms as the command prints them: each estimate with its sigma, and what was applied."""
-    lines = []
-    for name, t in info.terms.items():
-        est = "not estimated" if t.estimate is None else f"{t.estimate:+.4g}" + (
-            f" +- {t.sigma:.3g}" if t.sigma is not None else "")
-        applied = f"applied {t.value:+.4g}" if t.status == "applied" else "not applied"
-        lines.append(f"{name}: estimate {est} [{t.status}; {applied}]" + (f" ({t.reason})" if t.reason else "")
-                     + (f"; from {', '.join(t.sources)}" if t.sources else ""))
-    return lines
 
 
 def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOptions | None = None,

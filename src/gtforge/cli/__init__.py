@@ -24,7 +24,10 @@ from gtforge.cli._typer_style import _Group
 from gtforge.errors import InputError, Interrupted
 
 app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.")
+                  help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.\n\n"
+                       "The whole chain in one command: gtforge run SESSION -o OUT (calibrate -> validate -> "
+                       "calibrate-scale -> refine -> build-dataset -> verify, then OUT/index.html, the dataset's "
+                       "certificate). Each step is also a command of its own, listed below in that order.")
 console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 out = Console(soft_wrap=True, highlight=False, markup=False)
 
@@ -351,11 +354,11 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
 
     res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
               progress=_status)
+    from gtforge.reports.calibration import scale_term_lines
+
     info = res.scale_calibration
-    for name, t in info.terms.items():
-        sig = f" +- {t.sigma:.3g}" if t.sigma is not None else ""
-        out.print(f"  {name}: {t.value:+.4g}{sig} [{t.status}]" + (f" ({t.reason})" if t.reason else "")
-                  + (f"; from {', '.join(t.sources)}" if t.sources else ""))
+    for line in scale_term_lines(info):
+        out.print("  " + line)
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
               f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
     from gtforge.records.calibration import calibration_output_path
@@ -588,8 +591,8 @@ def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo
          scenes: int = typer.Option(5, metavar="N", help="Fruit scene captures (in the last, the fruit rolls 0.6 mm "
                                                          "between the two captures; 4 or more also run refine)."),
          seed: int = typer.Option(0, help="Random seed.")) -> None:
-    """Generate a synthetic session and run calibrate -> validate -> refine -> build-dataset (with verification and
-    sigma maps) -> evaluate, each checked against the exact truth."""
+    """Generate a synthetic session and run calibrate -> validate -> calibrate-scale -> refine -> build-dataset (with
+    verification and sigma maps) -> evaluate, each checked against the exact truth."""
     from gtforge.demo import run_demo
 
     run_demo(directory, scale=scale, n_board=boards, n_scenes=scenes, seed=seed, say=out.print, status=_status)
