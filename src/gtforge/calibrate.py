@@ -292,7 +292,13 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     for k, d in enumerate(dirs):
         if progress:
             progress(f"detect {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=False)
+        try:
+            cap = session.load_capture(d, need_right=False)
+        except InputError as exc:  # a capture's file missing or unreadable: skipped, as a capture without the board
+            log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
+                        d.name, exc)
+            reports.append(PoseResult(capture=d.name, status="skipped", reason=f"unreadable: {exc}"))
+            continue
         o, rep = detect_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, session.mech, session.zed,
                              board, params.blur_sharpness_px)
         reports.append(rep)

@@ -377,7 +377,11 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
     for k, d in enumerate(dirs):
         if progress:
             progress(f"board {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d)
+        try:
+            cap = session.load_capture(d)
+        except InputError as exc:  # as calibrate: a board capture's file missing or unreadable skips that capture
+            log.warning("board capture %s skipped: %s", d.name, exc)
+            continue
         dl = detect_target(cap.zed_left, board, rig.zed.left, where=f"{d.name}: ZED-left image")
         dr = detect_target(cap.zed_right, board, rig.zed.right, where=f"{d.name}: ZED-right image") \
             if cap.zed_right is not None else None

@@ -255,7 +255,13 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     for k, d in enumerate(dirs):
         if progress:
             progress(f"validate {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=False)
+        try:
+            cap = session.load_capture(d, need_right=False)
+        except InputError as exc:  # as calibrate: a capture's file missing or unreadable skips that capture
+            skipped[d.name] = f"unreadable: {exc}"
+            log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
+                        d.name, exc)
+            continue
         pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, calib.rig, board, params,
                                      d.name in used)
         meter.add(d.name, cap.zed_right, left_image=cap.zed_left)

@@ -308,7 +308,11 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
     for k, d in enumerate(dirs):
         if progress:
             progress(f"left-right matches {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=True)
+        try:
+            cap = session.load_capture(d, need_right=True)
+        except InputError as exc:  # a capture's file missing or unreadable: no matches from it (calibrate skips it)
+            skipped[d.name] = f"unreadable: {exc}"
+            continue
         if cap.zed_right is None:
             skipped[d.name] = "no right image"
             continue
