@@ -95,6 +95,11 @@ def _plain(x: Any) -> Any:
     return json.loads(json.dumps(x))
 
 
+def _versioned(options: dict) -> dict:
+    """A stage's options as recorded: with the gtforge version that ran it (a new version runs every stage again)."""
+    return {**options, "gtforge": gtforge.__version__}
+
+
 def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs_ok: str) -> str | None:
     """Why a stage must run again (None: it need not)."""
     if rec is None or rec.status != "done":
@@ -191,7 +196,7 @@ class _Run:
     def decide(self, k: int, name: str, options: dict, inputs: dict[str, str]) -> bool:
         """Whether stage ``name`` runs; says so, and why."""
         rec = self.state.stages.get(name)
-        why = _why(rec, options, inputs, self.outputs_ok(rec))
+        why = _why(rec, _versioned(options), inputs, self.outputs_ok(rec))
         if why is None:
             self.header(k, name, "unchanged since the last run (inputs, options and outputs): skipped"
                         + (f" [{rec.verdict}]" if rec.verdict else ""))
@@ -205,7 +210,8 @@ class _Run:
              verdict=None, reasons=(), detail=None, t0=0.0) -> None:
         outs = {self.key(p): self.hash(p) for p in outputs}
         outs.update({self.key(p): "" for p in exist_only})
-        self.state.stages[name] = StageRecord(stage=name, status="done", options=options, inputs=inputs, outputs=outs,
+        self.state.stages[name] = StageRecord(stage=name, status="done", options=_versioned(options), inputs=inputs,
+                                              outputs=outs,
                                               verdict=verdict, verdict_reasons=list(reasons), detail=detail or {},
                                               time_s=time.perf_counter() - t0)
         self.save()
@@ -233,7 +239,7 @@ class _Run:
                          "complete (each writes its files whole); run the same command again to resume: it redoes "
                          "only what is not")
                 raise
-        cert = write_certificate(out, self.state, self.root)
+        cert = write_certificate(out, self.state)
         self.say(f"certificate: {cert.verdict}" + "".join(f"\n  - {r}" for r in cert.verdict_reasons)
                  + f"\n  {out / 'index.html'} (and certificate.json)")
         if not self.redone:
@@ -370,7 +376,7 @@ class _Run:
         rec = self.state.stages.get(name)
         if not self.decide(k, name, options, inputs):
             return
-        if rec is not None and rec.status == "done" and rec.options == options and \
+        if rec is not None and rec.status == "done" and rec.options == _versioned(options) and \
                 all(rec.inputs.get(k2) == v for k2, v in {**calib_in, **self.hashes(ctx["cfg"])}.items()):
             why = {s: "its inputs changed" if any(rec.inputs.get(k2) != v for k2, v in h.items()) else None
                    for s, h in per_scene.items()}
@@ -403,7 +409,7 @@ class _Run:
         rec = self.state.stages.get(name)
         if not self.decide(k, name, options, inputs):
             return
-        if rec is not None and rec.status == "done" and rec.options == options and \
+        if rec is not None and rec.status == "done" and rec.options == _versioned(options) and \
                 rec.inputs.get(self.key(ctx["calib"])) == inputs[self.key(ctx["calib"])]:
             todo = [s for s, p in metas.items() if rec.inputs.get(self.key(p)) != inputs[self.key(p)]]
         else:

@@ -64,14 +64,19 @@ def _pf(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
 
-def build_certificate(out: Path, state: RunState, calib_file: str | None) -> Certificate:
-    """The certificate of the run in ``out`` (its ``state``; ``calib_file``: the calibration the dataset was built
-    with, relative to ``out``)."""
+def build_certificate(out: Path, state: RunState) -> Certificate:
+    """The certificate of the run in ``out`` (its ``state``): the files of the stages that ran this time or before,
+    never those a stage that no longer applies left behind."""
     st = state.stages
     sections: list[CertSection] = []
 
+    def ran(stage: str) -> bool:  # a stage that did not apply may have left an earlier run's file: not read
+        return stage in st and st[stage].status == "done"
+
     # board accuracy and the ZED's rows (validate)
     val = _Figures(out, "validation/validation.json", "validation/validation.html")
+    if not ran("validate"):
+        val.doc = None
     if val.doc is not None:
         d = val.doc
         val.add("board XY reprojection error, mean", "xy_mean_px", "px", status=_pf(d["pass_xy"]))
@@ -87,11 +92,13 @@ def build_certificate(out: Path, state: RunState, calib_file: str | None) -> Cer
                                     notes=list(d.get("warnings") or []), link=val.link))
         if d.get("gauges"):
             sections.append(_gauges(out, "validation/validation.json", "gauges."))
-    elif (out / "validation" / "gauges.json").is_file():
+    elif ran("validate") and (out / "validation" / "gauges.json").is_file():
         sections.append(_gauges(out, "validation/gauges.json", ""))
 
     rows = []
     cal = _Figures(out, "calibration.yaml", CALIBRATION_REPORT)
+    if not ran("calibrate"):
+        cal.doc = None
     if cal.doc is not None:
         sr = cal.doc.get("zed_self_rectification")
         if sr:
@@ -122,7 +129,7 @@ def build_certificate(out: Path, state: RunState, calib_file: str | None) -> Cer
                                     figures=c.items, notes=list(cal.doc.get("verdict_reasons") or []), link=c.link))
 
     sc = _Figures(out, "scaled.yaml", "scaled.yaml")
-    if sc.doc is not None and sc.doc.get("scale_calibration"):
+    if ran("calibrate-scale") and sc.doc is not None and sc.doc.get("scale_calibration"):
         for name, t in sc.doc["scale_calibration"]["terms"].items():
             sc.add(f"{name}: estimate", f"scale_calibration.terms.{name}.estimate", "",
                    sigma=f"scale_calibration.terms.{name}.sigma", status=t["status"])
@@ -134,7 +141,7 @@ def build_certificate(out: Path, state: RunState, calib_file: str | None) -> Cer
                                            "others stay 0 and their sigma goes into the per-pixel sigma"]))
 
     rf = _Figures(out, "refined.yaml", "refined.yaml")
-    if rf.doc is not None and rf.doc.get("refinement"):
+    if ran("refine") and rf.doc is not None and rf.doc.get("refinement"):
         rf.add("extrinsic moved by (rotation)", "refinement.change_rot_deg", "deg")
         rf.add("extrinsic moved by (translation)", "refinement.change_trans_mm", "mm")
         rf.add("held-out scenes' |texture shift| before", "refinement.heldout_shift_before_mean_px", "px")
@@ -144,7 +151,7 @@ def build_certificate(out: Path, state: RunState, calib_file: str | None) -> Cer
                                            rf.doc["refinement"].get("scenes_excluded", {}).items()]))
 
     cert_scenes: dict[str, Any] = {}
-    man = load(out / "dataset" / "manifest.json")
+    man = load(out / "dataset" / "manifest.json") if ran("build-dataset") else None
     layouts: list[str] = []
     splits: dict[str, int] = {}
     if man is not None:
@@ -298,9 +305,9 @@ def write_certificate_html(cert: Certificate, path: Path) -> Path:
     return atomic_write_text(path, "\n".join(p))
 
 
-def write_certificate(out: Path, state: RunState, session_root: Path | None = None) -> Certificate:
+def write_certificate(out: Path, state: RunState) -> Certificate:
     """``out/certificate.json`` and ``out/index.html`` for the run recorded in ``state``."""
-    cert = build_certificate(Path(out), state, None)
+    cert = build_certificate(Path(out), state)
     cert.write(Path(out) / "certificate.json")
     write_certificate_html(cert, Path(out) / "index.html")
     return cert
