@@ -239,7 +239,7 @@ class _Run:
                          "complete (each writes its files whole); run the same command again to resume: it redoes "
                          "only what is not")
                 raise
-        cert = write_certificate(out, self.state)
+        cert = write_certificate(out, self.state, self.root)
         self.say(f"certificate: {cert.verdict}" + "".join(f"\n  - {r}" for r in cert.verdict_reasons)
                  + f"\n  {out / 'index.html'} (and certificate.json)")
         if not self.redone:

@@ -64,7 +64,41 @@ def _pf(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
 
-def build_certificate(out: Path, state: RunState) -> Certificate:
+def _sigma_coverage(ds: Path, man: dict, session_root: Path | None) -> list[CertFigure]:
+    """On a synthetic session (``truth/`` beside the captures): the share of GT pixels within 1 and 2 sigma of the exact
+    disparity, over every scene's pixels the depth camera saw (an honest sigma: about 68 % and 95 %)."""
+    import numpy as np
+
+    from gtforge.io.formats import read_pfm
+
+    truth = Path(session_root) / "truth" if session_root is not None else None
+    if truth is None or not truth.is_dir():
+        return []
+    k1 = k2 = n = 0
+    for sid, meta in man["scenes"].items():
+        t = truth / f"scene_{sid}.npz"
+        sig_path = ds / "scenes" / sid / "disp0GT_sigma.pfm"
+        if not t.is_file() or not sig_path.is_file():
+            continue
+        with np.load(t) as z:
+            exact, seen = z["zed_disparity_px"], z["seen_by_mech"]
+        if meta.get("crop_xywh"):
+            x0, y0, w, h = meta["crop_xywh"]
+            exact, seen = exact[y0:y0 + h, x0:x0 + w], seen[y0:y0 + h, x0:x0 + w]
+        gt, sig = read_pfm(ds / "scenes" / sid / "disp0GT.pfm"), read_pfm(sig_path)
+        ok = seen & np.isfinite(gt) & np.isfinite(sig) & np.isfinite(exact) & (sig > 0)
+        r = np.abs(gt[ok] - exact[ok]) / sig[ok]
+        k1, k2, n = k1 + int((r <= 1).sum()), k2 + int((r <= 2).sum()), n + int(ok.sum())
+    if not n:
+        return []
+    src = "session truth/scene_*.npz (zed_disparity_px) vs dataset/scenes/*/disp0GT.pfm and disp0GT_sigma.pfm"
+    return [CertFigure(name=f"GT within {k} sigma of the exact disparity (synthetic truth; honest: about {p} %)",
+                       value=round(100.0 * c / n, 2), unit="%", source_file="dataset/manifest.json",
+                       derivation=f"{src}, over the {n} pixels the depth camera saw, every scene",
+                       link="dataset/build_report.html") for k, p, c in ((1, 68, k1), (2, 95, k2))]
+
+
+def build_certificate(out: Path, state: RunState, session_root: Path | None = None) -> Certificate:
     """The certificate of the run in ``out`` (its ``state``): the files of the stages that ran this time or before,
     never those a stage that no longer applies left behind."""
     st = state.stages
@@ -171,6 +205,7 @@ def build_certificate(out: Path, state: RunState) -> Certificate:
         figs.append(CertFigure(name="scenes whose sigma includes the calibration's covariance", value=n_inc,
                                source_file="dataset/manifest.json",
                                derivation="count of scenes.*.sigma_extrinsic_included", link="dataset/build_report.html"))
+        figs += _sigma_coverage(out / "dataset", man, session_root)
         sections.append(CertSection(title="Per-pixel ground-truth sigma (disp0GT_sigma.pfm)", figures=figs,
                                     link="dataset/build_report.html",
                                     notes=["each GT pixel's 1-sigma from the depth noise, the calibration's covariance "
@@ -305,9 +340,10 @@ def write_certificate_html(cert: Certificate, path: Path) -> Path:
     return atomic_write_text(path, "\n".join(p))
 
 
-def write_certificate(out: Path, state: RunState) -> Certificate:
-    """``out/certificate.json`` and ``out/index.html`` for the run recorded in ``state``."""
-    cert = build_certificate(Path(out), state)
+def write_certificate(out: Path, state: RunState, session_root: Path | None = None) -> Certificate:
+    """``out/certificate.json`` and ``out/index.html`` for the run recorded in ``state`` (``session_root``: where a
+    synthetic session's ``truth/`` is looked for)."""
+    cert = build_certificate(Path(out), state, session_root)
     cert.write(Path(out) / "certificate.json")
     write_certificate_html(cert, Path(out) / "index.html")
     return cert
