@@ -349,12 +349,11 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                     out / "verification.html")
     empty = [k for k, v in splits.items() if not v]
     if empty and ok_ids:
-        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): normal for a small session, nothing is "
-                    "wrong with the dataset; each fruit's scenes stay in one split, so the %d fruit filled %s first; "
-                    "train on what there is, or for held-out splits capture more fruit (or set fruit_ids in "
-                    "session.yaml, or change --split)", ", ".join(empty), len(ok_ids),
-                    len({fruit_ids[s] or s for s in ok_ids}), len({fruit_ids[s] or s for s in ok_ids}),
-                    ", ".join(k for k, v in splits.items() if v) or "no split")
+        n_fruit = len({fruit_ids[s] or s for s in ok_ids})
+        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): normal for a small session, the dataset is "
+                    "complete; a fruit's scenes all go to one split and each split gets its --split share of the %d "
+                    "fruit, rounded; for a %s split capture more fruit (or set fruit_ids in session.yaml, or change "
+                    "--split)", ", ".join(empty), len(ok_ids), n_fruit, n_fruit, " and ".join(empty))
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
                         quarantined)
 
