@@ -34,7 +34,7 @@ from gtforge.core.selfcal import SelfRectifyParams
 from gtforge.core.target_detection import PairSkipped, detect_target, match_target_views
 from gtforge.core.targets import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
-from gtforge.io.captures import open_session
+from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
 from gtforge.records.calibration import (
     CalibrateParams,
@@ -294,10 +294,12 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
             progress(f"detect {d.name} ({k + 1}/{len(dirs)})")
         try:
             cap = session.load_capture(d, need_right=False)
-        except InputError as exc:  # a capture's file missing or unreadable: skipped, as a capture without the board
+        except InputError as exc:  # a file missing: skipped, as a capture without the board; a file wrong: stop
+            if not missing_capture_file(exc):
+                raise leave_out_hint(exc, d.name) from None
             log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
                         d.name, exc)
-            reports.append(PoseResult(capture=d.name, status="skipped", reason=f"unreadable: {exc}"))
+            reports.append(PoseResult(capture=d.name, status="skipped", reason=f"file missing: {exc}"))
             continue
         o, rep = detect_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, session.mech, session.zed,
                              board, params.blur_sharpness_px)

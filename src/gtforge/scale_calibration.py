@@ -70,6 +70,7 @@ from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_c
 from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
+from gtforge.io.captures import missing_capture_file
 from gtforge.records.calibration import (
     CalibrationFile,
     ScaleCalibration,
@@ -379,7 +380,9 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
             progress(f"board {d.name} ({k + 1}/{len(dirs)})")
         try:
             cap = session.load_capture(d)
-        except InputError as exc:  # as calibrate: a board capture's file missing or unreadable skips that capture
+        except InputError as exc:  # as calibrate: a board capture's file missing skips it; a file wrong stops
+            if not missing_capture_file(exc):
+                raise
             log.warning("board capture %s skipped: %s", d.name, exc)
             continue
         dl = detect_target(cap.zed_left, board, rig.zed.left, where=f"{d.name}: ZED-left image")

@@ -42,7 +42,7 @@ from gtforge.core.targets import BoardModel, check_board_model, neighbour_pairs
 from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
-from gtforge.io.captures import open_session
+from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, check_rig_matches_session
 from gtforge.records.dataset import BuildParams
@@ -257,8 +257,10 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
             progress(f"validate {d.name} ({k + 1}/{len(dirs)})")
         try:
             cap = session.load_capture(d, need_right=False)
-        except InputError as exc:  # as calibrate: a capture's file missing or unreadable skips that capture
-            skipped[d.name] = f"unreadable: {exc}"
+        except InputError as exc:  # as calibrate: a file missing skips the capture; a file wrong stops
+            if not missing_capture_file(exc):
+                raise leave_out_hint(exc, d.name) from None
+            skipped[d.name] = f"file missing: {exc}"
             log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
                         d.name, exc)
             continue

@@ -88,6 +88,10 @@ def test_a_capture_with_a_missing_file_is_skipped_with_a_hint(tmp_path):
     (sess / "board" / "003" / "DepthMap.tiff").unlink()
     r = gtforge("calibrate", sess, "-o", tmp_path / "c.yaml", "--no-loo", "--no-self-rectify")
     assert r.returncode == 0, r.stderr
-    assert "capture 003 skipped" in r.stderr and "--captures" in r.stderr
+    assert "capture 003 skipped" in r.stderr and "--captures" in r.stderr and r.stderr.count("\n") <= 3
     poses = {p["capture"]: p for p in yaml.safe_load((tmp_path / "c.yaml").read_text())["poses"]}
     assert poses["003"]["status"] == "skipped" and "DepthMap.tiff" in poses["003"]["reason"]
+    # a file that is there but wrong still stops calibrate (one line, exit 2), the hint naming --captures
+    (sess / "board" / "001" / "2DImage.png").write_bytes(b"not a png")
+    r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--no-loo", "--no-self-rectify")
+    assert r.returncode == 2 and "2DImage.png" in r.stderr and "leave capture 001 out with --captures" in r.stderr
