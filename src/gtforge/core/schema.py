@@ -73,6 +73,8 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
     """Every problem of a file in one line (a file with several is fixed in one round), each naming its field; a
     missing field says ``missing``, never the whole mapping it is missing from."""
     errs = exc.errors()
+    version = [e for e in errs if tuple(e.get("loc", ())) == ("schema_version",)]
+    errs = version or errs  # a file of another schema: its other differences follow from that one
 
     def actual(err) -> str:
         if err.get("type") == "missing":
