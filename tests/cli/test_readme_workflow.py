@@ -2,13 +2,16 @@
 line runs and exits 0 (issue #36: the example could not run it, refine needing 3 scenes)."""
 from __future__ import annotations
 
+import logging
 import re
 import shlex
 from pathlib import Path
 
 import pytest
 
-from conftest import gtforge
+from typer.testing import CliRunner
+
+from gtforge.cli import app
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "calib_data_examples" / "session"
@@ -28,9 +31,11 @@ def test_the_readme_workflow_is_the_run_chain():
 
 @pytest.mark.slow
 def test_the_readme_workflow_runs_on_the_shipped_example(tmp_path, monkeypatch):
+    """In this process (the same command-line app, without six interpreter start-ups); SESSION is the example."""
     monkeypatch.chdir(tmp_path)
     for cmd in readme_workflow():
         args = [str(EXAMPLE) if a == "SESSION" else a for a in cmd[1:]]
-        r = gtforge(*args)
-        assert r.returncode == 0, (cmd, r.stdout[-2000:], r.stderr[-2000:])
+        r = CliRunner().invoke(app, args)
+        assert r.exit_code == 0, (cmd, r.output[-2000:], r.exception)
+    logging.getLogger().handlers.clear()  # CliRunner's captured stderr is closed now
     assert (tmp_path / "refined.yaml").is_file() and (tmp_path / "dataset" / "verification.json").is_file()
