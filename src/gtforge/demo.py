@@ -114,7 +114,8 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
             f"{', '.join(ref.refinement.scenes_excluded) or 'none'}; vs truth: {ref_err[0]:.4f} deg / "
             f"{ref_err[1]:.3f} mm (board calibration: {rot_err:.4f} deg / {tr_err:.3f} mm)")
         rows.append((f"refine (scenes {', '.join(ref.refinement.scenes_used)} used; left out: "
-                     f"{', '.join(ref.refinement.scenes_excluded) or 'none'})", "error of the refined extrinsic vs truth",
+                     f"{', '.join(ref.refinement.scenes_excluded) or 'none'})",
+                     "error of the refined extrinsic vs truth",
                      f"{ref_err[0]:.4f} deg / {ref_err[1]:.3f} mm"))
         used_calib = refined_path
     else:
@@ -171,7 +172,8 @@ def write_figures(path: Path, rows: list[tuple[str, str, str]], seconds: float, 
     import gtforge
 
     lines = ["| stage | figure | value |", "|---|---|---|"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
-    lines += ["", f"Written by `gtforge demo --scale {scale:g} --boards {n_board} --scenes {n_scenes} --seed {seed}` on "
+    lines += ["", f"Written by `gtforge demo --scale {scale:g} --boards {n_board} --scenes {n_scenes} --seed {seed}` "
+              "on "
               f"{time.strftime('%Y-%m-%d')} ({seconds:.0f} s on {os.cpu_count()} cores, {platform.machine()}; gtforge "
               f"{gtforge.__version__}, OpenCV {cv2.__version__}, numba {numba.__version__}, NumPy {np.__version__}); "
               "another OpenCV, numba or NumPy build may change the last digits."]

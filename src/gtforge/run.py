@@ -33,7 +33,7 @@ from gtforge.infra.digest import blake3_file
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
 from gtforge.records.certificate import Certificate
-from gtforge.records.dataset import BuildParams, SceneMeta
+from gtforge.records.dataset import BuildParams
 from gtforge.records.run import STAGES, FileHash, RunState, StageRecord
 from gtforge.refine import RefineParams, refine
 from gtforge.reports.calibration import scale_term_lines, write_calibration_report

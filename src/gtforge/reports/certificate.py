@@ -204,7 +204,8 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
         n_inc = sum(bool(m.get("sigma_extrinsic_included")) for m in man["scenes"].values())
         figs.append(CertFigure(name="scenes whose sigma includes the calibration's covariance", value=n_inc,
                                source_file="dataset/manifest.json",
-                               derivation="count of scenes.*.sigma_extrinsic_included", link="dataset/build_report.html"))
+                               derivation="count of scenes.*.sigma_extrinsic_included",
+                               link="dataset/build_report.html"))
         figs += _sigma_coverage(out / "dataset", man, session_root)
         sections.append(CertSection(title="Per-pixel ground-truth sigma (disp0GT_sigma.pfm)", figures=figs,
                                     link="dataset/build_report.html",
@@ -241,7 +242,8 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
                 CertFigure(name="scenes quarantined (left out of the split lists)",
                            value=len(cert_scenes["quarantined"]), source_file="dataset/manifest.json",
                            derivation="number of quarantined", link="dataset/verification.html"),
-                CertFigure(name="scenes failed", value=len(cert_scenes["failures"]), source_file="dataset/manifest.json",
+                CertFigure(name="scenes failed", value=len(cert_scenes["failures"]),
+                           source_file="dataset/manifest.json",
                            derivation="number of failures", link="dataset/build_report.html"), *vfig],
             notes=[f"scene {s} failed: {r}" for s, r in cert_scenes["failures"].items()]
             + _split_notes(splits), link="dataset/verification.html"))
@@ -313,8 +315,9 @@ def write_certificate_html(cert: Certificate, path: Path) -> Path:
              f"<tr><th>written</th><td>{e(cert.created)}</td></tr>"
              f"<tr><th>inputs (BLAKE3 of every input's hash)</th><td>{e(cert.inputs_digest)}</td></tr></table>")
     p.append("<h2>Stages</h2><table><thead><tr><th>stage</th><th>status</th><th>verdict</th><th>why</th></tr></thead>"
-             "<tbody>" + "".join(f"<tr><td>{e(s.stage)}</td><td>{e(s.status)}</td><td><span class=\"{_cls(s.verdict)}\">"
-                                 f"{e(s.verdict or '')}</span></td><td style='text-align:left'>{e('; '.join(s.reasons))}"
+             "<tbody>" + "".join(f"<tr><td>{e(s.stage)}</td><td>{e(s.status)}</td><td>"
+                                 f"<span class=\"{_cls(s.verdict)}\">{e(s.verdict or '')}</span></td>"
+                                 f"<td style='text-align:left'>{e('; '.join(s.reasons))}"
                                  f"</td></tr>" for s in cert.stages) + "</tbody></table>")
     for sec in cert.sections:
         cls = f' class="{_cls(sec.verdict)}"' if sec.verdict else ""
