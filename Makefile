@@ -14,11 +14,14 @@ setup: $(STAMP)
 demo: $(STAMP)  ## set up, then run calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> evaluate on synthetic data
 	$(VENV)/bin/gtforge demo demo_out
 
-test: $(STAMP)  ## set up, then run the whole test suite (what CI runs: .ci/run)
-	$(PY) -m pytest
+# test processes side by side (pytest-xdist); the synthetic sessions are rendered once and shared (tests/conftest.py)
+TEST_WORKERS ?= 2
 
-test-quick: $(STAMP)  ## set up, then run the tests not marked slow (under 2 minutes on a 2-core VM)
-	$(PY) -m pytest -m "not slow"
+test: $(STAMP)  ## set up, then run the whole test suite, printing the 15 slowest tests (what CI runs: .ci/run)
+	$(PY) -m pytest -n $(TEST_WORKERS) --durations=15
+
+test-quick: $(STAMP)  ## set up, then run the tests not marked slow (about a minute on a 2-core VM)
+	$(PY) -m pytest -n $(TEST_WORKERS) -m "not slow"
 
 bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same run; tables in benchmarks/RESULTS.md)
 	$(PY) benchmarks/bench_reproject.py

@@ -179,7 +179,8 @@ def main():
     base_rate = n / runs[0][1]
     rep = f" --repeat {args.repeat}" if args.repeat > 1 else ""
     lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes {n} "
-             f"--distinct {args.distinct}{rep}`: {machine}; {n} full-resolution scenes ({args.distinct} distinct renders "
+             f"--distinct {args.distinct}{rep}`: {machine}; {n} full-resolution scenes "
+             f"({args.distinct} distinct renders "
              f"hard-linked), each run a fresh process (imports included), one after the other, each after the "
              f"earlier runs' outputs were deleted, everything written to disk and {args.settle_s:.0f} s since the "
              f"deletion (`settle`)"
@@ -187,7 +188,8 @@ def main():
                 "with the median wall time)." if args.repeat > 1 else ".")
              + " Machine CPU: the whole machine's busy time during the run (/proc/stat; kernel threads included).",
              "",
-             f"| run | wall s | scenes/s | vs baseline | {TARGET_SCENES} scenes at this rate | machine CPU s per scene |",
+             f"| run | wall s | scenes/s | vs baseline | {TARGET_SCENES} scenes at this rate "
+             "| machine CPU s per scene |",
              "|---|---|---|---|---|---|"]
     for name, t, cpu in runs:
         rate = n / t

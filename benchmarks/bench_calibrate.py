@@ -67,7 +67,8 @@ def main():
             if o is None:
                 continue
             X = board.corners_board()
-            cerr.append(np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech @ T_mb, X)) - o.zed_uv, axis=1))
+            cerr.append(np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech @ T_mb, X)) - o.zed_uv,
+                                       axis=1))
             obs.append(o)
             reps.append(r)
         for n in counts:

@@ -14,11 +14,14 @@ from gtforge.predictors import PredictionFolder
 from gtforge.records.calibration import CalibrationFile
 from gtforge.synthetic import default_rig, generate_session
 
-d = Path(sys.argv[1]); scale = float(sys.argv[2]); n = int(sys.argv[3])
+d = Path(sys.argv[1])
+scale = float(sys.argv[2])
+n = int(sys.argv[3])
 if not (d / "ds").exists():
     generate_session(d / "s", n_board=0, n_scenes=n, scale=scale, seed=1, depth_noise_mm=0.03, supersample=1)
     r = default_rig(scale)
-    CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech, T_zed_from_mech=r.T_zed_from_mech.tolist())).write(d / "c.yaml")
+    CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech,
+                                        T_zed_from_mech=r.T_zed_from_mech.tolist())).write(d / "c.yaml")
     build_dataset(d / "s", d / "c.yaml", d / "ds", workers=1)
     (d / "p").mkdir()
     for s in (d / "ds" / "scenes").iterdir():
@@ -44,4 +47,5 @@ measure_scene(s.name, reg, cal, gt, gt + 0.3)
 c = time.process_time()
 for _ in range(5):
     measure_scene(s.name, reg, cal, gt, gt + 0.3)
-print(f"{shape[1]}x{shape[0]}: measure_scene (GT + prediction, one fruit): {(time.process_time() - c) / 5 * 1000:.0f} ms CPU per scene")
+print(f"{shape[1]}x{shape[0]}: measure_scene (GT + prediction, one fruit): "
+      f"{(time.process_time() - c) / 5 * 1000:.0f} ms CPU per scene")

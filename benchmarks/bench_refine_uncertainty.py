@@ -43,7 +43,8 @@ def _table(title, rows, errs):
     print("| covariance | mean NEES | median NEES | mean sigma deg | mean sigma mm |\n|---|---|---|---|---|")
     for k in rows[0]:
         v = np.array([r[k] for r in rows])
-        print(f"| {k} | {v[:, 0].mean():.3f} | {np.median(v[:, 0]):.3f} | {v[:, 1].mean():.5f} | {v[:, 2].mean():.4f} |")
+        print(f"| {k} | {v[:, 0].mean():.3f} | {np.median(v[:, 0]):.3f} | {v[:, 1].mean():.5f} "
+              f"| {v[:, 2].mean():.4f} |")
 
 
 def main():
@@ -90,7 +91,8 @@ def main():
         names = sorted(x.name for x in (p / "scenes").iterdir())
         for j in range(0, len(names) - args.k + 1, args.k):
             c = CalibrationFile.read(true_path)
-            c.rig = c.rig.with_extrinsic(T_from_rotvec(np.radians(rng.normal(0, 0.03, 3)), rng.normal(0, 0.3, 3)) @ T_true)
+            c.rig = c.rig.with_extrinsic(T_from_rotvec(np.radians(rng.normal(0, 0.03, 3)), rng.normal(0, 0.3, 3))
+                                         @ T_true)
             start = wd / f"start_{p.name}_{j}.yaml"
             c.write(start)
             res = R.refine(p, start, None, params, scenes=names[j:j + args.k])

@@ -70,8 +70,8 @@ def module_at_revision(rev: str):
     import tempfile
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/core/reproject.py"], capture_output=True, text=True,
-                         check=True).stdout
+    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/core/reproject.py"], capture_output=True,
+                         text=True, check=True).stdout
     path = os.path.join(tempfile.mkdtemp(), f"reproject_{rev}.py")
     with open(path, "w") as f:
         f.write(src)
@@ -160,7 +160,8 @@ def main():
     mesh, splat = ReprojectParams(mode="mesh"), ReprojectParams(mode="splat")
     base = "Open3D + cv2.remap undistortion (baseline)"
     methods = {
-        "Open3D + cv2.remap undistortion (baseline)": lambda: o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)),
+        "Open3D + cv2.remap undistortion (baseline)":
+            lambda: o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)),
         "Open3D alone (no undistortion)": lambda: o3d_project(depth0),
         f"gtforge splat (default: {n_threads} numba threads)": lambda: project_depth_to_camera(depth, mech, T, cam,
                                                                                                 splat),
@@ -237,7 +238,8 @@ def main():
     s = project_depth_to_camera(depth, mech, T, cam, splat)
     m = project_depth_to_camera(depth, mech, T, cam, mesh)
 
-    cmd = f"python benchmarks/bench_reproject.py --repeat {args.repeat}" + (f" --against {args.against}" if args.against else "")
+    cmd = (f"python benchmarks/bench_reproject.py --repeat {args.repeat}"
+           + (f" --against {args.against}" if args.against else ""))
     lines = [f"Measured {datetime.date.today()} with `{cmd}`: "
              f"{len(os.sched_getaffinity(0))} cores, load average {os.getloadavg()[0]:.2f} at the end; "
              f"{mech.width_px}x{mech.height_px} depth ({np.isfinite(depth).mean() * 100:.1f} % valid) -> "

@@ -4,8 +4,10 @@ One session per error kind, alone and combined, at the issue's limits: ZED basel
 0.15 deg about its vertical axis, depth scale -0.2 %, depth offset +0.5 mm; all of them with the right camera also
 turned 0.15 deg about x and z ("all combined": calibrate's self-rectification removes those first); a separate depth
 camera turned (0.1, -0.15, 0.1) deg against session.yaml, alone and with all the others; and one without any error
-(for the separate depth camera too: "depth camera exact"). Each is calibrated from the exact extrinsic (a perfect board calibration: only the scale terms are off)
-with the board captures and without them. Printed per row: every term's estimate +- 1-sigma (status), the GT's mean EPE against
+(for the separate depth camera too: "depth camera exact"). Each is calibrated from the exact extrinsic (a perfect \
+board calibration: only the scale terms are off)
+with the board captures and without them. Printed per row: every term's estimate +- 1-sigma (status), the GT's mean \
+EPE against
 what the images show (the right image corrected for the applied yaw in the session's one resampling, as
 build-dataset writes im1) before and after, and verify's stereo disparity bias (scene 000) before and after.
 
@@ -29,12 +31,13 @@ import numpy as np
 from gtforge.core.camera import Rig
 from gtforge.core.scale_corrections import shown_disparity_px
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
+from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, generate_session
-from gtforge.verify import verify_scene
 
 CASES = {
     "none": {},
@@ -91,7 +94,7 @@ def known_calibration(sess: Path, self_rectify: bool = False) -> Path:
 
 def figures(sess: Path, calib: CalibrationFile) -> tuple[float, float, float]:
     """(mean EPE against what the images show over the scenes, the largest scene's, scene 000's stereo bias)."""
-    s = calib.open_session(sess)  # the right image corrected for calib's yaw, as build-dataset writes im1
+    s = open_with_calibration(sess, calib)  # the right image corrected for calib's yaw, as build-dataset writes im1
     yaw_true = SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").zed_right_yaw_deg
     epes, bias = [], float("nan")
     for d in s.select("scenes", None):

@@ -70,7 +70,8 @@ def main() -> None:
                  for i in range(a.poses)]
         print(line(name, *calibrate_views(views, rig, spec)), flush=True)
         if name == "charuco" and a.partial:
-            part = [render_board_views(f"p{k}", rig, spec, random_partial_board_pose(rng, rig, spec, k % 4), rng, 100 + k)
+            part = [render_board_views(f"p{k}", rig, spec, random_partial_board_pose(rng, rig, spec, k % 4), rng,
+                                       100 + k)
                     for k in range(a.partial)]
             mixed = views[:a.poses - a.partial] + part
             print(line(f"charuco, {a.poses - a.partial} whole + {a.partial} cut by the texture image's border",

@@ -24,12 +24,12 @@ import numpy as np
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import T_from_rotvec, pose_difference
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import predicted_shift, verify_scene
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams
 from gtforge.refine import RefineParams, refine
 from gtforge.synthetic import SyntheticTruth, generate_session
-from gtforge.verify import predicted_shift, verify_scene
 
 
 def session(workdir: Path, n: int) -> Path:
@@ -74,7 +74,8 @@ def main():
     rng = np.random.default_rng(0)
 
     print("\n## 1. texture shift with the exact extrinsic (px; 0 is right; target |shift| <= 0.05)")
-    print("| depth noise (mm) | image noise (grey) | mean |shift| all | max |shift| all | max |shift| fruit | max |stereo bias| |")
+    print("| depth noise (mm) | image noise (grey) | mean |shift| all | max |shift| all | max |shift| fruit "
+          "| max |stereo bias| |")
     print("|---|---|---|---|---|---|")
     for dn in (0.0, 0.03, 0.1):
         for im in (0.5, 1.5, 4.0):

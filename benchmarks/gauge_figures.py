@@ -19,7 +19,8 @@ if not (d / "s").exists():
                      supersample=1)
     generate_gauges(d / "s", scale=scale, seed=3, depth_noise_mm=noise)
 r = default_rig(scale)
-CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech, T_zed_from_mech=r.T_zed_from_mech.tolist())).write(d / "c.yaml")
+CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech,
+                                    T_zed_from_mech=r.T_zed_from_mech.tolist())).write(d / "c.yaml")
 model = DepthNoiseModel(a_mm=noise, b_mm_per_m2=0.0)  # the noise put in (0: the sigma map's mesh term alone)
 rep = validate_gauges(d / "s", d / "c.yaml", d / "out", GaugeParams(depth_noise=model))
 
@@ -34,11 +35,13 @@ for g in rep.gauges:
             print(g.capture, getattr(src, "source", "raw"), "not measurable", getattr(src, "reason", ""))
             continue
         for k, s in enumerate(src.spheres):
-            print(f"{g.capture} {src.source} sphere {k + 1}: PS {f(s.size_error_mm)} (1-sigma {f(s.size_sigma_predicted_mm, '{:.4f}')}) "
+            print(f"{g.capture} {src.source} sphere {k + 1}: PS {f(s.size_error_mm)} "
+                  f"(1-sigma {f(s.size_sigma_predicted_mm, '{:.4f}')}) "
                   f"PF {s.form_range_mm:.4f} (pred {f(s.form_range_predicted_mm, '{:.4f}')}) RMS {s.form_rms_mm:.4f} "
                   f"(pred {f(s.form_rms_predicted_mm, '{:.4f}')}) n {s.n_points} outliers {s.n_outliers}")
         if src.spacing_error_mm is not None:
-            print(f"{g.capture} {src.source}: SD {src.spacing_error_mm:+.4f} (1-sigma {f(src.spacing_sigma_predicted_mm, '{:.4f}')})")
+            print(f"{g.capture} {src.source}: SD {src.spacing_error_mm:+.4f} "
+                  f"(1-sigma {f(src.spacing_sigma_predicted_mm, '{:.4f}')})")
         if src.flatness_mm is not None:
             print(f"{g.capture} {src.source}: F {src.flatness_mm:.4f} (pred {f(src.flatness_predicted_mm, '{:.4f}')}) "
                   f"RMS {src.plane_rms_mm:.4f} (pred {f(src.plane_rms_predicted_mm, '{:.4f}')}) n {src.n_points}")

@@ -107,7 +107,7 @@ def main():
     T_l = rig.T_zed_from_depth
     T_r = zed.T_zedr_from_zed @ T_l
     try:  # gtforge >= issue 12's round 5: a build decodes the ZED images down to the rows verification reads
-        from gtforge.verify import zed_rows_used
+        from gtforge.dataset.scene_verification import zed_rows_used
 
         zed_rows = zed_rows_used(project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp), params.verify)
         h_zed = f" (decode, rows 0-{zed_rows} of {zed.left.height_px})"
@@ -131,7 +131,7 @@ def main():
                             lambda: bd.fruit_regions(depth_l, zed, params, cap.fruit_mask))
     weight = measure("compute", "SGRA weights", lambda: bd.sgra_weights(region, params))
     if getattr(params, "verification", False):
-        from gtforge.verify import verify_scene
+        from gtforge.dataset.scene_verification import verify_scene
 
         measure("compute", "verification (texture alignment + stereo consistency)",
                 lambda: verify_scene(depth_l, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
@@ -185,7 +185,8 @@ def main():
     mask[valid] = 128
     mask[noc] = 255
     measure("write", "im0.png + im1.png (copies of the input PNGs)",
-            lambda: [shutil.copyfile(cap_dir / n, tmp / o) for n, o in ((f.zed_left, "im0.png"), (f.zed_right, "im1.png"))])
+            lambda: [shutil.copyfile(cap_dir / n, tmp / o)
+                     for n, o in ((f.zed_left, "im0.png"), (f.zed_right, "im1.png"))])
     measure("write", "disp0GT.pfm", lambda: write_pfm(tmp / "disp0GT.pfm", disp))
     png_writer = getattr(__import__("gtforge.io.formats", fromlist=["x"]), "write_label_png", None)
     if png_writer is None:  # older gtforge
@@ -202,13 +203,16 @@ def main():
             lambda: kitti_pair(tmp / "occ.png", tmp / "noc.png", disp, noc))
     if getattr(params, "right_gt", False):
         measure("write", "disp1GT.pfm + mask1nocc.png + KITTI disp_occ_1 + disp_noc_1",
-                lambda: (write_pfm(tmp / "disp1GT.pfm", disp1), png_writer(tmp / "mask1nocc.png", bd.occlusion_mask(disp1, noc1)),
+                lambda: (write_pfm(tmp / "disp1GT.pfm", disp1),
+                         png_writer(tmp / "mask1nocc.png", bd.occlusion_mask(disp1, noc1)),
                          kitti_pair(tmp / "occ1.png", tmp / "noc1.png", disp1, noc1)))
     if getattr(params, "sigma", False):
         measure("write", "disp0GT_sigma.pfm + sigma thumbnail JPG",
-                lambda: (write_pfm(tmp / "disp0GT_sigma.pfm", sigma), bd.write_sigma_thumbnail(tmp / "sigma.jpg", sigma)))
+                lambda: (write_pfm(tmp / "disp0GT_sigma.pfm", sigma),
+                         bd.write_sigma_thumbnail(tmp / "sigma.jpg", sigma)))
     measure("write", "calib.txt", lambda: bd.atomic_write_text(
-        tmp / "calib.txt", bd.middlebury_calib_text(zed, disp.shape[1], disp.shape[0], (np.nanmin(disp), np.nanmax(disp)))))
+        tmp / "calib.txt", bd.middlebury_calib_text(zed, disp.shape[1], disp.shape[0],
+                                                    (np.nanmin(disp), np.nanmax(disp)))))
 
     def no_links():
         for view in ("kitti", "eth3d"):
@@ -260,7 +264,8 @@ def main():
     lines.append(f"| | **sum of the steps** | **{s_ms:.0f}** | **{s_cpu:.0f}** | {100 * s_cpu / total_cpu:.0f} % |")
     lines.append(f"| total | **{rows[-1][1]}** | **{total:.0f}** | **{total_cpu:.0f}** | 100 % |")
     lines.append("")
-    lines.append(f"Not in the steps: pydantic meta/manifest, scene statistics, masks, the atomic renames (whole call minus the "
+    lines.append(f"Not in the steps: pydantic meta/manifest, scene statistics, masks, the atomic renames "
+                 f"(whole call minus the "
                  f"steps: {total_cpu - s_cpu:+.0f} CPU ms, {total - s_ms:+.0f} ms of wall). Each write step is timed "
                  f"alone; the whole call also gives its written pages back (scheduling.release_written_pages).")
     text = "\n".join(lines)

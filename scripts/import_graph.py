@@ -44,16 +44,9 @@ def imports_of(path: Path, modname: str, modules: dict[str, Path]) -> list[tuple
     """(imported module, line, at module level) for every gtforge import in one file."""
     tree = ast.parse(path.read_text(), filename=str(path))
     top_level = {id(n) for n in tree.body}
-    # Statements inside `if TYPE_CHECKING:` never run; they are not edges.
-    type_only = set()
-    for n in ast.walk(tree):
-        if isinstance(n, ast.If) and "TYPE_CHECKING" in ast.unparse(n.test):
-            type_only.update(id(m) for m in ast.walk(n))
     out = []
     pkg = modname if path.name == "__init__.py" else modname.rpartition(".")[0]
     for node in ast.walk(tree):
-        if id(node) in type_only:
-            continue
         names = []
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]

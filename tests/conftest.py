@@ -1,24 +1,40 @@
-"""Shared fixtures: one small synthetic session rendered once per test run (exact truth beside it)."""
+"""Shared fixtures: the synthetic sessions (exact truth beside them) and the shared calibration, made once per test run
+for every pytest-xdist worker (tests/made_once.py). The tests that need none of them run first, while a background
+process makes those the collected tests need, in the order they will be needed."""
 from __future__ import annotations
 
 import hashlib
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from made_once import SPECS, make_calibration, make_session, session_spec
 
-from gtforge.synthetic import SyntheticTruth, generate_session
+from gtforge.synthetic import SyntheticTruth
+
+SHARED = session_spec("session_dir", "session", n_board=7, n_scenes=3, scale=0.4, seed=11, depth_noise_mm=0.0,
+                      image_noise=1.0)
+
+
+def made_once_root(config) -> Path:
+    """Where this run's shared folders are made (``made_once``): beside the workers' own temporary folders."""
+    base = config._tmp_path_factory.getbasetemp()
+    return (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "made-once"
+
+
+def synthetic_session(request, spec: tuple[str, dict]) -> Path:
+    """The synthetic session ``spec`` (``session_spec``) declares, made once per test run."""
+    return make_session(made_once_root(request.config), *spec)
 
 
 @pytest.fixture(scope="session")
-def session_dir(tmp_path_factory):
+def session_dir(request):
     """7 board poses + 3 fruit scenes at 0.4x resolution, noise-free depth (ZED 883x497, mech 768x480)."""
-    d = tmp_path_factory.mktemp("session")
-    generate_session(d, n_board=7, n_scenes=3, scale=0.4, seed=11, depth_noise_mm=0.0, image_noise=1.0)
-    return d
+    return synthetic_session(request, SHARED)
 
 
 @pytest.fixture(scope="session")
@@ -27,13 +43,10 @@ def T_true(session_dir):
 
 
 @pytest.fixture(scope="session")
-def calibration(session_dir, tmp_path_factory):
-    from gtforge.calibrate import calibrate
-    from gtforge.records.calibration import CalibrateParams
-
-    path = tmp_path_factory.mktemp("calib") / "calibration.yaml"
-    res = calibrate(session_dir, path, CalibrateParams(use_depth=False))
-    return path, res
+def calibration(session_dir, request):
+    """The shared session calibrated (its file, and the result as ``calibrate`` returned it), once per test run."""
+    folder = make_calibration(made_once_root(request.config), session_dir)
+    return folder / "calibration.yaml", pickle.loads((folder / "result.pickle").read_bytes())
 
 
 @pytest.fixture(scope="session")
@@ -91,3 +104,38 @@ def tree_digest(root):
 def one_line_error(r):
     lines = [l for l in r.stderr.splitlines() if l.strip()]
     return len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr
+
+
+PREFETCH = "calibration"  # besides SPECS' fixtures: the shared session's calibration
+
+
+@pytest.hookimpl(trylast=True)  # after -m / -k have deselected
+def pytest_collection_modifyitems(session, config, items):
+    """Light tests first, then the tests of each shared folder together, in the order a background process (started
+    once per run) makes the folders."""
+    order: list[str] = []
+    for item in items:
+        for f in item.fixturenames:
+            if (f in SPECS or f == PREFETCH) and f not in order:
+                order.append(f)
+
+    def first_heavy(item) -> int:
+        used = [order.index(f) for f in item.fixturenames if f in order]
+        return min(used) if used else -1
+
+    items.sort(key=first_heavy)
+    if not order or config.option.collectonly or os.environ.get("PYTEST_XDIST_WORKER", "gw0") != "gw0":
+        return
+    root = made_once_root(config)
+    jobs = [(str(root), "calib", SPECS["session_dir"]) if f == PREFETCH else (str(root), *SPECS[f]) for f in order]
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("made_once.py"))], stdin=subprocess.PIPE)
+    proc.stdin.write(pickle.dumps(jobs))
+    proc.stdin.close()
+    config._gtforge_prefetch = proc
+
+
+def pytest_sessionfinish(session, exitstatus):
+    proc = getattr(session.config, "_gtforge_prefetch", None)
+    if proc is not None and proc.poll() is None:  # the run ended first (a failure with -x, Ctrl-C)
+        proc.terminate()
+        proc.wait()

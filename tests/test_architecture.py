@@ -13,15 +13,17 @@ SRC = ROOT / "src" / "gtforge"
 
 # Lowest first. A module may import its own layer and the layers below it, never one above.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("infra", ("gtforge.errors", "gtforge._moved", "gtforge.infra")),
+    ("infra", ("gtforge.errors", "gtforge.infra")),
     ("core", ("gtforge.core",)),
     ("io", ("gtforge.io",)),
     ("records", ("gtforge.records",)),
     ("reports", ("gtforge.reports",)),
     ("dataset", ("gtforge.dataset",)),
-    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.refine", "gtforge.build_dataset",
-                "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors", "gtforge.training")),
-    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.run", "gtforge.precompile", "gtforge.cli")),
+    ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.align_depth", "gtforge.refine",
+                "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors",
+                "gtforge.training")),
+    ("recipes", ("gtforge.synthetic", "gtforge.demo", "gtforge.run", "gtforge.precompile", "gtforge.holdout",
+                 "gtforge.cli")),
 ]
 
 
@@ -66,6 +68,18 @@ def test_no_import_goes_up_a_layer(graph):
     assert ups == []
 
 
+STAGES = ("gtforge.calibrate", "gtforge.align_depth", "gtforge.scale_calibration", "gtforge.refine",
+          "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate")
+
+
+def test_stages_stand_side_by_side(graph):
+    """No stage imports another: what two stages share (a scene's verification, board detection) sits below them, and
+    a recipe (cli, demo, holdout, run) chains them."""
+    _, _, edges = graph
+    ties = [f"{m}:{line} imports {tgt}" for m in STAGES for tgt, line, _ in edges.get(m, []) if tgt in STAGES]
+    assert ties == []
+
+
 def test_the_checker_sees_a_circle_and_an_upward_import(tmp_path):
     """The rule's checker on a made-up package: it must report what it is there to forbid."""
     g = _graph_module()
@@ -80,49 +94,18 @@ def test_the_checker_sees_a_circle_and_an_upward_import(tmp_path):
     assert g.upward(edges, LAYERS) == [("gtforge.core.a", 2, "gtforge.calibrate")]
 
 
-# Names that moved in round 3, at their old paths (docs/architecture.md, "Moved names"): one per kind of move.
-OLD_PATHS = [
-    ("gtforge.build_dataset", "Manifest"), ("gtforge.build_dataset", "BuildParams"),
-    ("gtforge.build_dataset", "fruit_regions"), ("gtforge.build_dataset", "verify_one_scene"),
-    ("gtforge.build_dataset", "make_splits"), ("gtforge.calibrate", "CalibrationFile"),
-    ("gtforge.calibrate", "open_calibrated_session"), ("gtforge.calibrate", "PoseReport"),
-    ("gtforge.calibrate", "solve_pnp"), ("gtforge.evaluate", "EvalReport"), ("gtforge.evaluate", "TABLE_REGIONS"),
-    ("gtforge.verify", "VerifyParams"), ("gtforge.verify", "local_normalize"), ("gtforge.verify", "render_texture"),
-    ("gtforge.validate", "REFERENCE_XY_PX"), ("gtforge.validate", "ValidationReport"),
-    ("gtforge.scale_calibration", "corrected_right_image"), ("gtforge.scale_calibration", "ScaleCalibration"),
-    ("gtforge.synthetic", "BoardSpec"), ("gtforge.synthetic", "GridCounts"), ("gtforge.io.formats", "to_gray"),
-    ("gtforge.camera", "Rig"), ("gtforge.scheduling", "run_tasks"), ("gtforge.io.atomic", "atomic_write_text"),
-    ("gtforge.rectification", "settle_zed_conf_reading"), ("gtforge.rectification", "summary_lines"),
-    ("gtforge.selfcal", "self_rectify"), ("gtforge.targets", "detect_charuco"), ("gtforge.targets", "matched_points"),
-    ("gtforge.gauges", "validate_gauges"), ("gtforge.reproject", "reproject_to_zed"),
-]
-
-
-@pytest.mark.parametrize("module, name", OLD_PATHS)
-def test_a_moved_name_still_imports_from_its_old_path(module, name):
-    import importlib
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)
-        old = importlib.import_module(module)
-        value = getattr(old, name)
-    assert value is not None
-    # and it is the very object of its new home (not a copy)
-    homes = [m for m in sys.modules.values() if getattr(m, "__name__", "").startswith("gtforge.")
-             and not getattr(m, "__gtforge_homes__", None) and m.__dict__.get(name) is value]
-    assert homes, f"{module}.{name} is not any gtforge module's own object"
-
-
-def test_a_moved_module_warns_with_its_new_path():
-    import importlib
-    import warnings
-
-    sys.modules.pop("gtforge.lens", None)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        old = importlib.import_module("gtforge.lens")
-    assert any("gtforge.core.lens" in str(w.message) for w in caught)
-    from gtforge.core import lens
-
-    assert old.undistort is lens.undistort
+def test_a_type_only_import_is_an_edge(tmp_path):
+    """``if TYPE_CHECKING:`` imports count: a lower layer naming a higher layer's type in an annotation depends on it
+    all the same (and such an import closed a circle that a checker skipping them did not see)."""
+    g = _graph_module()
+    pkg = tmp_path / "gtforge"
+    (pkg / "core").mkdir(parents=True)
+    (pkg / "records").mkdir()
+    for f in ("__init__.py", "core/__init__.py", "records/__init__.py"):
+        (pkg / f).write_text("")
+    (pkg / "core" / "a.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                       "    from gtforge.records.b import B\n")
+    (pkg / "records" / "b.py").write_text("from gtforge.core.a import x\n")
+    modules, edges = g.graph(pkg)
+    assert g.circles(edges) == [["gtforge.core.a", "gtforge.records.b"]]
+    assert g.upward(edges, LAYERS) == [("gtforge.core.a", 3, "gtforge.records.b")]

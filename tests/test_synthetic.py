@@ -61,11 +61,12 @@ def test_truth_disparity_is_f_b_over_z():
     cap = render_capture("s", scene, rig, rng, kind="scene", supersample=1)
     z, ids, _ = raycast_depth(scene, rig.zed.left, rig.T_zed_from_world)
     hit = np.isfinite(z)
-    np.testing.assert_allclose(cap.zed_disparity_px[hit], rig.zed.f_px * rig.zed.baseline_mm / z[hit] - rig.zed.doffs_px,
-                               rtol=1e-6)
+    np.testing.assert_allclose(cap.zed_disparity_px[hit],
+                               rig.zed.f_px * rig.zed.baseline_mm / z[hit] - rig.zed.doffs_px, rtol=1e-6)
     assert np.all(np.isnan(cap.zed_disparity_px[~hit]))
     # the fruit is nearer than the table: larger disparity
-    assert np.nanmedian(cap.zed_disparity_px[cap.fruit_mask]) > np.nanmedian(cap.zed_disparity_px[hit & ~cap.fruit_mask])
+    assert (np.nanmedian(cap.zed_disparity_px[cap.fruit_mask])
+            > np.nanmedian(cap.zed_disparity_px[hit & ~cap.fruit_mask]))
     # projector shadows: some depth is missing, and the seen mask excludes pixels the depth camera cannot see
     assert 0.002 < np.isnan(cap.depth_mm).mean() < 0.5
     assert 0.05 < cap.seen_by_mech.mean() < 0.95

@@ -3,7 +3,4 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from gtforge._moved import install as _install_moved_paths  # noqa: E402
 from gtforge.errors import InputError  # noqa: E402,F401
-
-_install_moved_paths()

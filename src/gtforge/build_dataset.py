@@ -23,12 +23,12 @@ from gtforge.dataset.layout import (
     scene_files,
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
+from gtforge.dataset.scene_verification import write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_scene_views, write_split_views
 from gtforge.dataset.worker_cache import cached_calibration, cached_session
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
 from gtforge.reports.build import write_sigma_thumbnail
-from gtforge.verify import write_verification_overlay
 
 try:
     import fcntl  # scene writer locks (POSIX); without it stale folders are removed unconditionally
@@ -38,13 +38,15 @@ except ImportError:  # pragma: no cover
 import gtforge
 from gtforge.core.geometry import finite_box, mask_bounding_box
 from gtforge.core.reproject import right_view_disparity
-from gtforge.core.scale_corrections import add_scale_sigma
+from gtforge.core.scale_corrections import add_depth_pose_sigma, add_scale_sigma
 from gtforge.core.uncertainty import disparity_sigma
+from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import check_scheduler_address, prestart_pool, release_written_pages, run_tasks
 from gtforge.infra.unbuffered import background_writes
+from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.formats import (
     write_image,
     write_label_png,
@@ -53,11 +55,10 @@ from gtforge.io.formats import (
     write_tiff_float,
 )
 from gtforge.io.outputs import require_output_folder
-from gtforge.records.calibration import CalibrationFile, check_rig_matches_session
+from gtforge.records.calibration import CalibrationFile
 from gtforge.records.verification import VerificationResult
 from gtforge.reports.build import write_build_report
 from gtforge.reports.verification import write_verification_report
-from gtforge.verify import verify_scene, zed_rows_used
 
 if TYPE_CHECKING:
     pass
@@ -227,6 +228,9 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 shift = verification.texture_all.magnitude_px if verification is not None else None
                 sigma = disparity_sigma(sd.disparity_px, sd.depth_mm, rig, calib.cov_extrinsic_rad_mm,
                                         params.uncertainty, sd.span_mm, shift)
+                if calib.depth_alignment is not None:  # the depth camera's rotation's uncertainty (align-depth)
+                    sigma = add_depth_pose_sigma(sigma, sd.depth_mm, rig,
+                                                 calib.depth_alignment.result.covariance_rad_mm)
                 if calib.scale_calibration is not None:  # the scale terms' uncertainty (calibrate-scale)
 
                     sigma = add_scale_sigma(sigma, sd.depth_mm, rig, calib.scale_calibration)
@@ -259,7 +263,7 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
 
 # ---- the stage --------------------------------------------------------------------------------
 def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str | Path,
-                  params: BuildParams | None = None, workers: int | None = None, overwrite: bool = False,
+                  params: BuildParams | None = None, *, workers: int | None = None, overwrite: bool = False,
                   strict: bool = False, scenes: list[str] | None = None, progress: bool = False,
                   scheduler: str | None = None) -> BuildSummary:
     """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.
@@ -276,11 +280,11 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
-    session = calib.open_session(session_dir)
+    session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)
     calib_sha = sha256_file(calib_path)
     out = require_output_folder(out_dir, "--output")
-    session.refuse_output_inside_captures(out)
+    session.refuse_output_over_inputs(out)
     if params.crop_wh and (params.crop_wh[0] > session.zed.left.width_px
                            or params.crop_wh[1] > session.zed.left.height_px):
         raise InputError(None, "--crop", f"at most the ZED image size, {session.zed.left.width_px}x"
@@ -404,11 +408,3 @@ def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, pa
              session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in sorted(metas)},
              failures=failures, splits=splits or {}, flagged=flagged or {},
              quarantined=quarantined or []).write(out / "manifest.json")
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, REGION_NONE, fruit_regions  # noqa: E402,F401
-from gtforge.dataset.layout import STAMP_MARGIN_NS  # noqa: E402,F401
-from gtforge.dataset.views import make_splits  # noqa: E402,F401
-from gtforge.records.dataset import InputStamp  # noqa: E402,F401
-from gtforge.verify import verify_one_scene  # noqa: E402,F401

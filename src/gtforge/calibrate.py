@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.core.board import BoardSpec, Detection, PoseObs, detect_corners, solve_pnp
+from gtforge.core.board import BoardSpec, PoseObs, detect_corners, solve_pnp
 from gtforge.core.board_extrinsic import (
     board_corners_from_depth,
     jackknife_scale,
@@ -28,12 +28,14 @@ from gtforge.core.board_extrinsic import (
     transfer_error,
 )
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
+from gtforge.core.coverage import coverage_report
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
 from gtforge.core.rectification import RectificationMeter
 from gtforge.core.selfcal import SelfRectifyParams
 from gtforge.core.target_detection import PairSkipped, detect_target, match_target_views
 from gtforge.core.targets import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import calibration_output_path, session_board
 from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
 from gtforge.records.calibration import (
@@ -41,12 +43,9 @@ from gtforge.records.calibration import (
     CalibrationFile,
     MethodResult,
     PoseResult,
-    calibration_output_path,
-    session_board,
 )
 
-# scipy is imported inside the functions that use it: importing it slows every process start, and the
-# build-dataset workers, which import this module for CalibrationFile, never need it
+# scipy is imported inside the functions that use it: importing it slows every process start
 
 log = logging.getLogger("gtforge.calibrate")
 
@@ -91,9 +90,11 @@ def detect_pose(name: str, texture: np.ndarray, depth_mm: np.ndarray | None, zed
 def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: PinholeCamera,
                            zed: RectifiedStereo, params: CalibrateParams,
                            progress: Callable[[str], None] | None = None, depth_cam: PinholeCamera | None = None,
-                           T_mech_from_depth: np.ndarray | None = None) -> CalibrationFile:
+                           T_mech_from_depth: np.ndarray | None = None, coverage: bool = False) -> CalibrationFile:
     """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place.
-    ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera."""
+    ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera. ``coverage``: also
+    fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage; a few
+    tenths of a second)."""
     t0 = time.perf_counter()
     board = params.board.spec()
     if len(obs) < params.min_poses:
@@ -221,11 +222,11 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
         verdict="FAIL" if fail else ("WARN" if verdict_reasons else "PASS"), verdict_reasons=verdict_reasons,
         residuals_by_region_px={k: float(np.sqrt(np.mean(np.square(v)))) for k, v in region_res.items()},
         time_s=time.perf_counter() - t0)
-    # what gtforge.core.coverage needs (calibrate() attaches the coverage report; other callers may: attach_coverage)
-    result._coverage_inputs = dict(used=used, T_mech_from_board=ref.T_mech_from_board, T_zed_from_mech=ref.T_zed_from_mech,
-                                   mech=mech, zed_cam=zed.left, board=board,
-                                   cov=cov if np.all(np.isfinite(cov)) else None,
-                                   rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
+    if coverage:
+        result.coverage = coverage_report(used=used, T_mech_from_board=ref.T_mech_from_board,
+                                          T_zed_from_mech=ref.T_zed_from_mech, mech=mech, zed_cam=zed.left, board=board,
+                                          cov=cov if np.all(np.isfinite(cov)) else None,
+                                          rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
     result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result
@@ -273,7 +274,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     board = params.board.spec()
     if out_path is not None:
         out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
+        session.refuse_output_over_inputs(out_path)
     dirs = session.select("board", captures, exclude)
 
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)
@@ -308,8 +309,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
             obs.append(o)
             meter.add(d.name, cap.zed_right, left_detection=o.det_zed)
     result = calibrate_observations(obs, reports, session.mech, session.zed, params, progress, session.depth_cam,
-                                    session.T_mech_from_depth)
-    result.attach_coverage()
+                                    session.T_mech_from_depth, coverage=True)
     result.session_dir = str(Path(session_dir).resolve())
     result.zed_conf, result.rectification = zed_conf, meter.result()
     result.zed_self_rectification = selfcal
@@ -356,29 +356,3 @@ def detect_pose_target(name: str, texture, depth_mm, zed_left, mech, zed, spec, 
                      sharpness_zed_px=fin(dz.sharpness_px), blurred=blurred, **counts)
     obs = PoseObs(name, pair.uv_a, pair.uv_b, pair.T_a_from_board, pair.T_b_from_board, depth_mm, dm, dz, ids=pair.ids)
     return obs, rep
-
-
-def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
-                   min_common: int = MIN_COMMON_CORNERS) -> tuple[Detection, Detection, np.ndarray] | str:
-    """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
-    circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
-    reason the pose cannot be used."""
-
-    zed = RectifiedStereo(left=zed_cam, baseline_mm=1.0)
-    o, rep = detect_pose_target(name, texture, None, zed_left, mech, zed, spec, float("inf"), min_common)
-    if o is None:
-        return rep.reason
-    dm = Detection(o.mech_uv, o.det_mech.sharpness_px, o.det_mech.method, o.det_mech.pattern_contrast, o.ids)
-    dz = Detection(o.zed_uv, o.det_zed.sharpness_px, o.det_zed.method, o.det_zed.pattern_contrast, o.ids)
-    return dm, dz, o.ids
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.board_extrinsic import Refined  # noqa: E402,F401
-from gtforge.records.calibration import (  # noqa: E402,F401
-    PoseReport,  # noqa: E402,F401
-    RefinementInfo,
-    SceneRefinement,
-    check_rig_matches_session,
-    open_calibrated_session,
-)

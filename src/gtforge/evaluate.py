@@ -123,7 +123,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
     any scoring and listed in ``EvalResult.missing``. ``fruit_size``: also measure every fruit's diameter, height
-    and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade confusion)."""
+    and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade
+    confusion)."""
     ds = Path(dataset_dir)
     if not (ds / "manifest.json").is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
@@ -148,7 +149,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         where = getattr(predictor, "folder", "")
         if len(absent) == len(ids):
             raise InputError(where, None, f"a prediction per scene named {PREDICTION_NAMES}",
-                             f"none for the {len(ids)} scene(s) ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})",
+                             f"none for the {len(ids)} scene(s) "
+                             f"({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})",
                              "name each file after its scene id (docs/metrics.md, 'Predictions')")
         log.warning("no prediction for %d of %d scene(s) in %s (%s%s; expected %s): scoring the other %d, "
                     "and the command will exit with code 1", len(absent), len(ids), where, ", ".join(absent[:8]),
@@ -180,7 +182,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                 warmed = True
             pred, ms = timed_predict(predictor, sid, left, right, cal.ndisp, cal.vmin)
             if pred.shape != gt.shape:
-                raise InputError(sid, "prediction size", f"{gt.shape[1]}x{gt.shape[0]}", f"{pred.shape[1]}x{pred.shape[0]}")
+                raise InputError(sid, "prediction size", f"{gt.shape[1]}x{gt.shape[0]}",
+                                 f"{pred.shape[1]}x{pred.shape[0]}")
         except InputError as exc:
             missing[sid] = str(exc)
             log.error("scene %s: %s", sid, exc)
@@ -214,7 +217,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                      per_image_mean={r: mean_of([s.metrics[r] for s in per_scene]) for r in REGIONS},
                      per_scene=per_scene)
     if fruit_size:
-        rep.fruit_size = summarise(fruit_records, grades, time_ms_per_scene=float(np.median(fruit_ms)) if fruit_ms else None)
+        rep.fruit_size = summarise(fruit_records, grades,
+                                   time_ms_per_scene=float(np.median(fruit_ms)) if fruit_ms else None)
     if out is not None:
         write_tables([rep], out)
         if rep.fruit_size is not None:
@@ -276,7 +280,3 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
     write_tables(reports, out, "comparison", labels=labels, warnings=warnings)
     write_comparison_html(reports, files, labels, warnings, out / "comparison.html")
     return tables_markdown(reports, labels=labels, warnings=warnings), warnings
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.records.evaluation import TABLE_REGIONS, EvalReport  # noqa: E402,F401,I001

@@ -32,19 +32,21 @@ from gtforge.core.geometry import perturb_left, pose_difference, rotvec_between,
 from gtforge.core.photometric import (
     interior_mask,
     local_normalize,
-    sample_cubic,
+    sample_spline,
     smooth_depth_mask,
+    spline_prefilter,
     textured_mask,
     to_gray,
 )
 from gtforge.core.render import render_texture
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
-from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement, open_calibrated_session
+from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import VerifyParams
-from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.refine")
 
@@ -71,10 +73,11 @@ class ScenePoints:
     X_mech: np.ndarray  # (N, 3) points in the mech frame
     value: np.ndarray  # (N,) normalised texture rendered at them
     grad: np.ndarray  # (N, 2) its gradient there (ZED px): the template's, as in the verification's estimator
-    zed_norm: np.ndarray  # normalised ZED-left grey image
+    # cubic B-spline coefficients (float32) of the normalised ZED-left grey image: sampled at the projections by
+    # ``sample_spline``, phase-unbiased like verify's texture check (Keys' cubic convolution was not: issue 41)
+    zed_norm: np.ndarray
 
 
-_perturbed = perturb_left  # the name refine's tests use
 
 
 def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, texture: np.ndarray,
@@ -98,7 +101,8 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
     X_zed = cam.unproject(np.stack([u, v], axis=1), z)
     grad = np.stack([cv2.Sobel(n_rend, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)[v, u],
                      cv2.Sobel(n_rend, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)[v, u]], axis=1).astype(np.float64)
-    return ScenePoints(name, transform_points(rig.T_mech_from_zed, X_zed), n_rend[v, u].astype(np.float64), grad, n_zed)
+    return ScenePoints(name, transform_points(rig.T_mech_from_zed, X_zed), n_rend[v, u].astype(np.float64), grad,
+                       spline_prefilter(n_zed).astype(np.float32))
 
 
 def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
@@ -120,7 +124,7 @@ def _scene_system(sp: ScenePoints, T: np.ndarray, rig: Rig, params: RefineParams
     Z = X[:, 2]
     u = cam.fx_px * X[:, 0] / Z + cam.cx_px
     v = cam.fy_px * X[:, 1] / Z + cam.cy_px
-    r = sample_cubic(sp.zed_norm, u, v) - sp.value
+    r = sample_spline(sp.zed_norm, u, v) - sp.value
     # the template's gradient (inverse-compositional style): the estimating equation is then the same as
     # the verification's, so a refined extrinsic verifies at zero shift (the ZED image's own gradient
     # converges elsewhere by ~0.02 px where the two images' blur differs)
@@ -200,7 +204,7 @@ def solve_extrinsic(scenes: list[ScenePoints], T0: np.ndarray, rig: Rig, params:
         except np.linalg.LinAlgError:
             raise InputError(None, "scenes", "scenes whose texture constrains the extrinsic", "a singular system",
                              "add scenes with texture over the whole image") from None
-        T = _perturbed(T, step[:6])
+        T = perturb_left(T, step[:6])
         if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:6]).max() < 1e-5:
             break
     # Not s^2 H^-1 times the normalisation window's area (pi (2 sigma)^2 = 113 px, "one independent sample per
@@ -219,7 +223,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     t0 = time.perf_counter()
     params = params or RefineParams()
     calib_path = Path(calibration)
-    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "refined.yaml")
+    calib = CalibrationFile.read(calib_path)
+    session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "refined.yaml")
     rig0 = calib.rig
     build = BuildParams()
     dirs = session.select("scenes", scenes)

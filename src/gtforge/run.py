@@ -384,7 +384,7 @@ class _Run:
             why = {s: "the calibration, the camera files or the options changed" if rec else "first build"
                    for s in per_scene}
         t0 = time.perf_counter()
-        summ = build_dataset(self.root, ctx["calib"], ds, params, self.opts.workers, progress=False)
+        summ = build_dataset(self.root, ctx["calib"], ds, params, workers=self.opts.workers, progress=False)
         for sid in summ.built:
             self.say(f"      built {sid} ({why.get(sid) or 'its dataset files were missing or stale'})")
         if summ.skipped_unchanged:

@@ -69,7 +69,9 @@ from gtforge.core.scale_corrections import (
 from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_corrected, unmirror_symmetric_grid
 from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import open_calibrated_session
 from gtforge.io.captures import missing_capture_file
 from gtforge.records.calibration import (
     CalibrationFile,
@@ -77,10 +79,8 @@ from gtforge.records.calibration import (
     ScaleParams,
     ScaleTerm,
     SceneScaleResult,
-    open_calibrated_session,
 )
 from gtforge.records.dataset import BuildParams
-from gtforge.verify import verify_scene
 
 log = logging.getLogger("gtforge.scale_calibration")
 
@@ -201,8 +201,10 @@ def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_
     theta = np.zeros(m)
     theta[2] = yaw0_rad
     nuis = [np.zeros(3) for _ in scenes]  # dy0, (gain, offset re-estimated at each step)
-    # a step's size in px of disparity (the stop test)
-    step_px = np.r_[100.0, 0.2, 1100.0, pose_effect_px(scenes)][:m]
+    # a step's size in px of disparity at the scenes' median depth (the stop test), in theta's order (ds, dc_mm, yaw)
+    fb = rig.zed.f_px * rig.zed.baseline_mm
+    z_mm = float(np.median(np.concatenate([sp.z_mm for sp in scenes])))
+    step_px = np.r_[fb / z_mm, fb / z_mm ** 2, rig.zed.f_px, pose_effect_px(scenes)][:m]
     # (blurring the coefficients blurs the spline they describe the same way)
     blurred = [np.stack([cv2.GaussianBlur(a, (0, 0), COARSE_SIGMA_PX) for a in sp.right_stack]) for sp in scenes]
 
@@ -332,11 +334,11 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
     Not ``omega`` itself: a PnP pose error moves a board's corners by a plane, as ``omega`` does, so only the poses
     tell them apart, and the pose-clustered covariance of five parameters from five poses is singular."""
     zs, dz, jp, cl, names = [], [], [], [], []
-    T_md = rig.T_mech_from_depth_or_identity
-    T_dm = invert_T(T_md)
+    T_mech_from_depth = rig.T_mech_from_depth_or_identity
+    T_depth_from_mech = invert_T(T_mech_from_depth)
     cam = rig.depth_camera
     for i, (name, X_mech, depth) in enumerate(poses):
-        X = transform_points(T_dm, X_mech)
+        X = transform_points(T_depth_from_mech, X_mech)
         zm = depth_at_rays(depth, cam.project(X), half_px)
         ok = np.isfinite(zm)
         if ok.sum() < 10:
@@ -344,7 +346,7 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
         zs.append(X[ok, 2])
         dz.append(zm[ok] - X[ok, 2])
         if rig.separate_depth_camera:
-            q = X_mech[ok] - T_md[:3, 3]
+            q = X_mech[ok] - T_mech_from_depth[:3, 3]
             n_mech = np.linalg.svd(X_mech - X_mech.mean(axis=0))[2][2]  # the board's normal (its corners' plane)
             h = q @ n_mech  # (the same in the depth camera's frame: a rotation and its centre)
             jp.append((X[ok, 2] / h)[:, None] * np.cross(n_mech, q))
@@ -469,7 +471,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
                          "one already corrected", "run calibrate-scale on the board (or refined) calibration")
     # the session as the calibration sees it: its SN.conf reading and ZED self-rectification (no yaw yet: a calibration
     # with one is refused above), so the yaw is measured on the right images as the self-rectification leaves them
-    calib, session, out_path = open_calibrated_session(session_dir, calib_path, out_path, "scaled.yaml")
+    session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "scaled.yaml")
     rig_file = calib.rig
     B_file = rig_file.zed.baseline_mm
     # the boards first: absolute measurements, independent of the scenes' GT
@@ -505,7 +507,6 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     # the depth camera's rotation: only a separate depth camera has one of its own (else it is the extrinsic's)
     free = np.array([True, True, have_k or have_b, True] + [separate] * 3)
     cov = np.zeros((len(PARAMS), len(PARAMS)))
-    z_med = 650.0
     passes = 0
     determined = free.copy()
     for outer in range(params.outer_iterations):
@@ -617,8 +618,3 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     if out_path is not None:
         out.write(out_path)
     return out
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.scale_corrections import add_scale_sigma, corrected_right_image, scale_sigma_px, shown_disparity_px  # noqa: E402,F401
-from gtforge.records.calibration import SceneScaleReport  # noqa: E402,F401

@@ -13,6 +13,8 @@ change together whenever a new effect is simulated; tests and benchmarks import 
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -23,7 +25,14 @@ import numpy as np
 from gtforge.core.board import BoardSpec
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
 from gtforge.core.gauges import GaugesFile, GaugeSpec
-from gtforge.core.geometry import T_from_rotvec, invert_T, look_at_T_cam_from_world, make_T, perturb_left, transform_points
+from gtforge.core.geometry import (
+    T_from_rotvec,
+    invert_T,
+    look_at_T_cam_from_world,
+    make_T,
+    perturb_left,
+    transform_points,
+)
 from gtforge.core.schema import VersionedFile
 from gtforge.core.targets import board_model_of, collinear
 from gtforge.io.cameras import check_zed_conf_reading, write_zed_conf
@@ -31,6 +40,8 @@ from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_tiff_float
 
 OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
+# threads rendering an image's row chunks (render_image)
+RENDER_THREADS = min(4, os.cpu_count() or 1)
 
 
 # ---- board -----------------------------------------------------------------------------------
@@ -262,7 +273,8 @@ def render_image(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray,
     light /= np.linalg.norm(light)
     H, W = cam.height_px, cam.width_px
     out = np.zeros((H, W, 3))
-    for r0 in range(0, H, rows_per_chunk):
+
+    def chunk(r0: int) -> None:
         r1 = min(H, r0 + rows_per_chunk)
         g = grid[r0:r1].reshape(-1, 2)
         ju, jv = jac_u[r0:r1].reshape(-1, 2), jac_v[r0:r1].reshape(-1, 2)
@@ -278,6 +290,11 @@ def render_image(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray,
             col[hit] = scene.shade(p[hit], ids[hit], light)
             acc += col
         out[r0:r1] = (acc / len(offs)).reshape(r1 - r0, W, 3)
+
+    # row chunks are independent (each writes its own rows): threads render them side by side, numpy releasing the
+    # GIL, with the same result as one after the other
+    with ThreadPoolExecutor(RENDER_THREADS) as pool:
+        list(pool.map(chunk, range(0, H, rows_per_chunk)))
     return out
 
 
@@ -292,7 +309,8 @@ def finish_image(linear_rgb: np.ndarray, rng: np.random.Generator, blur_sigma_px
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-def raycast_depth(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def raycast_depth(scene: Scene, cam: PinholeCamera,
+                  T_cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact z-depth (mm, inf: miss), object ids and world points at every pixel centre."""
     T_world_from_cam = invert_T(T_cam_from_world)
     grid = cam.ray_grid().reshape(-1, 2)
@@ -343,7 +361,8 @@ def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
     ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus ``T_zed_from_world``."""
     fr = [o for o in scene.objects if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT]
     R = T_zed_from_world[:3, :3]
-    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world, o.c[None])[0] for o in fr]).reshape(-1, 3),
+    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world, o.c[None])[0]
+                                              for o in fr]).reshape(-1, 3),
                 fruit_radii_mm=np.array([o.r for o in fr]).reshape(-1, 3),
                 fruit_R_zed_from_fruit=np.array([R for _ in fr]).reshape(-1, 3, 3),
                 T_zed_from_world=np.asarray(T_zed_from_world, float))
@@ -373,7 +392,8 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     left = finish_image(render_image(zed_scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px,
                         image_noise)
     # the right image from the real right camera, turned against the rectified model the files describe (a yaw:
-    # gtforge.scale_calibration; a residual rotation: gtforge.core.selfcal); its truth below stays the ideal rectified one
+    # gtforge.scale_calibration; a residual rotation: gtforge.core.selfcal); its truth below stays the ideal
+    # rectified one
     T_zedr_image_from_world = rig.T_zedr_actual_from_zedr @ T_zedr_from_world
     if rig.zed_right_rotation_error_rad is not None:
         R_err = cv2.Rodrigues(np.asarray(rig.zed_right_rotation_error_rad, np.float64).reshape(3, 1))[0]
@@ -597,12 +617,13 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     rig.depth_scale, rig.depth_offset_mm = 1.0 + depth_scale_error_frac, float(depth_offset_mm)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
     StereoCalibrationFile(zed=rig.zed_file or rig.zed).write(out / "zed_calibration.yaml")
-    T_md = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
+    T_mech_from_depth_rows = None if rig.T_mech_from_depth is None else rig.T_mech_from_depth.tolist()
     if two_camera:
         CameraFile(camera=rig.depth_cam).write(out / "depth_intrinsics.yaml")
-    SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
+    SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(),
+                   p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
                    board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
-                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_md,
+                   depth_noise_mm=depth_noise_mm, T_mech_from_depth=T_mech_from_depth_rows,
                    zed_baseline_true_mm=rig.zed.baseline_mm if rig.zed_file is not None else None,
                    zed_right_yaw_deg=float(right_yaw_deg), depth_scale=rig.depth_scale,
                    depth_offset_mm=rig.depth_offset_mm).write(out / "truth" / "rig_truth.yaml")
@@ -632,8 +653,10 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     if depth_pose_error_deg is not None:
         if not two_camera:
             raise ValueError("depth_pose_error_deg needs two_camera=True (a separate depth camera)")
-        T_md = perturb_left(rig.T_mech_from_depth, np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
-    extra = dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_md) if two_camera else {}
+        T_mech_from_depth_rows = perturb_left(rig.T_mech_from_depth,
+                                              np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
+    extra = (dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_mech_from_depth_rows) if two_camera
+             else {})
     if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets)
         extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
@@ -726,7 +749,8 @@ def render_raw_zed_images(scene: Scene, rig: SyntheticRig, raw: RawZed, rng: np.
     T_rawl_from_world = make_T(R1.T, np.zeros(3)) @ rig.T_zed_from_world
     T_rawr_from_world = make_T(raw.R, raw.T_mm) @ T_rawl_from_world
     left = finish_image(render_image(scene, raw.left, T_rawl_from_world, supersample), rng, blur_sigma_px, image_noise)
-    right = finish_image(render_image(scene, raw.right, T_rawr_from_world, supersample), rng, blur_sigma_px, image_noise)
+    right = finish_image(render_image(scene, raw.right, T_rawr_from_world, supersample), rng, blur_sigma_px,
+                         image_noise)
     return left, right
 
 
@@ -742,7 +766,8 @@ class RawZedTruth(VersionedFile):
 def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_board: int = 4, n_scenes: int = 1,
                              seed: int = 0, board: BoardSpec = BoardSpec(), depth_noise_mm: float = 0.0,
                              image_noise: float = 1.0, supersample: int = 3, serial: int = 12345,
-                             raw: RawZed | None = None, conf_rotation_error_rad: tuple[float, float, float] | None = None,
+                             raw: RawZed | None = None,
+                             conf_rotation_error_rad: tuple[float, float, float] | None = None,
                              progress=None) -> Path:
     """A capture session with raw ZED images (``left.png``/``right.png`` straight off the sensor) and
     ``SN<serial>.conf`` written under ``reading``; ``session.yaml`` says ``zed_rectified: false`` (and declares
@@ -763,7 +788,8 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
         conf_raw = RawZed(raw.resolution, raw.left, raw.right, R_err @ raw.R, R_err @ raw.T_mm)
     write_raw_zed_conf(out / conf, conf_raw, reading)
     CameraFile(camera=rig.mech).write(out / "mech_intrinsics.yaml")
-    SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(), p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
+    SyntheticTruth(T_zed_from_mech=rig.T_zed_from_mech.tolist(),
+                   p_projector_in_mech_mm=rig.p_projector_in_mech_mm.tolist(),
                    board_cols=board.cols, board_rows=board.rows, square_size_mm=board.square_size_mm, seed=seed,
                    depth_noise_mm=depth_noise_mm).write(out / "truth" / "rig_truth.yaml")
     RawZedTruth(conf_file=conf, reading=reading, R_rotvec_rad=cv2.Rodrigues(raw.R)[0].ravel().tolist(),
@@ -868,13 +894,15 @@ def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0
     half = pair_distance_mm / 2 * np.array([np.cos(ang), np.sin(ang), 0.0])
     cs = np.array([c_table - half + [0, 0, r], c_table + half + [0, 0, r]])
     bar = [RodGauge(cs[0], cs[1], pair_bar_mm)] if pair_bar_mm > 0 else []
-    out["sphere_pair"] = (Scene([_table(seed + 1)] + [SphereGauge(x, pair_diameter_mm, seed + 2 + k) for k, x in enumerate(cs)]
+    out["sphere_pair"] = (Scene([_table(seed + 1)]
+                                + [SphereGauge(x, pair_diameter_mm, seed + 2 + k) for k, x in enumerate(cs)]
                                 + bar),
                           dict(kind="sphere_pair", centres_world_mm=cs, diameter_mm=pair_diameter_mm,
                                centre_distance_mm=pair_distance_mm))
     w, h = plane_wh_mm
     T_plate = make_T(cv2.Rodrigues(np.array([np.radians(plane_tilt_deg), 0.0, 0.0]))[0], c_table + [0, 0, 60.0])
-    out["plane"] = (Scene([_table(seed + 3), PlaneObject(OBJ_GAUGE, T_plate, _gauge_albedo, (-w / 2, w / 2, -h / 2, h / 2))]),
+    out["plane"] = (Scene([_table(seed + 3),
+                           PlaneObject(OBJ_GAUGE, T_plate, _gauge_albedo, (-w / 2, w / 2, -h / 2, h / 2))]),
                     dict(kind="plane", normal_world=T_plate[:3, 2], point_world_mm=T_plate[:3, 3]))
     return out
 
@@ -906,7 +934,8 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
             extra["centres_zed_mm"] = transform_points(T, truth["centres_world_mm"])
         if truth["kind"] == "plane":
             n = T[:3, :3] @ truth["normal_world"]
-            extra.update(plane_normal_zed=n, plane_offset_zed_mm=float(n @ transform_points(T, truth["point_world_mm"][None])[0]))
+            extra.update(plane_normal_zed=n,
+                         plane_offset_zed_mm=float(n @ transform_points(T, truth["point_world_mm"][None])[0]))
         with np.load(root / "truth" / f"gauge_{name}.npz") as z:
             arrays = {k: z[k] for k in z.files}
         np.savez_compressed(root / "truth" / f"gauge_{name}.npz", **arrays, **extra)
@@ -923,7 +952,8 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
     least ``min_common`` inside both the texture and the ZED-left image (3 px from the border), the board above the
     table and seen at most 60 degrees off-axis. These are the poses a full-board rule loses."""
 
-    cam, T_cam_from_world = (rig.mech, rig.T_mech_from_world) if camera == "mech" else (rig.zed.left, rig.T_zed_from_world)
+    cam, T_cam_from_world = ((rig.mech, rig.T_mech_from_world) if camera == "mech"
+                             else (rig.zed.left, rig.T_zed_from_world))
     X = board.corners_board()
     ex = board.extent_mm()
     outline = np.array([[ex[0], ex[2], 0], [ex[1], ex[2], 0], [ex[0], ex[3], 0], [ex[1], ex[3], 0]])
@@ -940,7 +970,8 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
             continue
         p_cam = np.array([xy[0], xy[1], 1.0]) * rng.uniform(0.55, 0.85) * z_table
         tilt = rng.uniform(-35, 35, size=2)
-        R = cv2.Rodrigues(np.radians([tilt[0], tilt[1], 0.0]))[0] @ cv2.Rodrigues(np.radians([0, 0, rng.uniform(-30, 30)]))[0]
+        R = (cv2.Rodrigues(np.radians([tilt[0], tilt[1], 0.0]))[0]
+             @ cv2.Rodrigues(np.radians([0, 0, rng.uniform(-30, 30)]))[0])
         T_cam_from_board = make_T(R, np.zeros(3))
         T_cam_from_board[:3, 3] = p_cam - R @ centre_b
         T = invert_T(T_cam_from_world) @ T_cam_from_board
@@ -955,7 +986,8 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
                 ok = False
                 break
             uv = c.project(pc)
-            inside_all.append((uv[:, 0] >= 3) & (uv[:, 1] >= 3) & (uv[:, 0] <= c.width_px - 4) & (uv[:, 1] <= c.height_px - 4))
+            inside_all.append((uv[:, 0] >= 3) & (uv[:, 1] >= 3) & (uv[:, 0] <= c.width_px - 4)
+                              & (uv[:, 1] <= c.height_px - 4))
         if not ok:
             continue
         own = inside_all[0] if camera == "mech" else inside_all[1]
@@ -1026,7 +1058,3 @@ def render_board_views(name: str, rig, board, T_world_from_board: np.ndarray, rn
     X = board.corners_board()
     return BoardViews(name, tex, depth, left, T_mb, rig.mech.project(transform_points(T_mb, X)),
                       rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_world_from_board, X)))
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.board import GridCounts  # noqa: E402,F401

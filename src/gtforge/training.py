@@ -82,7 +82,8 @@ def sgra_loss(pred_init: np.ndarray, pred_resid: np.ndarray, gt: np.ndarray, wei
     ``sigma_confidence(sample["sigma"])``) multiplies the SGRA weights: uncertain labels count less."""
     if confidence is not None:
         weight = weight * confidence
-    return gamma1 * weighted_smooth_l1(pred_init, gt, weight, valid) + gamma2 * weighted_smooth_l1(pred_resid, gt, weight, valid)
+    return (gamma1 * weighted_smooth_l1(pred_init, gt, weight, valid)
+            + gamma2 * weighted_smooth_l1(pred_resid, gt, weight, valid))
 
 
 def sgra_loss_torch(pred_init, pred_resid, gt, weight, gamma1: float = 0.3, gamma2: float = 1.0, valid=None,

@@ -16,7 +16,6 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from gtforge.calibrate import calibrate, matched_points
 from gtforge.core.board import BoardSpec, check_board_spec, detect_corners, solve_pnp
 from gtforge.core.camera import PinholeCamera, Rig
 from gtforge.core.gauges import (
@@ -38,13 +37,15 @@ from gtforge.core.gauges import (
 from gtforge.core.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
 from gtforge.core.rectification import RectificationMeter
 from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.core.targets import BoardModel, check_board_model, neighbour_pairs
+from gtforge.core.target_detection import matched_points
+from gtforge.core.targets import check_board_model, neighbour_pairs
 from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by
-from gtforge.records.calibration import CalibrateParams, CalibrationFile, check_rig_matches_session
+from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams
 from gtforge.records.validation import PoseValidation, ValidateParams, ValidationResult
 from gtforge.reports.gauges import write_gauges_html
@@ -208,12 +209,11 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
 
 
 def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: str | Path | None = None,
-             params: ValidateParams | None = None, captures: list[str] | None = None, holdout: int = 0,
+             params: ValidateParams | None = None, captures: list[str] | None = None,
              progress: Callable[[str], None] | None = None, gauges: bool = True) -> ValidationResult:
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
-    ``holdout=K``: calibrate on all board captures but the last K and validate on those K; that calibration
-    goes to ``out_dir/holdout_calibration.yaml`` (``calibration`` is neither needed nor touched). ``gauges``: also
+    (Calibrating on all board captures but the last K and validating on those K: ``gtforge.holdout``.) ``gauges``: also
     measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.gauges``; written to
     ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
 
@@ -222,30 +222,19 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         _check_board(params.board)
     session = open_session(session_dir)
     if out_dir is not None:
-        session.refuse_output_inside_captures(out_dir)
+        session.refuse_output_over_inputs(out_dir)
     dirs = session.select("board", captures)
-    if holdout:
-        if holdout > len(dirs) - 3:
-            raise InputError(session_dir, "holdout", f"at most {len(dirs) - 3} held-out poses of {len(dirs)} (3 "
-                             "must remain to calibrate)", str(holdout), "captures where the board is not found do not "
-                             "count among the 3, so fewer may be needed")
-        held = [d.name for d in dirs[-holdout:]]
-        calib_path = Path(out_dir or ".") / "holdout_calibration.yaml"
-        calib = calibrate(session_dir, calib_path, CalibrateParams(board=params.board or BoardModel()), exclude=held,
-                          progress=progress)
-        dirs = dirs[-holdout:]
-    elif calibration is None:
+    if calibration is None:
         raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none")
-    else:
-        calib_path = Path(calibration)
-        calib = CalibrationFile.read(calib_path)
+    calib_path = Path(calibration)
+    calib = CalibrationFile.read(calib_path)
     board_model = params.board or calib.board  # the calibration's board unless overridden
     board = board_model.spec()
     _check_board(board_model)
     # raw ZED images + SN.conf, a self-rectified ZED, calibrate-scale's yaw: the pair as every stage and the dataset
     # get it, so that the rectification measured below is the dataset's
     if calib.zed_conf is not None or calib.zed_right_correction is not None or calib.rig.zed_right_yaw_deg != 0.0:
-        session = calib.open_session(session_dir)
+        session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)  # as every other stage (a calibration of another rig)
     # the rectification on the board points (any target: matched by id, circle centres bias-corrected; docs/targets.md)
     meter = RectificationMeter(board, calib.rig.zed.left, rectified_by(session), zed_right=calib.rig.zed.right)
@@ -346,12 +335,12 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
     t0 = time.perf_counter()
     calib = CalibrationFile.read(calibration)
-    session = calib.open_session(session_dir, right_yaw=False)  # (the gauges use the depth and the left image only)
+    session = open_with_calibration(session_dir, calib, right_yaw=False)  # (the gauges use the depth and the left image only)
     check_rig_matches_session(calib.rig, session, calibration)
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())
     if out_dir is not None:
-        session.refuse_output_inside_captures(out_dir)
+        session.refuse_output_over_inputs(out_dir)
         g = (session.root / GAUGES_DIR).resolve()
         o = Path(out_dir).resolve()
         if o == g or g in o.parents:
@@ -378,11 +367,3 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         if write_html:
             write_gauges_html(rep, maps, out / "gauges.html")
     return rep
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.records.validation import (  # noqa: E402,F401
-    REFERENCE_XY_PX,
-    REFERENCE_Z_PCT,
-    ValidationReport,  # noqa: E402,F401
-)

@@ -71,7 +71,8 @@ def test_rig_file_round_trip_and_extra_field(tmp_path):
     p = r.write(tmp_path / "rig.yaml")
     r2 = Rig.read(p)
     np.testing.assert_allclose(r2.T, T)
-    np.testing.assert_allclose(transform_points(r2.T_mech_from_zed, transform_points(r2.T, [[1, 2, 3]])), [[1, 2, 3]], atol=1e-9)
+    np.testing.assert_allclose(transform_points(r2.T_mech_from_zed, transform_points(r2.T, [[1, 2, 3]])), [[1, 2, 3]],
+                               atol=1e-9)
     p.write_text(p.read_text() + "unexpected_field: 1\n")
     with pytest.raises(InputError, match="unexpected_field"):
         Rig.read(p)

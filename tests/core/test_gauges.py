@@ -1,4 +1,5 @@
-"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.gauges against the generator's exact sizes."""
+"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.gauges against the generator's exact \
+sizes."""
 import shutil
 import subprocess
 import sys
@@ -14,7 +15,7 @@ from gtforge.errors import InputError
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import write_tiff_float
 from gtforge.records.calibration import CalibrationFile
-from gtforge.refine import _perturbed
+from gtforge.core.geometry import perturb_left
 from gtforge.synthetic import default_rig, generate_gauges, generate_session
 from gtforge.validate import validate_gauges
 
@@ -141,7 +142,7 @@ def test_extrinsic_error_of_005_deg_moves_the_gauges_rigidly(exact, tmp_path):
     s, _, rep0 = exact
     T = default_rig(SCALE).T_zed_from_mech
     w = np.radians(0.05) * np.array([0.6, 0.8, 0.0])
-    T_err = _perturbed(T, np.r_[w, 0.0, 0.0, 0.0])
+    T_err = perturb_left(T, np.r_[w, 0.0, 0.0, 0.0])
     rep = validate_gauges(s, _calib(tmp_path / "c.yaml", T_err), None)
     a, b = _by(rep0), _by(rep)
     R_w = T_err[:3, :3] @ T[:3, :3].T
@@ -240,7 +241,8 @@ def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
         assert 0.001 < sp.size_sigma_predicted_mm < 0.02
         assert abs(sp.size_error_mm) <= 4 * sp.size_sigma_predicted_mm
     pair = g["sphere_pair"].raw
-    assert 0 < pair.spacing_sigma_predicted_mm < 0.02 and abs(pair.spacing_error_mm) <= 4 * pair.spacing_sigma_predicted_mm
+    assert (0 < pair.spacing_sigma_predicted_mm < 0.02
+            and abs(pair.spacing_error_mm) <= 4 * pair.spacing_sigma_predicted_mm)
     big, small = g["sphere"].raw.spheres[0], g["sphere_pair"].raw.spheres[0]
     assert big.n_points > small.n_points and big.size_sigma_predicted_mm < small.size_sigma_predicted_mm
 

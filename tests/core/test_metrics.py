@@ -65,7 +65,8 @@ def test_max_gt_sigma_by_hand():
     gt = np.array([[1.0, 2.0, np.nan, 4.0], [5.0, 6.0, 7.0, 8.0]])
     pred = np.array([[1.5, 2.0, 3.0, 9.0], [5.25, np.nan, 7.0, 8.0]])
     sigma = np.array([[0.1, 0.2, np.nan, 0.9], [0.3, 0.05, np.nan, 0.5]])
-    # GT pixels: 7. sigma < 0.5 keeps (0,0) (0,1) (1,0) (1,1); left out: (0,3) 0.9, (1,2) no sigma, (1,3) 0.5 (not below)
+    # GT pixels: 7. sigma < 0.5 keeps (0,0) (0,1) (1,0) (1,1); left out: (0,3) 0.9, (1,2) no sigma,
+    # (1,3) 0.5 (not below)
     m = disparity_metrics(pred, gt, gt_sigma_px=sigma, max_gt_sigma_px=0.5)
     assert (m.n_gt, m.n_gt_sigma_left_out, m.n_valid) == (4, 3, 3)
     assert m.epe_px == pytest.approx((0.5 + 0.0 + 0.25) / 3) and m.coverage_pct == pytest.approx(75.0)

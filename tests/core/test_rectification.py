@@ -276,8 +276,8 @@ def test_meter_measures_a_known_misalignment(raw_session, raw_pairs):
 @pytest.mark.slow
 def test_a_conf_from_another_camera_is_reported(raw_pairs, tmp_path):
     raw = default_raw_zed()
-    other = RawZed(raw.resolution, raw.left, raw.right, cv2.Rodrigues(np.array([[0.0031 + 0.004], [-0.0042], [0.0011]]))[0],
-                   raw.T_mm)
+    other = RawZed(raw.resolution, raw.left, raw.right,
+                   cv2.Rodrigues(np.array([[0.0031 + 0.004], [-0.0042], [0.0011]]))[0], raw.T_mm)
     f = read_zed_conf(write_raw_zed_conf(tmp_path / "SN1.conf", other, "neg-x"), 672)
     choice = choose_reading(f, raw_pairs, BOARD)
     assert choice.candidates[0].vertical.fit_mean_abs_px > 0.15

@@ -118,7 +118,8 @@ def test_mesh_span_is_the_winning_triangles_z_range():
     expected[:, 1:] = depth[0, 1:].astype(np.float64) - depth[0, :-1]
     np.testing.assert_allclose(span[ok], expected[ok], rtol=1e-5)
     # the same depth without the span
-    np.testing.assert_array_equal(project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(max_slant_deg=89)), z)
+    np.testing.assert_array_equal(project_depth_to_camera(depth, mech, np.eye(4), cam,
+                                                          ReprojectParams(max_slant_deg=89)), z)
     with pytest.raises(ValueError, match="mesh"):
         project_depth_to_camera(depth, mech, np.eye(4), cam, ReprojectParams(mode="splat"), return_span=True)
 

@@ -1,4 +1,5 @@
-"""ZED self-rectification (gtforge.core.selfcal): on a real ZED Mini pair against the vendor SDK's own rectification, on the
+"""ZED self-rectification (gtforge.core.selfcal): on a real ZED Mini pair against the vendor SDK's own \
+rectification, on the
 generator's rectified and raw sessions with a right camera turned against its files (exact truth), and its refusals."""
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import functools
 import cv2
 import numpy as np
 import pytest
-from conftest import shared_data
+from conftest import shared_data, synthetic_session
+from made_once import session_spec
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig, ScaleCorrections
 from gtforge.core.geometry import make_T
@@ -33,7 +35,6 @@ from gtforge.synthetic import (
     default_rig,
     finish_image,
     generate_raw_zed_session,
-    generate_session,
     random_fruit_scene,
     raw_zed_rig,
     render_image,
@@ -90,11 +91,15 @@ def test_real_zed_mini_sdk_rectified_pair():
 
 
 # ---- the generator, exact truth ---------------------------------------------------------------------------------
+TURNED_SESSION_SPEC = session_spec("turned_session", "turned", n_board=1, n_scenes=2, scale=0.3, seed=5,
+                                   depth_noise_mm=0.0, image_noise=1.0, supersample=2,
+                                   zed_right_rotation_error_rad=ERR_RAD)
+
+
 @pytest.fixture(scope="module")
-def turned_session(tmp_path_factory):
+def turned_session(request):
     """Images rectified before gtforge (as the ZED SDK delivers them) whose right camera is turned by ERR_RAD."""
-    return generate_session(tmp_path_factory.mktemp("turned"), n_board=1, n_scenes=2, scale=0.3, seed=5,
-                            depth_noise_mm=0.0, image_noise=1.0, supersample=2, zed_right_rotation_error_rad=ERR_RAD)
+    return synthetic_session(request, TURNED_SESSION_SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -401,7 +406,8 @@ def test_resample_image_is_exact_and_keeps_16_bit_values():
     from gtforge.core.scale_corrections import resample_image
 
     vv, uu = np.mgrid[0:40, 0:50].astype(np.float64)
-    for img in ((uu * 1000 + vv).astype(np.uint16), (np.random.default_rng(0).random((40, 50, 3)) * 255).astype(np.uint8)):
+    for img in ((uu * 1000 + vv).astype(np.uint16),
+                (np.random.default_rng(0).random((40, 50, 3)) * 255).astype(np.uint8)):
         np.testing.assert_array_equal(resample_image(img, uu.ravel(), vv.ravel(), (40, 50)), img)
     ramp = uu * 1000.0  # 1000 grey levels per pixel along u: a 1/64 px error would show as 15
     shifted = resample_image(ramp.astype(np.uint16), uu.ravel() + 0.3, vv.ravel(), (40, 50)).astype(float)

@@ -7,6 +7,8 @@ tests/stages/test_calibrate.py) or tighter where the target allows.
 import cv2
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.board import BoardSpec
@@ -40,7 +42,7 @@ def _detect_all(views, rig, spec):
 def _calibrate(views, rig, spec, loo=False):
     obs, reps = _detect_all(views, rig, spec)
     res = calibrate_observations(obs, reps, rig.mech, rig.zed,
-                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo)).attach_coverage()
+                                 CalibrateParams(board=board_model_of(spec), leave_one_out=loo), coverage=True)
     return res, obs
 
 
@@ -82,7 +84,8 @@ def test_charuco_truth_ids_and_corners(charuco_views):
     rig, full, part = charuco_views
     errs = []
     for v in full + part:
-        for img, truth, cam in ((v.mech_texture, v.corners_mech_uv, rig.mech), (v.zed_left, v.corners_zed_uv, rig.zed.left)):
+        for img, truth, cam in ((v.mech_texture, v.corners_mech_uv, rig.mech),
+                                (v.zed_left, v.corners_zed_uv, rig.zed.left)):
             d = detect_charuco(img, CHARUCO, cam)
             assert d is not None
             # every id is where the truth puts that corner: a wrong id would be a square (>10 px) off
@@ -111,7 +114,8 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_cali
     # with the cut poses: within the checkerboard's limits at this size, and better than the whole boards alone,
     # both as reported (sigma) and against the truth
     assert rot_a < 0.05 and tr_a < 0.5, (rot_a, tr_a)
-    assert res_all.sigma_rot_deg < 0.8 * res_full.sigma_rot_deg and res_all.sigma_trans_mm < 0.8 * res_full.sigma_trans_mm
+    assert (res_all.sigma_rot_deg < 0.8 * res_full.sigma_rot_deg
+            and res_all.sigma_trans_mm < 0.8 * res_full.sigma_trans_mm)
     assert rot_a < rot_f and tr_a < tr_f, (rot_f, tr_f, rot_a, tr_a)
     # every cut pose was used, with only the corners both cameras saw
     by = {p.capture: p for p in res_all.poses}
@@ -123,7 +127,8 @@ def test_charuco_partial_views_improve_the_extrinsic(charuco_views, charuco_cali
 
 
 @pytest.mark.parametrize("spec, scale", [(CircleGridSpec(7, 5, 36.0, 18.0, False), 0.25),
-                                         (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)], ids=["symmetric", "asymmetric"])
+                                         (CircleGridSpec(4, 9, 26.0, 18.0, True), 0.3)],
+                         ids=["symmetric", "asymmetric"])
 @pytest.mark.slow
 def test_circle_grid_calibration(spec, scale):
     rig = default_rig(scale)
@@ -240,7 +245,8 @@ def test_declared_board_matches_the_flat_print():
     # markers of another dictionary
     (("DICT_5X5_100", 7, 5, False), dict(dictionary="DICT_4X4_50"), r"board.dictionary.*5X5"),
     # ids beyond the declared dictionary's size (the issue's example)
-    (("DICT_5X5_100", 12, 12, False), dict(dictionary="DICT_5X5_50", cols=8, rows=8), r"saw ids up to 7\d: a DICT_5X5_100"),
+    (("DICT_5X5_100", 12, 12, False), dict(dictionary="DICT_5X5_50", cols=8, rows=8),
+     r"saw ids up to 7\d: a DICT_5X5_100"),
     # a larger board than declared
     (("DICT_4X4_50", 10, 8, False), dict(), r"board.cols/rows.*saw ids up to 39"),
     # a smaller board than declared: same ids, other places
@@ -260,7 +266,8 @@ def test_board_mismatch_is_a_one_line_error(shown, declared, match):
 
 @pytest.mark.parametrize("decl, match", [
     (dict(kind="charuco", cols=7, rows=5, marker_size_mm=30), "dictionary"),
-    (dict(kind="charuco", cols=7, rows=5, marker_size_mm=45, dictionary="DICT_4X4_50", square_size_mm=40), "marker_size_mm"),
+    (dict(kind="charuco", cols=7, rows=5, marker_size_mm=45, dictionary="DICT_4X4_50", square_size_mm=40),
+     "marker_size_mm"),
     (dict(kind="charuco", cols=12, rows=12, marker_size_mm=15, dictionary="DICT_4X4_50"), "at least 72 markers"),
     (dict(kind="circles_symmetric", cols=6, rows=6), "90 degrees"),
     (dict(kind="circles_asymmetric", cols=4, rows=11, circle_diameter_mm=40), "diameter"),
@@ -317,7 +324,8 @@ def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp
     assert "capture next" in r.output and "circle spacing measured in the depth: 36.0" in r.output
     cal = CalibrationFile.read(out)
     assert cal.board.kind == "circles_symmetric" and cal.coverage is not None
-    rot, tr = pose_difference(cal.rig.T_zed_from_mech, np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
+    rot, tr = pose_difference(cal.rig.T_zed_from_mech,
+                              np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_zed_from_mech))
     assert rot < 0.05 and tr < 0.5, (rot, tr)
     # validate measures the ground truth on the same target (XY reprojection px, Z geometric %)
     from gtforge.validate import validate
@@ -371,26 +379,29 @@ RIGHT_ROTATION_ERROR_RAD = (0.0008, 0.0, 0.0015)  # the right ZED camera pitched
 SCALE_ERRORS = dict(zed_baseline_error_frac=0.003, depth_scale_error_frac=-0.002, depth_offset_mm=0.5)
 
 
+CHARUCO_STEREO_SESSION_SPEC = session_spec("charuco_stereo_session", "charuco_stereo", n_board=6, n_scenes=0, scale=0.3,
+                                           seed=5, board=CHARUCO_60, depth_noise_mm=0.03, image_noise=1.0,
+                                           supersample=2, **SCALE_ERRORS)
+
+
 @pytest.fixture(scope="module")
-def charuco_stereo_session(tmp_path_factory):
+def charuco_stereo_session(request):
     """6 ChArUco poses at 0.3x (ZED 662x373) with a baseline 0.3 % longer than the file's and a depth map reading
     0.2 % short plus 0.5 mm; the rectification itself is exact."""
-    from gtforge.synthetic import generate_session
+    return synthetic_session(request, CHARUCO_STEREO_SESSION_SPEC)
 
-    return generate_session(tmp_path_factory.mktemp("charuco_stereo"), n_board=6, n_scenes=0, scale=0.3, seed=5,
-                            board=CHARUCO_60, depth_noise_mm=0.03, image_noise=1.0, supersample=2, **SCALE_ERRORS)
+
+CIRCLES_STEREO_SESSION_SPEC = session_spec("circles_stereo_session", "circles_stereo", n_board=4, n_scenes=0, scale=0.3,
+                                           seed=5, board=SYMMETRIC, depth_noise_mm=0.0, image_noise=1.0, supersample=2,
+                                           zed_right_rotation_error_rad=RIGHT_ROTATION_ERROR_RAD)
 
 
 @pytest.fixture(scope="module")
-def circles_stereo_session(tmp_path_factory):
+def circles_stereo_session(request):
     """4 symmetric circle-grid poses at 0.3x whose right ZED image comes from a camera turned by
     ``RIGHT_ROTATION_ERROR_RAD`` against the rectified model in zed_calibration.yaml: 0.2-0.4 px of true vertical
     disparity, varying across the image."""
-    from gtforge.synthetic import generate_session
-
-    return generate_session(tmp_path_factory.mktemp("circles_stereo"), n_board=4, n_scenes=0, scale=0.3, seed=5,
-                            board=SYMMETRIC, depth_noise_mm=0.0, image_noise=1.0, supersample=2,
-                            zed_right_rotation_error_rad=RIGHT_ROTATION_ERROR_RAD)
+    return synthetic_session(request, CIRCLES_STEREO_SESSION_SPEC)
 
 
 def _meter(session, spec, right_of=lambda img: img):

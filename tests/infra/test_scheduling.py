@@ -16,7 +16,8 @@ SCRIPT = textwrap.dedent('''
     def facts(_):
         import numba
         time.sleep(0.3)  # long enough for both workers to take a task
-        return (os.getpid(), os.getppid(), "gtforge.infra.pool_preload" in sys.modules, "gtforge.build_dataset" in sys.modules,
+        return (os.getpid(), os.getppid(), "gtforge.infra.pool_preload" in sys.modules, \
+"gtforge.build_dataset" in sys.modules,
                 numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"))
 
     def sigint_ignored(pid):

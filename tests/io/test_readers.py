@@ -13,10 +13,14 @@ from gtforge.io.captures import open_session, read_depth, read_video_frame, spli
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
 
 CONF = {
-    "LEFT_CAM_2K": dict(fx=1066.1, fy=1065.8, cx=1112.4, cy=615.2, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002, k3=-0.0051),
-    "RIGHT_CAM_2K": dict(fx=1067.0, fy=1066.9, cx=1104.9, cy=620.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002, k3=-0.0049),
-    "LEFT_CAM_HD": dict(fx=533.0, fy=532.9, cx=640.2, cy=357.6, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002, k3=-0.0051),
-    "RIGHT_CAM_HD": dict(fx=533.5, fy=533.4, cx=636.4, cy=360.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002, k3=-0.0049),
+    "LEFT_CAM_2K": dict(fx=1066.1, fy=1065.8, cx=1112.4, cy=615.2, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002,
+                        k3=-0.0051),
+    "RIGHT_CAM_2K": dict(fx=1067.0, fy=1066.9, cx=1104.9, cy=620.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002,
+                         k3=-0.0049),
+    "LEFT_CAM_HD": dict(fx=533.0, fy=532.9, cx=640.2, cy=357.6, k1=-0.0412, k2=0.0101, p1=0.0003, p2=-0.0002,
+                        k3=-0.0051),
+    "RIGHT_CAM_HD": dict(fx=533.5, fy=533.4, cx=636.4, cy=360.1, k1=-0.0405, k2=0.0098, p1=-0.0001, p2=0.0002,
+                         k3=-0.0049),
     # the vendor's layout: TY, TZ once; the rotation per resolution
     "STEREO": dict(Baseline=63.02, TY=0.31, TZ=-0.22, CV_2K=0.0021, RX_2K=-0.0013, RZ_2K=0.0007,
                    CV_HD=0.0021, RX_HD=-0.0013, RZ_HD=0.0007),
@@ -132,7 +136,8 @@ def test_ros_and_opencv_yaml(tmp_path):
 def test_rectified_zed_from_ros_left_right(tmp_path):
     left = dict(width=1280, height=720, K=[530.0, 0, 640.0, 0, 530.0, 360.0, 0, 0, 1], D=[0.0] * 5,
                 P=[530.0, 0, 640.0, 0, 0, 530.0, 360.0, 0, 0, 0, 1, 0])
-    right = dict(left, P=[530.0, 0, 640.0, -530.0 * 0.063, 0, 530.0, 360.0, 0, 0, 0, 1, 0])  # metres, as ROS drivers write
+    # metres, as ROS drivers write
+    right = dict(left, P=[530.0, 0, 640.0, -530.0 * 0.063, 0, 530.0, 360.0, 0, 0, 0, 1, 0])
     (tmp_path / "l.yaml").write_text(yaml.safe_dump(left))
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(right))
     z = load_zed_rectified(tmp_path / "l.yaml", tmp_path / "r.yaml")

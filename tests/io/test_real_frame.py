@@ -323,6 +323,10 @@ def report_corrected(infrared: Path | None = None) -> Chain:
         print(f"{name}: {value:+.3f} deg +- {sigma:.3f} ({status})")
     print(f"correction {res.rotation_deg:.3f} deg, {res.n_edges} edges, mean edge strength {res.score_initial:.2f} -> "
           f"{res.score_final:.2f}")
+    print(f"decision: {res.decision} ({res.reason}); search +-{res.search_px:g} px; the result's offset (its own "
+          "edges) "
+          f"({res.offset_before_px[0]:+.2f}, {res.offset_before_px[1]:+.2f}) -> ({res.offset_after_px[0]:+.2f}, "
+          f"{res.offset_after_px[1]:+.2f}) px")
     chain = Chain(k.depth, k.color, np.array(res.T_color_from_depth))
     for name, a in (("factory", measured("correct")), ("corrected", alignment(chain))):
         print(f"{name:10s} peak (dx, dy) = {a.peak_px}, sub-pixel ({a.subpixel_px[0]:+.2f}, {a.subpixel_px[1]:+.2f}) px, "

@@ -118,7 +118,8 @@ def sdk_project(params: list[float], mode, pts: np.ndarray) -> np.ndarray:
 def test_kinect_projection_equals_sdk_formula(tmp_path, depth_mode, color_mode):
     data = kinect_data()
     # tangential terms large enough that a p1/p2 mix-up moves pixels by several px
-    for loc, p in (("CALIBRATION_CameraLocationD0", (0.004, -0.006)), ("CALIBRATION_CameraLocationPV0", (-0.003, 0.005))):
+    for loc, p in (("CALIBRATION_CameraLocationD0", (0.004, -0.006)),
+                   ("CALIBRATION_CameraLocationPV0", (-0.003, 0.005))):
         e = camera_entry(data, loc)
         e["Intrinsics"]["ModelParameters"][12:14] = list(p)
     k = read_kinect_calibration(write_json(tmp_path, data), depth_mode, color_mode)

@@ -70,7 +70,8 @@ def test_calibration_report_verdict_units_and_no_none(depth_calibration):
     assert all(h in unitless or h.endswith("(px)") for h in heads), heads
     assert "key arrow" in html and "ZED-left residual vectors per view" in html
     assert re.search(r"<h2>Residual histogram \(reprojection solve\)</h2><img [^>]*src=\"data:image/png;base64,", html)
-    assert re.search(r"<h2>ZED-left residual vectors per view</h2><p class=\"note\">[^<]*</p><img [^>]*src=\"data:image/png", html)
+    assert re.search(r"<h2>ZED-left residual vectors per view</h2><p class=\"note\">[^<]*</p>"
+                     r"<img [^>]*src=\"data:image/png", html)
 
 
 @pytest.mark.slow

@@ -218,7 +218,8 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
 
     from gtforge.cli import app
 
-    r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out), "--workers", "1"])
+    r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out),
+                                 "--workers", "1"])
     assert r.exit_code == 1 and "failed 1 (001;" in r.output and "unchanged 2" in r.output
     assert r.output.count("median 0.7") == 1  # the reason is reported once
 
@@ -226,8 +227,8 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
 @pytest.mark.slow
 def test_crop_and_ply(session_dir, true_calibration, tmp_path):
     out = tmp_path / "ds"
-    build_dataset(session_dir, true_calibration, out, BuildParams(crop_wh=(320, 240), ply=True, kitti=False, eth3d=False),
-                  scenes=["000"], workers=1)
+    build_dataset(session_dir, true_calibration, out,
+                  BuildParams(crop_wh=(320, 240), ply=True, kitti=False, eth3d=False), scenes=["000"], workers=1)
     s = out / "scenes" / "000"
     assert read_pfm(s / "disp0GT.pfm").shape == (240, 320) and read_image(s / "im0.png").shape == (240, 320, 3)
     assert "width=320" in (s / "calib.txt").read_text()

@@ -75,7 +75,8 @@ def test_wrong_board_spec_skips_every_pose(session_dir, tmp_path):
     from gtforge.core.targets import BoardModel
 
     with pytest.raises(InputError, match="usable"):
-        calibrate(session_dir, tmp_path / "c.yaml", CalibrateParams(board=BoardModel(cols=10, rows=7)))
+        calibrate(session_dir, tmp_path / "c.yaml", CalibrateParams(board=BoardModel(cols=10, rows=7),
+                                                                     self_rectify=False))
 
 
 def test_missed_and_blurred_boards_are_reported(session_dir, tmp_path):

@@ -31,8 +31,10 @@ def constant_onnx(path, value: float, six_channels=False):
         inputs = [helper.make_tensor_value_info("left", TensorProto.FLOAT, ["N", 3, "H", "W"]),
                   helper.make_tensor_value_info("right", TensorProto.FLOAT, ["N", 3, "H", "W"])]
         nodes = [helper.make_node("Add", ["left", "right"], ["s"]), helper.make_node("Mul", ["s", "zero"], ["z"])]
-    nodes += [helper.make_node("ReduceSum", ["z", "axes"], ["r"], keepdims=0), helper.make_node("Add", ["r", "c"], ["disp"])]
-    graph = helper.make_graph(nodes, "const", inputs, [helper.make_tensor_value_info("disp", TensorProto.FLOAT, ["N", "H", "W"])],
+    nodes += [helper.make_node("ReduceSum", ["z", "axes"], ["r"], keepdims=0),
+              helper.make_node("Add", ["r", "c"], ["disp"])]
+    graph = helper.make_graph(nodes, "const", inputs,
+                              [helper.make_tensor_value_info("disp", TensorProto.FLOAT, ["N", "H", "W"])],
                               initializer=[zero, c, axes])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
     model.ir_version = 8

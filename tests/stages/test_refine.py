@@ -1,6 +1,8 @@
 """Scene-based refinement of the extrinsic (gtforge.refine) against exact truth."""
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.geometry import T_from_rotvec, pose_difference
 from gtforge.errors import InputError
@@ -17,15 +19,16 @@ def _nees(T, T_true, C):
     return float(e @ np.linalg.solve(np.asarray(C), e))
 
 
-@pytest.fixture(scope="module")
-def refine_session(tmp_path_factory):
-    """Six fruit scenes and one whose fruit rolled 0.63 mm between the captures (0.4x, the shared rig)."""
-    from gtforge.synthetic import generate_session
+REFINE_SESSION_SPEC = session_spec("refine_session", "refine", n_board=0, n_scenes=7, scale=0.4, seed=31,
+                                   depth_noise_mm=0.03, image_noise=1.5, fruit_motion_mm={6: (0.6, 0.2, 0.0)},
+                                   supersample=2)
 
-    d = tmp_path_factory.mktemp("refine")
-    generate_session(d, n_board=0, n_scenes=7, scale=0.4, seed=31, depth_noise_mm=0.03, image_noise=1.5,
-                     fruit_motion_mm={6: (0.6, 0.2, 0.0)})
-    return d
+
+@pytest.fixture(scope="module")
+def refine_session(request):
+    """Six fruit scenes and one whose fruit rolled 0.63 mm between the captures (0.4x, the shared rig; 2x2 rays a
+    pixel)."""
+    return synthetic_session(request, REFINE_SESSION_SPEC)
 
 
 def _start(true_calibration, T_true, tmp_path, rot_deg, trans_mm):
@@ -83,15 +86,16 @@ def test_refined_covariance_matches_the_errors(refine_session, true_calibration,
     0.014 deg / 0.14 mm off): the normalised squared error of the extrinsic, e^T C^-1 e, averages about 6 (six
     parameters) when the reported covariance is right; six draws of chi2(6) average within 2.9-10.1 (99 %). Then a
     refinement without leave-one-out: its covariance has no jackknife factor (None), not the board file's."""
+    from gtforge.core.geometry import perturb_left
     from gtforge.io.captures import open_session
     from gtforge.records.dataset import BuildParams
-    from gtforge.refine import _perturbed, _scene_at, solve_extrinsic
+    from gtforge.refine import _scene_at, solve_extrinsic
 
     calib = CalibrationFile.read(true_calibration)
     rig = calib.rig.with_extrinsic(T_true)
     params = RefineParams(leave_one_out=False)
     s = open_session(refine_session)
-    T0 = _perturbed(T_true, np.array([1.5e-4, -1.5e-4, 1e-4, 0.08, -0.08, 0.08]))
+    T0 = perturb_left(T_true, np.array([1.5e-4, -1.5e-4, 1e-4, 0.08, -0.08, 0.08]))
     nees = []
     for sid in ("000", "001", "002", "003", "004", "005"):
         sp, _ = _scene_at(s.load_capture(s.root / "scenes" / sid), rig, BuildParams(), params)

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.scale_corrections import (
@@ -16,14 +18,15 @@ from gtforge.core.scale_corrections import (
 )
 from gtforge.core.selfcal import corrected_right
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
+from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.scale_calibration import calibrate_scale
-from gtforge.synthetic import SyntheticTruth, default_rig, generate_session
-from gtforge.verify import verify_scene
+from gtforge.synthetic import SyntheticTruth, default_rig
 
 # the combined errors of the session below, at the issue's limits: baseline +0.3 %, right-camera yaw 0.15 deg,
 # depth scale -0.2 % and offset +0.5 mm
@@ -58,13 +61,14 @@ def _gt_epe(session: Path, calib: CalibrationFile) -> list[float]:
     return out
 
 
+ERRORS_SESSION_SPEC = session_spec("errors_session", "scale_errors", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                                   depth_noise_mm=0.03, image_noise=1.0, supersample=2, **ERRORS)
+
+
 @pytest.fixture(scope="module")
-def errors_session(tmp_path_factory):
+def errors_session(request):
     """5 board poses + 3 fruit scenes at 0.3x (ZED 662x373) with every error kind at once."""
-    d = tmp_path_factory.mktemp("scale_errors")
-    generate_session(d, n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
-                     supersample=2, **ERRORS)
-    return d
+    return synthetic_session(request, ERRORS_SESSION_SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +114,7 @@ def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, 
     start, res = errors_calibrated
     biases = {}
     for name, calib in (("before", CalibrationFile.read(start)), ("after", res)):
-        s = calib.open_session(errors_session)
+        s = open_with_calibration(errors_session, calib)
         cap = s.load_capture(s.select("scenes", None)[0])
         rig = calib.rig
         sd, region, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
@@ -140,7 +144,7 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     s = open_session(errors_session)
     cap = s.load_capture(s.select("scenes", None)[0])
     np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected_right_image(cap.zed_right, res.rig))
-    corrected = res.open_session(errors_session).load_capture(s.select("scenes", None)[0])
+    corrected = open_with_calibration(errors_session, res).load_capture(s.select("scenes", None)[0])
     np.testing.assert_array_equal(read_image(sc / "im1.png"), corrected.zed_right)
     np.testing.assert_array_equal(read_image(sc / "im0.png"), cap.zed_left)
     assert (sc / "im0.png").read_bytes() == (errors_session / "scenes" / "000" / "left.png").read_bytes()  # copied
@@ -205,14 +209,16 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
 
 
 # ---- both corrections of the right camera: the self-rectification and the yaw, in one resampling -----------------
+BOTH_SESSION_SPEC = session_spec("both_session", "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5,
+                                 depth_noise_mm=0.03, image_noise=1.0, supersample=2, right_yaw_deg=0.15,
+                                 zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
+
+
 @pytest.fixture(scope="module")
-def both_session(tmp_path_factory):
+def both_session(request):
     """5 board poses + 2 fruit scenes at 0.3x whose right camera is turned by a yaw of 0.15 deg and then by a residual
     rotation (0.1, 0.05, -0.08) deg: the self-rectification's and calibrate-scale's errors at once."""
-    d = tmp_path_factory.mktemp("both_errors")
-    generate_session(d, n_board=5, n_scenes=2, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
-                     supersample=2, right_yaw_deg=0.15, zed_right_rotation_error_rad=tuple(np.radians([0.1, 0.05, -0.08])))
-    return d
+    return synthetic_session(request, BOTH_SESSION_SPEC)
 
 
 @pytest.mark.slow
@@ -226,7 +232,8 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     resampling) against -0.0012 / -0.0026 px (two, both by cubic B-spline), vertical disparity -0.0022 / -0.0016 px
     against -0.0014 / -0.0027 px; the terms: yaw 0.2025 +- 0.0020 deg (truth 0.20), baseline, depth scale and offset
     within 1.2 sigma of 0. With OpenCV's bilinear first pass and the three-parameter self-rectification (before the
-    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate, calibrate-scale, build-dataset,
+    yaw became its nuisance) the bias was -0.0070 / -0.0075 px and the yaw 0.171 deg. (The CLI chain calibrate,
+    calibrate-scale, build-dataset,
     verify on the same errors with 6 poses and 3 scenes, the commit before against this one: bias -0.0041, -0.0062,
     -0.0049 -> -0.0060, -0.0060, -0.0058 px; vertical -0.0129, -0.0145, -0.0133 -> -0.0047, -0.0073, -0.0061 px; the
     fruit's bias +0.078, +0.081, +0.085 -> +0.070, +0.072, +0.076 px; im1's mean gradient energy 26.5-27.0 ->
@@ -243,7 +250,7 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     start.zed_self_rectification = selfcal
     start.write(tmp_path / "start.yaml")
     # calibrate-scale opens the session with the self-rectification and without a yaw
-    opened = start.open_session(both_session)
+    opened = open_with_calibration(both_session, start)
     assert opened.rectification.correction == selfcal.correction and not hasattr(opened.rectification, "right_yaw_deg")
     res = calibrate_scale(both_session, tmp_path / "start.yaml", tmp_path / "scaled.yaml", FAST)
     yaw = res.rig.zed_right_yaw_deg
@@ -258,9 +265,9 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
     out = tmp_path / "ds"
     build_dataset(both_session, tmp_path / "scaled.yaml", out, workers=1)
     rep = verify_dataset(out, workers=1)
-    once = res.open_session(both_session)
+    once = open_with_calibration(both_session, res)
     assert once.rectification.right_yaw_deg == yaw and once.rectification.correction == selfcal.correction
-    self_only = res.open_session(both_session, right_yaw=False)
+    self_only = open_with_calibration(both_session, res, right_yaw=False)
     for d in s.select("scenes", None):
         cap = once.load_capture(d)
         np.testing.assert_array_equal(read_image(out / "scenes" / d.name / "im1.png"), cap.zed_right)
@@ -269,7 +276,8 @@ def test_both_corrections_resample_the_right_image_once(both_session, tmp_path):
         ver_two, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, two,
                                   cap.mech_texture, res.rig)
         a, b = rep.scenes[d.name].stereo["all"], ver_two.stereo["all"]
-        print(f"scene {d.name}: bias {a.disparity_bias_px:+.4f} px (one resampling) {b.disparity_bias_px:+.4f} px (two); "
+        print(f"scene {d.name}: bias {a.disparity_bias_px:+.4f} px (one resampling) "
+              f"{b.disparity_bias_px:+.4f} px (two); "
               f"vertical {a.vertical_px:+.4f} / {b.vertical_px:+.4f} px; bad matches {a.bad_match_pct:.2f} / "
               f"{b.bad_match_pct:.2f} %")
         assert abs(a.disparity_bias_px) < 0.02 and abs(a.disparity_bias_px) <= abs(b.disparity_bias_px) + 0.003
@@ -346,14 +354,16 @@ def test_scale_sigma_is_the_covariance_propagated():
 POSE_ERROR_DEG = (0.1, -0.15, 0.1)
 
 
+POSE_SESSION_SPEC = session_spec("pose_session", "scale_pose", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                                 depth_noise_mm=0.03, image_noise=1.0, supersample=2, two_camera=True,
+                                 depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
+
+
 @pytest.fixture(scope="module")
-def pose_session(tmp_path_factory):
+def pose_session(request):
     """A rig with a separate depth camera (``two_camera_rig``, 45 mm beside the texture camera) whose session.yaml
     pose is turned by POSE_ERROR_DEG, on top of every error of ERRORS; 5 boards + 3 scenes at 0.3x."""
-    d = tmp_path_factory.mktemp("scale_pose")
-    generate_session(d, n_board=5, n_scenes=3, scale=0.3, seed=5, depth_noise_mm=0.03, image_noise=1.0,
-                     supersample=2, two_camera=True, depth_pose_error_deg=POSE_ERROR_DEG, **ERRORS)
-    return d
+    return synthetic_session(request, POSE_SESSION_SPEC)
 
 
 def test_depth_pose_jacobian_is_the_ground_truths_change(pose_session):

@@ -4,26 +4,28 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.geometry import T_from_rotvec
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.scene_verification import predicted_shift, verify_scene
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams, Manifest
 from gtforge.records.verification import VerificationResult, VerifyParams
-from gtforge.verify import predicted_shift, verify_dataset, verify_scene
+from gtforge.verify import verify_dataset
+
+MOVED_SESSION_SPEC = session_spec("moved_session", "moved", n_board=0, n_scenes=2, scale=0.4, seed=21,
+                                  depth_noise_mm=0.03, image_noise=1.5, fruit_motion_mm={0: (0.5, 0.0, 0.0), 1: (0.3,
+                                  -0.4, 0.0)}, supersample=2)
 
 
 @pytest.fixture(scope="module")
-def moved_session(tmp_path_factory):
+def moved_session(request):
     """Two fruit scenes whose fruit rolled between the structured-light and the ZED capture (0.5 mm in the table
     plane), same rig as the shared session (0.4x)."""
-    from gtforge.synthetic import generate_session
-
-    d = tmp_path_factory.mktemp("moved")
-    generate_session(d, n_board=0, n_scenes=2, scale=0.4, seed=21, depth_noise_mm=0.03, image_noise=1.5,
-                     fruit_motion_mm={0: (0.5, 0.0, 0.0), 1: (0.3, -0.4, 0.0)})
-    return d
+    return synthetic_session(request, MOVED_SESSION_SPEC)
 
 
 def _verify(session_dir, sid, rig, params=None):
@@ -48,6 +50,13 @@ def test_exact_extrinsic_scenes_verify_at_zero(dataset):
         for region in ("all", "fruit", "background"):
             st = v.stereo[region]
             assert abs(st.disparity_bias_px) < 0.03 and abs(st.vertical_px) < 0.03, (sid, region, st)
+            # issue 41: zero within the noise floor each figure reports (a few thousandths of a pixel here)
+            assert 0 < st.disparity_bias_noise_px < 0.01 and 0 < st.vertical_noise_px < 0.01, (sid, region, st)
+            assert abs(st.disparity_bias_px) < 4 * st.disparity_bias_noise_px + 0.005, (sid, region, st)
+            assert abs(st.vertical_px) < 4 * st.vertical_noise_px + 0.005, (sid, region, st)
+        for e in (v.texture_all, v.texture_fruit):
+            assert 0 < e.dx_noise_px < 0.02 and 0 < e.dy_noise_px < 0.02 and 0 < e.correlation_noise < 0.02, (sid, e)
+            assert abs(e.dx_px) < 4 * e.dx_noise_px + 0.005 and abs(e.dy_px) < 4 * e.dy_noise_px + 0.005, (sid, e)
         assert v.stereo["all"].bad_match_pct < 1.0
     man = Manifest.read(out / "manifest.json")
     assert man.flagged == {} and man.scenes["000"].verification.status == "ok"
@@ -89,7 +98,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
     crashed on the shapes before). A work width of 300 px forces a factor 3 on this 883 px wide scene."""
     import cv2
 
-    from gtforge.verify import write_verification_overlay
+    from gtforge.dataset.scene_verification import write_verification_overlay
 
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(moved_session)
@@ -109,7 +118,7 @@ def test_flagged_scene_overlay_at_a_reduced_work_resolution(moved_session, true_
 def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true_calibration, work_width_px):
     """A build decodes the ZED images only down to zed_rows_used (the window around the GT, at factor 1 and 3 here):
     images cut there give exactly the figures of the whole images; one row shorter they are refused."""
-    from gtforge.verify import zed_rows_used
+    from gtforge.dataset.scene_verification import zed_rows_used
 
     rig = CalibrationFile.read(true_calibration).rig
     s = open_session(session_dir)
@@ -211,6 +220,13 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     # a looser threshold lets them through
     r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1", "--max-shift-px", "2"])
     assert r.exit_code == 0 and "0 flagged" in r.output
+    # a verification.json of schema 1 (figures before issue 41) cannot be merged: verifying one scene verifies all
+    old = json.loads((out / "verification.json").read_text())
+    old["schema_version"] = 1
+    (out / "verification.json").write_text(json.dumps(old))
+    rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
+    assert sorted(rep.scenes) == ["000", "001", "clean"] and sorted(rep.flagged) == ["000", "001"]
+    assert VerificationResult.read(out / "verification.json").schema_version == 2
     # the captures moved away: a per-scene reason, no traceback; a missing session: one-line error, exit 2
     shutil.rmtree(sess / "scenes" / "clean")
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)

@@ -159,7 +159,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
     from gtforge.core.targets import BoardModel
-    from gtforge.records.calibration import CalibrateParams, calibration_output_path
+    from gtforge.io.calibrated_session import calibration_output_path
+    from gtforge.records.calibration import CalibrateParams
     from gtforge.reports.calibration import write_calibration_report
 
     given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
@@ -169,6 +170,10 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     params = _options(CalibrateParams, **({"board": _options(BoardModel, **given)} if given else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     output = calibration_output_path(output)
+    if report_dir is not None:
+        from gtforge.io.captures import open_session
+
+        open_session(session).refuse_output_over_inputs(report_dir, "--report-dir")
     res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
     rep = write_calibration_report(res, report_dir or output.parent / (output.stem + "_report"))
     n_used = len(res.captures_used)
@@ -246,7 +251,8 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     params = _options(BuildParams, mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
                       max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
                       verification=verification, right_gt=right_gt, quarantine=quarantine)
-    s = run(session, calibration, output, params, workers, overwrite, strict, progress=True, scheduler=scheduler)
+    s = run(session, calibration, output, params, workers=workers, overwrite=overwrite, strict=strict, progress=True,
+            scheduler=scheduler)
     failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
     out.print(f"built {len(s.built)}, unchanged {len(s.skipped_unchanged)}, failed {len(s.failures)}{failed} "
               f"in {s.time_s:.1f} s -> {s.out_dir}")
@@ -329,7 +335,7 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     if info.heldout_shift_after_mean_px is not None:
         out.print(f"cross-validation: held-out scenes {info.heldout_shift_before_mean_px:.3f} -> "
                   f"{info.heldout_shift_after_mean_px:.3f} px mean |texture shift|")
-    from gtforge.records.calibration import calibration_output_path
+    from gtforge.io.calibrated_session import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output)}")
 
@@ -361,8 +367,39 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
         out.print("  " + line)
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
               f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
-    from gtforge.records.calibration import calibration_output_path
+    from gtforge.io.calibrated_session import calibration_output_path
 
+    out.print(f"wrote {calibration_output_path(output)}")
+
+
+@app.command("align-depth")
+def align_depth(session: Path = typer.Argument(..., help="Capture session folder (scenes/ and board/ captures)."),
+                calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
+                                                 help="The calibration whose depth camera pose to refine "
+                                                      "(gtforge calibrate)."),
+                output: str = typer.Option("aligned.yaml", "--output", "-o", metavar="PATH",
+                                           help="Calibration YAML to write (never the input file)."),
+                scenes: Optional[str] = typer.Option(None, metavar="IDS",
+                                                     help="Comma-separated scene ids (default: all)."),
+                boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
+                search_px: float = typer.Option(6.0, help="First coarse search range (px); widened while the best "
+                                                          "shift is on its border."),
+                apply_z: float = typer.Option(3.0, help="Apply the correction when it is more than this many sigma "
+                                                        "from the factory pose.")) -> None:
+    """Refine a separate depth camera's pose (T_mech_from_depth: Azure Kinect, Orbbec, PrimeSense-class units) by
+    putting every capture's depth silhouettes on the texture image's edges; writes a calibration file with the
+    corrected pose and its covariance (its 'depth_alignment' says what was found, and each capture's pixel offset
+    before and after). Run it after calibrate, before calibrate-scale."""
+    from gtforge.align_depth import align_depth as run
+    from gtforge.align_depth import summary_lines
+    from gtforge.core.edge_alignment import EdgeAlignmentParams
+    from gtforge.io.calibrated_session import calibration_output_path
+
+    params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z)
+    res = run(session, calibration, output, params, scenes.split(",") if scenes else None, use_boards=boards,
+              progress=_status)
+    for line in summary_lines(res.depth_alignment):
+        out.print(line)
     out.print(f"wrote {calibration_output_path(output)}")
 
 
@@ -414,7 +451,13 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
         board = _options(BoardModel, **{**base.model_dump(), **{k: v for k, v in (
             ("cols", cols), ("rows", rows), ("square_size_mm", square_mm)) if v is not None}})
     params = _options(ValidateParams, board=board, xy_threshold_px=xy_threshold_px, z_threshold_pct=z_threshold_pct)
-    rep = run(session, calibration, output, params, captures.split(",") if captures else None, holdout, _status)
+    names = captures.split(",") if captures else None
+    if holdout:
+        from gtforge.holdout import validate_holdout
+
+        rep = validate_holdout(session, holdout, output, params, names, _status)
+    else:
+        rep = run(session, calibration, output, params, names, progress=_status)
     out.print(f"XY reprojection: mean {rep.xy_mean_px:.3f} px (median {rep.xy_median_px:.3f}, max {rep.xy_max_px:.3f}); "
               f"published {REFERENCE_XY_PX} px; threshold {xy_threshold_px} -> {'PASS' if rep.pass_xy else 'FAIL'}")
     out.print(f"  corner detectors' noise floor {rep.xy_noise_floor_px:.3f} px; with it removed (board models): "
@@ -551,10 +594,10 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                           "one turned by this rotation vector (deg; calibrate-scale's test).")
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
+    import math
+
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_session
-
-    import math
 
     pose_error = None
     if depth_pose_error_deg is not None:

@@ -8,8 +8,8 @@ import re
 from typer.core import TyperArgument, TyperCommand, TyperGroup
 
 # the commands in the order a lab runs them (help lists them so); any other command follows, in definition order
-WORKFLOW = ("run", "calibrate", "validate", "calibrate-scale", "refine", "build-dataset", "verify", "evaluate",
-            "compare", "synth", "demo")
+WORKFLOW = ("run", "calibrate", "align-depth", "validate", "calibrate-scale", "refine", "build-dataset", "verify",
+            "evaluate", "compare", "synth", "demo")
 
 
 def _unwrapped(text: str | None) -> str | None:

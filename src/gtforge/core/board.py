@@ -23,7 +23,8 @@ class Detection:
     sharpness_px: float  # mean edge width (OpenCV estimateChessboardSharpness); larger = blurrier
     method: str  # "sb" or "classic"
     pattern_contrast: float  # mean |intensity difference| between dark and white squares
-    ids: np.ndarray | None = None  # indices into the board's corners_board() (gtforge.core.targets); None: all, in order
+    # indices into the board's corners_board() (gtforge.core.targets); None: all, in order
+    ids: np.ndarray | None = None
 
 
 def check_board_spec(board: BoardSpec, where: str = "board") -> None:
@@ -50,8 +51,8 @@ def orient_corners(gray: np.ndarray, corners_uv: np.ndarray, board: BoardSpec) -
     """Return the corners in board order (reversed if the board was seen turned by 180 degrees)."""
     blur = cv2.blur(gray.astype(np.float32), (3, 3))
     centres, dark = _square_centres(corners_uv, board)
-    vals = cv2.remap(blur, centres[:, 0].astype(np.float32).reshape(-1, 1), centres[:, 1].astype(np.float32).reshape(-1, 1),
-                     cv2.INTER_LINEAR).ravel()
+    vals = cv2.remap(blur, centres[:, 0].astype(np.float32).reshape(-1, 1),
+                     centres[:, 1].astype(np.float32).reshape(-1, 1), cv2.INTER_LINEAR).ravel()
     contrast = float(vals[~dark].mean() - vals[dark].mean())
     if contrast < 0:
         return corners_uv[::-1].copy(), -contrast

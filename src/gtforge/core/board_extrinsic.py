@@ -5,7 +5,7 @@ the covariance. calibrate (its stage) and validate use them."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -15,11 +15,17 @@ from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import fit_plane_robust, invert_T, make_T, perturb_left, rotvec_between, transform_points
 from gtforge.core.targets import neighbour_pairs
 
-if TYPE_CHECKING:  # its outlier settings
-    from gtforge.records.calibration import CalibrateParams
+
+class OutlierSettings(Protocol):
+    """The outlier rule's settings (``gtforge.records.calibration.CalibrateParams`` has them)."""
+
+    outlier_k: float  # median + k * 1.4826 * MAD on the per-pose estimates
+    outlier_floor_deg: float
+    outlier_floor_mm: float
 
 
-def robust_initial_extrinsic(Ts: list[np.ndarray], params: CalibrateParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def robust_initial_extrinsic(Ts: list[np.ndarray], params: OutlierSettings
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rotation mean on SO(3) + translation mean over poses kept by a median/MAD rule.
 
     Returns (T, inlier mask, rotation deviation deg, translation deviation mm)."""

@@ -66,7 +66,8 @@ class PinholeCamera(GTModel):
     @classmethod
     def _dist(cls, v: list[float]) -> list[float]:
         if len(v) not in DIST_LENGTHS:
-            raise ValueError(f"{len(v)} distortion coefficients; OpenCV models have {', '.join(map(str, DIST_LENGTHS))} "
+            raise ValueError(f"{len(v)} distortion coefficients; OpenCV models have "
+                             f"{', '.join(map(str, DIST_LENGTHS))} "
                              "(k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tau_x tau_y]]]])")
         if not all(math.isfinite(x) for x in v):
             raise ValueError("distortion coefficients must be finite")

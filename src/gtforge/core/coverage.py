@@ -154,7 +154,8 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
             for T_mb, T in _sources(kind, detail, T_mech_from_board, T_zb, centre_b, mech, zed_cam):
                 for T_new, text in _proposals(kind, detail, T, T_zed_from_mech, centre_b, mech, zed_cam):
                     T_mb_new = invert_T(T_zed_from_mech) @ T_new
-                    vis = _visible(mech, transform_points(T_mb_new, X_all)) & _visible(zed_cam, transform_points(T_new, X_all))
+                    vis = (_visible(mech, transform_points(T_mb_new, X_all))
+                           & _visible(zed_cam, transform_points(T_new, X_all)))
                     if vis.sum() < min_common:
                         continue
 
@@ -213,7 +214,8 @@ def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_
         return
     cam_name, corner = detail.split(":")
     cam = zed_cam if cam_name == "zed" else mech
-    k = {"top-left": (0.08, 0.08), "top-right": (0.92, 0.08), "bottom-right": (0.92, 0.92), "bottom-left": (0.08, 0.92)}[corner]
+    k = {"top-left": (0.08, 0.08), "top-right": (0.92, 0.08), "bottom-right": (0.92, 0.92),
+         "bottom-left": (0.08, 0.92)}[corner]
     target = np.array([[k[0] * cam.width_px, k[1] * cam.height_px]])
     xy = cam.undistort_to_normalized(target)[0]
     if not np.all(np.isfinite(xy)):
@@ -229,7 +231,3 @@ def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_
     T[:3, 3] = p - T[:3, :3] @ centre_b
     label = "ZED" if cam_name == "zed" else "structured-light"
     yield T, f"a board centred near the {label} image's {corner} corner, cut by its border"
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-CoverageReport = CoverageResult

@@ -189,7 +189,8 @@ class _Window:
 
 def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray, step: int = 1) -> np.ndarray:
     """``(N, 3)`` ZED-left points (mm) of the masked pixels with a finite, positive ``d + doffs``; ``calib``: a
-    ``gtforge.io.middlebury.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column only."""
+    ``gtforge.io.middlebury.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column
+    only."""
     v, u = np.nonzero(mask[::step, ::step])
     v, u = v * step, u * step
     d = disp[v, u].astype(np.float64) + calib.doffs_px
@@ -367,7 +368,3 @@ def summarise(records: list[FruitRecord], grades: GradeBins | None = None, const
             rep.grades_gt_vs_truth = grade_agreement(grades, [r.grade_truth for r in records],
                                                      [r.grade_gt for r in records])
     return rep
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-FruitSizeReport = FruitSizeResult

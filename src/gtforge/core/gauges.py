@@ -13,7 +13,8 @@ for comparison. Figures (docs/metrics.md, "Gauge objects"):
 * plane: flatness ``F`` = range of the signed distances to the fitted plane (mm) and their RMS.
 
 Each with the number of points used, and the form figures predicted from the per-pixel sigma map
-(``gtforge.core.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and changes
+(``gtforge.core.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and \
+changes
 no form or size figure).
 """
 from __future__ import annotations
@@ -51,7 +52,8 @@ class GaugeSpec(GTModel):
     @model_validator(mode="after")
     def _sizes(self):
         if self.kind in ("sphere", "sphere_pair") and self.diameter_mm is None:
-            raise ValueError(f"gauge '{self.capture}' ({self.kind}) needs diameter_mm (the calibrated diameter, mm > 0)")
+            raise ValueError(f"gauge '{self.capture}' ({self.kind}) needs diameter_mm "
+                             "(the calibrated diameter, mm > 0)")
         if self.kind == "sphere_pair":
             if self.centre_distance_mm is None:
                 raise ValueError(f"gauge '{self.capture}' (sphere_pair) needs centre_distance_mm (mm > 0)")
@@ -188,7 +190,8 @@ def gauge_components(mask: np.ndarray, erosion_px: int) -> list[np.ndarray]:
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     order = sorted(range(1, n), key=lambda k: -stats[k, cv2.CC_STAT_AREA])
     out = []
-    kern = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erosion_px + 1, 2 * erosion_px + 1)) if erosion_px else None
+    kern = (cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erosion_px + 1, 2 * erosion_px + 1)) if erosion_px
+            else None)
     for k in order:
         m = (labels == k).astype(np.uint8)
         out.append((cv2.erode(m, kern) if kern is not None else m).astype(bool))
@@ -417,13 +420,10 @@ def summary_lines(rep: GaugesResult) -> list[str]:
                          + (f" (raw depth {raw:+.3f})" if raw is not None else ""))
         if g.gt.flatness_mm is not None:
             pr = f", predicted {g.gt.flatness_predicted_mm:.3f}" if g.gt.flatness_predicted_mm is not None else ""
-            parts.append(f"flatness {g.gt.flatness_mm:.3f} mm{pr} (RMS {g.gt.plane_rms_mm:.3f}), {g.gt.n_points} points")
+            parts.append(f"flatness {g.gt.flatness_mm:.3f} mm{pr} (RMS {g.gt.plane_rms_mm:.3f}), "
+                         f"{g.gt.n_points} points")
         lines.append(head + ": " + "; ".join(parts))
     return lines
 
 
 GaugesFile.model_rebuild()
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-GaugeReport = GaugesResult

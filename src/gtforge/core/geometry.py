@@ -159,7 +159,7 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
 def perturb_left(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
     """``T = [exp(omega) R0 | t0 + delta_t]`` with ``x = (omega_rad (3), delta_t_mm (3))``: the left perturbation every
     covariance of gtforge is written in (``cov_extrinsic_rad_mm``)."""
-    from scipy.spatial.transform import Rotation  # here, not at import: build workers never need scipy
+    from scipy.spatial.transform import Rotation  # here, not at import: importing scipy costs every process start
 
     return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])
 
@@ -167,7 +167,7 @@ def perturb_left(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
 def rotvec_between(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     """``omega`` (rad) with ``R_b = exp(omega) R_a``: the rotation part of the left perturbation (``perturb_left``)
     that takes ``T_a`` to ``T_b``."""
-    from scipy.spatial.transform import Rotation  # here, not at import: build workers never need scipy
+    from scipy.spatial.transform import Rotation  # here, not at import: importing scipy costs every process start
 
     return Rotation.from_matrix(T_b[:3, :3] @ T_a[:3, :3].T).as_rotvec()
 

@@ -63,7 +63,8 @@ class Accumulator:
         self.n_depth = 0
         self.n_gt_sigma_left_out = 0
 
-    def add(self, err: np.ndarray, n_gt: int, depth_err: np.ndarray | None = None, n_gt_sigma_left_out: int = 0) -> None:
+    def add(self, err: np.ndarray, n_gt: int, depth_err: np.ndarray | None = None,
+            n_gt_sigma_left_out: int = 0) -> None:
         self.n_gt += n_gt
         self.n_gt_sigma_left_out += n_gt_sigma_left_out
         self.n_valid += err.size

@@ -173,7 +173,8 @@ class RectificationMeter:
         self.skipped: dict[str, str] = {}
 
     def add(self, capture: str, right_image: np.ndarray | None, left_uv: np.ndarray | None = None,
-            left_image: np.ndarray | None = None, left_detection: Detection | None = None) -> PoseVerticalDisparity | None:
+            left_image: np.ndarray | None = None,
+            left_detection: Detection | None = None) -> PoseVerticalDisparity | None:
         """``left_detection``: the left image's detection (with ids; calibrate's); ``left_uv``: every board point in
         board order (a whole board); else ``left_image`` is searched."""
         if right_image is None:
@@ -195,8 +196,8 @@ class RectificationMeter:
         det_r = detect_target(right_image, self.board, self.cam_right, where=f"{capture}: ZED-right image")
         if det_r is None:
             self.skipped[capture] = "board not found in the right image"
-            log.warning("capture %s: board not found in the rectified right image; its vertical disparity is not measured",
-                        capture)
+            log.warning("capture %s: board not found in the rectified right image; its vertical disparity is "
+                        "not measured", capture)
             return None
         pair = matched_board_points(self.board, left_detection, self.cam, det_r, self.cam_right)
         if isinstance(pair, PairSkipped):
@@ -219,7 +220,8 @@ class RectificationMeter:
         warnings = []
         if overall.fit_mean_abs_px > self.threshold_px:
             warnings.append(f"the rectified ZED pair keeps {overall.fit_mean_abs_px:.3f} px mean vertical disparity on "
-                            f"the board corners (threshold {self.threshold_px} px): stereo matching and the ground truth "
+                            f"the board corners (threshold {self.threshold_px} px): stereo matching and the "
+                            f"ground truth "
                             f"suffer; check the ZED calibration (the images were rectified {self.rectified_by})")
             log.warning(warnings[-1])
         q = RectificationQuality(rectified_by=self.rectified_by, overall=overall,
@@ -287,7 +289,8 @@ def match_points(left: np.ndarray, right: np.ndarray, max_features: int = 4000, 
     return pl[ok].astype(np.float64), pr[ok].astype(np.float64)
 
 
-def scene_vertical_disparity(left: np.ndarray, right: np.ndarray, min_points: int = 30) -> SceneVerticalDisparity | None:
+def scene_vertical_disparity(left: np.ndarray, right: np.ndarray,
+                             min_points: int = 30) -> SceneVerticalDisparity | None:
     """The vertical disparity of a rectified scene pair from matched points (``None`` below ``min_points``);
     outliers beyond 5 x 1.4826 MAD (at least 0.5 px) from the median are dropped."""
     pl, pr = match_points(left, right)

@@ -3,7 +3,7 @@ and its edge; the fruit found from geometry, the SGRA loss weights, sigma statis
 and the occlusion mask's encoding."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numba
@@ -13,15 +13,25 @@ from gtforge.core.camera import RectifiedStereo
 from gtforge.core.geometry import fit_plane_robust, mask_bounding_box
 from gtforge.core.uncertainty import SigmaStats, sigma_stats_by_label
 
-if TYPE_CHECKING:  # the build's settings; any object with these fields will do
-    from gtforge.records.dataset import BuildParams
+
+class RegionSettings(Protocol):
+    """The fields of the build's settings (``gtforge.records.dataset.BuildParams``) that the regions and weights use;
+    any object with them will do."""
+
+    fruit_height_mm: float  # points this far above the table plane are fruit
+    plane_threshold_mm: float  # RANSAC inlier distance of the table plane
+    min_component_frac: float  # keep fruit components at least this share of the largest
+    erosion_px: int  # fruit centre = fruit eroded by this; edge = the rest
+    lambda_edge: float
+    lambda_center: float
+    lambda_bg: float
 
 
 REGION_NONE, REGION_BG, REGION_CENTRE, REGION_EDGE = 0, 1, 2, 3
 
 
 
-def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParams,
+def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: RegionSettings,
                   user_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(region labels uint8, fruit mask bool). Fruit from geometry: RANSAC plane of the table in the GT
     point cloud, points more than ``fruit_height_mm`` above it, the largest components."""
@@ -74,7 +84,7 @@ def fruit_regions(depth_mm: np.ndarray, zed: RectifiedStereo, params: BuildParam
 
 
 
-def sgra_weights(region: np.ndarray, params: BuildParams) -> np.ndarray:
+def sgra_weights(region: np.ndarray, params: RegionSettings) -> np.ndarray:
     """``weight.tiff``: the SGRA loss weight of each pixel's region (0 where no GT), float32."""
     lut = np.zeros(256, np.float32)  # by region label: one table look-up pass instead of three masked writes
     lut[[REGION_BG, REGION_CENTRE, REGION_EDGE]] = params.lambda_bg, params.lambda_center, params.lambda_edge

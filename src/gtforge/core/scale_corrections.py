@@ -5,15 +5,19 @@ disparity a turned right camera shows (the generator's truth). ``corrected_right
 stages did before the yaw went into the session's (kept as the reference the single resampling is compared with)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import invert_T
 
-if TYPE_CHECKING:
-    from gtforge.records.calibration import ScaleCalibration
+
+class ScaleCovariance(Protocol):
+    """What the sigma map needs of calibrate-scale's record (``gtforge.records.calibration.ScaleCalibration``): the
+    applied terms' covariance in the file's units (4x4, or 7x7 with a separate depth camera's rotation)."""
+
+    covariance: list[list[float]]
 
 
 def yaw_homography(rig: Rig, yaw_rad: float) -> np.ndarray:
@@ -124,7 +128,7 @@ def depth_pose_jacobian_image(depth_mm: np.ndarray, rig: Rig) -> np.ndarray:
     return depth_pose_jacobian_px(u, v, z, np.nan_to_num(du), np.nan_to_num(dv), rig)
 
 
-def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCovariance) -> np.ndarray:
     """Each GT pixel's 1-sigma (px) from the applied scale terms' covariance: ``sqrt(J C J^T)`` with
     ``J = (f B / Z, f (1 + x^2) pi / 180, f B / Z, f B / Z^2)`` (per unit of each parameter in the file's units), and
     with a separate depth camera's rotation (a 7x7 covariance) its ``depth_pose_jacobian_image`` per degree."""
@@ -146,13 +150,33 @@ def scale_sigma_px(depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np
 
 
 
-def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCalibration) -> np.ndarray:
+def add_scale_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, info: ScaleCovariance) -> np.ndarray:
     """``sigma_px`` (float32, +inf where no GT) with the scale terms' sigma added in quadrature."""
     s = scale_sigma_px(depth_mm, rig, info)
     with np.errstate(invalid="ignore"):
         out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
     return out.astype(np.float32)
 
+
+
+def depth_pose_sigma_px(depth_mm: np.ndarray, rig: Rig, cov_rad_mm) -> np.ndarray:
+    """Each GT pixel's 1-sigma (px) from the covariance of a separate depth camera's rotation (the left perturbation
+    of ``rig.T_mech_from_depth``; a 6x6 ``(omega rad, delta_t mm)`` covariance whose rotation block is used, as
+    ``gtforge align-depth`` writes it): ``sqrt(J C J^T)`` with ``J = depth_pose_jacobian_image`` (per rad)."""
+    C = np.asarray(cov_rad_mm, np.float64)[:3, :3]
+    z = np.asarray(depth_mm, np.float64)
+    if not C.any():
+        return np.zeros(z.shape)
+    J = depth_pose_jacobian_image(z, rig)
+    return np.sqrt(np.maximum(np.einsum("...i,ij,...j->...", J, C, J), 0.0))
+
+
+def add_depth_pose_sigma(sigma_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, cov_rad_mm) -> np.ndarray:
+    """``sigma_px`` (float32, +inf where no GT) with ``depth_pose_sigma_px`` added in quadrature."""
+    s = depth_pose_sigma_px(depth_mm, rig, cov_rad_mm)
+    with np.errstate(invalid="ignore"):
+        out = np.sqrt(np.asarray(sigma_px, np.float64) ** 2 + np.where(np.isfinite(s), s, 0.0) ** 2)
+    return out.astype(np.float32)
 
 
 def shown_disparity_px(disp_true_px: np.ndarray, rig: Rig, yaw_true_deg: float) -> np.ndarray:

@@ -329,11 +329,13 @@ def corrected_right(rect, stereo: RectifiedStereo, correction: ZedRightCorrectio
     right image. ``rect``: the SN.conf rectification of raw images (None: images rectified before gtforge).
 
     Neither: ``rect`` as it is. The self-rectification alone: as before the yaw joined it (folded into the maps, or
-    ``RightImageCorrection``'s resampling). With the yaw: ``corrected_rectification``'s maps, or ``CorrectedRightImage``."""
+    ``RightImageCorrection``'s resampling). With the yaw: ``corrected_rectification``'s maps, or
+    ``CorrectedRightImage``."""
     if right_yaw_deg == 0.0:
         if correction is None:
             return rect
-        return corrected_rectification(rect, correction) if rect is not None else RightImageCorrection(correction, stereo)
+        return (corrected_rectification(rect, correction) if rect is not None
+                else RightImageCorrection(correction, stereo))
     if rect is not None:
         return corrected_rectification(rect, correction, right_yaw_deg)
     return CorrectedRightImage(stereo, correction, float(right_yaw_deg))

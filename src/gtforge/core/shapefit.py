@@ -82,7 +82,8 @@ def fit_plane_lsq(points: np.ndarray, min_points: int = MIN_POINTS_PLANE) -> Pla
     return PlaneFit(True, normal=n, offset_mm=off, residuals_mm=p @ n - off, n_points=len(p))
 
 
-def fit_sphere(points: np.ndarray, min_points: int = MIN_POINTS_SPHERE, radius_hint_mm: float | None = None) -> SphereFit:
+def fit_sphere(points: np.ndarray, min_points: int = MIN_POINTS_SPHERE,
+               radius_hint_mm: float | None = None) -> SphereFit:
     """Geometric least-squares sphere: minimises ``sum (|p - c| - r)^2`` (Levenberg-Marquardt-type trust region)
     from the algebraic (linear) fit."""
     p = _finite_points(points)

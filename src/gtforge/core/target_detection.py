@@ -93,7 +93,8 @@ def _family_largest(dictionary: str) -> str:
 
 
 def _marker_side_px(corners) -> float:
-    return float(np.median([np.linalg.norm(np.diff(np.vstack([c.reshape(4, 2), c.reshape(4, 2)[:1]]), axis=0), axis=1).mean()
+    return float(np.median([np.linalg.norm(np.diff(np.vstack([c.reshape(4, 2), c.reshape(4, 2)[:1]]), axis=0),
+                                           axis=1).mean()
                             for c in corners]))
 
 
@@ -149,7 +150,8 @@ def diagnose_charuco(gray: np.ndarray, spec: CharucoSpec, cam=None, where: str =
     if len(ids) and beyond(dict_size):
         fam = spec.dictionary.rsplit("_", 1)[0]
         raise InputError(where, "board.dictionary", f"marker ids below {dict_size} ({spec.dictionary})",
-                         f"ids up to {ids.max()}", f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
+                         f"ids up to {ids.max()}",
+                         f"saw ids up to {ids.max()}: a {fam}_{_dict_size_for(int(ids.max()))} "
                          "dictionary, or a larger board?")
     if len(ids) and beyond(spec.n_markers):
         sx, sy = spec.squares_x + 1, spec.squares_y + 1
@@ -577,7 +579,8 @@ def detect_circles(image: np.ndarray, spec: CircleGridSpec, cam=None, where: str
     # findCirclesGrid can return a grid with a stray blob in it and the circles after it numbered wrongly (seen on the
     # generator's texture images at 0.3x); such a grid is not used: one homography of the declared layout must put
     # every centre within a quarter spacing (a wrong id is a spacing off; lens distortion is removed first)
-    frac, _ = _layout_fits(spec.corners_board()[:, :2], _undistorted_px(uv, cam), max(1.0, 0.25 * float(np.median(nn_px))))
+    frac, _ = _layout_fits(spec.corners_board()[:, :2], _undistorted_px(uv, cam),
+                           max(1.0, 0.25 * float(np.median(nn_px))))
     if frac < 1.0:
         log.info("%s: a circle grid off the declared layout (%d of %d centres) not used", where,
                  int(round((1 - frac) * spec.n_corners)), spec.n_corners)
@@ -721,3 +724,21 @@ def match_target_views(spec, det_a: Detection, cam_a, det_b: Detection, cam_b, n
     if collinear(X[common]):
         return PairSkipped("the board points both cameras see lie on one line", len(common))
     return TargetPair(common, uv_a_all[ia], uv_b_all[ib], T_a, T_b, det_a, det_b, uv_a_all, uv_b_all)
+
+
+def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,
+                   min_common: int = MIN_COMMON_CORNERS) -> tuple[Detection, Detection, np.ndarray] | str:
+    """For validate: the two cameras' points of one pose restricted to the ids both saw, as detections (ids sorted,
+    circle centres corrected for the perspective bias, a symmetric grid numbered alike), plus the ids; or the
+    reason the pose cannot be used (as calibrate's ``detect_pose_target`` gives it)."""
+    dm = detect_target(texture, spec, mech, where=f"{name}: structured-light image")
+    dz = detect_target(zed_left, spec, zed_cam, where=f"{name}: ZED-left image")
+    if dm is None or dz is None:
+        which = " and ".join(w for w, d in (("structured-light", dm), ("ZED", dz)) if d is None)
+        return f"board not found in the {which} image"
+    pair = match_target_views(spec, dm, mech, dz, zed_cam, ("structured-light", "ZED"), min_common)
+    if isinstance(pair, PairSkipped):
+        return pair.reason
+    dm, dz = pair.det_a, pair.det_b
+    return (Detection(pair.uv_a, dm.sharpness_px, dm.method, dm.pattern_contrast, pair.ids),
+            Detection(pair.uv_b, dz.sharpness_px, dz.method, dz.pattern_contrast, pair.ids), pair.ids)

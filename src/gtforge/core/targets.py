@@ -111,7 +111,8 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
         if board.cols < 3 or board.rows < 3:
             raise InputError(None, f"{where}.cols/rows", "at least 3x3 squares (ChArUco counts squares)",
                              f"{board.cols}x{board.rows}")
-        if board.dictionary is None or not hasattr(cv2.aruco, board.dictionary) or not board.dictionary.startswith("DICT_"):
+        if (board.dictionary is None or not hasattr(cv2.aruco, board.dictionary)
+                or not board.dictionary.startswith("DICT_")):
             raise InputError(None, f"{where}.dictionary", "an OpenCV ArUco dictionary name such as DICT_5X5_100",
                              repr(board.dictionary), "the board generator's settings name it (dictionary/--dictionary)")
         if board.marker_size_mm is None or not 0 < board.marker_size_mm < board.square_size_mm:

@@ -213,7 +213,8 @@ def disparity_sigma(disparity_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, co
                                         and math.isfinite(texture_shift_px)) else 0.0
     out = np.empty(disp.shape, np.float32)  # each sigma computed in float64, rounded once on storing
     _sigma_kernel(disp, depth, span, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px, rig.zed.baseline_mm, cov,
-                  np.ascontiguousarray(rig.T_zed_from_mech[:3, 3]), np.ascontiguousarray(c_depth), np.ascontiguousarray(axis_depth),
+                  np.ascontiguousarray(rig.T_zed_from_mech[:3, 3]), np.ascontiguousarray(c_depth),
+                  np.ascontiguousarray(axis_depth),
                   params.depth_noise.a_mm,
                   params.depth_noise.b_mm_per_m2, params.curvature_radius_mm, shift, out)
     return out

@@ -1,1 +1,2 @@
-"""The dataset folder on disk: its files and views, split lists, resume stamps, scene-writer locks, worker caches, and each scene's ground-truth arrays."""
+"""The dataset folder on disk: its files and views, split lists, resume stamps, scene-writer locks, worker caches, \
+and each scene's ground-truth arrays."""

@@ -59,7 +59,8 @@ def lock_writer(scenes: Path, sid: str, token: str) -> int | None:
 
 
 def unlock_writer(scenes: Path, sid: str, token: str, fd: int | None) -> None:
-    """Release the lock. Its file stays until the run's end (``remove_stale_entries`` removes unheld locks): a file deleted
+    """Release the lock. Its file stays until the run's end (``remove_stale_entries`` removes unheld locks): a file
+    deleted
     per scene would make ext4 without a journal skip it, for a minute, each time it allocates an inode in that folder
     (``recently_deleted``), a search paid in every scene and again for each of the split views' links
     (benchmarks/RESULTS.md, "Figures from code comments")."""
@@ -69,7 +70,8 @@ def unlock_writer(scenes: Path, sid: str, token: str, fd: int | None) -> None:
 
 
 def writer_alive(scenes: Path, name: str) -> bool:
-    """Whether the process writing hidden entry ``name`` (``.tmp-``/``.old-``/``.lock-<sid>-<token>``) holds its lock."""
+    """Whether the process writing hidden entry ``name`` (``.tmp-``/``.old-``/``.lock-<sid>-<token>``) holds its
+    lock."""
     if fcntl is None:
         return False
     try:

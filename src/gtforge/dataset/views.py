@@ -84,7 +84,8 @@ def write_split_views(out: Path, splits: dict[str, list[str]], params: BuildPara
     """``OUT/views/<split>/``: each split in the folder layouts training repositories read from a fixed root, as
     relative symlinks into ``scenes/``, ``kitti/`` and ``eth3d/`` (nothing copied; the dataset stays relocatable):
 
-    * ``Middlebury/MiddEval3/official_train.txt`` + ``training{F,H,Q}/<id>`` (RAFT-Stereo ``middlebury_F/H/Q``; IGEV-Stereo
+    * ``Middlebury/MiddEval3/official_train.txt`` + ``training{F,H,Q}/<id>`` (RAFT-Stereo ``middlebury_F/H/Q``;
+    IGEV-Stereo
       reads ``trainingH`` for the names; gtforge has one resolution, so F, H and Q are the same scenes);
     * ``Middlebury/2014/<id>/{im0,im1,im1E,im1L}.png, disp0.pfm, calib.txt`` (RAFT-Stereo ``middlebury_2014``; im1E and
       im1L, the 2014 dataset's other exposure and lighting, are im1);
@@ -152,7 +153,8 @@ def write_lists(out: Path, splits: dict[str, list[str]]) -> None:
     for split, ids in splits.items():
         lines = [f"scenes/{s}/im0.png scenes/{s}/im1.png scenes/{s}/disp0GT.pfm" for s in ids]
         atomic_write_text(out / "filenames" / f"{split}.txt", "\n".join(lines) + ("\n" if lines else ""))
-        klines = [f"training/image_2/{s}_10.png training/image_3/{s}_10.png training/disp_occ_0/{s}_10.png" for s in ids]
+        klines = [f"training/image_2/{s}_10.png training/image_3/{s}_10.png training/disp_occ_0/{s}_10.png"
+                  for s in ids]
         atomic_write_text(out / "filenames" / f"kitti_{split}.txt", "\n".join(klines) + ("\n" if klines else ""))
 
 

@@ -2,6 +2,7 @@
 a changed file is read again)."""
 from __future__ import annotations
 
+from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.records.calibration import CalibrationFile
 
 # Per worker process. A Dask worker (or this process with workers=1) lives across builds: an entry is
@@ -18,7 +19,7 @@ def cached_session(session_dir: str, calib: CalibrationFile):
            calib.rig.zed_right_yaw_deg)
     hit = WORKER_CACHE.get(key)
     if hit is None or hit[1] != session_stamp(hit[0]):
-        session = calib.open_session(session_dir)
+        session = open_with_calibration(session_dir, calib)
         hit = WORKER_CACHE[key] = (session, session_stamp(session))
     return hit[0]
 

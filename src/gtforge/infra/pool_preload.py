@@ -1,4 +1,5 @@
-"""What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that every
+"""What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that \
+every
 worker starts with it: numba's typing and lowering registries, which numba loads on a process's first compiled call
 (with SciPy's BLAS, which numba checks for then): otherwise part of each worker's start, done once here through one tiny
 function from numba's cache. The task's own module is preloaded by name beside this one."""

@@ -274,7 +274,8 @@ def prestart_pool(module: str, workers: int | None = None, scheduler: str | None
 
 def _pool_context(module: str, n_threads: int):
     """The ``multiprocessing`` context local workers start with: this process's fork server, started here once with
-    ``__main__``, ``gtforge.infra.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other itself)
+    ``__main__``, ``gtforge.infra.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other
+    itself)
     preloaded and numba/OpenMP limited to ``n_threads`` threads, as ``_init_worker`` limits them in a spawned worker;
     ``spawn`` where the platform has no fork server, or for another thread count than the server was started with."""
     import multiprocessing as mp

@@ -161,7 +161,8 @@ def load_zed_rectified(path: str | Path, right_path: str | Path | None = None) -
         doffs = P[0, 2] - left.cx_px
         src = rp
     elif "baseline_mm" in data:
-        baseline_mm, doffs, src = float(np.ravel(data["baseline_mm"])[0]), float(np.ravel(data.get("doffs_px", 0.0))[0]), path
+        baseline_mm, doffs, src = (float(np.ravel(data["baseline_mm"])[0]),
+                                   float(np.ravel(data.get("doffs_px", 0.0))[0]), path)
     elif any(k in data for k in ("projection_matrix_right", "P2")):
         P = _matrix(data, ("projection_matrix_right", "P2"), (3, 4), path)
         baseline_mm, doffs, src = -P[0, 3] / P[0, 0], P[0, 2] - left.cx_px, path
@@ -259,10 +260,6 @@ class ZedFactoryCalibration:
         T = {"neg-x": np.array([-t[0], t[1], t[2]]), "neg-all": -t, "as-is": t, "right-centre": -R @ t}[base]
         return R, T
 
-    def extrinsics(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
-        """The name ``R_t_right_from_left`` had before round 3; it goes in the next release."""
-        return self.R_t_right_from_left(reading)
-
     def stereo_rectify(self, reading: str = DEFAULT_ZED_CONF_READING) -> StereoRectifyResult:
         R, T = self.R_t_right_from_left(reading)
         size = self.size_wh
@@ -290,7 +287,8 @@ class ZedFactoryCalibration:
         baseline_mm = sr.baseline_signed_mm
         if baseline_mm <= 0:
             raise InputError(self.path, "STEREO.Baseline", "a right camera at +x after rectification",
-                             f"baseline {baseline_mm:.3f} mm under the reading '{reading}' ({describe_zed_conf_reading(reading)})",
+                             f"baseline {baseline_mm:.3f} mm under the reading '{reading}' "
+                             f"({describe_zed_conf_reading(reading)})",
                              "choose another zed_conf_reading in session.yaml, or let gtforge calibrate choose it "
                              "from the board captures (docs/conventions.md)")
         rect = RectifiedStereo(left=PinholeCamera.from_K(sr.P_left[:, :3], *size), baseline_mm=float(baseline_mm),

@@ -224,11 +224,6 @@ class Capture:
     # the input files read whole to build the arrays above, by name: the BLAKE3 of exactly the bytes decoded
     read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
 
-    @property
-    def mech_depth_mm(self) -> np.ndarray:
-        """``depth_mm``'s name before round 3 (it is on the depth camera's grid); it goes in the next release."""
-        return self.depth_mm
-
 
 @dataclass(frozen=True)
 class ReadRecord:
@@ -287,15 +282,38 @@ class Session:
         return self.depth_cam if self.depth_cam is not None else self.mech
 
     def capture_roots(self) -> list[Path]:
-        """The folders that hold captures (``board/``, ``scenes/``), as named in the session."""
-        return [self.root / self.config.board_dir, self.root / self.config.scenes_dir]
+        """The folders that hold captures (``board/``, ``scenes/``, ``gauges/``), as named in the session."""
+        return [self.root / self.config.board_dir, self.root / self.config.scenes_dir, self.root / "gauges"]
 
-    def refuse_output_inside_captures(self, out: str | Path, option: str = "--output") -> None:
-        """Refuse an output path that lies in, or contains, a capture folder (captures are never written).
+    def session_files(self) -> list[Path]:
+        """The files the session reads besides its captures: ``session.yaml`` and every file it names (the texture
+        and depth cameras' intrinsics, the ZED calibration or SN.conf, the right camera's info)."""
+        c = self.config
+        names = [c.mech_intrinsics, c.depth_intrinsics, c.zed_calibration, c.zed_right_info]
+        return [self.root / "session.yaml"] + [self.root / n for n in names if n]
+
+    def refuse_output_over_inputs(self, out: str | Path, option: str = "--output") -> None:
+        """Refuse an output path that lies in, or contains, a capture folder, or that is a file the session reads
+        (``session_files``): a session's inputs are never written, under any spelling of the path (relative, ``..``,
+        symbolic or hard links).
 
         Symlinked captures count with both their name and their target."""
         out_abs = Path(os.path.abspath(out))
         out_real = Path(os.path.realpath(out))
+        for f in self.session_files():
+            if not (f.exists() or f.is_symlink()):
+                continue
+            same = out_real == Path(os.path.realpath(f)) or out_abs == Path(os.path.abspath(f))
+            if not same and out_real.exists():
+                try:
+                    same = os.path.samefile(out_real, f)
+                except OSError:
+                    same = False
+            if same:
+                raise InputError(out, option, "a path that is not one of the session's own files",
+                                 f"the session's {f.name} ({os.path.realpath(f)})",
+                                 "the session's files are never written; write the output beside the session, "
+                                 "e.g. -o calib.yaml")
         protected: list[Path] = []
         for croot in self.capture_roots():
             if croot.is_dir():
@@ -489,7 +507,8 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
     ``zed_right_correction``: the right camera's correction a calibration file recorded
-    (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to the
+    (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to
+    the
     right image of images rectified before gtforge. ``zed_right_yaw_deg``: calibrate-scale's yaw of the right camera
     (``Rig.scale_corrections``), composed with it into the same single resampling of the right image
     (``gtforge.core.selfcal.corrected_right``)."""

@@ -203,7 +203,8 @@ def _png_bytes(rows: np.ndarray, w: int, h: int, bit_depth: int, blocks: list[by
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
 
-    # zlib header (deflate, 32 kB window, fastest level), the blocks, an empty final block (fixed Huffman codes), Adler-32
+    # zlib header (deflate, 32 kB window, fastest level), the blocks, an empty final block (fixed Huffman codes),
+    # Adler-32
     stream = b"".join((b"\x78\x01", *blocks, b"\x03\x00", struct.pack(">I", zlib_ng.adler32(rows))))
     ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no interlace
     return b"".join((b"\x89PNG\r\n\x1a\n", chunk(b"IHDR", ihdr), chunk(b"IDAT", stream), chunk(b"IEND", b"")))
@@ -483,7 +484,3 @@ def read_ply_points(path: str | Path) -> np.ndarray:
     import open3d as o3d
 
     return np.asarray(o3d.io.read_point_cloud(str(path)).points)
-
-
-# Moved in round 3 (docs/architecture.md); still importable from here for one release.
-from gtforge.core.photometric import to_gray  # noqa: E402,F401

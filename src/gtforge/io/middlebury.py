@@ -26,7 +26,8 @@ class SceneCalib:
             self.ndisp = int(float(kv.get("ndisp", 192)))
             self.vmin = int(float(kv.get("vmin", 0)))
         except (KeyError, ValueError, IndexError) as exc:
-            raise InputError(path, str(exc).strip("'"), "Middlebury keys cam0, doffs, baseline", "missing/invalid") from None
+            raise InputError(path, str(exc).strip("'"), "Middlebury keys cam0, doffs, baseline",
+                             "missing/invalid") from None
 
     def depth(self, disp: np.ndarray) -> np.ndarray:
         d = np.asarray(disp, np.float64) + self.doffs_px

@@ -1,6 +1,6 @@
 """What calibrate, refine and calibrate-scale write: the calibration file (``CalibrationFile``: the rig every later
 stage uses, its covariance, and every correction with where it came from) and its parts; and how a stage opens a
-session with a calibration (``open_calibrated_session``)."""
+session with a calibration is ``gtforge.io.calibrated_session``. Pure data: nothing here opens a session."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,14 +10,13 @@ import numpy as np
 from pydantic import Field, PrivateAttr, model_serializer
 
 from gtforge.core.camera import Rig
-from gtforge.core.coverage import CoverageResult, coverage_report
+from gtforge.core.coverage import CoverageResult
 from gtforge.core.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
 from gtforge.core.targets import BoardModel
-from gtforge.errors import InputError
-from gtforge.io.captures import open_session
 from gtforge.io.zed_rectification import ZedConfChoice
+from gtforge.records.depth_alignment import DepthAlignment
 from gtforge.records.verification import VerifyParams
 
 
@@ -162,6 +161,8 @@ class CalibrationFile(VersionedFile):
     coverage: CoverageResult | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
     # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
     scale_calibration: ScaleCalibration | None = None
+    # set by gtforge align-depth: a separate depth camera's pose from the captures' edges (applied in rig)
+    depth_alignment: DepthAlignment | None = None
 
     @property
     def zed_conf_reading(self) -> str | None:
@@ -174,16 +175,6 @@ class CalibrationFile(VersionedFile):
         s = self.zed_self_rectification
         return s.correction if s is not None and s.status == "applied" else None
 
-    def open_session(self, session_dir: str | Path, right_yaw: bool = True):
-        """The session as this calibration sees it: raw ZED images rectified with the recorded SN.conf reading, and
-        the right image corrected for the self-rectification and calibrate-scale's yaw (``rig.scale_corrections``)
-        in one resampling (``gtforge.core.selfcal.corrected_right``): the right image every stage reads is the
-        dataset's im1, and no stage resamples it again. ``right_yaw=False``: without the yaw (the right image as
-        calibrate-scale measured the yaw on, and as validate measures the rectification)."""
-
-        return open_session(session_dir, zed_conf_reading=self.zed_conf_reading,
-                            zed_right_correction=self.zed_right_correction,
-                            zed_right_yaw_deg=self.rig.zed_right_yaw_deg if right_yaw else 0.0)
     # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
     # the conf reading chosen from the board images (gtforge.core.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None
@@ -193,68 +184,7 @@ class CalibrationFile(VersionedFile):
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)
     _residuals: dict = PrivateAttr(default_factory=dict)
-    _coverage_inputs: dict = PrivateAttr(default_factory=dict)
 
-    def attach_coverage(self) -> "CalibrationFile":
-        """Fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage) from
-        the poses this calibration used; ``calibrate`` does it, ``calibrate_observations`` leaves it to the caller
-        (a few tenths of a second)."""
-
-        if self._coverage_inputs:
-            self.coverage = coverage_report(**self._coverage_inputs)
-        return self
-
-
-
-def session_board(session, given: BoardModel, given_explicitly: bool) -> BoardModel:
-    """The board to use: session.yaml's ``board:`` when there is one, with the fields given explicitly (CLI options,
-    ``given.model_fields_set``) overriding it; else ``given``."""
-    declared = getattr(session.config, "board", None)
-    if declared is None:
-        return given
-    if not given_explicitly:
-        return declared
-    return BoardModel.model_validate({**declared.model_dump(), **{k: getattr(given, k) for k in given.model_fields_set}})
-
-
-
-def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
-                              hint: str = "was this calibration made for another session?") -> None:
-    """The calibration's cameras have the session's image sizes (a calibration of another rig or resolution would
-    otherwise fail deep inside a stage)."""
-    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
-                       ("depth_cam", rig.depth_camera, session.depth_camera)):
-        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
-            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
-                             f"{a.width_px}x{a.height_px} px", hint)
-
-
-
-def open_calibrated_session(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None,
-                            example_name: str):
-    """The prologue of the stages that turn a calibration into a new one (refine, calibrate-scale): the calibration,
-    the session as it sees it (``CalibrationFile.open_session``), checked against it, and the output path, which may
-    be neither inside the captures nor the input file. Returns ``(calib, session, out_path or None)``."""
-    calib_path = Path(calibration)
-    calib = CalibrationFile.read(calib_path)
-    session = calib.open_session(session_dir)
-    check_rig_matches_session(calib.rig, session, calib_path)
-    if out_path is not None:
-        out_path = calibration_output_path(out_path)
-        session.refuse_output_inside_captures(out_path)
-        if Path(out_path).resolve() == calib_path.resolve():
-            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
-                             "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
-    return calib, session, out_path
-
-
-
-def calibration_output_path(out_path: str | Path) -> Path:
-    """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
-    p = Path(out_path)
-    if p.is_dir() or str(out_path).endswith(("/", "\\")):
-        return p / "calibration.yaml"
-    return p
 
 
 class ScaleParams(GTModel):
@@ -321,8 +251,3 @@ class ScaleCalibration(GTModel):
     passes: int = 0
     scenes: list[SceneScaleResult] = Field(default_factory=list)
     time_s: float = 0.0
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-PoseReport = PoseResult
-SceneScaleReport = SceneScaleResult

@@ -26,7 +26,8 @@ DISP_ERROR_MAP_MAX_PX = 2.0  # colour scale of the disparity error maps (the Bad
 
 
 
-DEPTH_ERROR_MAP_PERCENTILE = 95.0  # the fruit depth-error map's scale: this percentile of the scene's errors, rounded up
+# the fruit depth-error map's scale: this percentile of the scene's errors, rounded up
+DEPTH_ERROR_MAP_PERCENTILE = 95.0
 
 
 
@@ -63,7 +64,3 @@ class EvalResult(VersionedFile):
     per_scene: list[SceneResult]
     # per-fruit size, volume and grade (gtforge.core.fruit_size); absent in results written before it existed
     fruit_size: "FruitSizeResult | None" = None
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-EvalReport = EvalResult

@@ -85,7 +85,3 @@ class ValidationResult(VersionedFile):
 
 
 REFERENCE_SOURCE = "Li et al., MI-ACVNet (MDPI, 2026)"  # where the published 0.56 px / 0.08 % come from
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-ValidationReport = ValidationResult

@@ -36,6 +36,10 @@ class StereoEstimate(GTModel):
     vertical_px: float | None = None
     bad_match_pct: float | None = None
     n_pixels: int = 0
+    # noise floors (1 sigma, px) of the two figures: what exact labels give on this scene (gtforge.core.photometric
+    # .block_noise); None where not measured
+    disparity_bias_noise_px: float | None = None
+    vertical_noise_px: float | None = None
 
 
 
@@ -58,6 +62,9 @@ class VerificationResult(VersionedFile):
     """``verification.json`` in a dataset: every scene's checks and the thresholds they were judged by."""
 
     KIND: ClassVar[str] = "verification report (verification.json from gtforge build-dataset / verify)"
+    # 2: figures measured with phase-unbiased (cubic B-spline) sampling, each with its noise floor (issue 41)
+    SCHEMA_VERSION: ClassVar[int] = 2
+    schema_version: int = 2
     dataset_dir: str
     params: VerifyParams
     scenes: dict[str, SceneVerification]
@@ -65,7 +72,3 @@ class VerificationResult(VersionedFile):
     @property
     def flagged(self) -> dict[str, list[str]]:
         return {s: v.reasons for s, v in self.scenes.items() if v.status == "flagged"}
-
-
-# The names of round 2 (a record is a *Result; a report is a page people read); they go in the next release.
-VerificationReport = VerificationResult

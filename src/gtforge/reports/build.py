@@ -42,7 +42,8 @@ def write_build_report(manifest, out: Path, sigma_vmax_px: float = 0.1) -> Path:
         rows.append([sid, m.fruit_id or "", _f(m.stats.valid_pct, "{:.1f}"), _f(m.stats.fruit_pct, "{:.1f}"),
                      f"{_f(m.stats.disp_min_px, '{:.1f}')} - {_f(m.stats.disp_max_px, '{:.1f}')}",
                      "-" if v is None else v.status, cell("all"), cell("fruit_centre"), cell("fruit_edge"),
-                     cell("background"), "" if m.sigma_extrinsic_included or not m.sigma else "no calibration covariance"])
+                     cell("background"),
+                     "" if m.sigma_extrinsic_included or not m.sigma else "no calibration covariance"])
     stats = table(["scene", "fruit", "GT valid (%)", "fruit (%)", "disparity (px)", "verification",
                    "sigma all", "sigma fruit centre", "sigma fruit edge", "sigma background", "note"], rows)
     thumbs = []

@@ -99,7 +99,8 @@ def preview_jpeg(rgb: np.ndarray) -> bytes:
     """A preview encoded for results.html (JPEG at ``PREVIEW_JPEG_QUALITY``: about 20-30 kB each)."""
     import cv2
 
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_JPEG_QUALITY])
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                           [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_JPEG_QUALITY])
     if not ok:
         raise RuntimeError("JPEG encode failed")
     return buf.tobytes()
@@ -203,7 +204,8 @@ def _scene_maps(rep: EvalResult, out: Path, max_scenes: int) -> str:
                         f'(<a href="{html.escape(full)}">full size</a>)</figcaption></figure>')
         rows.append(f'<div class="maps">{"".join(figs)}</div>')
     intro = note(f"Worst {len(worst)} scene(s) by EPE, cropped to the scored pixels; click a map for the full-size PNG "
-                 "in heatmaps/ (its top rows are pixel-aligned with im0.png, the colour bar is below). Disparity error: "
+                 "in heatmaps/ (its top rows are pixel-aligned with im0.png, the colour bar is below). "
+                 "Disparity error: "
                  f"the same scale for every scene, 0\u2013{DISP_ERROR_MAP_MAX_PX:g} px (the Bad-2.0 threshold). Fruit "
                  f"depth error: each scene's own scale, its {DEPTH_ERROR_MAP_PERCENTILE:g}th percentile rounded up, "
                  "so the map shows where the error is, not only that it exceeds a fixed limit.")
@@ -303,7 +305,8 @@ def write_comparison_html(reports: list[EvalResult], files: list[Path], labels: 
     fruit = comparison_section(reports, labels)
     if fruit is not None:
         sections.append(fruit)
-    src = [[lab, str(f), r.model_source or r.model, r.dataset_dir, r.split or "every scene", len(r.scenes), r.created or None]
+    src = [[lab, str(f), r.model_source or r.model, r.dataset_dir, r.split or "every scene", len(r.scenes),
+            r.created or None]
            for lab, f, r in zip(labels, files, reports)]
     sections.append(Section("Results compared", table(["row label", "results.json", "model", "dataset", "split",
                                                        "scenes", "evaluated"], src)))

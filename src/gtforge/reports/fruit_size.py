@@ -114,7 +114,8 @@ def fruit_section(rep: "EvalResult") -> Section | None:
         body += note(f"not measurable: {f.n_not_measurable_gt} fruit from the GT, {f.n_not_measurable_pred} from the "
                      "prediction (reasons in the per-fruit table)")
     body += _scatter(f)
-    for title, g in (("grade: model vs GT", f.grades_model_vs_gt), ("grade: GT vs generator truth", f.grades_gt_vs_truth)):
+    for title, g in (("grade: model vs GT", f.grades_model_vs_gt),
+                     ("grade: GT vs generator truth", f.grades_gt_vs_truth)):
         if g is not None:
             body += table([f"{title} ({g.bins.quantity}); rows: reference"] + g.labels,
                           [[lab] + row for lab, row in zip(g.labels, g.confusion)])
@@ -159,7 +160,8 @@ def write_fruit_csv(rep: "EvalResult", path) -> None:
     w.writerow(FRUIT_CSV_HEADERS)
     for r in rep.fruit_size.fruit:
         p, t = r.pred, r.truth
-        reason = "; ".join(x for x in (r.gt.reason and f"GT: {r.gt.reason}", p and p.reason and f"model: {p.reason}") if x)
+        reason = "; ".join(x for x in (r.gt.reason and f"GT: {r.gt.reason}", p and p.reason and f"model: {p.reason}")
+                           if x)
         w.writerow(["" if v is None else v for v in [
             r.scene, r.fruit, r.n_pixels, r.gt.ok, r.gt.diameter_mm, r.gt.length_mm, r.gt.width_mm, r.gt.height_mm,
             r.gt.volume_ml, p.ok if p else None, p.diameter_mm if p else None, p.height_mm if p else None,

@@ -13,11 +13,13 @@ if TYPE_CHECKING:
     from gtforge.core.gauges import GaugeResult, GaugesResult
 
 GAUGE_NOTE = ("Ground truth (gt): the GT disparity turned back into 3-D, Z = f*B/(d + doffs), in the ZED-left frame; "
-              "raw: the structured-light depth mapped into the same frame. Size error PS = fitted - calibrated diameter; "
+              "raw: the structured-light depth mapped into the same frame. Size error PS = fitted - calibrated "
+              "diameter; "
               "form error PF = range of the radial residuals (RMS beside it); sphere-spacing error SD = fitted - "
               "calibrated centre distance; flatness F = range of the distances to the fitted plane. 'predicted': the "
               "form figures the per-pixel sigma map states (depth noise and mesh interpolation; the extrinsic term "
-              "moves the object rigidly and changes none of these figures); for size and spacing the 1-sigma of the fitted "
+              "moves the object rigidly and changes none of these figures); for size and spacing the 1-sigma of the "
+              "fitted "
               "figure from the same per-point sigmas (the mesh's chord bias is not in it). docs/metrics.md, "
               "'Gauge objects'.")
 
@@ -34,12 +36,13 @@ def figure_rows(g: "GaugeResult") -> list[list]:
             continue
         for k, s in enumerate(src.spheres):
             name = "sphere" if len(src.spheres) == 1 else f"sphere {k + 1}"
-            rows.append([src.source, f"{name}: size error PS (mm)", s.size_error_mm, s.size_sigma_predicted_mm, s.n_points,
-                         f"diameter {s.diameter_mm:.3f}", None])
+            rows.append([src.source, f"{name}: size error PS (mm)", s.size_error_mm, s.size_sigma_predicted_mm,
+                         s.n_points, f"diameter {s.diameter_mm:.3f}", None])
             rows.append([src.source, f"{name}: form error PF (mm)", s.form_range_mm, s.form_range_predicted_mm,
                          s.n_points, f"RMS {s.form_rms_mm:.4f}", s.form_rms_predicted_mm])
         if src.spacing_error_mm is not None:
-            rows.append([src.source, "sphere-spacing error SD (mm)", src.spacing_error_mm, src.spacing_sigma_predicted_mm,
+            rows.append([src.source, "sphere-spacing error SD (mm)", src.spacing_error_mm,
+                         src.spacing_sigma_predicted_mm,
                          sum(s.n_points for s in src.spheres), f"distance {src.centre_distance_mm:.3f}", None])
         if src.flatness_mm is not None:
             rows.append([src.source, "flatness F (mm)", src.flatness_mm, src.flatness_predicted_mm, src.n_points,

@@ -111,7 +111,8 @@ def now_text() -> str:
 
 CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1250px;color:#111}
 table{border-collapse:collapse;margin:.6em 0 1.2em}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
-th{background:#eee}td:first-child{text-align:left}table.kv td{text-align:left}caption{caption-side:bottom;text-align:left;font-size:.85em;color:#555;padding-top:3px}
+th{background:#eee}td:first-child{text-align:left}table.kv td{text-align:left}\
+caption{caption-side:bottom;text-align:left;font-size:.85em;color:#555;padding-top:3px}
 table.header{font-size:.9em}table.header th{text-align:left}table.header td{text-align:left;font-family:monospace}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.8em}
 h2.pass,span.pass{color:#060}h2.fail,span.fail{color:#b00}h2.warn,span.warn{color:#a55a00}
@@ -119,7 +120,8 @@ span.pass,span.fail,span.warn{font-weight:bold}
 h2.pass,h2.fail,h2.warn{padding:.3em .5em;border-radius:4px}
 h2.pass{background:#e6f4e6}h2.fail{background:#fbe4e4}h2.warn{background:#fdf0dc}
 p.note{font-size:.9em;color:#444;max-width:60em}p.warn{color:#a55a00}
-figure{display:inline-block;margin:4px 8px 12px 0;vertical-align:top}div.maps{display:flex;gap:10px;align-items:flex-start}figcaption{font-size:.85em;color:#333}"""
+figure{display:inline-block;margin:4px 8px 12px 0;vertical-align:top}\
+div.maps{display:flex;gap:10px;align-items:flex-start}figcaption{font-size:.85em;color:#333}"""
 
 
 def write_html(path: str | Path, title: str, sections: Sequence[Section | tuple[str, str]],

@@ -23,7 +23,8 @@ def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice 
         o = q.overall
         body += table(["vertical disparity v_left - v_right (px)", "value"], [
             ["corners (poses)", f"{o.n_points} ({len(q.poses)})"],
-            ["mean |.|, homography-fitted corners", o.fit_mean_abs_px], ["max |.|, homography-fitted", o.fit_max_abs_px],
+            ["mean |.|, homography-fitted corners", o.fit_mean_abs_px],
+            ["max |.|, homography-fitted", o.fit_max_abs_px],
             ["mean |.|, detected corners", o.mean_abs_px], ["max |.|, detected corners", o.max_abs_px],
             ["signed mean", o.mean_px], ["threshold (fitted mean)", q.threshold_px]], fmt="{:.3f}", cls="kv")
         body += note(f"Images rectified: {q.rectified_by}. Each board corner found in both rectified images; "
@@ -46,12 +47,14 @@ def rectification_section(q: RectificationQuality | None, choice: ZedConfChoice 
             body += _scatter(q._points, width_px, height_px)
     if choice is not None:
         body += f"<p>SN.conf <code>{html.escape(choice.conf_file)}</code> ({html.escape(choice.resolution)}) read as " \
-                f"<b>{html.escape(choice.reading)}</b>: {html.escape(choice.formula)}; chosen by {choice.chosen_by}.</p>"
+                f"<b>{html.escape(choice.reading)}</b>: {html.escape(choice.formula)}; " \
+                f"chosen by {choice.chosen_by}.</p>"
         if choice.candidates:
             rows = [[c.reading, "yes" if c.eligible else "no (right camera at -x)", c.vertical.fit_mean_abs_px,
                      c.vertical.mean_abs_px, c.vertical.max_abs_px, c.formula] for c in choice.candidates]
             body += table(["reading", "eligible", "fitted mean |.| (px)", "detected mean |.| (px)",
-                           "detected max |.| (px)", "formula"], rows, fmt=[None, None, "{:.3f}", "{:.3f}", "{:.3f}", None],
+                           "detected max |.| (px)", "formula"], rows,
+                          fmt=[None, None, "{:.3f}", "{:.3f}", "{:.3f}", None],
                           caption=f"Every reading of the conf, scored on the raw board corners of "
                                   f"{len(choice.captures)} captures (best first; docs/conventions.md, 'ZED SN.conf').")
     status = "warn" if warnings else None
@@ -97,7 +100,8 @@ def self_rectification_section(s: ZedSelfRectification | None) -> Section | None
                      f"{np.degrees(s.sigma_omega_y_vertical_only_rad or 0.0):.4f}"])
     body += table(["", "value"], rows, fmt="{:.3f}", cls="kv")
     body += note(f"Matched in the images as rectified {html.escape(s.rectified_by)}. The right camera's rectifying "
-                 "rotation gets a small extra rotation and its focal length a scale, fitted to the rows of SIFT matches "
+                 "rotation gets a small extra rotation and its focal length a scale, fitted to the rows of SIFT "
+                 "matches "
                  "refined by Lucas-Kanade over every capture (boards and scenes). The rotation about the vertical axis "
                  "shifts every disparity by about f times its angle and shows in the rows only at second order: it is "
                  "reported, never applied here. A vertical principal-point offset is the rotation about x to first "
@@ -127,7 +131,8 @@ def summary_lines(q: RectificationQuality | None, choice: ZedConfChoice | None =
         lines.append(line)
     if q is not None:
         o = q.overall
-        lines.append(f"ZED vertical disparity on {len(q.poses)} poses: mean {o.fit_mean_abs_px:.3f} px (fitted corners), "
+        lines.append(f"ZED vertical disparity on {len(q.poses)} poses: mean {o.fit_mean_abs_px:.3f} px "
+                     "(fitted corners), "
                      f"{o.mean_abs_px:.3f} px (detected; max {o.max_abs_px:.3f} px); threshold {q.threshold_px} px")
     else:
         lines.append("ZED vertical disparity: not measured (the board was not found in any right image)")

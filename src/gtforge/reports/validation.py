@@ -54,7 +54,8 @@ def verdict_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
          ok(rep.pass_xy)],
         ["Z geometric error, mean over poses (%)", rep.z_error_mean_pct, REFERENCE_Z_PCT, rep.thresholds["z_pct"],
          ok(rep.pass_z)],
-        ["XY median / RMS / max (px)", f"{rep.xy_median_px:.3f} / {rep.xy_rms_px:.3f} / {rep.xy_max_px:.3f}", "", "", ""],
+        ["XY median / RMS / max (px)", f"{rep.xy_median_px:.3f} / {rep.xy_rms_px:.3f} / {rep.xy_max_px:.3f}",
+         "", "", ""],
         ["Z max over poses (%)", rep.z_error_max_pct, "", "", ""],
         ["board flatness RMS (mm)", rep.flatness_rms_mm, "", "", ""],
         ["scale error (%)", rep.scale_error_pct, "", "", ""],
@@ -62,7 +63,8 @@ def verdict_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
     warn = "".join(f'<p class="warn">warning: {html.escape(w)}</p>' for w in rep.warnings)
     status = "pass" if rep.passed else "fail"
     return Section(f"Verdict: {'PASS' if rep.passed else 'FAIL'}", warn + summary + note(
-        f"PASS when both means are at or below their thresholds. Published: {REFERENCE_SOURCE}. XY: structured-light corners lifted to 3-D by the "
+        f"PASS when both means are at or below their thresholds. Published: {REFERENCE_SOURCE}. "
+        "XY: structured-light corners lifted to 3-D by the "
         "depth and mapped into the ZED-left image, against the ZED detections. Z: the board diagonal measured in the "
         "generated ZED-left depth against its true length (docs/pipeline.md, validate)."), status=status)
 
@@ -150,7 +152,8 @@ def skipped_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section:
 
 def rectification_section(rep: ValidationResult, zed_cam: PinholeCamera) -> Section | None:
     """Vertical disparity of the board corners in both rectified ZED images."""
-    return rectification_report.rectification_section(getattr(rep, "rectification", None), None, zed_cam.width_px, zed_cam.height_px)
+    return rectification_report.rectification_section(getattr(rep, "rectification", None), None, zed_cam.width_px,
+                                                      zed_cam.height_px)
 
 
 SectionBuilder = Callable[[ValidationResult, PinholeCamera], "Section | None"]

@@ -16,6 +16,11 @@ def _f(v, fmt="{:+.3f}"):
     return "-" if v is None else fmt.format(v)
 
 
+def _fn(v, noise, fmt="{:+.3f}"):
+    """A figure with its noise floor (1 sigma, what exact labels give on this scene): ``+0.012 ± 0.004``."""
+    return _f(v, fmt) if v is None or noise is None else f"{fmt.format(v)} ± {noise:.3f}"
+
+
 def _sort_key(item):
     sid, v = item
     order = {"flagged": 0, "not verifiable": 1, "ok": 2}[v.status]
@@ -62,7 +67,10 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
             "(the structured-light texture rendered through the GT geometry, both locally normalised, aligned by "
             "Lucas-Kanade). Correlation: normalised cross-correlation after alignment. Stereo: the disparity bias "
             "and vertical offset that best explain ZED-right warped through the GT disparity; bad-match = share of "
-            "textured pixels whose match is clearly better within +-1 px than at the GT (docs/pipeline.md).</p>")
+            "textured pixels whose match is clearly better within +-1 px than at the GT (docs/pipeline.md). "
+            "Each figure is followed by its noise floor (± 1 sigma: what exact labels give on this scene, from the "
+            "spread of the figure over 16 bands of its pixels); a figure within 2-3 of it is a measurement artefact, "
+            "not an error of the ground truth.</p>")
     thresholds = table(["threshold", "value"], [
         ["texture shift, whole area or fruit (px)", p.max_shift_px], ["texture correlation, at least", p.min_correlation],
         ["stereo disparity bias, any region (px)", p.max_disparity_bias_px],
@@ -71,14 +79,19 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
     for sid, v in items:
         st = v.stereo.get("all")
         sf = v.stereo.get("fruit")
-        rows.append([sid, v.status.upper() if v.status == "flagged" else v.status, _f(v.texture_all.dx_px) + " / " + _f(v.texture_all.dy_px),
-                     _f(v.texture_fruit.dx_px) + " / " + _f(v.texture_fruit.dy_px),
-                     _f(v.texture_all.correlation, "{:.2f}") + " / " + _f(v.texture_fruit.correlation, "{:.2f}"),
-                     _f(st.disparity_bias_px if st else None) + " / " + _f(sf.disparity_bias_px if sf else None),
-                     _f(st.vertical_px if st else None), _f(st.bad_match_pct if st else None, "{:.1f}"),
-                     "; ".join(v.reasons)])
+        ta, tf = v.texture_all, v.texture_fruit
+        rows.append([sid, v.status.upper() if v.status == "flagged" else v.status,
+                     _fn(ta.dx_px, ta.dx_noise_px) + " / " + _fn(ta.dy_px, ta.dy_noise_px),
+                     _fn(tf.dx_px, tf.dx_noise_px) + " / " + _fn(tf.dy_px, tf.dy_noise_px),
+                     _fn(ta.correlation, ta.correlation_noise, "{:.2f}") + " / "
+                     + _fn(tf.correlation, tf.correlation_noise, "{:.2f}"),
+                     _fn(st.disparity_bias_px, st.disparity_bias_noise_px) if st else _f(None),
+                     _fn(sf.disparity_bias_px, sf.disparity_bias_noise_px) if sf else _f(None),
+                     _fn(st.vertical_px, st.vertical_noise_px) if st else _f(None),
+                     _f(st.bad_match_pct if st else None, "{:.1f}"), "; ".join(v.reasons)])
     body = table(["scene", "status", "shift all dx / dy (px)", "shift fruit dx / dy (px)", "correlation all / fruit",
-                  "disparity bias all / fruit (px)", "vertical (px)", "bad matches (%)", "reasons"], rows)
+                  "disparity bias all (px)", "disparity bias fruit (px)", "vertical (px)", "bad matches (%)",
+                  "reasons"], rows)
     flagged_parts = []
     for sid, v in items:
         if v.status != "flagged":

@@ -1,0 +1,401 @@
+"""One scene's verification: does its ground truth match the images it labels? (build-dataset runs it on each scene
+it builds, ``gtforge verify`` on an existing dataset, refine and calibrate-scale on the scenes they fit.)
+
+Two independent checks per scene (docs/pipeline.md, "verify"):
+
+* **Texture alignment (XY)**: the structured-light texture image is rendered into the ZED-left view through the
+  ground-truth geometry (ZED-left pixel + GT depth -> 3-D -> texture-camera pixel with its lens model -> bilinear
+  sample). Both images are locally normalised (zero mean, unit variance in a Gaussian window, masked), which removes
+  the two cameras' different colours, exposures and shading; the residual translation between them is found by
+  iterative Lucas-Kanade (Gauss-Newton on the normalised intensities), over the fruit and over the whole valid area,
+  and on a coarse grid of tiles (a shift map). ``shift = where the ZED image shows a structure - where the ground
+  truth puts it`` (px, ZED-left). The zero-mean normalised cross-correlation of the aligned pair catches a scene whose
+  content changed (not just shifted).
+* **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
+  Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
+  (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
+  ``gtforge.core.rectification`` reports it for board corners), per region. The right image is sampled by cubic
+  B-spline with its own derivatives (``sample_spline``): phase-unbiased, where Keys' cubic convolution read a false
+  bias on surfaces of one disparity phase (a fronto-parallel table, issue 41). A textured pixel's match is "clearly
+  worse" when the 5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps
+  of 0.5 px) by more than ``bad_match_ratio``; their share is reported.
+
+Every figure comes with its noise floor (``*_noise_px``, ``correlation_noise``: 1 sigma, what exact labels give on
+this scene; ``gtforge.core.photometric.block_noise``). A scene is **flagged** when a figure passes its threshold
+(``VerifyParams``, documented defaults in px at the dataset's resolution). Nothing here changes the ground truth.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import cv2
+import numba
+import numpy as np
+
+from gtforge.core.camera import Rig
+from gtforge.core.geometry import finite_box, mask_bounding_box, transform_points
+from gtforge.core.photometric import (
+    MAX_POINTS,
+    ShiftAligner,
+    ShiftEstimate,
+    block_noise,
+    even_subset,
+    interior_mask,
+    local_normalize,
+    pixels_of,
+    sample_spline,
+    smooth_depth_mask,
+    spline_prefilter,
+    take_at,
+    textured_mask,
+    to_gray,
+)
+from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
+from gtforge.core.render import render_texture
+from gtforge.io.formats import write_image
+from gtforge.records.verification import SceneVerification, StereoEstimate, VerifyParams
+
+
+# ---- the checks -----------------------------------------------------------------------------------
+class Window(NamedTuple):
+    """Where the arrays a check is given lie in the (work-resolution) ZED images: the ZED-left arrays' pixel ``[0, 0]``
+    is the image's pixel ``(x0_px, y0_px)``, the ZED-right image's is ``(xr0_px, y0_px)``; the images are
+    ``width_px`` x ``height_px``."""
+
+    x0_px: int
+    y0_px: int
+    xr0_px: int
+    width_px: int
+    height_px: int
+
+
+# Margin (work px) of the window around the ground truth's bounding box: covers the local normalisation (Gaussian
+# sigma 3 px: 12 px), the aligner's 2 px blur (8 px), Sobel and cubic taps (3 px) and shifts of a few px, so that every
+# figure is the one computed on the whole image.
+WINDOW_MARGIN_PX = 32
+# Gaussian blur (work px) of both normalised images before the stereo check's Gauss-Newton: takes out the texture near
+# the Nyquist frequency, where every cubic interpolator's error depends on the sub-pixel phase (and where a reduction
+# by the work factor aliases); with the B-spline sampling it leaves at most 0.002 px of phase-dependent bias on the
+# textured-plane sweep (docs/design/accuracy.md, issue 41)
+STEREO_BLUR_PX = 1.0
+
+
+def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
+                      rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None,
+                      smooth: np.ndarray | None = None
+                      ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
+    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used).
+
+    The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's).
+    ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it."""
+    h, w = depth_zed_mm.shape
+    window = window or Window(0, 0, 0, w, h)
+    rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm,
+                              (window.x0_px, window.y0_px))
+    r = int(np.ceil(2 * params.norm_sigma_px))
+    ok_support = interior_mask(ok, r)
+    n_rend = local_normalize(rend, ok, params.norm_sigma_px)
+    n_zed = left_norm if left_norm is not None else \
+        local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
+    if smooth is None:
+        smooth = smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
+    use = ok_support & textured_mask(n_rend) & smooth
+    v, u, idx = pixels_of(use)
+    reg = take_at(region, idx)
+    fruit = (reg == REGION_CENTRE) | (reg == REGION_EDGE)
+    aligner = ShiftAligner(n_rend, n_zed)
+    e_all = aligner.align_at(v, u, params.min_pixels)
+    e_fruit = aligner.align_at(v[fruit], u[fruit], params.min_pixels)
+
+    def tile_shifts() -> list[list[float | None]]:
+        out = []
+        W, H = window.width_px, window.height_px
+        vi, ui = v + window.y0_px, u + window.x0_px  # image pixels
+        nx, ny = params.tiles
+        for j in range(ny):
+            for i in range(nx):
+                ya, yb, xa, xb = j * H // ny, (j + 1) * H // ny, i * W // nx, (i + 1) * W // nx
+                m = (vi >= ya) & (vi < yb) & (ui >= xa) & (ui < xb)
+                e = aligner.align_at(v[m], u[m], params.min_pixels)
+                out.append([(xa + xb - 1) / 2, (ya + yb - 1) / 2, e.dx_px, e.dy_px])
+        return out
+
+    return e_all, e_fruit, tile_shifts, n_rend, use
+
+
+def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
+                       region: np.ndarray, params: VerifyParams, left_norm: np.ndarray | None = None,
+                       window: Window | None = None, smooth: np.ndarray | None = None) -> dict[str, StereoEstimate]:
+    """Disparity bias, vertical offset and the share of clearly worse matches, per region (all, fruit, background).
+
+    The arrays may be a ``window`` of the images (``zed_right`` then covers the same rows and the columns the ground
+    truth's matches fall in). ``smooth``: ``smooth_depth_mask(disparity_px)``, if the caller has it."""
+    h, w = disparity_px.shape
+    window = window or Window(0, 0, 0, w, h)
+    nl = left_norm if left_norm is not None else \
+        local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
+    nr = local_normalize(to_gray(zed_right).astype(np.float32), None, params.norm_sigma_px)
+    ok = nonoccluded & np.isfinite(disparity_px)
+    d = np.where(ok, disparity_px, 0).astype(np.float32)
+    x_match = np.arange(window.x0_px, window.x0_px + w, dtype=np.float32) - d  # image column of the GT match
+    v_img = np.arange(window.y0_px, window.y0_px + h, dtype=np.float32)[:, None]
+    # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
+    base = interior_mask(ok, 2) & (x_match > 3) & (x_match < window.width_px - 4) & (v_img > 3) & \
+        (v_img < window.height_px - 4)
+    use = base & textured_mask(nl) & (smooth_depth_mask(disparity_px) if smooth is None else smooth)
+    v, u, idx = pixels_of(use)
+    reg = take_at(region, idx)
+    regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
+    # the right image as a cubic B-spline (sampled with its own derivatives: phase-unbiased, sample_spline; Keys'
+    # cubic convolution and Sobel gradients gave up to +-0.03 px of false bias depending on the disparity's phase)
+    right = spline_prefilter(cv2.GaussianBlur(nr, (0, 0), STEREO_BLUR_PX) if STEREO_BLUR_PX else nr)
+    nl_gn = cv2.GaussianBlur(nl, (0, 0), STEREO_BLUR_PX) if STEREO_BLUR_PX else nl
+    # share of clearly worse matches: 5x5 SAD of the normalised images at GT and at GT +- 0.5, +- 1 px, over the used
+    # pixels' bounding box + 2 px (the SAD window)
+    worse = np.zeros(len(v), bool)  # at the used pixels (v, u)
+    if len(v):
+        sub = (slice(max(int(v.min()) - 2, 0), int(v.max()) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
+        map_x = x_match[sub] - np.float32(window.xr0_px)  # exact: integers subtracted
+        map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape)
+        nl_sub = nl[sub]
+        idx_sub = (v - sub[0].start) * map_x.shape[1] + (u - sub[1].start)
+
+        def cost(o):  # at (v, u): the 5x5 SAD of the left image and the right one warped to x_match - o
+            warped = cv2.remap(nr, map_x - np.float32(o), map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            return take_at(cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True), idx_sub)
+
+        best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
+        worse = cost(0.0) > params.bad_match_ratio * best_other
+    # the matches in the right array's pixels
+    xr_all = (u + (window.x0_px - window.xr0_px)) - take_at(d, idx).astype(np.float64)
+    out = {}
+    for name, sel in regions.items():
+        vs, us, xr, wr = (v, u, xr_all, worse) if sel is None else (v[sel], u[sel], xr_all[sel], worse[sel])
+        n = len(vs)
+        if n < params.min_pixels:
+            out[name] = StereoEstimate(n_pixels=n)
+            continue
+        keep = even_subset(n, MAX_POINTS)
+        vk, uk, xr = vs[keep], us[keep], xr[keep]
+        b, dy = 0.0, 0.0
+        lv = take_at(nl_gn, vk * w + uk).astype(np.float64)
+        yr = vk.astype(np.float64)
+        for _ in range(20):
+            w_, wx, wy = sample_spline(right, xr - b, yr + dy, derivs=True)
+            # right(u - d - b, v + dy): d/db = -gx, d/d(dy) = +gy
+            A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
+            step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
+            b, dy = b + step[0], dy + step[1]
+            if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b), abs(dy)) > 10:
+                break
+        if max(abs(b), abs(dy)) > 10:
+            out[name] = StereoEstimate(n_pixels=n)
+            continue
+        # the noise floor: the last linearisation solved per band of pixels (block_noise; A, w_ are at the solution
+        # within 1e-4 px)
+        noise = block_noise(A, w_ - lv, 2)
+        # vertical disparity v_left - v_right, as gtforge.core.rectification reports it for board corners
+        out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
+                                   bad_match_pct=float(100.0 * wr.mean()), n_pixels=n,
+                                   disparity_bias_noise_px=None if noise is None else float(noise[0]),
+                                   vertical_noise_px=None if noise is None else float(noise[1]))
+    return out
+
+
+def _pm(noise_px: float | None) -> str:
+    """`` ± noise`` for a figure's reason (its noise floor), empty when not measured."""
+    return "" if noise_px is None else f" ± {noise_px:.3f}"
+
+
+def _scaled_shift(e: ShiftEstimate, f: int) -> ShiftEstimate:
+    return e if e.dx_px is None else e.model_copy(update={
+        k: None if getattr(e, k) is None else getattr(e, k) * f
+        for k in ("dx_px", "dy_px", "dx_noise_px", "dy_noise_px")})
+
+
+def _area(a: np.ndarray, f: int) -> np.ndarray:
+    """The mean of each f x f block (NaN if any pixel of it is NaN)."""
+    h, w = a.shape[0] // f, a.shape[1] // f
+    return cv2.resize(a[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA) if f > 1 else a
+
+
+def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
+    """The arrays the checks run on: everything a factor ``f`` smaller, in the window around the ground truth
+    (``Window``, margin ``WINDOW_MARGIN_PX``). Images are reduced by area averaging, depth by the mean of fully valid
+    f x f blocks (the block centre's depth on a locally flat surface), labels by the block's top-left pixel; the ZED
+    camera is scaled the same way (pixel centres stay at integer coordinates). Returns ``(depth, disparity,
+    nonoccluded, region, left, right, rig, window)``."""
+    H, W = depth.shape
+    h, w = H // f, W // f
+    rig_w = rig
+    if f > 1:
+        zed = rig.zed.model_copy(update={"left": rig.zed.left.scaled(1.0 / f).model_copy(update={"width_px": w,
+                                                                                                 "height_px": h}),
+                                         "doffs_px": rig.zed.doffs_px / f})
+        rig_w = rig.model_copy(update={"zed": zed})
+    depth = np.asarray(depth, np.float32)
+    # only the block rows of the GT's rows (no valid block above or below them), each whole: OpenCV's vectorised
+    # averages depend on where a row's columns start, so a column crop could change a value's last bit
+    gy0, gy1 = finite_box(depth)[:2]
+    depth_w = np.full((h, w), np.nan, np.float32)
+    by0, by1 = gy0 // f, min(-(-gy1 // f), h)
+    if by1 > by0:
+        depth_w[by0:by1] = _area(depth[by0 * f:by1 * f], f)
+    valid = np.isfinite(depth_w)
+    if f == 1:
+        valid |= np.isfinite(disp)
+    box = mask_bounding_box(valid)
+    m = WINDOW_MARGIN_PX
+    if box:
+        y0, y1, x0, x1 = max(box[0] - m, 0), min(box[1] + m, h), max(box[2] - m, 0), min(box[3] + m, w)
+    else:
+        y0, y1, x0, x1 = 0, h, 0, w
+    depth_c = depth_w[y0:y1, x0:x1]
+    disp_c = rig_w.zed.depth_to_disparity(depth_c) if f > 1 else disp[y0:y1, x0:x1]
+    finite = disp_c[np.isfinite(disp_c)]
+    if finite.size:  # the right image: the columns the matches fall in
+        xr0, xr1 = max(x0 - math.ceil(float(finite.max())), 0), min(x1 - math.floor(float(finite.min())), w)
+        xr0, xr1 = min(xr0, w - 1), max(xr1, xr0 + 1)
+    else:
+        xr0, xr1 = x0, x1
+
+    def cut(a, xa, xb):  # rows y0:y1, columns xa:xb of the work-resolution image, from a dataset-resolution array
+        return a[y0 * f:y1 * f, xa * f:xb * f]
+
+    noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
+    region_c = np.ascontiguousarray(cut(region, x0, x1)[::f, ::f])
+    left_c = _area(cut(left, x0, x1), f)
+    right_c = None if right is None else _area(cut(right, xr0, xr1), f)
+    return depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, Window(int(x0), int(y0), int(xr0), w, h)
+
+
+def _work_factor(width_px: int, params: VerifyParams) -> int:
+    """The integer factor the checks reduce the ZED images by (``VerifyParams.work_width_px``)."""
+    return max(1, int(np.ceil(width_px / params.work_width_px)))
+
+
+def zed_rows_used(depth_zed_mm: np.ndarray, params: VerifyParams | None = None) -> int:
+    """How many of the ZED images' rows, from the top, ``verify_scene`` reads for this ground truth: the end of the
+    window around it (``_work_arrays``: the GT's last row, reduced by the work factor, plus ``WINDOW_MARGIN_PX``), at
+    the dataset's resolution. A build decodes the ZED images only that far (``Session.decoded_images``)."""
+    params = params or VerifyParams()
+    H, W = depth_zed_mm.shape
+    f = _work_factor(W, params)
+    end = _rows_with_values(depth_zed_mm)  # every GT pixel lies in rows [0, end)
+    # a work pixel is valid only where its whole f x f block is: the window's rows end at most here
+    return (min(-(-end // f) + WINDOW_MARGIN_PX, H // f) if end else H // f) * f
+
+
+@numba.njit(cache=True)
+def _rows_with_values(a):
+    """1 + the last row of ``a`` holding a finite value (0: none), scanning from the bottom (only the rows below the
+    ground truth are read)."""
+    H, W = a.shape
+    for v in range(H - 1, -1, -1):
+        for u in range(W):
+            if abs(a[v, u]) < np.inf:
+                return v + 1
+    return 0
+
+
+def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
+                 zed_left: np.ndarray, zed_right: np.ndarray | None, texture: np.ndarray | None, rig: Rig,
+                 params: VerifyParams | None = None) -> tuple[SceneVerification, np.ndarray | None]:
+    """Both checks for one scene (ZED-left arrays at the dataset's resolution, uncropped; see module docstring).
+    ``zed_left`` and ``zed_right`` may hold only their first ``zed_rows_used(depth_zed_mm, params)`` rows.
+    Returns the verification and the rendered, normalised texture (at the work resolution, for overlays; None when not
+    measured). The checks run in the window around the ground truth (``Window``): the same figures as on the whole
+    image, at a fraction of the cost."""
+    params = params or VerifyParams()
+    reasons: list[str] = []
+    if texture is None:
+        return SceneVerification(status="not verifiable", reasons=["no texture image"]), None
+    if float(cv2.meanStdDev(to_gray(texture))[1][0, 0]) < 1.0:
+        return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
+    f = _work_factor(depth_zed_mm.shape[1], params)
+    for name, img in (("zed_left", zed_left), ("zed_right", zed_right)):
+        if img is not None and img.shape[0] < depth_zed_mm.shape[0] \
+                and img.shape[0] < (need := zed_rows_used(depth_zed_mm, params)):
+            raise ValueError(f"{name}.shape={img.shape} but the checks read its first {need} rows")
+    depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
+        f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
+    left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
+    # away from depth edges, for both checks (disp_c is the window's GT disparity, as depth_to_disparity gives it)
+    smooth = smooth_depth_mask(disp_c)
+    e_all, e_fruit, tile_shifts, n_rend_c, _ = texture_alignment(depth_c, region_c, left_c, texture, rig_w, params,
+                                                                 left_norm, win, smooth)
+    stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win, smooth) \
+        if right_c is not None else {}
+    if f > 1:  # back to the dataset's pixels
+        e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
+        stereo = {k: v.model_copy(update={key: None if getattr(v, key) is None else getattr(v, key) * f
+                                          for key in ("disparity_bias_px", "vertical_px", "disparity_bias_noise_px",
+                                                      "vertical_noise_px")})
+                  for k, v in stereo.items()}
+        tile_fn = tile_shifts
+
+        def tile_shifts():
+            return [[(x + 0.5) * f - 0.5, (y + 0.5) * f - 0.5, None if dx is None else dx * f,
+                     None if dy is None else dy * f] for x, y, dx, dy in tile_fn()]
+    if e_all.dx_px is None:
+        return SceneVerification(status="not verifiable", reasons=[
+            f"too little textured ground truth to align ({e_all.n_pixels} px < {params.min_pixels})"],
+            texture_all=e_all, texture_fruit=e_fruit, stereo=stereo), None
+    for name, e in (("whole area", e_all), ("fruit", e_fruit)):
+        if e.magnitude_px is not None and e.magnitude_px > params.max_shift_px:
+            reasons.append(f"texture shift over the {name} {e.magnitude_px:.2f} px > {params.max_shift_px} px "
+                           f"(dx {e.dx_px:+.2f}, dy {e.dy_px:+.2f})")
+        if e.correlation is not None and e.correlation < params.min_correlation:
+            reasons.append(f"texture correlation over the {name} {e.correlation:.2f} < {params.min_correlation} "
+                           "(the scene changed between the captures?)")
+    for name, s in stereo.items():
+        if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
+            reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f}"
+                           f"{_pm(s.disparity_bias_noise_px)} px (> {params.max_disparity_bias_px} px)")
+        if name == "all" and s.vertical_px is not None and abs(s.vertical_px) > params.max_vertical_px:
+            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f}{_pm(s.vertical_noise_px)} px "
+                           f"(> {params.max_vertical_px} px; "
+                           "is the rectification the calibration's?)")
+        if name == "all" and s.bad_match_pct is not None and s.bad_match_pct > params.max_bad_match_pct:
+            reasons.append(f"stereo: {s.bad_match_pct:.1f} % of textured pixels match clearly better off the "
+                           f"ground truth (> {params.max_bad_match_pct} %)")
+    # the shift map is for looking at a flagged scene: only computed there
+    tiles = tile_shifts() if reasons else []
+    n_rend = np.zeros((win.height_px, win.width_px), np.float32)
+    n_rend[win.y0_px:win.y0_px + n_rend_c.shape[0], win.x0_px:win.x0_px + n_rend_c.shape[1]] = n_rend_c
+    return SceneVerification(status="flagged" if reasons else "ok", reasons=reasons, texture_all=e_all,
+                             texture_fruit=e_fruit, texture_tiles=tiles, stereo=stereo), n_rend
+
+
+def predicted_shift(depth_zed_mm: np.ndarray, rig: Rig, T_zed_from_mech_true: np.ndarray) -> np.ndarray:
+    """The texture shift ``(dx, dy)`` px an extrinsic error predicts: ground truth built with ``rig`` (``depth_zed_mm``),
+    the true extrinsic ``T_zed_from_mech_true``; the mean over GT pixels of where the truth puts each GT point minus
+    where the GT puts it (the sign of ``ShiftEstimate``)."""
+    v, u = np.nonzero(np.isfinite(depth_zed_mm))
+    cam = rig.zed.left
+    z = depth_zed_mm[v, u].astype(np.float64)
+    P = cam.unproject(np.stack([u, v], axis=1), z)
+    moved = transform_points(T_zed_from_mech_true @ rig.T_mech_from_zed, P)
+    return (cam.project(moved) - np.stack([u, v], axis=1)).mean(axis=0)
+
+
+def write_verification_overlay(path: Path, zed_left: np.ndarray, rendered_norm: np.ndarray) -> None:
+    """A flagged scene's overlay for verification.html: ZED-left grey in green, the texture rendered through the
+    ground truth in magenta (both locally normalised); aligned structures look grey, a shift shows as colour fringes."""
+
+    gray = to_gray(zed_left)
+    if gray.shape != rendered_norm.shape:  # verify_scene renders at its work resolution (a factor smaller)
+        gray = cv2.resize(gray, rendered_norm.shape[::-1], interpolation=cv2.INTER_AREA)
+    g = local_normalize(gray.astype(np.float32), None, 3.0)
+
+    def to8(a):
+        return np.clip(128 + 50 * a, 0, 255).astype(np.uint8)
+
+    rgb = np.stack([to8(rendered_norm), to8(g), to8(rendered_norm)], axis=2)
+    rgb[rendered_norm == 0] = np.stack([to8(g)] * 3, axis=2)[rendered_norm == 0] // 2
+    scale = min(1.0, 1280 / rgb.shape[1])
+    if scale < 1.0:
+        rgb = cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    write_image(path, rgb)

@@ -1,0 +1,37 @@
+"""Hold-out validation, a recipe of two stages: calibrate on all board captures but the last K, then validate that
+calibration on the K it never saw (``gtforge validate --holdout K``)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from gtforge.calibrate import calibrate
+from gtforge.core.targets import BoardModel
+from gtforge.errors import InputError
+from gtforge.io.captures import open_session
+from gtforge.records.calibration import CalibrateParams
+from gtforge.records.validation import ValidateParams, ValidationResult
+from gtforge.validate import validate
+
+MIN_CALIBRATION_POSES = 3  # the captures that must remain to calibrate
+
+
+def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path | None = None,
+                     params: ValidateParams | None = None, captures: list[str] | None = None,
+                     progress: Callable[[str], None] | None = None, gauges: bool = True) -> ValidationResult:
+    """Calibrate on every board capture but the last ``holdout`` of ``captures`` (default: all), written to
+    ``out_dir/holdout_calibration.yaml``, and validate it on those ``holdout`` (``gtforge.validate.validate``)."""
+    params = params or ValidateParams()
+    session = open_session(session_dir)
+    if out_dir is not None:
+        session.refuse_output_over_inputs(out_dir)
+    dirs = session.select("board", captures)
+    if not 1 <= holdout <= len(dirs) - MIN_CALIBRATION_POSES:
+        raise InputError(session_dir, "holdout", f"1 to {len(dirs) - MIN_CALIBRATION_POSES} held-out poses of "
+                         f"{len(dirs)} ({MIN_CALIBRATION_POSES} must remain to calibrate)", str(holdout),
+                         "captures where the board is not found do not count among the 3, so fewer may be needed")
+    held = [d.name for d in dirs[-holdout:]]
+    calib_path = Path(out_dir or ".") / "holdout_calibration.yaml"
+    calibrate(session_dir, calib_path, CalibrateParams(board=params.board or BoardModel()), exclude=held,
+              progress=progress)
+    return validate(session_dir, calib_path, out_dir, params, captures=held, progress=progress, gauges=gauges)

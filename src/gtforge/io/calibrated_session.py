@@ -1,0 +1,71 @@
+"""How a stage opens a capture session with a calibration file: the session as the calibration sees it, checked
+against it, and the checks on the stage's output path. The calibration is any object with ``CalibrationFile``'s fields
+(``gtforge.records.calibration``), read by the caller: this module sits below the records."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from gtforge.core.camera import Rig
+from gtforge.core.targets import BoardModel
+from gtforge.errors import InputError
+from gtforge.io.captures import Session, open_session
+
+
+def open_with_calibration(session_dir: str | Path, calib: Any, right_yaw: bool = True) -> Session:
+    """The session as ``calib`` (a ``CalibrationFile``) sees it: raw ZED images rectified with the recorded SN.conf
+    reading, and the right image corrected for the self-rectification and calibrate-scale's yaw
+    (``rig.scale_corrections``) in one resampling (``gtforge.core.selfcal.corrected_right``): the right image every
+    stage reads is the dataset's im1, and no stage resamples it again. ``right_yaw=False``: without the yaw (the right
+    image as calibrate-scale measured the yaw on, and as validate measures the rectification)."""
+    return open_session(session_dir, zed_conf_reading=calib.zed_conf_reading,
+                        zed_right_correction=calib.zed_right_correction,
+                        zed_right_yaw_deg=calib.rig.zed_right_yaw_deg if right_yaw else 0.0)
+
+
+def session_board(session, given: BoardModel, given_explicitly: bool) -> BoardModel:
+    """The board to use: session.yaml's ``board:`` when there is one, with the fields given explicitly (CLI options,
+    ``given.model_fields_set``) overriding it; else ``given``."""
+    declared = getattr(session.config, "board", None)
+    if declared is None:
+        return given
+    if not given_explicitly:
+        return declared
+    return BoardModel.model_validate({**declared.model_dump(),
+                                      **{k: getattr(given, k) for k in given.model_fields_set}})
+
+
+def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
+                              hint: str = "was this calibration made for another session?") -> None:
+    """The calibration's cameras have the session's image sizes (a calibration of another rig or resolution would
+    otherwise fail deep inside a stage)."""
+    for name, a, b in (("mech", rig.mech, session.mech), ("zed", rig.zed.left, session.zed.left),
+                       ("depth_cam", rig.depth_camera, session.depth_camera)):
+        if (a.width_px, a.height_px) != (b.width_px, b.height_px):
+            raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
+                             f"{a.width_px}x{a.height_px} px", hint)
+
+
+def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str | Path,
+                            out_path: str | Path | None, example_name: str) -> tuple[Session, Path | None]:
+    """The prologue of the stages that turn a calibration into a new one (refine, calibrate-scale): the session as
+    ``calib`` (read from ``calib_path``) sees it (``open_with_calibration``), checked against it, and the output path,
+    which may be neither inside the captures nor the input file. Returns ``(session, out_path or None)``."""
+    calib_path = Path(calib_path)
+    session = open_with_calibration(session_dir, calib)
+    check_rig_matches_session(calib.rig, session, calib_path)
+    if out_path is not None:
+        out_path = calibration_output_path(out_path)
+        session.refuse_output_over_inputs(out_path)
+        if Path(out_path).resolve() == calib_path.resolve():
+            raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
+                             "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
+    return session, out_path
+
+
+def calibration_output_path(out_path: str | Path) -> Path:
+    """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
+    p = Path(out_path)
+    if p.is_dir() or str(out_path).endswith(("/", "\\")):
+        return p / "calibration.yaml"
+    return p
