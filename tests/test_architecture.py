@@ -22,8 +22,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("stages", ("gtforge.calibrate", "gtforge.scale_calibration", "gtforge.align_depth", "gtforge.refine",
                 "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors",
                 "gtforge.training", "gtforge.importer")),
-    ("recipes", ("gtforge.synthetic", "gtforge.synthetic_recordings", "gtforge.demo", "gtforge.precompile",
-                 "gtforge.holdout", "gtforge.cli")),
+    ("recipes", ("gtforge.synthetic", "gtforge.synthetic_recordings", "gtforge.demo", "gtforge.run",
+                 "gtforge.precompile", "gtforge.holdout", "gtforge.cli")),
 ]
 
 

@@ -353,9 +353,12 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                     out / "verification.html")
     empty = [k for k, v in splits.items() if not v]
     if empty and ok_ids:
-        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): the list file(s) are empty; add scenes, "
-                    "set fruit_ids in session.yaml, or change --split", ", ".join(empty), len(ok_ids),
-                    len({fruit_ids[s] or s for s in ok_ids}))
+        n_fruit = len({fruit_ids[s] or s for s in ok_ids})
+        log.warning("split(s) %s came out empty (%d scene(s), %d fruit): normal for a small session, the dataset is "
+                    "complete; each split gets about its --split share of the %d scene(s), a whole fruit at a time "
+                    "(a fruit's scenes stay in one split); for a %s split capture more fruit (or set fruit_ids in "
+                    "session.yaml, or change --split)", ", ".join(empty), len(ok_ids), n_fruit, len(ok_ids),
+                    " and ".join(empty))
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
                         quarantined)
 

@@ -36,7 +36,7 @@ from gtforge.core.target_detection import PairSkipped, detect_target, match_targ
 from gtforge.core.targets import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import calibration_output_path, session_board
-from gtforge.io.captures import open_session
+from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
 from gtforge.records.calibration import (
     CalibrateParams,
@@ -293,7 +293,15 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     for k, d in enumerate(dirs):
         if progress:
             progress(f"detect {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=False)
+        try:
+            cap = session.load_capture(d, need_right=False)
+        except InputError as exc:  # a file missing: skipped, as a capture without the board; a file wrong: stop
+            if not missing_capture_file(exc):
+                raise leave_out_hint(exc, d.name) from None
+            log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
+                        d.name, exc)
+            reports.append(PoseResult(capture=d.name, status="skipped", reason=f"file missing: {exc}"))
+            continue
         o, rep = detect_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, session.mech, session.zed,
                              board, params.blur_sharpness_px)
         reports.append(rep)

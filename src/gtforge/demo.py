@@ -1,6 +1,7 @@
 """``gtforge demo``: the whole chain on a freshly generated synthetic session, checked against truth."""
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -11,6 +12,7 @@ from gtforge.build_dataset import build_dataset
 from gtforge.calibrate import calibrate
 from gtforge.core.geometry import pose_difference
 from gtforge.evaluate import evaluate
+from gtforge.infra.atomic import atomic_write_text
 from gtforge.io.formats import read_pfm
 from gtforge.io.outputs import require_new_or_empty_folder
 from gtforge.predictors import SGBM
@@ -40,6 +42,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     d = require_new_or_empty_folder(directory, "DIRECTORY", "the demo writes a new session and its outputs there; "
                                     "choose a new folder", reusable_if="session/truth/rig_truth.yaml")
     t0 = time.perf_counter()
+    rows: list[tuple[str, str, str]] = []  # (stage, figure, value): DIR/figures.md, the table docs/pipeline.md shows
     session = d / "session"
     rolled = f"{n_scenes - 1:03d}" if n_scenes >= 4 else None
     say(f"[1/7] rendering a synthetic session ({n_board} board poses, {n_scenes} fruit scenes, scale {scale}"
@@ -60,16 +63,32 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     rot_err, tr_err = pose_difference(cal.rig.T_zed_from_mech, T_true)
     say(f"      RMS {cal.rms_px:.3f} px; sigma {cal.sigma_rot_deg:.4f} deg / {cal.sigma_trans_mm:.3f} mm; "
         f"vs truth: {rot_err:.4f} deg / {tr_err:.3f} mm; verdict {cal.verdict}")
+    stage = f"calibrate ({len(cal.captures_used)} poses, `--use-depth`, {cal.method} method written)"
+    rows += [(stage, "RMS, both cameras", f"{cal.rms_px:.3f} px"),
+             ("", "1-sigma", f"{cal.sigma_rot_deg:.4f} deg / {cal.sigma_trans_mm:.3f} mm"),
+             ("", "error of the written extrinsic vs truth", f"{rot_err:.4f} deg / {tr_err:.3f} mm")]
+    if cal.loo_transfer_mean_px is not None:
+        rows.append(("", "leave-one-out transfer mean / max", f"{cal.loo_transfer_mean_px:.3f} / "
+                     f"{cal.loo_transfer_max_px:.3f} px"))
     sr = cal.zed_self_rectification
     if sr is not None:
         turn = np.degrees(DEMO_RIGHT_TURN_RAD)
         say(f"      {sr.summary_line()} (the right camera was turned by ({turn[0]:+.4f}, 0, {turn[2]:+.4f}) deg)")
+        w = np.degrees(sr.rotvec_rad)
+        rows.append(("", f"self-rectification (right camera turned by ({turn[0]:+.2f}, 0, {turn[2]:+.2f}) deg)",
+                     f"{sr.status}: ({w[0]:+.4f}, 0, {w[2]:+.4f}) deg, focal scale {sr.focal_scale:+.1e}; rows "
+                     + (f"{sr.median_abs_before_px:.3f} -> {sr.median_abs_after_px:.3f} px"
+                        if sr.median_abs_after_px is not None else "-")))
 
     say("[3/7] validate on the held-out poses")
     val = validate(session, calib_path, d / "validation", captures=held or None, progress=status)
     say(f"      XY {val.xy_mean_px:.3f} px (detectors' noise floor {val.xy_noise_floor_px:.3f}, without it "
         f"{val.xy_model_mean_px:.3f}; published 0.56), Z {val.z_error_mean_pct:.4f} % (published 0.08) -> "
         f"{'PASS' if val.passed else 'FAIL'}")
+    rows += [(f"validate (the {len(held)} held-out poses)", "XY mean / Z mean",
+              f"{val.xy_mean_px:.3f} px / {val.z_error_mean_pct:.4f} % ({'PASS' if val.passed else 'FAIL'})"),
+             ("", "XY: the corner detectors' noise floor / without it (board models)",
+              f"{val.xy_noise_floor_px:.3f} / {val.xy_model_mean_px:.3f} px")]
 
     say("[4/7] calibrate-scale: the ZED baseline, the right camera's yaw, the depth scale and offset from the scenes "
         "and boards")
@@ -77,10 +96,13 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     scaled = calibrate_scale(session, calib_path, scaled_path, progress=status).scale_calibration
     truth_terms = {"zed_baseline_frac": DEMO_BASELINE_ERROR_FRAC, "zed_right_yaw_deg": DEMO_RIGHT_YAW_DEG,
                    "depth_scale_frac": 0.0, "depth_offset_mm": 0.0}
+    stage = f"calibrate-scale (boards + scenes {', '.join(scaled.scenes_used)})"
     for name, term in scaled.terms.items():
         est = "-" if term.estimate is None else f"{term.estimate:+.5f} +- {term.sigma:.5f}"
         say(f"      {name}: {est} ({term.status}{f', {term.value:+.5f} applied' if term.status == 'applied' else ''});"
             f" truth {truth_terms[name]:+.5f}")
+        rows.append((stage, f"{name} (truth {truth_terms[name]:+.5f})", f"{est} ({term.status})"))
+        stage = ""
     used_calib = scaled_path
     ref_err = (None, None)
     if n_scenes >= 4:
@@ -91,6 +113,10 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
         say(f"      used {', '.join(ref.refinement.scenes_used)}; left out "
             f"{', '.join(ref.refinement.scenes_excluded) or 'none'}; vs truth: {ref_err[0]:.4f} deg / "
             f"{ref_err[1]:.3f} mm (board calibration: {rot_err:.4f} deg / {tr_err:.3f} mm)")
+        rows.append((f"refine (scenes {', '.join(ref.refinement.scenes_used)} used; left out: "
+                     f"{', '.join(ref.refinement.scenes_excluded) or 'none'})",
+                     "error of the refined extrinsic vs truth",
+                     f"{ref_err[0]:.4f} deg / {ref_err[1]:.3f} mm"))
         used_calib = refined_path
     else:
         say("[5/7] refinement skipped (it needs at least 4 scenes here)")
@@ -111,14 +137,44 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
         f"{np.mean(epes):.4f} px; median GT sigma {np.median(sig):.4f} px; verification flagged "
         f"{', '.join(summ.flagged) or 'none'}")
 
+    rows += [(f"build-dataset ({used_calib.name})", "ground-truth disparity vs exact disparity, mean abs (unmoved "
+              "scenes)", f"{np.mean(epes):.4f} px"),
+             ("", "median GT sigma (median of the scenes' medians)", f"{np.median(sig):.4f} px"),
+             ("", "verification flags", ", ".join(f"{s} ({r[0]})" for s, r in summ.flagged.items()) or "none")]
     say("[7/7] evaluate the SGBM baseline against the ground truth")
     ev = evaluate(ds, SGBM(), d / "evaluation", progress=status)
+    fr = ev.pooled.get("fruit")
+    rows.append(("evaluate (OpenCV SGBM, every scene)", "EPE all / fruit; depth MAE fruit",
+                 f"{ev.pooled['all'].epe_px:.3f} / {fr.epe_px:.3f} px; {fr.depth_mae_mm:.3f} mm" if fr is not None
+                 and fr.epe_px is not None and fr.depth_mae_mm is not None else f"{ev.pooled['all'].epe_px:.3f} px"))
+    write_figures(d / "figures.md", rows, time.perf_counter() - t0, scale, n_board, n_scenes, seed)
     say(tables_markdown([ev]))
     say(f"done in {time.perf_counter() - t0:.0f} s. Open:\n"
         f"  {d / 'calibration_report' / 'calibration_report.html'}\n  {d / 'validation' / 'validation.html'}\n"
         f"  {ds / 'verification.html'}\n  {ds / 'build_report.html'}  (dataset: {ds})\n"
-        f"  {d / 'evaluation' / 'results.html'} (and results.md/.csv/.json)")
+        f"  {d / 'evaluation' / 'results.html'} (and results.md/.csv/.json)\n  {d / 'figures.md'} (this run's "
+        "figures as docs/pipeline.md shows them: scripts/update_demo_figures.py)")
     return {"rot_err_deg": rot_err, "trans_err_mm": tr_err, "refined_rot_err_deg": ref_err[0],
             "refined_trans_err_mm": ref_err[1], "xy_px": val.xy_mean_px, "z_pct": val.z_error_mean_pct,
             "gt_epe_px": float(np.mean(epes)), "flagged": sorted(summ.flagged), "sgbm_epe_px": ev.pooled["all"].epe_px,
             "scale_terms_applied": {k: t.value for k, t in scaled.terms.items()}}
+
+
+def write_figures(path: Path, rows: list[tuple[str, str, str]], seconds: float, scale: float, n_board: int,
+                  n_scenes: int, seed: int) -> Path:
+    """The demo's figures as a Markdown table with where and how they were made: what docs/pipeline.md shows
+    (``scripts/update_demo_figures.py`` pastes it there, so the page never disagrees with the run)."""
+    import platform
+
+    import cv2
+    import numba
+
+    import gtforge
+
+    lines = ["| stage | figure | value |", "|---|---|---|"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    lines += ["", f"Written by `gtforge demo --scale {scale:g} --boards {n_board} --scenes {n_scenes} --seed {seed}` "
+              "on "
+              f"{time.strftime('%Y-%m-%d')} ({seconds:.0f} s on {os.cpu_count()} cores, {platform.machine()}; gtforge "
+              f"{gtforge.__version__}, OpenCV {cv2.__version__}, numba {numba.__version__}, NumPy {np.__version__}); "
+              "another OpenCV, numba or NumPy build may change the last digits."]
+    return atomic_write_text(path, "\n".join(lines) + "\n")

@@ -188,7 +188,9 @@ class PredictionFolder:
     def __init__(self, folder: str | Path, name: str | None = None):
         self.folder = Path(folder)
         if not self.folder.is_dir():
-            raise InputError(self.folder, None, "a folder of predicted disparities", "no such folder")
+            raise InputError(self.folder, "--predictions", "a folder of predicted disparities", "no such folder",
+                             "check the path; the folder holds one file per scene id: <id>.pfm, <id>.npy, <id>.png, "
+                             "<id>_10.png (KITTI) or <id>/disp0.pfm (docs/metrics.md)")
         self.name = name or self.folder.name
         self.source = str(self.folder.resolve())
 

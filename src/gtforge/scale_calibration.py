@@ -73,6 +73,7 @@ from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.io.captures import missing_capture_file
 from gtforge.records.calibration import (
     CalibrationFile,
     ScaleCalibration,
@@ -372,7 +373,13 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
     for k, d in enumerate(dirs):
         if progress:
             progress(f"board {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d)
+        try:
+            cap = session.load_capture(d)
+        except InputError as exc:  # as calibrate: a board capture's file missing skips it; a file wrong stops
+            if not missing_capture_file(exc):
+                raise
+            log.warning("board capture %s skipped: %s", d.name, exc)
+            continue
         dl = detect_target(cap.zed_left, board, rig.zed.left, where=f"{d.name}: ZED-left image")
         dr = detect_target(cap.zed_right, board, rig.zed.right, where=f"{d.name}: ZED-right image") \
             if cap.zed_right is not None else None

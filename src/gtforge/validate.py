@@ -43,7 +43,7 @@ from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
-from gtforge.io.captures import open_session
+from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams
@@ -244,7 +244,15 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     for k, d in enumerate(dirs):
         if progress:
             progress(f"validate {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=False)
+        try:
+            cap = session.load_capture(d, need_right=False)
+        except InputError as exc:  # as calibrate: a file missing skips the capture; a file wrong stops
+            if not missing_capture_file(exc):
+                raise leave_out_hint(exc, d.name) from None
+            skipped[d.name] = f"file missing: {exc}"
+            log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
+                        d.name, exc)
+            continue
         pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, calib.rig, board, params,
                                      d.name in used)
         meter.add(d.name, cap.zed_right, left_image=cap.zed_left)

@@ -37,6 +37,9 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
     ds = Path(dataset_dir)
     man_path = ds / "manifest.json"
+    if not ds.is_dir():
+        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "no such folder",
+                         "check the path (the -o of build-dataset)")
     if not man_path.is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
                          "point verify at the dataset folder (the -o of build-dataset)")

@@ -24,7 +24,10 @@ from gtforge.cli._typer_style import _Group
 from gtforge.errors import InputError, Interrupted
 
 app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.")
+                  help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.\n\n"
+                       "The whole chain in one command: gtforge run SESSION -o OUT (calibrate -> validate -> "
+                       "calibrate-scale -> refine -> build-dataset -> verify, then OUT/index.html, the dataset's "
+                       "certificate). Each step is also a command of its own, listed below in that order.")
 console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 out = Console(soft_wrap=True, highlight=False, markup=False)
 
@@ -93,6 +96,36 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Show info
           version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
                                        help="Print the gtforge version and exit.")) -> None:
     _setup_logging(verbose)
+
+
+@app.command()
+def run(session: Path = typer.Argument(..., help="Capture session folder (docs/capture-layout.md)."),
+        output: Path = typer.Option(..., "--output", "-o", metavar="DIR",
+                                    help="Folder for every stage's output and the certificate (index.html)."),
+        calibration: Optional[Path] = typer.Option(None, "--calibration", "-c", metavar="FILE",
+                                                   help="Use this calibration instead of calibrating (needed when "
+                                                        "the session has no board captures)."),
+        use_depth: bool = typer.Option(False, "--use-depth", help="calibrate --use-depth."),
+        loo: bool = typer.Option(True, "--loo/--no-loo", help="Leave-one-out cross-validation in calibrate and "
+                                 "refine (--no-loo saves time)."),
+        calibration_scenes: Optional[str] = typer.Option(
+            None, metavar="IDS", help="Comma-separated scene ids calibrate-scale and refine use (default: all)."),
+        refine_: bool = typer.Option(True, "--refine/--no-refine", help="Refine the extrinsic from the scenes."),
+        quarantine: bool = typer.Option(False, "--quarantine", help="Leave flagged scenes out of the split lists "
+                                        "(the run then passes with a warning)."),
+        workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores).")) -> None:
+    """Run the whole chain: calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> verify, and write
+    the dataset certificate (OUTPUT/index.html). A rerun redoes only what changed.
+
+    Exit code 0: every check passed; 1: a quality check failed (named); 2: bad input."""
+    from gtforge.run import RunOptions, run_session
+
+    opts = _options(RunOptions, calibration=str(calibration) if calibration else None, use_depth=use_depth, loo=loo,
+                    calibration_scenes=calibration_scenes.split(",") if calibration_scenes else None,
+                    refine=refine_, quarantine=quarantine, workers=workers)
+    res = run_session(session, output, opts, say=out.print, progress=_status)
+    if res.exit_code:
+        raise typer.Exit(res.exit_code)
 
 
 @app.command()
@@ -327,11 +360,11 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
 
     res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
               progress=_status)
+    from gtforge.reports.calibration import scale_term_lines
+
     info = res.scale_calibration
-    for name, t in info.terms.items():
-        sig = f" +- {t.sigma:.3g}" if t.sigma is not None else ""
-        out.print(f"  {name}: {t.value:+.4g}{sig} [{t.status}]" + (f" ({t.reason})" if t.reason else "")
-                  + (f"; from {', '.join(t.sources)}" if t.sources else ""))
+    for line in scale_term_lines(info):
+        out.print("  " + line)
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
               f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
     from gtforge.io.calibrated_session import calibration_output_path
@@ -692,8 +725,8 @@ def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo
          scenes: int = typer.Option(5, metavar="N", help="Fruit scene captures (in the last, the fruit rolls 0.6 mm "
                                                          "between the two captures; 4 or more also run refine)."),
          seed: int = typer.Option(0, help="Random seed.")) -> None:
-    """Generate a synthetic session and run calibrate -> validate -> refine -> build-dataset (with verification and
-    sigma maps) -> evaluate, each checked against the exact truth."""
+    """Generate a synthetic session and run calibrate -> validate -> calibrate-scale -> refine -> build-dataset (with
+    verification and sigma maps) -> evaluate, each checked against the exact truth."""
     from gtforge.demo import run_demo
 
     run_demo(directory, scale=scale, n_board=boards, n_scenes=scenes, seed=seed, say=out.print, status=_status)

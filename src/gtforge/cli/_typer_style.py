@@ -3,7 +3,21 @@
 click)."""
 from __future__ import annotations
 
+import re
+
 from typer.core import TyperArgument, TyperCommand, TyperGroup
+
+# the commands in the order a lab runs them (help lists them so); any other command follows, in definition order
+WORKFLOW = ("run", "calibrate", "align-depth", "validate", "calibrate-scale", "refine", "build-dataset", "verify",
+            "evaluate", "compare", "synth", "demo")
+
+
+def _unwrapped(text: str | None) -> str | None:
+    """A docstring's paragraphs as single lines: the help wraps them to the terminal, never at the source's line
+    ends (which made a help line break mid-sentence)."""
+    if not text:
+        return text
+    return "\n\n".join(re.sub(r"\s*\n\s*", " ", p.strip()) for p in re.split(r"\n\s*\n", text.strip()))
 
 
 def _plain_metavars(params: list) -> None:
@@ -61,6 +75,11 @@ class _Group(TyperGroup):
             if type(cmd) is TyperCommand:
                 cmd.__class__ = _Command
             _plain_metavars(cmd.params)
+            cmd.help = _unwrapped(cmd.help)
+
+    def list_commands(self, ctx) -> list[str]:
+        names = list(self.commands)
+        return [n for n in WORKFLOW if n in self.commands] + [n for n in names if n not in WORKFLOW]
 
     def get_help_option(self, ctx):
         opt = super().get_help_option(ctx)

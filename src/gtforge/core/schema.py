@@ -70,13 +70,29 @@ class VersionedFile(GTModel):
 
 
 def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what: str) -> InputError:
-    err = exc.errors()[0]
-    field = ".".join(str(p) for p in err.get("loc", ()))
-    actual = repr(err.get("input"))
-    if len(actual) > 80:
-        actual = actual[:77] + "..."
-    return InputError(path, field or None, f"a valid {what} ({err.get('msg')})", actual,
-                      f"{len(exc.errors())} problem(s) in total; see docs/" if len(exc.errors()) > 1 else None)
+    """Every problem of a file in one line (a file with several is fixed in one round), each naming its field; a
+    missing field says ``missing``, never the whole mapping it is missing from."""
+    errs = exc.errors()
+    version = [e for e in errs if tuple(e.get("loc", ())) == ("schema_version",)]
+    errs = version or errs  # a file of another schema: its other differences follow from that one
+
+    def actual(err) -> str:
+        if err.get("type") == "missing":
+            return "missing"
+        a = repr(err.get("input"))
+        return a if len(a) <= 80 else a[:77] + "..."
+
+    def field(err) -> str:
+        return ".".join(str(p) for p in err.get("loc", ()))
+
+    if len(errs) == 1:
+        err = errs[0]
+        return InputError(path, field(err) or None, f"a valid {what} ({err.get('msg')})", actual(err))
+    fields = list(dict.fromkeys(field(e) or "(top level)" for e in errs))
+    return InputError(path, ", ".join(fields), f"a valid {what}",
+                      f"{len(errs)} problems: " + "; ".join(f"{field(e) or '(top level)'}: {e.get('msg')} "
+                                                           f"(got {actual(e)})" for e in errs),
+                      "fix them all, then rerun")
 
 
 def matrix4_field(v: Any) -> list[list[float]]:

@@ -251,6 +251,19 @@ def read_recorded(path: Path, records: dict[str, ReadRecord]) -> bytes | None:
     return data
 
 
+def missing_capture_file(exc: InputError) -> bool:
+    """Whether ``load_capture`` failed because a file of the capture is not there (a capture that did not complete):
+    the stages that read many captures skip that one with a warning, as one whose board is not found; a file that is
+    there but wrong stops them (one line, exit 2)."""
+    return exc.actual in ("no such file", "none of them")
+
+
+def leave_out_hint(exc: InputError, capture: str, option: str = "--captures") -> InputError:
+    """``exc`` with a hint that names the option that leaves the capture out."""
+    hint = f"or leave capture {capture} out with {option} (the other captures' names)"
+    return InputError(exc.file, exc.field, exc.expected, exc.actual, f"{exc.hint}; {hint}" if exc.hint else hint)
+
+
 @dataclass
 class Session:
     root: Path

@@ -37,7 +37,7 @@ from gtforge.io.cameras import (
     check_zed_conf_reading,
     describe_zed_conf_reading,
 )
-from gtforge.io.captures import Session, open_session
+from gtforge.io.captures import Session, missing_capture_file, open_session
 
 log = logging.getLogger("gtforge.io.zed_rectification")
 
@@ -308,7 +308,13 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
     for k, d in enumerate(dirs):
         if progress:
             progress(f"left-right matches {d.name} ({k + 1}/{len(dirs)})")
-        cap = session.load_capture(d, need_right=True)
+        try:
+            cap = session.load_capture(d, need_right=True)
+        except InputError as exc:  # a capture's file missing: no matches from it (calibrate skips it); wrong: stop
+            if not missing_capture_file(exc):
+                raise
+            skipped[d.name] = f"file missing: {exc}"
+            continue
         if cap.zed_right is None:
             skipped[d.name] = "no right image"
             continue

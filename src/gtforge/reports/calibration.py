@@ -290,3 +290,17 @@ def write_calibration_report(calib: CalibrationFile, out_dir: str | Path,
     header = standard_header(("session", calib.session_dir or None), ("method written", calib.method),
                              ("solve time (s)", f"{calib.time_s:.1f}"))
     return write_html(out / "calibration_report.html", "gtforge calibration report", built, header=header)
+
+
+def scale_term_lines(info) -> list[str]:
+    """calibrate-scale's terms as the console shows them (``gtforge calibrate-scale``, ``gtforge run``): each term's
+    estimate with its sigma, whatever its status, and what was applied (a term not significant shows its estimate and
+    "not applied", never a bare 0)."""
+    lines = []
+    for name, t in info.terms.items():
+        est = "not estimated" if t.estimate is None else f"{t.estimate:+.4g}" + (
+            f" +- {t.sigma:.3g}" if t.sigma is not None else "")
+        applied = f", value applied {t.value:+.4g}" if t.status == "applied" else ""
+        lines.append(f"{name}: estimate {est} [{t.status}]{applied}" + (f" ({t.reason})" if t.reason else "")
+                     + (f"; from {', '.join(t.sources)}" if t.sources else ""))
+    return lines

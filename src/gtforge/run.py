@@ -1,0 +1,452 @@
+"""``gtforge run``: the whole chain in one command, in the documented order (calibrate -> validate -> calibrate-scale
+-> refine -> build-dataset -> verify), each stage's output under OUT/ with the step-by-step commands' file names, then
+the dataset certificate (``OUT/index.html`` + ``certificate.json``, ``reports.certificate``).
+
+Each stage records in ``OUT/run_state.json`` (``records.run.RunState``) its inputs' BLAKE3 (session files and the
+earlier stages' outputs), its options and its outputs; the next run skips a stage whose inputs, options and outputs are
+unchanged, and says what it redoes and why. build-dataset rebuilds only the scenes whose inputs changed (its own
+resume), and verify re-checks only the scenes rebuilt. A stage's record is written only once the stage is complete,
+and every stage writes its files whole, so Ctrl-C at any point leaves a run that the same command resumes.
+
+What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the scenes' ZED
+images (self-rectification matches left and right in every capture; it reads no scene depth); validate the board
+captures (and gauges/) with the calibration; calibrate-scale the boards and the scenes (or ``calibration_scenes``)
+with the calibration; refine those scenes with the scaled calibration; build-dataset every scene with the last
+calibration; verify each built scene. Stages that do not apply are skipped with the reason: no board captures (the
+calibration must then be given), no gauges, no scenes, too few scenes for refine.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import gtforge
+from gtforge.build_dataset import build_dataset
+from gtforge.calibrate import calibrate
+from gtforge.core.schema import GTModel
+from gtforge.dataset.layout import STAMP_MARGIN_NS
+from gtforge.errors import InputError, Interrupted
+from gtforge.infra.digest import blake3_file
+from gtforge.io.captures import open_session
+from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
+from gtforge.records.certificate import Certificate
+from gtforge.records.dataset import BuildParams
+from gtforge.records.run import STAGES, FileHash, RunState, StageRecord
+from gtforge.refine import RefineParams, refine
+from gtforge.reports.calibration import scale_term_lines, write_calibration_report
+from gtforge.reports.certificate import write_certificate
+from gtforge.scale_calibration import calibrate_scale
+from gtforge.validate import validate, validate_gauges
+from gtforge.verify import verify_dataset
+
+# OUT's files: the names the README's step-by-step commands use
+CALIBRATION, CALIBRATION_REPORT, VALIDATION = "calibration.yaml", "calibration_report", "validation"
+SCALED, REFINED, DATASET, STATE = "scaled.yaml", "refined.yaml", "dataset", "run_state.json"
+GAUGES_DIR = "gauges"
+
+
+class RunOptions(GTModel):
+    """The options of ``gtforge run`` that change a stage's result (``workers`` does not)."""
+    calibration: str | None = None  # a calibration file to use instead of calibrating (sessions without boards)
+    use_depth: bool = False  # calibrate --use-depth
+    loo: bool = True  # calibrate and refine: leave-one-out cross-validation
+    calibration_scenes: list[str] | None = None  # the scenes calibrate-scale and refine use (default: all)
+    refine: bool = True
+    quarantine: bool = False  # build-dataset / verify --quarantine
+    workers: int | None = None
+
+
+@dataclass
+class RunResult:
+    state: RunState
+    certificate: Certificate
+    redone: list[str]  # stages run this time
+    skipped: list[str]  # stages unchanged since the last run
+
+    @property
+    def exit_code(self) -> int:
+        return 1 if self.certificate.verdict == "FAIL" else 0
+
+
+class _Hasher:
+    """BLAKE3 of files, trusting a cached hash while the file's size and mtime are unchanged (``dataset.layout``'s
+    rule: not when the file was modified within ``STAMP_MARGIN_NS`` of being hashed)."""
+
+    def __init__(self, cache: dict[str, FileHash]):
+        self.cache = cache
+
+    def __call__(self, p: Path) -> str:
+        key = str(p.resolve())
+        st = p.stat()
+        c = self.cache.get(key)
+        if c is not None and c.size_bytes == st.st_size and c.mtime_ns == st.st_mtime_ns \
+                and c.mtime_ns < c.hashed_at_ns - STAMP_MARGIN_NS:
+            return c.blake3
+        now = time.time_ns()
+        h = blake3_file(p)
+        self.cache[key] = FileHash(blake3=h, size_bytes=st.st_size, mtime_ns=st.st_mtime_ns, hashed_at_ns=now)
+        return h
+
+
+def _plain(x: Any) -> Any:
+    return json.loads(json.dumps(x))
+
+
+def _versioned(options: dict) -> dict:
+    """A stage's options as recorded: with the gtforge version that ran it (a new version runs every stage again)."""
+    return {**options, "gtforge": gtforge.__version__}
+
+
+def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs_ok: str) -> str | None:
+    """Why a stage must run again (None: it need not)."""
+    if rec is None or rec.status != "done":
+        return "not run before" if rec is None else "it did not apply last time"
+    if rec.options != options:
+        keys = sorted(k for k in set(rec.options) | set(options) if rec.options.get(k) != options.get(k))
+        return "options changed: " + ", ".join(f"{k} {rec.options.get(k)!r} -> {options.get(k)!r}" for k in keys)
+    changed = [k for k in inputs if k in rec.inputs and rec.inputs[k] != inputs[k]]
+    added = [k for k in inputs if k not in rec.inputs]
+    removed = [k for k in rec.inputs if k not in inputs]
+    parts = []
+    for what, keys in (("changed", changed), ("new", added), ("gone", removed)):
+        if keys:
+            parts.append(f"{', '.join(keys[:3])}{f' (+{len(keys) - 3} more)' if len(keys) > 3 else ''} {what}")
+    if parts:
+        return "; ".join(parts)
+    return outputs_ok or None
+
+
+class _Run:
+    def __init__(self, session_dir: Path, out: Path, opts: RunOptions, say, progress):
+        self.opts, self.say, self.progress = opts, say, progress
+        self.session = open_session(session_dir)
+        self.root = self.session.root
+        self.out = out
+        state_path = out / STATE
+        self.state = None
+        if state_path.is_file():
+            try:
+                self.state = RunState.read(state_path)
+            except InputError as exc:
+                say(f"{state_path} unreadable ({exc}): every stage runs again")
+        if self.state is not None and self.state.session_dir != str(self.root.resolve()):
+            say(f"{out} was a run of {self.state.session_dir}: every stage runs again")
+            self.state = None
+        self.state = self.state or RunState(gtforge_version=gtforge.__version__, session_dir=str(self.root.resolve()))
+        self.hash = _Hasher(self.state.hashes)
+        self.redone: list[str] = []
+        self.skipped: list[str] = []
+
+    # ---- inputs ------------------------------------------------------------------------------------------------
+    def key(self, p: Path) -> str:
+        p = Path(p).resolve()
+        for prefix, base in (("out/", self.out.resolve()), ("session/", self.root.resolve())):
+            if base in p.parents:
+                return prefix + p.relative_to(base).as_posix()
+        return "file:" + str(p)
+
+    def hashes(self, paths) -> dict[str, str]:
+        return {self.key(p): self.hash(p) for p in paths}
+
+    def kind_dirs(self, kind: str) -> list[Path]:
+        d = self.root / (self.session.config.board_dir if kind == "board" else self.session.config.scenes_dir)
+        if not d.is_dir() or not any(p.is_dir() and not p.name.startswith(".") for p in d.iterdir()):
+            return []
+        return self.session.capture_dirs(kind)
+
+    def config_files(self) -> list[Path]:
+        return sorted(p for p in self.root.iterdir() if p.is_file() and not p.name.startswith("."))
+
+    def capture_files(self, d: Path) -> list[Path]:
+        return [p for p in self.session.capture_files(d) if p.exists()]
+
+    def zed_files(self, d: Path) -> list[Path]:
+        f = self.session.config.files
+        return [p for p in self.capture_files(d) if p.name not in (f.mech_depth, f.mech_texture, f.fruit_mask)]
+
+    def gauge_files(self) -> list[Path]:
+        g = self.root / GAUGES_DIR
+        return sorted(p for p in g.rglob("*") if p.is_file()) if (g / "gauges.yaml").is_file() else []
+
+    # ---- bookkeeping --------------------------------------------------------------------------------------------
+    def outputs_ok(self, rec: StageRecord | None) -> str:
+        for k, h in (rec.outputs.items() if rec else ()):
+            p = self.out / k[len("out/"):]
+            if not p.is_file():
+                return f"its output {k[4:]} is missing"
+            if h and self.hash(p) != h:
+                return f"its output {k[4:]} changed since"
+        return ""
+
+    def save(self) -> None:
+        self.state.gtforge_version = gtforge.__version__
+        self.state.write(self.out / STATE)
+
+    def header(self, k: int, name: str, text: str) -> None:
+        self.say(f"[{k}/{len(STAGES)}] {name}: {text}")
+
+    def not_applicable(self, k: int, name: str, reason: str) -> None:
+        self.header(k, name, f"skipped, does not apply ({reason})")
+        self.state.stages[name] = StageRecord(stage=name, status="not applicable", reason=reason)
+        self.save()
+
+    def decide(self, k: int, name: str, options: dict, inputs: dict[str, str]) -> bool:
+        """Whether stage ``name`` runs; says so, and why."""
+        rec = self.state.stages.get(name)
+        why = _why(rec, _versioned(options), inputs, self.outputs_ok(rec))
+        if why is None:
+            self.header(k, name, "unchanged since the last run (inputs, options and outputs): skipped"
+                        + (f" [{rec.verdict}]" if rec.verdict else ""))
+            self.skipped.append(name)
+            return False
+        self.header(k, name, f"running ({why})")
+        self.redone.append(name)
+        return True
+
+    def done(self, name: str, options: dict, inputs: dict, outputs: list[Path], exist_only: list[Path] = (),
+             verdict=None, reasons=(), detail=None, t0=0.0) -> None:
+        outs = {self.key(p): self.hash(p) for p in outputs}
+        outs.update({self.key(p): "" for p in exist_only})
+        self.state.stages[name] = StageRecord(stage=name, status="done", options=_versioned(options), inputs=inputs,
+                                              outputs=outs,
+                                              verdict=verdict, verdict_reasons=list(reasons), detail=detail or {},
+                                              time_s=time.perf_counter() - t0)
+        self.save()
+
+    # ---- the chain ----------------------------------------------------------------------------------------------
+    def run(self, after_stage: Callable[[str], None] | None = None) -> RunResult:
+        opts, out = self.opts, self.out
+        boards, scenes = self.kind_dirs("board"), self.kind_dirs("scenes")
+        cfg = self.config_files()
+        gauges = self.gauge_files()
+        if opts.calibration_scenes:
+            self.session.select("scenes", opts.calibration_scenes)  # unknown names: one line, exit 2
+        cal_scenes = [d for d in scenes if not opts.calibration_scenes or d.name in opts.calibration_scenes]
+        steps = [self.stage_calibrate, self.stage_validate, self.stage_scale, self.stage_refine, self.stage_build,
+                 self.stage_verify]
+        ctx = {"boards": boards, "scenes": scenes, "cfg": cfg, "gauges": gauges, "cal_scenes": cal_scenes}
+        for k, (name, step) in enumerate(zip(STAGES, steps), 1):
+            try:
+                step(k, ctx)
+                if after_stage is not None:
+                    after_stage(name)
+            except (KeyboardInterrupt, Interrupted):
+                self.save()
+                self.say(f"interrupted during or right after {name}: every stage recorded in {out / STATE} is "
+                         "complete (each writes its files whole); run the same command again to resume: it redoes "
+                         "only what is not")
+                raise
+        cert = write_certificate(out, self.state, self.root)
+        self.say(f"certificate: {cert.verdict}" + "".join(f"\n  - {r}" for r in cert.verdict_reasons)
+                 + f"\n  {out / 'index.html'} (and certificate.json)")
+        if not self.redone:
+            self.say("nothing to redo: every stage's inputs, options and outputs are unchanged since the last run")
+        return RunResult(self.state, cert, self.redone, self.skipped)
+
+    def stage_calibrate(self, k: int, ctx: dict) -> None:
+        opts, name = self.opts, "calibrate"
+        if opts.calibration is not None:
+            given = Path(opts.calibration)
+            CalibrationFile.read(given)  # a bad file stops here, with its one line
+            ctx["calib"] = given
+            self.not_applicable(k, name, f"calibration given: {given}")
+            return
+        if not ctx["boards"]:
+            raise InputError(self.root / self.session.config.board_dir, None,
+                             "board captures to calibrate from, or a calibration file", "no board captures",
+                             "give the rig's calibration with -c FILE (e.g. from an earlier gtforge calibrate)")
+        ctx["calib"] = self.out / CALIBRATION
+        options = _plain({"use_depth": opts.use_depth, "loo": opts.loo})
+        inputs = self.hashes(ctx["cfg"] + [p for d in ctx["boards"] for p in self.capture_files(d)]
+                             + [p for d in ctx["scenes"] for p in self.zed_files(d)])
+        if not self.decide(k, name, options, inputs):
+            return
+        t0 = time.perf_counter()
+        cal = calibrate(self.root, ctx["calib"], CalibrateParams(use_depth=opts.use_depth, leave_one_out=opts.loo),
+                        progress=self.progress)
+        rep = write_calibration_report(cal, self.out / CALIBRATION_REPORT)
+        self.say(f"      RMS {cal.rms_px:.3f} px over {len(cal.captures_used)} poses; 1-sigma {cal.sigma_rot_deg:.4f} "
+                 f"deg / {cal.sigma_trans_mm:.3f} mm; verdict {cal.verdict}")
+        self.done(name, options, inputs, [ctx["calib"]], [rep], cal.verdict, cal.verdict_reasons, t0=t0)
+
+    def stage_validate(self, k: int, ctx: dict) -> None:
+        name = "validate"
+        if not ctx["boards"] and not ctx["gauges"]:
+            self.not_applicable(k, name, "no board captures and no gauges/gauges.yaml")
+            return
+        options = {"gauges_only": not ctx["boards"]}
+        inputs = self.hashes(ctx["cfg"] + [ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
+                             + ctx["gauges"])
+        if not self.decide(k, name, options, inputs):
+            return
+        t0 = time.perf_counter()
+        vdir = self.out / VALIDATION
+        reasons: list[str] = []
+        if ctx["boards"]:
+            rep = validate(self.root, ctx["calib"], vdir, progress=self.progress)
+            if not rep.pass_xy:
+                reasons.append(f"board XY reprojection {rep.xy_mean_px:.3f} px over the threshold "
+                               f"{rep.thresholds.get('xy_px', rep.thresholds)}")
+            if not rep.pass_z:
+                reasons.append(f"board Z geometric error {rep.z_error_mean_pct:.4f} % over the threshold "
+                               f"{rep.thresholds.get('z_pct', rep.thresholds)}")
+            g = rep.gauges
+            self.say(f"      XY {rep.xy_mean_px:.3f} px (noise floor {rep.xy_noise_floor_px:.3f}), Z "
+                     f"{rep.z_error_mean_pct:.4f} % -> {'PASS' if rep.passed else 'FAIL'}")
+            outputs = [vdir / "validation.json"]
+        else:
+            g = validate_gauges(self.root, ctx["calib"], vdir, progress=self.progress)
+            outputs = [vdir / "gauges.json"]
+        if g is not None and g.status == "FAIL":
+            reasons += [f"gauge {r.capture}: " + "; ".join(r.reasons) for r in g.gauges if r.status == "FAIL"]
+        self.done(name, options, inputs, outputs, verdict="FAIL" if reasons else "PASS", reasons=reasons, t0=t0)
+
+    def stage_scale(self, k: int, ctx: dict) -> None:
+        name = "calibrate-scale"
+        if not ctx["cal_scenes"]:
+            self.not_applicable(k, name, "no scene captures")
+            return
+        cal = CalibrationFile.read(ctx["calib"])
+        if cal.scale_calibration is not None or cal.rig.scale_corrections is not None:
+            self.not_applicable(k, name, f"{ctx['calib'].name} is already scale-corrected")
+            return
+        options = _plain({"scenes": self.opts.calibration_scenes, "use_boards": True})
+        inputs = self.hashes(ctx["cfg"] + [ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
+                             + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])
+        scaled = self.out / SCALED
+        if self.decide(k, name, options, inputs):
+            t0 = time.perf_counter()
+            res = calibrate_scale(self.root, ctx["calib"], scaled, ScaleParams(), self.opts.calibration_scenes,
+                                  progress=self.progress)
+            for line in scale_term_lines(res.scale_calibration):
+                self.say("      " + line)
+            self.done(name, options, inputs, [scaled], verdict="PASS", t0=t0)
+        ctx["calib"] = scaled
+
+    def stage_refine(self, k: int, ctx: dict) -> None:
+        name = "refine"
+        need = RefineParams().min_scenes
+        reason = None
+        if not self.opts.refine:
+            reason = "--no-refine"
+        elif len(ctx["cal_scenes"]) < need:
+            reason = f"refinement needs at least {need} scenes, the session has {len(ctx['cal_scenes'])}"
+        if reason is None:
+            options = _plain({"scenes": self.opts.calibration_scenes, "loo": self.opts.loo})
+            inputs = self.hashes(ctx["cfg"] + [ctx["calib"]]
+                                 + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])
+            refined = self.out / REFINED
+            if not self.decide(k, name, options, inputs):
+                ctx["calib"] = refined
+                return
+            t0 = time.perf_counter()
+            try:
+                res = refine(self.root, ctx["calib"], refined, RefineParams(leave_one_out=self.opts.loo),
+                             self.opts.calibration_scenes, progress=self.progress)
+            except InputError as exc:
+                if "scenes with textured ground truth" not in exc.expected:
+                    raise
+                self.redone.remove(name)
+                reason = str(exc)
+            else:
+                info = res.refinement
+                self.say(f"      over {len(info.scenes_used)} scene(s); moved {info.change_rot_deg:.4f} deg / "
+                         f"{info.change_trans_mm:.3f} mm")
+                self.done(name, options, inputs, [refined], verdict="PASS", t0=t0)
+                ctx["calib"] = refined
+                return
+        (self.out / REFINED).unlink(missing_ok=True)  # a refined calibration of an earlier run no longer applies
+        self.not_applicable(k, name, reason)
+
+    def stage_build(self, k: int, ctx: dict) -> None:
+        name = "build-dataset"
+        if not ctx["scenes"]:
+            self.not_applicable(k, name, "no scene captures")
+            return
+        params = BuildParams(quarantine=self.opts.quarantine)
+        options = _plain({"params": params.model_dump(mode="json")})
+        calib_in = self.hashes([ctx["calib"]])
+        per_scene = {d.name: self.hashes(self.capture_files(d)) for d in ctx["scenes"]}
+        inputs = {**self.hashes(ctx["cfg"]), **calib_in, **{k2: v for s in per_scene.values() for k2, v in s.items()}}
+        ds = self.out / DATASET
+        ctx["dataset"] = ds
+        rec = self.state.stages.get(name)
+        if not self.decide(k, name, options, inputs):
+            return
+        if rec is not None and rec.status == "done" and rec.options == _versioned(options) and \
+                all(rec.inputs.get(k2) == v for k2, v in {**calib_in, **self.hashes(ctx["cfg"])}.items()):
+            why = {s: "its inputs changed" if any(rec.inputs.get(k2) != v for k2, v in h.items()) else None
+                   for s, h in per_scene.items()}
+        else:
+            why = {s: "the calibration, the camera files or the options changed" if rec else "first build"
+                   for s in per_scene}
+        t0 = time.perf_counter()
+        summ = build_dataset(self.root, ctx["calib"], ds, params, workers=self.opts.workers, progress=False)
+        for sid in summ.built:
+            self.say(f"      built {sid} ({why.get(sid) or 'its dataset files were missing or stale'})")
+        if summ.skipped_unchanged:
+            self.say(f"      unchanged: {', '.join(summ.skipped_unchanged)}")
+        reasons = [f"scene {s} failed: {r}" for s, r in summ.failures.items()]
+        metas = [ds / "scenes" / s / "meta.json" for s in summ.built + summ.skipped_unchanged]
+        self.done(name, options, inputs, [], [ds / "manifest.json"] + metas, "FAIL" if reasons else "PASS", reasons,
+                  detail={"built": summ.built, "unchanged": summ.skipped_unchanged, "failures": summ.failures}, t0=t0)
+
+    def stage_verify(self, k: int, ctx: dict) -> None:
+        name = "verify"
+        if "dataset" not in ctx:
+            self.not_applicable(k, name, "no dataset built")
+            return
+        ds = ctx["dataset"]
+        from gtforge.records.dataset import Manifest
+
+        man = Manifest.read(ds / "manifest.json")
+        options = _plain({"quarantine": self.opts.quarantine, "params": man.params.verify.model_dump(mode="json")})
+        metas = {s: ds / "scenes" / s / "meta.json" for s in man.scenes}
+        inputs = self.hashes([ctx["calib"]] + list(metas.values()))
+        rec = self.state.stages.get(name)
+        if not self.decide(k, name, options, inputs):
+            return
+        if rec is not None and rec.status == "done" and rec.options == _versioned(options) and \
+                rec.inputs.get(self.key(ctx["calib"])) == inputs[self.key(ctx["calib"])]:
+            todo = [s for s, p in metas.items() if rec.inputs.get(self.key(p)) != inputs[self.key(p)]]
+        else:
+            todo = sorted(metas)
+        t0 = time.perf_counter()
+        if todo:
+            self.say(f"      checking {', '.join(todo)}" + (" (rebuilt)" if len(todo) < len(metas) else ""))
+            verify_dataset(ds, scenes=todo, workers=self.opts.workers, quarantine=self.opts.quarantine,
+                           progress=self.progress)
+        from gtforge.records.verification import VerificationResult
+
+        rep = VerificationResult.read(ds / "verification.json")
+        reasons = [f"scene {s} flagged: " + "; ".join(v.reasons) for s, v in rep.scenes.items()
+                   if v.status == "flagged" and not self.opts.quarantine]
+        reasons += [f"scene {s} not verifiable: " + "; ".join(v.reasons) for s, v in rep.scenes.items()
+                    if v.status == "not verifiable"]
+        quarantined = [s for s, v in rep.scenes.items() if v.status == "flagged" and self.opts.quarantine]
+        verdict = "FAIL" if reasons else ("WARN" if quarantined else "PASS")
+        if quarantined:
+            reasons.append(f"flagged and quarantined (left out of the split lists): {', '.join(quarantined)}")
+        self.say(f"      {len(rep.scenes)} scene(s): {len(rep.flagged)} flagged -> {verdict}")
+        self.done(name, options, inputs, [ds / "verification.json"], verdict=verdict, reasons=reasons,
+                  detail={"verified": todo}, t0=t0)
+
+
+def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOptions | None = None,
+                say: Callable[[str], None] = print, progress: Callable[[str], None] | None = None,
+                after_stage: Callable[[str], None] | None = None) -> RunResult:
+    """Run the chain on ``session_dir`` into ``out_dir`` (module docstring); returns the run's state and certificate
+    (``RunResult.exit_code``: 0 all PASS, 1 a quality check failed). ``after_stage(name)`` is called after each stage
+    has been recorded (tests use it to interrupt a run)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "--output", "a folder for the run's outputs", "a file", "choose a folder")
+    session_dir = Path(session_dir)
+    if not session_dir.is_dir():
+        raise InputError(session_dir, None, "a capture session folder (docs/capture-layout.md)", "no such folder",
+                         "check the path")
+    out.mkdir(parents=True, exist_ok=True)
+    return _Run(session_dir, out, options or RunOptions(), say, progress).run(after_stage)

@@ -1,0 +1,163 @@
+"""``gtforge run`` (gtforge.run): the chain in one command gives the same files as the six commands by hand; a rerun
+redoes nothing; an edited scene redoes exactly what depends on it; Ctrl-C leaves a run that resumes; the certificate's
+figures are the stage files' figures.
+
+One session for the module: the shipped example (3 scenes) plus a fourth scene (a copy of scene 000) that
+calibrate-scale and refine do not use (``calibration_scenes``), so that editing it must redo only its own build and
+verification. The tests after the first share the run folder and follow each other."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import yaml
+from typer.testing import CliRunner
+
+from gtforge.cli import app
+from gtforge.records.certificate import Certificate
+from gtforge.records.run import RunState
+from gtforge.reports.certificate import field_value
+from gtforge.run import RunOptions, run_session
+
+from conftest import gtforge, one_line_error
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "calib_data_examples" / "session"
+CAL_SCENES = ["000", "001", "002"]
+OPTS = RunOptions(loo=False, calibration_scenes=CAL_SCENES, workers=1)
+
+pytestmark = pytest.mark.slow
+
+
+def _compare_module():
+    spec = importlib.util.spec_from_file_location("compare_outputs", ROOT / "scripts" / "compare_outputs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    base = tmp_path_factory.mktemp("run")
+    sess = base / "session"
+    shutil.copytree(EXAMPLE, sess, ignore=shutil.ignore_patterns("truth"))
+    shutil.copytree(sess / "scenes" / "000", sess / "scenes" / "003")
+    said: list[str] = []
+    res = run_session(sess, base / "run", OPTS, say=said.append)
+    return {"base": base, "session": sess, "out": base / "run", "first": res, "said": said}
+
+
+def _edit_depth(path: Path) -> None:
+    d = tifffile.imread(path)
+    ok = np.argwhere(np.isfinite(d))[len(np.argwhere(np.isfinite(d))) // 2]
+    d[tuple(ok)] += 0.5
+    tifffile.imwrite(path, d)
+
+
+def test_run_equals_the_six_commands_by_hand(chain):
+    res, out, sess = chain["first"], chain["out"], chain["session"]
+    assert res.redone == ["calibrate", "validate", "calibrate-scale", "refine", "build-dataset", "verify"]
+    hand = chain["base"] / "hand"
+    scenes = ",".join(CAL_SCENES)
+    for args in (["calibrate", sess, "-o", hand / "calibration.yaml", "--no-loo"],
+                 ["validate", sess, "-c", hand / "calibration.yaml", "-o", hand / "validation"],
+                 ["calibrate-scale", sess, "-c", hand / "calibration.yaml", "-o", hand / "scaled.yaml", "--scenes",
+                  scenes],
+                 ["refine", sess, "-c", hand / "scaled.yaml", "-o", hand / "refined.yaml", "--no-loo", "--scenes",
+                  scenes],
+                 ["build-dataset", sess, "-c", hand / "refined.yaml", "-o", hand / "dataset", "--workers", "1"],
+                 ["verify", hand / "dataset", "--workers", "1"]):
+        r = CliRunner().invoke(app, [str(a) for a in args])
+        assert r.exit_code == 0, (args[0], r.output, r.exception)
+    logging.getLogger().handlers.clear()  # CliRunner's captured stderr is closed now
+    diffs = _compare_module().compare(out, hand)
+    run_only = {f"only in {out}: {p}" for p in ("run_state.json", "certificate.json", "index.html")}
+    assert [d for d in diffs if d not in run_only] == []
+    assert res.exit_code == 0 and res.certificate.verdict in ("PASS", "WARN")
+
+
+def test_certificate_figures_are_the_stage_files_figures(chain):
+    out = chain["out"]
+    cert = Certificate.read(out / "certificate.json")
+    n = 0
+    for sec in cert.sections:
+        for f in sec.figures:
+            assert (out / f.source_file).is_file(), f.source_file
+            if f.source_field is None:
+                assert f.derivation, f.name
+                continue
+            text = (out / f.source_file).read_text()
+            doc = json.loads(text) if f.source_file.endswith(".json") else yaml.safe_load(text)
+            assert f.value == field_value(doc, f.source_field), f.name
+            n += 1
+    assert n >= 20
+    # and read by name from the stage reports, as a reader of both would
+    val = json.loads((out / "validation" / "validation.json").read_text())
+    scaled = yaml.safe_load((out / "scaled.yaml").read_text())["scale_calibration"]
+    figs = {f.name: f for s in cert.sections for f in s.figures}
+    assert figs["board XY reprojection error, mean"].value == val["xy_mean_px"]
+    assert figs["corner detectors' noise floor (XY error their noise alone gives)"].value == val["xy_noise_floor_px"]
+    assert figs["board Z geometric error, mean"].value == val["z_error_mean_pct"]
+    for name, t in scaled["terms"].items():
+        assert figs[f"{name}: estimate"].value == t["estimate"] and figs[f"{name}: estimate"].sigma == t["sigma"]
+        assert figs[f"{name}: estimate"].status == t["status"]
+    man = json.loads((out / "dataset" / "manifest.json").read_text())
+    assert cert.scenes_built == sorted(man["scenes"]) and cert.splits == {k: len(v) for k, v in man["splits"].items()}
+    assert any(k.endswith("scenes/003/DepthMap.tiff") for k in cert.inputs_blake3)
+    page = (out / "index.html").read_text()
+    assert f'<span class="{cert.verdict.lower()}">{cert.verdict}</span>' in page
+    assert 'href="validation/validation.html"' in page and 'href="dataset/verification.html"' in page
+
+
+def test_rerun_edit_and_interrupt(chain):
+    sess, out = chain["session"], chain["out"]
+    # nothing changed: nothing redone, and it says so
+    said: list[str] = []
+    stamp = (out / "calibration.yaml").stat().st_mtime_ns
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert res.redone == [] and len(res.skipped) == 6
+    assert any("nothing to redo" in s for s in said)
+    assert (out / "calibration.yaml").stat().st_mtime_ns == stamp
+
+    # a scene calibrate-scale and refine do not read: its build and its verification only
+    _edit_depth(sess / "scenes" / "003" / "DepthMap.tiff")
+    said = []
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert res.redone == ["build-dataset", "verify"]
+    st = RunState.read(out / "run_state.json").stages
+    assert st["build-dataset"].detail["built"] == ["003"] and st["verify"].detail["verified"] == ["003"]
+    assert any("build-dataset: running (session/scenes/003/DepthMap.tiff changed)" in s for s in said)
+    assert any("built 003 (its inputs changed)" in s for s in said)
+
+    # a scene they read: calibrate-scale, refine and so every scene; Ctrl-C after calibrate-scale, then resume
+    _edit_depth(sess / "scenes" / "001" / "DepthMap.tiff")
+
+    def stop(name):
+        if name == "calibrate-scale":
+            raise KeyboardInterrupt
+
+    said = []
+    with pytest.raises(KeyboardInterrupt):
+        run_session(sess, out, OPTS, say=said.append, after_stage=stop)
+    assert any("interrupted during" in s and "run the same command again" in s for s in said)
+    said = []
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert res.redone == ["refine", "build-dataset", "verify"]
+    assert any("refine: running (" in s and "out/scaled.yaml" in s and "scenes/001/DepthMap.tiff" in s for s in said)
+    st = RunState.read(out / "run_state.json").stages
+    assert st["build-dataset"].detail["built"] == ["000", "001", "002", "003"]
+    assert st["verify"].detail["verified"] == ["000", "001", "002", "003"]
+    assert run_session(sess, out, OPTS, say=said.append).redone == []
+
+
+def test_run_without_boards_needs_a_calibration(tmp_path):
+    sess = tmp_path / "s"
+    shutil.copytree(EXAMPLE, sess, ignore=shutil.ignore_patterns("truth", "board"))
+    r = gtforge("run", sess, "-o", tmp_path / "out")
+    assert r.returncode == 2 and one_line_error(r) and "-c FILE" in r.stderr
