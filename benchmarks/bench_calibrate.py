@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from gtforge.calibrate import calibrate_observations, detect_pose
-from gtforge.core.board import BoardSpec
-from gtforge.core.board_extrinsic import robust_initial_extrinsic
+from gtforge.core.targets.board import BoardSpec
+from gtforge.core.targets.extrinsic import robust_initial_extrinsic
 from gtforge.core.geometry import invert_T, pose_difference, transform_points
 from gtforge.records.calibration import CalibrateParams, PoseResult
 from gtforge.synthetic import (

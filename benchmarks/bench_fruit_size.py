@@ -1,4 +1,4 @@
-"""evaluate's added cost per scene from the fruit size figures (gtforge.core.fruit_size).
+"""evaluate's added cost per scene from the fruit size figures (gtforge.core.measure.fruit_size).
 
 Usage: python benchmarks/bench_fruit_size.py WORKDIR SCALE N_SCENES  (SCALE 1.0: the ZED's 2K, 2208x1242)
 """
@@ -37,7 +37,7 @@ for out in (None, d / "ev"):
         print(f"{shape[1]}x{shape[0]}, {'writing maps and HTML' if out else 'no output folder'}, fruit_size={fs}: "
               f"{wall:.0f} ms wall, {cpu:.0f} ms CPU per scene{extra}")
 # the fruit figures alone, CPU time (a shared machine's wall clock varies more than the cost itself)
-from gtforge.core.fruit_size import measure_scene
+from gtforge.core.measure.fruit_size import measure_scene
 from gtforge.io.formats import read_image
 from gtforge.io.middlebury import SceneCalib
 

@@ -18,14 +18,14 @@ pinned to one core (``sched_setaffinity``, as ``taskset -c 0`` does), and the li
 speed-ups against that too.
 
 Before anything is timed, every gtforge method's output on the benchmark's scene is compared with the float64
-reference of the same computation (``gtforge.core.reproject_reference``; mesh with ``span_mm`` too): each prints
+reference of the same computation (``gtforge.core.ground_truth.reproject_reference``; mesh with ``span_mm`` too): each prints
 "identical to the float64 reference: yes" or "no, N pixels differ", and the benchmark stops with exit code 1 if any of
 the current code's methods is not identical (benchmarks/README.md: speed work never changes results). ``--check-only``
 runs these checks and exits (no Open3D timing).
 
     python benchmarks/bench_reproject.py [--repeat 15] [--against e1dbf65] [--write] [--check-only]
 
-``--against REV`` adds the kernels of ``src/gtforge/core/reproject.py`` at git revision REV (before/after); their
+``--against REV`` adds the kernels of ``src/gtforge/core/ground_truth/reproject.py`` at git revision REV (before/after); their
 comparison with the reference is printed but does not stop the run (an old revision may predate a fix).
 """
 from __future__ import annotations
@@ -48,9 +48,9 @@ import numba
 import numpy as np
 import open3d as o3d
 
-from gtforge.core import reproject
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.core.reproject_reference import project_depth_reference
+from gtforge.core.ground_truth import reproject
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.ground_truth.reproject_reference import project_depth_reference
 from gtforge.synthetic import default_rig, lit_mask, random_fruit_scene, raycast_depth
 
 
@@ -65,12 +65,12 @@ def scene_depth(rig):
 
 
 def module_at_revision(rev: str):
-    """gtforge/core/reproject.py as it was at git revision ``rev``, imported as a separate module."""
+    """gtforge/core/ground_truth/reproject.py as it was at git revision ``rev``, imported as a separate module."""
     import importlib.util
     import tempfile
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/core/reproject.py"], capture_output=True,
+    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/core/ground_truth/reproject.py"], capture_output=True,
                          text=True, check=True).stdout
     path = os.path.join(tempfile.mkdtemp(), f"reproject_{rev}.py")
     with open(path, "w") as f:
@@ -205,7 +205,7 @@ def main():
     t0 = time.perf_counter()
     reference = {"mesh": project_depth_reference(depth, mech, T, cam, mesh, return_span=True),
                  "splat": (project_depth_reference(depth, mech, T, cam, splat),)}
-    print(f"float64 reference (gtforge.core.reproject_reference) on the benchmark's scene: "
+    print(f"float64 reference (gtforge.core.ground_truth.reproject_reference) on the benchmark's scene: "
           f"{time.perf_counter() - t0:.1f} s", flush=True)
 
     def mode_of(name):

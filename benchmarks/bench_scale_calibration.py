@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from gtforge.core.camera import Rig
-from gtforge.core.scale_corrections import shown_disparity_px
+from gtforge.core.zed.scale_corrections import shown_disparity_px
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.io.calibrated_session import open_with_calibration

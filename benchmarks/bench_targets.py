@@ -1,7 +1,7 @@
 """Extrinsic accuracy per calibration target, and what ChArUco partial views add (docs/targets.md).
 
 For each target (the 12x9 checkerboard for reference, ChArUco, symmetric and asymmetric circle grids) renders
-``--poses`` whole-board poses with ``gtforge.core.targets.render_board_views`` (the generator's rig at ``--scale``,
+``--poses`` whole-board poses with ``gtforge.core.targets.models.render_board_views`` (the generator's rig at ``--scale``,
 2x2 supersampling, image noise 1 grey level) and calibrates with the default parameters (leave-one-out on):
 error of ``T_zed_from_mech`` against the truth, the reported 1-sigma, RMS. For ChArUco it then replaces the last
 ``--partial`` whole-board poses by as many poses cut by the texture camera's image border near its corners (same
@@ -17,9 +17,9 @@ import time
 import numpy as np
 
 from gtforge.calibrate import calibrate_observations, detect_pose
-from gtforge.core.board import BoardSpec
+from gtforge.core.targets.board import BoardSpec
 from gtforge.core.geometry import pose_difference
-from gtforge.core.targets import CharucoSpec, CircleGridSpec, board_model_of
+from gtforge.core.targets.models import CharucoSpec, CircleGridSpec, board_model_of
 from gtforge.records.calibration import CalibrateParams
 from gtforge.synthetic import default_rig, random_board_pose, random_partial_board_pose, render_board_views
 

@@ -23,8 +23,8 @@ import numpy as np
 from gtforge.build_dataset import build_one_scene
 from gtforge.calibrate import calibrate_observations, detect_pose
 from gtforge.core.camera import Rig
-from gtforge.core.targets import BoardModel
-from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma, draw_ground_truth
+from gtforge.core.targets.models import BoardModel
+from gtforge.core.ground_truth.uncertainty import DepthNoiseModel, UncertaintyParams, disparity_sigma, draw_ground_truth
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrateParams, CalibrationFile

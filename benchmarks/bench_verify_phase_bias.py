@@ -98,7 +98,7 @@ def _stereo_row(st):
 
 
 def sweep() -> None:
-    from gtforge.core.regions import REGION_BG
+    from gtforge.core.ground_truth.regions import REGION_BG
     from gtforge.dataset.scene_verification import _area, stereo_consistency
     from gtforge.records.verification import VerifyParams
 
@@ -178,7 +178,7 @@ def synthetic(scale: float, n_scenes: int, workdir: Path, frontal_disparity_px: 
 
 
 def middlebury(folder: Path) -> None:
-    from gtforge.core.regions import REGION_BG
+    from gtforge.core.ground_truth.regions import REGION_BG
     from gtforge.dataset.scene_verification import stereo_consistency
     from gtforge.io.formats import read_image, read_pfm
     from gtforge.records.verification import VerifyParams

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from gtforge.core.camera import Rig
-from gtforge.core.gauges import GaugeParams
-from gtforge.core.uncertainty import DepthNoiseModel
+from gtforge.core.measure.gauges import GaugeParams
+from gtforge.core.ground_truth.uncertainty import DepthNoiseModel
 from gtforge.records.calibration import CalibrationFile
 from gtforge.synthetic import default_rig, generate_gauges, generate_session
 from gtforge.validate import validate_gauges

@@ -42,15 +42,15 @@ def main():
     import numpy as np
 
     from gtforge import build_dataset as bd
-    from gtforge.core.reproject import project_depth_to_camera
+    from gtforge.core.ground_truth.reproject import project_depth_to_camera
     from gtforge.io.captures import open_session, read_depth, read_texture
     from gtforge.io.formats import read_image, write_kitti_disparity, write_pfm, write_tiff_float
     from gtforge.records.calibration import CalibrationFile
 
     try:
-        from gtforge.core.reproject import disparity_and_nonoccluded
+        from gtforge.core.ground_truth.reproject import disparity_and_nonoccluded
     except ImportError:  # older gtforge: two numpy steps
-        from gtforge.core.reproject import nonoccluded_mask
+        from gtforge.core.ground_truth.reproject import nonoccluded_mask
 
         def disparity_and_nonoccluded(dl, dr, zed, rel_tol):
             d = zed.depth_to_disparity(dl)
@@ -137,7 +137,7 @@ def main():
                 lambda: verify_scene(depth_l, disp, noc, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
                                      params.verify))
     if getattr(params, "sigma", False):
-        from gtforge.core.uncertainty import disparity_sigma
+        from gtforge.core.ground_truth.uncertainty import disparity_sigma
 
         calib = CalibrationFile.read(calib_path)
         sigma = measure("compute", "GT sigma map (disp0GT_sigma)",
@@ -145,7 +145,7 @@ def main():
                                                 depth_span, None))
         measure("compute", "sigma statistics per region (meta.json)", lambda: bd.region_sigma_stats(sigma, region))
     if getattr(params, "right_gt", False):
-        from gtforge.core.reproject import right_view_disparity
+        from gtforge.core.ground_truth.reproject import right_view_disparity
 
         disp1, noc1 = measure("compute", "right-view disparity + occlusion (disp1GT)",
                               lambda: right_view_disparity(depth_l, depth_r, zed, params.occlusion_rel_tol))

@@ -31,11 +31,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gtforge.core.board import Detection, solve_pnp
+from gtforge.core.targets.board import Detection, solve_pnp
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import pose_difference, transform_points
-from gtforge.core.target_detection import circle_centre_bias, detect_circles, pnp_bias_corrected
-from gtforge.core.targets import CircleGridSpec
+from gtforge.core.targets.detection import circle_centre_bias, detect_circles, pnp_bias_corrected
+from gtforge.core.targets.models import CircleGridSpec
 from gtforge.errors import InputError
 
 SPACING_MM = 20.0  # nominal nearest-neighbour spacing: residuals do not depend on the board's scale

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gtforge.core.board import BoardSpec, check_board_spec, detect_corners
+from gtforge.core.targets.board import BoardSpec, check_board_spec, detect_corners
 from gtforge.errors import InputError
 from gtforge.synthetic import (
     board_capture,

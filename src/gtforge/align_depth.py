@@ -1,6 +1,6 @@
 """gtforge align-depth: a separate depth camera's pose ``T_mech_from_depth`` (Azure Kinect, Orbbec, PrimeSense-class
 units: the depth map lies on another camera than the texture the board and ground truth are seen in) refined from
-the captures' edges, every board and scene capture together (``gtforge.core.edge_alignment.align_captures``).
+the captures' edges, every board and scene capture together (``gtforge.core.alignment.edge_alignment.align_captures``).
 
 The factory pose in the calibration (from session.yaml) is the start. The result is written into a new calibration
 file: ``rig.T_mech_from_depth`` holds the corrected pose when the correction is significant against the factory
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from gtforge.core.camera import Rig
-from gtforge.core.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
+from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
 from gtforge.records.calibration import CalibrationFile

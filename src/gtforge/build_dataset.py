@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from gtforge.core.regions import occlusion_mask, region_sigma_stats, sgra_weights
+from gtforge.core.ground_truth.regions import occlusion_mask, region_sigma_stats, sgra_weights
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.layout import (
     KITTI_DISPARITY_DIRS,
@@ -37,9 +37,9 @@ except ImportError:  # pragma: no cover
 
 import gtforge
 from gtforge.core.geometry import finite_box, mask_bounding_box
-from gtforge.core.reproject import right_view_disparity
-from gtforge.core.scale_corrections import add_depth_pose_sigma, add_scale_sigma
-from gtforge.core.uncertainty import disparity_sigma
+from gtforge.core.ground_truth.reproject import right_view_disparity
+from gtforge.core.zed.scale_corrections import add_depth_pose_sigma, add_scale_sigma
+from gtforge.core.ground_truth.uncertainty import disparity_sigma
 from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder

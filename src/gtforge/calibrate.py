@@ -17,8 +17,8 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.core.board import BoardSpec, PoseObs, detect_corners, solve_pnp
-from gtforge.core.board_extrinsic import (
+from gtforge.core.targets.board import BoardSpec, PoseObs, detect_corners, solve_pnp
+from gtforge.core.targets.extrinsic import (
     board_corners_from_depth,
     jackknife_scale,
     joint_refine,
@@ -28,12 +28,12 @@ from gtforge.core.board_extrinsic import (
     transfer_error,
 )
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
-from gtforge.core.coverage import coverage_report
+from gtforge.core.targets.coverage import coverage_report
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
-from gtforge.core.rectification import RectificationMeter
-from gtforge.core.selfcal import SelfRectifyParams
-from gtforge.core.target_detection import PairSkipped, detect_target, match_target_views
-from gtforge.core.targets import MIN_COMMON_CORNERS, check_board_model
+from gtforge.core.zed.rectification import RectificationMeter
+from gtforge.core.zed.selfcal import SelfRectifyParams
+from gtforge.core.targets.detection import PairSkipped, detect_target, match_target_views
+from gtforge.core.targets.models import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import calibration_output_path, session_board
 from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
@@ -93,7 +93,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
                            T_mech_from_depth: np.ndarray | None = None, coverage: bool = False) -> CalibrationFile:
     """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place.
     ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera. ``coverage``: also
-    fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.coverage; a few
+    fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.targets.coverage; a few
     tenths of a second)."""
     t0 = time.perf_counter()
     board = params.board.spec()

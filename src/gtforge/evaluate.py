@@ -13,14 +13,14 @@ from typing import Callable
 import numpy as np
 
 import gtforge
-from gtforge.core.fruit_size import GradeBins, measure_scene, scene_truth, summarise
-from gtforge.core.metrics import (
+from gtforge.core.measure.fruit_size import GradeBins, measure_scene, scene_truth, summarise
+from gtforge.core.measure.metrics import (
     Accumulator,
     mean_of,
     metrics_from_errors,
     region_errors,
 )
-from gtforge.core.regions import region_masks
+from gtforge.core.ground_truth.regions import region_masks
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
@@ -123,7 +123,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     ``max_gt_sigma_px``: score only GT pixels whose ``disp0GT_sigma.pfm`` is below it (the others are counted
     in ``Metrics.n_gt_sigma_left_out``). Scenes without a prediction (a folder predictor) are reported before
     any scoring and listed in ``EvalResult.missing``. ``fruit_size``: also measure every fruit's diameter, height
-    and volume from the GT and the prediction (``gtforge.core.fruit_size``; ``grades``: bins for the grade
+    and volume from the GT and the prediction (``gtforge.core.measure.fruit_size``; ``grades``: bins for the grade
     confusion)."""
     ds = Path(dataset_dir)
     if not (ds / "manifest.json").is_file():
@@ -196,7 +196,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             res[r] = metrics_from_errors(*re_)
             pooled[r].add(*re_)
         scene = SceneResult(scene=sid, time_ms=ms, metrics=res)
-        if fruit_size:  # per-fruit diameter, height, volume and grade (gtforge.core.fruit_size)
+        if fruit_size:  # per-fruit diameter, height, volume and grade (gtforge.core.measure.fruit_size)
             t0 = time.perf_counter()
             fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
             fruit_ms.append((time.perf_counter() - t0) * 1000.0)

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Callable
 
 from gtforge.calibrate import calibrate
-from gtforge.core.targets import BoardModel
+from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrateParams

@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 
 from gtforge.core.camera import CameraFile, StereoCalibrationFile
-from gtforge.core.target_detection import detect_target
-from gtforge.core.targets import BoardModel
+from gtforge.core.targets.detection import detect_target
+from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file

@@ -26,10 +26,10 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from gtforge.core.board_extrinsic import jackknife_scale
+from gtforge.core.targets.extrinsic import jackknife_scale
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import perturb_left, pose_difference, rotvec_between, transform_points
-from gtforge.core.photometric import (
+from gtforge.core.alignment.photometric import (
     even_subset,
     huber_system,
     interior_mask,
@@ -40,7 +40,7 @@ from gtforge.core.photometric import (
     textured_mask,
     to_gray,
 )
-from gtforge.core.render import render_texture
+from gtforge.core.ground_truth.render import render_texture
 from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene

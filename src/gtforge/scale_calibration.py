@@ -47,10 +47,10 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from gtforge.core.board import solve_pnp
+from gtforge.core.targets.board import solve_pnp
 from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.geometry import invert_T, perturb_left, transform_points
-from gtforge.core.photometric import (
+from gtforge.core.alignment.photometric import (
     even_subset,
     huber_system,
     interior_mask,
@@ -59,16 +59,16 @@ from gtforge.core.photometric import (
     textured_mask,
     to_gray,
 )
-from gtforge.core.rectification import matched_board_points
-from gtforge.core.scale_corrections import (
+from gtforge.core.zed.rectification import matched_board_points
+from gtforge.core.zed.scale_corrections import (
     apply_homography,
     depth_pose_jacobian_px,
     spline_coefficients,
     spline_sample,
     yaw_homography,
 )
-from gtforge.core.target_detection import PairSkipped, detect_target, pnp_bias_corrected, unmirror_symmetric_grid
-from gtforge.core.targets import MIN_COMMON_CORNERS, CircleGridSpec, collinear
+from gtforge.core.targets.detection import PairSkipped, detect_target, pnp_bias_corrected, unmirror_symmetric_grid
+from gtforge.core.targets.models import MIN_COMMON_CORNERS, CircleGridSpec, collinear
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
@@ -361,8 +361,8 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
                        progress: Callable[[str], None] | None = None) -> list[BoardMeasurement]:
     """Detect the board in every board capture (texture, ZED left and right images) and measure from them.
 
-    Any target (``gtforge.core.targets``). ZED: the left and right points matched by id
-    (``gtforge.core.rectification.matched_board_points``: a symmetric grid numbered alike, circle centres corrected
+    Any target (``gtforge.core.targets.models``). ZED: the left and right points matched by id
+    (``gtforge.core.zed.rectification.matched_board_points``: a symmetric grid numbered alike, circle centres corrected
     for their perspective bias at each image's own PnP pose, so the right points are where the circles' centres show);
     the corners' ZED-left coordinates from PnP on every left point. Depth: PnP on every point the texture image shows.
     A view with fewer than 6 points (``MIN_COMMON_CORNERS``; left and right: in common) or collinear ones is left out,

@@ -22,9 +22,9 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from gtforge.core.board import BoardSpec
+from gtforge.core.targets.board import BoardSpec
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
-from gtforge.core.gauges import GaugesFile, GaugeSpec
+from gtforge.core.measure.gauges import GaugesFile, GaugeSpec
 from gtforge.core.geometry import (
     T_from_rotvec,
     invert_T,
@@ -34,7 +34,7 @@ from gtforge.core.geometry import (
     transform_points,
 )
 from gtforge.core.schema import VersionedFile
-from gtforge.core.targets import board_model_of, collinear
+from gtforge.core.targets.models import board_model_of, collinear
 from gtforge.io.cameras import check_zed_conf_reading, write_zed_conf
 from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_tiff_float
@@ -188,7 +188,7 @@ class SyntheticRig:
     depth_cam: PinholeCamera | None = None
     T_mech_from_depth: np.ndarray | None = None
     # the real right ZED camera turned about its own centre against the rectified model the files describe (a factory
-    # rectification's residual, corrected by gtforge.core.selfcal): rotation vector (rad) of the image-only error
+    # rectification's residual, corrected by gtforge.core.zed.selfcal): rotation vector (rad) of the image-only error
     zed_right_rotation_error_rad: np.ndarray | None = None
     # errors in the files the pipeline trusts (issue #25, scale terms): ``zed`` is the true geometry the images are
     # rendered with, ``zed_file`` what zed_calibration.yaml says (None: the same); the right camera is turned by
@@ -392,7 +392,7 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     left = finish_image(render_image(zed_scene, zed.left, rig.T_zed_from_world, supersample), rng, blur_sigma_px,
                         image_noise)
     # the right image from the real right camera, turned against the rectified model the files describe (a yaw:
-    # gtforge.scale_calibration; a residual rotation: gtforge.core.selfcal); its truth below stays the ideal
+    # gtforge.scale_calibration; a residual rotation: gtforge.core.zed.selfcal); its truth below stays the ideal
     # rectified one
     T_zedr_image_from_world = rig.T_zedr_actual_from_zedr @ T_zedr_from_world
     if rig.zed_right_rotation_error_rad is not None:
@@ -593,9 +593,9 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     ``two_camera``: the structured-light unit has a separate depth camera (``two_camera_rig``); the session names it
     (``depth_intrinsics``, ``T_mech_from_depth``). ``fruit_motion_mm``: scene index -> the fruit's displacement
     (world mm) between the structured-light capture and the ZED capture (truth follows the ZED).
-    ``board``: any target of ``gtforge.core.targets`` (ChArUco, circle grids; session.yaml then declares it);
+    ``board``: any target of ``gtforge.core.targets.models`` (ChArUco, circle grids; session.yaml then declares it);
     ``partial_poses``: that many more board captures cut by ``partial_camera``'s image border, near its corners in
-    turn (``gtforge.core.targets.random_partial_board_pose``).
+    turn (``gtforge.core.targets.models.random_partial_board_pose``).
 
     Errors in the files the pipeline trusts (issue #25; all 0: the files are exact): ``zed_baseline_error_frac`` the
     ZED's true baseline is ``(1 + it)`` times what zed_calibration.yaml says; ``right_yaw_deg`` the right camera is
@@ -657,7 +657,7 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
                                               np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
     extra = (dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_mech_from_depth_rows) if two_camera
              else {})
-    if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets)
+    if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets.models)
         extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out

@@ -16,9 +16,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from gtforge.core.board import BoardSpec, check_board_spec, detect_corners, solve_pnp
+from gtforge.core.targets.board import BoardSpec, check_board_spec, detect_corners, solve_pnp
 from gtforge.core.camera import PinholeCamera, Rig
-from gtforge.core.gauges import (
+from gtforge.core.measure.gauges import (
     GAUGES_DIR,
     GAUGES_FILE,
     ORDER,
@@ -35,11 +35,11 @@ from gtforge.core.gauges import (
     read_gauges_file,
 )
 from gtforge.core.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
-from gtforge.core.rectification import RectificationMeter
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.core.target_detection import matched_points
-from gtforge.core.targets import check_board_model, neighbour_pairs
-from gtforge.core.uncertainty import UncertaintyParams, disparity_sigma
+from gtforge.core.zed.rectification import RectificationMeter
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.targets.detection import matched_points
+from gtforge.core.targets.models import check_board_model, neighbour_pairs
+from gtforge.core.ground_truth.uncertainty import UncertaintyParams, disparity_sigma
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
@@ -110,7 +110,7 @@ def bilinear_valid(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def _check_board(board_model) -> None:
-    """The declaration's own checks: the checkerboard's as before, the other targets' (gtforge.core.targets)."""
+    """The declaration's own checks: the checkerboard's as before, the other targets' (gtforge.core.targets.models)."""
     if board_model.kind == "checkerboard":
         check_board_spec(board_model.spec())
     else:
@@ -119,7 +119,7 @@ def _check_board(board_model) -> None:
 
 def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: BoardSpec, params: ValidateParams,
                   used_for_calibration: bool) -> tuple[PoseValidation | None, np.ndarray | None, str | None]:
-    ids = None  # ChArUco / circle grids (gtforge.core.targets): the ids both cameras saw
+    ids = None  # ChArUco / circle grids (gtforge.core.targets.models): the ids both cameras saw
     if getattr(board, "kind", "checkerboard") != "checkerboard":
         got = matched_points(name, texture, zed_left, rig.mech, rig.zed.left, board)
         if isinstance(got, str):
@@ -214,7 +214,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
     (Calibrating on all board captures but the last K and validating on those K: ``gtforge.holdout``.) ``gauges``: also
-    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.gauges``; written to
+    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.measure.gauges``; written to
     ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
 
     params = params or ValidateParams()

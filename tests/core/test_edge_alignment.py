@@ -1,4 +1,4 @@
-"""gtforge.core.edge_alignment: refining T_color_from_depth by putting the depth silhouettes on the colour edges.
+"""gtforge.core.alignment.edge_alignment: refining T_color_from_depth by putting the depth silhouettes on the colour edges.
 
 Proof twice: on a synthetic depth + colour pair rendered by gtforge.synthetic's ray caster with an exact
 extrinsic (a known 0.2-0.25 deg error is recovered; no error gives a correction within its sigma), and on the real
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.edge_alignment import EdgeAlignmentParams, align_color_to_depth
-from gtforge.core.edge_features import depth_edges, perturb, undistort_image
+from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, align_color_to_depth
+from gtforge.core.alignment.edge_features import depth_edges, perturb, undistort_image
 from gtforge.core.geometry import T_from_rotvec, look_at_T_cam_from_world, make_T, pose_difference
 from gtforge.errors import InputError
 from gtforge.synthetic import PlaneObject, Scene, SpheroidObject, ValueNoise, finish_image, raycast_depth, render_image

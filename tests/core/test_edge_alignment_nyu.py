@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.edge_alignment import align_color_to_depth
+from gtforge.core.alignment.edge_alignment import align_color_to_depth
 from gtforge.core.geometry import make_T
 
 pytestmark = pytest.mark.slow  # three fits of a 640x480 frame, 1-2 s each

@@ -1,10 +1,10 @@
-"""Per-fruit size, volume and grade (gtforge.core.fruit_size, evaluate's fruit_size) and the shape fits behind them."""
+"""Per-fruit size, volume and grade (gtforge.core.measure.fruit_size, evaluate's fruit_size) and the shape fits behind them."""
 import json
 
 import numpy as np
 import pytest
 
-from gtforge.core.fruit_size import (
+from gtforge.core.measure.fruit_size import (
     FruitSize,
     GradeBins,
     fruit_instances,
@@ -13,7 +13,7 @@ from gtforge.core.fruit_size import (
     points_from_disparity,
     table_plane,
 )
-from gtforge.core.shapefit import fit_plane_lsq, fit_resting_ellipsoid, fit_sphere
+from gtforge.core.measure.shapefit import fit_plane_lsq, fit_resting_ellipsoid, fit_sphere
 from gtforge.errors import InputError
 from gtforge.evaluate import compare, evaluate
 from gtforge.io.formats import read_image, read_pfm, write_pfm

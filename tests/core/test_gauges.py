@@ -1,4 +1,4 @@
-"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.gauges against the generator's exact \
+"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.measure.gauges against the generator's exact \
 sizes."""
 import shutil
 import subprocess
@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from gtforge.core.camera import Rig
-from gtforge.core.gauges import GaugeParams, GaugesFile, GaugesResult, read_gauges_file, summary_lines
-from gtforge.core.uncertainty import DepthNoiseModel
+from gtforge.core.measure.gauges import GaugeParams, GaugesFile, GaugesResult, read_gauges_file, summary_lines
+from gtforge.core.ground_truth.uncertainty import DepthNoiseModel
 from gtforge.errors import InputError
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import write_tiff_float

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from gtforge.core.metrics import Accumulator, disparity_metrics, mean_of
+from gtforge.core.measure.metrics import Accumulator, disparity_metrics, mean_of
 from gtforge.training import sgra_loss, smooth_l1, weighted_smooth_l1
 
 

@@ -22,7 +22,7 @@ import pytest
 from conftest import shared_data
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.io.formats import read_pfm
 
 F_PX, BASELINE_MM, DOFFS_PX = 999.421, 193.001, 32.778  # calib.txt
@@ -82,7 +82,7 @@ def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
     out = tmp_path / "many.npy"
     paths = [str(Path(__file__).parent), str(Path(__file__).parents[1])]  # this module's folder and conftest's
     child = (f"import sys, numba; sys.path[:0] = {paths!r}; "
-             "import test_real_reprojection as t; from gtforge.core import reproject; import numpy as np; "
+             "import test_real_reprojection as t; from gtforge.core.ground_truth import reproject; import numpy as np; "
              "assert numba.get_num_threads() >= reproject.MIN_PARALLEL_THREADS; z0, c0, c1, T, _, _ = t.motorcycle(); "
              f"np.save({str(out)!r}, reproject.project_depth_to_camera(z0, c0, T, c1))")
     subprocess.run([sys.executable, "-c", child], check=True, env={**os.environ, "NUMBA_NUM_THREADS": "4"})

@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from gtforge.core.board import BoardSpec
+from gtforge.core.targets.board import BoardSpec
 from gtforge.core.geometry import make_T, transform_points
-from gtforge.core.rectification import (
+from gtforge.core.zed.rectification import (
     TIE_PX,
     RectificationMeter,
     board_pose_vertical_disparity,
@@ -218,7 +218,7 @@ def test_real_zed_mini_reading_from_feature_matches():
     rest is the unit's residual rotation, which self-rectification removes: tests/core/test_selfcal.py)."""
     from conftest import shared_data
 
-    from gtforge.core.rectification import match_points
+    from gtforge.core.zed.rectification import match_points
     from gtforge.io.formats import read_image
     from gtforge.io.zed_rectification import RawBoardPair, choose_reading_by_matches
 

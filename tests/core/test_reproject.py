@@ -4,7 +4,7 @@ import pytest
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.geometry import T_from_rotvec
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
 from gtforge.synthetic import default_rig, random_fruit_scene, render_capture
 
 
@@ -129,7 +129,7 @@ def test_result_does_not_depend_on_the_thread_count(fruit_cap, monkeypatch):
     # one thread rasterises straight into the image; several rasterise row chunks into windows and merge
     import numba
 
-    import gtforge.core.reproject as rp
+    import gtforge.core.ground_truth.reproject as rp
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip(f"numba has {numba.config.NUMBA_NUM_THREADS} thread here (one core): the windowed path needs 2; "
@@ -161,7 +161,7 @@ def test_both_views_in_one_pass_are_the_two_single_views(fruit_cap, monkeypatch)
     right camera has its own cx (doffs) and with the parallel path forced for the single views."""
     import numba
 
-    import gtforge.core.reproject as rp
+    import gtforge.core.ground_truth.reproject as rp
 
     rig, cap = fruit_cap
     zed = rig.zed.model_copy(update={"doffs_px": 3.25})
@@ -198,7 +198,7 @@ def test_fused_disparity_and_occlusion_match_their_definitions():
     # reproject_to_zed computes disparity and the non-occluded mask in one pass; they must equal
     # RectifiedStereo.depth_to_disparity and nonoccluded_mask (here with doffs and real occlusions)
     from gtforge.core.geometry import finite_box
-    from gtforge.core.reproject import disparity_and_nonoccluded, nonoccluded_mask, right_view_disparity
+    from gtforge.core.ground_truth.reproject import disparity_and_nonoccluded, nonoccluded_mask, right_view_disparity
 
     cam = PinholeCamera(width_px=150, height_px=90, fx_px=110.0, fy_px=104.0, cx_px=71.2, cy_px=47.9)
     zed = RectifiedStereo(left=cam, baseline_mm=63.0, doffs_px=2.5)

@@ -1,4 +1,4 @@
-"""The fast reprojection kernels draw exactly what the slow float64 reference (gtforge.core.reproject_reference) draws.
+"""The fast reprojection kernels draw exactly what the slow float64 reference (gtforge.core.ground_truth.reproject_reference) draws.
 
 Bit for bit, NaN where NaN: on small synthetic scenes from the generator (a distorted depth camera denser than the
 target, one sparser than it, noisy depth under a strict slant bound, an undistorted depth camera, both ZED views of the
@@ -16,9 +16,9 @@ import numba
 import numpy as np
 import pytest
 
-from gtforge.core import reproject
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
-from gtforge.core.reproject_reference import project_depth_reference
+from gtforge.core.ground_truth import reproject
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
+from gtforge.core.ground_truth.reproject_reference import project_depth_reference
 from gtforge.synthetic import default_rig, lit_mask, random_fruit_scene, raycast_depth
 
 MESH, SPLAT = ReprojectParams(mode="mesh"), ReprojectParams(mode="splat")

@@ -1,4 +1,4 @@
-"""ZED self-rectification (gtforge.core.selfcal): on a real ZED Mini pair against the vendor SDK's own \
+"""ZED self-rectification (gtforge.core.zed.selfcal): on a real ZED Mini pair against the vendor SDK's own \
 rectification, on the
 generator's rectified and raw sessions with a right camera turned against its files (exact truth), and its refusals."""
 from __future__ import annotations
@@ -13,9 +13,9 @@ from made_once import session_spec
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig, ScaleCorrections
 from gtforge.core.geometry import make_T
-from gtforge.core.rectification import match_points
-from gtforge.core.scale_corrections import apply_homography, corrected_right_image, right_yaw_homography
-from gtforge.core.selfcal import (
+from gtforge.core.zed.rectification import match_points
+from gtforge.core.zed.scale_corrections import apply_homography, corrected_right_image, right_yaw_homography
+from gtforge.core.zed.selfcal import (
     CorrectedRightImage,
     Matches,
     RightImageCorrection,
@@ -403,7 +403,7 @@ def test_resample_image_is_exact_and_keeps_16_bit_values():
     """The one resampling of a corrected session (cubic B-spline at the exact positions): the identity returns the
     image unchanged, 8-bit and 16-bit (values above 255 are kept: it once clipped every image to 255), and a
     sub-pixel shift of a linear ramp is the shifted ramp, not rounded to OpenCV's 1/32 px."""
-    from gtforge.core.scale_corrections import resample_image
+    from gtforge.core.zed.scale_corrections import resample_image
 
     vv, uu = np.mgrid[0:40, 0:50].astype(np.float64)
     for img in ((uu * 1000 + vv).astype(np.uint16),

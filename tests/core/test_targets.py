@@ -1,4 +1,4 @@
-"""ChArUco (partial views), circle grids, the board declaration and its mismatch errors (gtforge.core.targets).
+"""ChArUco (partial views), circle grids, the board declaration and its mismatch errors (gtforge.core.targets.models).
 
 Boards are rendered by the generator (exact truth) at small sizes, inside their bounding box only
 (``render_board_views``); the extrinsic limits are the checkerboard's (0.05 deg / 0.5 mm at 7 poses, 0.4x:
@@ -11,10 +11,10 @@ from conftest import synthetic_session
 from made_once import session_spec
 
 from gtforge.calibrate import calibrate_observations, detect_pose
-from gtforge.core.board import BoardSpec
+from gtforge.core.targets.board import BoardSpec
 from gtforge.core.geometry import pose_difference
-from gtforge.core.target_detection import circle_centre_bias, detect_charuco
-from gtforge.core.targets import (
+from gtforge.core.targets.detection import circle_centre_bias, detect_charuco
+from gtforge.core.targets.models import (
     MIN_COMMON_CORNERS,
     BoardModel,
     CharucoSpec,
@@ -192,7 +192,7 @@ def test_a_dot_twice_the_others_size_is_centred(seed):
     # the centroid window comes from each circle's own size: a window of 1.5 declared radii lies inside the big dot
     # (no white in it) and walked 4-5 px off on the uneven ink here (3 px on ROS-Industrial's real photos,
     # tests/core/test_real_circle_grids.py)
-    from gtforge.core.target_detection import detect_circles
+    from gtforge.core.targets.detection import detect_circles
 
     img, uv, spec = _dot_grid(seed)
     d = detect_circles(img, spec)
@@ -205,7 +205,7 @@ def test_a_dot_twice_the_others_size_is_centred(seed):
 def test_grid_finder_points_out_of_order_are_not_a_grid():
     # findCirclesGrid's clustering mode returned, for a 6x7 declared on OpenCV's 7x7 circles8.png, points out of
     # order and one circle twice; perspective and lens distortion stay far below the limit
-    from gtforge.core.target_detection import grid_is_regular
+    from gtforge.core.targets.detection import grid_is_regular
 
     for spec in (CircleGridSpec(6, 7, 20.0, 9.0, False), CircleGridSpec(4, 11, 14.0, 10.0, True)):
         Hm = np.array([[1.2, 0.3, 50.0], [-0.1, 1.0, 40.0], [0.002, 0.001, 1.0]])
@@ -405,7 +405,7 @@ def circles_stereo_session(request):
 
 
 def _meter(session, spec, right_of=lambda img: img):
-    from gtforge.core.rectification import RectificationMeter
+    from gtforge.core.zed.rectification import RectificationMeter
     from gtforge.io.captures import open_session
 
     s = open_session(session)

@@ -1,12 +1,12 @@
-"""Per-pixel GT uncertainty (gtforge.core.uncertainty) and the calibration covariance it starts from, against exact \
+"""Per-pixel GT uncertainty (gtforge.core.ground_truth.uncertainty) and the calibration covariance it starts from, against exact \
 truth."""
 import numpy as np
 import pytest
 
 from gtforge.calibrate import calibrate_observations
-from gtforge.core.board import PoseObs
+from gtforge.core.targets.board import PoseObs
 from gtforge.core.geometry import transform_points
-from gtforge.core.uncertainty import DepthNoiseModel, UncertaintyParams, draw_ground_truth
+from gtforge.core.ground_truth.uncertainty import DepthNoiseModel, UncertaintyParams, draw_ground_truth
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.captures import open_session
 from gtforge.io.formats import read_pfm
@@ -23,7 +23,7 @@ def test_calibration_covariance_matches_the_spread_of_errors():
     changes only the covariance's scale, so each draw's one calibration gives both figures."""
     from scipy.spatial.transform import Rotation
 
-    from gtforge.core.board import BoardSpec, solve_pnp
+    from gtforge.core.targets.board import BoardSpec, solve_pnp
     from gtforge.synthetic import default_rig, random_board_pose
 
     rig = default_rig(0.4)
@@ -96,8 +96,8 @@ def test_sigma_map_coverage_per_region(session_dir, calibration, T_true, noise_m
 def test_sigma_map_is_the_same_for_float32_and_float64_inputs(session_dir, calibration):
     """The kernel reads float32 maps without copying them to float64, widening each sample before any arithmetic:
     the same sigma map as float64 inputs; no covariance is a zero covariance, no span an all-NaN span."""
-    from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
-    from gtforge.core.uncertainty import disparity_sigma
+    from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
+    from gtforge.core.ground_truth.uncertainty import disparity_sigma
 
     cal = CalibrationFile.read(calibration[0])
     rig = cal.rig
@@ -168,7 +168,7 @@ def test_sigma_stats_by_label_counts_as_numpy_does():
     """The compiled statistics passes (finite positive values with their labels, log-histogram, count above 0.1 px) give
     the counts of the plain numpy computation they replace, on values at the bin edges, at float32(0.1) itself, below
     and above the histogram's range, and on NaN, inf, zero and negative values; labels as uint8 and as a bool mask."""
-    from gtforge.core.uncertainty import _LOG_EDGES, _finite_positive, _log_histogram, sigma_stats_by_label
+    from gtforge.core.ground_truth.uncertainty import _LOG_EDGES, _finite_positive, _log_histogram, sigma_stats_by_label
 
     rng = np.random.default_rng(5)
     shape = (61, 83)
@@ -233,7 +233,7 @@ def test_sigma_kernel_matches_the_formulas_on_and_off_the_image_borders():
     """The compiled kernel (the GT's bounding box only, branch-free rows, the image's first and last columns apart)
     gives the docstring's formulas computed in numpy: GT inside the image, GT touching every border, holes, one-sided
     and missing slopes, NaN spans, no covariance."""
-    from gtforge.core.uncertainty import _sigma_kernel
+    from gtforge.core.ground_truth.uncertainty import _sigma_kernel
 
     rng = np.random.default_rng(11)
     H, W = 37, 53

@@ -8,7 +8,7 @@ Regenerate the overlay in docs/images and print every figure docs/cameras.md quo
 
     .venv/bin/python tests/io/test_real_frame.py --overlay docs/images/azure_kinect_overlay.jpg
 
-and, after the extrinsic's correction by gtforge.core.edge_alignment (tests/core/test_edge_alignment.py), the corrected
+and, after the extrinsic's correction by gtforge.core.alignment.edge_alignment (tests/core/test_edge_alignment.py), the corrected
 figures and overlay:
 
     .venv/bin/python tests/io/test_real_frame.py --corrected --overlay docs/images/azure_kinect_overlay_corrected.jpg
@@ -24,7 +24,7 @@ import numpy as np
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import invert_T
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.io.captures import read_depth
 from gtforge.io.formats import read_image
 from gtforge.io.vendors import read_kinect_calibration
@@ -308,9 +308,9 @@ def report() -> None:
 
 
 def report_corrected(infrared: Path | None = None) -> Chain:
-    """gtforge.core.edge_alignment's correction of the factory extrinsic (with ``infrared``: from that image's edges
+    """gtforge.core.alignment.edge_alignment's correction of the factory extrinsic (with ``infrared``: from that image's edges
     as the texture, alone), and the measure before and after it."""
-    from gtforge.core.edge_alignment import EdgeAlignmentParams, align_color_to_depth
+    from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, align_color_to_depth
 
     k, depth, color = frame()
     if infrared is None:
@@ -345,7 +345,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description="the real Azure Kinect frame's figures (docs/cameras.md)")
     ap.add_argument("--overlay", type=Path, help="write the overlay JPEG here")
     ap.add_argument("--corrected", action="store_true",
-                    help="correct the extrinsic with gtforge.core.edge_alignment; the overlay shows the corrected chain")
+                    help="correct the extrinsic with gtforge.core.alignment.edge_alignment; the overlay shows the corrected chain")
     ap.add_argument("--infrared", type=Path, help="with --corrected: the depth camera's infrared image as the texture")
     args = ap.parse_args()
     corrected = report_corrected(args.infrared) if args.corrected else None

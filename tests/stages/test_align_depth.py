@@ -1,4 +1,4 @@
-"""gtforge align-depth (gtforge.align_depth, gtforge.core.edge_alignment.align_captures): a separate depth camera's
+"""gtforge align-depth (gtforge.align_depth, gtforge.core.alignment.edge_alignment.align_captures): a separate depth camera's
 pose refined from every capture's edges together.
 
 Exact truth: gtforge.synthetic's two-camera rig (the depth camera 45 mm beside the texture camera) with session.yaml's
@@ -16,9 +16,9 @@ import pytest
 
 from gtforge.align_depth import align_depth, summary_lines
 from gtforge.core.camera import Rig
-from gtforge.core.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
+from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
 from gtforge.core.geometry import perturb_left
-from gtforge.core.scale_corrections import depth_pose_jacobian_image, depth_pose_sigma_px
+from gtforge.core.zed.scale_corrections import depth_pose_jacobian_image, depth_pose_sigma_px
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session

@@ -343,7 +343,7 @@ def test_fruit_centre_equals_the_full_image_erosion():
     OpenCV's erosion of the whole mask, also for fruit touching the image border."""
     import cv2
 
-    from gtforge.core.regions import REGION_CENTRE, REGION_EDGE, fruit_regions
+    from gtforge.core.ground_truth.regions import REGION_CENTRE, REGION_EDGE, fruit_regions
 
     rng = np.random.default_rng(1)
     yy, xx = np.mgrid[0:60, 0:80]
@@ -396,7 +396,7 @@ def test_fruit_regions_equal_the_point_cloud_computation():
 
     from gtforge.core.camera import PinholeCamera, RectifiedStereo
     from gtforge.core.geometry import fit_plane_robust
-    from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
+    from gtforge.core.ground_truth.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
 
     H, W = 240, 320
     cam = PinholeCamera(width_px=W, height_px=H, fx_px=300.0, fy_px=300.0, cx_px=161.3, cy_px=118.7)
@@ -567,7 +567,7 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
     """The compiled occlusion mask and one-pass statistics give numpy's values exactly (NaN, +-inf, strided crops);
     calib.txt's vmin/vmax/ndisp from the range."""
     from gtforge.build_dataset import _disparity_summary
-    from gtforge.core.regions import occlusion_mask
+    from gtforge.core.ground_truth.regions import occlusion_mask
     from gtforge.io.middlebury import middlebury_calib_text
 
     rng = np.random.default_rng(3)
@@ -698,7 +698,7 @@ def test_scenes_of_a_right_corrected_calibration_are_rebuilt_after_the_resamplin
     without a correction the hash is the parameters' own, and nothing is rebuilt."""
     from gtforge.build_dataset import scene_params_hash
     from gtforge.core.camera import Rig, ScaleCorrections
-    from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
+    from gtforge.core.zed.selfcal import ZedRightCorrection, ZedSelfRectification
     from gtforge.records.calibration import CalibrationFile
     from gtforge.synthetic import default_rig
 

@@ -51,7 +51,7 @@ def test_outlier_pose_is_rejected_and_use_depth_agrees(session_dir, T_true):
     s, obs, reps = _observations(session_dir)
     # corrupt one pose: its ZED detections shifted by 6 px (a mismatched image pair, say)
     obs[2].zed_uv = obs[2].zed_uv + np.array([6.0, 0.0])
-    from gtforge.core.board import solve_pnp
+    from gtforge.core.targets.board import solve_pnp
 
     obs[2].T_zed_from_board = solve_pnp(CalibrateParams().board.spec().corners_board(), obs[2].zed_uv, s.zed.left)
     res = calibrate_observations(obs, reps, s.mech, s.zed, CalibrateParams(use_depth=True, leave_one_out=False))
@@ -72,7 +72,7 @@ def test_too_few_poses_is_a_clear_error(session_dir, tmp_path):
 
 
 def test_wrong_board_spec_skips_every_pose(session_dir, tmp_path):
-    from gtforge.core.targets import BoardModel
+    from gtforge.core.targets.models import BoardModel
 
     with pytest.raises(InputError, match="usable"):
         calibrate(session_dir, tmp_path / "c.yaml", CalibrateParams(board=BoardModel(cols=10, rows=7),

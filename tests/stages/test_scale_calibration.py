@@ -9,14 +9,14 @@ from conftest import synthetic_session
 from made_once import session_spec
 
 from gtforge.core.camera import Rig, ScaleCorrections
-from gtforge.core.scale_corrections import (
+from gtforge.core.zed.scale_corrections import (
     apply_homography,
     corrected_right_image,
     scale_sigma_px,
     shown_disparity_px,
     yaw_homography,
 )
-from gtforge.core.selfcal import corrected_right
+from gtforge.core.zed.selfcal import corrected_right
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
@@ -131,7 +131,7 @@ def test_build_dataset_writes_the_corrected_geometry(errors_session, errors_cali
     re-rectification), the labels the corrected GT, the scene's verification reads no stereo bias and the sigma map
     carries the scale terms."""
     from gtforge.build_dataset import build_dataset
-    from gtforge.core.scale_corrections import scale_sigma_px
+    from gtforge.core.zed.scale_corrections import scale_sigma_px
     from gtforge.io.formats import read_image, read_pfm
 
     start, res = errors_calibrated
@@ -370,8 +370,8 @@ def test_depth_pose_jacobian_is_the_ground_truths_change(pose_session):
     """``depth_pose_jacobian_px`` against the GT rebuilt with the depth camera turned (0.05 deg about each axis in
     turn): the first-order change at every smooth GT pixel."""
     from gtforge.core.geometry import perturb_left
-    from gtforge.core.photometric import interior_mask, smooth_depth_mask
-    from gtforge.core.scale_corrections import depth_pose_jacobian_px
+    from gtforge.core.alignment.photometric import interior_mask, smooth_depth_mask
+    from gtforge.core.zed.scale_corrections import depth_pose_jacobian_px
 
     rig = CalibrationFile.read(_known_calibration(pose_session, pose_session.parent / "jac.yaml")).rig
     s = open_session(pose_session)
@@ -431,7 +431,7 @@ def test_separate_depth_cameras_pose_is_recovered(pose_session, tmp_path, boards
     before, after = _gt_epe(pose_session, CalibrationFile.read(start)), _gt_epe(pose_session, res)
     assert min(before) > 0.5 and max(after) <= 0.01, (before, after)
     # the sigma map carries the rotation's covariance: the pose block alone gives |J_pose| sigma (deg -> rad)
-    from gtforge.core.scale_corrections import depth_pose_jacobian_image
+    from gtforge.core.zed.scale_corrections import depth_pose_jacobian_image
 
     pose_only = np.zeros((7, 7))
     pose_only[4:, 4:] = C[4:, 4:]

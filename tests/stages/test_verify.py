@@ -245,7 +245,7 @@ def test_local_normalize_is_the_numpy_expression():
     with NaN and inf in the image, flat areas and a mask whose weights fall to 0 (division by zero)."""
     import cv2
 
-    from gtforge.core.photometric import local_normalize
+    from gtforge.core.alignment.photometric import local_normalize
 
     def reference(img, mask, sigma_px):  # gtforge's numpy implementation before the compiled pass
         k = (0, 0)

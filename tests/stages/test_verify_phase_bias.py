@@ -2,7 +2,7 @@
 
 A fronto-parallel textured plane has one disparity phase everywhere, so a sampler whose error depends on the phase
 (Keys' cubic convolution) biases the stereo check there (the issue's table: +0.05 px); the check now samples the right
-image by cubic B-spline with its own derivatives (``gtforge.core.photometric.sample_spline``). Images are rendered
+image by cubic B-spline with its own derivatives (``gtforge.core.alignment.photometric.sample_spline``). Images are rendered
 exactly from a band-limited texture (``benchmarks/bench_verify_phase_bias.py``: the same scenes, with the figures)."""
 import sys
 from pathlib import Path
@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gtforge.core.photometric import (
+from gtforge.core.alignment.photometric import (
     interior_mask,
     local_normalize,
     sample_cubic,
@@ -19,7 +19,7 @@ from gtforge.core.photometric import (
     spline_prefilter,
     textured_mask,
 )
-from gtforge.core.regions import REGION_BG
+from gtforge.core.ground_truth.regions import REGION_BG
 from gtforge.dataset.scene_verification import stereo_consistency
 from gtforge.records.verification import VerifyParams
 
@@ -156,7 +156,7 @@ def test_noise_floors_in_the_record_and_the_html_report(tmp_path):
     verification.json of schema 1 (figures of the biased sampler, no floors) is refused with the reason."""
     import json
 
-    from gtforge.core.photometric import ShiftEstimate
+    from gtforge.core.alignment.photometric import ShiftEstimate
     from gtforge.errors import InputError
     from gtforge.records.verification import SceneVerification, StereoEstimate, VerificationResult
     from gtforge.reports.verification import write_verification_report
@@ -183,7 +183,7 @@ def test_noise_floors_in_the_record_and_the_html_report(tmp_path):
 def test_spline_prefilter_is_scipys():
     """The compiled prefilter gives scipy's mirror-mode coefficients (scale_corrections.spline_coefficients), also for
     images of 2 and 3 pixels and stacks."""
-    from gtforge.core.scale_corrections import spline_coefficients
+    from gtforge.core.zed.scale_corrections import spline_coefficients
 
     rng = np.random.default_rng(0)
     for shape in ((30, 40), (2, 5), (5, 2), (3, 3), (1, 4), (61, 29)):

@@ -158,7 +158,7 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                                      "where the captures determine it (docs/pipeline.md).")) -> None:
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
-    from gtforge.core.targets import BoardModel
+    from gtforge.core.targets.models import BoardModel
     from gtforge.io.calibrated_session import calibration_output_path
     from gtforge.records.calibration import CalibrateParams
     from gtforge.reports.calibration import write_calibration_report
@@ -392,7 +392,7 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
     before and after). Run it after calibrate, before calibrate-scale."""
     from gtforge.align_depth import align_depth as run
     from gtforge.align_depth import summary_lines
-    from gtforge.core.edge_alignment import EdgeAlignmentParams
+    from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams
     from gtforge.io.calibrated_session import calibration_output_path
 
     params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z)
@@ -423,8 +423,8 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
                                                    "figures; needs --calibration), not the board captures.")) -> None:
     """XY reprojection (px) and Z geometric (%) accuracy, and the gauge objects' VDI/VDE 2634-2 figures when the
     session has gauges/gauges.yaml; exit code 1 on FAIL."""
-    from gtforge.core.gauges import summary_lines as gauge_lines
-    from gtforge.core.targets import BoardModel
+    from gtforge.core.measure.gauges import summary_lines as gauge_lines
+    from gtforge.core.targets.models import BoardModel
     from gtforge.records.validation import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams
     from gtforge.validate import validate as run
     from gtforge.validate import validate_gauges
@@ -540,7 +540,7 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
         pred = PredictionFolder(predictions, name)
     else:
         pred = SGBM(name=name or "SGBM")
-    from gtforge.core.fruit_size import parse_grades
+    from gtforge.core.measure.fruit_size import parse_grades
 
     bins = parse_grades(grades) if grades is not None else None
     rep = run(dataset, pred, output, split, max_disp, clouds, params_count, _status, max_gt_sigma_px=max_gt_sigma,
@@ -622,7 +622,7 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
     """Write a capture session (docs/capture-layout.md, "From recordings") from sensor recordings."""
     from rich.table import Table
 
-    from gtforge.core.targets import BoardModel
+    from gtforge.core.targets.models import BoardModel
     from gtforge.importer import import_recordings
     from gtforge.io.ros_recordings import Topics
     from gtforge.records.imports import ImportParams

@@ -215,7 +215,7 @@ class ScaleCorrections(GTModel):
       camera (``T_actual_from_rectified = R_y(yaw)``); the right image is corrected by the homography
       ``K_right R_y(yaw) K_right^-1`` (rectified pixel -> pixel of the image as captured) before it is written or
       compared: composed with the ZED self-rectification into the one resampling of the right image that opening the
-      session makes (``CalibrationFile.open_session``, ``gtforge.core.selfcal.corrected_right``)."""
+      session makes (``CalibrationFile.open_session``, ``gtforge.core.zed.selfcal.corrected_right``)."""
 
     depth_scale: float = Field(1.0, gt=0)
     depth_offset_mm: float = 0.0

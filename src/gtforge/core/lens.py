@@ -32,7 +32,7 @@ import math
 import numba
 import numpy as np
 
-# numba: prefer OpenMP (as gtforge.core.reproject; TBB builds on Debian are often too old)
+# numba: prefer OpenMP (as gtforge.core.ground_truth.reproject; TBB builds on Debian are often too old)
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 N_COEFFS = 14

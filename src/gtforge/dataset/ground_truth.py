@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from gtforge.core.camera import Rig
-from gtforge.core.regions import fruit_regions
-from gtforge.core.reproject import reproject_to_zed
+from gtforge.core.ground_truth.regions import fruit_regions
+from gtforge.core.ground_truth.reproject import reproject_to_zed
 from gtforge.records.dataset import BuildParams
 
 

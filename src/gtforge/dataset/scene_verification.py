@@ -14,14 +14,14 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
 * **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
   Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
   (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
-  ``gtforge.core.rectification`` reports it for board corners), per region. The right image is sampled by cubic
+  ``gtforge.core.zed.rectification`` reports it for board corners), per region. The right image is sampled by cubic
   B-spline with its own derivatives (``sample_spline``): phase-unbiased, where Keys' cubic convolution read a false
   bias on surfaces of one disparity phase (a fronto-parallel table, issue 41). A textured pixel's match is "clearly
   worse" when the 5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps
   of 0.5 px) by more than ``bad_match_ratio``; their share is reported.
 
 Every figure comes with its noise floor (``*_noise_px``, ``correlation_noise``: 1 sigma, what exact labels give on
-this scene; ``gtforge.core.photometric.block_noise``). A scene is **flagged** when a figure passes its threshold
+this scene; ``gtforge.core.alignment.photometric.block_noise``). A scene is **flagged** when a figure passes its threshold
 (``VerifyParams``, documented defaults in px at the dataset's resolution). Nothing here changes the ground truth.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import finite_box, mask_bounding_box, transform_points
-from gtforge.core.photometric import (
+from gtforge.core.alignment.photometric import (
     MAX_POINTS,
     ShiftAligner,
     ShiftEstimate,
@@ -52,8 +52,8 @@ from gtforge.core.photometric import (
     textured_mask,
     to_gray,
 )
-from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
-from gtforge.core.render import render_texture
+from gtforge.core.ground_truth.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
+from gtforge.core.ground_truth.render import render_texture
 from gtforge.io.formats import write_image
 from gtforge.records.verification import SceneVerification, StereoEstimate, VerifyParams
 
@@ -196,7 +196,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         # the noise floor: the last linearisation solved per band of pixels (block_noise; A, w_ are at the solution
         # within 1e-4 px)
         noise = block_noise(A, w_ - lv, 2)
-        # vertical disparity v_left - v_right, as gtforge.core.rectification reports it for board corners
+        # vertical disparity v_left - v_right, as gtforge.core.zed.rectification reports it for board corners
         out[name] = StereoEstimate(disparity_bias_px=float(b), vertical_px=float(-dy),
                                    bad_match_pct=float(100.0 * wr.mean()), n_pixels=n,
                                    disparity_bias_noise_px=None if noise is None else float(noise[0]),

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from gtforge.core.camera import Rig
-from gtforge.core.targets import BoardModel
+from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.captures import Session, open_session
 
@@ -15,7 +15,7 @@ from gtforge.io.captures import Session, open_session
 def open_with_calibration(session_dir: str | Path, calib: Any, right_yaw: bool = True) -> Session:
     """The session as ``calib`` (a ``CalibrationFile``) sees it: raw ZED images rectified with the recorded SN.conf
     reading, and the right image corrected for the self-rectification and calibrate-scale's yaw
-    (``rig.scale_corrections``) in one resampling (``gtforge.core.selfcal.corrected_right``): the right image every
+    (``rig.scale_corrections``) in one resampling (``gtforge.core.zed.selfcal.corrected_right``): the right image every
     stage reads is the dataset's im1, and no stage resamples it again. ``right_yaw=False``: without the yaw (the right
     image as calibrate-scale measured the yaw on, and as validate measures the rectification)."""
     return open_session(session_dir, zed_conf_reading=calib.zed_conf_reading,

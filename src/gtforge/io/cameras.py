@@ -3,7 +3,7 @@ and the ZED factory calibration ``SN<serial>.conf`` (with rectification, no ZED 
 
 ZED SN.conf (docs/conventions.md, "ZED SN.conf"): the published code reads the STEREO section in
 incompatible ways; each reading is named in ``ZED_CONF_READINGS`` and ``ZedFactoryCalibration.extrinsics``
-applies one. ``gtforge calibrate`` chooses it from the board images (``gtforge.core.rectification``); the
+applies one. ``gtforge calibrate`` chooses it from the board images (``gtforge.core.zed.rectification``); the
 rectified right camera always sits at ``+baseline_mm`` along the left camera's x axis.
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ from gtforge.core.camera import (
     RectifiedStereo,
     StereoCalibrationFile,
 )
-from gtforge.core.scale_corrections import resample_image
+from gtforge.core.zed.scale_corrections import resample_image
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_text
 
@@ -314,12 +314,12 @@ class ZedRectification:
     P_right: np.ndarray
     reading: str = DEFAULT_ZED_CONF_READING
     factory: ZedFactoryCalibration | None = None
-    correction: object | None = None  # gtforge.core.selfcal.ZedRightCorrection folded into the right maps
-    # calibrate-scale's yaw of the right camera folded into the right maps too (gtforge.core.selfcal.corrected_right)
+    correction: object | None = None  # gtforge.core.zed.selfcal.ZedRightCorrection folded into the right maps
+    # calibrate-scale's yaw of the right camera folded into the right maps too (gtforge.core.zed.selfcal.corrected_right)
     right_yaw_deg: float = 0.0
     # how both images are sampled at their maps: bilinear (cv2.remap, which rounds positions to 1/32 px), or cubic
-    # B-spline at the exact positions (gtforge.core.scale_corrections.resample_image) once gtforge corrects the right
-    # camera (gtforge.core.selfcal.corrected_rectification): the same kernel for both eyes, or feature matches (and a
+    # B-spline at the exact positions (gtforge.core.zed.scale_corrections.resample_image) once gtforge corrects the right
+    # camera (gtforge.core.zed.selfcal.corrected_rectification): the same kernel for both eyes, or feature matches (and a
     # network) see two blurs (the real ZED Mini view: 0.123 px of rows with both bilinear, 0.137 with the right image
     # alone by spline, 0.111 with both)
     interpolation: Literal["linear", "cubic-bspline"] = "linear"

@@ -19,8 +19,8 @@ from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
-from gtforge.core.selfcal import corrected_right
-from gtforge.core.targets import BoardModel
+from gtforge.core.zed.selfcal import corrected_right
+from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.infra.digest import blake3_hex
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
@@ -192,7 +192,7 @@ class SessionFile(VersionedFile):
     scenes_dir: str = "scenes"
     files: FileNames = Field(default_factory=FileNames)
     fruit_ids: dict[str, str] = Field(default_factory=dict)
-    # the calibration target (gtforge.core.targets.BoardModel: kind, cols, rows, square_size_mm, ...); absent: the
+    # the calibration target (gtforge.core.targets.models.BoardModel: kind, cols, rows, square_size_mm, ...); absent: the
     # command line's (default: the 12x9 checkerboard)
     board: BoardModel | None = None
 
@@ -271,7 +271,7 @@ class Session:
     mech: PinholeCamera  # the texture camera (2D image)
     zed: RectifiedStereo
     # ZedRectification when raw images + SN.conf; for images rectified before gtforge with a correction of the right
-    # camera, gtforge.core.selfcal.RightImageCorrection (the self-rectification) or CorrectedRightImage (with
+    # camera, gtforge.core.zed.selfcal.RightImageCorrection (the self-rectification) or CorrectedRightImage (with
     # calibrate-scale's yaw); None: the images are used as they are
     rectification: object | None
     depth_cam: PinholeCamera | None = None  # the depth map's camera when it is not the texture camera
@@ -507,11 +507,11 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
     ``zed_right_correction``: the right camera's correction a calibration file recorded
-    (``gtforge.core.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to
+    (``gtforge.core.zed.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to
     the
     right image of images rectified before gtforge. ``zed_right_yaw_deg``: calibrate-scale's yaw of the right camera
     (``Rig.scale_corrections``), composed with it into the same single resampling of the right image
-    (``gtforge.core.selfcal.corrected_right``)."""
+    (``gtforge.core.zed.selfcal.corrected_right``)."""
 
     root = Path(root)
     if not root.is_dir():

@@ -1,6 +1,6 @@
 """How a session's ZED images are rectified, decided from the captures themselves: which reading of a factory
 ``SN<serial>.conf`` (``gtforge.io.cameras.ZED_CONF_READINGS``) the board corners or feature matches support, and the
-right camera's self-rectification (``gtforge.core.selfcal`` fits it; this module collects the matches over a
+right camera's self-rectification (``gtforge.core.zed.selfcal`` fits it; this module collects the matches over a
 session's captures). calibrate runs both and stores the result; every later stage reads the captures with it."""
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from gtforge.core.board import BoardSpec
-from gtforge.core.rectification import (
+from gtforge.core.targets.board import BoardSpec
+from gtforge.core.zed.rectification import (
     TIE_PX,
     VERTICAL_WARN_PX,
     VerticalDisparity,
@@ -27,8 +27,8 @@ from gtforge.core.rectification import (
     rectify_points,
 )
 from gtforge.core.schema import GTModel
-from gtforge.core.selfcal import Matches, SelfRectifyParams, ZedSelfRectification, fit_self_rectification
-from gtforge.core.target_detection import PairSkipped, detect_target
+from gtforge.core.zed.selfcal import Matches, SelfRectifyParams, ZedSelfRectification, fit_self_rectification
+from gtforge.core.targets.detection import PairSkipped, detect_target
 from gtforge.errors import InputError
 from gtforge.io.cameras import (
     DEFAULT_ZED_CONF_READING,
@@ -247,7 +247,7 @@ def _default_reading() -> str:
 def detect_raw_pairs(session: Session, dirs: list[Path], board: BoardSpec,
                      progress: Callable[[str], None] | None = None) -> tuple[list[RawBoardPair], dict[str, str]]:
     """The board's points in the raw left and right images of each capture in ``dirs`` (detected once), matched by
-    id: any target of ``gtforge.core.targets`` (``gtforge.core.rectification.matched_board_points``: circle centres
+    id: any target of ``gtforge.core.targets.models`` (``gtforge.core.zed.rectification.matched_board_points``: circle centres
     corrected at each raw image's PnP pose with the conf's lens models, which no reading changes; a symmetric grid
     numbered alike). A capture whose board is not found, or that gives fewer than 6 common points or collinear ones,
     is left out with the reason."""

@@ -10,11 +10,11 @@ import numpy as np
 from pydantic import Field, PrivateAttr, model_serializer
 
 from gtforge.core.camera import Rig
-from gtforge.core.coverage import CoverageResult
-from gtforge.core.rectification import RectificationQuality
+from gtforge.core.targets.coverage import CoverageResult
+from gtforge.core.zed.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.core.selfcal import ZedRightCorrection, ZedSelfRectification
-from gtforge.core.targets import BoardModel
+from gtforge.core.zed.selfcal import ZedRightCorrection, ZedSelfRectification
+from gtforge.core.targets.models import BoardModel
 from gtforge.io.zed_rectification import ZedConfChoice
 from gtforge.records.depth_alignment import DepthAlignment
 from gtforge.records.verification import VerifyParams
@@ -35,7 +35,7 @@ class CalibrateParams(GTModel):
     # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
     methods_agree_deg: float = 0.1
     methods_agree_mm: float = 1.0
-    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.core.selfcal)
+    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.core.zed.selfcal)
     self_rectify: bool = True
 
 
@@ -54,7 +54,7 @@ class PoseResult(GTModel):
     init_trans_dev_mm: float | None = None
     loo_transfer_mean_px: float | None = None
     loo_transfer_max_px: float | None = None
-    # ChArUco / circle grids (gtforge.core.targets): board points found in each image and in both (None: checkerboard)
+    # ChArUco / circle grids (gtforge.core.targets.models): board points found in each image and in both (None: checkerboard)
     n_points_mech: int | None = None
     n_points_zed: int | None = None
     n_points_common: int | None = None
@@ -158,7 +158,7 @@ class CalibrationFile(VersionedFile):
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
-    coverage: CoverageResult | None = None  # where the board points fell and what to capture next (gtforge.core.coverage)
+    coverage: CoverageResult | None = None  # where the board points fell and what to capture next (gtforge.core.targets.coverage)
     # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
     scale_calibration: ScaleCalibration | None = None
     # set by gtforge align-depth: a separate depth camera's pose from the captures' edges (applied in rig)
@@ -176,10 +176,10 @@ class CalibrationFile(VersionedFile):
         return s.correction if s is not None and s.status == "applied" else None
 
     # the ZED pair's rectification (board corners in both rectified images) and, for raw images + SN.conf,
-    # the conf reading chosen from the board images (gtforge.core.rectification; later stages rectify with it)
+    # the conf reading chosen from the board images (gtforge.core.zed.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None
     zed_conf: ZedConfChoice | None = None
-    # the ZED pair's self-rectification (gtforge.core.selfcal): when applied, every later stage rectifies with its correction
+    # the ZED pair's self-rectification (gtforge.core.zed.selfcal): when applied, every later stage rectifies with its correction
     zed_self_rectification: ZedSelfRectification | None = None
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)

@@ -9,9 +9,9 @@ from typing import ClassVar, Literal
 
 from pydantic import Field
 
-from gtforge.core.reproject import ReprojectParams
+from gtforge.core.ground_truth.reproject import ReprojectParams
 from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.core.uncertainty import SigmaStats, UncertaintyParams
+from gtforge.core.ground_truth.uncertainty import SigmaStats, UncertaintyParams
 from gtforge.records.verification import SceneVerification, VerifyParams
 
 
@@ -36,7 +36,7 @@ class BuildParams(GTModel):
     ply: bool = False
     max_disp_px: float = 192.0  # statistics: share of pixels above this (many training repos drop them)
     verification: bool = True  # per-scene checks of the GT against its own images (gtforge.verify)
-    sigma: bool = True  # disp0GT_sigma.pfm: per-pixel 1-sigma GT uncertainty (gtforge.core.uncertainty)
+    sigma: bool = True  # disp0GT_sigma.pfm: per-pixel 1-sigma GT uncertainty (gtforge.core.ground_truth.uncertainty)
     right_gt: bool = True  # disp1GT.pfm + mask1nocc.png (+ KITTI disp_occ_1/disp_noc_1): the right view's GT
     uncertainty: UncertaintyParams = Field(default_factory=UncertaintyParams)
     verify: VerifyParams = Field(default_factory=VerifyParams)

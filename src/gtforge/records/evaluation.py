@@ -6,8 +6,8 @@ from typing import ClassVar
 
 from pydantic import Field
 
-from gtforge.core.fruit_size import FruitSizeResult
-from gtforge.core.metrics import Metrics
+from gtforge.core.measure.fruit_size import FruitSizeResult
+from gtforge.core.measure.metrics import Metrics
 from gtforge.core.schema import VersionedFile
 
 REGIONS = ("all", "nonoccluded", "fruit", "fruit_edge", "fruit_centre", "background")
@@ -62,5 +62,5 @@ class EvalResult(VersionedFile):
     pooled: dict[str, Metrics]
     per_image_mean: dict[str, Metrics]
     per_scene: list[SceneResult]
-    # per-fruit size, volume and grade (gtforge.core.fruit_size); absent in results written before it existed
+    # per-fruit size, volume and grade (gtforge.core.measure.fruit_size); absent in results written before it existed
     fruit_size: "FruitSizeResult | None" = None

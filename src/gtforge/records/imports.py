@@ -8,7 +8,7 @@ from typing import ClassVar, Literal
 from pydantic import Field
 
 from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.core.targets import BoardModel
+from gtforge.core.targets.models import BoardModel
 
 
 class ImportParams(GTModel):

@@ -6,10 +6,10 @@ from typing import ClassVar
 
 from pydantic import Field
 
-from gtforge.core.gauges import GaugesResult
-from gtforge.core.rectification import RectificationQuality
+from gtforge.core.measure.gauges import GaugesResult
+from gtforge.core.zed.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.core.targets import BoardModel
+from gtforge.core.targets.models import BoardModel
 
 REFERENCE_XY_PX = 0.56
 
@@ -78,9 +78,9 @@ class ValidationResult(VersionedFile):
     skipped: dict[str, str] = Field(default_factory=dict)
     poses: list[PoseValidation]
     corner_errors: list[list[float]] = Field(default_factory=list)  # (u_zed, v_zed, du, dv) per corner
-    # vertical disparity of the board corners in both rectified ZED images (gtforge.core.rectification)
+    # vertical disparity of the board corners in both rectified ZED images (gtforge.core.zed.rectification)
     rectification: RectificationQuality | None = None
-    # VDI/VDE 2634-2 figures on the session's gauge objects (gtforge.core.gauges); absent: no gauges/gauges.yaml
+    # VDI/VDE 2634-2 figures on the session's gauge objects (gtforge.core.measure.gauges); absent: no gauges/gauges.yaml
     gauges: GaugesResult | None = None
 
 

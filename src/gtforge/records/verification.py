@@ -6,8 +6,8 @@ from typing import ClassVar, Literal
 
 from pydantic import Field
 
-from gtforge.core.photometric import ShiftEstimate
-from gtforge.core.rectification import VERTICAL_WARN_PX
+from gtforge.core.alignment.photometric import ShiftEstimate
+from gtforge.core.zed.rectification import VERTICAL_WARN_PX
 from gtforge.core.schema import GTModel, VersionedFile
 
 
@@ -36,7 +36,7 @@ class StereoEstimate(GTModel):
     vertical_px: float | None = None
     bad_match_pct: float | None = None
     n_pixels: int = 0
-    # noise floors (1 sigma, px) of the two figures: what exact labels give on this scene (gtforge.core.photometric
+    # noise floors (1 sigma, px) of the two figures: what exact labels give on this scene (gtforge.core.alignment.photometric
     # .block_noise); None where not measured
     disparity_bias_noise_px: float | None = None
     vertical_noise_px: float | None = None

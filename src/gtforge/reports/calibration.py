@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.core.coverage import GRID_COLS, GRID_ROWS
+from gtforge.core.targets.coverage import GRID_COLS, GRID_ROWS
 from gtforge.infra.atomic import atomic_write_text
 from gtforge.records.calibration import CalibrationFile, MethodResult
 from gtforge.reports import rectification as rectification_report
@@ -229,7 +229,7 @@ def self_rectification_section(calib: CalibrationFile) -> Section | None:
 
 def coverage_section(calib: CalibrationFile) -> Section | None:
     """Where each camera's board points fell (all detected points of the used poses), the poses' distances and
-    tilts, and what to capture next (gtforge.core.coverage)."""
+    tilts, and what to capture next (gtforge.core.targets.coverage)."""
     cov = getattr(calib, "coverage", None)
     if cov is None:
         return None

@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from gtforge.core.metrics import Metrics
+from gtforge.core.measure.metrics import Metrics
 from gtforge.infra.atomic import atomic_write_text
 from gtforge.records.evaluation import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalResult
 from gtforge.reports.fruit_size import comparison_section, fruit_markdown, fruit_section

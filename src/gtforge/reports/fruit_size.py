@@ -1,4 +1,4 @@
-"""Fruit size, volume and grade in ``results.md``/``results.html``/``comparison.*`` (``gtforge.core.fruit_size``)."""
+"""Fruit size, volume and grade in ``results.md``/``results.html``/``comparison.*`` (``gtforge.core.measure.fruit_size``)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -7,7 +7,7 @@ from gtforge.infra.atomic import atomic_write_text
 from gtforge.reports.html import Section, note, table
 
 if TYPE_CHECKING:
-    from gtforge.core.fruit_size import FruitSizeResult, GradeAgreement
+    from gtforge.core.measure.fruit_size import FruitSizeResult, GradeAgreement
     from gtforge.records.evaluation import EvalResult
 
 FRUIT_NOTE = ("Per fruit (connected fruit components of region.png): an ellipsoid resting on the table (one axis "

@@ -10,7 +10,7 @@ import numpy as np
 from gtforge.reports.html import Section, fig_to_img_tag, note, standard_header, table, write_html
 
 if TYPE_CHECKING:
-    from gtforge.core.gauges import GaugeResult, GaugesResult
+    from gtforge.core.measure.gauges import GaugeResult, GaugesResult
 
 GAUGE_NOTE = ("Ground truth (gt): the GT disparity turned back into 3-D, Z = f*B/(d + doffs), in the ZED-left frame; "
               "raw: the structured-light depth mapped into the same frame. Size error PS = fitted - calibrated "

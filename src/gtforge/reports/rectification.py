@@ -6,8 +6,8 @@ import html
 
 import numpy as np
 
-from gtforge.core.rectification import COLS, ROWS, RectificationQuality
-from gtforge.core.selfcal import ZedSelfRectification
+from gtforge.core.zed.rectification import COLS, ROWS, RectificationQuality
+from gtforge.core.zed.selfcal import ZedSelfRectification
 from gtforge.io.zed_rectification import ZedConfChoice
 from gtforge.reports.html import Section, fig_to_img_tag, note, table
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from gtforge.core import lens
 from gtforge.core.camera import Rig
-from gtforge.core.photometric import to_gray
+from gtforge.core.alignment.photometric import to_gray
 
 
 def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occlusion_tol_mm: float = 2.0,

@@ -5,7 +5,7 @@ texture + depth, ZED pair) and ``gauges/gauges.yaml`` naming each object's calib
 For each gauge the ground truth is built exactly as ``build-dataset`` builds a scene (``reproject_to_zed`` with the
 calibration's rig), turned back into 3-D points in the ZED-left frame from the disparity the dataset ships
 (``Z = f*B/(d + doffs)``), the object segmented (components above the RANSAC table plane, eroded), and fitted by
-least squares (``gtforge.core.shapefit``). The raw structured-light depth, mapped into the same frame, is fitted too
+least squares (``gtforge.core.measure.shapefit``). The raw structured-light depth, mapped into the same frame, is fitted too
 for comparison. Figures (docs/metrics.md, "Gauge objects"):
 
 * sphere: size error ``PS = D_fit - D_cal`` (mm), form error ``PF`` = range of the radial residuals (mm) and their RMS;
@@ -13,7 +13,7 @@ for comparison. Figures (docs/metrics.md, "Gauge objects"):
 * plane: flatness ``F`` = range of the signed distances to the fitted plane (mm) and their RMS.
 
 Each with the number of points used, and the form figures predicted from the per-pixel sigma map
-(``gtforge.core.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and \
+(``gtforge.core.ground_truth.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and \
 changes
 no form or size figure).
 """
@@ -30,11 +30,11 @@ from scipy.stats import norm
 
 from gtforge.core.geometry import fit_plane_robust, transform_points
 from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.core.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere, fit_sphere_ransac
-from gtforge.core.uncertainty import DepthNoiseModel
+from gtforge.core.measure.shapefit import PlaneFit, SphereFit, fit_plane_lsq, fit_sphere, fit_sphere_ransac
+from gtforge.core.ground_truth.uncertainty import DepthNoiseModel
 from gtforge.errors import InputError
 
-log = logging.getLogger("gtforge.core.gauges")
+log = logging.getLogger("gtforge.core.measure.gauges")
 
 GAUGES_DIR = "gauges"
 GAUGES_FILE = "gauges.yaml"

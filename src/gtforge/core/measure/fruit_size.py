@@ -4,7 +4,7 @@
 For each fruit instance (a connected component of ``region.png``'s fruit labels, 2 and 3) the pixels' disparities
 are turned into 3-D points in the ZED-left frame (``Z = f*B/(d + doffs)``), the table is fitted to the same
 source's background pixels around the fruit, and an ellipsoid resting on the table with one axis along its
-normal is fitted to the visible surface (``gtforge.core.shapefit.fit_resting_ellipsoid``). The same pixels are used
+normal is fitted to the visible surface (``gtforge.core.measure.shapefit.fit_resting_ellipsoid``). The same pixels are used
 for the ground truth and for the model's prediction, each with its own table; the generator's exact ellipsoids
 (synthetic sessions, ``truth/scene_<id>.npz``) score the ground truth itself.
 """
@@ -19,9 +19,9 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from gtforge.core.geometry import fit_plane_robust
-from gtforge.core.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
+from gtforge.core.ground_truth.regions import REGION_BG, REGION_CENTRE, REGION_EDGE
 from gtforge.core.schema import GTModel
-from gtforge.core.shapefit import EllipsoidFit, fit_resting_ellipsoid
+from gtforge.core.measure.shapefit import EllipsoidFit, fit_resting_ellipsoid
 from gtforge.errors import InputError
 
 MIN_FRUIT_PX = 200  # smaller fruit components are not measured (specks of a mislabelled region)

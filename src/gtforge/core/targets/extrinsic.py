@@ -10,10 +10,10 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from gtforge.core.board import BoardSpec, PoseObs
+from gtforge.core.targets.board import BoardSpec, PoseObs
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import fit_plane_robust, invert_T, make_T, perturb_left, rotvec_between, transform_points
-from gtforge.core.targets import neighbour_pairs
+from gtforge.core.targets.models import neighbour_pairs
 
 
 class OutlierSettings(Protocol):

@@ -1,5 +1,5 @@
 """Least-squares fits of spheres, planes and resting ellipsoids to 3-D points (mm), for gauge validation
-(VDI/VDE 2634 Part 2 figures, ``gtforge.core.gauges``) and per-fruit size (``gtforge.core.fruit_size``).
+(VDI/VDE 2634 Part 2 figures, ``gtforge.core.measure.gauges``) and per-fruit size (``gtforge.core.measure.fruit_size``).
 
 Every fit minimises a geometric residual with ``scipy.optimize.least_squares`` (the plane: SVD, exact) and
 returns its residuals, so form figures come from the same numbers. A fit that cannot be made (too few points,

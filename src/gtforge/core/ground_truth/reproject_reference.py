@@ -36,8 +36,8 @@ import math
 import numpy as np
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.reproject import _EPS as PIXEL_CENTRE_TOL
-from gtforge.core.reproject import ReprojectParams
+from gtforge.core.ground_truth.reproject import _EPS as PIXEL_CENTRE_TOL
+from gtforge.core.ground_truth.reproject import ReprojectParams
 
 _DEFAULT = ReprojectParams()  # the kernels' defaults
 QUAD_ROWS_PER_BLOCK = 64  # mesh: grid rows handled at once (bounds the memory of the per-quad arrays)

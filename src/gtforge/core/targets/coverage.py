@@ -17,7 +17,7 @@ from pydantic import Field
 
 from gtforge.core.geometry import invert_T, perturb_left, transform_points
 from gtforge.core.schema import GTModel
-from gtforge.core.targets import collinear
+from gtforge.core.targets.models import collinear
 
 GRID_COLS, GRID_ROWS = 8, 6  # the coverage map's cells per image
 CORNER_RADIUS_FRAC = 0.12  # "no points within R of an image corner", R as a share of the image diagonal

@@ -4,7 +4,7 @@ camera's own image's edges) on the colour image's edges.
 Photometric alignment (``gtforge.refine``) needs a texture that looks like the colour image; a depth camera's own
 infrared image often does not (an Azure Kinect's infrared and colour images differ too much for local
 normalisation, docs/cameras.md). Depth discontinuities need no texture: where the depth jumps, the colour image
-almost always has an edge too (a different surface behind). This module (its pieces: ``gtforge.core.edge_features``)
+almost always has an edge too (a different surface behind). This module (its pieces: ``gtforge.core.alignment.edge_features``)
 
 1. renders each capture's depth into the undistorted colour camera at the starting (factory) extrinsic, finds the
    foreground side of every depth jump there and carries it back into the depth camera as a 3-D point
@@ -41,7 +41,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.edge_features import (
+from gtforge.core.alignment.edge_features import (
     DepthEdges,
     EdgeOffset,
     depth_edges,
@@ -53,7 +53,7 @@ from gtforge.core.edge_features import (
     texture_edges,
     undistort_image,
 )
-from gtforge.core.edge_fit import _Cap, _maximise, _Problem, _sandwich, _significance_sigma
+from gtforge.core.alignment.edge_fit import _Cap, _maximise, _Problem, _sandwich, _significance_sigma
 from gtforge.core.geometry import rotation_angle_deg
 from gtforge.core.schema import GTModel, matrix4_field
 from gtforge.errors import InputError
@@ -98,7 +98,7 @@ class EdgeAlignmentParams(GTModel):
 
 class CaptureAlignment(GTModel):
     """One capture in the fit: its edges, and the pixel offset (colour edges minus depth edges, ``(dx, dy)`` px,
-    ``gtforge.core.edge_features.EdgeOffset``) with the factory extrinsic and with the result's."""
+    ``gtforge.core.alignment.edge_features.EdgeOffset``) with the factory extrinsic and with the result's."""
 
     name: str
     excluded: str = ""  # why the capture took no part ("": used)

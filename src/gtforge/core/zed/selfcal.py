@@ -41,13 +41,13 @@ from pydantic import Field
 from scipy.optimize import least_squares
 
 from gtforge.core.camera import RectifiedStereo
-from gtforge.core.scale_corrections import apply_homography, resample_image, right_yaw_homography
+from gtforge.core.zed.scale_corrections import apply_homography, resample_image, right_yaw_homography
 from gtforge.core.schema import GTModel
 
 if TYPE_CHECKING:
     pass
 
-log = logging.getLogger("gtforge.core.selfcal")
+log = logging.getLogger("gtforge.core.zed.selfcal")
 
 
 class SelfRectifyParams(GTModel):
@@ -279,7 +279,7 @@ def right_sampling_homography(stereo: RectifiedStereo, correction: ZedRightCorre
     """``M``: a pixel of the corrected right image -> the pixel of the right image as rectified before gtforge that
     it shows. The self-rectification maps an image pixel ``q`` to ``H q`` (``ZedRightCorrection.homography``);
     calibrate-scale measured its yaw on that self-corrected image, whose pixel ``H_yaw p``
-    (``gtforge.core.scale_corrections.yaw_homography``: ideal rectified pixel -> turned camera's pixel) shows what the
+    (``gtforge.core.zed.scale_corrections.yaw_homography``: ideal rectified pixel -> turned camera's pixel) shows what the
     ideal right camera sees at ``p``. So ``M = H^-1 H_yaw``: the yaw is undone first, then the self-rectification."""
     H_yaw = right_yaw_homography(stereo.right.K, np.radians(right_yaw_deg))
     return H_yaw if correction is None else np.linalg.inv(correction.homography(stereo)) @ H_yaw
@@ -290,7 +290,7 @@ class CorrectedRightImage:
     """Images rectified before gtforge (ZED SDK) with calibrate-scale's yaw, and the self-rectification when it was
     applied: the left image as it is, the right one resampled once (cubic B-spline at ``right_sampling_homography``'s
     exact positions, black outside; with the yaw alone exactly what the stages' second resampling gave,
-    ``gtforge.core.scale_corrections.corrected_right_image``)."""
+    ``gtforge.core.zed.scale_corrections.corrected_right_image``)."""
 
     stereo: RectifiedStereo
     correction: ZedRightCorrection | None

@@ -1,4 +1,4 @@
-"""Finding ChArUco and circle-grid targets (``gtforge.core.targets``) in an image: markers and interpolated corners
+"""Finding ChArUco and circle-grid targets (``gtforge.core.targets.models``) in an image: markers and interpolated corners
 refined to sub-pixel, circle centres with their perspective bias corrected, the pose from them, and one-line reasons
 when a target is not found (a wrong dictionary, a board too small for its markers, a grid cut by the border).
 
@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from gtforge.core.board import Detection, detect_corners, solve_pnp
+from gtforge.core.targets.board import Detection, detect_corners, solve_pnp
 from gtforge.core.geometry import transform_points
-from gtforge.core.photometric import to_gray
-from gtforge.core.targets import (
+from gtforge.core.alignment.photometric import to_gray
+from gtforge.core.targets.models import (
     ARUCO_DICTIONARIES,
     MIN_COMMON_CORNERS,
     CharucoSpec,
@@ -26,7 +26,7 @@ from gtforge.core.targets import (
 )
 from gtforge.errors import InputError
 
-log = logging.getLogger("gtforge.core.targets")
+log = logging.getLogger("gtforge.core.targets.models")
 
 
 def edge_width_px(gray: np.ndarray, pts_uv: np.ndarray, radius_px: float) -> float:
@@ -205,7 +205,7 @@ def _size_for(n_markers: int) -> str:
 
 
 def _subpix_window(corners_uv: np.ndarray, ids: np.ndarray, spec) -> int:
-    """cornerSubPix half-window from the local square size in pixels (as gtforge.core.board: 0.3 of a square, 2-15)."""
+    """cornerSubPix half-window from the local square size in pixels (as gtforge.core.targets.board: 0.3 of a square, 2-15)."""
     a, b = neighbour_pairs(spec, ids)
     if len(a) == 0:
         return 5

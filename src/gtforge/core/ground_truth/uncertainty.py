@@ -31,7 +31,7 @@ from pydantic import Field
 
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import finite_box, perturb_left
-from gtforge.core.reproject import ReprojectParams, project_depth_to_camera
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.core.schema import GTModel
 
 

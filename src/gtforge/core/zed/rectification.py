@@ -2,7 +2,7 @@
 
 **Vertical disparity** is ``v_left - v_right`` (px) of one scene point in the two rectified images; a
 perfectly rectified pair has 0 everywhere. On board captures the points are the board's points (checkerboard
-or ChArUco corners, circle centres: any target of ``gtforge.core.targets``), detected in both images and matched
+or ChArUco corners, circle centres: any target of ``gtforge.core.targets.models``), detected in both images and matched
 by id (a ChArUco board cut by the border gives the corners both images show). Circle centres are corrected for
 their perspective bias in each image at that image's own PnP pose first (``matched_board_points``). Two figures
 per set of points:
@@ -33,17 +33,17 @@ import cv2
 import numpy as np
 from pydantic import Field, PrivateAttr
 
-from gtforge.core.board import BoardSpec, Detection
+from gtforge.core.targets.board import BoardSpec, Detection
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.photometric import to_gray
+from gtforge.core.alignment.photometric import to_gray
 from gtforge.core.schema import GTModel
-from gtforge.core.target_detection import PairSkipped, TargetPair, detect_target, match_target_views
-from gtforge.core.targets import MIN_COMMON_CORNERS
+from gtforge.core.targets.detection import PairSkipped, TargetPair, detect_target, match_target_views
+from gtforge.core.targets.models import MIN_COMMON_CORNERS
 
 if TYPE_CHECKING:
     pass
 
-log = logging.getLogger("gtforge.core.rectification")
+log = logging.getLogger("gtforge.core.zed.rectification")
 
 VERTICAL_WARN_PX = 0.15  # mean |vertical disparity| (homography-fitted) above this: the rectification is suspect
 TIE_PX = 0.02  # two readings whose rectified corners differ by less than this are the same rectification
@@ -150,14 +150,14 @@ def matched_board_points(spec, left: Detection, left_cam: PinholeCamera, right: 
     generator at 0.3x: biases up to 0.11 px per image differ between left and right by up to 0.0002 px vertically and
     0.011 px horizontally). Each image's centroids are corrected at that image's own PnP pose (its camera:
     ``left_cam``/``right_cam``, lens included for raw images) before left and right are compared. A symmetric circle
-    grid's right numbering is turned to the left one's (``gtforge.core.target_detection.match_target_views``)."""
+    grid's right numbering is turned to the left one's (``gtforge.core.targets.detection.match_target_views``)."""
     return match_target_views(spec, left, left_cam, right, right_cam, ("left", "right"), min_common)
 
 
 class RectificationMeter:
     """Collects the board points of both rectified images pose by pose; ``result()`` summarises.
 
-    Any target (``gtforge.core.targets``): the left and right points are matched by id; a pose with fewer than 6
+    Any target (``gtforge.core.targets.models``): the left and right points are matched by id; a pose with fewer than 6
     common points (``MIN_COMMON_CORNERS``) or collinear ones is skipped with the reason; circle centres are
     corrected for their perspective bias in each image (``matched_board_points``). ``add`` detects the board in the
     right image (and in the left one unless its detection or points are given). ``zed_right``: the rectified right

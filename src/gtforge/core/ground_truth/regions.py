@@ -11,7 +11,7 @@ import numpy as np
 
 from gtforge.core.camera import RectifiedStereo
 from gtforge.core.geometry import fit_plane_robust, mask_bounding_box
-from gtforge.core.uncertainty import SigmaStats, sigma_stats_by_label
+from gtforge.core.ground_truth.uncertainty import SigmaStats, sigma_stats_by_label
 
 
 class RegionSettings(Protocol):

@@ -1,6 +1,6 @@
 """Applying calibrate-scale's corrections (``Rig.scale_corrections``; ``gtforge.scale_calibration`` estimates them):
 the right camera's yaw as a homography (``yaw_homography``; the session folds it into its one resampling of the right
-image, ``gtforge.core.selfcal.corrected_right``), the ground truth's sigma widened by the terms' covariance, and the
+image, ``gtforge.core.zed.selfcal.corrected_right``), the ground truth's sigma widened by the terms' covariance, and the
 disparity a turned right camera shows (the generator's truth). ``corrected_right_image`` is the second resampling the
 stages did before the yaw went into the session's (kept as the reference the single resampling is compared with)."""
 from __future__ import annotations
@@ -64,7 +64,7 @@ def spline_sample(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
 def resample_image(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
     """An ``out_hw`` image whose pixels (row-major) are ``image`` sampled at ``(us, vs)`` (flat, one per output pixel):
     cubic B-spline at the exact positions (``spline_sample``), black where a position is outside ``image``, rounded to
-    its type. One resampling of the right image, whatever its corrections (``gtforge.core.selfcal.corrected_right``)."""
+    its type. One resampling of the right image, whatever its corrections (``gtforge.core.zed.selfcal.corrected_right``)."""
     h, w = image.shape[:2]
     img = np.asarray(image)
     stack = img[None] if img.ndim == 2 else np.moveaxis(img, 2, 0)

@@ -2,7 +2,7 @@
 
 One board definition, ``BoardModel`` (``kind`` + sizes + ArUco dictionary + legacy flag), is given on the
 command line or in session.yaml, recorded in the calibration file and turned by ``BoardModel.spec()`` into the
-geometry the stages and the generator use (``gtforge.core.board.BoardSpec`` for the checkerboard, ``CharucoSpec``,
+geometry the stages and the generator use (``gtforge.core.targets.board.BoardSpec`` for the checkerboard, ``CharucoSpec``,
 ``CircleGridSpec`` here; all share ``corners_board()``, ``extent_mm()``, ``albedo()``). Every detection carries
 ``ids``: indices into ``corners_board()`` (board order), so a board cut by the image border still gives its
 visible points, matched between cameras by id.
@@ -22,11 +22,11 @@ import cv2
 import numpy as np
 from pydantic import model_serializer
 
-from gtforge.core.board import BoardSpec, GridCounts, check_board_spec
+from gtforge.core.targets.board import BoardSpec, GridCounts, check_board_spec
 from gtforge.core.schema import GTModel
 from gtforge.errors import InputError
 
-log = logging.getLogger("gtforge.core.targets")
+log = logging.getLogger("gtforge.core.targets.models")
 
 BoardKind = Literal["checkerboard", "charuco", "circles_symmetric", "circles_asymmetric"]
 # dictionaries tried when the declared one finds no markers (the error then names what the board carries)

@@ -1,6 +1,6 @@
 """Checkerboard detection with an orientation fixed by the board pattern itself.
 
-The board convention is in ``gtforge.core.board.BoardSpec``: the square diagonally inside corner 0
+The board convention is in ``gtforge.core.targets.board.BoardSpec``: the square diagonally inside corner 0
 (board x, y in [0, s]) is black. With ``cols + rows`` odd (12x9 is), a 180-degree turn makes it
 white, so the corner order is the same in every camera whatever the viewpoint.
 """
@@ -13,7 +13,7 @@ import numpy as np
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import make_T
-from gtforge.core.photometric import to_gray
+from gtforge.core.alignment.photometric import to_gray
 from gtforge.errors import InputError
 
 
@@ -23,7 +23,7 @@ class Detection:
     sharpness_px: float  # mean edge width (OpenCV estimateChessboardSharpness); larger = blurrier
     method: str  # "sb" or "classic"
     pattern_contrast: float  # mean |intensity difference| between dark and white squares
-    # indices into the board's corners_board() (gtforge.core.targets); None: all, in order
+    # indices into the board's corners_board() (gtforge.core.targets.models); None: all, in order
     ids: np.ndarray | None = None
 
 

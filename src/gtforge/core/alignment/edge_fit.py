@@ -1,4 +1,4 @@
-"""The numerical core of ``gtforge.core.edge_alignment``'s estimator: the captures' edges as one problem in pixel
+"""The numerical core of ``gtforge.core.alignment.edge_alignment``'s estimator: the captures' edges as one problem in pixel
 units (``_Problem``), the one-pixel quadratic model of the score, the cluster-robust sandwich covariance and the
 maximiser (Nelder-Mead, then Newton steps), and the significance of a correction. Private to edge_alignment (its
 module docstring says how they fit together)."""
@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gtforge.core.camera import PinholeCamera
-from gtforge.core.edge_features import DepthEdges, edge_scores, edge_strength, perturb
+from gtforge.core.alignment.edge_features import DepthEdges, edge_scores, edge_strength, perturb
 
 
 @dataclass

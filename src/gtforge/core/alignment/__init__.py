@@ -1,0 +1,1 @@
+"""Image alignment: photometric (shifts between images) and edges (a depth camera against its colour image)."""

@@ -1,0 +1,1 @@
+"""Measurements on the ground truth: metrics, shape fits, fruit size, gauge objects."""
