@@ -18,15 +18,15 @@ pinned to one core (``sched_setaffinity``, as ``taskset -c 0`` does), and the li
 speed-ups against that too.
 
 Before anything is timed, every gtforge method's output on the benchmark's scene is compared with the float64
-reference of the same computation (``gtforge.core.ground_truth.reproject_reference``; mesh with ``span_mm`` too): each prints
-"identical to the float64 reference: yes" or "no, N pixels differ", and the benchmark stops with exit code 1 if any of
-the current code's methods is not identical (benchmarks/README.md: speed work never changes results). ``--check-only``
-runs these checks and exits (no Open3D timing).
+reference of the same computation (``gtforge.core.ground_truth.reproject_reference``; mesh with ``span_mm`` too): each
+prints "identical to the float64 reference: yes" or "no, N pixels differ", and the benchmark stops with exit code 1 if
+any of the current code's methods is not identical (benchmarks/README.md: speed work never changes results).
+``--check-only`` runs these checks and exits (no Open3D timing).
 
     python benchmarks/bench_reproject.py [--repeat 15] [--against e1dbf65] [--write] [--check-only]
 
-``--against REV`` adds the kernels of ``src/gtforge/core/ground_truth/reproject.py`` at git revision REV (before/after); their
-comparison with the reference is printed but does not stop the run (an old revision may predate a fix).
+``--against REV`` adds the kernels of ``src/gtforge/core/ground_truth/reproject.py`` at git revision REV (before/after);
+their comparison with the reference is printed but does not stop the run (an old revision may predate a fix).
 """
 from __future__ import annotations
 
@@ -70,8 +70,8 @@ def module_at_revision(rev: str):
     import tempfile
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/core/ground_truth/reproject.py"], capture_output=True,
-                         text=True, check=True).stdout
+    src = subprocess.run(["git", "-C", root, "show", f"{rev}:src/gtforge/core/ground_truth/reproject.py"],
+                         capture_output=True, text=True, check=True).stdout
     path = os.path.join(tempfile.mkdtemp(), f"reproject_{rev}.py")
     with open(path, "w") as f:
         f.write(src)

@@ -1,8 +1,8 @@
 """Extrinsic accuracy per calibration target, and what ChArUco partial views add (docs/targets.md).
 
 For each target (the 12x9 checkerboard for reference, ChArUco, symmetric and asymmetric circle grids) renders
-``--poses`` whole-board poses with ``gtforge.core.targets.models.render_board_views`` (the generator's rig at ``--scale``,
-2x2 supersampling, image noise 1 grey level) and calibrates with the default parameters (leave-one-out on):
+``--poses`` whole-board poses with ``gtforge.core.targets.models.render_board_views`` (the generator's rig at
+``--scale``, 2x2 supersampling, image noise 1 grey level) and calibrates with the default parameters (leave-one-out on):
 error of ``T_zed_from_mech`` against the truth, the reported 1-sigma, RMS. For ChArUco it then replaces the last
 ``--partial`` whole-board poses by as many poses cut by the texture camera's image border near its corners (same
 pose count) and calibrates again.

@@ -64,7 +64,8 @@ def plane_pair(T: BandLimitedTexture, d0: float, slope_u: float = 0.0, slope_v: 
                right_dy: float = 0.0):
     """8-bit left and right images of a plane whose disparity is ``d0 + slope_u u + slope_v v`` (left pixels), and
     that disparity (exact labels): the right pixel ``x`` shows the left pixel ``u`` with ``u - d(u, v) = x``.
-    ``right_dy``: the right image shows the scene that much lower (its row ``y`` shows the left row ``y - right_dy``)."""
+    ``right_dy``: the right image shows the scene that much lower (its row ``y`` shows the left row
+    ``y - right_dy``)."""
     H, W = shape
 
     def q(a):

@@ -205,8 +205,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             write_label_png(tmp / "region.png", region)
             write_tiff_float(tmp / "weight.tiff", sgra_weights(region, params), compression="zlib")  # 4 values: tiny
             disp_range = (stats.disp_min_px, stats.disp_max_px) if n_valid else None
-            atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0], disp_range,
-                                                                      cx_shift, cy_shift))
+            atomic_write_text(tmp / "calib.txt", middlebury_calib_text(rig.zed, disp.shape[1], disp.shape[0],
+                                                                      disp_range, cx_shift, cy_shift))
             if params.ply:
                 v, u = np.nonzero(np.isfinite(disp))
                 K = rig.zed.left
@@ -241,8 +241,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 write_s += time.perf_counter() - t
             inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
             meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
-                             calibration_sha256=calib_sha, params_hash=scene_params_hash(params, calib), input_blake3=inputs,
-                             input_stamps=stamps, stats=stats, crop_xywh=crop,
+                             calibration_sha256=calib_sha, params_hash=scene_params_hash(params, calib),
+                             input_blake3=inputs, input_stamps=stamps, stats=stats, crop_xywh=crop,
                              fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
                              verification=verification,
                              sigma=None if sigma is None else region_sigma_stats(sigma, region),
@@ -404,7 +404,7 @@ def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneM
 def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
                     metas: dict[str, SceneMeta], failures: dict[str, str], splits: dict | None = None,
                     flagged: dict | None = None, quarantined: list | None = None) -> None:
-    Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()), calibration_sha256=calib_sha,
-             session_dir=str(Path(session_dir).resolve()), params=params, scenes={s: metas[s] for s in sorted(metas)},
-             failures=failures, splits=splits or {}, flagged=flagged or {},
+    Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()),
+             calibration_sha256=calib_sha, session_dir=str(Path(session_dir).resolve()), params=params,
+             scenes={s: metas[s] for s in sorted(metas)}, failures=failures, splits=splits or {}, flagged=flagged or {},
              quarantined=quarantined or []).write(out / "manifest.json")

@@ -93,8 +93,8 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
                            T_mech_from_depth: np.ndarray | None = None, coverage: bool = False) -> CalibrationFile:
     """Fuse and refine the extrinsic from detected poses (``obs``); ``reports`` is updated in place.
     ``depth_cam``/``T_mech_from_depth``: the depth map's camera when it is not the texture camera. ``coverage``: also
-    fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.targets.coverage; a few
-    tenths of a second)."""
+    fill ``coverage`` (where the points fell, distances, tilts, what to capture next: gtforge.core.targets.coverage; a
+    few tenths of a second)."""
     t0 = time.perf_counter()
     board = params.board.spec()
     if len(obs) < params.min_poses:
@@ -122,7 +122,8 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
     square_measured = None
     if len(corners_depth) >= 2:
         ids_of = {o.name: o.ids for o in used}
-        square_measured = float(np.median([measured_square_size_mm(X, board, ids_of[n]) for n, X in corners_depth.items()]))
+        square_measured = float(np.median([measured_square_size_mm(X, board, ids_of[n])
+                                           for n, X in corners_depth.items()]))
         dev_pct = (square_measured / board.square_size_mm - 1.0) * 100.0
         if params.square_check_pct and abs(dev_pct) > params.square_check_pct:
             raise InputError(None, "--square-mm", f"the board's square size as the depth camera measures it "
@@ -146,7 +147,8 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
         gx = np.clip((o.zed_uv[:, 0] / zed.left.width_px * 3).astype(int), 0, 2)
         gy = np.clip((o.zed_uv[:, 1] / zed.left.height_px * 3).astype(int), 0, 2)
         for k, en in enumerate(np.linalg.norm(ref.res_zed[i], axis=1)):
-            region_res.setdefault(f"{['top', 'middle', 'bottom'][gy[k]]}-{['left', 'centre', 'right'][gx[k]]}", []).append(en)
+            region_res.setdefault(f"{['top', 'middle', 'bottom'][gy[k]]}-{['left', 'centre', 'right'][gx[k]]}",
+                                  []).append(en)
     allres = np.concatenate(allres)
     cov = ref.cov_extrinsic
     loo_means, loo_maxs, loo_T = [], [], []
@@ -227,7 +229,8 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
                                           T_zed_from_mech=ref.T_zed_from_mech, mech=mech, zed_cam=zed.left, board=board,
                                           cov=cov if np.all(np.isfinite(cov)) else None,
                                           rms_px=float(np.sqrt(np.mean(allres ** 2))), jack_scale=jack_scale)
-    result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv, res_zed=ref.res_zed[i])
+    result._residuals = {o.name: dict(mech_uv=o.mech_uv, res_mech=ref.res_mech[i], zed_uv=o.zed_uv,
+                                      res_zed=ref.res_zed[i])
                          for i, o in enumerate(used)}
     return result
 
@@ -269,7 +272,8 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
 
     params = params or CalibrateParams()
     session = open_session(session_dir)
-    params = params.model_copy(update={"board": session_board(session, params.board, "board" in params.model_fields_set)})
+    params = params.model_copy(update={"board": session_board(session, params.board,
+                                                              "board" in params.model_fields_set)})
     check_board_model(params.board)
     board = params.board.spec()
     if out_path is not None:
@@ -313,7 +317,8 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     result.session_dir = str(Path(session_dir).resolve())
     result.zed_conf, result.rectification = zed_conf, meter.result()
     result.zed_self_rectification = selfcal
-    stereo_warnings = (zed_conf.warnings if zed_conf else []) + (result.rectification.warnings if result.rectification else [])
+    stereo_warnings = ((zed_conf.warnings if zed_conf else [])
+                       + (result.rectification.warnings if result.rectification else []))
     if selfcal is not None and selfcal.status == "not determined":
         stereo_warnings.append(selfcal.summary_line())
     if stereo_warnings:

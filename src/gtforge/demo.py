@@ -46,7 +46,8 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     session = d / "session"
     rolled = f"{n_scenes - 1:03d}" if n_scenes >= 4 else None
     say(f"[1/7] rendering a synthetic session ({n_board} board poses, {n_scenes} fruit scenes, scale {scale}"
-        + (f"; in scene {rolled} the fruit rolls 0.6 mm between the two captures" if rolled else "") + f") -> {session}")
+        + (f"; in scene {rolled} the fruit rolls 0.6 mm between the two captures" if rolled else "")
+        + f") -> {session}")
     generate_session(session, n_board=n_board, n_scenes=n_scenes, scale=scale, seed=seed, progress=status,
                      fruit_motion_mm={n_scenes - 1: (0.6, 0.2, 0.0)} if rolled else None,
                      zed_right_rotation_error_rad=DEMO_RIGHT_TURN_RAD, zed_baseline_error_frac=DEMO_BASELINE_ERROR_FRAC,

@@ -29,9 +29,11 @@ from gtforge.synthetic import SyntheticTruth, generate_session
 # the sigma map, the verification's render and cubic samples, the writers, the fork server's preload.
 # tests/cli/test_precompile.py checks that each is in numba's cache after compile_kernels.
 KERNELS = (
-    "gtforge.io.captures._depth_mm", "gtforge.io.formats._png_unfilter", "gtforge.core.ground_truth.reproject._mesh_rows_stereo",
+    "gtforge.io.captures._depth_mm", "gtforge.io.formats._png_unfilter",
+    "gtforge.core.ground_truth.reproject._mesh_rows_stereo",
     "gtforge.core.ground_truth.reproject._disparity_nonoccluded", "gtforge.core.ground_truth.uncertainty._sigma_kernel",
-    "gtforge.core.ground_truth.render._render_kernel", "gtforge.core.alignment.photometric._cubic_at", "gtforge.io.formats._pfm_rows",
+    "gtforge.core.ground_truth.render._render_kernel", "gtforge.core.alignment.photometric._cubic_at",
+    "gtforge.io.formats._pfm_rows",
     "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
 )
 

@@ -89,7 +89,8 @@ class OnnxModel:
         try:
             self.sess = ort.InferenceSession(str(self.path), providers=providers)
         except Exception as exc:
-            raise InputError(self.path, None, "a loadable ONNX model", f"{type(exc).__name__}: {str(exc)[:100]}") from None
+            raise InputError(self.path, None, "a loadable ONNX model",
+                             f"{type(exc).__name__}: {str(exc)[:100]}") from None
         self.provider = self.sess.get_providers()[0]
         self.inputs = self.sess.get_inputs()
         shapes = [i.shape for i in self.inputs]
@@ -125,7 +126,8 @@ class TorchScriptModel:
         try:
             import torch
         except ImportError:
-            raise InputError(path, "torch", "torch installed", "not installed", "pip install 'gtforge[torch]'") from None
+            raise InputError(path, "torch", "torch installed", "not installed",
+                             "pip install 'gtforge[torch]'") from None
         self.torch = torch
         self.device = "cuda" if torch.cuda.is_available() else "cpu"
         path = Path(path)
@@ -173,7 +175,8 @@ class SGBM:
         m = cv2.StereoSGBM_create(minDisparity=min_disp, numDisparities=num, blockSize=bs, P1=8 * 3 * bs * bs,
                                   P2=32 * 3 * bs * bs, disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,
                                   speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-        d = m.compute(cv2.cvtColor(left, cv2.COLOR_RGB2BGR), cv2.cvtColor(right, cv2.COLOR_RGB2BGR)).astype(np.float32) / 16.0
+        d = m.compute(cv2.cvtColor(left, cv2.COLOR_RGB2BGR),
+                      cv2.cvtColor(right, cv2.COLOR_RGB2BGR)).astype(np.float32) / 16.0
         d[d < min_disp] = np.nan
         return d
 

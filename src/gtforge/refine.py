@@ -91,7 +91,8 @@ def scene_points(name: str, depth_zed_mm: np.ndarray, disparity_px: np.ndarray, 
     n_rend = local_normalize(rend, ok, vp.norm_sigma_px)
     gray = to_gray(zed_left).astype(np.float32)
     n_zed = local_normalize(gray, None, vp.norm_sigma_px)
-    use = interior_mask(ok, int(np.ceil(2 * vp.norm_sigma_px))) & textured_mask(n_rend) & smooth_depth_mask(disparity_px)
+    use = (interior_mask(ok, int(np.ceil(2 * vp.norm_sigma_px))) & textured_mask(n_rend)
+           & smooth_depth_mask(disparity_px))
     v, u = np.nonzero(use)
     if len(v) < vp.min_pixels:
         return None

@@ -157,7 +157,8 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     # the same with both detections replaced by their board models: what remains is ground-truth error
     P_model = lift_mech(uv_mech_fit)
     okm = np.all(np.isfinite(P_model), axis=1)
-    e_model = np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech, P_model[okm])) - uv_fit[okm], axis=1)
+    e_model = np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech, P_model[okm])) - uv_fit[okm],
+                             axis=1)
     # noise floor: the mean XY error detector noise alone gives (2-D Gaussian: mean = sigma * sqrt(pi / 2)), the
     # texture camera's noise scaled into ZED pixels by the ratio of the board's corner spacings
     if ids is None:
@@ -197,12 +198,15 @@ def validate_pose(name: str, texture, depth_mech_mm, zed_left, rig: Rig, board: 
     pv = PoseValidation(capture=name, used_for_calibration=used_for_calibration, n_corners=int(ok.sum()),
                         xy_mean_px=float(e.mean()), xy_median_px=float(np.median(e)),
                         xy_rms_px=float(np.sqrt(np.mean(e ** 2))), xy_max_px=float(e.max()),
-                        xy_noise_floor_px=floor, xy_model_mean_px=float(e_model.mean()) if e_model.size else float("nan"),
+                        xy_noise_floor_px=floor,
+                        xy_model_mean_px=float(e_model.mean()) if e_model.size else float("nan"),
                         detector_rms_mech_px=rms_m, detector_rms_zed_px=rms_z,
                         z_diagonal_calc_mm=D_calc, z_diagonal_true_mm=D_true,
                         z_error_pct=abs(D_calc - D_true) / D_true * 100 if np.isfinite(D_calc) else float("nan"),
-                        z_error_raw_corners_pct=abs(D_raw - D_true) / D_true * 100 if np.isfinite(D_raw) else float("nan"),
-                        z_pairs_mean_abs_pct=float(np.mean(np.abs(rel))), z_pairs_max_abs_pct=float(np.max(np.abs(rel))),
+                        z_error_raw_corners_pct=(abs(D_raw - D_true) / D_true * 100 if np.isfinite(D_raw)
+                                                 else float("nan")),
+                        z_pairs_mean_abs_pct=float(np.mean(np.abs(rel))),
+                        z_pairs_max_abs_pct=float(np.max(np.abs(rel))),
                         flatness_rms_mm=flat, scale_error_pct=(scale - 1) * 100)
     vec = np.concatenate([dz.corners_uv[ok], diff], axis=1)
     return pv, vec, None
@@ -214,8 +218,8 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     """Validate a calibration on a session's board captures; writes ``validation.json``/``.html`` to ``out_dir``.
 
     (Calibrating on all board captures but the last K and validating on those K: ``gtforge.holdout``.) ``gauges``: also
-    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.measure.gauges``; written to
-    ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
+    measure the gauge objects of ``gauges/gauges.yaml`` when the session has one (``gtforge.core.measure.gauges``;
+    written to ``gauges.json``/``.html`` and ``validation.json``'s ``gauges``)."""
 
     params = params or ValidateParams()
     if params.board is not None:
@@ -335,7 +339,8 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
     t0 = time.perf_counter()
     calib = CalibrationFile.read(calibration)
-    session = open_with_calibration(session_dir, calib, right_yaw=False)  # (the gauges use the depth and the left image only)
+    # (the gauges use the depth and the left image only)
+    session = open_with_calibration(session_dir, calib, right_yaw=False)
     check_rig_matches_session(calib.rig, session, calibration)
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())

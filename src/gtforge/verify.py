@@ -70,7 +70,8 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
             if set(ids) != set(man.scenes):
                 log.warning("%s cannot be merged (%s): every scene is verified again", rep_path, exc)
                 ids = sorted(man.scenes)
-    args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json()) for sid in ids]
+    args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json())
+            for sid in ids]
     results: dict[str, SceneVerification] = {}
 
     def handle(res):

@@ -1,4 +1,5 @@
-"""gtforge.core.alignment.edge_alignment: refining T_color_from_depth by putting the depth silhouettes on the colour edges.
+"""gtforge.core.alignment.edge_alignment: refining T_color_from_depth by putting the depth silhouettes on the colour
+edges.
 
 Proof twice: on a synthetic depth + colour pair rendered by gtforge.synthetic's ray caster with an exact
 extrinsic (a known 0.2-0.25 deg error is recovered; no error gives a correction within its sigma), and on the real

@@ -1,4 +1,5 @@
-"""Per-fruit size, volume and grade (gtforge.core.measure.fruit_size, evaluate's fruit_size) and the shape fits behind them."""
+"""Per-fruit size, volume and grade (gtforge.core.measure.fruit_size, evaluate's fruit_size) and the shape fits behind
+them."""
 import json
 
 import numpy as np

@@ -1,5 +1,5 @@
-"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.measure.gauges against the generator's exact \
-sizes."""
+"""Gauge objects (VDI/VDE 2634-2) measured on the ground truth: gtforge.core.measure.gauges against the generator's
+exact sizes."""
 import shutil
 import subprocess
 import sys

@@ -1,4 +1,5 @@
-"""The fast reprojection kernels draw exactly what the slow float64 reference (gtforge.core.ground_truth.reproject_reference) draws.
+"""The fast reprojection kernels draw exactly what the slow float64 reference
+(gtforge.core.ground_truth.reproject_reference) draws.
 
 Bit for bit, NaN where NaN: on small synthetic scenes from the generator (a distorted depth camera denser than the
 target, one sparser than it, noisy depth under a strict slant bound, an undistorted depth camera, both ZED views of the

@@ -1,5 +1,5 @@
-"""Per-pixel GT uncertainty (gtforge.core.ground_truth.uncertainty) and the calibration covariance it starts from, against exact \
-truth."""
+"""Per-pixel GT uncertainty (gtforge.core.ground_truth.uncertainty) and the calibration covariance it starts from,
+against exact truth."""
 import numpy as np
 import pytest
 

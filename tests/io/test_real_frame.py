@@ -8,8 +8,8 @@ Regenerate the overlay in docs/images and print every figure docs/cameras.md quo
 
     .venv/bin/python tests/io/test_real_frame.py --overlay docs/images/azure_kinect_overlay.jpg
 
-and, after the extrinsic's correction by gtforge.core.alignment.edge_alignment (tests/core/test_edge_alignment.py), the corrected
-figures and overlay:
+and, after the extrinsic's correction by gtforge.core.alignment.edge_alignment (tests/core/test_edge_alignment.py), the
+corrected figures and overlay:
 
     .venv/bin/python tests/io/test_real_frame.py --corrected --overlay docs/images/azure_kinect_overlay_corrected.jpg
 """
@@ -308,8 +308,8 @@ def report() -> None:
 
 
 def report_corrected(infrared: Path | None = None) -> Chain:
-    """gtforge.core.alignment.edge_alignment's correction of the factory extrinsic (with ``infrared``: from that image's edges
-    as the texture, alone), and the measure before and after it."""
+    """gtforge.core.alignment.edge_alignment's correction of the factory extrinsic (with ``infrared``: from that image's
+    edges as the texture, alone), and the measure before and after it."""
     from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, align_color_to_depth
 
     k, depth, color = frame()
@@ -329,7 +329,8 @@ def report_corrected(infrared: Path | None = None) -> Chain:
           f"{res.offset_after_px[1]:+.2f}) px")
     chain = Chain(k.depth, k.color, np.array(res.T_color_from_depth))
     for name, a in (("factory", measured("correct")), ("corrected", alignment(chain))):
-        print(f"{name:10s} peak (dx, dy) = {a.peak_px}, sub-pixel ({a.subpixel_px[0]:+.2f}, {a.subpixel_px[1]:+.2f}) px, "
+        print(f"{name:10s} peak (dx, dy) = {a.peak_px}, sub-pixel ({a.subpixel_px[0]:+.2f}, "
+              f"{a.subpixel_px[1]:+.2f}) px, "
               f"best score {a.score.max():.2f}, {a.n_edges} edges")
     e = edge_samples(chain)
     for what, sel in (("nearer than 500 mm", e.depth_mm < 500), ("500 mm or farther", e.depth_mm >= 500)):
@@ -345,7 +346,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description="the real Azure Kinect frame's figures (docs/cameras.md)")
     ap.add_argument("--overlay", type=Path, help="write the overlay JPEG here")
     ap.add_argument("--corrected", action="store_true",
-                    help="correct the extrinsic with gtforge.core.alignment.edge_alignment; the overlay shows the corrected chain")
+                    help="correct the extrinsic with gtforge.core.alignment.edge_alignment; "
+                         "the overlay shows the corrected chain")
     ap.add_argument("--infrared", type=Path, help="with --corrected: the depth camera's infrared image as the texture")
     args = ap.parse_args()
     corrected = report_corrected(args.infrared) if args.corrected else None

@@ -1,5 +1,5 @@
-"""gtforge align-depth (gtforge.align_depth, gtforge.core.alignment.edge_alignment.align_captures): a separate depth camera's
-pose refined from every capture's edges together.
+"""gtforge align-depth (gtforge.align_depth, gtforge.core.alignment.edge_alignment.align_captures): a separate depth
+camera's pose refined from every capture's edges together.
 
 Exact truth: gtforge.synthetic's two-camera rig (the depth camera 45 mm beside the texture camera) with session.yaml's
 T_mech_from_depth turned by POSE_ERROR_DEG (0.97 deg about a diagonal axis: the depth edges lie (+6.8, +5.6) px off the

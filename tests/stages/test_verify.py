@@ -208,7 +208,8 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     assert sorted(man.flagged) == ["000", "001"] and man.quarantined == ["000", "001"]
     assert (out / "filenames" / "train.txt").read_text().split()[0] == "scenes/clean/im0.png"
     assert (out / "scenes" / "000" / "disp0GT.pfm").exists()  # quarantined, never deleted
-    assert (out / "verification" / "000_overlay.jpg").exists() and not (out / "verification" / "clean_overlay.jpg").exists()
+    assert ((out / "verification" / "000_overlay.jpg").exists()
+            and not (out / "verification" / "clean_overlay.jpg").exists())
     html = (out / "verification.html").read_text()
     assert "2 flagged" in html and "verification/000_overlay.jpg" in html and html.index("000") < html.index("clean")
     # verify an existing dataset again: same verdicts, exit 1 because scenes are flagged; without --quarantine the

@@ -2,8 +2,9 @@
 
 A fronto-parallel textured plane has one disparity phase everywhere, so a sampler whose error depends on the phase
 (Keys' cubic convolution) biases the stereo check there (the issue's table: +0.05 px); the check now samples the right
-image by cubic B-spline with its own derivatives (``gtforge.core.alignment.photometric.sample_spline``). Images are rendered
-exactly from a band-limited texture (``benchmarks/bench_verify_phase_bias.py``: the same scenes, with the figures)."""
+image by cubic B-spline with its own derivatives (``gtforge.core.alignment.photometric.sample_spline``). Images are
+rendered exactly from a band-limited texture (``benchmarks/bench_verify_phase_bias.py``: the same scenes, with the
+figures)."""
 import sys
 from pathlib import Path
 

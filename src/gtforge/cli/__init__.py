@@ -66,7 +66,8 @@ def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
         w, h = (int(x) for x in text.lower().split("x"))
         return w, h
     except ValueError:
-        raise InputError(None, name, "WIDTHxHEIGHT (e.g. 1088x376) or a preset (kitti = 1242x375)", repr(text)) from None
+        raise InputError(None, name, "WIDTHxHEIGHT (e.g. 1088x376) or a preset (kitti = 1242x375)",
+                         repr(text)) from None
 
 
 def _options(model, **values):
@@ -133,7 +134,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
               output: str = typer.Option("calibration.yaml", "--output", "-o", metavar="PATH",
                                          help="Calibration YAML to write (a folder: calibration.yaml inside it)."),
               report_dir: Optional[Path] = typer.Option(None, metavar="DIR",
-                                                        help="Report folder (default: OUTPUT's name + _report, beside it)."),
+                                                        help="Report folder (default: OUTPUT's name + _report, "
+                                                             "beside it)."),
               cols: Optional[int] = typer.Option(None, help="Inner corners along a row (ChArUco: squares; circle "
                                                  "grids: circles per row). Default 12, or session.yaml's board."),
               rows: Optional[int] = typer.Option(None, help="Inner corners along a column (ChArUco: squares; circle "
@@ -180,7 +182,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     n_bad = sum(p.status != "used" for p in res.poses)
     out.print(f"poses used {n_used}, skipped/outliers {n_bad}; RMS {res.rms_px:.3f} px, worst {res.max_px:.3f} px")
     out.print(f"1-sigma rotation {res.sigma_rot_deg:.4f} deg, translation {res.sigma_trans_mm:.3f} mm"
-              + (f"; leave-one-out transfer {res.loo_transfer_mean_px:.3f} px mean" if res.loo_transfer_mean_px else ""))
+              + (f"; leave-one-out transfer {res.loo_transfer_mean_px:.3f} px mean"
+                 if res.loo_transfer_mean_px else ""))
     for m in res.methods[1:]:
         out.print(f"method {m.method}: RMS {m.rms_zed_px:.3f} px, differs by {m.rot_diff_to_primary_deg:.4f} deg / "
                   f"{m.trans_diff_to_primary_mm:.3f} mm")
@@ -328,7 +331,8 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     out.print(f"the extrinsic moved by {info.change_rot_deg:.4f} deg / {info.change_trans_mm:.3f} mm; "
               f"1-sigma now {res.sigma_rot_deg:.4f} deg / {res.sigma_trans_mm:.3f} mm")
     for r in info.scenes:
-        out.print(f"  scene {r.scene}: |texture shift| {r.shift_before_px if r.shift_before_px is not None else float('nan'):.3f}"
+        out.print(f"  scene {r.scene}: |texture shift| "
+                  f"{r.shift_before_px if r.shift_before_px is not None else float('nan'):.3f}"
                   f" -> {r.shift_after_px if r.shift_after_px is not None else float('nan'):.3f} px"
                   + (f" (held out: {r.heldout_shift_px:.3f} px)" if r.heldout_shift_px is not None else "")
                   + f" [{r.status}]")
@@ -413,8 +417,10 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
                                                  "OUTPUT/holdout_calibration.yaml) and validate on them."),
              captures: Optional[str] = typer.Option(None, metavar="NAMES",
                                                     help="Comma-separated capture names to validate on."),
-             cols: Optional[int] = typer.Option(None, help="Inner corners along a row (default: the calibration's board)."),
-             rows: Optional[int] = typer.Option(None, help="Inner corners along a column (default: the calibration's)."),
+             cols: Optional[int] = typer.Option(None, help="Inner corners along a row (default: the "
+                                                           "calibration's board)."),
+             rows: Optional[int] = typer.Option(None, help="Inner corners along a column (default: the "
+                                                           "calibration's)."),
              square_mm: Optional[float] = typer.Option(None, help="Square size, mm (default: the calibration's)."),
              xy_threshold_px: float = typer.Option(0.3, help="PASS when the mean XY error is at most this (px)."),
              z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%)."),
@@ -458,7 +464,8 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
         rep = validate_holdout(session, holdout, output, params, names, _status)
     else:
         rep = run(session, calibration, output, params, names, progress=_status)
-    out.print(f"XY reprojection: mean {rep.xy_mean_px:.3f} px (median {rep.xy_median_px:.3f}, max {rep.xy_max_px:.3f}); "
+    out.print(f"XY reprojection: mean {rep.xy_mean_px:.3f} px (median {rep.xy_median_px:.3f}, "
+              f"max {rep.xy_max_px:.3f}); "
               f"published {REFERENCE_XY_PX} px; threshold {xy_threshold_px} -> {'PASS' if rep.pass_xy else 'FAIL'}")
     out.print(f"  corner detectors' noise floor {rep.xy_noise_floor_px:.3f} px; with it removed (board models): "
               f"{rep.xy_model_mean_px:.3f} px")
@@ -487,7 +494,8 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
              onnx: Optional[Path] = typer.Option(None, metavar="FILE", rich_help_panel=_MODEL,
                                                  help="ONNX model (inputs: left, right NCHW, or one N x 6 x H x W)."),
              torchscript: Optional[Path] = typer.Option(None, metavar="FILE", rich_help_panel=_MODEL,
-                                                        help="TorchScript (.pt) or torch.export (.pt2) model (needs torch)."),
+                                                        help="TorchScript (.pt) or torch.export (.pt2) model "
+                                                             "(needs torch)."),
              predictions: Optional[Path] = typer.Option(None, metavar="DIR", rich_help_panel=_MODEL,
                                                         help="Folder of predicted disparities, one file per scene id: "
                                                              "<id>.pfm, <id>.npy, <id>.png or <id>_10.png (KITTI), "
@@ -496,7 +504,8 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
              name: Optional[str] = typer.Option(None, help="Model name in the tables (default: the file's name)."),
              split: Optional[str] = typer.Option(None, metavar="train|val|test",
                                                  help="Score one split list (default: every scene)."),
-             max_disp: Optional[float] = typer.Option(None, metavar="PX", help="Only score GT below this disparity (px)."),
+             max_disp: Optional[float] = typer.Option(None, metavar="PX",
+                                                      help="Only score GT below this disparity (px)."),
              max_gt_sigma: Optional[float] = typer.Option(
                  None, metavar="PX", help="Only score GT pixels whose ground-truth sigma (disp0GT_sigma.pfm) is below "
                  "this (px); the tables count the pixels left out."),
@@ -530,7 +539,8 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
     try:
         conv = InputConvention(channels=channels, normalize=normalize, fit=fit, resize_wh=_wh(resize, "--resize"))
     except Exception as exc:
-        raise InputError(None, "input convention", "--channels RGB|BGR, --normalize imagenet|0-255|0-1, --fit pad|resize",
+        raise InputError(None, "input convention",
+                         "--channels RGB|BGR, --normalize imagenet|0-255|0-1, --fit pad|resize",
                          f"{channels}/{normalize}/{fit}", str(exc).splitlines()[0]) from None
     if onnx:
         pred = OnnxModel(onnx, conv, name)

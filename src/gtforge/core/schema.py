@@ -102,7 +102,8 @@ def matrix4_field(v: Any) -> list[list[float]]:
     if not np.all(np.isfinite(a)):
         raise ValueError("non-finite value")
     R = a[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1) > 1e-5 or np.abs(a[3] - [0, 0, 0, 1]).max() > 1e-9:
+    if (np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1) > 1e-5
+            or np.abs(a[3] - [0, 0, 0, 1]).max() > 1e-9):
         raise ValueError("not a rigid transform (rotation part not orthonormal or last row not 0 0 0 1)")
     return a.tolist()
 

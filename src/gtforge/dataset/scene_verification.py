@@ -21,8 +21,9 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
   of 0.5 px) by more than ``bad_match_ratio``; their share is reported.
 
 Every figure comes with its noise floor (``*_noise_px``, ``correlation_noise``: 1 sigma, what exact labels give on
-this scene; ``gtforge.core.alignment.photometric.block_noise``). A scene is **flagged** when a figure passes its threshold
-(``VerifyParams``, documented defaults in px at the dataset's resolution). Nothing here changes the ground truth.
+this scene; ``gtforge.core.alignment.photometric.block_noise``). A scene is **flagged** when a figure passes its
+threshold (``VerifyParams``, documented defaults in px at the dataset's resolution). Nothing here changes the ground
+truth.
 """
 from __future__ import annotations
 
@@ -370,9 +371,9 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
 
 
 def predicted_shift(depth_zed_mm: np.ndarray, rig: Rig, T_zed_from_mech_true: np.ndarray) -> np.ndarray:
-    """The texture shift ``(dx, dy)`` px an extrinsic error predicts: ground truth built with ``rig`` (``depth_zed_mm``),
-    the true extrinsic ``T_zed_from_mech_true``; the mean over GT pixels of where the truth puts each GT point minus
-    where the GT puts it (the sign of ``ShiftEstimate``)."""
+    """The texture shift ``(dx, dy)`` px an extrinsic error predicts: ground truth built with ``rig``
+    (``depth_zed_mm``), the true extrinsic ``T_zed_from_mech_true``; the mean over GT pixels of where the truth puts
+    each GT point minus where the GT puts it (the sign of ``ShiftEstimate``)."""
     v, u = np.nonzero(np.isfinite(depth_zed_mm))
     cam = rig.zed.left
     z = depth_zed_mm[v, u].astype(np.float64)

@@ -315,13 +315,14 @@ class ZedRectification:
     reading: str = DEFAULT_ZED_CONF_READING
     factory: ZedFactoryCalibration | None = None
     correction: object | None = None  # gtforge.core.zed.selfcal.ZedRightCorrection folded into the right maps
-    # calibrate-scale's yaw of the right camera folded into the right maps too (gtforge.core.zed.selfcal.corrected_right)
+    # calibrate-scale's yaw of the right camera folded into the right maps too
+    # (gtforge.core.zed.selfcal.corrected_right)
     right_yaw_deg: float = 0.0
     # how both images are sampled at their maps: bilinear (cv2.remap, which rounds positions to 1/32 px), or cubic
-    # B-spline at the exact positions (gtforge.core.zed.scale_corrections.resample_image) once gtforge corrects the right
-    # camera (gtforge.core.zed.selfcal.corrected_rectification): the same kernel for both eyes, or feature matches (and a
-    # network) see two blurs (the real ZED Mini view: 0.123 px of rows with both bilinear, 0.137 with the right image
-    # alone by spline, 0.111 with both)
+    # B-spline at the exact positions (gtforge.core.zed.scale_corrections.resample_image) once gtforge corrects the
+    # right camera (gtforge.core.zed.selfcal.corrected_rectification): the same kernel for both eyes, or feature matches
+    # (and a network) see two blurs (the real ZED Mini view: 0.123 px of rows with both bilinear, 0.137 with the right
+    # image alone by spline, 0.111 with both)
     interpolation: Literal["linear", "cubic-bspline"] = "linear"
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -192,8 +192,8 @@ class SessionFile(VersionedFile):
     scenes_dir: str = "scenes"
     files: FileNames = Field(default_factory=FileNames)
     fruit_ids: dict[str, str] = Field(default_factory=dict)
-    # the calibration target (gtforge.core.targets.models.BoardModel: kind, cols, rows, square_size_mm, ...); absent: the
-    # command line's (default: the 12x9 checkerboard)
+    # the calibration target (gtforge.core.targets.models.BoardModel: kind, cols, rows, square_size_mm, ...); absent:
+    # the command line's (default: the 12x9 checkerboard)
     board: BoardModel | None = None
 
     @field_validator("T_mech_from_depth", mode="before")
@@ -507,10 +507,9 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     it must agree with session.yaml's ``zed_conf_reading`` when both are set. Neither: the default reading
     (``gtforge.io.cameras.DEFAULT_ZED_CONF_READING``); calibrate then chooses from the board images.
     ``zed_right_correction``: the right camera's correction a calibration file recorded
-    (``gtforge.core.zed.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied to
-    the
-    right image of images rectified before gtforge. ``zed_right_yaw_deg``: calibrate-scale's yaw of the right camera
-    (``Rig.scale_corrections``), composed with it into the same single resampling of the right image
+    (``gtforge.core.zed.selfcal.ZedRightCorrection``): folded into the SN.conf rectification of raw images, or applied
+    to the right image of images rectified before gtforge. ``zed_right_yaw_deg``: calibrate-scale's yaw of the right
+    camera (``Rig.scale_corrections``), composed with it into the same single resampling of the right image
     (``gtforge.core.zed.selfcal.corrected_right``)."""
 
     root = Path(root)

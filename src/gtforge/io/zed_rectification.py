@@ -247,10 +247,10 @@ def _default_reading() -> str:
 def detect_raw_pairs(session: Session, dirs: list[Path], board: BoardSpec,
                      progress: Callable[[str], None] | None = None) -> tuple[list[RawBoardPair], dict[str, str]]:
     """The board's points in the raw left and right images of each capture in ``dirs`` (detected once), matched by
-    id: any target of ``gtforge.core.targets.models`` (``gtforge.core.zed.rectification.matched_board_points``: circle centres
-    corrected at each raw image's PnP pose with the conf's lens models, which no reading changes; a symmetric grid
-    numbered alike). A capture whose board is not found, or that gives fewer than 6 common points or collinear ones,
-    is left out with the reason."""
+    id: any target of ``gtforge.core.targets.models`` (``gtforge.core.zed.rectification.matched_board_points``: circle
+    centres corrected at each raw image's PnP pose with the conf's lens models, which no reading changes; a symmetric
+    grid numbered alike). A capture whose board is not found, or that gives fewer than 6 common points or collinear
+    ones, is left out with the reason."""
     factory = getattr(getattr(session, "rectification", None), "factory", None)
     if factory is None:
         raise ValueError("detect_raw_pairs needs a session with raw ZED images and an SN.conf")

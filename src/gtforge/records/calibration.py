@@ -54,7 +54,8 @@ class PoseResult(GTModel):
     init_trans_dev_mm: float | None = None
     loo_transfer_mean_px: float | None = None
     loo_transfer_max_px: float | None = None
-    # ChArUco / circle grids (gtforge.core.targets.models): board points found in each image and in both (None: checkerboard)
+    # ChArUco / circle grids (gtforge.core.targets.models): board points found in each image and in both (None:
+    # checkerboard)
     n_points_mech: int | None = None
     n_points_zed: int | None = None
     n_points_common: int | None = None
@@ -158,7 +159,8 @@ class CalibrationFile(VersionedFile):
     verdict: Literal["PASS", "WARN", "FAIL"] = "PASS"
     verdict_reasons: list[str] = Field(default_factory=list)
     refinement: RefinementInfo | None = None  # set by gtforge refine: the extrinsic was refined from scenes
-    coverage: CoverageResult | None = None  # where the board points fell and what to capture next (gtforge.core.targets.coverage)
+    # where the board points fell and what to capture next (gtforge.core.targets.coverage)
+    coverage: CoverageResult | None = None
     # set by gtforge calibrate-scale: baseline scale, right-camera yaw, depth scale/offset (applied in rig)
     scale_calibration: ScaleCalibration | None = None
     # set by gtforge align-depth: a separate depth camera's pose from the captures' edges (applied in rig)
@@ -179,7 +181,8 @@ class CalibrationFile(VersionedFile):
     # the conf reading chosen from the board images (gtforge.core.zed.rectification; later stages rectify with it)
     rectification: RectificationQuality | None = None
     zed_conf: ZedConfChoice | None = None
-    # the ZED pair's self-rectification (gtforge.core.zed.selfcal): when applied, every later stage rectifies with its correction
+    # the ZED pair's self-rectification (gtforge.core.zed.selfcal): when applied, every later stage rectifies with its
+    # correction
     zed_self_rectification: ZedSelfRectification | None = None
     time_s: float = 0.0
     # per-corner residuals for the report (not written into the calibration file)

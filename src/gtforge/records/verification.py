@@ -36,8 +36,8 @@ class StereoEstimate(GTModel):
     vertical_px: float | None = None
     bad_match_pct: float | None = None
     n_pixels: int = 0
-    # noise floors (1 sigma, px) of the two figures: what exact labels give on this scene (gtforge.core.alignment.photometric
-    # .block_noise); None where not measured
+    # noise floors (1 sigma, px) of the two figures: what exact labels give on this scene
+    # (gtforge.core.alignment.photometric.block_noise); None where not measured
     disparity_bias_noise_px: float | None = None
     vertical_noise_px: float | None = None
 

@@ -69,7 +69,8 @@ def verdict_section(calib: CalibrationFile) -> Section | None:
     if verdict is None:
         return None
     reasons = list(getattr(calib, "verdict_reasons", []) or [])
-    body = "".join(f'<p class="{"fail" if verdict == "FAIL" else "warn"}">{html.escape(r)}</p>' for r in reasons) if reasons else \
+    body = "".join(f'<p class="{"fail" if verdict == "FAIL" else "warn"}">{html.escape(r)}</p>'
+                   for r in reasons) if reasons else \
         "<p>No warning from calibrate's checks.</p>"
     body += note("Criteria: docs/pipeline.md (calibrate, 'Verdict'). The figures below say how well the extrinsic "
                  "fits these captures; `gtforge validate` on captures not used here says how good the ground truth is.")
@@ -125,7 +126,8 @@ def methods_section(calib: CalibrationFile) -> Section | None:
     rows = [[m.method, "yes" if m.method == calib.method else "no", m.rms_zed_px, m.rot_diff_to_primary_deg,
              m.trans_diff_to_primary_mm] for m in calib.methods]
     return Section("Methods side by side", table(
-        ["method", "written", "RMS ZED-left (px)", "rotation vs reprojection (deg)", "translation vs reprojection (mm)"],
+        ["method", "written", "RMS ZED-left (px)", "rotation vs reprojection (deg)",
+         "translation vs reprojection (mm)"],
         rows, fmt=[None, None, "{:.4f}", "{:.4f}", "{:.3f}"]))
 
 
@@ -155,7 +157,8 @@ def histogram_section(calib: CalibrationFile) -> Section | None:
     rz = np.concatenate([np.linalg.norm(v["res_zed"], axis=1) for v in calib._residuals.values()])
     fig, ax = plt.subplots(figsize=(7, 3.2))
     bins = np.linspace(0, max(rm.max(), rz.max()) * 1.02, 50)
-    ax.hist(rm, bins=bins, histtype="step", lw=1.5, label=f"structured-light texture (RMS {np.sqrt(np.mean(rm**2)):.3f})")
+    ax.hist(rm, bins=bins, histtype="step", lw=1.5,
+            label=f"structured-light texture (RMS {np.sqrt(np.mean(rm**2)):.3f})")
     ax.hist(rz, bins=bins, histtype="step", lw=1.5, label=f"ZED left (RMS {np.sqrt(np.mean(rz**2)):.3f})")
     ax.set_xlabel("corner residual (px)")
     ax.set_ylabel("corners")
@@ -260,11 +263,13 @@ def coverage_section(calib: CalibrationFile) -> Section | None:
     body = note("Dots: every board point each camera detected in the used poses (also those the other camera did not "
                 "see); green: cells of the 8x6 grid with at least one point. "
                 f"Board distance from the ZED {cov.distance_mm_min:.0f}-{cov.distance_mm_max:.0f} mm; tilt about the "
-                f"vertical axis {cov.tilt_vertical_axis_deg[0]:+.0f} to {cov.tilt_vertical_axis_deg[1]:+.0f} deg, about "
-                f"the horizontal axis {cov.tilt_horizontal_axis_deg[0]:+.0f} to {cov.tilt_horizontal_axis_deg[1]:+.0f} deg.")
+                f"vertical axis {cov.tilt_vertical_axis_deg[0]:+.0f} to {cov.tilt_vertical_axis_deg[1]:+.0f} deg, "
+                f"about the horizontal axis {cov.tilt_horizontal_axis_deg[0]:+.0f} to "
+                f"{cov.tilt_horizontal_axis_deg[1]:+.0f} deg.")
     body += fig_to_img_tag(fig, dpi=80, alt="coverage map")
     if cov.guidance:
-        body += "<p><b>Capture next:</b></p><ul>" + "".join(f"<li>{html.escape(g)}</li>" for g in cov.guidance) + "</ul>"
+        body += ("<p><b>Capture next:</b></p><ul>" + "".join(f"<li>{html.escape(g)}</li>" for g in cov.guidance)
+                 + "</ul>")
     else:
         body += "<p>No gap found: the points reach every image corner, the poses span tilts and distances.</p>"
     return Section("Coverage and what to capture next", body)

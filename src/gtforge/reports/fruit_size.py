@@ -1,4 +1,5 @@
-"""Fruit size, volume and grade in ``results.md``/``results.html``/``comparison.*`` (``gtforge.core.measure.fruit_size``)."""
+"""Fruit size, volume and grade in ``results.md``/``results.html``/``comparison.*``
+(``gtforge.core.measure.fruit_size``)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING

@@ -72,9 +72,11 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
             "spread of the figure over 16 bands of its pixels); a figure within 2-3 of it is a measurement artefact, "
             "not an error of the ground truth.</p>")
     thresholds = table(["threshold", "value"], [
-        ["texture shift, whole area or fruit (px)", p.max_shift_px], ["texture correlation, at least", p.min_correlation],
+        ["texture shift, whole area or fruit (px)", p.max_shift_px],
+        ["texture correlation, at least", p.min_correlation],
         ["stereo disparity bias, any region (px)", p.max_disparity_bias_px],
-        ["stereo vertical misalignment (px)", p.max_vertical_px], ["bad matches (% of textured pixels)", p.max_bad_match_pct]])
+        ["stereo vertical misalignment (px)", p.max_vertical_px],
+        ["bad matches (% of textured pixels)", p.max_bad_match_pct]])
     rows = []
     for sid, v in items:
         st = v.stereo.get("all")
@@ -100,7 +102,8 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
         img = (f"<a href='verification/{sid}_overlay.jpg'><img style='max-width:640px' "
                f"src='verification/{sid}_overlay.jpg'/></a>") if overlay.exists() else ""
         flagged_parts.append(f"<h3>{html.escape(sid)}</h3><p>{html.escape('; '.join(v.reasons))}</p>"
-                             f"<div style='display:flex;gap:12px;align-items:flex-start'>{_shift_map(sid, v)}{img}</div>"
+                             f"<div style='display:flex;gap:12px;align-items:flex-start'>"
+                             f"{_shift_map(sid, v)}{img}</div>"
                              "<p class='note'>Overlay: ZED-left (green) and the texture rendered through the ground "
                              "truth (magenta), both locally normalised; where they agree the image is grey, a shift "
                              "shows as green/magenta fringes.</p>")

@@ -4,7 +4,8 @@ camera's own image's edges) on the colour image's edges.
 Photometric alignment (``gtforge.refine``) needs a texture that looks like the colour image; a depth camera's own
 infrared image often does not (an Azure Kinect's infrared and colour images differ too much for local
 normalisation, docs/cameras.md). Depth discontinuities need no texture: where the depth jumps, the colour image
-almost always has an edge too (a different surface behind). This module (its pieces: ``gtforge.core.alignment.edge_features``)
+almost always has an edge too (a different surface behind). This module (its pieces:
+``gtforge.core.alignment.edge_features``)
 
 1. renders each capture's depth into the undistorted colour camera at the starting (factory) extrinsic, finds the
    foreground side of every depth jump there and carries it back into the depth camera as a 3-D point

@@ -1,8 +1,8 @@
-"""The pieces of ``gtforge.core.alignment.edge_alignment``: the depth camera's edges as 3-D points (``depth_edges``: the depth
-map's silhouettes; ``texture_edges``: the depth camera's own image's edges on surfaces), the colour image undistorted
-into a pinhole camera and its edge-strength images (``undistort_image``, ``edge_strength``), and the score of a
-candidate pose (``edge_scores``) and the pixel offset that is left (``edge_offset_px``). The estimator that uses them
-is ``gtforge.core.alignment.edge_alignment``; its module docstring says how they fit together."""
+"""The pieces of ``gtforge.core.alignment.edge_alignment``: the depth camera's edges as 3-D points (``depth_edges``: the
+depth map's silhouettes; ``texture_edges``: the depth camera's own image's edges on surfaces), the colour image
+undistorted into a pinhole camera and its edge-strength images (``undistort_image``, ``edge_strength``), and the score
+of a candidate pose (``edge_scores``) and the pixel offset that is left (``edge_offset_px``). The estimator that uses
+them is ``gtforge.core.alignment.edge_alignment``; its module docstring says how they fit together."""
 from __future__ import annotations
 
 from dataclasses import dataclass

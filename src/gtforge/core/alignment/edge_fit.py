@@ -1,5 +1,5 @@
-"""The numerical core of ``gtforge.core.alignment.edge_alignment``'s estimator: the captures' edges as one problem in pixel
-units (``_Problem``), the one-pixel quadratic model of the score, the cluster-robust sandwich covariance and the
+"""The numerical core of ``gtforge.core.alignment.edge_alignment``'s estimator: the captures' edges as one problem in
+pixel units (``_Problem``), the one-pixel quadratic model of the score, the cluster-robust sandwich covariance and the
 maximiser (Nelder-Mead, then Newton steps), and the significance of a correction. Private to edge_alignment (its
 module docstring says how they fit together)."""
 from __future__ import annotations

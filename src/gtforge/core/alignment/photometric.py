@@ -300,7 +300,8 @@ class ShiftAligner:
 
     Inverse-compositional Lucas-Kanade (the Hessian from ``ref``'s gradients) with a free gain and offset, ``img``
     sampled at the mask's points only, by cubic B-spline (``sample_spline``, phase-unbiased) in the fine pass; a
-    coarse pass on copies blurred by 2 px first (Keys' cubic), so shifts of a few pixels converge. The image pyramids are built once and shared by every mask (whole area, fruit, tiles)."""
+    coarse pass on copies blurred by 2 px first (Keys' cubic), so shifts of a few pixels converge. The image pyramids
+    are built once and shared by every mask (whole area, fruit, tiles)."""
 
     SIGMAS = (2.0, 0.0)
     COARSE_TOL_PX = 0.01
@@ -417,7 +418,8 @@ def to_gray(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
 
 
-# tile keys ty * TILE_KEY + tx sort as (ty, tx): the tiles' order, and so the sums below, do not depend on the image size
+# tile keys ty * TILE_KEY + tx sort as (ty, tx): the tiles' order, and so the sums below, do not depend on the
+# image size
 TILE_KEY = 1 << 32
 
 

@@ -4,8 +4,8 @@
 For each fruit instance (a connected component of ``region.png``'s fruit labels, 2 and 3) the pixels' disparities
 are turned into 3-D points in the ZED-left frame (``Z = f*B/(d + doffs)``), the table is fitted to the same
 source's background pixels around the fruit, and an ellipsoid resting on the table with one axis along its
-normal is fitted to the visible surface (``gtforge.core.measure.shapefit.fit_resting_ellipsoid``). The same pixels are used
-for the ground truth and for the model's prediction, each with its own table; the generator's exact ellipsoids
+normal is fitted to the visible surface (``gtforge.core.measure.shapefit.fit_resting_ellipsoid``). The same pixels are
+used for the ground truth and for the model's prediction, each with its own table; the generator's exact ellipsoids
 (synthetic sessions, ``truth/scene_<id>.npz``) score the ground truth itself.
 """
 from __future__ import annotations

@@ -5,17 +5,16 @@ texture + depth, ZED pair) and ``gauges/gauges.yaml`` naming each object's calib
 For each gauge the ground truth is built exactly as ``build-dataset`` builds a scene (``reproject_to_zed`` with the
 calibration's rig), turned back into 3-D points in the ZED-left frame from the disparity the dataset ships
 (``Z = f*B/(d + doffs)``), the object segmented (components above the RANSAC table plane, eroded), and fitted by
-least squares (``gtforge.core.measure.shapefit``). The raw structured-light depth, mapped into the same frame, is fitted too
-for comparison. Figures (docs/metrics.md, "Gauge objects"):
+least squares (``gtforge.core.measure.shapefit``). The raw structured-light depth, mapped into the same frame, is fitted
+too for comparison. Figures (docs/metrics.md, "Gauge objects"):
 
 * sphere: size error ``PS = D_fit - D_cal`` (mm), form error ``PF`` = range of the radial residuals (mm) and their RMS;
 * sphere pair: both spheres as above and the sphere-spacing error ``SD = L_fit - L_cal`` (mm);
 * plane: flatness ``F`` = range of the signed distances to the fitted plane (mm) and their RMS.
 
 Each with the number of points used, and the form figures predicted from the per-pixel sigma map
-(``gtforge.core.ground_truth.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object rigidly and \
-changes
-no form or size figure).
+(``gtforge.core.ground_truth.uncertainty.disparity_sigma`` without the extrinsic term, which moves the whole object
+rigidly and changes no form or size figure).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""Finding ChArUco and circle-grid targets (``gtforge.core.targets.models``) in an image: markers and interpolated corners
-refined to sub-pixel, circle centres with their perspective bias corrected, the pose from them, and one-line reasons
-when a target is not found (a wrong dictionary, a board too small for its markers, a grid cut by the border).
+"""Finding ChArUco and circle-grid targets (``gtforge.core.targets.models``) in an image: markers and interpolated
+corners refined to sub-pixel, circle centres with their perspective bias corrected, the pose from them, and one-line
+reasons when a target is not found (a wrong dictionary, a board too small for its markers, a grid cut by the border).
 
 Over 500 lines on purpose: both targets' detectors share the sub-pixel refinement, the layout checks and the
 diagnosis of a target that is not found."""
@@ -205,7 +205,8 @@ def _size_for(n_markers: int) -> str:
 
 
 def _subpix_window(corners_uv: np.ndarray, ids: np.ndarray, spec) -> int:
-    """cornerSubPix half-window from the local square size in pixels (as gtforge.core.targets.board: 0.3 of a square, 2-15)."""
+    """cornerSubPix half-window from the local square size in pixels (as gtforge.core.targets.board: 0.3 of a square,
+    2-15)."""
     a, b = neighbour_pairs(spec, ids)
     if len(a) == 0:
         return 5

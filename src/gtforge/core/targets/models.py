@@ -2,9 +2,9 @@
 
 One board definition, ``BoardModel`` (``kind`` + sizes + ArUco dictionary + legacy flag), is given on the
 command line or in session.yaml, recorded in the calibration file and turned by ``BoardModel.spec()`` into the
-geometry the stages and the generator use (``gtforge.core.targets.board.BoardSpec`` for the checkerboard, ``CharucoSpec``,
-``CircleGridSpec`` here; all share ``corners_board()``, ``extent_mm()``, ``albedo()``). Every detection carries
-``ids``: indices into ``corners_board()`` (board order), so a board cut by the image border still gives its
+geometry the stages and the generator use (``gtforge.core.targets.board.BoardSpec`` for the checkerboard,
+``CharucoSpec``, ``CircleGridSpec`` here; all share ``corners_board()``, ``extent_mm()``, ``albedo()``). Every detection
+carries ``ids``: indices into ``corners_board()`` (board order), so a board cut by the image border still gives its
 visible points, matched between cameras by id.
 
 Point meanings (docs/targets.md): ChArUco corners are the chessboard's inner corners, OpenCV's ids

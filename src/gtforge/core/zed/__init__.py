@@ -1,1 +1,2 @@
-"""The ZED pair: rectification measured on board corners (rectification), the self-rectification fit (selfcal), the disparity-scale corrections (scale_corrections)."""
+"""The ZED pair: rectification measured on board corners (rectification), the self-rectification fit (selfcal), the
+disparity-scale corrections (scale_corrections)."""

@@ -64,7 +64,8 @@ def spline_sample(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
 def resample_image(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
     """An ``out_hw`` image whose pixels (row-major) are ``image`` sampled at ``(us, vs)`` (flat, one per output pixel):
     cubic B-spline at the exact positions (``spline_sample``), black where a position is outside ``image``, rounded to
-    its type. One resampling of the right image, whatever its corrections (``gtforge.core.zed.selfcal.corrected_right``)."""
+    its type. One resampling of the right image, whatever its corrections
+    (``gtforge.core.zed.selfcal.corrected_right``)."""
     h, w = image.shape[:2]
     img = np.asarray(image)
     stack = img[None] if img.ndim == 2 else np.moveaxis(img, 2, 0)

@@ -279,8 +279,9 @@ def right_sampling_homography(stereo: RectifiedStereo, correction: ZedRightCorre
     """``M``: a pixel of the corrected right image -> the pixel of the right image as rectified before gtforge that
     it shows. The self-rectification maps an image pixel ``q`` to ``H q`` (``ZedRightCorrection.homography``);
     calibrate-scale measured its yaw on that self-corrected image, whose pixel ``H_yaw p``
-    (``gtforge.core.zed.scale_corrections.yaw_homography``: ideal rectified pixel -> turned camera's pixel) shows what the
-    ideal right camera sees at ``p``. So ``M = H^-1 H_yaw``: the yaw is undone first, then the self-rectification."""
+    (``gtforge.core.zed.scale_corrections.yaw_homography``: ideal rectified pixel -> turned camera's pixel) shows what
+    the ideal right camera sees at ``p``. So ``M = H^-1 H_yaw``: the yaw is undone first, then the
+    self-rectification."""
     H_yaw = right_yaw_homography(stereo.right.K, np.radians(right_yaw_deg))
     return H_yaw if correction is None else np.linalg.inv(correction.homography(stereo)) @ H_yaw
 
