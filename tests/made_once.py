@@ -23,7 +23,8 @@ SPECS: dict[str, tuple[str, dict]] = {}
 
 
 def session_spec(fixture: str, name: str, **kwargs) -> tuple[str, dict]:
-    """Declare the synthetic session fixture ``fixture`` returns: ``generate_session(folder, **kwargs)``."""
+    """Declare the synthetic session fixture ``fixture`` returns: ``generate_session(folder, **kwargs)``, or with
+    ``raw_zed=True`` ``generate_raw_zed_session(folder, **kwargs)`` (raw ZED images and their SN.conf)."""
     SPECS[fixture] = (name, kwargs)
     return name, kwargs
 
@@ -50,9 +51,11 @@ def made_once(root: Path, name: str, make: Callable[[Path], object], **key) -> P
 
 
 def make_session(root: Path, name: str, kwargs: dict) -> Path:
-    from gtforge.synthetic import generate_session
+    from gtforge.synthetic import generate_raw_zed_session, generate_session
 
-    return made_once(root, name, lambda d: generate_session(d, **kwargs), **kwargs)
+    args = {k: v for k, v in kwargs.items() if k != "raw_zed"}
+    generate = generate_raw_zed_session if kwargs.get("raw_zed") else generate_session
+    return made_once(root, name, lambda d: generate(d, **args), **kwargs)
 
 
 def make_calibration(root: Path, session_dir: Path) -> Path:

@@ -1,8 +1,11 @@
 """The ``gtforge`` command line (issue 11 item 13): help, usage and errors read as plain words."""
 import re
 
+import numpy as np
 import pytest
 import typer
+from conftest import synthetic_session
+from made_once import session_spec
 from typer.testing import CliRunner
 
 import gtforge
@@ -70,16 +73,41 @@ def test_synth_prints_progress_off_terminal(tmp_path):
     assert lines[:2] == ["board 000", "scene 000"] and lines[-1] == f"wrote {tmp_path / 's'}"
 
 
-@pytest.mark.slow
-def test_a_separate_depth_cameras_pose_through_the_commands(tmp_path):
-    """synth renders a unit whose depth camera is turned against session.yaml; calibrate then calibrate-scale (the
-    README's order) print and write its rotation, the correction being the inverse turn."""
-    from gtforge.records.calibration import CalibrationFile
+# what `gtforge synth S --boards 5 --scenes 3 --scale 0.3 --seed 5 --separate-depth-camera --depth-pose-error-deg
+# 0.1,-0.15,0.1` renders (its options as the command passes them on), made once in the background
+DEPTH_POSE_SPEC = session_spec("depth_pose_session", "depth_pose", n_board=5, n_scenes=3, scale=0.3, seed=5,
+                               depth_noise_mm=0.03, two_camera=True, depth_pose_error_deg=(0.1, -0.15, 0.1))
+
+
+@pytest.fixture(scope="module")
+def depth_pose_session(request):
+    return synthetic_session(request, DEPTH_POSE_SPEC)
+
+
+def test_synth_writes_a_turned_depth_camera_pose(tmp_path):
+    """synth's --separate-depth-camera and --depth-pose-error-deg: session.yaml's pose of the depth camera is the true
+    one turned by the error (left perturbation, degrees), the truth file keeps the true one."""
+    from gtforge.core.geometry import perturb_left
+    from gtforge.io.captures import SessionFile
+    from gtforge.synthetic import SyntheticTruth
 
     sess = tmp_path / "s"
-    r = CliRunner().invoke(app, ["synth", str(sess), "--boards", "5", "--scenes", "3", "--scale", "0.3", "--seed", "5",
+    r = CliRunner().invoke(app, ["synth", str(sess), "--boards", "0", "--scenes", "1", "--scale", "0.1",
                                  "--separate-depth-camera", "--depth-pose-error-deg", "0.1,-0.15,0.1"])
     assert r.exit_code == 0, r.output
+    written = np.array(SessionFile.read(sess / "session.yaml").T_mech_from_depth)
+    true = np.array(SyntheticTruth.read(sess / "truth" / "rig_truth.yaml").T_mech_from_depth)
+    expected = perturb_left(true, np.r_[np.radians([0.1, -0.15, 0.1]), 0.0, 0.0, 0.0])
+    assert np.allclose(written, expected, atol=1e-12) and not np.allclose(written, true, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_separate_depth_cameras_pose_through_the_commands(depth_pose_session, tmp_path):
+    """A unit whose depth camera is turned against session.yaml (as synth renders it: DEPTH_POSE_SPEC); calibrate then
+    calibrate-scale (the README's order) print and write its rotation, the correction being the inverse turn."""
+    from gtforge.records.calibration import CalibrationFile
+
+    sess = depth_pose_session
     r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(tmp_path / "calib.yaml"), "--no-loo"])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(app, ["calibrate-scale", str(sess), "-c", str(tmp_path / "calib.yaml"),

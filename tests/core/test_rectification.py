@@ -10,6 +10,8 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from gtforge.core.targets.board import BoardSpec
 from gtforge.core.geometry import make_T, transform_points
@@ -35,7 +37,6 @@ from gtforge.synthetic import (
     RawZed,
     SyntheticTruth,
     default_raw_zed,
-    generate_raw_zed_session,
     raw_zed_rig,
     write_raw_zed_conf,
     zed_conf_values,
@@ -45,11 +46,13 @@ BOARD = BoardSpec()
 SESSION_READING = "neg-all"
 
 
+RAW_SPEC = session_spec("raw_session", "raw_zed", raw_zed=True, reading=SESSION_READING, n_board=4, n_scenes=1, seed=5,
+                        supersample=2)
+
+
 @pytest.fixture(scope="module")
-def raw_session(tmp_path_factory):
-    d = tmp_path_factory.mktemp("raw_zed")
-    generate_raw_zed_session(d, reading=SESSION_READING, n_board=4, n_scenes=1, seed=5, supersample=2)
-    return d
+def raw_session(request):
+    return synthetic_session(request, RAW_SPEC)
 
 
 @pytest.fixture(scope="module")

@@ -34,7 +34,6 @@ from gtforge.synthetic import (
     default_raw_zed,
     default_rig,
     finish_image,
-    generate_raw_zed_session,
     random_fruit_scene,
     raw_zed_rig,
     render_image,
@@ -102,11 +101,14 @@ def turned_session(request):
     return synthetic_session(request, TURNED_SESSION_SPEC)
 
 
+RAW_TURNED_SPEC = session_spec("raw_turned_session", "raw_turned", raw_zed=True, n_board=1, n_scenes=2, seed=6,
+                               supersample=2, conf_rotation_error_rad=ERR_RAD)
+
+
 @pytest.fixture(scope="module")
-def raw_turned_session(tmp_path_factory):
+def raw_turned_session(request):
     """Raw ZED images whose SN.conf describes a right camera turned by ERR_RAD against the one that took them."""
-    return generate_raw_zed_session(tmp_path_factory.mktemp("raw_turned"), n_board=1, n_scenes=2, seed=6,
-                                    supersample=2, conf_rotation_error_rad=ERR_RAD)
+    return synthetic_session(request, RAW_TURNED_SPEC)
 
 
 @pytest.mark.parametrize("fixture", ["turned_session", "raw_turned_session"])
