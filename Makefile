@@ -17,7 +17,8 @@ demo: $(STAMP)  ## set up, then run calibrate -> validate -> calibrate-scale -> 
 # test processes side by side (pytest-xdist); the synthetic sessions are rendered once and shared (tests/conftest.py)
 TEST_WORKERS ?= 2
 
-test: $(STAMP)  ## set up, then run the whole test suite, printing the 15 slowest tests (what CI runs: .ci/run)
+test: $(STAMP)  ## set up, lint, then run the whole test suite, printing the 15 slowest tests (what CI runs: .ci/run)
+	$(VENV)/bin/ruff check src tests benchmarks scripts
 	$(PY) -m pytest -n $(TEST_WORKERS) --durations=15
 
 test-quick: $(STAMP)  ## set up, then run the tests not marked slow (about a minute on a 2-core VM)

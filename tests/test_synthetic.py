@@ -5,9 +5,7 @@ import pytest
 from gtforge.core.targets.board import BoardSpec, check_board_spec, detect_corners
 from gtforge.errors import InputError
 from gtforge.synthetic import (
-    board_capture,
     default_rig,
-    random_board_pose,
     random_fruit_scene,
     raycast_depth,
     render_capture,
@@ -15,12 +13,20 @@ from gtforge.synthetic import (
 
 
 @pytest.fixture(scope="module")
-def board_caps():
-    rig = default_rig(0.4)
-    rng = np.random.default_rng(3)
-    b = BoardSpec()
-    caps = [board_capture(f"{i}", rig, b, random_board_pose(rng, rig, b), rng, i) for i in range(3)]
-    return rig, b, caps
+def board_caps(session_dir):
+    """Three board captures of the shared session (the generator's defaults: 0.4x, 3x3 rays a pixel) as the generator
+    wrote them: images and, from truth/, the exact corners."""
+    from types import SimpleNamespace
+
+    from gtforge.io.formats import read_image
+
+    caps = []
+    for name in ("000", "001", "002"):
+        tr = np.load(session_dir / "truth" / f"board_{name}.npz")
+        caps.append(SimpleNamespace(mech_texture=read_image(session_dir / "board" / name / "2DImage.png"),
+                                    zed_left=read_image(session_dir / "board" / name / "left.png"),
+                                    corners_mech_uv=tr["corners_mech_uv"], corners_zed_uv=tr["corners_zed_uv"]))
+    return default_rig(0.4), BoardSpec(), caps
 
 
 @pytest.mark.slow

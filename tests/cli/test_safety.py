@@ -108,15 +108,19 @@ def test_outputs_follow_the_umask(session_dir, true_calibration, tmp_path, umask
 
 def test_calibrate_into_a_folder_and_wrong_square_size(session_dir, tmp_path):
     (tmp_path / "calib").mkdir()
-    r = gtforge("calibrate", session_dir, "-o", f"{tmp_path / 'calib'}/", "--no-loo", "--captures", "000,001,002,003")
+    # (the self-rectification is not what these runs test: left out, as in the runs below)
+    r = gtforge("calibrate", session_dir, "-o", f"{tmp_path / 'calib'}/", "--no-loo", "--no-self-rectify", "--captures",
+                "000,001,002,003")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "calib" / "calibration.yaml").is_file()
     assert "board squares measured in the depth: 20.00 mm (declared 20 mm)" in r.stdout
     # a folder that does not exist yet, given with a trailing slash
-    r = gtforge("calibrate", session_dir, "-o", f"{tmp_path / 'new'}/", "--no-loo", "--captures", "000,001,002,003")
+    r = gtforge("calibrate", session_dir, "-o", f"{tmp_path / 'new'}/", "--no-loo", "--no-self-rectify", "--captures",
+                "000,001,002,003")
     assert r.returncode == 0 and (tmp_path / "new" / "calibration.yaml").is_file()
     # 25 mm declared for a 20 mm board: caught from the depth camera's view of the board
-    r = gtforge("calibrate", session_dir, "-o", tmp_path / "wrong.yaml", "--no-loo", "--square-mm", "25")
+    r = gtforge("calibrate", session_dir, "-o", tmp_path / "wrong.yaml", "--no-loo", "--no-self-rectify",
+                "--square-mm", "25")
     assert r.returncode == 2 and one_line_error(r)
     assert "25 mm declared, 20.00 mm measured" in r.stderr and "--square-mm 20.0" in r.stderr
     assert not (tmp_path / "wrong.yaml").exists()
@@ -130,7 +134,7 @@ def test_use_depth_disagreement_fails_loudly(session_dir, tmp_path):
     for d in (sess / "board").iterdir():
         f = d / "DepthMap.tiff"
         tifffile.imwrite(f, (tifffile.imread(f) * 1.015).astype(np.float32))
-    r = gtforge("calibrate", sess, "-o", tmp_path / "c.yaml", "--no-loo", "--use-depth")
+    r = gtforge("calibrate", sess, "-o", tmp_path / "c.yaml", "--no-loo", "--no-self-rectify", "--use-depth")
     assert r.returncode == 1, r.stdout + r.stderr
     assert "verdict: FAIL" in r.stdout and "depth method differs" in r.stdout
     c = CalibrationFile.read(tmp_path / "c.yaml")
