@@ -187,6 +187,12 @@ def test_the_command(session, tmp_path, monkeypatch, capsys):
         assert e.value.code == code
     cap = capsys.readouterr()
     assert "edge offset (colour - depth) all captures: before" in cap.out and (tmp_path / "a.yaml").is_file()
+    # the page: the decision, the offsets before and after (all captures and per capture), each rotation
+    info = CalibrationFile.read(tmp_path / "a.yaml").depth_alignment
+    page = (tmp_path / "a_report.html").read_text()
+    r = info.result
+    assert r.decision in page and "omega_x" in page and "scenes/000" in page
+    assert f"{r.offset_before_px[0]:+.2f}" in page and f"{r.offset_after_px[1]:+.2f}" in page
     assert cap.err.strip().startswith("error:") and len(cap.err.strip().splitlines()) == 1
 
 

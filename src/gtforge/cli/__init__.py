@@ -398,13 +398,16 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
     from gtforge.align_depth import summary_lines
     from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams
     from gtforge.io.calibrated_session import calibration_output_path
+    from gtforge.reports.depth_alignment import write_depth_alignment_report
 
     params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z)
     res = run(session, calibration, output, params, scenes.split(",") if scenes else None, use_boards=boards,
               progress=_status)
     for line in summary_lines(res.depth_alignment):
         out.print(line)
-    out.print(f"wrote {calibration_output_path(output)}")
+    path = calibration_output_path(output)
+    rep = write_depth_alignment_report(res.depth_alignment, path.parent / (path.stem + "_report.html"))
+    out.print(f"wrote {path} and {rep}")
 
 
 @app.command()
