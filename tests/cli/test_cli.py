@@ -120,3 +120,26 @@ def test_a_separate_depth_cameras_pose_through_the_commands(depth_pose_session, 
         t = info.terms[f"depth_pose_r{axis}_deg"]
         assert abs(t.estimate - truth) < 3 * t.sigma and t.sigma < 0.08, (axis, t)
     assert info.terms["depth_pose_rx_deg"].status == "applied" and "[applied]" in lines["depth_pose_rx_deg"]
+
+
+def test_options_default_to_the_models_values():
+    """An option named as a parameter model's field shows and passes the model's default (both read
+    gtforge.infra.defaults; the booleans are the flags' own): one number in one place."""
+    from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams
+    from gtforge.records.calibration import CalibrateParams
+    from gtforge.records.dataset import BuildParams
+    from gtforge.records.validation import ValidateParams
+
+    models = {"build-dataset": BuildParams, "validate": ValidateParams, "align-depth": EdgeAlignmentParams,
+              "calibrate": CalibrateParams}
+    group, _ = _commands()
+    checked = 0
+    for name, model in models.items():
+        for p in group.commands[name].params:
+            if p.name in model.model_fields and p.default is not None:
+                assert p.default == model.model_fields[p.name].default, (name, p.name)
+                checked += 1
+    bp = BuildParams()
+    split = next(p for p in group.commands["build-dataset"].params if p.name == "split")
+    assert split.default == f"{bp.split_train:g},{bp.split_val:g}"
+    assert checked >= 12

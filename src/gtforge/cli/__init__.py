@@ -22,6 +22,7 @@ from rich.console import Console
 
 from gtforge.cli._typer_style import _Group
 from gtforge.errors import InputError, Interrupted
+from gtforge.infra import defaults
 
 app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.\n\n"
@@ -221,12 +222,13 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                       None, metavar="WxH", help="Crop around the fruit: WIDTHxHEIGHT, or kitti (1242x375, the size "
                       "Fast-ACVNet's KITTI loader trains and validates)."),
                   ply: bool = typer.Option(False, "--ply", help="Write a PLY point cloud per scene."),
-                  erosion_px: int = typer.Option(15, help="Fruit centre = fruit mask eroded by this."),
-                  max_slant_deg: float = typer.Option(85.0, help="mesh: reject triangles steeper than this."),
-                  split: str = typer.Option("0.8,0.1", metavar="TRAIN,VAL",
+                  erosion_px: int = typer.Option(defaults.EROSION_PX, help="Fruit centre = fruit mask eroded by this."),
+                  max_slant_deg: float = typer.Option(defaults.MAX_SLANT_DEG,
+                                                      help="mesh: reject triangles steeper than this."),
+                  split: str = typer.Option(f"{defaults.SPLIT_TRAIN:g},{defaults.SPLIT_VAL:g}", metavar="TRAIN,VAL",
                                             help="train,val ratios (test gets the rest); scenes of one fruit stay "
                                                  "in one split."),
-                  seed: int = typer.Option(0, help="Split seed."),
+                  seed: int = typer.Option(defaults.SPLIT_SEED, help="Split seed."),
                   verification: bool = typer.Option(True, "--verify/--no-verify",
                                                     help="Check every scene's ground truth against its own images "
                                                          "(texture alignment, stereo consistency; verification.html)."),
@@ -386,10 +388,12 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
                 scenes: Optional[str] = typer.Option(None, metavar="IDS",
                                                      help="Comma-separated scene ids (default: all)."),
                 boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
-                search_px: float = typer.Option(6.0, help="First coarse search range (px); widened while the best "
-                                                          "shift is on its border."),
-                apply_z: float = typer.Option(3.0, help="Apply the correction when it is more than this many sigma "
-                                                        "from the factory pose.")) -> None:
+                search_px: float = typer.Option(defaults.EDGE_SEARCH_PX,
+                                                help="First coarse search range (px); widened while the best "
+                                                     "shift is on its border."),
+                apply_z: float = typer.Option(defaults.EDGE_APPLY_Z,
+                                              help="Apply the correction when it is more than this many sigma "
+                                                   "from the factory pose.")) -> None:
     """Refine a separate depth camera's pose (T_mech_from_depth: Azure Kinect, Orbbec, PrimeSense-class units) by
     putting every capture's depth silhouettes on the texture image's edges; writes a calibration file with the
     corrected pose and its covariance (its 'depth_alignment' says what was found, and each capture's pixel offset
@@ -425,8 +429,10 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
              rows: Optional[int] = typer.Option(None, help="Inner corners along a column (default: the "
                                                            "calibration's)."),
              square_mm: Optional[float] = typer.Option(None, help="Square size, mm (default: the calibration's)."),
-             xy_threshold_px: float = typer.Option(0.3, help="PASS when the mean XY error is at most this (px)."),
-             z_threshold_pct: float = typer.Option(0.05, help="PASS when the mean Z error is at most this (%)."),
+             xy_threshold_px: float = typer.Option(defaults.XY_THRESHOLD_PX,
+                                                   help="PASS when the mean XY error is at most this (px)."),
+             z_threshold_pct: float = typer.Option(defaults.Z_THRESHOLD_PCT,
+                                                   help="PASS when the mean Z error is at most this (%)."),
              gauges_only: bool = typer.Option(False, "--gauges-only",
                                               help="Only the gauge objects of gauges/gauges.yaml (VDI/VDE 2634-2 "
                                                    "figures; needs --calibration), not the board captures.")) -> None:

@@ -10,26 +10,27 @@ from typing import ClassVar, Literal
 from pydantic import Field
 
 from gtforge.core.ground_truth.reproject import ReprojectParams
-from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.ground_truth.uncertainty import SigmaStats, UncertaintyParams
+from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.infra import defaults
 from gtforge.records.verification import SceneVerification, VerifyParams
 
 
 class BuildParams(GTModel):
     mode: Literal["mesh", "splat"] = "mesh"
-    max_slant_deg: float = Field(85.0, gt=0, lt=90)
+    max_slant_deg: float = Field(defaults.MAX_SLANT_DEG, gt=0, lt=90)
     abs_tol_mm: float = Field(0.5, ge=0)
     occlusion_rel_tol: float = 0.01
     fruit_height_mm: float = Field(10.0, gt=0)  # points this far above the table plane are foreground
     plane_threshold_mm: float = Field(3.0, gt=0)
     min_component_frac: float = 0.2  # keep foreground components at least this share of the largest
-    erosion_px: int = Field(15, ge=1)  # fruit centre = fruit eroded by this; edge = the rest
+    erosion_px: int = Field(defaults.EROSION_PX, ge=1)  # fruit centre = fruit eroded by this; edge = the rest
     lambda_edge: float = 1.4
     lambda_center: float = 1.0
     lambda_bg: float = 0.8
-    split_train: float = 0.8
-    split_val: float = 0.1
-    split_seed: int = 0
+    split_train: float = defaults.SPLIT_TRAIN
+    split_val: float = defaults.SPLIT_VAL
+    split_seed: int = defaults.SPLIT_SEED
     kitti: bool = True
     eth3d: bool = True
     crop_wh: tuple[int, int] | None = None

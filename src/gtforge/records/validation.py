@@ -7,9 +7,10 @@ from typing import ClassVar
 from pydantic import Field
 
 from gtforge.core.measure.gauges import GaugesResult
-from gtforge.core.zed.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.targets.models import BoardModel
+from gtforge.core.zed.rectification import RectificationQuality
+from gtforge.infra import defaults
 
 REFERENCE_XY_PX = 0.56
 
@@ -21,11 +22,11 @@ REFERENCE_Z_PCT = 0.08
 
 class ValidateParams(GTModel):
     board: BoardModel | None = None  # None: the board stored in the calibration file
-    xy_threshold_px: float = Field(0.3, gt=0)
-    z_threshold_pct: float = Field(0.05, gt=0)
+    xy_threshold_px: float = Field(defaults.XY_THRESHOLD_PX, gt=0)
+    z_threshold_pct: float = Field(defaults.Z_THRESHOLD_PCT, gt=0)
     corner_radius_px: int = 8  # depth patch radius for the per-corner plane fit
     mode: str = "mesh"
-    max_slant_deg: float = 85.0
+    max_slant_deg: float = defaults.MAX_SLANT_DEG
 
 
 

@@ -41,7 +41,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from gtforge.core.camera import PinholeCamera
 from gtforge.core.alignment.edge_features import (
     DepthEdges,
     EdgeOffset,
@@ -55,9 +54,11 @@ from gtforge.core.alignment.edge_features import (
     undistort_image,
 )
 from gtforge.core.alignment.edge_fit import _Cap, _maximise, _Problem, _sandwich, _significance_sigma
+from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import rotation_angle_deg
 from gtforge.core.schema import GTModel, matrix4_field
 from gtforge.errors import InputError
+from gtforge.infra import defaults
 
 PARAMETER_NAMES = ("omega_x", "omega_y", "omega_z", "delta_t_x", "delta_t_y", "delta_t_z")
 Status = Literal["determined", "estimated", "not determined", "not fitted"]
@@ -71,7 +72,7 @@ class EdgeAlignmentParams(GTModel):
     gap_px: int = Field(8, ge=0)  # ... found across at most this many invalid depth pixels
     blur_sigma_px: float = Field(1.0, gt=0)  # Gaussian blur of the colour gradients (fine stage, and the score)
     coarse_blur_sigma_px: float = Field(2.0, gt=0)  # ... of the coarse grid search (doubled with its range)
-    search_px: float = Field(6.0, gt=0)  # coarse grid: image shifts within +-search_px first ...
+    search_px: float = Field(defaults.EDGE_SEARCH_PX, gt=0)  # coarse grid: image shifts within +-search_px first ...
     search_step_px: float = Field(0.5, gt=0)  # ... in these steps; range, step and blur double while the best
     max_search_px: float = Field(48.0, gt=0)  # point is on the border, up to this range
     fit_translation: bool = False  # one capture rarely separates a translation from a rotation
@@ -89,7 +90,7 @@ class EdgeAlignmentParams(GTModel):
     # applied when the determined correction is more than this many (equivalent normal) sigma from the factory value
     # (3, not 2: a factory value has earned a prior; the silhouettes of curved objects are biased by a few tenths of
     # a pixel, which the exact pose of tests/stages/test_align_depth.py would otherwise see as a 2.7-sigma roll)
-    apply_z: float = Field(3.0, ge=0)
+    apply_z: float = Field(defaults.EDGE_APPLY_Z, ge=0)
     # the silhouette placement rule's own sub-pixel bias (a curved object's limb seen from two viewpoints, the depth
     # grid): added to every determined parameter's 1-sigma in quadrature (measured: up to ~0.05 px, synthetic)
     edge_bias_px: float = Field(0.05, ge=0)
