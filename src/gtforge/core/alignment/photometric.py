@@ -250,14 +250,13 @@ def _spline_at(coeffs, x, y, out, derivs):
 
 def sample_spline(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray, derivs: bool = False) -> np.ndarray:
     """Cubic B-spline samples of the image whose coefficients are ``coeffs`` (``spline_prefilter``, float64 or float32;
-    (H, W) -> (N,),
-    or a stack (K, H, W) -> (K, N)) at the exact points ``(x, y)``; with ``derivs`` also its x and y derivatives:
-    (3, N), or (3K, N) (values, d/dx, d/dy).
+    (H, W) -> (N,), or a stack (K, H, W) -> (K, N)) at the exact points ``(x, y)``; with ``derivs`` also its x and y
+    derivatives: (3, N), or (3K, N) (values, d/dx, d/dy).
 
     Phase-unbiased where ``sample_cubic`` is not: Keys' convolution (a = -0.5) smooths and shifts a texture by an
     amount that depends on the sample's sub-pixel phase, which in a stereo check at the ground truth's disparities is
     the disparity's fractional part (on a fronto-parallel textured plane, one phase everywhere: a false disparity bias
-    of up to +-0.03 px on the 400x200 sweep in tests/core/test_phase_bias.py; with the B-spline under 0.003 px).
+    of up to +-0.03 px on the 400x200 sweep in tests/stages/test_verify_phase_bias.py; with the B-spline under 0.003 px).
     Same cost per point as ``sample_cubic``, plus one prefilter of the image."""
     c = np.ascontiguousarray(coeffs, coeffs.dtype if coeffs.dtype in (np.float32, np.float64) else np.float64)
     stack = c.reshape((-1,) + c.shape[-2:])
