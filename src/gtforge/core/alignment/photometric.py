@@ -256,8 +256,8 @@ def sample_spline(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray, derivs: bool
     Phase-unbiased where ``sample_cubic`` is not: Keys' convolution (a = -0.5) smooths and shifts a texture by an
     amount that depends on the sample's sub-pixel phase, which in a stereo check at the ground truth's disparities is
     the disparity's fractional part (on a fronto-parallel textured plane, one phase everywhere: a false disparity bias
-    of up to +-0.03 px on the 400x200 sweep in tests/stages/test_verify_phase_bias.py; with the B-spline under 0.003 px).
-    Same cost per point as ``sample_cubic``, plus one prefilter of the image."""
+    of up to +-0.03 px on the 400x200 sweep in tests/stages/test_verify_phase_bias.py; with the B-spline under
+    0.003 px). Same cost per point as ``sample_cubic``, plus one prefilter of the image."""
     c = np.ascontiguousarray(coeffs, coeffs.dtype if coeffs.dtype in (np.float32, np.float64) else np.float64)
     stack = c.reshape((-1,) + c.shape[-2:])
     K = stack.shape[0]
