@@ -26,6 +26,14 @@ class InputError(ValueError):
         super().__init__(msg.replace("\n", " "))
 
 
+class MissingFileError(InputError):
+    """A file (or every candidate name of one) that should be there is not. The stages that read many captures
+    skip a capture that raises it (a capture that did not complete) and stop on any other ``InputError``."""
+
+    def __init__(self, file: str | Path | None, field: str | None, expected: str, actual: str = "no such file",
+                 hint: str | None = None):
+        super().__init__(file, field, expected, actual, hint)
+
 
 class Interrupted(Exception):
     """Ctrl-C, as the ``gtforge`` command raises it (its SIGINT handler) and as a stage re-raises it after

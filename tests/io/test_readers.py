@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from gtforge.core.camera import CameraFile, PinholeCamera, RectifiedStereo, StereoCalibrationFile
-from gtforge.errors import InputError
+from gtforge.errors import InputError, MissingFileError
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf, write_zed_conf
 from gtforge.io.captures import open_session, read_depth, read_video_frame, split_side_by_side
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
@@ -411,3 +411,23 @@ def test_ros_rational_polynomial_keeps_all_eight_coefficients(tmp_path):
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(ros))
     with pytest.raises(InputError, match=r"distortion_coefficients.*got 6"):
         load_camera(tmp_path / "bad.yaml")
+
+
+def test_a_missing_capture_file_is_told_apart_from_a_wrong_one(tmp_path):
+    """The stages that read many captures skip one whose file is missing and stop on one whose file is wrong: the
+    error's type says which, not its words."""
+    from gtforge.io.captures import missing_capture_file
+    from gtforge.io.formats import read_image
+
+    with pytest.raises(MissingFileError) as missing:
+        read_depth(tmp_path / "DepthMap.tiff")
+    assert missing_capture_file(missing.value)
+    assert str(missing.value) == (f"{tmp_path / 'DepthMap.tiff'} [depth]: expected a depth map file, got no such file "
+                                  "(hint: check the capture folder / session.yaml)")
+    with pytest.raises(MissingFileError) as missing:
+        read_image(tmp_path / "left.png")
+    assert missing_capture_file(missing.value) and "got no such file" in str(missing.value)
+    (tmp_path / "DepthMap.bmp").write_bytes(b"BM")
+    with pytest.raises(InputError) as wrong:
+        read_depth(tmp_path / "DepthMap.bmp")
+    assert not missing_capture_file(wrong.value) and "got '.bmp'" in str(wrong.value)

@@ -21,7 +21,7 @@ from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
 from gtforge.core.zed.selfcal import corrected_right
 from gtforge.core.targets.models import BoardModel
-from gtforge.errors import InputError
+from gtforge.errors import InputError, MissingFileError
 from gtforge.infra.digest import blake3_hex
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.formats import PNG_SIGNATURE, read_image
@@ -41,7 +41,7 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     """
     path = Path(path)
     if data is None and not path.is_file():
-        raise InputError(path, field, "a depth map file", "no such file", "check the capture folder / session.yaml")
+        raise MissingFileError(path, field, "a depth map file", hint="check the capture folder / session.yaml")
     suf = path.suffix.lower()
     if suf not in DEPTH_SUFFIXES:
         raise InputError(path, field, f"a depth map ({', '.join(DEPTH_SUFFIXES)})", f"'{suf}'")
@@ -139,7 +139,7 @@ def read_video_frame(path: str | Path, frame_index: int = 0) -> np.ndarray:
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "video", "a video file", "no such file")
+        raise MissingFileError(path, "video", "a video file")
     try:
         reader = iio2.get_reader(path, format="FFMPEG")
     except Exception as exc:
@@ -255,7 +255,7 @@ def missing_capture_file(exc: InputError) -> bool:
     """Whether ``load_capture`` failed because a file of the capture is not there (a capture that did not complete):
     the stages that read many captures skip that one with a warning, as one whose board is not found; a file that is
     there but wrong stops them (one line, exit 2)."""
-    return exc.actual in ("no such file", "none of them")
+    return isinstance(exc, MissingFileError)
 
 
 def leave_out_hint(exc: InputError, capture: str, option: str = "--captures") -> InputError:
@@ -420,8 +420,9 @@ class Session:
             src = src_right = folder / f.zed_video
             left, right = split_side_by_side(read_video_frame(src, self.config.video_frame), eye_w, src)
         else:
-            raise InputError(folder, "zed images", f"{f.zed_left}+{f.zed_right}, {f.zed_side_by_side} or {f.zed_video}",
-                             "none of them", "see docs/capture-layout.md")
+            raise MissingFileError(folder, "zed images",
+                                   f"{f.zed_left}+{f.zed_right}, {f.zed_side_by_side} or {f.zed_video}",
+                                   "none of them", "see docs/capture-layout.md")
         if left is not None:
             if left.ndim == 2:
                 left = np.repeat(left[..., None], 3, axis=2)

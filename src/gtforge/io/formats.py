@@ -30,7 +30,7 @@ import numpy as np
 import tifffile
 from zlib_ng import zlib_ng
 
-from gtforge.errors import InputError
+from gtforge.errors import InputError, MissingFileError
 from gtforge.infra.atomic import atomic_path, atomic_write_buffer, atomic_write_bytes
 from gtforge.infra.unbuffered import aligned_buffer
 
@@ -295,7 +295,7 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
 
     path = Path(path)
     if data is None and not path.is_file():
-        raise InputError(path, field, "an image file", "no such file", "check the capture folder / session.yaml")
+        raise MissingFileError(path, field, "an image file", hint="check the capture folder / session.yaml")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
             a = tifffile.imread(path if data is None else io.BytesIO(data))
