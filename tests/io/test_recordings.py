@@ -395,3 +395,32 @@ def test_realsense_extrinsic_direction_puts_depth_edges_on_colour_edges():
     assert all(o.interior and o.magnitude_px < 2.0 for o in offsets["as read"])
     for name in ("inverse", "rotation transposed"):
         assert all(o.magnitude_px > 5.0 for o in offsets[name]), name
+
+
+def test_zed_sdk_export_folder_bgra_pngs_with_an_sn_conf(tmp_path):
+    """A ZED SDK export folder (``left%06d.png`` / ``right%06d.png`` as ZED_SVO_Export writes them, BGRA): RGB frames at
+    ``i / fps``, a left image without its right left out, the SN.conf's rectified pair (the images are the SDK's
+    rectified ones: ``rectified`` stays True)."""
+    from gtforge.io.cameras import read_zed_conf
+    from gtforge.io.ros_recordings import is_zed_export, read_zed_export
+    from gtforge.synthetic import default_raw_zed, write_raw_zed_conf
+
+    rng = np.random.default_rng(4)
+    folder = tmp_path / "export"
+    folder.mkdir()
+    images = {}
+    for i in (0, 1, 2, 3):
+        for side in ("left", "right") if i < 3 else ("left",):
+            rgb = rng.integers(0, 255, (376, 672, 3), dtype=np.uint8)
+            cv2.imwrite(str(folder / f"{side}{i:06d}.png"), np.dstack([rgb[..., ::-1], np.full((376, 672), 255,
+                                                                                                np.uint8)]))
+            images[side, i] = rgb
+    conf = write_raw_zed_conf(tmp_path / "SN10027514.conf", default_raw_zed(), "neg-x")
+    assert is_zed_export(folder) and not is_zed_export(tmp_path)
+    rec = read_zed_export(folder, 15.0, conf)
+    assert [f.t_ns for f in rec.left.frames] == [0, 66_666_667, 133_333_333] == [f.t_ns for f in rec.right.frames]
+    for i in range(3):
+        assert np.array_equal(rec.left.frames[i].decode(), images["left", i])
+        assert np.array_equal(rec.right.frames[i].decode(), images["right", i])
+    assert rec.stereo == read_zed_conf(conf, 672).rectification().stereo
+    assert rec.calibration_file == conf and rec.rectified

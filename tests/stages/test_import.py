@@ -385,7 +385,7 @@ def test_svo2_import_calibrate_build_measures_the_lossy_video(raw_zed_session, s
           f"texture ZNCC {h.texture_all.correlation:.3f} vs {s.texture_all.correlation:.3f}, shift "
           f"{h.texture_all.magnitude_px:.3f} vs {s.texture_all.magnitude_px:.3f} px (noise "
           f"{h.texture_all.dx_noise_px:.4f} vs {s.texture_all.dx_noise_px:.4f}), stereo bad-match "
-          f"{h.stereo['all'].bad_match_pct:.3f} vs {s.stereo['all'].bad_match_pct:.3f}, disparity bias noise "
+          f"{h.stereo['all'].bad_match_pct:.3f} vs {s.stereo['all'].bad_match_pct:.3f} %, disparity bias noise "
           f"{h.stereo['all'].disparity_bias_noise_px:.4f} vs {s.stereo['all'].disparity_bias_noise_px:.4f} px")
     assert dt_mm < 1.0 and epe < 0.05
     assert s.status == h.status == "ok"

@@ -157,24 +157,29 @@ class ZedSvo:
 
         def emit(frames):
             for fr in frames:
-                o = int(fr.pts)
-                for s, k in by_ordinal.pop(o, []):
-                    img = fr.to_ndarray(format="rgb24")
+                want = by_ordinal.pop(int(fr.pts), [])
+                img = fr.to_ndarray(format="rgb24") if want else None  # once for both halves
+                for s, k in want:
                     w = img.shape[1] // 2
                     yield s, k, s.convert(np.ascontiguousarray(img[:, :w] if s.name.endswith("left") else img[:, w:]))
 
-        for o, (_, data) in enumerate(self._messages()):
-            if o > last:
-                break
-            if not decode[o]:
-                continue
-            pkt = av.Packet(annexb_payload(data))
-            pkt.pts = o
-            try:
-                yield from emit(ctx.decode(pkt))
-            except av.FFmpegError as exc:
-                raise InputError(self.path, f"{self.topic} message {o}", f"a decodable {self.codec} frame",
-                                 f"{type(exc).__name__}", "the file may be damaged") from None
+        messages = self._messages()
+        try:
+            for o, (_, data) in enumerate(messages):
+                if o > last:
+                    break
+                if not decode[o]:
+                    continue
+                pkt = av.Packet(annexb_payload(data))
+                pkt.pts = o
+                try:
+                    frames = ctx.decode(pkt)
+                except av.FFmpegError as exc:
+                    raise InputError(self.path, f"{self.topic} message {o}", f"a decodable {self.codec} frame",
+                                     f"{type(exc).__name__}", "the file may be damaged") from None
+                yield from emit(frames)
+        finally:
+            messages.close()
         yield from emit(ctx.decode(None))
         if by_ordinal:
             raise InputError(self.path, self.topic, "every frame asked for decoded",
