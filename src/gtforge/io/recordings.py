@@ -376,8 +376,9 @@ def is_realsense_bag(bag: Bag) -> bool:
 
 def read_realsense(bag: Bag) -> RgbdRecording:
     """Depth (``Depth_<i>``) and colour (``Color_<i>``, else ``Infrared_1``) streams, each stream's camera_info, the
-    depth units option (``Depth_Units``; older files ``Depth Units``) and the colour stream's ``tf/0``: librealsense
-    writes each stream's extrinsic to the depth stream, read here as ``T_color_from_depth`` (metres -> mm)."""
+    depth units option (``Depth_Units``; older files ``Depth Units``), the colour stream's ``tf/0``: librealsense
+    writes each stream's extrinsic to the depth stream, read here as ``T_color_from_depth`` (metres -> mm; the
+    direction checked on a real D435 file, tests/io/test_recordings.py), and the device's serial number."""
     path = bag.path
     depth_t = next((t for t in bag.topics if re.search(r"/Depth_\d+/image/data$", t)), None)
     tex_t = next((t for t in bag.topics if re.search(r"/Color_\d+/image/data$", t)), None) \

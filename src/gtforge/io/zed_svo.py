@@ -86,11 +86,12 @@ class ZedSvo:
         self.path = path
         try:
             with open(path, "rb") as f:
-                reader = make_reader(f)
-                topics = sorted({c.topic for c in (reader.get_summary().channels.values()
-                                                   if reader.get_summary() else [])})
-                if not topics:  # no summary section (a recording cut short): scan the messages
-                    topics = sorted({ch.topic for _, ch, _ in make_reader(open(path, "rb")).iter_messages()})
+                summary = make_reader(f).get_summary()
+            if summary is not None:
+                topics = sorted({c.topic for c in summary.channels.values()})
+            else:  # a file written without a summary section: the channels of its messages
+                with open(path, "rb") as f:
+                    topics = sorted({ch.topic for _, ch, _ in make_reader(f).iter_messages()})
         except InputError:
             raise
         except Exception as exc:
