@@ -5,10 +5,13 @@
 The depth camera's bag holds what realsense-ros records (``/camera/camera/color/image_raw`` rgb8,
 ``/camera/camera/aligned_depth_to_color/image_raw`` 32FC1 metres or 16UC1 mm, their camera_info); the stereo
 camera's what zed-ros2-wrapper records (``/zed/zed_node/{left,right}/image_rect_color`` bgra8 and camera_info, P of
-the rectified pair). The timeline: every capture held still for ``still_frames`` frames, then ``motion_frames``
-frames of the rig moving (the images shifted), except after the captures in ``jumps``: there the next capture
-follows at once (a scene moved between two frames, no motion frames). Both cameras run at ``fps`` with their own
-clock origin, a phase offset and timing jitter."""
+the rectified pair), or a ZED SDK export folder, or a ZED ``.svo2`` (``write_svo2``: the layout of
+gtforge.io.zed_svo, the session's left|right images as H.264/H.265 video; a raw-ZED session,
+``gtforge.synthetic.generate_raw_zed_session``, gives raw images as a real ``.svo2`` holds). The timeline: every
+capture held still for ``still_frames`` frames, then ``motion_frames`` frames of the rig moving (the images
+shifted), except after the captures in ``jumps``: there the next capture follows at once (a scene moved between two
+frames, no motion frames). Both cameras run at ``fps`` with their own clock origin, a phase offset and timing
+jitter."""
 from __future__ import annotations
 
 import struct
@@ -220,6 +223,9 @@ def write_svo2(path: str | Path, frames, *, codec: str = "h264", serial: int = 1
         for k, (t, left, right) in enumerate(frames):
             img = np.ascontiguousarray(np.concatenate([left, right], axis=1))
             if ctx is None:
+                if img.shape[0] % 2 or img.shape[1] % 2:  # 4:2:0 video, as the ZED SDK records, needs even sizes
+                    raise ValueError(f"write_svo2 needs an even image size (ZED resolutions are), got "
+                                     f"{img.shape[1]}x{img.shape[0]} side by side")
                 ctx = av.CodecContext.create("libx264" if codec == "h264" else "libx265", "w")
                 ctx.width, ctx.height, ctx.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
                 ctx.time_base, ctx.framerate = Fraction(1, 1000), Fraction(fps).limit_denominator(1000)

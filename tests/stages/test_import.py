@@ -334,6 +334,8 @@ def test_svo2_imports_the_raw_images_with_the_conf(raw_zed_session, svo_import, 
     psnr = []
     for c in captures:
         assert (out / c / "2DImage.png").read_bytes() == (raw_zed_session / c / "2DImage.png").read_bytes()
+        a, b = read_depth(out / c / "DepthMap.tiff"), read_depth(raw_zed_session / c / "DepthMap.tiff")
+        assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b) / b) <= 1.2e-7
         for f in ("left.png", "right.png"):
             a, b = read_image(out / c / f).astype(float), read_image(raw_zed_session / c / f).astype(float)
             assert a.shape == b.shape == (376, 672, 3)
