@@ -365,6 +365,13 @@ def test_svo2_bad_files_are_one_line_errors(tmp_path):
     assert "serial" in str(e.value)
     with pytest.raises(InputError, match="--zed-calibration"):
         read_zed_svo2(good, None)
+    # an SVO2 named .svo is read as one; a version-1 .svo is refused (test_topic_choice_...)
+    from gtforge.io.ros_recordings import Topics, open_recordings
+
+    renamed = tmp_path / "renamed.svo"
+    renamed.write_bytes(good.read_bytes())
+    with pytest.raises(InputError, match="depth recording"):  # read as a stereo recording: no depth camera named
+        open_recordings([renamed], Topics(zed_calibration=conf))
 
 
 def test_realsense_extrinsic_direction_puts_depth_edges_on_colour_edges():

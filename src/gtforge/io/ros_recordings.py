@@ -33,7 +33,7 @@ from gtforge.io.recordings import (
     read_realsense,
     stereo_from_infos,
 )
-from gtforge.io.zed_svo import read_zed_svo2
+from gtforge.io.zed_svo import is_mcap, read_zed_svo2
 
 ZED_EXPORT = re.compile(r"^(left|right)(\d+)\.(png|jpg|jpeg)$", re.IGNORECASE)
 
@@ -231,7 +231,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         if is_zed_export(p):
             stereo_c.append(read_zed_export(p, topics.fps, topics.zed_calibration))
             continue
-        if p.suffix.lower() == ".svo2":
+        if p.suffix.lower() == ".svo2" or p.suffix.lower() == ".svo" and is_mcap(p):  # an SVO2 renamed .svo too
             stereo_c.append(read_zed_svo2(p, topics.zed_calibration))
             continue
         if p.suffix.lower() == ".svo":

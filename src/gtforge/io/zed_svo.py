@@ -25,8 +25,18 @@ from gtforge.io.cameras import read_zed_conf
 from gtforge.io.recordings import StereoRecording, Stream, _indexed_stream, require_extra
 
 SIDE_BY_SIDE = re.compile(r"^Camera_SN(\d+)/side_by_side$")
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 LOSSY_WARNING = ("the ZED images come from lossy H.264/H.265 video: their texture is worse for verification than the "
                  "PNGs of an SDK export or a ROS recording (docs/capture-layout.md, 'From recordings')")
+
+
+def is_mcap(path: Path) -> bool:
+    """The file starts with MCAP's magic bytes (an SVO2, whatever its name says)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(8) == MCAP_MAGIC
+    except OSError:
+        return False
 
 
 def annexb_payload(data: bytes) -> bytes | None:
