@@ -230,9 +230,10 @@ def write_svo2(path: str | Path, frames, *, codec: str = "h264", serial: int = 1
                 ctx.width, ctx.height, ctx.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
                 ctx.time_base, ctx.framerate = Fraction(1, 1000), Fraction(fps).limit_denominator(1000)
                 ctx.gop_size = gop
+                ctx.thread_count = 1  # one core: the tests share the machine (and one thread is deterministic)
                 ctx.options = ({"preset": "veryfast", "tune": "zerolatency", "crf": str(crf)} if codec == "h264" else
                                {"preset": "veryfast", "tune": "zerolatency", "crf": str(crf),
-                                "x265-params": "log-level=error:bframes=0"})
+                                "x265-params": "log-level=error:bframes=0:pools=1:frame-threads=1"})
                 head = struct.pack("<9I", img.shape[1], img.shape[0], serial, int(round(fps)), 0, 8, 0, 1000, 2001)
                 head += bytes(128 - len(head))
                 w.add_message(hdr, log_time=t, publish_time=t, data=json.dumps(
