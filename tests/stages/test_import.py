@@ -193,6 +193,11 @@ def test_without_the_extra_the_error_names_it(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(InputError, match=r"gtforge\[recordings\]"):
         Bag(tmp_path / "x.bag")
+    from gtforge.io.zed_svo import ZedSvo
+
+    monkeypatch.setitem(sys.modules, "mcap", None)
+    with pytest.raises(InputError, match=r"gtforge\[recordings\]"):
+        ZedSvo(tmp_path / "x.svo2")
 
 
 @pytest.mark.slow
