@@ -26,10 +26,12 @@ from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
+from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
 from gtforge.io.recordings import RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
+from gtforge.io.vendors import load_structured_light_cameras
 from gtforge.records.imports import ImportParams, ImportRecord, ImportRun, PairRecord, SourceFile
 
 THUMB_W = 160
@@ -311,9 +313,6 @@ def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording |
     earlier import (``import.json``), the same texture camera, depth camera and ``T_mech_from_depth``, and the same
     stereo pair (its rectified model; an SN.conf the same file) as the session's files. A mismatch is a one-line
     error before anything is written."""
-    from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
-    from gtforge.io.vendors import load_structured_light_cameras
-
     hint = "these recordings come from another rig, unit or resolution: import them into a new session"
     serials = recording_serials(rgbd, stereo)
     if (session / "import.json").is_file():

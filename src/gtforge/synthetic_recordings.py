@@ -14,8 +14,11 @@ frames, no motion frames). Both cameras run at ``fps`` with their own clock orig
 jitter."""
 from __future__ import annotations
 
+import base64
+import json
 import struct
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -200,11 +203,7 @@ def write_svo2(path: str | Path, frames, *, codec: str = "h264", serial: int = 1
     image one H.264/H.265 access unit, Annex B, low-latency encoding without B-frames: an 8-byte size prefix, the
     video bytes, a 56-byte trailer; log time = the frame's time) and ``svo_footer`` (JSON: the frames' times).
     ``crf``: the encoder's quality (libx264/libx265's default 23; lower is better). The IMU channels are left out."""
-    import base64
-    import json
-    from fractions import Fraction
-
-    import av
+    import av  # optional dependencies (gtforge[recordings]): imported where used
     from mcap.writer import Writer
 
     path = Path(path)

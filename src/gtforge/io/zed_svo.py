@@ -91,7 +91,7 @@ class ZedSvo:
 
     def __init__(self, path: Path):
         require_extra("mcap")
-        from mcap.reader import make_reader
+        from mcap.reader import make_reader  # an optional dependency (gtforge[recordings])
 
         self.path = path
         try:
@@ -137,7 +137,7 @@ class ZedSvo:
                              "the file may be cut at its start")
 
     def _messages(self):
-        from mcap.reader import make_reader
+        from mcap.reader import make_reader  # an optional dependency (gtforge[recordings])
 
         try:
             with open(self.path, "rb") as f:
