@@ -26,10 +26,12 @@ from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
+from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
 from gtforge.io.recordings import RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
+from gtforge.io.vendors import load_structured_light_cameras
 from gtforge.records.imports import ImportParams, ImportRecord, ImportRun, PairRecord, SourceFile
 
 THUMB_W = 160
@@ -238,6 +240,8 @@ def _write_rig_files(folder: Path, rgbd: RgbdRecording, stereo: StereoRecording 
     if stereo is not None and stereo.calibration_file is not None:
         atomic_write_bytes(folder / stereo.calibration_file.name, stereo.calibration_file.read_bytes())
         extra["zed_calibration"] = stereo.calibration_file.name
+        if not stereo.rectified:
+            extra["zed_rectified"] = False
     elif stereo is not None:
         StereoCalibrationFile(zed=stereo.stereo).write(folder / "zed_calibration.yaml")
     SessionFile(board=board, **extra).write(folder / "session.yaml")
@@ -281,6 +285,83 @@ def _is_board(img: np.ndarray, spec) -> bool:
         return False
 
 
+def _same_camera(a, b) -> bool:
+    """Two cameras (``PinholeCamera``) the same up to a file's float rounding."""
+    if a is None or b is None:
+        return a is b
+    ka, kb = (np.array([c.fx_px, c.fy_px, c.cx_px, c.cy_px]) for c in (a, b))
+    da, db = (np.pad(np.asarray(c.dist_coeffs, float), (0, 14 - len(c.dist_coeffs))) for c in (a, b))
+    return (a.width_px, a.height_px) == (b.width_px, b.height_px) and np.allclose(ka, kb, rtol=1e-6, atol=1e-9) \
+        and np.allclose(da, db, rtol=1e-6, atol=1e-9)
+
+
+def _describe(cam) -> str:
+    return "none" if cam is None else (f"{cam.width_px}x{cam.height_px} fx {cam.fx_px:.3f} fy {cam.fy_px:.3f} "
+                                       f"cx {cam.cx_px:.3f} cy {cam.cy_px:.3f}")
+
+
+def recording_serials(rgbd: RgbdRecording, stereo: StereoRecording | None) -> dict[str, str]:
+    """role ('depth', 'stereo') -> the device's serial number, where the recording names it."""
+    out = {"depth": rgbd.serial} if rgbd.serial else {}
+    if stereo is not None and stereo.serial:
+        out["stereo"] = stereo.serial
+    return out
+
+
+def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording | None) -> None:
+    """``--add``: the recordings must come from the rig the session was made with: the same device serials as every
+    earlier import (``import.json``), the same texture camera, depth camera and ``T_mech_from_depth``, and the same
+    stereo pair (its rectified model; an SN.conf the same file) as the session's files. A mismatch is a one-line
+    error before anything is written."""
+    hint = "these recordings come from another rig, unit or resolution: import them into a new session"
+    serials = recording_serials(rgbd, stereo)
+    if (session / "import.json").is_file():
+        for run in ImportRecord.read(session / "import.json").runs:
+            for role, serial in run.serials.items():
+                if serials.get(role, serial) != serial:
+                    raise InputError(session / "import.json", f"serials.{role}", f"the {role} device {serial}",
+                                     f"{serials[role]} ({rgbd.path if role == 'depth' else stereo.path})", hint)
+    if not (session / "session.yaml").is_file():
+        return
+    sf = SessionFile.read(session / "session.yaml")
+    mech = session / sf.mech_intrinsics
+    if mech.is_file():
+        cams = load_structured_light_cameras(mech, depth_mode=sf.kinect_depth_mode, color_mode=sf.kinect_color_mode)
+        depth_cam, T = cams.depth, cams.T_mech_from_depth
+        if sf.depth_intrinsics:
+            depth_cam, T = load_camera(session / sf.depth_intrinsics), np.array(sf.T_mech_from_depth)
+        depth_file = session / (sf.depth_intrinsics or sf.mech_intrinsics)
+        for what, mine, theirs, file in (("texture camera", rgbd.texture_camera, cams.texture, mech),
+                                         ("depth camera", rgbd.depth_camera, depth_cam, depth_file)):
+            if not _same_camera(mine, theirs):
+                raise InputError(file, what, f"the session's {_describe(theirs)}", f"{_describe(mine)} in "
+                                 f"{rgbd.path.name}", hint)
+        T_new = rgbd.T_texture_from_depth
+        if (T is None) != (T_new is None) or T is not None and not np.allclose(T, T_new, rtol=0, atol=1e-6):
+            raise InputError(session / "session.yaml", "T_mech_from_depth", "the session's depth-to-texture transform",
+                             f"another one in {rgbd.path.name}", hint)
+    zpath = session / sf.zed_calibration
+    if stereo is None or not zpath.is_file():
+        if (stereo is None) != (not zpath.is_file()):
+            raise InputError(session, "stereo camera", "a stereo recording" if zpath.is_file() else "none",
+                             "none" if stereo is None else stereo.path.name, hint)
+        return
+    if zpath.suffix.lower() == ".conf":
+        if stereo.calibration_file is None or stereo.calibration_file.read_bytes() != zpath.read_bytes():
+            raise InputError(zpath, "zed_calibration", f"the session's {zpath.name}",
+                             str(stereo.calibration_file or "a recording without an SN.conf"), hint)
+        theirs = read_zed_conf(zpath, stereo.stereo.left.width_px).rectification().stereo
+    else:
+        theirs = load_zed_rectified(zpath, session / sf.zed_right_info if sf.zed_right_info else None)
+    mine = stereo.stereo
+    if sf.zed_rectified != stereo.rectified or not _same_camera(mine.left, theirs.left) or not np.isclose(
+            mine.baseline_mm, theirs.baseline_mm, rtol=1e-6) or not np.isclose(mine.doffs_px, theirs.doffs_px,
+                                                                                atol=1e-6):
+        raise InputError(zpath, "stereo camera", f"the session's {_describe(theirs.left)}, baseline "
+                         f"{theirs.baseline_mm:.3f} mm", f"{_describe(mine.left)}, baseline {mine.baseline_mm:.3f} mm "
+                         f"in {stereo.path.name}", hint)
+
+
 def import_recordings(paths: list[str | Path], session: str | Path, params: ImportParams | None = None,
                       topics: Topics | None = None, add: bool = False,
                       progress: Callable[[str], None] | None = None) -> ImportSummary:
@@ -301,6 +382,8 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     opened = open_recordings(paths, topics)
     try:
         rgbd, stereo = opened.rgbd, opened.stereo
+        if add and exists:
+            check_same_rig(session, rgbd, stereo)
         kept, dropped, offset, source, n_same = plan_pairs(rgbd, stereo, params, progress)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
@@ -345,12 +428,14 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         streams = {"depth": rgbd.depth.name, "texture": rgbd.texture.name}
         if stereo is not None:
             streams.update(left=stereo.left.name, right=stereo.right.name)
-        warnings = [] if stereo is not None else ["no stereo recording: the captures have no left.png/right.png"]
+        warnings = stereo.warnings if stereo is not None else ["no stereo recording: the captures have no "
+                                                               "left.png/right.png"]
         run = ImportRun(sources=_sources(paths), depth_recording=str(rgbd.path.resolve()),
                         stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
                         notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "
                                                                                "kept captures' stretches"],
-                        params=params, clock_offset_ms=offset / 1e6, clock_offset_source=source, pairs=records,
+                        serials=recording_serials(rgbd, stereo), params=params, clock_offset_ms=offset / 1e6,
+                        clock_offset_source=source, pairs=records,
                         dropped=dropped)
         _land(partial, session, run, add)
     finally:

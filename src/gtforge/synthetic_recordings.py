@@ -5,13 +5,20 @@
 The depth camera's bag holds what realsense-ros records (``/camera/camera/color/image_raw`` rgb8,
 ``/camera/camera/aligned_depth_to_color/image_raw`` 32FC1 metres or 16UC1 mm, their camera_info); the stereo
 camera's what zed-ros2-wrapper records (``/zed/zed_node/{left,right}/image_rect_color`` bgra8 and camera_info, P of
-the rectified pair). The timeline: every capture held still for ``still_frames`` frames, then ``motion_frames``
-frames of the rig moving (the images shifted), except after the captures in ``jumps``: there the next capture
-follows at once (a scene moved between two frames, no motion frames). Both cameras run at ``fps`` with their own
-clock origin, a phase offset and timing jitter."""
+the rectified pair), or a ZED SDK export folder, or a ZED ``.svo2`` (``write_svo2``: the layout of
+gtforge.io.zed_svo, the session's left|right images as H.264/H.265 video; a raw-ZED session,
+``gtforge.synthetic.generate_raw_zed_session``, gives raw images as a real ``.svo2`` holds). The timeline: every
+capture held still for ``still_frames`` frames, then ``motion_frames`` frames of the rig moving (the images
+shifted), except after the captures in ``jumps``: there the next capture follows at once (a scene moved between two
+frames, no motion frames). Both cameras run at ``fps`` with their own clock origin, a phase offset and timing
+jitter."""
 from __future__ import annotations
 
+import base64
+import json
+import struct
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +38,7 @@ class RecordingsTruth:
     clock_offset_ms: float  # stereo clock minus depth clock (the true one)
     captures: list[str]  # the hand-laid capture (board/000 ...) of every still stretch, in time order
     frame_capture: list[str | None] = field(default_factory=list)  # per frame: the capture shown, None in motion
+    stereo_times_ns: list[int] = field(default_factory=list)  # per frame: its time on the stereo camera's clock
 
 
 def _ros_types():
@@ -76,20 +84,22 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
                           depth_clock_s: float = 1000.0, stereo_clock_s: float = 4321.0, phase_ms: float = 7.0,
                           jitter_ms: float = 2.0, depth_encoding: str = "32FC1", seed: int = 0,
                           captures: list[str] | None = None, info_camera: PinholeCamera | None = None,
-                          zed_export: bool = False) -> RecordingsTruth:
+                          zed_export: bool = False, svo2_codec: str | None = None,
+                          svo2_serial: int = 12345) -> RecordingsTruth:
     """Write ``out_dir/rgbd`` and ``out_dir/zed`` (rosbag2 folders) from the hand-laid session ``session_dir``.
 
     ``captures``: these capture folders only (``board/000``...; default all, boards first); ``info_camera``: the
     depth camera's camera_info says this camera instead of the session's (a wrong file, for the error tests);
     ``zed_export``: the stereo camera as a ZED SDK export folder instead (``out_dir/zed/left%06d.png`` ... BGRA, its
-    clock: frame index / fps) beside the session's ``zed_calibration.yaml``."""
+    clock: frame index / fps) beside the session's ``zed_calibration.yaml``; ``svo2_codec`` ('h264' or 'hevc'): the
+    stereo camera as a ZED ``out_dir/zed.svo2`` instead (``write_svo2``: the session's left|right images, raw for a
+    raw-ZED session, as lossy video)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     session_dir, out_dir = Path(session_dir), Path(out_dir)
     ts = _ros_types()
     rng = np.random.default_rng(seed)
     mech = CameraFile.read(session_dir / "mech_intrinsics.yaml").camera
-    zed = StereoCalibrationFile.read(session_dir / "zed_calibration.yaml").zed
     caps = captures or [f"{k}/{p.name}" for k in ("board", "scenes") for p in sorted((session_dir / k).glob("[0-9]*"))]
     # the timeline: per frame, the capture shown and the image shift (0 = still)
     timeline: list[tuple[str, int]] = []
@@ -103,11 +113,15 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
     t_depth = (depth_clock_s * 1e9 + t_true + rng.uniform(-jitter_ms, jitter_ms, t_true.size) * 1e6).astype(np.int64)
     t_zed = (stereo_clock_s * 1e9 + t_true + phase_ms * 1e6
              + rng.uniform(-jitter_ms, jitter_ms, t_true.size) * 1e6).astype(np.int64)
-    P_left = np.array([[zed.left.fx_px, 0, zed.left.cx_px, 0], [0, zed.left.fy_px, zed.left.cy_px, 0], [0, 0, 1, 0]])
-    P_right = P_left.copy()
-    P_right[0, 2] += zed.doffs_px
-    P_right[0, 3] = -zed.left.fx_px * zed.baseline_mm / 1000.0
-    right_cam = zed.left.model_copy(update={"cx_px": zed.left.cx_px + zed.doffs_px})
+    ros_stereo = not zed_export and svo2_codec is None
+    if ros_stereo:
+        zed = StereoCalibrationFile.read(session_dir / "zed_calibration.yaml").zed
+        P_left = np.array([[zed.left.fx_px, 0, zed.left.cx_px, 0], [0, zed.left.fy_px, zed.left.cy_px, 0],
+                           [0, 0, 1, 0]])
+        P_right = P_left.copy()
+        P_right[0, 2] += zed.doffs_px
+        P_right[0, 3] = -zed.left.fx_px * zed.baseline_mm / 1000.0
+        right_cam = zed.left.model_copy(update={"cx_px": zed.left.cx_px + zed.doffs_px})
     cache: dict[str, dict[str, np.ndarray]] = {}
 
     def load(c):
@@ -129,7 +143,13 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
                 cv2.imwrite(str(out_dir / "zed" / f"{side}{k:06d}.png"),
                             np.dstack([img[..., ::-1], np.full(img.shape[:2], 255, np.uint8)]))
         stereo_clock_s, phase_ms = 0.0, 0.0
-    for name, topics in (("rgbd", RGBD_TOPICS),) + ((("zed", ZED_TOPICS),) if not zed_export else ()):
+    stereo_path = out_dir / "zed"
+    if svo2_codec is not None:
+        stereo_path = out_dir / "zed.svo2"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_svo2(stereo_path, ((int(t_zed[k]), _shifted(load(c)["left"], s), _shifted(load(c)["right"], s))
+                                 for k, (c, s) in enumerate(timeline)), codec=svo2_codec, serial=svo2_serial, fps=fps)
+    for name, topics in (("rgbd", RGBD_TOPICS),) + ((("zed", ZED_TOPICS),) if ros_stereo else ()):
         with Writer(out_dir / name, version=9, storage_plugin=plugin) as w:
             conns = {}
             for role, ns in topics.items():
@@ -166,5 +186,70 @@ def write_ros2_recordings(session_dir: str | Path, out_dir: str | Path, *, stora
                             "right_info": _info(ts, t, "zed_right_camera_optical_frame", right_cam, P_right)}
                 for role, m in msgs.items():
                     w.write(conns[role], t + 1000, ts.serialize_cdr(m, m.__msgtype__))
-    return RecordingsTruth(out_dir / "rgbd", out_dir / "zed", (stereo_clock_s - depth_clock_s) * 1e3 + phase_ms,
-                           caps, [c if s == 0 else None for c, s in timeline])
+    return RecordingsTruth(out_dir / "rgbd", stereo_path, (stereo_clock_s - depth_clock_s) * 1e3 + phase_ms,
+                           caps, [c if s == 0 else None for c, s in timeline],
+                           [int(round(k * 1e9 / fps)) for k in range(len(timeline))] if zed_export else t_zed.tolist())
+
+
+# ---- ZED .svo2 (gtforge.io.zed_svo: the layout and what it rests on) ---------------------------------------------
+SVO2_TRAILER = struct.Struct("<IIIiiiQIiiIi4x")  # 56 bytes: width, height, 0x5c002c00, 1, 2, -1, t_ns, video bytes,
+#                                                 frame type (3 keyframe, 0 other), last keyframe, frame index, 0
+
+
+def write_svo2(path: str | Path, frames, *, codec: str = "h264", serial: int = 12345, fps: float = 15.0,
+               crf: int = 23, gop: int = 15) -> Path:
+    """An SVO2-layout MCAP from ``(t_ns, left, right)`` RGB frames: ``svo_header`` (JSON: the SDK version and a
+    base64 128-byte header with width, height, serial, fps), ``Camera_SN<serial>/side_by_side`` (each left|right
+    image one H.264/H.265 access unit, Annex B, low-latency encoding without B-frames: an 8-byte size prefix, the
+    video bytes, a 56-byte trailer; log time = the frame's time) and ``svo_footer`` (JSON: the frames' times).
+    ``crf``: the encoder's quality (libx264/libx265's default 23; lower is better). The IMU channels are left out."""
+    import av  # optional dependencies (gtforge[recordings]): imported where used
+    from mcap.writer import Writer
+
+    path = Path(path)
+    topic = f"Camera_SN{serial}/side_by_side"
+    times: list[int] = []
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="gtforge synthetic (SVO2 layout)")
+        js = w.register_schema(name="sl_type", encoding="jsonschema", data=b"{}")
+        vs = w.register_schema(name=topic, encoding="zed_sdk_encoded", data=b"")
+        hdr = w.register_channel(topic="svo_header", message_encoding="json", schema_id=js)
+        sbs = w.register_channel(topic=topic, message_encoding="zed_sdk_encoded", schema_id=vs)
+        ftr = w.register_channel(topic="svo_footer", message_encoding="json", schema_id=js)
+        ctx = None
+        last_key = 0
+        for k, (t, left, right) in enumerate(frames):
+            img = np.ascontiguousarray(np.concatenate([left, right], axis=1))
+            if ctx is None:
+                if img.shape[0] % 2 or img.shape[1] % 2:  # 4:2:0 video, as the ZED SDK records, needs even sizes
+                    raise ValueError(f"write_svo2 needs an even image size (ZED resolutions are), got "
+                                     f"{img.shape[1]}x{img.shape[0]} side by side")
+                ctx = av.CodecContext.create("libx264" if codec == "h264" else "libx265", "w")
+                ctx.width, ctx.height, ctx.pix_fmt = img.shape[1], img.shape[0], "yuv420p"
+                ctx.time_base, ctx.framerate = Fraction(1, 1000), Fraction(fps).limit_denominator(1000)
+                ctx.gop_size = gop
+                ctx.thread_count = 1  # one core: the tests share the machine (and one thread is deterministic)
+                ctx.options = ({"preset": "veryfast", "tune": "zerolatency", "crf": str(crf)} if codec == "h264" else
+                               {"preset": "veryfast", "tune": "zerolatency", "crf": str(crf),
+                                "x265-params": "log-level=error:bframes=0:pools=1:frame-threads=1"})
+                head = struct.pack("<9I", img.shape[1], img.shape[0], serial, int(round(fps)), 0, 8, 0, 1000, 2001)
+                head += bytes(128 - len(head))
+                w.add_message(hdr, log_time=t, publish_time=t, data=json.dumps(
+                    {"ZED_SDK_version": "4.2.0", "header": base64.b64encode(head).decode()}).encode())
+            frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+            frame.pts = k
+            packets = ctx.encode(frame)
+            if len(packets) != 1:
+                raise RuntimeError(f"the encoder returned {len(packets)} packets for frame {k} (expected one)")
+            video = bytes(packets[0])
+            key = bool(packets[0].is_keyframe)
+            last_key = k if key else last_key
+            trailer = SVO2_TRAILER.pack(img.shape[1], img.shape[0], 0x5C002C00, 1, 2, -1, t, len(video),
+                                        3 if key else 0, last_key, k, 0)
+            w.add_message(sbs, log_time=t, publish_time=t,
+                          data=struct.pack("<II", len(video) + len(trailer), len(video)) + video + trailer)
+            times.append(t)
+        w.add_message(ftr, log_time=times[-1], publish_time=times[-1], data=json.dumps({topic: times}).encode())
+        w.finish()
+    return path

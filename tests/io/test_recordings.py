@@ -201,7 +201,7 @@ def test_raw_stereo_topics_are_rectified_with_their_camera_info():
     assert _rectify_map(info) is None  # nothing to undo
 
 
-def test_topic_choice_lists_the_candidates_and_svo_is_refused_with_a_hint(tmp_path):
+def test_topic_choice_lists_the_candidates_and_svo_version_1_is_refused_with_a_hint(tmp_path):
     from gtforge.io.recordings import DEPTH_TOPICS, LEFT_TOPICS
     from gtforge.io.ros_recordings import open_recordings
 
@@ -215,9 +215,9 @@ def test_topic_choice_lists_the_candidates_and_svo_is_refused_with_a_hint(tmp_pa
         bag.match(LEFT_TOPICS, role="left")
     assert "--left-topic" in str(e.value)
     assert bag.match(DEPTH_TOPICS, role="depth") == "/camera/camera/depth/image_rect_raw"  # raw before compressed
-    (tmp_path / "a.svo2").write_bytes(b"x")
-    with pytest.raises(InputError, match="ZED SDK"):
-        open_recordings([tmp_path / "a.svo2"])
+    (tmp_path / "a.svo").write_bytes(b"x")  # version 1: another container
+    with pytest.raises(InputError, match="ZED_SVO_Export"):
+        open_recordings([tmp_path / "a.svo"])
 
 
 def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
@@ -291,3 +291,143 @@ def test_kinect_colour_formats():
     assert np.abs(_kinect_color(jpg, "MJPG", 16, 16, "f").astype(int) - smooth).mean() < 3
     with pytest.raises(InputError, match="MJPG, NV12"):
         _kinect_color(b"\x00" * 10, "H264", 12, 8, "f")
+
+
+# ---- ZED .svo2 (gtforge.io.zed_svo) ---------------------------------------------------------------------------
+def _svo2_frames(n: int, w: int = 96, h: int = 64):
+    """``n`` (t_ns, left, right) frames of a smooth grey texture moving 1 px per frame; right = left shifted 5 px."""
+    rng = np.random.default_rng(1)
+    grey = cv2.resize(rng.integers(0, 255, (h // 8, (w + 64) // 8), dtype=np.uint8), (w + 64, h),
+                      interpolation=cv2.INTER_LINEAR)
+    tex = np.dstack([grey] * 3)
+    return [(5_000_000_000 + k * 66_666_667, tex[:, 8 + k:8 + k + w].copy(), tex[:, 13 + k:13 + k + w].copy())
+            for k in range(n)]
+
+
+@pytest.mark.parametrize("codec", ["h264", "hevc"])
+def test_svo2_frames_decode_from_their_keyframe_at_their_log_time(tmp_path, codec):
+    pytest.importorskip("mcap")
+    from gtforge.io.recordings import iter_frames
+    from gtforge.io.zed_svo import read_zed_svo2
+    from gtforge.synthetic import default_raw_zed, write_raw_zed_conf
+    from gtforge.synthetic_recordings import write_svo2
+
+    frames = _svo2_frames(20, 672, 376)  # a VGA eye: the SN.conf's resolution
+    path = write_svo2(tmp_path / "r.svo2", frames, codec=codec, serial=777, gop=8)
+    conf = write_raw_zed_conf(tmp_path / "SN777.conf", default_raw_zed(), "neg-x")
+    rec = read_zed_svo2(path, conf)
+    assert rec.serial == "777" and not rec.rectified and rec.calibration_file == conf and rec.warnings
+    assert [f.t_ns for f in rec.left.frames] == [t for t, _, _ in frames] == [f.t_ns for f in rec.right.frames]
+    svo = rec.left.source
+    assert svo.codec == codec and [k for k, key in enumerate(svo.keyframe) if key] == [0, 8, 16]
+    wanted = [(rec.left, 19), (rec.right, 11), (rec.left, 3), (rec.left, 11)]
+    batch = {(s.name, k): a for s, k, a in iter_frames(wanted)}
+    for s, k in wanted:
+        alone = next(iter_frames([(s, k)]))[2]  # decoded from its own keyframe: the same image
+        assert np.array_equal(alone, batch[(s.name, k)])
+        truth = frames[k][1 if s is rec.left else 2]
+        assert alone.shape == truth.shape
+        err = np.abs(alone.astype(int) - truth).mean()
+        assert 0 < err < 3.0, (s.name, k, err)  # lossy, close; the other eye would be 5 px off
+        assert np.abs(alone.astype(int) - frames[k][2 if s is rec.left else 1]).mean() > 2 * err
+
+
+def test_svo2_bad_files_are_one_line_errors(tmp_path):
+    pytest.importorskip("mcap")
+    from mcap.writer import Writer
+
+    from gtforge.io.zed_svo import read_zed_svo2
+    from gtforge.synthetic import default_raw_zed, write_raw_zed_conf
+    from gtforge.synthetic_recordings import write_svo2
+
+    conf = write_raw_zed_conf(tmp_path / "SN12345.conf", default_raw_zed(), "neg-x")
+    good = write_svo2(tmp_path / "good.svo2", _svo2_frames(3, 672, 376), serial=12345)
+    cases = {}
+    cut = tmp_path / "cut.svo2"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    cases[cut] = "truncated"
+    for name, topic, payload in (("other.svo2", "Camera_SN12345/sensors", b"{}"),
+                                 ("lossless.svo2", "Camera_SN12345/side_by_side", bytes(range(200)))):
+        with open(tmp_path / name, "wb") as f:
+            w = Writer(f)
+            w.start()
+            ch = w.register_channel(topic=topic, message_encoding="zed_sdk_encoded", schema_id=0)
+            w.add_message(ch, log_time=1, publish_time=1, data=payload)
+            w.finish()
+    cases[tmp_path / "other.svo2"] = "side_by_side"
+    cases[tmp_path / "lossless.svo2"] = "LOSSLESS"
+    for path, words in cases.items():
+        with pytest.raises(InputError, match=words) as e:
+            read_zed_svo2(path, conf)
+        assert "\n" not in str(e.value)
+    with pytest.raises(InputError, match="SN12345.conf") as e:  # another unit's conf
+        read_zed_svo2(good, write_raw_zed_conf(tmp_path / "SN999.conf", default_raw_zed(), "neg-x"))
+    assert "serial" in str(e.value)
+    with pytest.raises(InputError, match="--zed-calibration"):
+        read_zed_svo2(good, None)
+    # an SVO2 named .svo is read as one; a version-1 .svo is refused (test_topic_choice_...)
+    from gtforge.io.ros_recordings import Topics, open_recordings
+
+    renamed = tmp_path / "renamed.svo"
+    renamed.write_bytes(good.read_bytes())
+    with pytest.raises(InputError, match="depth recording"):  # read as a stereo recording: no depth camera named
+        open_recordings([renamed], Topics(zed_calibration=conf))
+
+
+def test_realsense_extrinsic_direction_puts_depth_edges_on_colour_edges():
+    """The real D435 bag's ``Color_0/tf/0`` is read as ``T_color_from_depth``: its depth silhouettes, rendered into
+    the colour camera with it, land on the colour image's edges; with its inverse (or the rotation transposed) they
+    do not (docs/capture-layout.md states the figures)."""
+    from gtforge.core.alignment.edge_features import depth_edges, edge_offset_px, edge_strength, undistort_image
+    from gtforge.core.geometry import invert_T, make_T
+    from gtforge.io.recordings import iter_frames
+
+    bag = Bag(shared_data("recordings") / RS_BAG)
+    try:
+        r = read_realsense(bag)
+        depths = [a for _, _, a in iter_frames([(r.depth, k) for k in range(len(r.depth.frames))])]
+        color = next(iter_frames([(r.texture, 0)]))[2]
+    finally:
+        bag.close()
+    assert r.serial == "728612070259"
+    T = r.T_texture_from_depth
+    image, pinhole = undistort_image(color, r.texture_camera)
+    strength = edge_strength(image, 1.5)
+    offsets = {}
+    candidates = {"as read": T, "inverse": invert_T(T), "rotation transposed": make_T(T[:3, :3].T, T[:3, 3])}
+    for name, cand in candidates.items():
+        offsets[name] = [edge_offset_px(depth_edges(d, r.depth_camera, cand, pinhole), cand, pinhole, strength)
+                         for d in depths]
+    print({k: [round(o.magnitude_px, 2) for o in v] for k, v in offsets.items()})
+    assert all(o.interior and o.magnitude_px < 2.0 for o in offsets["as read"])
+    for name in ("inverse", "rotation transposed"):
+        assert all(o.magnitude_px > 5.0 for o in offsets[name]), name
+
+
+def test_zed_sdk_export_folder_bgra_pngs_with_an_sn_conf(tmp_path):
+    """A ZED SDK export folder (``left%06d.png`` / ``right%06d.png`` as ZED_SVO_Export writes them, BGRA): RGB frames at
+    ``i / fps``, a left image without its right left out, the SN.conf's rectified pair (the images are the SDK's
+    rectified ones: ``rectified`` stays True)."""
+    from gtforge.io.cameras import read_zed_conf
+    from gtforge.io.ros_recordings import is_zed_export, read_zed_export
+    from gtforge.synthetic import default_raw_zed, write_raw_zed_conf
+
+    rng = np.random.default_rng(4)
+    folder = tmp_path / "export"
+    folder.mkdir()
+    images = {}
+    for i in (0, 1, 2, 3):
+        for side in ("left", "right") if i < 3 else ("left",):
+            rgb = rng.integers(0, 255, (376, 672, 3), dtype=np.uint8)
+            cv2.imwrite(str(folder / f"{side}{i:06d}.png"), np.dstack([rgb[..., ::-1], np.full((376, 672), 255,
+                                                                                                np.uint8)]))
+            images[side, i] = rgb
+    conf = write_raw_zed_conf(tmp_path / "SN10027514.conf", default_raw_zed(), "neg-x")
+    assert is_zed_export(folder) and not is_zed_export(tmp_path)
+    rec = read_zed_export(folder, 15.0, conf)
+    assert [f.t_ns for f in rec.left.frames] == [0, 66_666_667, 133_333_333] == [f.t_ns for f in rec.right.frames]
+    for i in range(3):
+        assert np.array_equal(rec.left.frames[i].decode(), images["left", i])
+        assert np.array_equal(rec.right.frames[i].decode(), images["right", i])
+    assert rec.stereo == read_zed_conf(conf, 672).rectification().stereo
+    assert rec.calibration_file == conf and rec.rectified

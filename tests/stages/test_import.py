@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import synthetic_session
+from made_once import session_spec
 
 from tests.conftest import gtforge, one_line_error, shared_data
 
@@ -26,6 +28,9 @@ from gtforge.synthetic import generate_session
 from gtforge.synthetic_recordings import write_ros2_recordings
 
 CAPTURE_FILES = ("2DImage.png", "left.png", "right.png")  # byte for byte; the depth went through metres (32FC1)
+# a raw-ZED session (VGA, SN12345.conf; the one tests/core/test_rectification.py declares: made once for both)
+RAW_ZED = session_spec("raw_zed_session", "raw_zed", raw_zed=True, reading="neg-all", n_board=4, n_scenes=1, seed=5,
+                       supersample=2)
 
 
 @pytest.fixture(scope="module")
@@ -188,6 +193,11 @@ def test_without_the_extra_the_error_names_it(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(InputError, match=r"gtforge\[recordings\]"):
         Bag(tmp_path / "x.bag")
+    from gtforge.io.zed_svo import ZedSvo
+
+    monkeypatch.setitem(sys.modules, "mcap", None)
+    with pytest.raises(InputError, match=r"gtforge\[recordings\]"):
+        ZedSvo(tmp_path / "x.svo2")
 
 
 @pytest.mark.slow
@@ -273,3 +283,120 @@ def test_every_and_no_classify(recs, tmp_path):
     assert s.captures == ["scenes/000", "scenes/001"] and s.dropped["every/max"] == 2
     t_left = [p.t_left_ns for p in ImportRecord.read(tmp_path / "s" / "import.json").runs[0].pairs]
     assert t_left == sorted(t_left)
+
+
+def test_add_refuses_recordings_of_another_rig(hand, recs, tmp_path):
+    """--add with a depth camera whose camera_info differs from the session's texture camera: one line, exit 2, the
+    session unchanged."""
+    from gtforge.core.camera import CameraFile
+
+    out = tmp_path / "session"
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, ImportParams(clock_offset_ms=recs.clock_offset_ms,
+                                                                          max_captures=1))
+    before = {x.relative_to(out): x.read_bytes() for x in out.rglob("*") if x.is_file()}
+    cam = CameraFile.read(hand / "mech_intrinsics.yaml").camera
+    other = write_ros2_recordings(hand, tmp_path / "other", captures=["board/000"],
+                                  info_camera=cam.model_copy(update={"fx_px": cam.fx_px * 1.01}))
+    r = gtforge("import", other.rgbd_bag, other.stereo_bag, "-o", out, "--add")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "texture camera" in r.stderr and "mech_intrinsics.yaml" in r.stderr and "new session" in r.stderr
+    assert {x.relative_to(out): x.read_bytes() for x in out.rglob("*") if x.is_file()} == before
+    assert not list(tmp_path.glob(".*import-partial"))
+
+
+@pytest.fixture(scope="module")
+def raw_zed_session(request):
+    return synthetic_session(request, RAW_ZED)
+
+
+@pytest.fixture(scope="module")
+def svo_import(raw_zed_session, tmp_path_factory):
+    """The raw-ZED session recorded as an RGB-D bag and a ZED .svo2 (H.264), imported through the command with its
+    SN12345.conf."""
+    pytest.importorskip("mcap")
+    d = tmp_path_factory.mktemp("svo")
+    recs = write_ros2_recordings(raw_zed_session, d / "rec", svo2_codec="h264")
+    r = gtforge("import", recs.rgbd_bag, recs.stereo_bag, "-o", d / "session", "--zed-calibration",
+                raw_zed_session / "SN12345.conf", "--clock-offset-ms", recs.clock_offset_ms)
+    return recs, d / "session", r
+
+
+@pytest.mark.slow
+def test_svo2_imports_the_raw_images_with_the_conf(raw_zed_session, svo_import, tmp_path):
+    from gtforge.io.captures import SessionFile
+    from gtforge.io.formats import read_image
+
+    recs, out, r = svo_import
+    assert r.returncode == 0, r.stderr
+    assert "warning: the ZED images come from lossy H.264/H.265 video" in r.stderr + r.stdout
+    sf = SessionFile.read(out / "session.yaml")
+    assert (sf.zed_calibration, sf.zed_rectified) == ("SN12345.conf", False)
+    assert (out / "SN12345.conf").read_bytes() == (raw_zed_session / "SN12345.conf").read_bytes()
+    run = ImportRecord.read(out / "import.json").runs[0]
+    assert run.serials == {"stereo": "12345"} and run.streams["left"] == "Camera_SN12345/side_by_side:left"
+    captures = [p.capture for p in run.pairs]
+    assert sorted(captures) == ["board/000", "board/001", "board/002", "board/003", "scenes/000"]
+    psnr = []
+    for c in captures:
+        assert (out / c / "2DImage.png").read_bytes() == (raw_zed_session / c / "2DImage.png").read_bytes()
+        a, b = read_depth(out / c / "DepthMap.tiff"), read_depth(raw_zed_session / c / "DepthMap.tiff")
+        assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b) / b) <= 1.2e-7
+        for f in ("left.png", "right.png"):
+            a, b = read_image(out / c / f).astype(float), read_image(raw_zed_session / c / f).astype(float)
+            assert a.shape == b.shape == (376, 672, 3)
+            psnr.append(10 * np.log10(255 ** 2 / np.mean((a - b) ** 2)))
+    print(f"svo2 (H.264, crf 23) left/right PSNR against the PNGs: {min(psnr):.1f}-{max(psnr):.1f} dB")
+    assert 33.0 < min(psnr) and max(psnr) < 60.0  # lossy, but the same images
+    # the log times of the .svo2 are the stereo clock of import.json
+    assert {p.t_left_ns for p in run.pairs} <= set(int(t) for t in recs.stereo_times_ns)
+    # --add with another unit's recording: refused by its serial
+    other = write_ros2_recordings(raw_zed_session, tmp_path / "other", captures=["scenes/000"], svo2_codec="h264",
+                                  svo2_serial=999)
+    conf = tmp_path / "SN999.conf"
+    shutil.copy(raw_zed_session / "SN12345.conf", conf)
+    r = gtforge("import", other.rgbd_bag, other.stereo_bag, "-o", out, "--add", "--zed-calibration", conf)
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "serials.stereo" in r.stderr and "12345" in r.stderr and "999" in r.stderr
+
+
+@pytest.mark.slow
+def test_svo2_import_calibrate_build_measures_the_lossy_video(raw_zed_session, svo_import, tmp_path):
+    """import -> calibrate -> build-dataset from the .svo2: the extrinsic and the ground truth against the exact
+    truth, and what the lossy video costs verification: the hand-laid and the imported session built with one
+    calibration have the same ground truth (it comes from the depth), and differ only in their ZED images."""
+    from gtforge.build_dataset import build_dataset
+    from gtforge.calibrate import calibrate
+    from gtforge.io.formats import read_pfm
+    from gtforge.records.calibration import CalibrateParams
+    from gtforge.records.verification import VerificationResult
+    from gtforge.synthetic import SyntheticTruth
+
+    _, imported, r = svo_import
+    assert r.returncode == 0, r.stderr
+    res = calibrate(imported, tmp_path / "calibration.yaml", CalibrateParams(leave_one_out=False))
+    assert res.zed_conf.reading == "neg-all" and res.rectification.overall.fit_mean_abs_px <= 0.05
+    T_true = np.array(SyntheticTruth.read(raw_zed_session / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    dt_mm = float(np.abs(res.rig.T_zed_from_mech[:3, 3] - T_true[:3, 3]).max())
+    gt, ver = {}, {}
+    for name, sess in (("hand", raw_zed_session), ("svo2", imported)):
+        out = tmp_path / f"ds_{name}"
+        assert build_dataset(sess, tmp_path / "calibration.yaml", out, workers=1).built == ["000"]
+        gt[name] = read_pfm(out / "scenes" / "000" / "disp0GT.pfm")
+        ver[name] = VerificationResult.read(out / "verification.json").scenes["000"]
+    assert np.array_equal(gt["hand"], gt["svo2"], equal_nan=True)  # the GT does not see the ZED images
+    truth = np.load(raw_zed_session / "truth" / "scene_000.npz")["zed_disparity_px"]
+    ok = np.isfinite(gt["svo2"]) & np.isfinite(truth)
+    epe = float(np.abs(gt["svo2"] - truth)[ok].mean())
+    h, s = ver["hand"], ver["svo2"]
+    print(f"svo2 chain: extrinsic max |dt| {dt_mm:.3f} mm, EPE to truth {epe:.4f} px; verification hand-laid vs svo2: "
+          f"texture ZNCC {h.texture_all.correlation:.3f} vs {s.texture_all.correlation:.3f}, shift "
+          f"{h.texture_all.magnitude_px:.3f} vs {s.texture_all.magnitude_px:.3f} px (noise "
+          f"{h.texture_all.dx_noise_px:.4f} vs {s.texture_all.dx_noise_px:.4f}), stereo bad-match "
+          f"{h.stereo['all'].bad_match_pct:.3f} vs {s.stereo['all'].bad_match_pct:.3f} %, disparity bias noise "
+          f"{h.stereo['all'].disparity_bias_noise_px:.4f} vs {s.stereo['all'].disparity_bias_noise_px:.4f} px")
+    assert dt_mm < 1.0 and epe < 0.05
+    assert s.status == h.status == "ok"
+    # the lossy images: less alike after alignment, more bad stereo matches, noisier figures
+    assert s.texture_all.correlation < h.texture_all.correlation
+    assert s.stereo["all"].bad_match_pct > h.stereo["all"].bad_match_pct
+    assert s.stereo["all"].disparity_bias_noise_px > h.stereo["all"].disparity_bias_noise_px

@@ -609,7 +609,8 @@ def _progress_bar():
 @app.command("import")
 def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera's recording (RealSense .bag, Azure "
                                                    "Kinect .mkv, ROS 1/2 bag: .bag, .db3, .mcap or a rosbag2 folder) "
-                                                   "and, optionally, the stereo camera's (a ROS bag)."),
+                                                   "and, optionally, the stereo camera's (a ROS bag, a ZED .svo2 "
+                                                   "or a ZED SDK export folder)."),
             output: Path = typer.Option(..., "--output", "-o", metavar="SESSION", help="Session folder to write."),
             add: bool = typer.Option(False, "--add", help="Add the captures to an existing session."),
             max_skew_ms: float = typer.Option(20.0, help="Largest time difference between the frames of a capture."),
@@ -628,8 +629,9 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             depth_unit: Optional[str] = typer.Option(None, metavar="mm|m", help="Depth unit (default: by encoding: "
                                                      "16-bit mm, 32FC1 m)."),
             fps: Optional[float] = typer.Option(None, help="Frame rate of a ZED SDK export folder (left%06d.png)."),
-            zed_calibration: Optional[Path] = typer.Option(None, metavar="FILE", help="A ZED SDK export folder's "
-                                                           "calibration: SN<serial>.conf or rectified YAML."),
+            zed_calibration: Optional[Path] = typer.Option(None, metavar="FILE", help="The calibration of a ZED .svo2 "
+                                                           "(SN<serial>.conf) or ZED SDK export folder (SN<serial>.conf"
+                                                           " or rectified YAML)."),
             board: Optional[str] = typer.Option(None, metavar="KIND", help="The calibration target the board "
                                                 "captures show (default checkerboard 12x9, 20 mm)."),
             cols: Optional[int] = typer.Option(None, help="Board columns (as calibrate)."),

@@ -87,6 +87,7 @@ class RgbdRecording:
     kinect_calibration: bytes | None = None  # the mkv's calibration.json attachment
     kinect_modes: tuple[str, str] | None = None  # (depth mode, colour mode)
     notes: list[str] = field(default_factory=list)
+    serial: str | None = None  # the device's serial number where the recording names it
 
 
 @dataclass
@@ -98,6 +99,9 @@ class StereoRecording:
     stereo: RectifiedStereo
     notes: list[str] = field(default_factory=list)
     calibration_file: Path | None = None  # an SN<serial>.conf copied into the session as its zed_calibration
+    rectified: bool = True  # False: raw images (an .svo2), rectified later with the SN.conf (zed_rectified: false)
+    serial: str | None = None  # the camera's serial number where the recording names it
+    warnings: list[str] = field(default_factory=list)  # for the user (the import's summary)
 
 
 def require_extra(module: str):
@@ -372,8 +376,9 @@ def is_realsense_bag(bag: Bag) -> bool:
 
 def read_realsense(bag: Bag) -> RgbdRecording:
     """Depth (``Depth_<i>``) and colour (``Color_<i>``, else ``Infrared_1``) streams, each stream's camera_info, the
-    depth units option (``Depth_Units``; older files ``Depth Units``) and the colour stream's ``tf/0``: librealsense
-    writes each stream's extrinsic to the depth stream, read here as ``T_color_from_depth`` (metres -> mm)."""
+    depth units option (``Depth_Units``; older files ``Depth Units``), the colour stream's ``tf/0``: librealsense
+    writes each stream's extrinsic to the depth stream, read here as ``T_color_from_depth`` (metres -> mm; the
+    direction checked on a real D435 file, tests/io/test_recordings.py), and the device's serial number."""
     path = bag.path
     depth_t = next((t for t in bag.topics if re.search(r"/Depth_\d+/image/data$", t)), None)
     tex_t = next((t for t in bag.topics if re.search(r"/Color_\d+/image/data$", t)), None) \
@@ -398,8 +403,13 @@ def read_realsense(bag: Bag) -> RgbdRecording:
     depth, tex = got[depth_t], got[tex_t]
     depth.camera, tex.camera = cams[depth_t], cams[tex_t]
     depth.post.append(lambda a: depth_mm(a, "mm", scale_mm, path, depth_t))
+    serial = None
+    if "/device_0/info" in bag.topics:
+        for conn, _, raw in bag.messages(["/device_0/info"]):
+            kv = bag.deserialize(raw, conn)
+            serial = kv.value if kv.key == "Serial Number" else serial
     return RgbdRecording(path, "realsense", depth, tex, cams[depth_t], cams[tex_t], T,
-                         notes=[f"depth units {scale_mm:g} mm per count"])
+                         notes=[f"depth units {scale_mm:g} mm per count"], serial=serial)
 
 
 # ---- Azure Kinect .mkv -----------------------------------------------------------------------------
@@ -471,6 +481,7 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
         rec = RgbdRecording(path, "kinect", depth, texture, k.depth, k.color, k.T_color_from_depth, ir=ir,
                             kinect_calibration=calib, kinect_modes=(dmode, cmode))
     rec.notes.append(f"depth mode {dmode}, colour mode {cmode}")
+    rec.serial = (container.metadata or {}).get("K4A_DEVICE_SERIAL_NUMBER") or None
     container.close()
     return rec
 

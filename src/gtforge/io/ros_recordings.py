@@ -33,6 +33,7 @@ from gtforge.io.recordings import (
     read_realsense,
     stereo_from_infos,
 )
+from gtforge.io.zed_svo import is_mcap, read_zed_svo2
 
 ZED_EXPORT = re.compile(r"^(left|right)(\d+)\.(png|jpg|jpeg)$", re.IGNORECASE)
 
@@ -93,7 +94,7 @@ class Topics:
     right: str | None = None
     depth_unit: str | None = None  # None: by encoding (16-bit mm, 32FC1 m)
     fps: float | None = None  # a ZED export folder's frame rate
-    zed_calibration: Path | None = None  # a ZED export folder's calibration
+    zed_calibration: Path | None = None  # a ZED export folder's or an .svo2's calibration
 
 
 def _pats(given: str | None, defaults):
@@ -230,9 +231,14 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         if is_zed_export(p):
             stereo_c.append(read_zed_export(p, topics.fps, topics.zed_calibration))
             continue
-        if p.suffix.lower() in (".svo", ".svo2"):
-            raise InputError(p, None, "a recording gtforge reads", "a ZED SVO file",
-                             "export left/right PNGs with the ZED SDK (ZED_SVO_Export) or record with the ROS wrapper")
+        if p.suffix.lower() == ".svo2" or p.suffix.lower() == ".svo" and is_mcap(p):  # an SVO2 renamed .svo too
+            stereo_c.append(read_zed_svo2(p, topics.zed_calibration))
+            continue
+        if p.suffix.lower() == ".svo":
+            raise InputError(p, None, "a recording gtforge reads (.svo2 of ZED SDK 4.x and later)",
+                             "a ZED SVO version 1 file (an undocumented container)",
+                             "export left/right PNGs with the ZED SDK (ZED_SVO_Export), or record .svo2 with ZED SDK "
+                             ">= 4")
         if not (p.suffix.lower() in BAG_SUFFIXES or p.is_dir()):
             raise InputError(p, None, "a .bag, .db3, .mcap, rosbag2 folder or Azure Kinect .mkv",
                              f"'{p.suffix or p.name}'")

@@ -48,6 +48,9 @@ class ImportRun(GTModel):
     stereo_recording: str | None
     streams: dict[str, str]  # role -> topic or track
     notes: list[str] = Field(default_factory=list)
+    # role (depth, stereo) -> the device's serial number where the recording names it (RealSense, Azure Kinect, ZED
+    # .svo2); --add refuses recordings of another device
+    serials: dict[str, str] = Field(default_factory=dict)
     params: ImportParams
     clock_offset_ms: float
     clock_offset_source: Literal["given", "overlap", "motion events", "one clock"]
