@@ -362,6 +362,20 @@ def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording |
                          f"in {stereo.path.name}", hint)
 
 
+def check_not_imported(session: Path, sources: list[SourceFile]) -> None:
+    """``--add``: a recording file already imported into the session (the same BLAKE3, under any name) would add
+    its captures a second time; a one-line error before anything is written."""
+    if not (session / "import.json").is_file():
+        return
+    seen = {f.blake3: f.path for run in ImportRecord.read(session / "import.json").runs for f in run.sources}
+    for f in sources:
+        if f.blake3 in seen:
+            raise InputError(f.path, "recording", "a recording not yet imported into this session",
+                             f"the same bytes as {seen[f.blake3]} (import.json)",
+                             "each recording is imported once; to import it again with other options, import it "
+                             "into a new session")
+
+
 def import_recordings(paths: list[str | Path], session: str | Path, params: ImportParams | None = None,
                       topics: Topics | None = None, add: bool = False,
                       progress: Callable[[str], None] | None = None) -> ImportSummary:
@@ -382,8 +396,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     opened = open_recordings(paths, topics)
     try:
         rgbd, stereo = opened.rgbd, opened.stereo
+        sources = _sources(paths)
         if add and exists:
             check_same_rig(session, rgbd, stereo)
+            check_not_imported(session, sources)
         kept, dropped, offset, source, n_same = plan_pairs(rgbd, stereo, params, progress)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
@@ -430,7 +446,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             streams.update(left=stereo.left.name, right=stereo.right.name)
         warnings = stereo.warnings if stereo is not None else ["no stereo recording: the captures have no "
                                                                "left.png/right.png"]
-        run = ImportRun(sources=_sources(paths), depth_recording=str(rgbd.path.resolve()),
+        run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),
                         stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
                         notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "
                                                                                "kept captures' stretches"],

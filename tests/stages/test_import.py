@@ -94,7 +94,7 @@ def test_db3_recordings_through_the_command_with_an_estimated_clock_offset(hand,
     _same_session(hand, out, [p.capture for p in run.pairs])
 
 
-def test_add_to_an_existing_session_and_refuse_without_add(recs, tmp_path):
+def test_add_to_an_existing_session_and_refuse_without_add(hand, recs, tmp_path):
     out = tmp_path / "session"
     p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=2)
     import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
@@ -102,8 +102,18 @@ def test_add_to_an_existing_session_and_refuse_without_add(recs, tmp_path):
     with pytest.raises(InputError, match="--add"):
         import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
     assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
-    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p, add=True)
-    assert s.captures == ["board/002", "board/003"]
+    # the same recordings again (under another name too) would duplicate their captures: refused, nothing written
+    again = tmp_path / "again"
+    shutil.copytree(recs.rgbd_bag, again)
+    with pytest.raises(InputError, match="import.json") as dup:
+        import_recordings([again, recs.stereo_bag], out, p, add=True)
+    assert "not yet imported" in str(dup.value) and str(recs.rgbd_bag.resolve()) in str(dup.value)
+    assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
+    # other recordings of the same rig: added, numbered after the session's captures
+    more = write_ros2_recordings(hand, tmp_path / "more", captures=["board/001", "scenes/000"], seed=1)
+    s = import_recordings([more.rgbd_bag, more.stereo_bag], out,
+                          ImportParams(clock_offset_ms=more.clock_offset_ms), add=True)
+    assert s.captures == ["board/002", "scenes/000"]
     rec = ImportRecord.read(out / "import.json")
     assert len(rec.runs) == 2 and rec.runs[0].dropped["every/max"] == 2
 
@@ -275,6 +285,18 @@ def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     with pytest.raises(InputError, match="--zed-calibration"):
         import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s2", topics=Topics(fps=15.0))
     assert not (tmp_path / "s2").exists()
+
+
+def test_a_zed_calibration_with_a_ros_stereo_pair_is_refused_not_ignored(hand, recs, tmp_path):
+    """A ROS stereo pair's camera_info is its calibration: a --zed-calibration beside it would be silently unused."""
+    from gtforge.io.ros_recordings import Topics
+
+    with pytest.raises(InputError) as err:
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s", ImportParams(max_captures=1),
+                          topics=Topics(zed_calibration=hand / "zed_calibration.yaml"))
+    assert str(err.value).startswith(f"{hand / 'zed_calibration.yaml'} [--zed-calibration]: expected a ZED .svo2")
+    assert "has its own camera_info" in str(err.value) and "leave --zed-calibration out" in str(err.value)
+    assert not (tmp_path / "s").exists()
 
 
 def test_every_and_no_classify(recs, tmp_path):

@@ -223,6 +223,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     """The depth camera's and the stereo camera's recordings among ``paths`` (one or two files/folders)."""
     topics = topics or Topics()
     rgbd_c, stereo_c, bags = [], [], []
+    calibration_used = False  # --zed-calibration applies to a ZED export folder or an .svo2 only
     for p in paths:
         p = Path(p)
         if p.suffix.lower() == ".mkv":
@@ -230,9 +231,11 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
             continue
         if is_zed_export(p):
             stereo_c.append(read_zed_export(p, topics.fps, topics.zed_calibration))
+            calibration_used = True
             continue
         if p.suffix.lower() == ".svo2" or p.suffix.lower() == ".svo" and is_mcap(p):  # an SVO2 renamed .svo too
             stereo_c.append(read_zed_svo2(p, topics.zed_calibration))
+            calibration_used = True
             continue
         if p.suffix.lower() == ".svo":
             raise InputError(p, None, "a recording gtforge reads (.svo2 of ZED SDK 4.x and later)",
@@ -262,6 +265,11 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     if not rgbd_c:
         raise InputError(paths[0], "depth topic", "a depth recording (depth image topic)", "none",
                          "name the depth camera's recording too, or its topic with --depth-topic")
+    if topics.zed_calibration is not None and not calibration_used:
+        raise InputError(topics.zed_calibration, "--zed-calibration", "a ZED .svo2 or ZED SDK export folder to apply "
+                         "it to", "none among the recordings" if not stereo_c else
+                         f"{stereo_c[0].path.name}, whose stereo pair has its own camera_info",
+                         "leave --zed-calibration out: a ROS stereo pair's camera_info is its calibration")
     rgbd = rgbd_c[0]
     first = rgbd.depth.frames[0].decode() if rgbd.depth.frames else None
     if first is None:
