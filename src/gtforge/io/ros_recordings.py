@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from gtforge.errors import InputError
+from gtforge.io.cameras import load_zed_rectified, read_zed_conf
 from gtforge.io.recordings import (
     BAG_SUFFIXES,
     COLOR_TOPICS,
@@ -47,8 +48,6 @@ def read_zed_export(folder: Path, fps: float | None, calibration: Path | None) -
     """A ZED SDK export folder (``left%06d.png`` / ``right%06d.png``, BGRA or BGR, rectified by the SDK): frame ``i``
     at ``i / fps`` on the folder's own clock; the calibration the user names (``SN<serial>.conf``: OpenCV's rectified
     model of it, the conf copied into the session; or a rectified YAML gtforge reads)."""
-    from gtforge.io.cameras import load_zed_rectified, read_zed_conf
-
     files: dict[str, dict[int, Path]] = {"left": {}, "right": {}}
     for f in folder.iterdir():
         m = ZED_EXPORT.match(f.name)
