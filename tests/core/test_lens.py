@@ -165,3 +165,21 @@ def test_nan_input_zero_distortion_and_valid_radius():
     assert lens.valid_radius([0, 0, 0, 0, 0, -0.5, 0, 0]) == pytest.approx(np.sqrt(2.0), abs=1e-9)
     # the real Kinect depth lens folds at r = 3.21 (72.7 deg off-axis), far outside its 640x576 NFOV image
     assert 3.0 < lens.valid_radius(KINECT_DEPTH) < 3.3
+
+
+@pytest.mark.parametrize("coeffs", [COEFFS_14, KINECT_DEPTH, STRONG_RATIONAL], ids=["tilted-14", "kinect", "strong"])
+def test_one_thread_undistortion_is_the_parallel_one_bit_for_bit(coeffs, monkeypatch):
+    """With one numba thread (a build worker, the pool's fork server) ``undistort`` runs the serial compilation of its
+    kernel, which starts no OpenMP runtime: the same values to the bit, NaN where no inverse exists included."""
+    c = cam(len(coeffs), coeffs)
+    rng = np.random.default_rng(3)
+    # the image's pixels and points far outside it (where the Newton starts fail and the fallback or NaN decides)
+    xy = np.concatenate([c.ray_grid().reshape(-1, 2), rng.uniform(-3.0, 3.0, (20000, 2))])
+    xy_d = lens.distort(xy, coeffs)
+    xy_d[::997] = np.nan
+    monkeypatch.setattr(lens.numba.config, "NUMBA_NUM_THREADS", 2)
+    parallel = lens.undistort(xy_d, coeffs)
+    monkeypatch.setattr(lens.numba.config, "NUMBA_NUM_THREADS", 1)
+    serial = lens.undistort(xy_d, coeffs)
+    assert np.isnan(parallel).any() and np.isfinite(parallel).sum() > 200000
+    assert serial.tobytes() == parallel.tobytes()

@@ -282,6 +282,13 @@ def _undistort_kernel(xy_d, d, Minv, tilted, r_valid2, r_hi, f_hi, max_iter, sto
             out[i, 1] = y
 
 
+# The same loop compiled without ``parallel``: each point's arithmetic is the same (identical results, tested), and it
+# starts no OpenMP runtime. Used where numba may run one thread only (a build worker, the pool's fork server): GNU
+# OpenMP, once started in a process, aborts every child that process forks, and the fork server computes the depth
+# camera's ray grid for its workers (``reproject.prepare_rays``).
+_undistort_kernel_serial = numba.njit(cache=True)(_undistort_kernel.py_func)
+
+
 def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15) -> np.ndarray:
     """Distorted normalised ``(N, 2)`` -> undistorted normalised ``(N, 2)``.
 
@@ -299,6 +306,7 @@ def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15) 
     _, num, den = _radial_slope(np.array([r_hi]), d)
     f_hi = float(r_hi * num[0] / den[0])  # the largest distorted radius of the monotonic branch
     out = np.empty_like(target)
-    _undistort_kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol,
+    kernel = _undistort_kernel_serial if numba.config.NUMBA_NUM_THREADS == 1 else _undistort_kernel
+    kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol,
                       ACCEPT_TOL * ACCEPT_TOL, out)
     return out
