@@ -177,9 +177,20 @@ def test_one_thread_undistortion_is_the_parallel_one_bit_for_bit(coeffs, monkeyp
     xy = np.concatenate([c.ray_grid().reshape(-1, 2), rng.uniform(-3.0, 3.0, (20000, 2))])
     xy_d = lens.distort(xy, coeffs)
     xy_d[::997] = np.nan
-    monkeypatch.setattr(lens.numba.config, "NUMBA_NUM_THREADS", 2)
-    parallel = lens.undistort(xy_d, coeffs)
-    monkeypatch.setattr(lens.numba.config, "NUMBA_NUM_THREADS", 1)
-    serial = lens.undistort(xy_d, coeffs)
+    parallel = lens.undistort(xy_d, coeffs, serial=False)
+    serial = lens.undistort(xy_d, coeffs, serial=True)
     assert np.isnan(parallel).any() and np.isfinite(parallel).sum() > 200000
     assert serial.tobytes() == parallel.tobytes()
+    # two kernels, each with its own cache files (one name would make them share, and overwrite, one cache entry)
+    assert lens._undistort_kernel_serial.py_func.__qualname__ == "_undistort_kernel_serial"
+    assert not lens._undistort_kernel_serial.targetoptions.get("parallel")
+    assert lens._undistort_kernel.targetoptions.get("parallel")
+    # the default: serial where numba may run one thread only (the pool's workers and fork server)
+    calls = []
+    for name in ("_undistort_kernel", "_undistort_kernel_serial"):
+        kernel = getattr(lens, name)
+        monkeypatch.setattr(lens, name, lambda *a, _k=kernel, _n=name: calls.append(_n) or _k(*a))
+    for n in (1, 2):
+        monkeypatch.setattr(lens.numba.config, "NUMBA_NUM_THREADS", n)
+        lens.undistort(xy_d[:10], coeffs)
+    assert calls == ["_undistort_kernel_serial", "_undistort_kernel"]
