@@ -322,6 +322,6 @@ def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15, 
     if serial is None:
         serial = numba.config.NUMBA_NUM_THREADS == 1
     kernel = _undistort_kernel_serial if serial else _undistort_kernel
-    kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol,
-                      ACCEPT_TOL * ACCEPT_TOL, out)
+    kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol, ACCEPT_TOL * ACCEPT_TOL,
+           out)
     return out
