@@ -33,6 +33,7 @@ bench: $(STAMP)  ## benchmarks (ratios against baselines measured in the same ru
 	$(PY) benchmarks/bench_encodings.py
 	$(PY) benchmarks/bench_writes.py
 	$(PY) benchmarks/profile_scene.py
+	$(PY) benchmarks/profile_startup.py
 	$(PY) benchmarks/bench_build_dataset.py
 
 clean:

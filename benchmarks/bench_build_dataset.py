@@ -24,6 +24,14 @@ Prints scenes/s, the ratio to the baseline, and the projected time for 808 scene
 ``--write`` puts the table into benchmarks/RESULTS.md (section ``bench_build_dataset``).
 
     python benchmarks/bench_build_dataset.py [--scenes 100] [--distinct 4] [--repeat 1] [--write] [--workdir ...]
+
+Several scene counts (``--scenes 6,24,48``): for each count, the baseline and the default build only, ``--repeat``
+times alternating, each a fresh process after ``settle``; prints one row per count (medians) with each repeat's ratio,
+the fixed cost and the marginal cost per scene of both tools (a line fitted through the counts' median wall times),
+and with ``--write`` puts that table into RESULTS.md (section ``bench_build_dataset_sweep``). What the issue's "6 / 24
+/ 48 scenes" table measures: the start-up (imports, worker pool, session, reports) weighs most at 6 scenes.
+
+    python benchmarks/bench_build_dataset.py --scenes 6,24,48 --repeat 3 [--settle-s 65] [--write]
 """
 from __future__ import annotations
 
@@ -121,9 +129,77 @@ def warm_up(workdir: Path, n_distinct: int, calib: Path, gtforge_cli: list[str],
             f"cached), and one baseline run on them.")
 
 
+def line_fit(xs: list[float], ys: list[float]) -> tuple[float, float]:
+    """Least-squares line ``y = a + b x``: (a, b)."""
+    mx, my = statistics.fmean(xs), statistics.fmean(ys)
+    b = sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sum((x - mx) ** 2 for x in xs)
+    return my - b * mx, b
+
+
+def sweep(counts: list[int], args, gtforge_cli: list[str], workers: int) -> None:
+    """The baseline and the default build at every scene count in ``counts`` (see the module's docstring)."""
+    wd = Path(args.workdir)
+    machine = machine_line()
+    sessions = {n: make_session(wd, n, args.distinct) for n in counts}
+    calib = sessions[counts[0]][1]
+    outs = {k: wd / f"out_{k}" for k in ("baseline", "gtforge")}
+    wait = {"wait_s": args.settle_s}
+    warmup = warm_up(wd, args.distinct, calib, gtforge_cli, workers)
+    print(warmup, flush=True)
+    rows = {}
+    for n in counts:
+        sess, _ = sessions[n]
+        pairs = []
+        for i in range(max(1, args.repeat)):
+            settle(*outs.values(), **wait)
+            b = timed(baseline_command(sess, calib, outs["baseline"]), f"{n} scenes in")
+            settle(outs["baseline"], **wait)
+            g = timed(gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers), "-o",
+                                     str(outs["gtforge"])], f"built {n}, unchanged 0, failed 0")
+            pairs.append((b, g))
+            print(f"{n} scenes, repeat {i + 1}: user script {b[0]:.2f} s, gtforge {g[0]:.2f} s ({b[0] / g[0]:.2f}x); "
+                  f"machine CPU {b[1]:.1f} / {g[1]:.1f} s", flush=True)
+        rows[n] = pairs
+    settle(*outs.values(), wait_s=0.0)
+
+    def med(ts):
+        return statistics.median(t[0] for t in ts), statistics.median(t[1] for t in ts)
+
+    rep = f" --repeat {args.repeat}" if args.repeat > 1 else ""
+    lines = [f"Measured {datetime.date.today()} with `python benchmarks/bench_build_dataset.py --scenes "
+             f"{','.join(map(str, counts))} --distinct {args.distinct}{rep} --settle-s {args.settle_s:g}`: {machine}; "
+             f"full-resolution scenes ({args.distinct} distinct renders hard-linked), each run a fresh process "
+             f"(imports included), the user script (`baseline_open3d_script.py`) and `gtforge build-dataset --workers "
+             f"{workers}` (default options: verification on) alternating, each after the earlier outputs were deleted "
+             f"and synced (`settle`, {args.settle_s:g} s); medians of {max(1, args.repeat)}. Machine CPU: the whole "
+             "machine's busy time during the run (/proc/stat), other users' processes included.",
+             "",
+             "| scenes | user script s | gtforge s | ratio (median) | ratio, each repeat "
+             "| machine CPU s, script / gtforge |",
+             "|---|---|---|---|---|---|"]
+    for n, pairs in rows.items():
+        b, g = med([p[0] for p in pairs]), med([p[1] for p in pairs])
+        each = ", ".join(f"{p[0][0] / p[1][0]:.2f}x" for p in pairs)
+        lines.append(f"| {n} | {b[0]:.2f} | {g[0]:.2f} | {b[0] / g[0]:.2f}x | {each} | {b[1]:.1f} / {g[1]:.1f} |")
+    if len(counts) > 1:
+        xs = [float(n) for n in rows]
+        fb = line_fit(xs, [med([p[0] for p in rows[n]])[0] for n in rows])
+        fg = line_fit(xs, [med([p[1] for p in rows[n]])[0] for n in rows])
+        lines += ["", f"A line through the median wall times: user script {fb[0]:.2f} s + {fb[1]:.3f} s a scene, "
+                  f"gtforge {fg[0]:.2f} s + {fg[1]:.3f} s a scene (its fixed cost: start-up, worker pool, session, "
+                  f"reports; the marginal cost on {workers} workers)."]
+    lines += ["", warmup]
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        print("written to", update_results("bench_build_dataset_sweep", text))
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", type=int, default=100)
+    ap.add_argument("--scenes", default="100",
+                    help="scene count, or several separated by commas (6,24,48: the baseline and the default build at "
+                         "each)")
     ap.add_argument("--distinct", type=int, default=4)
     ap.add_argument("--workers", type=int, default=None, help="gtforge --workers (default: cores)")
     ap.add_argument("--workdir", default="/tmp/gtforge_bench")
@@ -136,13 +212,19 @@ def main():
     from gtforge.infra.scheduling import cpu_count
 
     workers = args.workers or cpu_count()
-    wd = Path(args.workdir)
-    sess, calib = make_session(wd, args.scenes, args.distinct)
-    machine = machine_line()
+    try:
+        counts = [int(x) for x in args.scenes.split(",")]
+    except ValueError:
+        ap.error(f"--scenes: a count or counts separated by commas such as 6,24,48, not {args.scenes!r}")
     exe = Path(sys.executable).with_name("gtforge")  # the console script beside this interpreter
     gtforge_cli = [str(exe)] if exe.exists() else [sys.executable, "-c", "from gtforge.cli import main; main()"]
+    if len(counts) > 1:
+        return sweep(counts, args, gtforge_cli, workers)
+    n = counts[0]
+    wd = Path(args.workdir)
+    sess, calib = make_session(wd, n, args.distinct)
+    machine = machine_line()
     outs = {k: wd / f"out_{k}" for k in ("baseline", "gtforge", "noverify")}
-    n = args.scenes
     built = f"built {n}, unchanged 0, failed 0"  # what a complete build prints
     runs = []
     build = gtforge_cli + ["build-dataset", str(sess), "-c", str(calib), "--workers", str(workers)]

@@ -42,6 +42,8 @@ def main():
     import numpy as np
 
     from gtforge import build_dataset as bd
+    from gtforge.core.ground_truth.regions import fruit_regions
+    from gtforge.dataset.views import _link
     from gtforge.core.ground_truth.reproject import project_depth_to_camera
     from gtforge.io.captures import open_session, read_depth, read_texture
     from gtforge.io.formats import read_image, write_kitti_disparity, write_pfm, write_tiff_float
@@ -128,7 +130,7 @@ def main():
     disp, noc = measure("compute", "disparity + occlusion (non-occluded mask)",
                         lambda: disparity_and_nonoccluded(depth_l, depth_r, zed, params.occlusion_rel_tol))
     region, _ = measure("compute", "regions (table plane, fruit, erosion)",
-                            lambda: bd.fruit_regions(depth_l, zed, params, cap.fruit_mask))
+                            lambda: fruit_regions(depth_l, zed, params, cap.fruit_mask))
     weight = measure("compute", "SGRA weights", lambda: bd.sgra_weights(region, params))
     if getattr(params, "verification", False):
         from gtforge.dataset.scene_verification import verify_scene
@@ -220,9 +222,9 @@ def main():
 
     def links():
         for name in ("im0.png", "im1.png", "calib.txt", "disp0GT.pfm", "mask0nocc.png"):
-            bd._link(tmp / name, out / "eth3d" / "x" / name)
+            _link(tmp / name, out / "eth3d" / "x" / name)
         for name in ("im0.png", "im1.png"):
-            bd._link(tmp / name, out / "kitti" / name)
+            _link(tmp / name, out / "kitti" / name)
 
     measure("write", "view links (KITTI + ETH3D hard links)", links, no_links)
 

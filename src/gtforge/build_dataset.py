@@ -37,7 +37,7 @@ except ImportError:  # pragma: no cover
 
 import gtforge
 from gtforge.core.geometry import finite_box, mask_bounding_box
-from gtforge.core.ground_truth.reproject import right_view_disparity
+from gtforge.core.ground_truth.reproject import prepare_rays, right_view_disparity
 from gtforge.core.zed.scale_corrections import add_depth_pose_sigma, add_scale_sigma
 from gtforge.core.ground_truth.uncertainty import disparity_sigma
 from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
@@ -258,6 +258,22 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
     return sid, None, meta.model_dump(mode="json")
 
 
+def warm_worker(session_dir: str, calib_path: str) -> None:
+    """What every build worker computes for its first scene before the scene's own work, done once in the local pool's
+    fork server (``prestart_pool(..., warm_up=...)``), whose workers inherit it: the calibration, the session opened
+    with it and the depth camera's ray grid (about 0.7 CPU s a worker at full resolution, most of it the ray grid;
+    benchmarks/RESULTS.md, "Round 4 (issue 39)"). ``session_dir``, ``calib_path``: resolved, as ``build_dataset``
+    passes them to ``build_one_scene`` (the worker's cache is keyed by them, and by the calibration's hash)."""
+    calib = cached_calibration(calib_path, sha256_file(calib_path))
+    cached_session(session_dir, calib)
+    prepare_rays(calib.rig.depth_camera)
+
+
+def _warm_up_args(session_dir, calibration) -> tuple[str, tuple[str, str]]:
+    """``prestart_pool``'s ``warm_up`` for a build of ``session_dir`` with ``calibration``."""
+    return "warm_worker", (str(Path(session_dir).resolve()), str(Path(calibration).resolve()))
+
+
 # ---- splits and views -------------------------------------------------------------------------
 
 
@@ -274,7 +290,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     (``finish_dataset``: verification report, views, splits, manifest, build report)."""
 
     t0 = time.perf_counter()
-    prestart_pool(build_one_scene.__module__, workers, scheduler)  # (already started by the CLI)
+    prestart_pool(build_one_scene.__module__, workers, scheduler,  # (already started by the CLI)
+                  warm_up=_warm_up_args(session_dir, calibration))
     params = params or BuildParams()
     if not 0 <= params.split_train + params.split_val <= 1:
         raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")

@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from gtforge.build_dataset import build_dataset
 from gtforge.core.camera import Rig
 from gtforge.infra.scheduling import cpu_count, limit_threads
@@ -35,6 +37,7 @@ KERNELS = (
     "gtforge.core.ground_truth.render._render_kernel", "gtforge.core.alignment.photometric._cubic_at",
     "gtforge.io.formats._pfm_rows",
     "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
+    "gtforge.core.lens._undistort_kernel_serial",
 )
 
 
@@ -44,8 +47,12 @@ def compile_kernels(scale: float = 0.25) -> float:
     import numba
 
     import gtforge.infra.pool_preload  # noqa: F401  (its kernel: what a local pool's fork server loads)
+    from gtforge.core import lens
 
     t0 = time.perf_counter()
+    # the one-thread undistortion: the fork server and the workers run it (NUMBA_NUM_THREADS = 1 in their environment),
+    # this process, whose numba may run more, does not choose it by itself
+    lens.undistort(np.zeros((1, 2)), [0.1, 0.0, 0.0, 0.0], serial=True)
     with tempfile.TemporaryDirectory(prefix="gtforge-precompile-") as tmp:
         session_dir = generate_session(Path(tmp) / "session", n_board=0, n_scenes=1, scale=scale, supersample=1)
         session = open_session(session_dir)

@@ -165,3 +165,32 @@ def test_nan_input_zero_distortion_and_valid_radius():
     assert lens.valid_radius([0, 0, 0, 0, 0, -0.5, 0, 0]) == pytest.approx(np.sqrt(2.0), abs=1e-9)
     # the real Kinect depth lens folds at r = 3.21 (72.7 deg off-axis), far outside its 640x576 NFOV image
     assert 3.0 < lens.valid_radius(KINECT_DEPTH) < 3.3
+
+
+@pytest.mark.parametrize("coeffs", [COEFFS_14, KINECT_DEPTH, STRONG_RATIONAL], ids=["tilted-14", "kinect", "strong"])
+def test_one_thread_undistortion_is_the_parallel_one_bit_for_bit(coeffs, monkeypatch):
+    """With one numba thread (a build worker, the pool's fork server) ``undistort`` runs the serial compilation of its
+    kernel, which starts no OpenMP runtime: the same values to the bit, NaN where no inverse exists included."""
+    c = cam(len(coeffs), coeffs)
+    rng = np.random.default_rng(3)
+    # the image's pixels and points far outside it (where the Newton starts fail and the fallback or NaN decides)
+    xy = np.concatenate([c.ray_grid().reshape(-1, 2), rng.uniform(-3.0, 3.0, (20000, 2))])
+    xy_d = lens.distort(xy, coeffs)
+    xy_d[::997] = np.nan
+    parallel = lens.undistort(xy_d, coeffs, serial=False)
+    serial = lens.undistort(xy_d, coeffs, serial=True)
+    assert np.isnan(parallel).any() and np.isfinite(parallel).sum() > 200000
+    assert serial.tobytes() == parallel.tobytes()
+    # two kernels, each with its own cache files (one name would make them share, and overwrite, one cache entry)
+    assert lens._undistort_kernel_serial.py_func.__qualname__ == "_undistort_kernel_serial"
+    assert not lens._undistort_kernel_serial.targetoptions.get("parallel")
+    assert lens._undistort_kernel.targetoptions.get("parallel")
+    # the default: serial where numba may run one thread only (the pool's workers and fork server)
+    calls = []
+    for name in ("_undistort_kernel", "_undistort_kernel_serial"):
+        kernel = getattr(lens, name)
+        monkeypatch.setattr(lens, name, lambda *a, _k=kernel, _n=name: calls.append(_n) or _k(*a))
+    for n in (1, 2):
+        monkeypatch.setattr(lens.numba.config, "NUMBA_NUM_THREADS", n)
+        lens.undistort(xy_d[:10], coeffs)
+    assert calls == ["_undistort_kernel_serial", "_undistort_kernel"]

@@ -61,3 +61,45 @@ def test_local_workers_are_forked_from_one_preloaded_server(tmp_path):
     other = out["other_threads"]
     assert {t[1] for t in other} == {out["pid"]} and not any(t[2] for t in other)
     assert all(t[5] == str(out["threads"] + 1) for t in other)
+
+
+WARM_SCRIPT = textwrap.dedent('''
+    import json, os, sys
+
+    def facts(_):
+        from gtforge.core.ground_truth import reproject
+        from gtforge.dataset.worker_cache import WORKER_CACHE
+        return (os.getpid(), reproject._ray_planes.cache_info().currsize, sorted(str(k[0]) for k in WORKER_CACHE),
+                os.environ.get("GTFORGE_POOL_WARM_UP"))
+
+    if __name__ == "__main__":
+        from gtforge.infra import scheduling
+        session, calib = sys.argv[1:3]
+        scheduling.prestart_pool("gtforge.build_dataset", workers=2, warm_up=("warm_worker", (session, calib)))
+        res = []
+        scheduling.run_tasks(facts, [(i,) for i in range(2)], res.append, workers=2)
+        print(json.dumps({"threads": scheduling.threads_per_worker(2), "facts": res,
+                          "env_here": os.environ.get("GTFORGE_POOL_WARM_UP")}))
+''')
+
+
+@pytest.mark.parametrize("inputs", ["session", "missing"])
+def test_workers_inherit_the_servers_warm_up_and_a_failed_one_leaves_them_working(inputs, session_dir,
+                                                                                   true_calibration, tmp_path):
+    """build-dataset's warm-up (``warm_worker``: the calibration, the opened session, the depth camera's ray grid) runs
+    once in the fork server and every worker starts with it; a warm-up that fails (missing inputs) leaves the server
+    and its workers as without one (the build reports the inputs itself)."""
+    script = tmp_path / "warm_facts.py"
+    script.write_text(WARM_SCRIPT)
+    session, calib = (str(session_dir.resolve()), str(true_calibration.resolve())) if inputs == "session" else \
+        (str(tmp_path / "no_session"), str(tmp_path / "no_calibration.yaml"))
+    r = subprocess.run([sys.executable, str(script), session, calib], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["env_here"] is None and all(f[3] is None for f in out["facts"])  # the hand-over stays in the server
+    if out["threads"] != 1:  # more cores than workers: no warm-up (numba's parallel kernels start OpenMP)
+        assert all(f[1] == 0 and f[2] == [] for f in out["facts"])
+    elif inputs == "session":
+        assert all(f[1] == 1 and f[2] == sorted([session, "calib"]) for f in out["facts"])
+    else:
+        assert all(f[1] == 0 and f[2] == [] for f in out["facts"])

@@ -713,3 +713,34 @@ def test_scenes_of_a_right_corrected_calibration_are_rebuilt_after_the_resamplin
     for c in (yawed, selfcal):
         assert scene_params_hash(params, c) != params.output_hash()
         assert scene_params_hash(params, c) == scene_params_hash(params, c)
+
+
+@pytest.mark.slow
+def test_pool_from_a_warmed_fork_server_writes_the_files_of_the_one_process_build(dataset, session_dir,
+                                                                                true_calibration, tmp_path):
+    """`gtforge build-dataset --workers 2` (a fresh process: its pool's fork server computes the calibration, the
+    session and the depth camera's ray grid once, with the serial undistortion, and the workers inherit them) writes
+    every scene file byte for byte as the one-process build (the ``dataset`` fixture, ``workers=1``), and the same
+    KITTI files and verification figures."""
+    import subprocess
+    import sys
+
+    out, _ = dataset
+    ds = tmp_path / "ds"
+    r = subprocess.run([sys.executable, "-m", "gtforge.cli", "build-dataset", str(session_dir), "-c",
+                        str(true_calibration), "-o", str(ds), "--workers", "2"], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode in (0, 1), r.stderr[-3000:]  # 1: verification flagged a scene (the fixture's moved fruit)
+    one, pool = Manifest.read(out / "manifest.json"), Manifest.read(ds / "manifest.json")
+    assert sorted(pool.scenes) == sorted(one.scenes) and len(one.scenes) == 3
+    for sid in one.scenes:
+        names = sorted(p.name for p in (out / "scenes" / sid).iterdir())
+        assert names == sorted(p.name for p in (ds / "scenes" / sid).iterdir()) and "disp0GT.pfm" in names
+        for name in names:
+            if name != "meta.json":  # (its times differ)
+                assert (ds / "scenes" / sid / name).read_bytes() == (out / "scenes" / sid / name).read_bytes(), name
+        for d in ("disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1"):
+            f = f"kitti/training/{d}/{sid}_10.png"
+            assert (ds / f).read_bytes() == (out / f).read_bytes()
+        a, b = one.scenes[sid], pool.scenes[sid]
+        assert a.verification == b.verification and a.sigma == b.sigma and a.stats == b.stats

@@ -243,7 +243,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     """Build disparity ground truth for SESSION/scenes/ into OUTPUT (docs/dataset-format.md)."""
     from gtforge.infra.scheduling import prestart_pool
 
-    prestart_pool("gtforge.build_dataset", workers, scheduler)  # the workers' imports overlap this process's own
+    # the workers' imports and warm-up (build_dataset.warm_worker) overlap this process's own imports
+    prestart_pool("gtforge.build_dataset", workers, scheduler,
+                  warm_up=("warm_worker", (str(session.resolve()), str(calibration.resolve()))))
     from gtforge.build_dataset import build_dataset as run
     from gtforge.records.dataset import BuildParams
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import math
+import types
 
 import numba
 import numpy as np
@@ -282,11 +283,30 @@ def _undistort_kernel(xy_d, d, Minv, tilted, r_valid2, r_hi, f_hi, max_iter, sto
             out[i, 1] = y
 
 
-def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15) -> np.ndarray:
+def _renamed(f, name: str):
+    """``f``'s code as a function of its own name: numba names a kernel's cache files by the function's qualified name
+    (and line), and its cache index does not tell a parallel compilation from a serial one, so the two compilations of
+    one function would share, and overwrite, one cache entry."""
+    g = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
+    g.__qualname__, g.__module__ = name, f.__module__
+    return g
+
+
+# The same loop compiled without ``parallel``: each point's arithmetic is the same (identical results, tested), and it
+# starts no OpenMP runtime. Used where numba may run one thread only (a build worker, the pool's fork server): GNU
+# OpenMP, once started in a process, aborts every child that process forks, and the fork server computes the depth
+# camera's ray grid for its workers (``reproject.prepare_rays``).
+_undistort_kernel_serial = numba.njit(cache=True)(_renamed(_undistort_kernel.py_func, "_undistort_kernel_serial"))
+
+
+def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15, *,
+              serial: bool | None = None) -> np.ndarray:
     """Distorted normalised ``(N, 2)`` -> undistorted normalised ``(N, 2)``.
 
     NaN where no valid solution exists (outside :func:`valid_radius`, or residual above :data:`ACCEPT_TOL`).
     ``iterations``: Newton iterations per start; ``tol``: the residual (normalised) at which a point stops.
+    ``serial``: the serial compilation (the same values; no OpenMP runtime started); default where this process's
+    numba runs one thread (``NUMBA_NUM_THREADS`` = 1: a local pool's workers and fork server).
     """
     target = np.ascontiguousarray(np.asarray(xy_d, np.float64).reshape(-1, 2))
     d = full_coeffs(dist)
@@ -299,6 +319,9 @@ def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15) 
     _, num, den = _radial_slope(np.array([r_hi]), d)
     f_hi = float(r_hi * num[0] / den[0])  # the largest distorted radius of the monotonic branch
     out = np.empty_like(target)
-    _undistort_kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol,
-                      ACCEPT_TOL * ACCEPT_TOL, out)
+    if serial is None:
+        serial = numba.config.NUMBA_NUM_THREADS == 1
+    kernel = _undistort_kernel_serial if serial else _undistort_kernel
+    kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol, ACCEPT_TOL * ACCEPT_TOL,
+           out)
     return out

@@ -31,6 +31,7 @@ assigned to it, so tasks queued behind a scene that kills its worker would other
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import threading
@@ -258,21 +259,30 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
     ex.shutdown(wait=True)
 
 
+# the environment variable that hands a warm-up to the fork server (``prestart_pool``, ``pool_preload.warm_up``)
+POOL_WARM_UP_ENV = "GTFORGE_POOL_WARM_UP"
 # this process's fork server, once started: the numba/OpenMP thread count its environment set
 _FORK_SERVER: dict[str, int] = {}
 
 
-def prestart_pool(module: str, workers: int | None = None, scheduler: str | None = None) -> None:
+def prestart_pool(module: str, workers: int | None = None, scheduler: str | None = None,
+                  warm_up: tuple[str, tuple] | None = None) -> None:
     """Start the fork server that ``run_tasks`` will fork local workers from (``workers`` processes, tasks from
     ``module``) now, so that its imports overlap what this process does before it calls ``run_tasks``. Nothing when
     the tasks will run on a Dask cluster or in this process, or where there is no fork server. The server exits with
-    this process, used or not."""
+    this process, used or not.
+
+    ``warm_up``: ``(function name in module, JSON-able arguments)``, called once in the server after its imports
+    (``pool_preload.warm_up``): what each worker would otherwise compute for its first task, done once and inherited
+    by every worker. Only when each worker gets one thread: the function must not start OpenMP, and with one thread
+    gtforge's kernels do not (``lens.undistort``). Ignored when the server is already running."""
     if scheduler or (workers or cpu_count()) < 2:
         return
-    _pool_context(module, threads_per_worker(workers or cpu_count()))
+    n_threads = threads_per_worker(workers or cpu_count())
+    _pool_context(module, n_threads, warm_up if n_threads == 1 else None)
 
 
-def _pool_context(module: str, n_threads: int):
+def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None = None):
     """The ``multiprocessing`` context local workers start with: this process's fork server, started here once with
     ``__main__``, ``gtforge.infra.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other
     itself)
@@ -290,6 +300,8 @@ def _pool_context(module: str, n_threads: int):
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["__main__", "gtforge.infra.pool_preload", module])
     env = _thread_environment(n_threads)
+    if warm_up is not None:
+        env[POOL_WARM_UP_ENV] = json.dumps([f"{module}:{warm_up[0]}", list(warm_up[1])])
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # the server's environment is this process's when it starts (fork + exec, below)
     try:

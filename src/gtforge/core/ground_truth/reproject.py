@@ -63,6 +63,13 @@ def _ray_planes(cam_json: str) -> tuple[np.ndarray, np.ndarray]:
     return rx, ry
 
 
+def prepare_rays(depth_cam: PinholeCamera) -> None:
+    """Compute and keep (per process) the ray grid that reprojecting ``depth_cam``'s depth uses: 0.3-0.6 CPU s at
+    1920x1200 with a lens model (its undistortion: ``lens.undistort``). The local pool's fork server calls it before it
+    forks the build workers, which then share it instead of each computing it for its first scene."""
+    _ray_planes(depth_cam.model_dump_json())
+
+
 # ---- projection ------------------------------------------------------------------------------
 @numba.njit(inline="always", **_JIT)
 def _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, U, V, IZ):

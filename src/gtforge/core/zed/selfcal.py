@@ -38,7 +38,6 @@ from typing import TYPE_CHECKING, Literal
 import cv2
 import numpy as np
 from pydantic import Field
-from scipy.optimize import least_squares
 
 from gtforge.core.camera import RectifiedStereo
 from gtforge.core.zed.scale_corrections import apply_homography, resample_image, right_yaw_homography
@@ -157,6 +156,8 @@ def _vertical_residual(theta: np.ndarray, pl: np.ndarray, pr: np.ndarray, stereo
 
 
 def _robust_fit(pl, pr, stereo, with_omega_y):
+    from scipy.optimize import least_squares  # here, not at import: io/captures imports this module on every build
+
     n = 4 if with_omega_y else 3
     scale = np.full(n, 1e-3)
     fun = lambda th: _vertical_residual(th, pl, pr, stereo, with_omega_y)  # noqa: E731
