@@ -239,7 +239,12 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                                                      "faster."),
                   quarantine: bool = typer.Option(False, "--quarantine",
                                                   help="Leave scenes that verification flags out of the split lists "
-                                                       "(they stay in scenes/).")) -> None:
+                                                       "(they stay in scenes/)."),
+                  motion_compensation: bool = typer.Option(
+                      True, "--motion-compensation/--no-motion-compensation",
+                      help="A scene verification flags because its fruit moved between the depth and the ZED "
+                           "exposure: rebuild its ground truth with each fruit moved by its estimated rigid motion "
+                           "when that passes verification (docs/design/motion-compensation.md).")) -> None:
     """Build disparity ground truth for SESSION/scenes/ into OUTPUT (docs/dataset-format.md)."""
     from gtforge.infra.scheduling import prestart_pool
 
@@ -255,7 +260,8 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
         raise InputError(None, "--mode", "mesh or splat", repr(mode))
     params = _options(BuildParams, mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
                       max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
-                      verification=verification, right_gt=right_gt, quarantine=quarantine)
+                      verification=verification, right_gt=right_gt, quarantine=quarantine,
+                      motion={"compensate": motion_compensation})
     s = run(session, calibration, output, params, workers=workers, overwrite=overwrite, strict=strict, progress=True,
             scheduler=scheduler)
     failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
@@ -265,6 +271,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
         q = " (left out of the split lists: --quarantine)" if s.quarantined else ""
         out.print(f"verification: {len(s.flagged)} scene(s) flagged{q}"
                   + (": " + ", ".join(s.flagged) if s.flagged else "") + f"; see {s.out_dir / 'verification.html'}")
+        if s.compensated:
+            out.print(f"fruit motion compensated in {len(s.compensated)} scene(s): {', '.join(s.compensated)} "
+                      "(their ground truth rebuilt with the fruit moved; filenames/compensated.txt)")
     if s.failures:
         raise typer.Exit(1)
 

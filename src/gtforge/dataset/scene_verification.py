@@ -85,16 +85,27 @@ STEREO_BLUR_PX = 1.0
 
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
                       rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None,
-                      smooth: np.ndarray | None = None
+                      smooth: np.ndarray | None = None, moved: tuple[np.ndarray, dict] | None = None
                       ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
     """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used).
 
     The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's).
-    ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it."""
+    ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it. ``moved``: a ground truth rebuilt
+    with fruit moved between the exposures (``gtforge.dataset.motion_compensation``): ``(owner, motions)``, which
+    fruit each pixel shows (0 none) and each one's ``T_zed_moved_from_zed``; the texture camera saw those pixels'
+    points where they were before the motion."""
     h, w = depth_zed_mm.shape
     window = window or Window(0, 0, 0, w, h)
     rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm,
                               (window.x0_px, window.y0_px))
+    if moved is not None:
+        owner, motions = moved
+        for k, T in motions.items():
+            sel = owner == k
+            if sel.any():  # a fruit's point as the texture camera saw it: T_mech_from_zed @ T_zed_moved_from_zed^-1
+                r_k, ok_k = render_texture(np.where(sel, depth_zed_mm, np.nan), rig.with_extrinsic(
+                    T @ rig.T_zed_from_mech), texture, params.texture_occlusion_tol_mm, (window.x0_px, window.y0_px))
+                rend[sel], ok[sel] = r_k[sel], ok_k[sel]
     r = int(np.ceil(2 * params.norm_sigma_px))
     ok_support = interior_mask(ok, r)
     n_rend = local_normalize(rend, ok, params.norm_sigma_px)
@@ -303,12 +314,14 @@ def _rows_with_values(a):
 
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
                  zed_left: np.ndarray, zed_right: np.ndarray | None, texture: np.ndarray | None, rig: Rig,
-                 params: VerifyParams | None = None) -> tuple[SceneVerification, np.ndarray | None]:
+                 params: VerifyParams | None = None, moved: tuple[np.ndarray, dict] | None = None
+                 ) -> tuple[SceneVerification, np.ndarray | None]:
     """Both checks for one scene (ZED-left arrays at the dataset's resolution, uncropped; see module docstring).
     ``zed_left`` and ``zed_right`` may hold only their first ``zed_rows_used(depth_zed_mm, params)`` rows.
     Returns the verification and the rendered, normalised texture (at the work resolution, for overlays; None when not
     measured). The checks run in the window around the ground truth (``Window``): the same figures as on the whole
-    image, at a fraction of the cost."""
+    image, at a fraction of the cost. ``moved``: ``(owner, motions)`` of a ground truth rebuilt with fruit moved
+    (``texture_alignment``; ``owner`` at the dataset's resolution)."""
     params = params or VerifyParams()
     reasons: list[str] = []
     if texture is None:
@@ -325,8 +338,12 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
     # away from depth edges, for both checks (disp_c is the window's GT disparity, as depth_to_disparity gives it)
     smooth = smooth_depth_mask(disp_c)
+    if moved is not None:  # the owner labels cut as the region's (each block's top-left pixel)
+        hc, wc = depth_c.shape
+        moved = (np.ascontiguousarray(moved[0][win.y0_px * f:(win.y0_px + hc) * f:f,
+                                               win.x0_px * f:(win.x0_px + wc) * f:f]), moved[1])
     e_all, e_fruit, tile_shifts, n_rend_c, _ = texture_alignment(depth_c, region_c, left_c, texture, rig_w, params,
-                                                                 left_norm, win, smooth)
+                                                                 left_norm, win, smooth, moved)
     stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win, smooth) \
         if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
