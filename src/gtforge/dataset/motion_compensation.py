@@ -52,6 +52,8 @@ def fruit_motion_suspected(v: SceneVerification, params: VerifyParams) -> bool:
     """Did verification flag the fruit: its texture shift or its stereo disparity bias over the threshold?"""
     if v.status != "flagged":
         return False
+    if any(r.startswith("texture shift over fruit ") for r in v.reasons):  # one fruit of several
+        return True
     m = v.texture_fruit.magnitude_px
     s = v.stereo.get("fruit")
     return (m is not None and m > params.max_shift_px) or \

@@ -86,8 +86,10 @@ STEREO_BLUR_PX = 1.0
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
                       rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None,
                       smooth: np.ndarray | None = None, moved: tuple[np.ndarray, dict] | None = None
-                      ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
-    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used).
+                      ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray,
+                                 list[ShiftEstimate]]:
+    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used, each
+    fruit's own when there are several: connected components of the fruit regions in raster order, else empty).
 
     The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's).
     ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it. ``moved``: a ground truth rebuilt
@@ -120,6 +122,13 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
     aligner = ShiftAligner(n_rend, n_zed)
     e_all = aligner.align_at(v, u, params.min_pixels)
     e_fruit = aligner.align_at(v[fruit], u[fruit], params.min_pixels)
+    # several fruit: each one's own shift too (fruit moved in different directions average out over all of them)
+    e_each: list[ShiftEstimate] = []
+    fruit_img = (region == REGION_CENTRE) | (region == REGION_EDGE)
+    n_cc, labels = cv2.connectedComponents(fruit_img.view(np.uint8), connectivity=8)
+    if n_cc > 2:
+        lab = take_at(labels, idx)
+        e_each = [aligner.align_at(v[lab == k], u[lab == k], params.min_pixels) for k in range(1, n_cc)]
 
     def tile_shifts() -> list[list[float | None]]:
         out = []
@@ -134,7 +143,7 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
                 out.append([(xa + xb - 1) / 2, (ya + yb - 1) / 2, e.dx_px, e.dy_px])
         return out
 
-    return e_all, e_fruit, tile_shifts, n_rend, use
+    return e_all, e_fruit, tile_shifts, n_rend, use, e_each
 
 
 def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
@@ -342,12 +351,13 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         hc, wc = depth_c.shape
         moved = (np.ascontiguousarray(moved[0][win.y0_px * f:(win.y0_px + hc) * f:f,
                                                win.x0_px * f:(win.x0_px + wc) * f:f]), moved[1])
-    e_all, e_fruit, tile_shifts, n_rend_c, _ = texture_alignment(depth_c, region_c, left_c, texture, rig_w, params,
-                                                                 left_norm, win, smooth, moved)
+    e_all, e_fruit, tile_shifts, n_rend_c, _, e_each = texture_alignment(depth_c, region_c, left_c, texture, rig_w,
+                                                                         params, left_norm, win, smooth, moved)
     stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win, smooth) \
         if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
+        e_each = [_scaled_shift(e, f) for e in e_each]
         stereo = {k: v.model_copy(update={key: None if getattr(v, key) is None else getattr(v, key) * f
                                           for key in ("disparity_bias_px", "vertical_px", "disparity_bias_noise_px",
                                                       "vertical_noise_px")})
@@ -368,6 +378,10 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         if e.correlation is not None and e.correlation < params.min_correlation:
             reasons.append(f"texture correlation over the {name} {e.correlation:.2f} < {params.min_correlation} "
                            "(the scene changed between the captures?)")
+    for k, e in enumerate(e_each, 1):
+        if e.magnitude_px is not None and e.magnitude_px > params.max_shift_px:
+            reasons.append(f"texture shift over fruit {k} of {len(e_each)} {e.magnitude_px:.2f} px > "
+                           f"{params.max_shift_px} px (dx {e.dx_px:+.2f}, dy {e.dy_px:+.2f})")
     for name, s in stereo.items():
         if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
             reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f}"
