@@ -79,6 +79,8 @@ def verify_and_compensate(depth_mm: np.ndarray, rig: Rig, params: BuildParams, s
         texture, zed_left, zed_right = whole_images()
     record, rebuilt = _compensate(depth_mm, rig, params, sd, region, fruit, zed_left, zed_right, texture, user_mask)
     before = verification
+    if rebuilt is None and not record.reasons:
+        record.reasons.append("too little of the table in the ground truth to tell the fruit's points from it")
     if rebuilt is not None:
         sd2, region2, fruit2, sigma2, moved = rebuilt
         ver2, rendered2 = verify_scene(sd2.depth_mm, sd2.disparity_px, sd2.nonoccluded, region2, zed_left, zed_right,
@@ -214,7 +216,7 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
                         moved: dict[int, FruitMotionEstimate], user_mask: np.ndarray | None = None):
     """The ground truth with each moved fruit's depth points moved: ``(StereoDepth, region, fruit, motion sigma,
     (owner, motions))``, ``owner`` which moved fruit each ZED-left pixel shows (0: none) and ``motions`` each one's
-    ``T_zed_moved_from_zed`` (``verify_scene``'s ``moved``).
+    ``T_zed_moved_from_zed`` (``verify_scene``'s ``moved``); None when the ground truth holds too little table.
 
     The depth camera's points above the table plane (fit to the ground truth's background) are grouped into connected
     components on the depth camera's grid; each takes the ZED-left fruit component (``labels``) most of its visible
@@ -233,6 +235,8 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
     vb, ub = np.nonzero(labels == 0)
     okb = np.isfinite(sd.depth_mm[vb, ub])
     vb, ub = vb[okb], ub[okb]
+    if len(vb) < 100:  # no table to tell the fruit from
+        return None
     rng = np.random.default_rng(0)
     pick = rng.choice(len(vb), min(len(vb), 20000), replace=False)
     Pb = zl.unproject(np.stack([ub[pick], vb[pick]], axis=1), sd.depth_mm[vb[pick], ub[pick]])
