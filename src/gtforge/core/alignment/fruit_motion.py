@@ -35,6 +35,7 @@ from gtforge.core.camera import RectifiedStereo
 # into the fine one's reach
 SIGMAS_PX = (3.0, 1.0)
 TILE_PX = 8.0  # the sandwich covariance's tiles (px)
+TEXTURE_WEIGHT = 1.0  # the texture term's residuals against the stereo term's, each in units of its robust scale
 HUBER = 1.345  # Huber's constant, in units of each term's robust residual scale
 MAX_POINTS = 20000  # a larger fruit is subsampled evenly
 MAX_ITERATIONS = 30
@@ -213,7 +214,7 @@ def estimate_fruit_motion(points_zed_mm: np.ndarray, pixels_vu: tuple[np.ndarray
                 J_t = np.zeros((n, 10))
                 J_t[:, :6] = dL
                 J_t[:, 8], J_t[:, 9] = -t_vals, -1.0
-                s = _robust_scale(r_t)
+                s = _robust_scale(r_t) / TEXTURE_WEIGHT
                 blocks_J.append(J_t / s)
                 blocks_r.append(r_t / s)
             J = np.concatenate(blocks_J)
