@@ -22,7 +22,7 @@ import numpy as np
 from gtforge.core.alignment.fruit_motion import FruitMotionEstimate, MotionImages, estimate_fruit_motion
 from gtforge.core.alignment.photometric import local_normalize, to_gray
 from gtforge.core.camera import Rig
-from gtforge.core.geometry import fit_plane_robust, transform_points
+from gtforge.core.geometry import fit_plane_robust, mask_bounding_box, transform_points
 from gtforge.core.ground_truth.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
 from gtforge.core.ground_truth.render import render_texture
 from gtforge.core.ground_truth.reproject import StereoDepth, disparity_and_nonoccluded, reproject_to_zed
@@ -299,21 +299,25 @@ def motion_sigma_px(depth_zed_mm: np.ndarray, who: np.ndarray, moved: dict[int, 
     1)`` by ``n.dX / n.r`` (``n`` the surface normal, from the depth map), and the disparity by ``f B / Z^2`` times
     that. Grazing rays (``|n.r| < 0.1 |r|``) take the bound at 0.1."""
     out = np.zeros(depth_zed_mm.shape, np.float32)
-    zl = rig.zed.left
+    box = mask_bounding_box(who > 0)
+    if not box:
+        return out
+    # the moved fruit's bounding box + 1 px (the normals' differences) only
     H, W = depth_zed_mm.shape
-    vv, uu = np.mgrid[0:H, 0:W]
-    Pimg = np.stack([(uu - zl.cx_px) / zl.fx_px * depth_zed_mm, (vv - zl.cy_px) / zl.fy_px * depth_zed_mm,
-                     depth_zed_mm], axis=2).astype(np.float64)
-    du = np.gradient(Pimg, axis=1)
-    dv = np.gradient(Pimg, axis=0)
-    nrm = np.cross(du, dv)
+    y0, y1, x0, x1 = max(box[0] - 1, 0), min(box[1] + 1, H), max(box[2] - 1, 0), min(box[3] + 1, W)
+    zl = rig.zed.left
+    vv, uu = np.mgrid[y0:y1, x0:x1]
+    d = np.asarray(depth_zed_mm[y0:y1, x0:x1], np.float64)
+    Pimg = np.stack([(uu - zl.cx_px) / zl.fx_px * d, (vv - zl.cy_px) / zl.fy_px * d, d], axis=2)
+    nrm = np.cross(np.gradient(Pimg, axis=1), np.gradient(Pimg, axis=0))
     fB = rig.zed.f_px * rig.zed.baseline_mm
     for k, est in moved.items():
-        v, u = np.nonzero((who == k) & np.isfinite(depth_zed_mm))
+        v, u = np.nonzero((who[y0:y1, x0:x1] == k) & np.isfinite(d))
         if not len(v):
             continue
         P = Pimg[v, u]
         nk = nrm[v, u]
+        v, u = v + y0, u + x0
         nk = nk / np.maximum(np.linalg.norm(nk, axis=1, keepdims=True), 1e-12)
         r = np.stack([(u - zl.cx_px) / zl.fx_px, (v - zl.cy_px) / zl.fy_px, np.ones(len(u))], axis=1)
         nr = np.einsum("ni,ni->n", nk, r)
