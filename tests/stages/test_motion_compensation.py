@@ -229,3 +229,26 @@ def test_motion_record_round_trips_and_old_files_are_refused(tmp_path):
     with pytest.raises(InputError, match="schema_version 2 is not supported"):
         VerificationResult.read(tmp_path / "verification.json")
     shutil.rmtree(tmp_path)
+
+
+def test_synth_moves_the_last_scenes_fruit(tmp_path):
+    """`gtforge synth --moved-fruit-mm 2`: the last scene holds four fruit, three moved by 2 mm and 1.33 deg (one
+    partly out of the depth camera's view), one still, with each one's exact motion in truth/; without scenes, a
+    one-line error."""
+    from typer.testing import CliRunner
+
+    from gtforge.cli import app
+    from gtforge.errors import InputError
+
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--boards", "0", "--scenes", "1", "--scale", "0.1",
+                                 "--moved-fruit-mm", "2"])
+    assert r.exit_code == 0, r.output
+    z = np.load(tmp_path / "s" / "truth" / "scene_000.npz")
+    np.testing.assert_allclose(np.linalg.norm(z["fruit_motion_translation_mm"], axis=1), [2, 0, 2, 2], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(z["fruit_motion_rotvec_deg"], axis=1), [4 / 3, 0, 4 / 3, 4 / 3],
+                               atol=1e-12)
+    assert z["fruit_T_zed_moved_from_zed"].shape == (4, 4, 4) and np.allclose(z["fruit_T_zed_moved_from_zed"][1],
+                                                                             np.eye(4), atol=1e-9)
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "t"), "--boards", "0", "--scenes", "0",
+                                 "--moved-fruit-mm", "2"])
+    assert isinstance(r.exception, InputError) and "--moved-fruit-mm" in str(r.exception)

@@ -710,7 +710,12 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                                           "names it)."),
           depth_pose_error_deg: Optional[str] = typer.Option(
               None, metavar="X,Y,Z", help="With --separate-depth-camera: session.yaml's depth camera pose is the true "
-                                          "one turned by this rotation vector (deg; calibrate-scale's test).")
+                                          "one turned by this rotation vector (deg; calibrate-scale's test)."),
+          moved_fruit_mm: float = typer.Option(
+              0.0, metavar="MM", min=0.0,
+              help="The last scene: four melons, three moved between the structured-light and the ZED exposure by "
+                   "this (mm, turned by 2/3 of it in deg, at most 2), one of them partly out of the depth camera's "
+                   "view, and one still; truth at the ZED's exposure (build-dataset's motion compensation).")
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     import math
@@ -730,12 +735,20 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
         if not separate_depth_camera:
             raise InputError(None, "--depth-pose-error-deg", "--separate-depth-camera with it",
                              "a rig with one camera", "add --separate-depth-camera")
+    rigid = None
+    if moved_fruit_mm > 0:
+        if scenes < 1:
+            raise InputError(None, "--moved-fruit-mm", "at least one scene to move the fruit in", "--scenes 0")
+        m, r = moved_fruit_mm, min(2.0, 2.0 / 3.0 * moved_fruit_mm)
+        rigid = {scenes - 1: [((0.8 * m, -0.6 * m, 0.0), (0.6 * r, 0.0, -0.8 * r)), ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+                              ((-0.6 * m, -0.8 * m, 0.0), (0.0, 0.8 * r, 0.6 * r)), ((0.0, m, 0.0), (0.0, 0.0, r))]}
     require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
                      zed_baseline_error_frac=baseline_error_pct / 100.0, right_yaw_deg=right_yaw_deg,
                      depth_scale_error_frac=depth_scale_error_pct / 100.0, depth_offset_mm=depth_offset_mm,
-                     two_camera=separate_depth_camera, depth_pose_error_deg=pose_error, progress=_progress_lines)
+                     two_camera=separate_depth_camera, depth_pose_error_deg=pose_error, progress=_progress_lines,
+                     fruit_rigid_motion=rigid)
     if gauges:
         from gtforge.synthetic import generate_gauges
 
