@@ -14,6 +14,12 @@ import numpy as np
 
 from gtforge.core.ground_truth.regions import occlusion_mask, region_sigma_stats, sgra_weights
 from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.dataset.motion_compensation import (
+    add_motion_sigma,
+    verify_and_compensate,
+    write_compensated_list,
+    write_motion_overlays,
+)
 from gtforge.dataset.layout import (
     KITTI_DISPARITY_DIRS,
     file_stamp,
@@ -76,6 +82,7 @@ class BuildSummary:
     splits: dict[str, list[str]] = field(default_factory=dict)
     flagged: dict[str, list[str]] = field(default_factory=dict)
     quarantined: list[str] = field(default_factory=list)
+    compensated: list[str] = field(default_factory=list)  # fruit motion compensated (issue 37)
 
     @property
     def ok(self) -> bool:
@@ -159,6 +166,12 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             t = time.perf_counter()
             texture, zed_left, zed_right = session.decoded_images(cap, zed_rows_used(sd.depth_mm, params.verify))
             decode_s = time.perf_counter() - t
+        checked = None
+        if params.verification and params.motion.compensate:  # verified before the writes: a scene whose fruit moved
+            # is rebuilt with the fruit moved when that passes verification (issue 37)
+            checked = verify_and_compensate(cap.depth_mm, rig, params, sd, region, fruit, zed_left, zed_right, texture,
+                                            cap.fruit_mask, lambda: session.decoded_images(cap))
+            sd, region, fruit = checked.sd, checked.region, checked.fruit
     except InputError as exc:
         return sid, str(exc), None
     disp, depth, noc, region_uncropped = sd.disparity_px, sd.depth_mm, sd.nonoccluded, region
@@ -216,13 +229,17 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             write_s += time.perf_counter() - t
             verification = None
             if params.verification:  # on the whole (uncropped) images
-                verification, rendered = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region_uncropped,
-                                                      zed_left, zed_right, texture, rig, params.verify)
-                if verification.status == "flagged" and rendered is not None:
+                verification, rendered = (checked.verification, checked.rendered) if checked is not None else \
+                    verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region_uncropped, zed_left, zed_right,
+                                 texture, rig, params.verify)
+                if (verification.status == "flagged" or verification.compensated) and rendered is not None:
                     if zed_left.shape[0] < sd.depth_mm.shape[0]:  # the overlay shows the whole image
                         zed_left = session.decoded_images(cap)[1]
-                    write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", zed_left,
-                                               rendered)
+                    if verification.compensated:  # before/after
+                        write_motion_overlays(Path(out_dir) / "verification", sid, zed_left, checked)
+                    else:
+                        write_verification_overlay(Path(out_dir) / "verification" / f"{sid}_overlay.jpg", zed_left,
+                                                   rendered)
             sigma = None
             if params.sigma:
                 shift = verification.texture_all.magnitude_px if verification is not None else None
@@ -234,6 +251,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 if calib.scale_calibration is not None:  # the scale terms' uncertainty (calibrate-scale)
 
                     sigma = add_scale_sigma(sigma, sd.depth_mm, rig, calib.scale_calibration)
+                if checked is not None and checked.motion_sigma_px is not None:  # the fruit's motion (issue 37)
+                    sigma = add_motion_sigma(sigma, checked.motion_sigma_px)
                 sigma = sigma[sl]
                 t = time.perf_counter()
                 write_pfm(tmp / "disp0GT_sigma.pfm", sigma)
@@ -377,7 +396,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                     "session.yaml, or change --split)", ", ".join(empty), len(ok_ids), n_fruit, len(ok_ids),
                     " and ".join(empty))
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
-                        quarantined)
+                        quarantined, [s for s in ok_ids if metas[s].verification is not None
+                                      and metas[s].verification.compensated])
 
 
 def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
@@ -392,6 +412,7 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
     flagged = {s: metas[s].verification.reasons for s in ok_ids
                if metas[s].verification is not None and metas[s].verification.status == "flagged"}
     quarantined = sorted(flagged) if params.quarantine else []
+    compensated = [s for s in ok_ids if metas[s].verification is not None and metas[s].verification.compensated]
     splits = final_splits(ok_ids, fruit_ids, params, quarantined)
     if params.verification:
         _write_verification(out, params, metas)
@@ -402,8 +423,10 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
     for sid in recovered:  # its worker died while writing them, or before: any of them may be missing
         write_scene_views(out, sid, params)
     write_lists(out, splits)
+    write_compensated_list(out, compensated)
     write_split_views(out, splits, params)
-    _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined)
+    _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures, splits, flagged, quarantined,
+                    compensated)
     write_build_report(Manifest.read(out / "manifest.json"), out)
     remove_stale_entries(out)  # the scenes' released locks (unlock_writer)
     return splits, flagged, quarantined
@@ -420,8 +443,9 @@ def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneM
 
 def _write_manifest(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
                     metas: dict[str, SceneMeta], failures: dict[str, str], splits: dict | None = None,
-                    flagged: dict | None = None, quarantined: list | None = None) -> None:
+                    flagged: dict | None = None, quarantined: list | None = None,
+                    compensated: list | None = None) -> None:
     Manifest(gtforge_version=gtforge.__version__, calibration_path=str(calib_path.resolve()),
              calibration_sha256=calib_sha, session_dir=str(Path(session_dir).resolve()), params=params,
              scenes={s: metas[s] for s in sorted(metas)}, failures=failures, splits=splits or {}, flagged=flagged or {},
-             quarantined=quarantined or []).write(out / "manifest.json")
+             quarantined=quarantined or [], compensated=compensated or []).write(out / "manifest.json")

@@ -148,25 +148,36 @@ class SpheroidObject:
 
 
 class Scene:
-    def __init__(self, objects: list):
+    """Objects hit by rays. ``shade_by_object``: each pixel is shaded by the object it hit; False (the scenes made
+    before several fruit: kept so that their images stay bit-identical) by the last object of the hit one's id."""
+
+    def __init__(self, objects: list, shade_by_object: bool = False):
         self.objects = objects
+        self.shade_by_object = shade_by_object
 
     def raycast(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rays ``o + t d`` (``(N, 3)`` each, or ``o`` ``(3,)``) -> nearest ``t`` (inf: miss) and object id."""
+        """Rays ``o + t d`` (``(N, 3)`` each, or ``o`` ``(3,)``) -> nearest ``t`` (inf: miss) and object id (with
+        ``shade_by_object``: 1 + the object's index, which ``shade`` takes)."""
         o = np.broadcast_to(np.asarray(o, float), d.shape)
         t_best = np.full(len(d), np.inf)
         id_best = np.zeros(len(d), np.int8)
-        for obj in self.objects:
+        for k, obj in enumerate(self.objects):
             t = obj.intersect(o, d)
             closer = t < t_best
             t_best[closer] = t[closer]
-            id_best[closer] = obj.obj_id
+            id_best[closer] = k + 1 if self.shade_by_object else obj.obj_id
         return t_best, id_best
+
+    def object_ids(self, hit: np.ndarray) -> np.ndarray:
+        """``raycast``'s ids as object ids (``OBJ_*``)."""
+        if not self.shade_by_object:
+            return hit
+        return np.array([0] + [o.obj_id for o in self.objects], np.int8)[hit]
 
     def shade(self, p: np.ndarray, ids: np.ndarray, light_dir: np.ndarray) -> np.ndarray:
         out = np.full((len(p), 3), 0.5)
-        for obj in self.objects:
-            m = ids == obj.obj_id
+        for k, obj in enumerate(self.objects):
+            m = ids == (k + 1 if self.shade_by_object else obj.obj_id)
             if m.any():
                 lam = np.abs(obj.normal(p[m]) @ light_dir)
                 out[m] = obj.shade(p[m]) * (0.55 + 0.45 * lam)[:, None]
@@ -318,7 +329,7 @@ def raycast_depth(scene: Scene, cam: PinholeCamera,
     t, ids = scene.raycast(T_world_from_cam[:3, 3], d)
     p = T_world_from_cam[:3, 3] + np.where(np.isfinite(t), t, 0)[:, None] * d
     shape = (cam.height_px, cam.width_px)
-    return t.reshape(shape), ids.reshape(shape), p.reshape(shape + (3,))
+    return t.reshape(shape), scene.object_ids(ids).reshape(shape), p.reshape(shape + (3,))
 
 
 def _visible_from(scene: Scene, origin: np.ndarray, p: np.ndarray, rel_tol: float = 1e-6) -> np.ndarray:
@@ -357,14 +368,24 @@ class SyntheticCapture:
 
 
 def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
-    """Exact fruit shapes in the ZED-left frame: every ``SpheroidObject`` (world-axis-aligned ellipsoid) as
-    ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus ``T_zed_from_world``."""
-    fr = [o for o in scene.objects if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT]
+    """Exact fruit shapes in the ZED-left frame: every ``SpheroidObject`` (world-axis-aligned ellipsoid, or one moved
+    rigidly: ``RigidlyMoved``) as ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus
+    ``T_zed_from_world``."""
+    fr, T_moved = [], []
+    for o in scene.objects:
+        if isinstance(o, RigidlyMoved) and isinstance(o.obj, SpheroidObject) and o.obj_id == OBJ_FRUIT:
+            fr.append(o.obj)
+            T_moved.append(o.T)
+        elif isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT:
+            fr.append(o)
+            T_moved.append(None)
     R = T_zed_from_world[:3, :3]
-    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world, o.c[None])[0]
-                                              for o in fr]).reshape(-1, 3),
+    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world if T is None else T_zed_from_world @ T,
+                                                               o.c[None])[0]
+                                              for o, T in zip(fr, T_moved)]).reshape(-1, 3),
                 fruit_radii_mm=np.array([o.r for o in fr]).reshape(-1, 3),
-                fruit_R_zed_from_fruit=np.array([R for _ in fr]).reshape(-1, 3, 3),
+                fruit_R_zed_from_fruit=np.array([R if T is None else R @ T[:3, :3]
+                                                 for T in T_moved]).reshape(-1, 3, 3),
                 T_zed_from_world=np.asarray(T_zed_from_world, float))
 
 
@@ -533,6 +554,77 @@ def moved_fruit(scene: Scene, delta_mm) -> Scene:
     return Scene(objs)
 
 
+class RigidlyMoved:
+    """A scene object moved rigidly by ``T_world_moved_from_world`` (its shape, texture and normals go with it): a
+    fruit that rolled or turned between the structured-light exposure and the ZED exposure."""
+
+    def __init__(self, obj, T_world_moved_from_world: np.ndarray):
+        self.obj = obj
+        self.obj_id = obj.obj_id
+        self.T = np.asarray(T_world_moved_from_world, float)
+        self.T_inv = invert_T(self.T)
+
+    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        # a rigid map keeps the ray's parameter t: the original object's hit along the ray taken back
+        return self.obj.intersect(transform_points(self.T_inv, np.broadcast_to(o, d.shape)), d @ self.T_inv[:3, :3].T)
+
+    def shade(self, p_world: np.ndarray) -> np.ndarray:
+        return self.obj.shade(transform_points(self.T_inv, p_world))
+
+    def normal(self, p_world: np.ndarray) -> np.ndarray:
+        return self.obj.normal(transform_points(self.T_inv, p_world)) @ self.T[:3, :3].T
+
+
+def fruit_motion_T(centre_world_mm: np.ndarray, translation_mm, rotvec_deg) -> np.ndarray:
+    """``T_world_moved_from_world`` of a fruit turned by ``rotvec_deg`` (world axes, degrees) about its own centre
+    ``centre_world_mm`` and then translated by ``translation_mm`` (world, mm)."""
+    R = cv2.Rodrigues(np.radians(np.asarray(rotvec_deg, float)).reshape(3, 1))[0]
+    c = np.asarray(centre_world_mm, float)
+    return make_T(R, c + np.asarray(translation_mm, float) - R @ c)
+
+
+def several_fruit_scene(rng: np.random.Generator, rig: SyntheticRig, seed: int, n_fruit: int,
+                        partly_out: bool = True) -> Scene:
+    """``n_fruit`` melon-sized spheroids (semi-axes 45-65 mm) side by side on the table under the structured-light
+    view; with ``partly_out`` (and several fruit) the last one on its image's right border: partly out of the depth
+    camera's view (the ZED, wider, sees all of it)."""
+    T_world_from_mech = invert_T(rig.T_mech_from_world)
+    p = T_world_from_mech[:3, 3]
+    objs: list = [_table(seed)]
+    for k in range(n_fruit):
+        last = partly_out and k == n_fruit - 1 and n_fruit > 1
+        n_in = n_fruit - 1 if partly_out else n_fruit  # fruit across the view's middle
+        # the last one (partly_out) centred on the view's right border: half of it outside
+        fu = 1.0 if last else (0.5 if n_in == 1 else 0.2 + 0.6 * k / (n_in - 1))
+        fv = 0.5 + (0.0 if last else rng.uniform(-0.12, 0.12))
+        xy = rig.mech.undistort_to_normalized(np.array([[fu * (rig.mech.width_px - 1), fv * (rig.mech.height_px - 1)]]))
+        d = T_world_from_mech[:3, :3] @ np.array([xy[0, 0], xy[0, 1], 1.0])
+        c_table = p + (-p[2] / d[2]) * d
+        a = rng.uniform(55, 65)
+        radii = np.array([a, a * rng.uniform(0.85, 1.0), rng.uniform(45, 55)])
+        objs.append(SpheroidObject(OBJ_FRUIT, c_table + [0, 0, radii[2]], radii, int(rng.integers(7, 11)),
+                                   float(rng.uniform(0, 6.28)), seed + 10 * k))
+    return Scene(objs, shade_by_object=True)
+
+
+def rigidly_moved_fruit(scene: Scene, motions) -> tuple[Scene, np.ndarray]:
+    """The scene with its k-th fruit moved by ``motions[k] = (translation_mm, rotvec_deg)`` (world frame, about the
+    fruit's own centre; ``fruit_motion_T``), and those ``T_world_moved_from_world`` ``(K, 4, 4)``."""
+    objs, Ts, k = [], [], 0
+    for o in scene.objects:
+        if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT:
+            t, r = motions[k] if k < len(motions) else ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            T = fruit_motion_T(o.c, t, r)
+            Ts.append(T)
+            k += 1
+            if np.any(np.asarray(t, float)) or np.any(np.asarray(r, float)):
+                o = RigidlyMoved(o, T)
+        objs.append(o)
+    if k != len(motions):
+        raise ValueError(f"{len(motions)} fruit motions for a scene of {k} fruit")
+    return Scene(objs, scene.shade_by_object), np.array(Ts).reshape(-1, 4, 4)
+
+
 # ---- session writer --------------------------------------------------------------------------
 class SyntheticTruth(VersionedFile):
     """``truth/rig_truth.yaml``: what the synthetic generator knows exactly."""
@@ -555,7 +647,8 @@ class SyntheticTruth(VersionedFile):
     depth_offset_mm: float = 0.0
 
 
-def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_motion_mm=(0.0, 0.0, 0.0)) -> None:
+def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_motion_mm=(0.0, 0.0, 0.0),
+                  motion_truth: dict | None = None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     write_image(folder / "2DImage.png", cap.mech_texture)
     write_tiff_float(folder / "DepthMap.tiff", cap.depth_mm)
@@ -570,6 +663,8 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
         extra.update(zed_right_disparity_px=cap.zed_right_disparity_px, seen_by_mech_right=cap.seen_by_mech_right)
     if cap.fruit_truth is not None:
         extra.update(cap.fruit_truth)
+    if motion_truth:
+        extra.update(motion_truth)
     np.savez_compressed(truth_dir / f"{cap.kind}_{cap.name}.npz", zed_depth_mm=cap.zed_depth_mm,
                         zed_disparity_px=cap.zed_disparity_px, seen_by_mech=cap.seen_by_mech,
                         fruit_mask=cap.fruit_mask, fruit_motion_mm=np.asarray(fruit_motion_mm, float), **extra)
@@ -583,7 +678,8 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
                      zed_right_rotation_error_rad: tuple[float, float, float] | None = None,
                      zed_baseline_error_frac: float = 0.0, right_yaw_deg: float = 0.0,
                      depth_scale_error_frac: float = 0.0, depth_offset_mm: float = 0.0,
-                     depth_pose_error_deg: tuple[float, float, float] | None = None) -> Path:
+                     depth_pose_error_deg: tuple[float, float, float] | None = None,
+                     fruit_rigid_motion: dict[int, list] | None = None, partly_out_of_view: bool = True) -> Path:
     """Write a capture session (docs/capture-layout.md) plus ``truth/``; returns ``out_dir``.
 
     ``zed_right_rotation_error_rad``: the right ZED image is rendered from a camera turned by this rotation vector
@@ -593,6 +689,15 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     ``two_camera``: the structured-light unit has a separate depth camera (``two_camera_rig``); the session names it
     (``depth_intrinsics``, ``T_mech_from_depth``). ``fruit_motion_mm``: scene index -> the fruit's displacement
     (world mm) between the structured-light capture and the ZED capture (truth follows the ZED).
+    ``fruit_rigid_motion``: scene index -> one ``(translation_mm, rotvec_deg)`` per fruit (world frame; the rotation
+    about the fruit's own centre, ``fruit_motion_T``): that scene has that many fruit (``several_fruit_scene``, the
+    last one partly out of the depth camera's view when there are several and ``partly_out_of_view``), each moved so
+    between the two exposures
+    (``((0, 0, 0), (0, 0, 0))``: a fruit that stayed still). Its truth (``truth/scene_<name>.npz``) is at the ZED's
+    exposure, as for every scene, plus each fruit's exact motion in the ZED-left frame,
+    ``fruit_T_zed_moved_from_zed`` (K, 4, 4) (where a point of the fruit was at the depth exposure -> where it is at
+    the ZED's), ``fruit_motion_translation_mm`` / ``fruit_motion_rotvec_deg`` (K, 3: as given, world frame) and the
+    truth had nothing moved, ``still_zed_disparity_px``.
     ``board``: any target of ``gtforge.core.targets.models`` (ChArUco, circle grids; session.yaml then declares it);
     ``partial_poses``: that many more board captures cut by ``partial_camera``'s image border, near its corners in
     turn (``gtforge.core.targets.models.random_partial_board_pose``).
@@ -641,12 +746,26 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
             cap = board_capture(f"{n_board + k:03d}", rig, board, T, rng, seed + n_board + k, **kw)
             write_capture(out / "board" / cap.name, cap, out / "truth")
     motions = fruit_motion_mm or {}
+    rigid = fruit_rigid_motion or {}
     for i in range(n_scenes):
-        scene = random_fruit_scene(rng, rig, seed + 100 + i)
-        motion = np.asarray(motions.get(i, (0.0, 0.0, 0.0)), float)
-        zed_scene = moved_fruit(scene, motion) if np.any(motion) else None
+        motion_truth = None
+        if i in rigid:  # several fruit, each with its own rigid motion (issue #37)
+            scene = several_fruit_scene(rng, rig, seed + 100 + i, len(rigid[i]), partly_out_of_view)
+            zed_scene, T_moved = rigidly_moved_fruit(scene, rigid[i])
+            motion = np.zeros(3)
+            T_zw = rig.T_zed_from_world
+            z_still, _, _ = raycast_depth(scene, rig.zed.left, T_zw)
+            motion_truth = dict(
+                fruit_T_zed_moved_from_zed=np.array([T_zw @ T @ invert_T(T_zw) for T in T_moved]).reshape(-1, 4, 4),
+                fruit_motion_translation_mm=np.array([m[0] for m in rigid[i]], float).reshape(-1, 3),
+                fruit_motion_rotvec_deg=np.array([m[1] for m in rigid[i]], float).reshape(-1, 3),
+                still_zed_disparity_px=rig.zed.depth_to_disparity(np.where(np.isfinite(z_still), z_still, np.nan)))
+        else:
+            scene = random_fruit_scene(rng, rig, seed + 100 + i)
+            motion = np.asarray(motions.get(i, (0.0, 0.0, 0.0)), float)
+            zed_scene = moved_fruit(scene, motion) if np.any(motion) else None
         cap = render_capture(f"{i:03d}", scene, rig, rng, kind="scene", zed_scene=zed_scene, **kw)
-        write_capture(out / "scenes" / cap.name, cap, out / "truth", motion)
+        write_capture(out / "scenes" / cap.name, cap, out / "truth", motion, motion_truth)
         fruit_ids[cap.name] = f"fruit{i // 2:02d}"
         if progress:
             progress(f"scene {cap.name}")

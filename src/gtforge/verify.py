@@ -9,6 +9,7 @@ from typing import Callable
 
 import numpy as np
 
+from gtforge.dataset.motion_compensation import moved_fruit_of
 from gtforge.dataset.scene_verification import verify_scene, write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_split_views
 from gtforge.dataset.worker_cache import cached_session
@@ -127,8 +128,12 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
 
         disp, mask, region = uncrop(disp, np.nan), uncrop(mask, 0), uncrop(region, 0)
     depth = rig.zed.disparity_to_depth(disp)
+    mc = meta.verification.motion_compensation if meta.verification is not None else None
+    moved = moved_fruit_of(region, depth, rig, mc) if mc is not None and mc.status == "compensated" else None
     ver, rendered = verify_scene(depth, disp, mask == 255, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
-                                 params)
+                                 params, moved)
+    if moved is not None:  # the ground truth's fruit moved between the exposures: still so
+        ver = ver.model_copy(update={"motion_compensation": mc})
     if ver.status == "flagged" and rendered is not None:
         write_verification_overlay(Path(dataset_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
     return sid, ver.model_dump(mode="json")

@@ -323,14 +323,14 @@ def test_scene_of_an_older_meta_schema_is_rebuilt_and_its_manifest_refused(sessi
     assert build_dataset(session_dir, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
     path = out / "scenes" / "000" / "meta.json"
     meta = json.loads(path.read_text())
-    assert meta["schema_version"] == 2 and len(meta["input_blake3"]["left.png"]) == 64
+    assert meta["schema_version"] == 3 and len(meta["input_blake3"]["left.png"]) == 64
     meta["schema_version"] = 1
     meta["input_sha256"] = meta.pop("input_blake3")
     path.write_text(json.dumps(meta))
-    with pytest.raises(InputError, match=r"meta\.json.*schema_version 1 is not supported \(this gtforge reads 2\)"):
+    with pytest.raises(InputError, match=r"meta\.json.*schema_version 1 is not supported \(this gtforge reads 3\)"):
         bd.SceneMeta.read(path)
     assert build_dataset(session_dir, true_calibration, out, scenes=["000"], workers=1).built == ["000"]
-    assert bd.SceneMeta.read(path).schema_version == 2
+    assert bd.SceneMeta.read(path).schema_version == 3
     manifest = json.loads((out / "manifest.json").read_text())
     manifest["schema_version"] = 1
     (out / "manifest.json").write_text(json.dumps(manifest))

@@ -195,13 +195,14 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
 
     from gtforge.cli import app
 
-    # a session of one clean and two moved scenes
+    # a session of one clean and two moved scenes, built without motion compensation (tests/stages/
+    # test_motion_compensation.py: with it)
     sess = tmp_path / "sess"
     shutil.copytree(moved_session, sess)
     shutil.copytree(session_dir / "scenes" / "002", sess / "scenes" / "clean")
     out = tmp_path / "ds"
     r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out),
-                                 "--workers", "1", "--quarantine", "--split", "1.0,0.0"])
+                                 "--workers", "1", "--quarantine", "--split", "1.0,0.0", "--no-motion-compensation"])
     assert r.exit_code == 0, r.output
     assert "verification: 2 scene(s) flagged (left out of the split lists: --quarantine): 000, 001" in r.output
     man = Manifest.read(out / "manifest.json")
@@ -227,7 +228,7 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     (out / "verification.json").write_text(json.dumps(old))
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
     assert sorted(rep.scenes) == ["000", "001", "clean"] and sorted(rep.flagged) == ["000", "001"]
-    assert VerificationResult.read(out / "verification.json").schema_version == 2
+    assert VerificationResult.read(out / "verification.json").schema_version == 3
     # the captures moved away: a per-scene reason, no traceback; a missing session: one-line error, exit 2
     shutil.rmtree(sess / "scenes" / "clean")
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)

@@ -170,7 +170,7 @@ def test_noise_floors_in_the_record_and_the_html_report(tmp_path):
         "000": SceneVerification(status="ok", texture_all=shift, texture_fruit=shift, stereo={"all": st, "fruit": st})})
     write_verification_report(rep, tmp_path)
     back = VerificationResult.read(tmp_path / "verification.json")
-    assert back == rep and back.schema_version == 2
+    assert back == rep and back.schema_version == 3
     assert back.scenes["000"].stereo["all"].disparity_bias_noise_px == 0.0021
     html = (tmp_path / "verification.html").read_text()
     assert "+0.012 ± 0.002" in html and "+0.011 ± 0.004" in html and "0.97 ± 0.001" in html and "noise floor" in html

@@ -239,7 +239,12 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                                                      "faster."),
                   quarantine: bool = typer.Option(False, "--quarantine",
                                                   help="Leave scenes that verification flags out of the split lists "
-                                                       "(they stay in scenes/).")) -> None:
+                                                       "(they stay in scenes/)."),
+                  motion_compensation: bool = typer.Option(
+                      True, "--motion-compensation/--no-motion-compensation",
+                      help="A scene verification flags because its fruit moved between the depth and the ZED "
+                           "exposure: rebuild its ground truth with each fruit moved by its estimated rigid motion "
+                           "when that passes verification (docs/design/motion-compensation.md).")) -> None:
     """Build disparity ground truth for SESSION/scenes/ into OUTPUT (docs/dataset-format.md)."""
     from gtforge.infra.scheduling import prestart_pool
 
@@ -257,7 +262,8 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
         raise InputError(None, "--mode", "mesh or splat", repr(mode))
     params = _options(BuildParams, mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
                       max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
-                      verification=verification, right_gt=right_gt, quarantine=quarantine)
+                      verification=verification, right_gt=right_gt, quarantine=quarantine,
+                      motion={"compensate": motion_compensation})
     s = run(session, calibration, output, params, workers=workers, overwrite=overwrite, strict=strict, progress=True,
             scheduler=scheduler)
     failed = f" ({', '.join(s.failures)}; reasons above and in manifest.json)" if s.failures else ""
@@ -267,6 +273,9 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
         q = " (left out of the split lists: --quarantine)" if s.quarantined else ""
         out.print(f"verification: {len(s.flagged)} scene(s) flagged{q}"
                   + (": " + ", ".join(s.flagged) if s.flagged else "") + f"; see {s.out_dir / 'verification.html'}")
+        if s.compensated:
+            out.print(f"fruit motion compensated in {len(s.compensated)} scene(s): {', '.join(s.compensated)} "
+                      "(their ground truth rebuilt with the fruit moved; filenames/compensated.txt)")
     if s.failures:
         raise typer.Exit(1)
 
@@ -705,7 +714,12 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                                           "names it)."),
           depth_pose_error_deg: Optional[str] = typer.Option(
               None, metavar="X,Y,Z", help="With --separate-depth-camera: session.yaml's depth camera pose is the true "
-                                          "one turned by this rotation vector (deg; calibrate-scale's test).")
+                                          "one turned by this rotation vector (deg; calibrate-scale's test)."),
+          moved_fruit_mm: float = typer.Option(
+              0.0, metavar="MM", min=0.0,
+              help="The last scene: four melons, three moved between the structured-light and the ZED exposure by "
+                   "this (mm, turned by 2/3 of it in deg, at most 2), one of them partly out of the depth camera's "
+                   "view, and one still; truth at the ZED's exposure (build-dataset's motion compensation).")
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
     import math
@@ -725,12 +739,20 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
         if not separate_depth_camera:
             raise InputError(None, "--depth-pose-error-deg", "--separate-depth-camera with it",
                              "a rig with one camera", "add --separate-depth-camera")
+    rigid = None
+    if moved_fruit_mm > 0:
+        if scenes < 1:
+            raise InputError(None, "--moved-fruit-mm", "at least one scene to move the fruit in", "--scenes 0")
+        m, r = moved_fruit_mm, min(2.0, 2.0 / 3.0 * moved_fruit_mm)
+        rigid = {scenes - 1: [((0.8 * m, -0.6 * m, 0.0), (0.6 * r, 0.0, -0.8 * r)), ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+                              ((-0.6 * m, -0.8 * m, 0.0), (0.0, 0.8 * r, 0.6 * r)), ((0.0, m, 0.0), (0.0, 0.0, r))]}
     require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
                                 "(it never writes into existing captures)")
     generate_session(output, n_board=boards, n_scenes=scenes, scale=scale, seed=seed, depth_noise_mm=depth_noise_mm,
                      zed_baseline_error_frac=baseline_error_pct / 100.0, right_yaw_deg=right_yaw_deg,
                      depth_scale_error_frac=depth_scale_error_pct / 100.0, depth_offset_mm=depth_offset_mm,
-                     two_camera=separate_depth_camera, depth_pose_error_deg=pose_error, progress=_progress_lines)
+                     two_camera=separate_depth_camera, depth_pose_error_deg=pose_error, progress=_progress_lines,
+                     fruit_rigid_motion=rigid)
     if gauges:
         from gtforge.synthetic import generate_gauges
 

@@ -85,16 +85,29 @@ STEREO_BLUR_PX = 1.0
 
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
                       rig: Rig, params: VerifyParams, left_norm: np.ndarray | None = None, window: Window | None = None,
-                      smooth: np.ndarray | None = None
-                      ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray]:
-    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used).
+                      smooth: np.ndarray | None = None, moved: tuple[np.ndarray, dict] | None = None
+                      ) -> tuple[ShiftEstimate, ShiftEstimate, Callable[[], list], np.ndarray, np.ndarray,
+                                 list[ShiftEstimate]]:
+    """(whole valid area, fruit, a function computing the tiles' shifts, rendered texture normalised, mask used, each
+    fruit's own when there are several: connected components of the fruit regions in raster order, else empty).
 
     The arrays may be a ``window`` of the ZED-left image (its tiles and their centres are the whole image's).
-    ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it."""
+    ``smooth``: ``smooth_depth_mask`` of the depth's disparity, if the caller has it. ``moved``: a ground truth rebuilt
+    with fruit moved between the exposures (``gtforge.dataset.motion_compensation``): ``(owner, motions)``, which
+    fruit each pixel shows (0 none) and each one's ``T_zed_moved_from_zed``; the texture camera saw those pixels'
+    points where they were before the motion."""
     h, w = depth_zed_mm.shape
     window = window or Window(0, 0, 0, w, h)
     rend, ok = render_texture(depth_zed_mm, rig, texture, params.texture_occlusion_tol_mm,
                               (window.x0_px, window.y0_px))
+    if moved is not None:
+        owner, motions = moved
+        for k, T in motions.items():
+            sel = owner == k
+            if sel.any():  # a fruit's point as the texture camera saw it: T_mech_from_zed @ T_zed_moved_from_zed^-1
+                r_k, ok_k = render_texture(np.where(sel, depth_zed_mm, np.nan), rig.with_extrinsic(
+                    T @ rig.T_zed_from_mech), texture, params.texture_occlusion_tol_mm, (window.x0_px, window.y0_px))
+                rend[sel], ok[sel] = r_k[sel], ok_k[sel]
     r = int(np.ceil(2 * params.norm_sigma_px))
     ok_support = interior_mask(ok, r)
     n_rend = local_normalize(rend, ok, params.norm_sigma_px)
@@ -109,6 +122,13 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
     aligner = ShiftAligner(n_rend, n_zed)
     e_all = aligner.align_at(v, u, params.min_pixels)
     e_fruit = aligner.align_at(v[fruit], u[fruit], params.min_pixels)
+    # several fruit: each one's own shift too (fruit moved in different directions average out over all of them)
+    e_each: list[ShiftEstimate] = []
+    fruit_img = (region == REGION_CENTRE) | (region == REGION_EDGE)
+    n_cc, labels = cv2.connectedComponents(fruit_img.view(np.uint8), connectivity=8)
+    if n_cc > 2:
+        lab = take_at(labels, idx)
+        e_each = [aligner.align_at(v[lab == k], u[lab == k], params.min_pixels) for k in range(1, n_cc)]
 
     def tile_shifts() -> list[list[float | None]]:
         out = []
@@ -123,7 +143,7 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
                 out.append([(xa + xb - 1) / 2, (ya + yb - 1) / 2, e.dx_px, e.dy_px])
         return out
 
-    return e_all, e_fruit, tile_shifts, n_rend, use
+    return e_all, e_fruit, tile_shifts, n_rend, use, e_each
 
 
 def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
@@ -303,12 +323,14 @@ def _rows_with_values(a):
 
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
                  zed_left: np.ndarray, zed_right: np.ndarray | None, texture: np.ndarray | None, rig: Rig,
-                 params: VerifyParams | None = None) -> tuple[SceneVerification, np.ndarray | None]:
+                 params: VerifyParams | None = None, moved: tuple[np.ndarray, dict] | None = None
+                 ) -> tuple[SceneVerification, np.ndarray | None]:
     """Both checks for one scene (ZED-left arrays at the dataset's resolution, uncropped; see module docstring).
     ``zed_left`` and ``zed_right`` may hold only their first ``zed_rows_used(depth_zed_mm, params)`` rows.
     Returns the verification and the rendered, normalised texture (at the work resolution, for overlays; None when not
     measured). The checks run in the window around the ground truth (``Window``): the same figures as on the whole
-    image, at a fraction of the cost."""
+    image, at a fraction of the cost. ``moved``: ``(owner, motions)`` of a ground truth rebuilt with fruit moved
+    (``texture_alignment``; ``owner`` at the dataset's resolution)."""
     params = params or VerifyParams()
     reasons: list[str] = []
     if texture is None:
@@ -325,12 +347,17 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
     # away from depth edges, for both checks (disp_c is the window's GT disparity, as depth_to_disparity gives it)
     smooth = smooth_depth_mask(disp_c)
-    e_all, e_fruit, tile_shifts, n_rend_c, _ = texture_alignment(depth_c, region_c, left_c, texture, rig_w, params,
-                                                                 left_norm, win, smooth)
+    if moved is not None:  # the owner labels cut as the region's (each block's top-left pixel)
+        hc, wc = depth_c.shape
+        moved = (np.ascontiguousarray(moved[0][win.y0_px * f:(win.y0_px + hc) * f:f,
+                                               win.x0_px * f:(win.x0_px + wc) * f:f]), moved[1])
+    e_all, e_fruit, tile_shifts, n_rend_c, _, e_each = texture_alignment(depth_c, region_c, left_c, texture, rig_w,
+                                                                         params, left_norm, win, smooth, moved)
     stereo = stereo_consistency(left_c, right_c, disp_c, noc_c, region_c, params, left_norm, win, smooth) \
         if right_c is not None else {}
     if f > 1:  # back to the dataset's pixels
         e_all, e_fruit = _scaled_shift(e_all, f), _scaled_shift(e_fruit, f)
+        e_each = [_scaled_shift(e, f) for e in e_each]
         stereo = {k: v.model_copy(update={key: None if getattr(v, key) is None else getattr(v, key) * f
                                           for key in ("disparity_bias_px", "vertical_px", "disparity_bias_noise_px",
                                                       "vertical_noise_px")})
@@ -351,6 +378,10 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         if e.correlation is not None and e.correlation < params.min_correlation:
             reasons.append(f"texture correlation over the {name} {e.correlation:.2f} < {params.min_correlation} "
                            "(the scene changed between the captures?)")
+    for k, e in enumerate(e_each, 1):
+        if e.magnitude_px is not None and e.magnitude_px > params.max_shift_px:
+            reasons.append(f"texture shift over fruit {k} of {len(e_each)} {e.magnitude_px:.2f} px > "
+                           f"{params.max_shift_px} px (dx {e.dx_px:+.2f}, dy {e.dy_px:+.2f})")
     for name, s in stereo.items():
         if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
             reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f}"

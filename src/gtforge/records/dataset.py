@@ -13,7 +13,7 @@ from gtforge.core.ground_truth.reproject import ReprojectParams
 from gtforge.core.ground_truth.uncertainty import SigmaStats, UncertaintyParams
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.infra import defaults
-from gtforge.records.verification import SceneVerification, VerifyParams
+from gtforge.records.verification import MotionParams, SceneVerification, VerifyParams
 
 
 class BuildParams(GTModel):
@@ -42,6 +42,7 @@ class BuildParams(GTModel):
     uncertainty: UncertaintyParams = Field(default_factory=UncertaintyParams)
     verify: VerifyParams = Field(default_factory=VerifyParams)
     quarantine: bool = False  # leave flagged scenes out of the split lists (they stay in scenes/)
+    motion: MotionParams = Field(default_factory=MotionParams)  # a scene whose fruit moved: compensation (issue 37)
 
     def reproject_params(self) -> ReprojectParams:
         return ReprojectParams(self.mode, self.max_slant_deg, self.abs_tol_mm)
@@ -49,6 +50,8 @@ class BuildParams(GTModel):
     def output_hash(self) -> str:
         """Hash of the parameters that change a scene's files (not the split lists)."""
         d = self.model_dump(exclude={"split_train", "split_val", "split_seed", "quarantine"})
+        if self.motion == MotionParams():  # the default: the hash of the builds before motion compensation existed
+            del d["motion"]  # (a scene it changes says so in its meta.json; the others' files are the same)
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -74,9 +77,10 @@ class InputStamp(GTModel):
 
 class SceneMeta(VersionedFile):
 
-    SCHEMA_VERSION: ClassVar[int] = 2  # 2: the inputs' BLAKE3 (input_blake3) instead of their SHA-256
+    # 2: the inputs' BLAKE3 (input_blake3) instead of their SHA-256; 3: verification.motion_compensation (issue 37)
+    SCHEMA_VERSION: ClassVar[int] = 3
     KIND: ClassVar[str] = "scene meta.json (from gtforge build-dataset)"
-    schema_version: int = 2
+    schema_version: int = 3
     scene: str
     fruit_id: str | None = None
     gtforge_version: str
@@ -99,9 +103,9 @@ class SceneMeta(VersionedFile):
 
 class Manifest(VersionedFile):
 
-    SCHEMA_VERSION: ClassVar[int] = 2  # 2: scene metas of schema 2
+    SCHEMA_VERSION: ClassVar[int] = 3  # 2: scene metas of schema 2; 3: of schema 3, compensated (issue 37)
     KIND: ClassVar[str] = "dataset manifest.json (from gtforge build-dataset)"
-    schema_version: int = 2
+    schema_version: int = 3
     gtforge_version: str
     calibration_path: str
     calibration_sha256: str
@@ -112,3 +116,5 @@ class Manifest(VersionedFile):
     splits: dict[str, list[str]] = Field(default_factory=dict)
     flagged: dict[str, list[str]] = Field(default_factory=dict)  # scene -> why verification flagged it
     quarantined: list[str] = Field(default_factory=list)  # flagged scenes left out of the split lists
+    # scenes whose fruit moved between the exposures and whose ground truth was rebuilt with the fruit moved (issue 37)
+    compensated: list[str] = Field(default_factory=list)

@@ -43,6 +43,53 @@ class StereoEstimate(GTModel):
 
 
 
+class MotionParams(GTModel):
+    """Settings of the motion compensation of a scene whose fruit moved between the structured-light exposure and the
+    ZED exposure (``gtforge.dataset.motion_compensation``, docs/design/motion-compensation.md)."""
+
+    compensate: bool = True  # try it on a scene verification flags for fruit motion (--no-motion-compensation: off)
+    # the largest motion rebuilt: beyond it the ZED may see surface the depth camera never saw (the scene stays flagged)
+    max_translation_mm: float = Field(6.0, gt=0)
+    max_rotation_deg: float = Field(4.0, gt=0)
+    # "determined": the motion's uncertainty, as 1-sigma disparity over the fruit's pixels (95th percentile, px at the
+    # dataset's resolution), at most this
+    max_sigma_px: float = Field(0.02, gt=0)
+    # a fruit is moved only when its motion is significant: its squared Mahalanobis distance from no motion above this
+    # (chi-square, 6 degrees of freedom, 99.9 %); below, it stayed still and keeps its ground truth
+    min_chi2: float = Field(22.46, gt=0)
+    texture_term: bool = True  # the structured-light texture vs ZED-left term beside the stereo term
+
+
+class FruitMotion(GTModel):
+    """One fruit's estimated motion (ZED-left frame): ``X' = R(rotvec) (X - centre) + centre + t``."""
+
+    component: int  # 1, 2, ...: the fruit's connected component of the ZED-left fruit mask, in raster order
+    n_pixels: int = 0  # ground-truth pixels the fit used
+    centre_zed_mm: list[float] | None = None  # the centroid of the points fitted, at the depth exposure
+    T_zed_moved_from_zed: list[list[float]] | None = None  # where a point was at the depth exposure -> at the ZED's
+    rotvec_deg: list[float] | None = None
+    translation_mm: list[float] | None = None
+    sigma_rot_deg: list[float] | None = None  # 1 sigma of each rotation-vector component
+    sigma_translation_mm: list[float] | None = None
+    cov_rad_mm: list[list[float]] | None = None  # 6x6: (omega rad, t mm), a left perturbation
+    disparity_sigma_px: float | None = None  # the motion's 1-sigma disparity, 95th percentile over the fruit's pixels
+    chi2_still: float | None = None  # squared Mahalanobis distance of "no motion" from the estimate
+    residual_rms: float | None = None
+    status: Literal["moved", "still", "beyond limit", "undetermined", "not estimated"]
+    reason: str = ""
+
+
+class MotionCompensation(GTModel):
+    """What the motion compensation did to a scene: ``compensated`` (the ground truth was rebuilt with the fruit moved
+    and passed verification) or ``not compensated`` (the scene keeps its ground truth and its flag: ``reasons``)."""
+
+    status: Literal["compensated", "not compensated"]
+    reasons: list[str] = Field(default_factory=list)
+    fruit: list[FruitMotion] = Field(default_factory=list)
+    before: "SceneVerification | None" = None  # the verification of the ground truth as built before compensation
+    time_s: float = 0.0
+
+
 class SceneVerification(GTModel):
     status: Literal["ok", "flagged", "not verifiable"]
     reasons: list[str] = Field(default_factory=list)
@@ -50,6 +97,13 @@ class SceneVerification(GTModel):
     texture_fruit: ShiftEstimate = Field(default_factory=ShiftEstimate)
     texture_tiles: list[list[float | None]] = Field(default_factory=list)  # rows of (u_centre, v_centre, dx, dy)
     stereo: dict[str, StereoEstimate] = Field(default_factory=dict)  # region name -> estimate
+    # a scene verification flagged for fruit motion: what the motion compensation did (its ground truth rebuilt, or
+    # why not); None: not tried (not flagged, or compensation off)
+    motion_compensation: MotionCompensation | None = None
+
+    @property
+    def compensated(self) -> bool:
+        return self.motion_compensation is not None and self.motion_compensation.status == "compensated"
 
     @property
     def worst_shift_px(self) -> float:
@@ -63,8 +117,9 @@ class VerificationResult(VersionedFile):
 
     KIND: ClassVar[str] = "verification report (verification.json from gtforge build-dataset / verify)"
     # 2: figures measured with phase-unbiased (cubic B-spline) sampling, each with its noise floor (issue 41)
-    SCHEMA_VERSION: ClassVar[int] = 2
-    schema_version: int = 2
+    # 3: each scene's motion_compensation (issue 37)
+    SCHEMA_VERSION: ClassVar[int] = 3
+    schema_version: int = 3
     dataset_dir: str
     params: VerifyParams
     scenes: dict[str, SceneVerification]
@@ -72,3 +127,6 @@ class VerificationResult(VersionedFile):
     @property
     def flagged(self) -> dict[str, list[str]]:
         return {s: v.reasons for s, v in self.scenes.items() if v.status == "flagged"}
+
+
+MotionCompensation.model_rebuild()

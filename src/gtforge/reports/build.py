@@ -23,12 +23,16 @@ def write_build_report(manifest, out: Path, sigma_vmax_px: float = 0.1) -> Path:
     scenes = manifest.scenes
     head = (f"<p>{len(scenes)} scene(s) built, {len(manifest.failures)} failed, {len(manifest.flagged)} flagged by "
             f"verification (<a href='verification.html'>verification.html</a>){', ' if manifest.quarantined else ''}"
-            f"{f'{len(manifest.quarantined)} quarantined' if manifest.quarantined else ''}. "
-            f"gtforge {gtforge.__version__}, {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}; calibration "
+            f"{f'{len(manifest.quarantined)} quarantined' if manifest.quarantined else ''}"
+            + (f", {len(manifest.compensated)} with fruit motion compensated (their ground truth rebuilt with the "
+               f"fruit where the ZED saw it; filenames/compensated.txt)" if manifest.compensated else "") + ". "
+            + f"gtforge {gtforge.__version__}, {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}; calibration "
             f"{html.escape(manifest.calibration_path)}; session {html.escape(manifest.session_dir)}.</p>"
             "<p>sigma: the 1-sigma uncertainty of each GT disparity (disp0GT_sigma.pfm), from the calibration's "
             "covariance, the depth camera's noise model, the mesh interpolation and the verification's texture shift "
-            "(docs/dataset-format.md). Per region: median / 95th percentile (px) and the share above 0.1 px.</p>")
+            "(docs/dataset-format.md)"
+            + ("; on a compensated scene's moved fruit also the motion's covariance" if manifest.compensated else "")
+            + ". Per region: median / 95th percentile (px) and the share above 0.1 px.</p>")
     rows = []
     for sid, m in sorted(scenes.items()):
         sg = m.sigma or {}
@@ -41,7 +45,8 @@ def write_build_report(manifest, out: Path, sigma_vmax_px: float = 0.1) -> Path:
         v = m.verification
         rows.append([sid, m.fruit_id or "", _f(m.stats.valid_pct, "{:.1f}"), _f(m.stats.fruit_pct, "{:.1f}"),
                      f"{_f(m.stats.disp_min_px, '{:.1f}')} - {_f(m.stats.disp_max_px, '{:.1f}')}",
-                     "-" if v is None else v.status, cell("all"), cell("fruit_centre"), cell("fruit_edge"),
+                     "-" if v is None else (v.status + (" (fruit motion compensated)" if v.compensated else "")),
+                     cell("all"), cell("fruit_centre"), cell("fruit_edge"),
                      cell("background"),
                      "" if m.sigma_extrinsic_included or not m.sigma else "no calibration covariance"])
     stats = table(["scene", "fruit", "GT valid (%)", "fruit (%)", "disparity (px)", "verification",

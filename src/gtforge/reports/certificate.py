@@ -231,6 +231,11 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
         for s, r in sorted(cert_scenes["flagged"].items()):
             vfig.append(CertFigure(name=f"scene {s} flagged", value="; ".join(r), source_file="dataset/manifest.json",
                                    source_field=f"flagged.{s}", link="dataset/verification.html"))
+        if man.get("compensated"):  # issue 37 (only then: the other certificates stay as they were)
+            vfig.append(CertFigure(name="scenes whose fruit moved between the exposures, ground truth rebuilt with the "
+                                   f"fruit moved (motion compensated: {', '.join(man['compensated'])})",
+                                   value=len(man["compensated"]), source_file="dataset/manifest.json",
+                                   derivation="number of compensated", link="dataset/verification.html"))
         vrec = st.get("verify")
         sections.append(CertSection(
             title="Scenes: built, flagged, quarantined", verdict=vrec.verdict if vrec else None, figures=[

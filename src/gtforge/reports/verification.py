@@ -82,7 +82,8 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
         st = v.stereo.get("all")
         sf = v.stereo.get("fruit")
         ta, tf = v.texture_all, v.texture_fruit
-        rows.append([sid, v.status.upper() if v.status == "flagged" else v.status,
+        rows.append([sid, v.status.upper() if v.status == "flagged" else
+                     (v.status + " (fruit motion compensated)" if v.compensated else v.status),
                      _fn(ta.dx_px, ta.dx_noise_px) + " / " + _fn(ta.dy_px, ta.dy_noise_px),
                      _fn(tf.dx_px, tf.dx_noise_px) + " / " + _fn(tf.dy_px, tf.dy_noise_px),
                      _fn(ta.correlation, ta.correlation_noise, "{:.2f}") + " / "
@@ -107,9 +108,48 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
                              "<p class='note'>Overlay: ZED-left (green) and the texture rendered through the ground "
                              "truth (magenta), both locally normalised; where they agree the image is grey, a shift "
                              "shows as green/magenta fringes.</p>")
-    return write_html(out / "verification.html", "gtforge verification", [
-        ("Summary", head + thresholds), ("Per scene, worst first", body),
-        ("Flagged scenes", "".join(flagged_parts) or "<p>none</p>")])
+    sections = [("Summary", head + thresholds), ("Per scene, worst first", body),
+                ("Flagged scenes", "".join(flagged_parts) or "<p>none</p>")]
+    motion = _motion_section(items, out)
+    if motion:  # only where a scene's fruit moved (the other datasets' pages stay as they were)
+        sections.append(("Fruit motion between the exposures", motion))
+    return write_html(out / "verification.html", "gtforge verification", sections)
+
+
+def _v3(x) -> str:
+    return "-" if x is None else " / ".join(f"{a:+.3f}" for a in x)
+
+
+def _motion_section(items, out: Path) -> str:
+    """The scenes verification flagged for fruit motion: what the compensation did, per fruit, with the before/after
+    overlays of a compensated scene (docs/design/motion-compensation.md)."""
+    parts = []
+    for sid, v in items:
+        mc = v.motion_compensation
+        if mc is None:
+            continue
+        rows = [[f.component, f.status, _v3(f.translation_mm), _v3(f.sigma_translation_mm), _v3(f.rotvec_deg),
+                 _v3(f.sigma_rot_deg), _f(f.disparity_sigma_px, "{:.4f}"), _f(f.chi2_still, "{:.1f}"), f.n_pixels,
+                 html.escape(f.reason)] for f in mc.fruit]
+        imgs = "".join(f"<figure><a href='verification/{sid}_motion_{w}.jpg'><img style='max-width:520px' "
+                       f"src='verification/{sid}_motion_{w}.jpg'/></a><figcaption>{w}</figcaption></figure>"
+                       for w in ("before", "after") if (out / "verification" / f"{sid}_motion_{w}.jpg").exists())
+        before = (f"<p>Before: {html.escape('; '.join(mc.before.reasons))}</p>" if mc.before is not None else "")
+        parts.append(f"<h3>{html.escape(sid)}: {mc.status}</h3>"
+                     + (f"<p>{html.escape('; '.join(mc.reasons))}</p>" if mc.reasons else "") + before
+                     + table(["fruit", "status", "translation x / y / z (mm)", "1 sigma (mm)",
+                              "rotation vector (deg)", "1 sigma (deg)", "disparity sigma p95 (px)",
+                              "chi2 from still", "pixels", "why"], rows)
+                     + (f"<div style='display:flex;gap:12px'>{imgs}</div>" if imgs else ""))
+    if not parts:
+        return ""
+    return ("<p>A fruit that moved between the structured-light exposure and the ZED exposure: each fruit's rigid "
+            "motion (ZED-left frame, about the centroid of its measured points) estimated from the ZED pair's "
+            "photo-consistency and the texture; a scene is <b>compensated</b> (its ground truth rebuilt with the "
+            "fruit moved, the motion's covariance in its sigma map) only when every moved fruit's motion is "
+            "determined and within the limits and the rebuilt scene passes verification; otherwise it stays flagged, "
+            "with the reason. Overlays: as above, of the ground truth as first built (before) and rebuilt "
+            "(after).</p>" + "".join(parts))
 
 
 def write_verification_report(report: VerificationResult, out_dir: str | Path) -> Path:
