@@ -1,12 +1,14 @@
 """Each stage's time per capture on one synthetic session, the baseline tree and this one in the same run (issue 39).
 
-Stages: calibrate (board captures; its self-rectification matches every capture, boards and scenes), validate (boards
-and gauges), calibrate-scale, refine, verify (one process, ``--workers 1``: the stage's own time, not a pool's start)
-and evaluate (OpenCV SGBM, fruit sizes). Each run is a process of its own, as a lab's command is (imports included),
-the two trees in turn on the same inputs; per run it takes the wall time and the CPU time of the process and its
-threads (``resource.getrusage``). Printed per stage: the median wall and CPU seconds per capture of each tree and the
-ratios baseline / this tree, and whether the two trees' outputs are the same (``scripts/compare_outputs.py``: every
-file byte for byte, JSON/YAML/HTML without the fields that record time).
+Stages: calibrate (board captures; its self-rectification matches every capture, boards and scenes), validate
+(boards and gauges), calibrate-scale, refine, verify (one process, ``--workers 1``: the stage's own time, not a
+pool's start) and evaluate (OpenCV SGBM, fruit sizes); and calibrate, validate and calibrate-scale in one process,
+as ``gtforge run`` runs them (a board image's detection is remembered from one stage to the next). Each run is a
+process of its own, as a lab's command is (imports included), the two trees in turn on the same inputs; per run it
+takes the wall time and the CPU time of the process and its threads (``resource.getrusage``). Printed per stage: the
+median wall and CPU seconds per capture of each tree and the ratios baseline / this tree, and whether the two trees'
+outputs are the same (``scripts/compare_outputs.py``: every file byte for byte, JSON/YAML/HTML without the fields
+that record time).
 
 The baseline is the tree at ``--baseline`` (default ``cb56d33``: before issue 39's stage work), its ``src/`` extracted
 with ``git archive`` into WORKDIR and imported from there. A first, untimed round of every stage fills both trees'
@@ -14,7 +16,8 @@ numba caches. The session is rendered once (``gtforge.synthetic.generate_session
 kept in WORKDIR.
 
     python benchmarks/bench_stages.py [--scale 0.5] [--boards 8] [--scenes 5] [--repeats 3] [--baseline REV]
-        [--stages calibrate,validate,calibrate-scale,refine,verify,evaluate] [--workdir /tmp/gtforge_bench_stages]
+        [--stages calibrate,validate,calibrate-scale,refine,verify,evaluate,calibrate+validate+scale]
+        [--workdir /tmp/gtforge_bench_stages]
         [--write]
 """
 from __future__ import annotations
@@ -36,7 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fullres_session import machine_line, update_results  # noqa: E402
 
-STAGES = ("calibrate", "validate", "calibrate-scale", "refine", "verify", "evaluate")
+STAGES = ("calibrate", "validate", "calibrate-scale", "refine", "verify", "evaluate", "calibrate+validate+scale")
 
 # One stage in a fresh process; its inputs are the outputs of this tree's run of the stage before (the same bytes in
 # both trees: each pair is compared). Prints its wall and CPU seconds as JSON on the last line.
@@ -60,6 +63,13 @@ if __name__ == "__main__":
     elif stage == "verify":
         from gtforge.verify import verify_dataset
         verify_dataset(out + "/dataset", workers=1)
+    elif stage == "calibrate+validate+scale":  # in one process, as `gtforge run` runs them
+        from gtforge.calibrate import calibrate
+        from gtforge.scale_calibration import calibrate_scale
+        from gtforge.validate import validate
+        calibrate(session, out + "/calibration.yaml")
+        validate(session, out + "/calibration.yaml", out + "/validation")
+        calibrate_scale(session, out + "/calibration.yaml", out + "/scaled.yaml")
     elif stage == "evaluate":
         from gtforge.evaluate import evaluate
         from gtforge.predictors import SGBM
@@ -144,9 +154,10 @@ def main(argv=None) -> int:
     n_gauges = len([d for d in (session / "gauges").iterdir() if d.is_dir()]) if (session / "gauges").is_dir() else 0
     per = {"calibrate": args.boards + args.scenes, "validate": args.boards + n_gauges,
            "calibrate-scale": args.boards + args.scenes, "refine": args.scenes, "verify": args.scenes,
-           "evaluate": args.scenes}
+           "evaluate": args.scenes, "calibrate+validate+scale": 2 * args.boards + 2 * args.scenes + n_gauges}
     what = {"calibrate": "boards + scenes", "validate": "boards + gauges", "calibrate-scale": "boards + scenes",
-            "refine": "scenes", "verify": "scenes", "evaluate": "scenes"}
+            "refine": "scenes", "verify": "scenes", "evaluate": "scenes",
+            "calibrate+validate+scale": "the three stages' captures, one process"}
     # inputs: calibrate's output feeds validate and calibrate-scale, scaled.yaml refine; verify and evaluate need a
     # dataset, built once from refined.yaml by this tree (build-dataset is not timed here)
     chain = work / "chain"
