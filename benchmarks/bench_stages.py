@@ -17,8 +17,7 @@ kept in WORKDIR.
 
     python benchmarks/bench_stages.py [--scale 0.5] [--boards 8] [--scenes 5] [--repeats 3] [--baseline REV]
         [--stages calibrate,validate,calibrate-scale,refine,verify,evaluate,calibrate+validate+scale]
-        [--workdir /tmp/gtforge_bench_stages]
-        [--write]
+        [--workdir /tmp/gtforge_bench_stages] [--baseline-threads N] [--write]
 """
 from __future__ import annotations
 
@@ -48,6 +47,9 @@ import json, resource, sys, time
 t0 = time.perf_counter()
 stage, session, inp, out = sys.argv[1:5]
 if __name__ == "__main__":
+    if sys.argv[5:]:  # --baseline-threads: this many capture threads (gtforge.infra.threads)
+        import gtforge.infra.threads as threads
+        threads.capture_threads = lambda: int(sys.argv[5])
     if stage == "calibrate":
         from gtforge.calibrate import calibrate
         calibrate(session, out + "/calibration.yaml")
@@ -83,6 +85,8 @@ if __name__ == "__main__":
 
 def baseline_tree(workdir: Path, rev: str) -> Path:
     """``src/`` of ``rev`` (git archive), extracted once into ``workdir/baseline-<rev>/src``."""
+    rev = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", rev], check=True, capture_output=True,
+                         text=True).stdout.strip()  # HEAD moves; a commit does not
     root = workdir / f"baseline-{rev}"
     if not (root / "src" / "gtforge").is_dir():
         shutil.rmtree(root, ignore_errors=True)
@@ -111,9 +115,10 @@ def make_session(workdir: Path, scale: float, boards: int, scenes: int) -> Path:
     return sess
 
 
-def run_stage(src: Path, stage: str, session: Path, inp: Path, out: Path) -> dict:
+def run_stage(src: Path, stage: str, session: Path, inp: Path, out: Path, threads: int | None = None) -> dict:
     env = dict(os.environ, PYTHONPATH=str(src), OPENBLAS_NUM_THREADS="1", OMP_WAIT_POLICY="passive")
-    p = subprocess.run([sys.executable, "-c", RUNNER, stage, str(session), str(inp), str(out)], env=env,
+    extra = [] if threads is None else [str(threads)]
+    p = subprocess.run([sys.executable, "-c", RUNNER, stage, str(session), str(inp), str(out), *extra], env=env,
                        capture_output=True, text=True)
     if p.returncode != 0:
         raise SystemExit(f"{stage} failed under {src}:\n{p.stderr[-3000:]}")
@@ -142,6 +147,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--baseline", default="cb56d33")
+    ap.add_argument("--baseline-threads", type=int, default=None,
+                    help="run the baseline with this many capture threads (a tree with gtforge.infra.threads: "
+                    "--baseline HEAD --baseline-threads 1 measures what the threads alone give)")
     ap.add_argument("--stages", default=",".join(STAGES))
     ap.add_argument("--workdir", default="/tmp/gtforge_bench_stages")
     ap.add_argument("--write", action="store_true", help="put the table into RESULTS.md")
@@ -174,8 +182,9 @@ def main(argv=None) -> int:
             raise SystemExit("build-dataset wrote no dataset")
     compare = load_compare()
     print(machine_line(), flush=True)
+    base = args.baseline + ("" if args.baseline_threads is None else f" with {args.baseline_threads} capture thread(s)")
     print(f"session {session.name}: {args.boards} boards, {args.scenes} scenes, {n_gauges} gauges; baseline "
-          f"{args.baseline}; {args.repeats} timed runs a tree after an untimed one", flush=True)
+          f"{base}; {args.repeats} timed runs a tree after an untimed one", flush=True)
     rows = []
     for stage in stages:
         times: dict[str, list[dict]] = {t: [] for t in trees}
@@ -183,7 +192,7 @@ def main(argv=None) -> int:
             for name, src in trees.items():
                 out = work / "runs" / stage / name.replace(" ", "_")
                 prepare(stage, chain, out)
-                r = run_stage(src, stage, session, chain, out)
+                r = run_stage(src, stage, session, chain, out, args.baseline_threads if name == "baseline" else None)
                 if k:  # the first run of each tree compiles what numba had not cached
                     times[name].append(r)
         diffs = compare(work / "runs" / stage / "baseline", work / "runs" / stage / "this_tree")
@@ -205,9 +214,10 @@ def main(argv=None) -> int:
     print("\n".join(table))
     if args.write:
         cmd = "python benchmarks/bench_stages.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        update_results("bench_stages", f"`{cmd.strip()}`, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
-                       f"{machine_line()}; session {session.name}; medians of {args.repeats} runs a tree\n\n"
-                       + "\n".join(table))
+        section = "bench_stages" if args.baseline_threads is None else "bench_stages_threads"
+        update_results(section, f"`{cmd.strip()}`, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
+                       f"{machine_line()}; session {session.name}; baseline {base}; medians of {args.repeats} runs a "
+                       "tree\n\n" + "\n".join(table))
     return 0 if all(r[8] == "identical" for r in rows) else 1
 
 
