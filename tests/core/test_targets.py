@@ -4,6 +4,8 @@ Boards are rendered by the generator (exact truth) at small sizes, inside their 
 (``render_board_views``); the extrinsic limits are the checkerboard's (0.05 deg / 0.5 mm at 7 poses, 0.4x:
 tests/stages/test_calibrate.py) or tighter where the target allows.
 """
+from types import SimpleNamespace
+
 import cv2
 import numpy as np
 import pytest
@@ -528,3 +530,43 @@ def test_zed_conf_reading_from_charuco_board_pairs(tmp_path):
     assert cal.zed_conf.captures == ["000", "001", "002", "003"]
     q = cal.rectification
     assert q is not None and len(q.poses) == 4 and q.overall.fit_mean_abs_px < 0.05, q
+
+
+def test_detections_are_remembered_by_the_pixels(monkeypatch):
+    """A detection asked again for the same pixels and settings is a copy of the first (the detector runs once), equal
+    to detecting afresh; a caller's change to it does not reach the one kept; other pixels or settings are detected."""
+    from gtforge.core.targets import board as board_mod
+    from gtforge.core.targets.detection import detect_ahead, detect_target
+
+    rig = default_rig(0.3)
+    spec = BoardSpec()
+    sq, m = 14, 30  # a fronto-parallel board drawn in pixels (the detector's work is not what is tested)
+    g = np.full(((spec.rows + 1) * sq + 2 * m, (spec.cols + 1) * sq + 2 * m), 230, np.uint8)
+    for j in range(spec.rows + 1):
+        for i in range(spec.cols + 1):
+            if (i + j) % 2 == 0:
+                g[m + j * sq:m + (j + 1) * sq, m + i * sq:m + (i + 1) * sq] = 25
+    v = SimpleNamespace(zed_left=np.repeat(cv2.GaussianBlur(g, (0, 0), 0.8)[..., None], 3, axis=2))
+    calls = []
+    real = board_mod._detect_corners
+    monkeypatch.setattr(board_mod, "_detect_corners", lambda *a: calls.append(a[0].shape) or real(*a))
+    board_mod.forget_detections()
+    detect_ahead(spec, [(v.zed_left, rig.zed.left), (None, rig.zed.right)])
+    first = board_mod.detect_corners(v.zed_left.copy(), spec)
+    assert len(calls) == 1 and first is not None and first.ids is None
+    first.corners_uv[:] = 0.0
+    t = detect_target(v.zed_left, spec, rig.zed.left)  # the checkerboard's ids set on a copy
+    assert len(calls) == 1 and np.array_equal(t.ids, np.arange(spec.n_corners))
+    again = board_mod.detect_corners(v.zed_left, spec)
+    assert len(calls) == 1 and again.ids is None
+    board_mod.forget_detections()
+    fresh = board_mod.detect_corners(v.zed_left, spec)
+    assert len(calls) == 2
+    np.testing.assert_array_equal(again.corners_uv, fresh.corners_uv)
+    assert (again.sharpness_px, again.method, again.pattern_contrast) == (fresh.sharpness_px, fresh.method,
+                                                                          fresh.pattern_contrast)
+    changed = v.zed_left.copy()
+    changed[0, 0, 0] ^= 1
+    board_mod.detect_corners(changed, spec)
+    board_mod.detect_corners(v.zed_left, spec, min_contrast=25.0)
+    assert len(calls) == 4

@@ -114,3 +114,30 @@ def session_zed_camera(session_dir):
     from gtforge.io.captures import open_session
 
     return open_session(session_dir).zed.left
+
+
+def test_error_maps_are_matplotlibs_colours_and_bars_are_drawn_once():
+    """heatmap_rgb looks colours up in the colour map's byte table: the same pixels as matplotlib's float RGBA
+    image cast to bytes (float32 and float64 errors, values at and above the top, NaN, inf); colorbar_strip hands out
+    copies of the bar drawn first for the same arguments, equal to a fresh drawing."""
+    import matplotlib
+
+    from gtforge.reports import evaluation as ev
+
+    rng = np.random.default_rng(3)
+    cmap = matplotlib.colormaps[ev.ERROR_CMAP]
+    for dtype, vmax in ((np.float32, 2.0), (np.float64, 3.7), (np.float32, 0.3)):
+        err = (rng.random((61, 300)) * 1.3 * vmax).astype(dtype)
+        err[0, :5] = [vmax, 0.0, np.nan, np.inf, vmax * (1 - 1e-7)]
+        err[1, :256] = np.arange(256) / 256 * vmax  # every entry boundary
+        with np.errstate(over="ignore"):  # inf: nan_to_num's largest float over vmax < 1
+            want = (cmap(np.clip(np.nan_to_num(err, nan=0.0) / vmax, 0, 1))[..., :3] * 255).astype(np.uint8)
+            got = ev.heatmap_rgb(err, vmax)
+        want[~np.isfinite(err)] = 0
+        np.testing.assert_array_equal(got, want)
+    a = ev.colorbar_strip(320, 2.0, "|disparity error| (px)", 56)
+    a[:] = 0  # a caller's change does not reach the one kept
+    b = ev.colorbar_strip(320, 2.0, "|disparity error| (px)", 56)
+    fresh = ev._colorbar_strip.__wrapped__(320, 2.0, "|disparity error| (px)", 56)
+    assert b.shape == (56, 320, 3) and b.any()
+    np.testing.assert_array_equal(b, fresh)

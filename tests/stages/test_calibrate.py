@@ -96,3 +96,22 @@ def test_missed_and_blurred_boards_are_reported(session_dir, tmp_path):
     assert by["003"].status == "skipped" and "ZED" in by["003"].reason
     assert by["005"].blurred and by["005"].sharpness_zed_px > 3.5 and not by["000"].blurred
     assert "003" not in res.captures_used and len(res.captures_used) == 6
+
+
+def test_captures_on_threads_give_the_same_calibration(session_dir, calibration, tmp_path, monkeypatch):
+    """calibrate loads, matches (self-rectification) and detects the captures on threads (gtforge.infra.threads), two
+    at a time on this machine's cores when the shared calibration was made: one at a time, with no detection
+    remembered, it writes the same file (every figure; the solve time apart) and finds the same matches."""
+    from gtforge.core.targets.board import forget_detections
+    from gtforge.infra import threads
+
+    monkeypatch.setattr(threads, "capture_threads", lambda: 1)
+    forget_detections()
+    path = tmp_path / "calibration.yaml"
+    res = calibrate(session_dir, path, CalibrateParams(use_depth=False))
+    shared = CalibrationFile.read(calibration[0]).model_dump(mode="json")
+    mine = CalibrationFile.read(path).model_dump(mode="json")
+    for d in (shared, mine):
+        d.pop("time_s")
+    assert mine == shared
+    assert res.zed_self_rectification.n_matches == calibration[1].zed_self_rectification.n_matches > 0

@@ -30,6 +30,7 @@ from gtforge.core.schema import GTModel
 from gtforge.core.zed.selfcal import Matches, SelfRectifyParams, ZedSelfRectification, fit_self_rectification
 from gtforge.core.targets.detection import PairSkipped, detect_target
 from gtforge.errors import InputError
+from gtforge.infra.threads import ordered_map
 from gtforge.io.cameras import (
     DEFAULT_ZED_CONF_READING,
     ZED_CONF_READINGS,
@@ -227,14 +228,20 @@ def raw_matches(session: Session, dirs: list[Path], progress: Callable[[str], No
                 ) -> list[RawBoardPair]:
     """Feature matches between the raw left and right images of each capture in ``dirs``."""
     raw = dataclasses.replace(session, rectification=None)
+
+    def one(d: Path) -> RawBoardPair | None:
+        cap = raw.load_capture(d, need_right=True)
+        if cap.zed_right is None:
+            return None
+        pl, pr = match_points(cap.zed_left, cap.zed_right, rectified=False)
+        return RawBoardPair(d.name, pl, pr)
+
     out = []
-    for k, d in enumerate(dirs):
+    for k, (d, pair) in enumerate(zip(dirs, ordered_map(one, dirs))):  # the captures on threads, in order
         if progress:
             progress(f"raw ZED matches {d.name} ({k + 1}/{len(dirs)})")
-        cap = raw.load_capture(d, need_right=True)
-        if cap.zed_right is not None:
-            pl, pr = match_points(cap.zed_left, cap.zed_right, rectified=False)
-            out.append(RawBoardPair(d.name, pl, pr))
+        if pair is not None:
+            out.append(pair)
     return out
 
 
@@ -255,14 +262,18 @@ def detect_raw_pairs(session: Session, dirs: list[Path], board: BoardSpec,
     if factory is None:
         raise ValueError("detect_raw_pairs needs a session with raw ZED images and an SN.conf")
     raw = dataclasses.replace(session, rectification=None)
-    pairs, skipped = [], {}
-    for k, d in enumerate(dirs):
-        if progress:
-            progress(f"raw ZED corners {d.name} ({k + 1}/{len(dirs)})")
+
+    def detect(d: Path):
         cap = raw.load_capture(d, need_right=True)
         dl = detect_target(cap.zed_left, board, factory.left, where=f"{d.name}: raw ZED-left image")
         dr = detect_target(cap.zed_right, board, factory.right, where=f"{d.name}: raw ZED-right image") \
             if dl is not None and cap.zed_right is not None else None
+        return dl, dr
+
+    pairs, skipped = [], {}
+    for k, (d, (dl, dr)) in enumerate(zip(dirs, ordered_map(detect, dirs))):  # the captures on threads, in order
+        if progress:
+            progress(f"raw ZED corners {d.name} ({k + 1}/{len(dirs)})")
         if dl is None or dr is None:
             skipped[d.name] = f"board not found in the raw {'left' if dl is None else 'right'} ZED image"
             continue
@@ -303,28 +314,32 @@ def settle_zed_conf_reading(session: Session, dirs: list[Path], board: BoardSpec
 
 def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 8000,
                     progress: Callable[[str], None] | None = None) -> tuple[list[Matches], dict[str, str]]:
-    """Feature matches between the left and right images of each capture, as the session rectifies them."""
-    out, skipped = [], {}
-    for k, d in enumerate(dirs):
-        if progress:
-            progress(f"left-right matches {d.name} ({k + 1}/{len(dirs)})")
+    """Feature matches between the left and right images of each capture, as the session rectifies them (the captures
+    on ``gtforge.infra.threads.ordered_map``'s threads: the same matches as one after the other)."""
+
+    def one(d: Path) -> tuple[Matches | None, str | None]:
         try:
             cap = session.load_capture(d, need_right=True)
         except InputError as exc:  # a capture's file missing: no matches from it (calibrate skips it); wrong: stop
             if not missing_capture_file(exc):
                 raise
-            skipped[d.name] = f"file missing: {exc}"
-            continue
+            return None, f"file missing: {exc}"
         if cap.zed_right is None:
-            skipped[d.name] = "no right image"
-            continue
+            return None, "no right image"
         pl, pr = match_points(cap.zed_left, cap.zed_right, max_features=max_features)
         if not len(pl):
-            skipped[d.name] = "no left-right match (too little texture?)"
-            continue
-        out.append(Matches(d.name, pl, pr))
-    return out, skipped
+            return None, "no left-right match (too little texture?)"
+        return Matches(d.name, pl, pr), None
 
+    out, skipped = [], {}
+    for k, (d, (m, why)) in enumerate(zip(dirs, ordered_map(one, dirs))):
+        if progress:
+            progress(f"left-right matches {d.name} ({k + 1}/{len(dirs)})")
+        if m is None:
+            skipped[d.name] = why
+        else:
+            out.append(m)
+    return out, skipped
 
 
 def self_rectify(session: Session, dirs: Sequence[Path], params: SelfRectifyParams | None = None,

@@ -7,12 +7,13 @@ diagnosis of a target that is not found."""
 from __future__ import annotations
 
 import logging
+import pickle
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from gtforge.core.targets.board import Detection, detect_corners, solve_pnp
+from gtforge.core.targets.board import Detection, detect_corners, remembered_detection, solve_pnp
 from gtforge.core.geometry import transform_points
 from gtforge.core.alignment.photometric import to_gray
 from gtforge.core.targets.models import (
@@ -25,6 +26,7 @@ from gtforge.core.targets.models import (
     neighbour_pairs,
 )
 from gtforge.errors import InputError
+from gtforge.infra.digest import blake3_hex
 
 log = logging.getLogger("gtforge.core.targets.models")
 
@@ -620,18 +622,40 @@ def circle_centre_bias(spec: CircleGridSpec, T_cam_from_board: np.ndarray, cam, 
 
 
 
+def _camera_key(cam) -> str | None:
+    """A camera's every number, for ``remembered_detection`` (circle centres are corrected with the camera)."""
+    if cam is None:
+        return None
+    dump = getattr(cam, "model_dump_json", None)
+    return dump() if dump is not None else blake3_hex(pickle.dumps(cam))
+
+
 def detect_target(image: np.ndarray, spec, cam=None, where: str = "board") -> Detection | None:
     """Any target's points with ids (indices into ``spec.corners_board()``)."""
 
-    if isinstance(spec, CharucoSpec):
-        return detect_charuco(image, spec, cam, where)
-    if isinstance(spec, CircleGridSpec):
-        return detect_circles(image, spec, cam, where)
+    if isinstance(spec, (CharucoSpec, CircleGridSpec)):  # remembered by the pixels, as detect_corners is
+        find = detect_charuco if isinstance(spec, CharucoSpec) else detect_circles
+        return remembered_detection(type(spec).__name__, image, (repr(spec), _camera_key(cam)),
+                                    lambda: find(image, spec, cam, where))
     d = detect_corners(image, spec)
     if d is not None and d.ids is None:
         d.ids = np.arange(spec.n_corners)
     return d
 
+
+
+def detect_ahead(spec, views) -> None:
+    """Detect ``spec`` in every ``(image, camera)`` of ``views`` (an image may be None) into the remembered detections
+    (``gtforge.core.targets.board.remembered_detection``), on a capture's thread (``gtforge.infra.threads``), for the
+    stage's loop that then asks ``detect_target``/``detect_corners`` for them in order. An error is left for that
+    loop to meet where it met it before (a detection that raises is not remembered, so it raises there again)."""
+    for image, cam in views:
+        if image is None:
+            continue
+        try:
+            detect_target(image, spec, cam)
+        except Exception:  # noqa: BLE001 (raised again, in order, by the stage's own call)
+            pass
 
 
 def pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarray, np.ndarray]:
