@@ -48,7 +48,7 @@ def mark(what):
 import gtforge.cli; mark("the command's module (the server's __main__: gtforge.cli)")
 import numba; mark("numba")
 import gtforge.build_dataset; mark("gtforge.build_dataset (the task's module)")
-import gtforge.infra.pool_preload; mark("numba's registries (infra.pool_preload; SciPy's BLAS wrappers with them)")
+import gtforge.infra.pool_preload; mark("numba's registries (infra.pool_preload.load_registries)")
 from gtforge.dataset.worker_cache import cached_calibration, cached_session
 from gtforge.infra.digest import sha256_file
 from gtforge.core.ground_truth.reproject import prepare_rays
