@@ -68,6 +68,9 @@ def test_least_recently_used_files_go_and_empty_setting_disables(cache, monkeypa
     monkeypatch.delenv(CACHE_ENV)
     monkeypatch.setenv("XDG_CACHE_HOME", str(cache.parent / "xdg"))
     assert disk_cache.cache_dir() == cache.parent / "xdg" / "gtforge"
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/xdg")  # invalid: ignored
+    monkeypatch.setenv("HOME", str(cache.parent / "home"))
+    assert disk_cache.cache_dir() == cache.parent / "home" / ".cache" / "gtforge"
 
 
 def test_an_unwritable_cache_costs_only_the_computation(tmp_path, monkeypatch):

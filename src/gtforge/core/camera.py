@@ -153,23 +153,28 @@ RAY_GRID_DISK_CACHE_MIN_PX = 1_000_000
 
 
 @functools.lru_cache(maxsize=1)
-def _ray_grid_code_digest() -> str:
+def _ray_grid_code_digest() -> str | None:
     """What a cached ray grid's values depend on beside the camera: the code that computes them (this module and
-    ``lens``), numpy's and numba's versions and the CPU numba compiles for."""
+    ``lens``), numpy's and numba's versions and the CPU numba compiles for. None where the code's source cannot be
+    read (no disk cache then)."""
     import llvmlite.binding
     import numba
 
-    parts = [Path(__file__).read_bytes(), Path(lens.__file__).read_bytes(),
-             f"{np.__version__} {numba.__version__} {llvmlite.binding.get_host_cpu_name()}".encode()]
+    try:
+        parts = [Path(__file__).read_bytes(), Path(lens.__file__).read_bytes()]
+    except OSError:
+        return None
+    parts.append(f"{np.__version__} {numba.__version__} {llvmlite.binding.get_host_cpu_name()}".encode())
     return blake3_hex(b"\0".join(parts))
 
 
 @functools.lru_cache(maxsize=8)
 def _ray_grid_cached(cam_json: str) -> np.ndarray:
     cam = PinholeCamera.model_validate_json(cam_json)
-    on_disk = cam.has_distortion and cam.width_px * cam.height_px >= RAY_GRID_DISK_CACHE_MIN_PX
+    code = _ray_grid_code_digest() if cam.width_px * cam.height_px >= RAY_GRID_DISK_CACHE_MIN_PX else None
+    on_disk = cam.has_distortion and code is not None
     if on_disk:
-        key = blake3_hex((cam_json + _ray_grid_code_digest()).encode())[:32]
+        key = blake3_hex((cam_json + code).encode())[:32]
         xy = disk_cache.load_array("ray_grid", key)
         if xy is not None and xy.shape == (cam.height_px, cam.width_px, 2) and xy.dtype == np.float64:
             return xy

@@ -35,8 +35,12 @@ def cache_dir() -> Path | None:
     v = os.environ.get(CACHE_ENV)
     if v is not None:
         return Path(v) if v else None
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "gtforge"
+    # a relative XDG_CACHE_HOME is invalid (the XDG specification: ignore it); without a home folder ("~" unexpanded)
+    # there is no cache rather than a "~" folder in the working directory, which may be an input folder
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        base = os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "gtforge" if os.path.isabs(base) else None
 
 
 def _files(kind: str, key: str) -> list[Path]:
