@@ -1,8 +1,8 @@
 """What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that \
 every
 worker starts with it: numba's typing and lowering registries, which numba loads on a process's first compiled call
-(with SciPy's BLAS, which numba checks for then): otherwise part of each worker's start, done once here through one tiny
-function from numba's cache. The task's own module is preloaded by name beside this one.
+(``load_registries``: without the SciPy BLAS check numba runs then): otherwise part of each worker's start, done once
+here through one tiny function from numba's cache. The task's own module is preloaded by name beside this one.
 
 Then the caller's warm-up, where ``prestart_pool`` was given one (``POOL_WARM_UP_ENV``: ``"module:function"`` and its
 arguments, as JSON): what every worker would otherwise compute for its first task (build-dataset: the calibration,
