@@ -106,6 +106,15 @@ def one_line_error(r):
     return len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr
 
 
+@pytest.hookimpl(trylast=True)  # after pytest's tmp_path plugin has set up the run's temporary folder
+def pytest_configure(config):
+    """gtforge's disk cache (``infra.disk_cache``) in this run's temporary folder, not the user's ``~/.cache``: tests
+    start from an empty cache and leave nothing behind (child processes inherit it)."""
+    from gtforge.infra.disk_cache import CACHE_ENV
+
+    os.environ[CACHE_ENV] = str(config._tmp_path_factory.getbasetemp() / "disk-cache")
+
+
 PREFETCH = "calibration"  # besides SPECS' fixtures: the shared session's calibration
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import math
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -16,6 +17,8 @@ from gtforge.core import lens
 from gtforge.core.geometry import invert_T
 from gtforge.core.schema import GTModel, Matrix4, VersionedFile, matrix4_array
 from gtforge.errors import InputError
+from gtforge.infra import disk_cache
+from gtforge.infra.digest import blake3_hex
 
 ZED_EYE_WIDTHS = {2208: "2K", 1920: "FHD", 1280: "HD", 672: "VGA"}
 
@@ -143,9 +146,38 @@ class PinholeCamera(GTModel):
                              f"is this {what} from the camera the intrinsics describe, or at another resolution?")
 
 
+# a ray grid through a lens model at least this large is kept on disk between commands (``infra.disk_cache``): at
+# 1920x1200 its undistortion costs 0.3-0.6 CPU s, which a rerun of build-dataset would otherwise pay before its first
+# scene (benchmarks/RESULTS.md, "Round 5 (issue 39)"); reading it back costs about 0.03 s. Smaller grids are cheap.
+RAY_GRID_DISK_CACHE_MIN_PX = 1_000_000
+
+
+@functools.lru_cache(maxsize=1)
+def _ray_grid_code_digest() -> str | None:
+    """What a cached ray grid's values depend on beside the camera: the code that computes them (this module and
+    ``lens``), numpy's and numba's versions and the CPU numba compiles for. None where the code's source cannot be
+    read (no disk cache then)."""
+    import llvmlite.binding
+    import numba
+
+    try:
+        parts = [Path(__file__).read_bytes(), Path(lens.__file__).read_bytes()]
+    except OSError:
+        return None
+    parts.append(f"{np.__version__} {numba.__version__} {llvmlite.binding.get_host_cpu_name()}".encode())
+    return blake3_hex(b"\0".join(parts))
+
+
 @functools.lru_cache(maxsize=8)
 def _ray_grid_cached(cam_json: str) -> np.ndarray:
     cam = PinholeCamera.model_validate_json(cam_json)
+    code = _ray_grid_code_digest() if cam.width_px * cam.height_px >= RAY_GRID_DISK_CACHE_MIN_PX else None
+    on_disk = cam.has_distortion and code is not None
+    if on_disk:
+        key = blake3_hex((cam_json + code).encode())[:32]
+        xy = disk_cache.load_array("ray_grid", key)
+        if xy is not None and xy.shape == (cam.height_px, cam.width_px, 2) and xy.dtype == np.float64:
+            return xy
     # undistort_to_normalized of every pixel centre, without the (N, 2) pixel list: the distorted normalised
     # coordinates are separable in u and v
     xy = np.empty((cam.height_px, cam.width_px, 2))
@@ -153,6 +185,8 @@ def _ray_grid_cached(cam_json: str) -> np.ndarray:
     xy[..., 1] = ((np.arange(cam.height_px, dtype=np.float64) - cam.cy_px) / cam.fy_px)[:, None]
     if cam.has_distortion:
         xy = lens.undistort(xy.reshape(-1, 2), cam.dist_coeffs).reshape(xy.shape)
+    if on_disk:
+        disk_cache.store_array("ray_grid", key, xy)
     xy.setflags(write=False)
     return xy
 

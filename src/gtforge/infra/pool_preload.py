@@ -1,8 +1,8 @@
 """What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that \
 every
 worker starts with it: numba's typing and lowering registries, which numba loads on a process's first compiled call
-(with SciPy's BLAS, which numba checks for then): otherwise part of each worker's start, done once here through one tiny
-function from numba's cache. The task's own module is preloaded by name beside this one.
+(``load_registries``: without the SciPy BLAS check numba runs then): otherwise part of each worker's start, done once
+here through one tiny function from numba's cache. The task's own module is preloaded by name beside this one.
 
 Then the caller's warm-up, where ``prestart_pool`` was given one (``POOL_WARM_UP_ENV``: ``"module:function"`` and its
 arguments, as JSON): what every worker would otherwise compute for its first task (build-dataset: the calibration,
@@ -15,6 +15,7 @@ import importlib
 import json
 import logging
 import os
+import sys
 import warnings
 
 import numba
@@ -46,5 +47,29 @@ def warm_up() -> bool:
     return True
 
 
-_first_compiled_call(1)
+def load_registries() -> None:
+    """Load numba's registries (its first compiled call) without SciPy's linear algebra.
+
+    numba's ``np.arraymath`` asks, when imported, whether BLAS is there by importing ``scipy.linalg.cython_blas``,
+    which imports all of ``scipy.linalg``: 0.27 CPU s of the server's start (benchmarks/RESULTS.md, "Round 4 (issue
+    39)"), for an answer known here (SciPy is one of gtforge's dependencies). So the import fails on purpose while the
+    registries load, and the answer is set as the check would have set it: numba then behaves as with the check
+    (``np.dot`` and friends import SciPy's BLAS when compiled; ``np.convolve`` / ``np.correlate`` take the BLAS path),
+    and no gtforge kernel loaded from the cache needs ``scipy.linalg`` (the workers import it only where a stage's
+    Python code does)."""
+    name = "scipy.linalg.cython_blas"
+    if name in sys.modules or "numba.np.arraymath" in sys.modules:
+        _first_compiled_call(1)
+        return
+    sys.modules[name] = None  # an import of it raises ImportError
+    try:
+        _first_compiled_call(1)
+    finally:
+        del sys.modules[name]
+    import numba.np.arraymath
+
+    numba.np.arraymath._HAVE_BLAS = True
+
+
+load_registries()
 warm_up()
