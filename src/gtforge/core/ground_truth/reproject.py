@@ -110,29 +110,51 @@ def _v_range(depth, rx, ry, R, t, fy, cy, r0, r1):
 # ---- splat -----------------------------------------------------------------------------------
 @numba.njit(**_JIT)
 def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
-    """Splat grid rows ``r0 <= r < r1`` into ``buf`` (NaN = empty; holds target rows ``y_off ..``):
+    """Splat grid rows ``r0 <= r < r1`` into ``buf`` (holds target rows ``y_off ..``; its contents are ignored: every
+    row is set to NaN = empty before the first point lands on it, which it then does while in cache):
     nearest pixel (rounded, never truncated), nearest depth wins."""
     Hb, W = buf.shape
     Wm = depth.shape[1]
+    U = np.empty(Wm)
+    V = np.empty(Wm)
+    Z = np.empty(Wm)
     idx = np.empty(Wm, np.int64)
-    Z = np.empty(Wm, np.float32)
     flat = buf.reshape(-1)
+    Wf, Hf = np.float64(W), np.float64(Hb)
+    filled = 0  # rows buf[:filled] are initialised
     for r in range(r0, r1):
-        for c in range(Wm):  # vectorised: project (as _project_row), target pixel index (-1: none) and depth
+        # Three passes a row, each one simple enough to vectorise well: the projection (as _project_row, Z <= 0 marks
+        # an invalid point), the rounding to a pixel index (-1: none) and the scalar z-buffer update. One loop doing
+        # the first two took 1.2-1.8 CPU ms more at full resolution (benchmarks/RESULTS.md, "Where the kernels' time
+        # goes"); the values are the same float64 expressions, so the same bits.
+        for c in range(Wm):
             z = np.float64(depth[r, c])
             x = rx[r, c] * z
             y = ry[r, c] * z
             Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
             inv = 1.0 / Zc
-            ui = np.floor(fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx + 0.5)
-            vi = np.floor(fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy + 0.5) - y_off
-            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0) & (ui >= 0.0) & (ui < W) & (vi >= 0.0) & (vi < Hb)
-            idx[c] = np.int64(vi * W + ui) if ok else -1
-            Z[c] = np.float32(Zc)
+            U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
+            V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+            Z[c] = Zc if ok else -1.0
+        for c in range(Wm):
+            ui = np.floor(U[c] + 0.5)
+            vi = np.floor(V[c] + 0.5) - y_off
+            ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
+            idx[c] = np.int64(vi * Wf + ui) if ok else -1
+        last = -1
+        for c in range(Wm):
+            last = max(last, idx[c])
+        if last >= 0 and last // W >= filled:
+            buf[filled:last // W + 1] = np.nan
+            filled = last // W + 1
         for c in range(Wm):
             i = idx[c]
-            if i >= 0 and not (flat[i] <= Z[c]):  # empty (NaN) or farther
-                flat[i] = Z[c]
+            if i >= 0:
+                zf = np.float32(Z[c])
+                old = flat[i]
+                flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
+    buf[filled:] = np.nan
 
 
 # ---- mesh ------------------------------------------------------------------------------------
@@ -367,7 +389,6 @@ def _splat_chunks(arena, wlo, whi, rows, depth, rx, ry, R, t, fx, fy, cx, cy):
         if whi[k] < wlo[k]:
             continue
         buf = arena[k, wlo[k]:whi[k] + 1]
-        buf[:] = np.nan
         _splat_rows(buf, wlo[k], depth, rx, ry, R, t, fx, fy, cx, cy, rows[k], rows[k + 1])
 
 
@@ -428,7 +449,7 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
-        out = np.full((H, W), np.nan, np.float32)
+        out = np.full((H, W), np.nan, np.float32) if mesh else np.empty((H, W), np.float32)  # splat: set as it goes
         span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
         if mesh:
             _mesh_rows(out, span, return_span, 0, 0, H - 1, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
