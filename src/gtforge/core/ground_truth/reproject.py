@@ -278,12 +278,13 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         hit = single & (ok1 | ok2) & (s * er >= tol) & (s * eq >= tol) & (s * ep >= tol) & (z > 0.0)
         general = (t1 | t2) & ((all4 & ~single & (nu >= 0.0) & (nv >= 0.0)) | ~all4)
         Q[0, c] = 1.0 if hit else (2.0 if general else 0.0)
-        Q[1, c] = px
+        Q[1, c] = (py - y_off) * W + px  # a hit's index in buf, flattened (exact in float64)
         Q[2, c] = py
         Q[3, c] = z
         Q[4, c] = (1.0 if t1 else 0.0) + (2.0 if t2 else 0.0) + (4.0 if ad else 0.0)
         if want_span:
             S[c] = 1.0 / min(min(wr, wp), wq) - 1.0 / max(max(wr, wp), wq)
+    flat, sflat = buf.reshape(-1), sbuf.reshape(-1)
     n = 0
     for c in range(Wm - 1):  # compact the quads with work (branch-free)
         cand[n] = c
@@ -291,12 +292,13 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
     for i in range(n):
         c = cand[i]
         if Q[0, c] == 1.0:
-            px, b = int(Q[1, c]), int(Q[2, c]) - y_off
+            i = int(Q[1, c])
             zf = np.float32(Q[3, c])
-            if not (buf[b, px] <= zf):  # empty (NaN) or farther
-                buf[b, px] = zf
-                if want_span:
-                    sbuf[b, px] = S[c]
+            old = flat[i]
+            keep = old <= zf  # else empty (NaN) or farther: replaced
+            flat[i] = old if keep else zf
+            if want_span:
+                sflat[i] = sflat[i] if keep else S[c]
         else:  # several pixel centres in the box, or a quad with three valid corners
             fl = int(Q[4, c])
             ad, c1 = (fl & 4) != 0, c + 1
