@@ -310,11 +310,36 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
 
 
 @numba.njit(**_JIT)
+def _rows_reached(V, IZ):
+    """An end (exclusive) for the target rows that the triangles of a projected grid row (``_project_row``'s V, 1/Z)
+    can touch: beyond its valid points' largest v, with a margin for the pixel-centre tolerance (0 if none).
+    Vectorised: an integer maximum (a float one would be a serial chain without fastmath)."""
+    m = np.int64(-1)
+    for c in range(V.shape[0]):
+        v = min(V[c] if IZ[c] > 0.0 else -1.0, 1e9)  # finite where valid; clipped so that the conversion is defined
+        m = max(m, np.int64(v))
+    return m + 3
+
+
+@numba.njit(**_JIT)
+def _init_rows(buf, sbuf, want_span, filled, end):
+    """Set rows ``filled..end`` of ``buf`` (and ``sbuf``) to NaN = empty, just before triangles may reach them (while
+    they are then in cache, instead of a full-image fill beforehand); returns the new end of the initialised rows."""
+    end = min(end, buf.shape[0])
+    if end > filled:
+        buf[filled:end] = np.nan
+        if want_span:
+            sbuf[filled:end] = np.nan
+        return end
+    return filled
+
+
+@numba.njit(**_JIT)
 def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol,
                r0, r1):
     """Triangles of the quads between grid rows ``r`` and ``r + 1`` for ``r0 <= r < r1``, rasterised into
-    target rows ``y_lo..y_hi`` of ``buf`` (row ``y`` stored at ``y - y_off``; NaN = empty). ``sbuf``
-    (when ``want_span``): the winning triangle's vertex Z range (mm)."""
+    target rows ``y_lo..y_hi`` of ``buf`` (row ``y`` stored at ``y - y_off``; NaN = empty; its contents on entry are
+    ignored: ``_init_rows``). ``sbuf`` (when ``want_span``): the winning triangle's vertex Z range (mm)."""
     Wm = depth.shape[1]
     P = np.empty((2, 3, Wm))  # two row slots: u, v, 1/Z
     Q = np.empty((5, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), px, py, z, triangle flags
@@ -322,13 +347,19 @@ def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx,
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
     _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r0, P[0, 0], P[0, 1], P[0, 2])
+    filled = 0
+    top = _rows_reached(P[0, 1], P[0, 2])
     for r in range(r0, r1):
         a_ = (r - r0) & 1
         b_ = 1 - a_
         _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
+        bottom = _rows_reached(P[b_, 1], P[b_, 2])
+        filled = _init_rows(buf, sbuf, want_span, filled, max(top, bottom) - y_off)
+        top = bottom
         _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
         _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
                       P[b_, 2], F, Q, S, cand)
+    _init_rows(buf, sbuf, want_span, filled, buf.shape[0])
 
 
 @numba.njit(**_JIT)
@@ -347,16 +378,25 @@ def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, 
     scratch = np.empty(Wm)
     _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, 0, P[0, 0], P[0, 1], P[0, 2])
     _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, 0, Pr[0, 0], Pr[0, 1], scratch)
+    # the two views' v are the same (the same expression: t and t_r differ only in x), so are the rows reached
+    filled = 0
+    top = _rows_reached(P[0, 1], P[0, 2])
     for r in range(Hm - 1):
         a_ = r & 1
         b_ = 1 - a_
         _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
         _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, r + 1, Pr[b_, 0], Pr[b_, 1], scratch)
+        bottom = _rows_reached(P[b_, 1], P[b_, 2])
+        _init_rows(buf_r, sbuf, False, filled, max(top, bottom))
+        filled = _init_rows(buf, sbuf, want_span, filled, max(top, bottom))
+        top = bottom
         _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
         _raster_quads(buf, sbuf, want_span, 0, 0, H - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
                       P[b_, 2], F, Q, S, cand)
         _raster_quads(buf_r, sbuf, False, 0, 0, H - 1, Pr[a_, 0], Pr[a_, 1], P[a_, 2], Pr[b_, 0], Pr[b_, 1],
                       P[b_, 2], F, Q, S, cand)
+    _init_rows(buf_r, sbuf, False, filled, H)
+    _init_rows(buf, sbuf, want_span, filled, H)
 
 
 # ---- several threads: chunks of grid rows, each into its own window of target rows ------------
@@ -373,10 +413,7 @@ def _mesh_chunks(arena, sarena, want_span, wlo, whi, rows, depth, rx, ry, R, t, 
         if whi[k] < wlo[k]:
             continue
         buf = arena[k, wlo[k]:whi[k] + 1]
-        buf[:] = np.nan
         sbuf = sarena[k, wlo[k]:whi[k] + 1] if want_span else sarena[0, 0:1]
-        if want_span:
-            sbuf[:] = np.nan
         _mesh_rows(buf, sbuf, want_span, wlo[k], wlo[k], whi[k], depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
                    abs_tol, rows[k], rows[k + 1])
 
@@ -451,8 +488,8 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
-        out = np.full((H, W), np.nan, np.float32) if mesh else np.empty((H, W), np.float32)  # splat: set as it goes
-        span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
+        out = np.empty((H, W), np.float32)  # the kernels set each row to NaN as they reach it
+        span = np.empty((H, W) if return_span else (1, 1), np.float32)
         if mesh:
             _mesh_rows(out, span, return_span, 0, 0, H - 1, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
                        params.abs_tol_mm, 0, Hm - 1)
@@ -503,9 +540,9 @@ def _project_depth_to_stereo(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_z
     cam, cam_r = zed.left, zed.right
     H, W = cam.height_px, cam.width_px
     k1, k2 = _slant_bounds(mech, params)
-    out = np.full((H, W), np.nan, np.float32)
-    out_r = np.full((H, W), np.nan, np.float32)
-    span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
+    out = np.empty((H, W), np.float32)  # _mesh_rows_stereo sets each row to NaN as it reaches it
+    out_r = np.empty((H, W), np.float32)
+    span = np.empty((H, W) if return_span else (1, 1), np.float32)
     _mesh_rows_stereo(out, span, return_span, out_r, depth, rx, ry, R, t, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px,
                       t_r, cam_r.cx_px, k1, k2, params.abs_tol_mm)
     return out, (span if return_span else None), out_r
