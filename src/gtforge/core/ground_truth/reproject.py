@@ -279,9 +279,7 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         general = (t1 | t2) & ((all4 & ~single & (nu >= 0.0) & (nv >= 0.0)) | ~all4)
         Q[0, c] = 1.0 if hit else (2.0 if general else 0.0)
         Q[1, c] = (py - y_off) * W + px  # a hit's index in buf, flattened (exact in float64)
-        Q[2, c] = py
-        Q[3, c] = z
-        Q[4, c] = (1.0 if t1 else 0.0) + (2.0 if t2 else 0.0) + (4.0 if ad else 0.0)
+        Q[2, c] = z
         if want_span:
             S[c] = 1.0 / min(min(wr, wp), wq) - 1.0 / max(max(wr, wp), wq)
     flat, sflat = buf.reshape(-1), sbuf.reshape(-1)
@@ -293,14 +291,14 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         c = cand[i]
         if Q[0, c] == 1.0:
             i = int(Q[1, c])
-            zf = np.float32(Q[3, c])
+            zf = np.float32(Q[2, c])
             old = flat[i]
             keep = old <= zf  # else empty (NaN) or farther: replaced
             flat[i] = old if keep else zf
             if want_span:
                 sflat[i] = sflat[i] if keep else S[c]
         else:  # several pixel centres in the box, or a quad with three valid corners
-            fl = int(Q[4, c])
+            fl = F[c]
             ad, c1 = (fl & 4) != 0, c + 1
             _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi,
                           Ut[c] if ad else Ut[c1], Vt[c] if ad else Vt[c1], Wt[c] if ad else Wt[c1],
@@ -342,7 +340,7 @@ def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx,
     ignored: ``_init_rows``). ``sbuf`` (when ``want_span``): the winning triangle's vertex Z range (mm)."""
     Wm = depth.shape[1]
     P = np.empty((2, 3, Wm))  # two row slots: u, v, 1/Z
-    Q = np.empty((5, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), px, py, z, triangle flags
+    Q = np.empty((3, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), the hit's index, its depth
     S = np.empty(Wm)  # per quad: span of the hit pixel's triangle
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
@@ -371,7 +369,7 @@ def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, 
     H = buf.shape[0]
     P = np.empty((2, 3, Wm))
     Pr = np.empty((2, 2, Wm))  # the right view's u, v (its 1/Z is P's)
-    Q = np.empty((5, Wm))
+    Q = np.empty((3, Wm))
     S = np.empty(Wm)
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
