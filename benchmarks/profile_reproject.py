@@ -1,7 +1,10 @@
 """Where the reprojection kernels' time goes: each stage of ``reproject.project_depth_to_camera`` (one thread, the
 path a build worker takes) timed alone on the benchmark's scene (bench_reproject.scene_depth: 1920x1200 depth into the
-2208x1242 ZED left), by running the kernel's own compiled pieces cumulatively (projection; + edge flags; + the quads'
-vectorised pass; + the z-buffer) and taking differences, beside a plain memory-read floor of the same inputs.
+2208x1242 ZED left), by running the kernels' passes cumulatively and taking differences (splat: projection; + pixel
+index; + z-buffer. mesh: projection; + edge flags; + the quads' vectorised pass; + the z-buffer), beside a plain
+memory-read floor of the same inputs, the output's allocation and fill, and the Python wrapper. A kernel's first passes
+alone are compiled from its own source, cut where the next pass begins (``_kernel_prefix``), so they stay in step
+with the kernels.
 
 Thread CPU time (``time.thread_time``), medians of --repeat, the variants interleaved round-robin, so that a loaded
 machine slows them all alike.
@@ -11,6 +14,8 @@ machine slows them all alike.
 from __future__ import annotations
 
 import argparse
+import inspect
+import math
 import os
 import statistics
 import sys
@@ -28,47 +33,35 @@ from bench_reproject import scene_depth  # noqa: E402
 from gtforge.synthetic import default_rig  # noqa: E402
 
 
-@numba.njit(**rp._JIT)
-def _read_floor(depth, rx, ry):
-    """Read every input once (depth, both ray planes): the memory traffic any kernel pays."""
-    s = 0.0
-    for r in range(depth.shape[0]):
-        for c in range(depth.shape[1]):
-            s += np.float64(depth[r, c]) + rx[r, c] + ry[r, c]
-    return s
+_NOCACHE = {"error_model": "numpy"}  # as the kernels' _JIT, without caching (the functions below are built at run time)
 
 
-@numba.njit(**rp._JIT)
-def _splat_project_only(buf, depth, rx, ry, R, t, fx, fy, cx, cy):
-    """``_splat_rows``' vectorised projection loop without the z-buffer scatter."""
-    Hb, W = buf.shape
-    Wm = depth.shape[1]
-    idx = np.empty(Wm, np.int64)
-    Z = np.empty(Wm, np.float32)
-    acc = 0
-    for r in range(depth.shape[0]):
-        for c in range(Wm):
-            z = np.float64(depth[r, c])
-            x = rx[r, c] * z
-            y = ry[r, c] * z
-            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-            inv = 1.0 / Zc
-            ui = np.floor(fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx + 0.5)
-            vi = np.floor(fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy + 0.5)
-            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0) & (ui >= 0.0) & (ui < W) & (vi >= 0.0) & (vi < Hb)
-            idx[c] = np.int64(vi * W + ui) if ok else -1
-            Z[c] = np.float32(Zc)
-        acc += idx[Wm // 2]
-    return acc
+def _kernel_prefix(fn, stop: str, tail: str):
+    """The kernel ``fn``'s own source up to the line starting with ``stop``, followed by ``tail`` (a return that keeps
+    the work from being optimised away), compiled like the kernel: its first passes alone, always in step with it."""
+    src = inspect.getsource(fn.py_func)
+    src = src[src.index("def "):]
+    src = src[:src.index(stop)] + tail
+    ns = {"np": np, "math": math, "numba": numba, "_EPS": rp._EPS, "_edge_ok": rp._edge_ok,
+          "_project_row": rp._project_row, "_init_rows": rp._init_rows, "_rows_reached": rp._rows_reached}
+    exec(src, ns)
+    return numba.njit(**_NOCACHE)(ns[fn.__name__])
 
 
-@numba.njit(**rp._JIT)
+_splat_projection = _kernel_prefix(rp._splat_rows, "        for c in range(Wm):\n            ui = ",
+                                   "    return U[Wm // 2]\n")
+_splat_index = _kernel_prefix(rp._splat_rows, "        last = -1", "    return idx[Wm // 2]\n")
+_raster_vector_pass = _kernel_prefix(rp._raster_quads, "    flat, sflat = ", "    return Q[0, Wm // 2]\n")
+
+
+@numba.njit(**_NOCACHE)
 def _mesh_stages(buf, sbuf, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol, stage):
-    """``_mesh_rows`` over the whole grid, stopping after ``stage``: 1 projection, 2 + edge flags, 3 + everything."""
+    """``_mesh_rows`` over the whole grid (no row initialisation), stopping after ``stage``: 1 the projection, 2 + the
+    edge flags, 3 + the quads' vectorised pass, 4 + the z-buffer updates."""
     Hm, Wm = depth.shape
     H = buf.shape[0]
     P = np.empty((2, 3, Wm))
-    Q = np.empty((5, Wm))
+    Q = np.empty((3, Wm))
     S = np.empty(Wm)
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
@@ -80,7 +73,10 @@ def _mesh_stages(buf, sbuf, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol
         rp._project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
         if stage >= 2:
             rp._quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
-        if stage >= 3:
+        if stage == 3:
+            acc += _raster_vector_pass(buf, sbuf, False, 0, 0, H - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0],
+                                       P[b_, 1], P[b_, 2], F, Q, S, cand)
+        if stage >= 4:
             rp._raster_quads(buf, sbuf, False, 0, 0, H - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
                              P[b_, 2], F, Q, S, cand)
         acc += P[b_, 0, Wm // 2] + F[Wm // 2]
@@ -109,14 +105,13 @@ def main():
         return np.full((H, W), np.nan, np.float32)
 
     def splat_kernel():
-        out.fill(np.nan)
         rp._splat_rows(out, 0, depth, rx, ry, R, t, fx, fy, cx, cy, 0, depth.shape[0])
 
+    def splat_pass(fn):
+        return lambda: fn(out, 0, depth, rx, ry, R, t, fx, fy, cx, cy, 0, depth.shape[0])
+
     def mesh_stage(k):
-        def run():
-            out.fill(np.nan)
-            _mesh_stages(out, span, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, params.abs_tol_mm, k)
-        return run
+        return lambda: _mesh_stages(out, span, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, params.abs_tol_mm, k)
 
     def wrapper_only():  # the Python work of project_depth_to_camera around the kernel
         np.ascontiguousarray(depth, dtype=np.float32)
@@ -127,17 +122,22 @@ def main():
         numba.get_num_threads()
 
     methods = {
-        "read floor (depth + rx + ry, float64 sum)": lambda: _read_floor(depth, rx, ry),
-        "output allocation np.full(NaN) 2208x1242 float32": full_nan,
-        "output reset (fill NaN, reused buffer)": lambda: out.fill(np.nan),
+        "read floor: numpy sums of depth, rx, ry": lambda: (depth.sum(), rx.sum(), ry.sum()),
+        "output allocation np.full(NaN), 2208x1242 float32": full_nan,
+        "output fill with NaN (a reused buffer)": lambda: out.fill(np.nan),
         "Python wrapper (checks, ray-grid lookup, conversions)": wrapper_only,
-        "splat: projection loop only": lambda: _splat_project_only(out, depth, rx, ry, R, t, fx, fy, cx, cy),
-        "splat: kernel (reset + projection + scatter)": splat_kernel,
+        "splat: projection pass": splat_pass(_splat_projection),
+        "splat: + pixel-index pass": splat_pass(_splat_index),
+        "splat: + row initialisation and z-buffer (the kernel)": splat_kernel,
         "splat: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T, cam, splat),
-        "mesh: reset + projection": mesh_stage(1),
-        "mesh: reset + projection + edge flags": mesh_stage(2),
-        "mesh: reset + all (+ quad pass + z-buffer)": mesh_stage(3),
-        "mesh: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T, cam, mesh),
+        "mesh: projection (both rows' slots)": mesh_stage(1),
+        "mesh: + edge flags (_quad_flags)": mesh_stage(2),
+        "mesh: + the quads' vectorised pass": mesh_stage(3),
+        "mesh: + compaction, z-buffer, general quads": mesh_stage(4),
+        "mesh: project_depth_to_camera (+ row initialisation)": lambda: project_depth_to_camera(depth, mech, T, cam,
+                                                                                               mesh),
+        "mesh + span_mm: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T, cam, mesh,
+                                                                                  return_span=True),
     }
     for fn in methods.values():
         fn()
@@ -147,10 +147,11 @@ def main():
             c = time.thread_time()
             fn()
             cpu[k].append(time.thread_time() - c)
-    print(f"thread CPU ms, medians of {args.repeat} (interleaved), load average {os.getloadavg()[0]:.2f}; "
+    print(f"thread CPU ms, medians and minima of {args.repeat} (interleaved), load average {os.getloadavg()[0]:.2f}; "
           f"{np.isfinite(depth).mean() * 100:.1f} % of the depth valid")
+    print("| stage | CPU ms, median | CPU ms, min |\n|---|---|---|")
     for k in methods:
-        print(f"| {k} | {statistics.median(cpu[k]) * 1e3:.2f} |")
+        print(f"| {k} | {statistics.median(cpu[k]) * 1e3:.2f} | {min(cpu[k]) * 1e3:.2f} |")
 
 
 if __name__ == "__main__":
