@@ -38,6 +38,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse
 import datetime
+import platform
 import statistics
 import subprocess
 import sys
@@ -80,6 +81,18 @@ def module_at_revision(rev: str):
     sys.modules[spec.name] = mod  # dataclasses look their module up there
     spec.loader.exec_module(mod)
     return mod
+
+
+def cpu_model() -> str:
+    """The processor's name as the kernel reports it (ratios against Open3D depend on the CPU), or the platform's."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def interleaved(methods: dict, repeat: int) -> dict:
@@ -226,6 +239,7 @@ def main():
                            preexec_fn=pin_to_one_core,
                            capture_output=True, text=True, check=True)
     o3d_1 = tuple(float(x) for x in child.stdout.split()[-2:])
+    load_start = os.getloadavg()[0]
     results = {"quiet": interleaved(methods, args.repeat)}
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
@@ -241,7 +255,8 @@ def main():
     cmd = (f"python benchmarks/bench_reproject.py --repeat {args.repeat}"
            + (f" --against {args.against}" if args.against else ""))
     lines = [f"Measured {datetime.date.today()} with `{cmd}`: "
-             f"{len(os.sched_getaffinity(0))} cores, load average {os.getloadavg()[0]:.2f} at the end; "
+             f"{cpu_model()}, {len(os.sched_getaffinity(0))} cores, load average {load_start:.2f} at the start and "
+             f"{os.getloadavg()[0]:.2f} at the end; "
              f"{mech.width_px}x{mech.height_px} depth ({np.isfinite(depth).mean() * 100:.1f} % valid) -> "
              f"{cam.width_px}x{cam.height_px}; medians of {args.repeat}, methods interleaved.",
              "",
