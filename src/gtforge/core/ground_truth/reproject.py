@@ -118,6 +118,7 @@ def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
     U = np.empty(Wm)
     V = np.empty(Wm)
     Z = np.empty(Wm)
+    Zf = np.empty(Wm, np.float32)
     idx = np.empty(Wm, np.int64)
     flat = buf.reshape(-1)
     Wf, Hf = np.float64(W), np.float64(Hb)
@@ -142,6 +143,7 @@ def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
             vi = np.floor(V[c] + 0.5) - y_off
             ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
             idx[c] = np.int64(vi * Wf + ui) if ok else -1
+            Zf[c] = np.float32(Z[c])
         last = -1
         for c in range(Wm):
             last = max(last, idx[c])
@@ -151,7 +153,7 @@ def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
         for c in range(Wm):
             i = idx[c]
             if i >= 0:
-                zf = np.float32(Z[c])
+                zf = Zf[c]
                 old = flat[i]
                 flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
     buf[filled:] = np.nan
