@@ -88,6 +88,26 @@ def _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, U, V, IZ):
         IZ[c] = inv if ok else 0.0
 
 
+@numba.njit(inline="always", **_JIT)
+def _project_row_stereo(depth, rx, ry, R, t, t_r0, fx, fy, cx, cy, cx_r, r, U, V, IZ, Ur):
+    """``_project_row`` into two cameras that differ only by the x translation (``t_r0`` instead of ``t[0]``) and cx
+    (``cx_r``): the left view's ``U``, ``V``, ``IZ`` and the right view's ``Ur``, each the same expression as
+    ``_project_row``'s, so the same bits; the right view's V and 1/Z are the left's (the same expressions as well).
+    One division a point for both views."""
+    for c in range(depth.shape[1]):
+        z = np.float64(depth[r, c])
+        x = rx[r, c] * z
+        y = ry[r, c] * z
+        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        inv = 1.0 / Zc
+        X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+        U[c] = fx * (X + t[0]) * inv + cx
+        Ur[c] = fx * (X + t_r0) * inv + cx_r
+        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+        ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+        IZ[c] = inv if ok else 0.0
+
+
 @numba.njit(**_JIT)
 def _v_range(depth, rx, ry, R, t, fy, cy, r0, r1):
     """Smallest and largest target ``v`` of the valid points of grid rows ``r0 <= r < r1`` (inf, -inf if
@@ -370,22 +390,20 @@ def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, 
     Hm, Wm = depth.shape
     H = buf.shape[0]
     P = np.empty((2, 3, Wm))
-    Pr = np.empty((2, 2, Wm))  # the right view's u, v (its 1/Z is P's)
+    Ur = np.empty((2, Wm))  # the right view's u (its v and 1/Z are P's)
     Q = np.empty((3, Wm))
     S = np.empty(Wm)
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
-    scratch = np.empty(Wm)
-    _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, 0, P[0, 0], P[0, 1], P[0, 2])
-    _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, 0, Pr[0, 0], Pr[0, 1], scratch)
+    _project_row_stereo(depth, rx, ry, R, t, t_r[0], fx, fy, cx, cy, cx_r, 0, P[0, 0], P[0, 1], P[0, 2], Ur[0])
     # the two views' v are the same (the same expression: t and t_r differ only in x), so are the rows reached
     filled = 0
     top = _rows_reached(P[0, 1], P[0, 2])
     for r in range(Hm - 1):
         a_ = r & 1
         b_ = 1 - a_
-        _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
-        _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, r + 1, Pr[b_, 0], Pr[b_, 1], scratch)
+        _project_row_stereo(depth, rx, ry, R, t, t_r[0], fx, fy, cx, cy, cx_r, r + 1, P[b_, 0], P[b_, 1], P[b_, 2],
+                            Ur[b_])
         bottom = _rows_reached(P[b_, 1], P[b_, 2])
         _init_rows(buf_r, sbuf, False, filled, max(top, bottom))
         filled = _init_rows(buf, sbuf, want_span, filled, max(top, bottom))
@@ -393,8 +411,8 @@ def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, 
         _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
         _raster_quads(buf, sbuf, want_span, 0, 0, H - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
                       P[b_, 2], F, Q, S, cand)
-        _raster_quads(buf_r, sbuf, False, 0, 0, H - 1, Pr[a_, 0], Pr[a_, 1], P[a_, 2], Pr[b_, 0], Pr[b_, 1],
-                      P[b_, 2], F, Q, S, cand)
+        _raster_quads(buf_r, sbuf, False, 0, 0, H - 1, Ur[a_], P[a_, 1], P[a_, 2], Ur[b_], P[b_, 1], P[b_, 2], F, Q,
+                      S, cand)
     _init_rows(buf_r, sbuf, False, filled, H)
     _init_rows(buf, sbuf, want_span, filled, H)
 
