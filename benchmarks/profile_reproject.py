@@ -138,6 +138,8 @@ def main():
                                                                                                mesh),
         "mesh + span_mm: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T, cam, mesh,
                                                                                   return_span=True),
+        "build-dataset's call: both ZED views + the left span_mm in one pass (_project_depth_to_stereo)":
+            lambda: rp._project_depth_to_stereo(depth, mech, T, rig.zed.T_zedr_from_zed @ T, rig.zed, mesh, True),
     }
     for fn in methods.values():
         fn()
