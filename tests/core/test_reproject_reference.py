@@ -17,6 +17,7 @@ import numba
 import numpy as np
 import pytest
 
+from gtforge.core.camera import RectifiedStereo
 from gtforge.core.ground_truth import reproject
 from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
 from gtforge.core.ground_truth.reproject_reference import project_depth_reference
@@ -183,3 +184,19 @@ def test_kernels_ignore_what_the_output_held(upside_down):
                                     MESH.abs_tol_mm)
         assert_identical(left, ref, "stereo left into zeros")
         assert_identical(right, project_depth_reference(depth, mech, T_r, zed.right, MESH), "stereo right into zeros")
+
+
+def test_middlebury_motorcycle_stereo_one_pass():
+    """reproject_to_zed's one-pass path on real depth: view 0's depth into a rectified pair whose left camera is view 0
+    itself (every grid point lands on a pixel centre: ties everywhere) and whose right camera is view 1."""
+    from test_real_reprojection import BASELINE_MM, CX0_PX, CX1_PX
+
+    z0, cam0, cam1, _, _, _ = motorcycle()
+    zed = RectifiedStereo(left=cam0, baseline_mm=BASELINE_MM, doffs_px=CX1_PX - CX0_PX)
+    assert zed.right == cam1
+    sd = reproject_to_zed(z0, cam0, np.eye(4), zed, MESH, left_span=True)
+    ref_l, ref_span = project_depth_reference(z0, cam0, np.eye(4), zed.left, MESH, return_span=True)
+    assert_identical(sd.depth_mm, ref_l, "Middlebury stereo left")
+    assert_identical(sd.span_mm, ref_span, "Middlebury stereo left span_mm")
+    assert_identical(sd.depth_right_mm, project_depth_reference(z0, cam0, zed.T_zedr_from_zed, zed.right, MESH),
+                     "Middlebury stereo right")
