@@ -9,7 +9,10 @@ with the kernels.
 Thread CPU time (``time.thread_time``), medians of --repeat, the variants interleaved round-robin, so that a loaded
 machine slows them all alike.
 
-    python benchmarks/profile_reproject.py [--repeat 40]
+    python benchmarks/profile_reproject.py [--repeat 40] [--against REV]
+
+``--against REV`` adds the public calls with the kernels of ``reproject.py`` at git revision REV, interleaved with the
+rest (before/after in one process).
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from gtforge.core.ground_truth import reproject as rp
 from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_reproject import scene_depth  # noqa: E402
+from bench_reproject import module_at_revision, scene_depth  # noqa: E402
 
 from gtforge.synthetic import default_rig  # noqa: E402
 
@@ -86,6 +89,8 @@ def _mesh_stages(buf, sbuf, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=40)
+    ap.add_argument("--against", default=None,
+                    help="also time the public calls of reproject.py at this git revision (before/after, same run)")
     args = ap.parse_args()
     numba.set_num_threads(1)
     rig = default_rig(1.0)
@@ -141,6 +146,17 @@ def main():
         "build-dataset's call: both ZED views + the left span_mm in one pass (_project_depth_to_stereo)":
             lambda: rp._project_depth_to_stereo(depth, mech, T, rig.zed.T_zedr_from_zed @ T, rig.zed, mesh, True),
     }
+    if args.against:  # the same calls with the kernels of another revision (bench_reproject.module_at_revision)
+        old = module_at_revision(args.against)
+        ms, ss = old.ReprojectParams(mode="mesh"), old.ReprojectParams(mode="splat")
+        methods[f"@{args.against} splat: project_depth_to_camera"] = lambda: old.project_depth_to_camera(
+            depth, mech, T, cam, ss)
+        methods[f"@{args.against} mesh: project_depth_to_camera"] = lambda: old.project_depth_to_camera(
+            depth, mech, T, cam, ms)
+        methods[f"@{args.against} mesh + span_mm: project_depth_to_camera"] = lambda: old.project_depth_to_camera(
+            depth, mech, T, cam, ms, return_span=True)
+        methods[f"@{args.against} build-dataset's call (_project_depth_to_stereo)"] = \
+            lambda: old._project_depth_to_stereo(depth, mech, T, rig.zed.T_zedr_from_zed @ T, rig.zed, ms, True)
     for fn in methods.values():
         fn()
     cpu = {k: [] for k in methods}
