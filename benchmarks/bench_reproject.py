@@ -15,7 +15,8 @@ inside ``#pragma omp critical``, so a second thread only adds lock contention (o
 on two cores against 55 ms pinned to one, and faster with the other core busy than idle). It sizes its loops by
 ``omp_get_num_procs()``, which ignores ``OMP_NUM_THREADS``; the last row therefore runs Open3D in a separate process
 pinned to one core (``sched_setaffinity``, as ``taskset -c 0`` does), and the line under the table gives gtforge's
-speed-ups against that too.
+speed-ups against that too. "speed-up, CPU": the ratio of the CPU times (all threads), the figure that holds on a
+machine other work keeps busy.
 
 Before anything is timed, every gtforge method's output on the benchmark's scene is compared with the float64
 reference of the same computation (``gtforge.core.ground_truth.reproject_reference``; mesh with ``span_mm`` too): each
@@ -38,6 +39,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse
 import datetime
+import platform
 import statistics
 import subprocess
 import sys
@@ -80,6 +82,18 @@ def module_at_revision(rev: str):
     sys.modules[spec.name] = mod  # dataclasses look their module up there
     spec.loader.exec_module(mod)
     return mod
+
+
+def cpu_model() -> str:
+    """The processor's name as the kernel reports it (ratios against Open3D depend on the CPU), or the platform's."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def interleaved(methods: dict, repeat: int) -> dict:
@@ -226,6 +240,7 @@ def main():
                            preexec_fn=pin_to_one_core,
                            capture_output=True, text=True, check=True)
     o3d_1 = tuple(float(x) for x in child.stdout.split()[-2:])
+    load_start = os.getloadavg()[0]
     results = {"quiet": interleaved(methods, args.repeat)}
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
@@ -241,18 +256,20 @@ def main():
     cmd = (f"python benchmarks/bench_reproject.py --repeat {args.repeat}"
            + (f" --against {args.against}" if args.against else ""))
     lines = [f"Measured {datetime.date.today()} with `{cmd}`: "
-             f"{len(os.sched_getaffinity(0))} cores, load average {os.getloadavg()[0]:.2f} at the end; "
+             f"{cpu_model()}, {len(os.sched_getaffinity(0))} cores, load average {load_start:.2f} at the start and "
+             f"{os.getloadavg()[0]:.2f} at the end; "
              f"{mech.width_px}x{mech.height_px} depth ({np.isfinite(depth).mean() * 100:.1f} % valid) -> "
              f"{cam.width_px}x{cam.height_px}; medians of {args.repeat}, methods interleaved.",
              "",
-             "| method | ms | CPU ms (all threads) | speed-up | ms, one core busy | speed-up, one core busy |",
-             "|---|---|---|---|---|---|"]
+             "| method | ms | CPU ms (all threads) | speed-up | speed-up, CPU | ms, one core busy "
+             "| speed-up, one core busy |",
+             "|---|---|---|---|---|---|---|"]
     q, b = results["quiet"], results["one core busy"]
     for k in methods:
-        lines.append(f"| {k} | {q[k][0]:.1f} | {q[k][1]:.1f} | {q[base][0] / q[k][0]:.1f}x | {b[k][0]:.1f} | "
-                     f"{b[base][0] / b[k][0]:.1f}x |")
+        lines.append(f"| {k} | {q[k][0]:.1f} | {q[k][1]:.1f} | {q[base][0] / q[k][0]:.1f}x | "
+                     f"{q[base][1] / q[k][1]:.1f}x | {b[k][0]:.1f} | {b[base][0] / b[k][0]:.1f}x |")
     lines.append(f"| Open3D + cv2.remap, pinned to one core (separate process, same repeats) | {o3d_1[0]:.1f} | "
-                 f"{o3d_1[1]:.1f} | {q[base][0] / o3d_1[0]:.1f}x | | |")
+                 f"{o3d_1[1]:.1f} | {q[base][0] / o3d_1[0]:.1f}x | {q[base][1] / o3d_1[1]:.1f}x | | |")
     lines.append("")
     one = [k for k in methods if k.startswith("gtforge") and k.endswith("(1 thread)")]
     lines.append(f"Against Open3D pinned to one core ({o3d_1[0]:.1f} ms, its fastest): "

@@ -17,6 +17,7 @@ import numba
 import numpy as np
 import pytest
 
+from gtforge.core.camera import RectifiedStereo
 from gtforge.core.ground_truth import reproject
 from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera, reproject_to_zed
 from gtforge.core.ground_truth.reproject_reference import project_depth_reference
@@ -144,3 +145,58 @@ def test_windowed_path_on_one_thread(monkeypatch):
     check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="windowed synthetic")
     z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
     check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="windowed Middlebury Motorcycle")
+
+
+@pytest.mark.parametrize("upside_down", [False, True])
+def test_kernels_ignore_what_the_output_held(upside_down):
+    """The kernels set each output row to NaN just before the first point or triangle reaches it (no full-image fill
+    beforehand): buffers that start at 0 mm, a depth that would win every z-buffer test and show wherever a row was
+    reached before it was reset or never reset at all, still give the reference's images. Upside down (the target
+    camera rolled 180 degrees), the grid's first rows land on the image's last rows."""
+    rig, depth = small_scene()
+    mech, zed, T = rig.mech, rig.zed, rig.T_zed_from_mech
+    if upside_down:
+        T = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T
+        left = zed.left
+        flipped = left.model_copy(update={"cx_px": left.width_px - 1 - left.cx_px,
+                                          "cy_px": left.height_px - 1 - left.cy_px})
+        zed = zed.model_copy(update={"left": flipped})
+    cam = zed.left
+    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+    rx, ry = reproject._ray_planes(mech.model_dump_json())
+    k1, k2 = reproject._slant_bounds(mech, MESH)
+    H, W, Hm = cam.height_px, cam.width_px, depth.shape[0]
+    intrinsics = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
+    splat = np.zeros((H, W), np.float32)
+    reproject._splat_rows(splat, 0, depth, rx, ry, R, t, *intrinsics, 0, Hm)
+    assert_identical(splat, project_depth_reference(depth, mech, T, cam, SPLAT), "splat into zeros")
+    mesh, span = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
+    reproject._mesh_rows(mesh, span, True, 0, 0, H - 1, depth, rx, ry, R, t, *intrinsics, k1, k2, MESH.abs_tol_mm, 0,
+                         Hm - 1)
+    ref, ref_span = project_depth_reference(depth, mech, T, cam, MESH, return_span=True)
+    assert_identical(mesh, ref, "mesh into zeros")
+    assert_identical(span, ref_span, "mesh span_mm into zeros")
+    if not upside_down:  # the one-pass stereo path (the right view differs from the left by a shift along x only)
+        T_r = zed.T_zedr_from_zed @ T
+        left, right = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
+        reproject._mesh_rows_stereo(left, np.zeros((1, 1), np.float32), False, right, depth, rx, ry, R, t,
+                                    *intrinsics, np.ascontiguousarray(T_r[:3, 3]), zed.right.cx_px, k1, k2,
+                                    MESH.abs_tol_mm)
+        assert_identical(left, ref, "stereo left into zeros")
+        assert_identical(right, project_depth_reference(depth, mech, T_r, zed.right, MESH), "stereo right into zeros")
+
+
+def test_middlebury_motorcycle_stereo_one_pass():
+    """reproject_to_zed's one-pass path on real depth: view 0's depth into a rectified pair whose left camera is view 0
+    itself (every grid point lands on a pixel centre: ties everywhere) and whose right camera is view 1."""
+    from test_real_reprojection import BASELINE_MM, CX0_PX, CX1_PX
+
+    z0, cam0, cam1, _, _, _ = motorcycle()
+    zed = RectifiedStereo(left=cam0, baseline_mm=BASELINE_MM, doffs_px=CX1_PX - CX0_PX)
+    assert zed.right == cam1
+    sd = reproject_to_zed(z0, cam0, np.eye(4), zed, MESH, left_span=True)
+    ref_l, ref_span = project_depth_reference(z0, cam0, np.eye(4), zed.left, MESH, return_span=True)
+    assert_identical(sd.depth_mm, ref_l, "Middlebury stereo left")
+    assert_identical(sd.span_mm, ref_span, "Middlebury stereo left span_mm")
+    assert_identical(sd.depth_right_mm, project_depth_reference(z0, cam0, zed.T_zedr_from_zed, zed.right, MESH),
+                     "Middlebury stereo right")

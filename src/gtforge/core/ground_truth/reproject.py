@@ -88,6 +88,26 @@ def _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, U, V, IZ):
         IZ[c] = inv if ok else 0.0
 
 
+@numba.njit(inline="always", **_JIT)
+def _project_row_stereo(depth, rx, ry, R, t, t_r0, fx, fy, cx, cy, cx_r, r, U, V, IZ, Ur):
+    """``_project_row`` into two cameras that differ only by the x translation (``t_r0`` instead of ``t[0]``) and cx
+    (``cx_r``): the left view's ``U``, ``V``, ``IZ`` and the right view's ``Ur``, each the same expression as
+    ``_project_row``'s, so the same bits; the right view's V and 1/Z are the left's (the same expressions as well).
+    One division a point for both views."""
+    for c in range(depth.shape[1]):
+        z = np.float64(depth[r, c])
+        x = rx[r, c] * z
+        y = ry[r, c] * z
+        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        inv = 1.0 / Zc
+        X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+        U[c] = fx * (X + t[0]) * inv + cx
+        Ur[c] = fx * (X + t_r0) * inv + cx_r
+        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+        ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+        IZ[c] = inv if ok else 0.0
+
+
 @numba.njit(**_JIT)
 def _v_range(depth, rx, ry, R, t, fy, cy, r0, r1):
     """Smallest and largest target ``v`` of the valid points of grid rows ``r0 <= r < r1`` (inf, -inf if
@@ -110,29 +130,53 @@ def _v_range(depth, rx, ry, R, t, fy, cy, r0, r1):
 # ---- splat -----------------------------------------------------------------------------------
 @numba.njit(**_JIT)
 def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
-    """Splat grid rows ``r0 <= r < r1`` into ``buf`` (NaN = empty; holds target rows ``y_off ..``):
+    """Splat grid rows ``r0 <= r < r1`` into ``buf`` (holds target rows ``y_off ..``; its contents are ignored: every
+    row is set to NaN = empty before the first point lands on it, which it then does while in cache):
     nearest pixel (rounded, never truncated), nearest depth wins."""
     Hb, W = buf.shape
     Wm = depth.shape[1]
+    U = np.empty(Wm)
+    V = np.empty(Wm)
+    Z = np.empty(Wm)
+    Zf = np.empty(Wm, np.float32)
     idx = np.empty(Wm, np.int64)
-    Z = np.empty(Wm, np.float32)
     flat = buf.reshape(-1)
+    Wf, Hf = np.float64(W), np.float64(Hb)
+    filled = 0  # rows buf[:filled] are initialised
     for r in range(r0, r1):
-        for c in range(Wm):  # vectorised: project (as _project_row), target pixel index (-1: none) and depth
+        # Three passes a row, each one simple enough to vectorise well: the projection (as _project_row, Z <= 0 marks
+        # an invalid point), the rounding to a pixel index (-1: none) and the scalar z-buffer update. One loop doing
+        # the first two took 9.2 CPU ms at full resolution against 4.5 + 1.2 for the two (benchmarks/RESULTS.md,
+        # "Where the kernels' time goes"); the values are the same float64 expressions, so the same bits.
+        for c in range(Wm):
             z = np.float64(depth[r, c])
             x = rx[r, c] * z
             y = ry[r, c] * z
             Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
             inv = 1.0 / Zc
-            ui = np.floor(fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx + 0.5)
-            vi = np.floor(fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy + 0.5) - y_off
-            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0) & (ui >= 0.0) & (ui < W) & (vi >= 0.0) & (vi < Hb)
-            idx[c] = np.int64(vi * W + ui) if ok else -1
-            Z[c] = np.float32(Zc)
+            U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
+            V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+            Z[c] = Zc if ok else -1.0
+        for c in range(Wm):
+            ui = np.floor(U[c] + 0.5)
+            vi = np.floor(V[c] + 0.5) - y_off
+            ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
+            idx[c] = np.int64(vi * Wf + ui) if ok else -1
+            Zf[c] = np.float32(Z[c])
+        last = -1
+        for c in range(Wm):
+            last = max(last, idx[c])
+        if last >= 0 and last // W >= filled:
+            buf[filled:last // W + 1] = np.nan
+            filled = last // W + 1
         for c in range(Wm):
             i = idx[c]
-            if i >= 0 and not (flat[i] <= Z[c]):  # empty (NaN) or farther
-                flat[i] = Z[c]
+            if i >= 0:
+                zf = Zf[c]
+                old = flat[i]
+                flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
+    buf[filled:] = np.nan
 
 
 # ---- mesh ------------------------------------------------------------------------------------
@@ -256,12 +300,11 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         hit = single & (ok1 | ok2) & (s * er >= tol) & (s * eq >= tol) & (s * ep >= tol) & (z > 0.0)
         general = (t1 | t2) & ((all4 & ~single & (nu >= 0.0) & (nv >= 0.0)) | ~all4)
         Q[0, c] = 1.0 if hit else (2.0 if general else 0.0)
-        Q[1, c] = px
-        Q[2, c] = py
-        Q[3, c] = z
-        Q[4, c] = (1.0 if t1 else 0.0) + (2.0 if t2 else 0.0) + (4.0 if ad else 0.0)
+        Q[1, c] = (py - y_off) * W + px  # a hit's index in buf, flattened (exact in float64)
+        Q[2, c] = z
         if want_span:
             S[c] = 1.0 / min(min(wr, wp), wq) - 1.0 / max(max(wr, wp), wq)
+    flat, sflat = buf.reshape(-1), sbuf.reshape(-1)
     n = 0
     for c in range(Wm - 1):  # compact the quads with work (branch-free)
         cand[n] = c
@@ -269,14 +312,15 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
     for i in range(n):
         c = cand[i]
         if Q[0, c] == 1.0:
-            px, b = int(Q[1, c]), int(Q[2, c]) - y_off
-            zf = np.float32(Q[3, c])
-            if not (buf[b, px] <= zf):  # empty (NaN) or farther
-                buf[b, px] = zf
-                if want_span:
-                    sbuf[b, px] = S[c]
+            j = int(Q[1, c])
+            zf = np.float32(Q[2, c])
+            old = flat[j]
+            keep = old <= zf  # else empty (NaN) or farther: replaced
+            flat[j] = old if keep else zf
+            if want_span:
+                sflat[j] = sflat[j] if keep else S[c]
         else:  # several pixel centres in the box, or a quad with three valid corners
-            fl = int(Q[4, c])
+            fl = F[c]
             ad, c1 = (fl & 4) != 0, c + 1
             _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi,
                           Ut[c] if ad else Ut[c1], Vt[c] if ad else Vt[c1], Wt[c] if ad else Wt[c1],
@@ -286,25 +330,56 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
 
 
 @numba.njit(**_JIT)
+def _rows_reached(V, IZ):
+    """An end (exclusive) for the target rows that the triangles of a projected grid row (``_project_row``'s V, 1/Z)
+    can touch: beyond its valid points' largest v, with a margin for the pixel-centre tolerance (0 if none).
+    Vectorised: an integer maximum (a float one would be a serial chain without fastmath)."""
+    m = np.int64(-1)
+    for c in range(V.shape[0]):
+        v = min(V[c] if IZ[c] > 0.0 else -1.0, 1e9)  # finite where valid; clipped so that the conversion is defined
+        m = max(m, np.int64(v))
+    return m + 3
+
+
+@numba.njit(**_JIT)
+def _init_rows(buf, sbuf, want_span, filled, end):
+    """Set rows ``filled..end`` of ``buf`` (and ``sbuf``) to NaN = empty, just before triangles may reach them (while
+    they are then in cache, instead of a full-image fill beforehand); returns the new end of the initialised rows."""
+    end = min(end, buf.shape[0])
+    if end > filled:
+        buf[filled:end] = np.nan
+        if want_span:
+            sbuf[filled:end] = np.nan
+        return end
+    return filled
+
+
+@numba.njit(**_JIT)
 def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol,
                r0, r1):
     """Triangles of the quads between grid rows ``r`` and ``r + 1`` for ``r0 <= r < r1``, rasterised into
-    target rows ``y_lo..y_hi`` of ``buf`` (row ``y`` stored at ``y - y_off``; NaN = empty). ``sbuf``
-    (when ``want_span``): the winning triangle's vertex Z range (mm)."""
+    target rows ``y_lo..y_hi`` of ``buf`` (row ``y`` stored at ``y - y_off``; NaN = empty; its contents on entry are
+    ignored: ``_init_rows``). ``sbuf`` (when ``want_span``): the winning triangle's vertex Z range (mm)."""
     Wm = depth.shape[1]
     P = np.empty((2, 3, Wm))  # two row slots: u, v, 1/Z
-    Q = np.empty((5, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), px, py, z, triangle flags
+    Q = np.empty((3, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), the hit's index, its depth
     S = np.empty(Wm)  # per quad: span of the hit pixel's triangle
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
     _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r0, P[0, 0], P[0, 1], P[0, 2])
+    filled = 0
+    top = _rows_reached(P[0, 1], P[0, 2])
     for r in range(r0, r1):
         a_ = (r - r0) & 1
         b_ = 1 - a_
         _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
+        bottom = _rows_reached(P[b_, 1], P[b_, 2])
+        filled = _init_rows(buf, sbuf, want_span, filled, max(top, bottom) - y_off)
+        top = bottom
         _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
         _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
                       P[b_, 2], F, Q, S, cand)
+    _init_rows(buf, sbuf, want_span, filled, buf.shape[0])
 
 
 @numba.njit(**_JIT)
@@ -315,24 +390,31 @@ def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, 
     Hm, Wm = depth.shape
     H = buf.shape[0]
     P = np.empty((2, 3, Wm))
-    Pr = np.empty((2, 2, Wm))  # the right view's u, v (its 1/Z is P's)
-    Q = np.empty((5, Wm))
+    Ur = np.empty((2, Wm))  # the right view's u (its v and 1/Z are P's)
+    Q = np.empty((3, Wm))
     S = np.empty(Wm)
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
-    scratch = np.empty(Wm)
-    _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, 0, P[0, 0], P[0, 1], P[0, 2])
-    _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, 0, Pr[0, 0], Pr[0, 1], scratch)
+    _project_row_stereo(depth, rx, ry, R, t, t_r[0], fx, fy, cx, cy, cx_r, 0, P[0, 0], P[0, 1], P[0, 2], Ur[0])
+    # the two views' v are the same (the same expression: t and t_r differ only in x), so are the rows reached
+    filled = 0
+    top = _rows_reached(P[0, 1], P[0, 2])
     for r in range(Hm - 1):
         a_ = r & 1
         b_ = 1 - a_
-        _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
-        _project_row(depth, rx, ry, R, t_r, fx, fy, cx_r, cy, r + 1, Pr[b_, 0], Pr[b_, 1], scratch)
+        _project_row_stereo(depth, rx, ry, R, t, t_r[0], fx, fy, cx, cy, cx_r, r + 1, P[b_, 0], P[b_, 1], P[b_, 2],
+                            Ur[b_])
+        bottom = _rows_reached(P[b_, 1], P[b_, 2])
+        _init_rows(buf_r, sbuf, False, filled, max(top, bottom))
+        filled = _init_rows(buf, sbuf, want_span, filled, max(top, bottom))
+        top = bottom
         _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
         _raster_quads(buf, sbuf, want_span, 0, 0, H - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
                       P[b_, 2], F, Q, S, cand)
-        _raster_quads(buf_r, sbuf, False, 0, 0, H - 1, Pr[a_, 0], Pr[a_, 1], P[a_, 2], Pr[b_, 0], Pr[b_, 1],
-                      P[b_, 2], F, Q, S, cand)
+        _raster_quads(buf_r, sbuf, False, 0, 0, H - 1, Ur[a_], P[a_, 1], P[a_, 2], Ur[b_], P[b_, 1], P[b_, 2], F, Q,
+                      S, cand)
+    _init_rows(buf_r, sbuf, False, filled, H)
+    _init_rows(buf, sbuf, want_span, filled, H)
 
 
 # ---- several threads: chunks of grid rows, each into its own window of target rows ------------
@@ -349,10 +431,7 @@ def _mesh_chunks(arena, sarena, want_span, wlo, whi, rows, depth, rx, ry, R, t, 
         if whi[k] < wlo[k]:
             continue
         buf = arena[k, wlo[k]:whi[k] + 1]
-        buf[:] = np.nan
         sbuf = sarena[k, wlo[k]:whi[k] + 1] if want_span else sarena[0, 0:1]
-        if want_span:
-            sbuf[:] = np.nan
         _mesh_rows(buf, sbuf, want_span, wlo[k], wlo[k], whi[k], depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
                    abs_tol, rows[k], rows[k + 1])
 
@@ -367,7 +446,6 @@ def _splat_chunks(arena, wlo, whi, rows, depth, rx, ry, R, t, fx, fy, cx, cy):
         if whi[k] < wlo[k]:
             continue
         buf = arena[k, wlo[k]:whi[k] + 1]
-        buf[:] = np.nan
         _splat_rows(buf, wlo[k], depth, rx, ry, R, t, fx, fy, cx, cy, rows[k], rows[k + 1])
 
 
@@ -428,8 +506,8 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
-        out = np.full((H, W), np.nan, np.float32)
-        span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
+        out = np.empty((H, W), np.float32)  # the kernels set each row to NaN as they reach it
+        span = np.empty((H, W) if return_span else (1, 1), np.float32)
         if mesh:
             _mesh_rows(out, span, return_span, 0, 0, H - 1, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
                        params.abs_tol_mm, 0, Hm - 1)
@@ -480,9 +558,9 @@ def _project_depth_to_stereo(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_z
     cam, cam_r = zed.left, zed.right
     H, W = cam.height_px, cam.width_px
     k1, k2 = _slant_bounds(mech, params)
-    out = np.full((H, W), np.nan, np.float32)
-    out_r = np.full((H, W), np.nan, np.float32)
-    span = np.full((H, W), np.nan, np.float32) if return_span else np.empty((1, 1), np.float32)
+    out = np.empty((H, W), np.float32)  # _mesh_rows_stereo sets each row to NaN as it reaches it
+    out_r = np.empty((H, W), np.float32)
+    span = np.empty((H, W) if return_span else (1, 1), np.float32)
     _mesh_rows_stereo(out, span, return_span, out_r, depth, rx, ry, R, t, cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px,
                       t_r, cam_r.cx_px, k1, k2, params.abs_tol_mm)
     return out, (span if return_span else None), out_r
