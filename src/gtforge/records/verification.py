@@ -75,7 +75,7 @@ class FruitMotion(GTModel):
     disparity_sigma_px: float | None = None  # the motion's 1-sigma disparity, 95th percentile over the fruit's pixels
     chi2_still: float | None = None  # squared Mahalanobis distance of "no motion" from the estimate
     residual_rms: float | None = None
-    status: Literal["moved", "still", "beyond limit", "undetermined", "not estimated"]
+    status: Literal["moved", "still", "beyond limit", "undetermined", "not estimated", "no ground truth"]
     reason: str = ""
 
 
