@@ -92,18 +92,21 @@ def measure(d: Path):
         m = mask & np.isfinite(disp) & np.isfinite(tr)
         return float(np.abs(disp[m] - tr[m]).mean()) if m.any() else float("nan")
 
-    # per truth fruit: its pixels at the ZED exposure (truth mask), split by which fruit is nearest
+    # per truth fruit: its pixels at the ZED exposure (truth mask), split by which fruit is nearest; before: where the
+    # first ground truth has a value, after: where both have one (a fruit too uncertain to compensate has none: nan)
     fruit_truth = z["fruit_mask"]
-    both = fruit_truth & np.isfinite(sd.disparity_px) & np.isfinite(ch.sd.disparity_px)
+    both = fruit_truth & np.isfinite(sd.disparity_px) & np.isfinite(tr)
     v, u = np.nonzero(both)
     P = rig.zed.left.unproject(np.stack([u, v], 1), rig.zed.disparity_to_depth(tr[v, u]))
     after_centres = z["fruit_centre_zed_mm"]
     who = np.argmin(np.linalg.norm(P[:, None, :] - after_centres[None], axis=2), axis=1)
-    per_fruit = []
+    per_fruit, lost = [], []
     for j in range(len(T_truth)):
         m = np.zeros_like(both)
         m[v[who == j], u[who == j]] = True
         per_fruit.append((epe(sd.disparity_px, m), epe(ch.sd.disparity_px, m), int(m.sum())))
+        # pixels of the compensated fruit without ground truth (the silhouette ring, holes)
+        lost.append(int((m & ~np.isfinite(ch.sd.disparity_px)).sum()))
     mc = ch.verification.motion_compensation
     maha = []
     if mc is not None:
@@ -117,7 +120,7 @@ def measure(d: Path):
             maha.append((j, bool(moved_truth[j]), e.mahalanobis_sq(T_truth[j]), f.status, f.disparity_sigma_px))
     return dict(status=ch.verification.status, compensated=ch.verification.compensated,
                 reasons=mc.reasons if mc is not None else ch.verification.reasons, per_fruit=per_fruit, maha=maha,
-                wall=wall, cpu=cpu, base_wall=base_wall, base_cpu=base_cpu)
+                lost=lost, wall=wall, cpu=cpu, base_wall=base_wall, base_cpu=base_cpu)
 
 
 def main():
@@ -136,7 +139,7 @@ def main():
         r = measure(d)
         r["size"] = SIZES_MM[k % len(SIZES_MM)]
         rows.append(r)
-        pf = " ".join(f"{b:.3f}->{c:.3f}" for b, c, _ in r["per_fruit"])
+        pf = " ".join(f"{b:.3f}->{c:.3f}(-{n_lost}/{n} px)" for (b, c, n), n_lost in zip(r["per_fruit"], r["lost"]))
         mh = " ".join(f"{j}:{m:.1f}{'' if moved else '(still)'}:{st}:sigma{sg:.4f}"
                       for j, moved, m, st, sg in r["maha"])
         print(f"draw {k:2d} {r['size']:4.1f} mm: {r['status']:8s} compensated={r['compensated']!s:5s} EPE per fruit "
