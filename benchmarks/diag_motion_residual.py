@@ -106,12 +106,15 @@ def run(d: Path) -> None:
         line = []
         parts = (("all", who == j), ("inner", (who == j) & inner[v, u]), ("outer 5 px", (who == j) & ~inner[v, u]))
         for part, m in parts:
-            vv, uu = v[m], u[m]
-            ok = np.isfinite(rebuilt["estimated", ring0][vv, uu]) & np.isfinite(rebuilt["true", ring0][vv, uu])
-            vv, uu = vv[ok], uu[ok]
-            vals = {k: np.abs(rebuilt[k][vv, uu] - tr[vv, uu]) for k in rebuilt}
-            line.append(f"{part} ({len(vv)} px): " + ", ".join(
-                f"{k[0]} motion{' + ring' if k[1] else ''} {np.nanmean(x):.4f}" for k, x in vals.items()))
+            vals = []
+            for ring in (0, ring0):  # where both motions' ground truths have a value
+                vm, um = v[m], u[m]
+                ok = np.isfinite(rebuilt["estimated", ring][vm, um]) & np.isfinite(rebuilt["true", ring][vm, um])
+                vv, uu = vm[ok], um[ok]
+                for name in ("estimated", "true"):
+                    err = np.abs(rebuilt[name, ring][vv, uu] - tr[vv, uu]).mean()
+                    vals.append(f"{name} motion{' + ring' if ring else ''} {err:.4f} ({len(vv)} px)")
+            line.append(f"{part}: " + ", ".join(vals))
         print(f"  truth fruit {j}: " + "; ".join(line), flush=True)
     # the estimate's own error, per term
     vp = params.verify
@@ -147,7 +150,8 @@ def run(d: Path) -> None:
             print(f"  truth fruit {j}, {name}: converged {e.converged} ({e.iterations} it.), error rotation "
                   f"{np.degrees(np.linalg.norm(err[:3])):.4f} deg, translation {np.linalg.norm(err[3:]) * 1e3:.1f} um "
                   f"(z {err[5] * 1e3:+.1f} um) -> mean |disparity change| "
-                  f"{disparity_effect(e, err, depth_truth, rig):.4f} px; squared Mahalanobis {e.mahalanobis_sq(T_truth[j]):.1f}; {cpu_s() - t0:.1f} s CPU", flush=True)
+                  f"{disparity_effect(e, err, depth_truth, rig):.4f} px; squared Mahalanobis "
+                  f"{e.mahalanobis_sq(T_truth[j]):.1f}; {cpu_s() - t0:.1f} s CPU", flush=True)
 
 
 def main():

@@ -305,13 +305,15 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
     # fruit's limb, and a moved fruit's limb lies in front of table the depth camera measured (a fruit left still
     # mostly has its own shadow there: no ground truth), so these pixels showed the table where the ZED saw the fruit
     # (measured: benchmarks/RESULTS.md, "Motion-compensated ground truth")
-    ring = np.zeros((H, W), bool)
     if SILHOUETTE_RING_PX > 0 and every:
         k = 2 * SILHOUETTE_RING_PX + 1
         ring = cv2.dilate((who > 0).view(np.uint8), np.ones((k, k), np.uint8)).view(bool) & (who == 0)
         left[ring], disp[ring], noc[ring] = np.nan, np.nan, False
         if span is not None:
             span[ring] = np.nan
+        # the right view's (disp1GT) likewise
+        ring_right = cv2.dilate((who_right > 0).view(np.uint8), np.ones((k, k), np.uint8)).view(bool) & (who_right == 0)
+        right = np.where(ring_right, np.nan, right).astype(right.dtype)
     if dropped:
         hole = np.isin(who, list(dropped))
         left[hole], disp[hole], noc[hole] = np.nan, np.nan, False
