@@ -192,6 +192,7 @@ def test_too_uncertain_fruit_lose_their_ground_truth(motion_session):
                                cap.mech_texture)
     mc = ch.verification.motion_compensation
     assert ch.verification.status == "ok" and mc.status == "compensated", mc.reasons
+    assert ch.verification.compensated_label == " (fruit motion compensated; 2 fruit too uncertain: no ground truth)"
     assert sorted(f.status for f in mc.fruit) == ["no ground truth", "no ground truth", "still"], mc.fruit
     assert all("no ground truth (holes)" in f.reason and f.disparity_sigma_px > 1e-4
                for f in mc.fruit if f.status == "no ground truth")

@@ -108,6 +108,15 @@ class SceneVerification(GTModel):
         return self.motion_compensation is not None and self.motion_compensation.status == "compensated"
 
     @property
+    def compensated_label(self) -> str:
+        """What the reports add to a compensated scene's status: " (fruit motion compensated)", with the count of fruit
+        whose motion was too uncertain (holes); "" when not compensated."""
+        if not self.compensated:
+            return ""
+        n = sum(f.status == "no ground truth" for f in self.motion_compensation.fruit)
+        return " (fruit motion compensated" + (f"; {n} fruit too uncertain: no ground truth" if n else "") + ")"
+
+    @property
     def worst_shift_px(self) -> float:
         vals = [e.magnitude_px for e in (self.texture_all, self.texture_fruit) if e.magnitude_px is not None]
         return max(vals) if vals else float("nan")
