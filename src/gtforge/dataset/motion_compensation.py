@@ -6,9 +6,10 @@ only when it flags the fruit (texture shift or stereo bias over the fruit) while
 component the motion (``gtforge.core.alignment.fruit_motion``), the depth points of the moved fruit moved by it before
 the z-buffered reprojection (``reproject_to_zed`` once for the table and once per moved fruit, the results merged by
 their z-buffers: occlusions, regions, both views and masks come out of the existing code), and verification again.
-The rebuilt ground truth replaces the first only when every moved fruit's motion is determined and within the limits
+The rebuilt ground truth replaces the first only when every moved fruit's motion converged and is within the limits
 (``MotionParams``) and the rebuilt scene passes verification; the motion's covariance then goes into the fruit's
-per-pixel sigma (``motion_sigma_px``)."""
+per-pixel sigma (``motion_sigma_px``). A moved fruit whose motion is too uncertain (``max_sigma_px``) does not keep the
+scene flagged: its pixels lose their ground truth (holes) and the rest is rebuilt."""
 from __future__ import annotations
 
 import time
