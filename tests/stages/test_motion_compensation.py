@@ -176,7 +176,7 @@ def test_moved_fruit_are_compensated(motion_datasets, motion_session):
 
 
 @pytest.mark.slow
-def test_too_uncertain_fruit_lose_their_ground_truth(motion_session):
+def test_too_uncertain_fruit_lose_their_ground_truth(motion_session, motion_datasets, tmp_path):
     """A moved fruit whose motion's disparity sigma exceeds ``MotionParams.max_sigma_px`` is not compensated, and the
     scene is not lost for it: that fruit's pixels become holes (no disparity, not non-occluded; still fruit in
     region.png) with the reason per fruit, while the rest is compensated. With the bound below every moved fruit's
@@ -211,6 +211,15 @@ def test_too_uncertain_fruit_lose_their_ground_truth(motion_session):
     d0, d1 = sd.disparity_px[vs, us], ch.sd.disparity_px[vs, us]
     assert len(vs) > 1000 and np.isfinite(d1).mean() > 0.99
     np.testing.assert_array_equal(d1[np.isfinite(d1)], d0[np.isfinite(d1)])
+    # build-dataset and gtforge verify: the scene compensated, its reports say how many fruit have no ground truth
+    out = build_dataset(motion_session, motion_datasets[2], tmp_path / "out", params, workers=1, scenes=["000"]).out_dir
+    written = read_pfm(out / "scenes" / "000" / "disp0GT.pfm")
+    assert np.array_equal(np.isfinite(written), np.isfinite(ch.sd.disparity_px))
+    rep = verify_dataset(out, scenes=["000"], workers=1)
+    label = " (fruit motion compensated; 2 fruit too uncertain: no ground truth)"
+    assert rep.scenes["000"].status == "ok" and rep.scenes["000"].compensated_label == label, rep.scenes["000"].reasons
+    assert "ok" + label in (out / "verification.html").read_text() and "no ground truth (holes)" in \
+        (out / "verification.html").read_text() and "ok" + label in (out / "build_report.html").read_text()
 
 def _far_from_fruit(*regions):
     near = np.zeros(regions[0].shape, bool)
