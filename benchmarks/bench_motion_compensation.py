@@ -92,18 +92,21 @@ def measure(d: Path):
         m = mask & np.isfinite(disp) & np.isfinite(tr)
         return float(np.abs(disp[m] - tr[m]).mean()) if m.any() else float("nan")
 
-    # per truth fruit: its pixels at the ZED exposure (truth mask), split by which fruit is nearest
+    # per truth fruit: its pixels at the ZED exposure (truth mask), split by which fruit is nearest; before: where the
+    # first ground truth has a value, after: where both have one (a fruit too uncertain to compensate has none: nan)
     fruit_truth = z["fruit_mask"]
-    both = fruit_truth & np.isfinite(sd.disparity_px) & np.isfinite(ch.sd.disparity_px)
+    both = fruit_truth & np.isfinite(sd.disparity_px) & np.isfinite(tr)
     v, u = np.nonzero(both)
     P = rig.zed.left.unproject(np.stack([u, v], 1), rig.zed.disparity_to_depth(tr[v, u]))
     after_centres = z["fruit_centre_zed_mm"]
     who = np.argmin(np.linalg.norm(P[:, None, :] - after_centres[None], axis=2), axis=1)
-    per_fruit = []
+    per_fruit, lost = [], []
     for j in range(len(T_truth)):
         m = np.zeros_like(both)
         m[v[who == j], u[who == j]] = True
         per_fruit.append((epe(sd.disparity_px, m), epe(ch.sd.disparity_px, m), int(m.sum())))
+        # pixels of the compensated fruit without ground truth (the silhouette ring, holes)
+        lost.append(int((m & ~np.isfinite(ch.sd.disparity_px)).sum()))
     mc = ch.verification.motion_compensation
     maha = []
     if mc is not None:
@@ -114,10 +117,10 @@ def measure(d: Path):
             j = int(np.argmin(np.linalg.norm(centres_before - c, axis=1)))
             e = FruitMotionEstimate(c, np.radians(f.rotvec_deg), np.array(f.translation_mm), np.array(f.cov_rad_mm),
                                     f.n_pixels, 0, True, 0.0, None, np.zeros((0, 3)))
-            maha.append((j, bool(moved_truth[j]), e.mahalanobis_sq(T_truth[j]), f.status))
+            maha.append((j, bool(moved_truth[j]), e.mahalanobis_sq(T_truth[j]), f.status, f.disparity_sigma_px))
     return dict(status=ch.verification.status, compensated=ch.verification.compensated,
                 reasons=mc.reasons if mc is not None else ch.verification.reasons, per_fruit=per_fruit, maha=maha,
-                wall=wall, cpu=cpu, base_wall=base_wall, base_cpu=base_cpu)
+                lost=lost, wall=wall, cpu=cpu, base_wall=base_wall, base_cpu=base_cpu)
 
 
 def main():
@@ -136,19 +139,22 @@ def main():
         r = measure(d)
         r["size"] = SIZES_MM[k % len(SIZES_MM)]
         rows.append(r)
-        pf = " ".join(f"{b:.3f}->{c:.3f}" for b, c, _ in r["per_fruit"])
-        mh = " ".join(f"{m:.1f}{'' if moved else '(still)'}:{st}" for _, moved, m, st in r["maha"])
+        pf = " ".join(f"{b:.3f}->{c:.3f}(-{n_lost}/{n} px)" for (b, c, n), n_lost in zip(r["per_fruit"], r["lost"]))
+        mh = " ".join(f"{j}:{m:.1f}{'' if moved else '(still)'}:{st}:sigma{sg:.4f}"
+                      for j, moved, m, st, sg in r["maha"])
         print(f"draw {k:2d} {r['size']:4.1f} mm: {r['status']:8s} compensated={r['compensated']!s:5s} EPE per fruit "
               f"{pf}; chi2 {mh}; {r['wall']:.1f} s wall ({r['cpu']:.1f} s CPU) vs plain {r['base_wall']:.1f} s; "
               f"{'; '.join(r['reasons'])[:200]}", flush=True)
     lines = ["| motion (mm / deg) | draws | compensated | moved fruit EPE before (px, mean / worst) | moved fruit EPE "
-             "after (px, mean / worst; compensated scenes) | still fruit EPE (the GT's own floor, px) | time per scene "
+             "after (px, mean / worst; compensated scenes; fruit too uncertain: holes) | still fruit EPE (the GT's own "
+             "floor, px) | time per scene "
              "(s wall / CPU; CPU x plain build+verify) |", "|---|---|---|---|---|---|---|"]
     for size in sorted({r["size"] for r in rows}):
         rs = [r for r in rows if r["size"] == size]
         comp = [r for r in rs if r["compensated"]]
         before = [b for r in rs for j, (b, c, n) in enumerate(r["per_fruit"]) if j != 1 and np.isfinite(b)]
         after = [c for r in comp for j, (b, c, n) in enumerate(r["per_fruit"]) if j != 1 and np.isfinite(c)]
+        holes = sum(x[3] == "no ground truth" for r in comp for x in r["maha"])
         still = [c for r in rs for j, (b, c, n) in enumerate(r["per_fruit"]) if j == 1 and np.isfinite(c)]
         rot = min(2.0, 2.0 / 3.0 * size) if size <= 3.0 else 5.0
         wall, cpu = np.mean([r["wall"] for r in rs]), np.mean([r["cpu"] for r in rs])
@@ -156,7 +162,7 @@ def main():
         lines.append(f"| {size:g} / {rot:.2g} | {len(rs)} | {len(comp)} | "
                      f"{np.mean(before):.3f} / {np.max(before):.3f} | "
                      + (f"{np.mean(after):.4f} / {np.max(after):.4f} ({sum(a <= 0.01 for a in after)} of {len(after)} "
-                        f"<= 0.01)" if after else "-")
+                        f"<= 0.01; {holes} without ground truth)" if after else "-")
                      + f" | {np.mean(still):.4f} | {wall:.1f} / {cpu:.1f} (x{ratio:.1f}) |")
     m = [x for r in rows if r["size"] <= 3.0 for x in r["maha"] if x[1]]
     inside = np.mean([x[2] <= CHI2_6_95 for x in m]) if m else float("nan")

@@ -132,7 +132,8 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
         seen = tr["seen_by_mech"] & np.isfinite(gt)
         if sid == rolled:  # the fruit moved: its ground truth is right only where compensated (issue 37), apart
             fr = seen & tr["fruit_mask"]
-            rolled_epe = float(np.mean(np.abs(gt[fr] - tr["zed_disparity_px"][fr])))
+            # (none when its motion was too uncertain: its pixels are then holes)
+            rolled_epe = float(np.mean(np.abs(gt[fr] - tr["zed_disparity_px"][fr]))) if fr.any() else None
             continue
         epes.append(float(np.mean(np.abs(gt[seen] - tr["zed_disparity_px"][seen]))))
     sig = [m.sigma["all"].median_px for m in Manifest.read(ds / "manifest.json").scenes.values() if m.sigma]
@@ -148,6 +149,9 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
         rows.append(("", f"scene {rolled} (its fruit rolled): fruit motion "
                      + ("compensated" if rolled in summ.compensated else "not compensated")
                      + "; its fruit's GT vs the truth at the ZED exposure, mean abs", f"{rolled_epe:.4f} px"))
+    elif rolled is not None and rolled in summ.compensated:
+        rows.append(("", f"scene {rolled} (its fruit rolled): fruit motion compensated, its motion too uncertain for "
+                     "0.01 px: the fruit has no ground truth (holes)", "-"))
     say("[7/7] evaluate the SGBM baseline against the ground truth")
     ev = evaluate(ds, SGBM(), d / "evaluation", progress=status)
     fr = ev.pooled.get("fruit")

@@ -6,9 +6,10 @@ only when it flags the fruit (texture shift or stereo bias over the fruit) while
 component the motion (``gtforge.core.alignment.fruit_motion``), the depth points of the moved fruit moved by it before
 the z-buffered reprojection (``reproject_to_zed`` once for the table and once per moved fruit, the results merged by
 their z-buffers: occlusions, regions, both views and masks come out of the existing code), and verification again.
-The rebuilt ground truth replaces the first only when every moved fruit's motion is determined and within the limits
+The rebuilt ground truth replaces the first only when every moved fruit's motion converged and is within the limits
 (``MotionParams``) and the rebuilt scene passes verification; the motion's covariance then goes into the fruit's
-per-pixel sigma (``motion_sigma_px``)."""
+per-pixel sigma (``motion_sigma_px``). A moved fruit whose motion is too uncertain (``max_sigma_px``) does not keep the
+scene flagged: its pixels lose their ground truth (holes) and the rest is rebuilt."""
 from __future__ import annotations
 
 import time
@@ -30,6 +31,8 @@ from gtforge.dataset.scene_verification import verify_scene, write_verification_
 from gtforge.infra.atomic import atomic_write_text
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import FruitMotion, MotionCompensation, SceneVerification, VerifyParams
+
+SILHOUETTE_RING_PX = 1  # farther pixels this close to a moved fruit lose their ground truth (rebuild_with_motion)
 
 
 @dataclass
@@ -131,6 +134,7 @@ def _compensate(depth_mm, rig: Rig, params: BuildParams, sd: StereoDepth, region
     n_cc, labels = cv2.connectedComponents(fruit.view(np.uint8), connectivity=8)
     fruits: list[FruitMotion] = []
     moved: dict[int, FruitMotionEstimate] = {}
+    dropped: dict[int, FruitMotionEstimate] = {}
     cam = rig.zed.left
     for k in range(1, n_cc):
         comp = labels == k
@@ -155,8 +159,12 @@ def _compensate(depth_mm, rig: Rig, params: BuildParams, sd: StereoDepth, region
         elif fm.chi2_still < mp.min_chi2:
             fm.status, fm.reason = "still", f"no significant motion (chi2 {fm.chi2_still:.1f} < {mp.min_chi2:g})"
         elif fm.disparity_sigma_px > mp.max_sigma_px:
-            fm.status = "undetermined"
-            fm.reason = (f"the motion's disparity sigma {fm.disparity_sigma_px:.3f} px > {mp.max_sigma_px:g} px")
+            # too uncertain for the ground truth's accuracy: rather than lose the scene, this fruit's pixels lose
+            # their ground truth (it still occludes, where its estimate puts it) and the rest is rebuilt
+            fm.status = "no ground truth"
+            fm.reason = (f"the motion's disparity sigma {fm.disparity_sigma_px:.4f} px > {mp.max_sigma_px:g} px: "
+                         "its pixels have no ground truth (holes)")
+            dropped[k] = est
         else:
             fm.status = "moved"
             moved[k] = est
@@ -164,12 +172,12 @@ def _compensate(depth_mm, rig: Rig, params: BuildParams, sd: StereoDepth, region
     for fm in fruits:
         if fm.status in ("beyond limit", "undetermined"):
             reasons.append(f"fruit {fm.component}: {fm.status}: {fm.reason}")
-    if not moved and not reasons:
+    if not moved and not dropped and not reasons:
         reasons.append("no fruit moved significantly: the flag has another cause")
     record = MotionCompensation(status="not compensated", reasons=reasons, fruit=fruits)
     if reasons:
         return record, None
-    return record, rebuild_with_motion(depth_mm, rig, params, sd, labels, moved, user_mask)
+    return record, rebuild_with_motion(depth_mm, rig, params, sd, labels, moved, user_mask, dropped)
 
 
 def _fruit_record(k: int, est: FruitMotionEstimate, sd: StereoDepth, rig: Rig) -> FruitMotion:
@@ -213,7 +221,8 @@ def _point_disparity_sigma(est: FruitMotionEstimate, rig: Rig) -> np.ndarray:
 
 
 def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd: StereoDepth, labels: np.ndarray,
-                        moved: dict[int, FruitMotionEstimate], user_mask: np.ndarray | None = None):
+                        moved: dict[int, FruitMotionEstimate], user_mask: np.ndarray | None = None,
+                        dropped: dict[int, FruitMotionEstimate] | None = None):
     """The ground truth with each moved fruit's depth points moved: ``(StereoDepth, region, fruit, motion sigma,
     (owner, motions))``, ``owner`` which moved fruit each ZED-left pixel shows (0: none) and ``motions`` each one's
     ``T_zed_moved_from_zed`` (``verify_scene``'s ``moved``); None when the ground truth holds too little table.
@@ -223,7 +232,9 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
     points fall on. The table and every fruit left where it was are reprojected as built; each moved fruit alone with
     ``T_zed_moved_from_zed @ T_zed_from_depth`` (a rigid motion of the points is a change of the extrinsic for them);
     the views are merged by their z-buffers. A surface the depth camera never saw (the table the fruit uncovered)
-    stays without ground truth."""
+    stays without ground truth. Each fruit of ``dropped`` (its motion too uncertain) is moved likewise, so that it
+    occludes where it went, and then its ZED-left pixels lose their ground truth (NaN, not non-occluded); the regions
+    still show it as fruit."""
     depth = np.asarray(rig.corrected_depth_mm(depth_mm), np.float32)
     Hd, Wd = depth.shape
     cam_d = rig.depth_camera
@@ -267,10 +278,12 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
     part_of[vd, ud] = point_owner
     rp = params.reproject_params()
     parts = []
-    rest = np.where(np.isin(part_of, list(moved)), np.nan, depth).astype(np.float32)
+    dropped = dropped or {}
+    every = {**moved, **dropped}
+    rest = np.where(np.isin(part_of, list(every)), np.nan, depth).astype(np.float32)
     parts.append((0, reproject_to_zed(rest, cam_d, rig.T_zed_from_depth, rig.zed, rp, params.occlusion_rel_tol,
                                       left_span=params.sigma and params.mode == "mesh")))
-    for k, est in moved.items():
+    for k, est in every.items():
         dk = np.where(part_of == k, depth, np.nan).astype(np.float32)
         parts.append((k, reproject_to_zed(dk, cam_d, est.T_zed_moved_from_zed @ rig.T_zed_from_depth, rig.zed, rp,
                                           params.occlusion_rel_tol, left_span=params.sigma and params.mode == "mesh")))
@@ -278,16 +291,38 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
     right = parts[0][1].depth_right_mm.copy()
     span = None if parts[0][1].span_mm is None else parts[0][1].span_mm.copy()
     who = np.zeros((H, W), np.int64)
+    who_right = np.zeros((H, W), np.int64)
     for k, p in parts[1:]:
         nearer = np.isfinite(p.depth_mm) & ~(left <= p.depth_mm)  # NaN in left: nearer
         left[nearer] = p.depth_mm[nearer]
         who[nearer] = k
         if span is not None:
             span[nearer] = p.span_mm[nearer]
+        who_right[np.isfinite(p.depth_right_mm) & ~(right <= p.depth_right_mm)] = k
         right = np.fmin(right, p.depth_right_mm)
     disp, noc = disparity_and_nonoccluded(left, right, rig.zed, params.occlusion_rel_tol)
-    sd2 = StereoDepth(left, disp, right, noc, span)
     region, fruit = fruit_regions(left, rig.zed, params, user_mask)
+    # the ring of farther surface just outside a moved fruit: the depth grid's mesh stops up to a pixel short of the
+    # fruit's limb, and a moved fruit's limb lies in front of table the depth camera measured (a fruit left still
+    # mostly has its own shadow there: no ground truth), so these pixels showed the table where the ZED saw the fruit
+    # (measured: benchmarks/RESULTS.md, "Motion-compensated ground truth")
+    if SILHOUETTE_RING_PX > 0 and every:
+        k = 2 * SILHOUETTE_RING_PX + 1
+        ring = cv2.dilate((who > 0).view(np.uint8), np.ones((k, k), np.uint8)).view(bool) & (who == 0)
+        left[ring], disp[ring], noc[ring] = np.nan, np.nan, False
+        if span is not None:
+            span[ring] = np.nan
+        # the right view's (disp1GT) likewise
+        ring_right = cv2.dilate((who_right > 0).view(np.uint8), np.ones((k, k), np.uint8)).view(bool) & (who_right == 0)
+        right = np.where(ring_right, np.nan, right).astype(right.dtype)
+    if dropped:
+        hole = np.isin(who, list(dropped))
+        left[hole], disp[hole], noc[hole] = np.nan, np.nan, False
+        if span is not None:
+            span[hole] = np.nan
+        who[hole] = 0
+        right = np.where(np.isin(who_right, list(dropped)), np.nan, right).astype(right.dtype)
+    sd2 = StereoDepth(left, disp, right, noc, span)
     return sd2, region, fruit, motion_sigma_px(left, who, moved, rig), \
         (who, {k: e.T_zed_moved_from_zed for k, e in moved.items()})
 

@@ -45,7 +45,7 @@ def write_build_report(manifest, out: Path, sigma_vmax_px: float = 0.1) -> Path:
         v = m.verification
         rows.append([sid, m.fruit_id or "", _f(m.stats.valid_pct, "{:.1f}"), _f(m.stats.fruit_pct, "{:.1f}"),
                      f"{_f(m.stats.disp_min_px, '{:.1f}')} - {_f(m.stats.disp_max_px, '{:.1f}')}",
-                     "-" if v is None else (v.status + (" (fruit motion compensated)" if v.compensated else "")),
+                     "-" if v is None else v.status + v.compensated_label,
                      cell("all"), cell("fruit_centre"), cell("fruit_edge"),
                      cell("background"),
                      "" if m.sigma_extrinsic_included or not m.sigma else "no calibration covariance"])

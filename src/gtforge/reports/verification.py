@@ -83,7 +83,7 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
         sf = v.stereo.get("fruit")
         ta, tf = v.texture_all, v.texture_fruit
         rows.append([sid, v.status.upper() if v.status == "flagged" else
-                     (v.status + " (fruit motion compensated)" if v.compensated else v.status),
+                     v.status + v.compensated_label,
                      _fn(ta.dx_px, ta.dx_noise_px) + " / " + _fn(ta.dy_px, ta.dy_noise_px),
                      _fn(tf.dx_px, tf.dx_noise_px) + " / " + _fn(tf.dy_px, tf.dy_noise_px),
                      _fn(ta.correlation, ta.correlation_noise, "{:.2f}") + " / "

@@ -146,11 +146,12 @@ def _robust_scale(r: np.ndarray) -> float:
 
 
 def estimate_fruit_motion(points_zed_mm: np.ndarray, pixels_vu: tuple[np.ndarray, np.ndarray], images: MotionImages,
-                          zed: RectifiedStereo, use_texture: bool = True, use_stereo: bool = True
-                          ) -> FruitMotionEstimate | None:
+                          zed: RectifiedStereo, use_texture: bool = True, use_stereo: bool = True,
+                          initial_T: np.ndarray | None = None) -> FruitMotionEstimate | None:
     """The rigid motion of one fruit (module docstring). ``points_zed_mm`` (N, 3): the fruit's ground-truth points
     (ZED-left frame, at the depth exposure), at the ZED-left pixels ``pixels_vu`` (integer rows, columns) where the
-    ground truth put them. None when too few points or the fit diverges."""
+    ground truth put them. ``initial_T``: a start ``T_zed_moved_from_zed`` instead of the texture shift (diagnostics:
+    each term's own optimum near the truth). None when too few points or the fit diverges."""
     v0, u0 = pixels_vu
     keep = even_subset(len(points_zed_mm), MAX_POINTS)
     X0 = np.asarray(points_zed_mm, np.float64)[keep]
@@ -168,9 +169,13 @@ def estimate_fruit_motion(points_zed_mm: np.ndarray, pixels_vu: tuple[np.ndarray
     c = X0.mean(axis=0)
     Xc = X0 - c
     z_med = float(np.median(X0[:, 2]))
-    d2 = images.initial_shift_px(v0, u0) if texture else np.zeros(2)
-    omega = np.zeros(3)
-    t = np.array([d2[0] * z_med / zed.left.fx_px, d2[1] * z_med / zed.left.fy_px, 0.0])
+    if initial_T is None:
+        d2 = images.initial_shift_px(v0, u0) if texture else np.zeros(2)
+        omega = np.zeros(3)
+        t = np.array([d2[0] * z_med / zed.left.fx_px, d2[1] * z_med / zed.left.fy_px, 0.0])
+    else:
+        Ri, pi = np.asarray(initial_T, np.float64)[:3, :3], np.asarray(initial_T, np.float64)[:3, 3]
+        omega, t = so3_log(Ri), Ri @ c + pi - c
     converged, it_total, cov, rms = False, 0, None, float("nan")
     corr = None
     for level, (cl, cr, tex) in enumerate(images.levels):
