@@ -32,10 +32,9 @@ from gtforge.core.targets.coverage import coverage_report
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
 from gtforge.core.zed.rectification import RectificationMeter
 from gtforge.core.zed.selfcal import SelfRectifyParams
-from gtforge.core.targets.detection import PairSkipped, detect_ahead, detect_target, match_target_views
+from gtforge.core.targets.detection import PairSkipped, captures_detected_ahead, detect_target, match_target_views
 from gtforge.core.targets.models import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
-from gtforge.infra.threads import ordered_map
 from gtforge.io.calibrated_session import calibration_output_path, session_board
 from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by, self_rectify, settle_zed_conf_reading
@@ -296,18 +295,11 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     meter = RectificationMeter(board, session.zed.left, rectified_by(session), zed_right=session.zed.right)
     obs, reports = [], []
 
-    def load(d: Path):
-        """A capture and its board detections, found ahead on a thread (``detect_ahead``; ``detect_pose`` and the
-        meter below get them from the remembered detections); its InputError is dealt with in order, below."""
-        try:
-            cap = session.load_capture(d, need_right=False)
-        except InputError as exc:
-            return None, exc
-        detect_ahead(board, [(cap.mech_texture, session.mech), (cap.zed_left, session.zed.left),
-                             (cap.zed_right, meter.cam_right)])
-        return cap, None
-
-    for k, (d, (cap, exc)) in enumerate(zip(dirs, ordered_map(load, dirs))):
+    # each capture's board detections found ahead on a thread: detect_pose and the meter get them remembered
+    ahead = captures_detected_ahead(dirs, lambda d: session.load_capture(d, need_right=False), board,
+                                    lambda cap: [(cap.mech_texture, session.mech), (cap.zed_left, session.zed.left),
+                                                 (cap.zed_right, meter.cam_right)])
+    for k, (d, cap, exc) in enumerate(ahead):
         if progress:
             progress(f"detect {d.name} ({k + 1}/{len(dirs)})")
         if exc is not None:  # a file missing: skipped, as a capture without the board; a file wrong: stop

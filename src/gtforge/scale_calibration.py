@@ -69,7 +69,7 @@ from gtforge.core.zed.scale_corrections import (
 )
 from gtforge.core.targets.detection import (
     PairSkipped,
-    detect_ahead,
+    captures_detected_ahead,
     detect_target,
     pnp_bias_corrected,
     unmirror_symmetric_grid,
@@ -78,7 +78,6 @@ from gtforge.core.targets.models import MIN_COMMON_CORNERS, CircleGridSpec, coll
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
-from gtforge.infra.threads import ordered_map
 from gtforge.io.calibrated_session import open_calibrated_session
 from gtforge.io.captures import missing_capture_file
 from gtforge.records.calibration import (
@@ -378,18 +377,11 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
     X = board.corners_board()
     zed_poses, depth_poses = [], []
 
-    def load(d: Path):
-        """A capture and its board detections, found ahead on a thread (``detect_ahead``: the calls below get them
-        from the remembered detections); its InputError is dealt with in order, below."""
-        try:
-            cap = session.load_capture(d)
-        except InputError as exc:
-            return None, exc
-        detect_ahead(board, [(cap.zed_left, rig.zed.left), (cap.zed_right, rig.zed.right),
-                             (cap.mech_texture, rig.mech)])
-        return cap, None
-
-    for k, (d, (cap, exc)) in enumerate(zip(dirs, ordered_map(load, dirs))):
+    # each capture's board detections found ahead on a thread: the calls below get them remembered
+    ahead = captures_detected_ahead(dirs, session.load_capture, board,
+                                    lambda cap: [(cap.zed_left, rig.zed.left), (cap.zed_right, rig.zed.right),
+                                                 (cap.mech_texture, rig.mech)])
+    for k, (d, cap, exc) in enumerate(ahead):
         if progress:
             progress(f"board {d.name} ({k + 1}/{len(dirs)})")
         if exc is not None:  # as calibrate: a board capture's file missing skips it; a file wrong stops

@@ -37,12 +37,11 @@ from gtforge.core.measure.gauges import (
 from gtforge.core.geometry import fit_plane, fit_plane_robust, invert_T, transform_points
 from gtforge.core.zed.rectification import RectificationMeter
 from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
-from gtforge.core.targets.detection import detect_ahead, matched_points
+from gtforge.core.targets.detection import captures_detected_ahead, matched_points
 from gtforge.core.targets.models import check_board_model, neighbour_pairs
 from gtforge.core.ground_truth.uncertainty import UncertaintyParams, disparity_sigma
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
-from gtforge.infra.threads import ordered_map
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
 from gtforge.io.zed_rectification import rectified_by
@@ -247,18 +246,11 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     used = set(calib.captures_used)
     poses, vecs, skipped = [], [], {}
 
-    def load(d: Path):
-        """A capture and its board detections, found ahead on a thread (``detect_ahead``: ``validate_pose`` and the
-        meter get them from the remembered detections); its InputError is dealt with in order, below."""
-        try:
-            cap = session.load_capture(d, need_right=False)
-        except InputError as exc:
-            return None, exc
-        detect_ahead(board, [(cap.mech_texture, calib.rig.mech), (cap.zed_left, calib.rig.zed.left),
-                             (cap.zed_right, calib.rig.zed.right)])
-        return cap, None
-
-    for k, (d, (cap, exc)) in enumerate(zip(dirs, ordered_map(load, dirs))):
+    # each capture's board detections found ahead on a thread: validate_pose and the meter get them remembered
+    ahead = captures_detected_ahead(dirs, lambda d: session.load_capture(d, need_right=False), board,
+                                    lambda cap: [(cap.mech_texture, calib.rig.mech), (cap.zed_left, calib.rig.zed.left),
+                                                 (cap.zed_right, calib.rig.zed.right)])
+    for k, (d, cap, exc) in enumerate(ahead):
         if progress:
             progress(f"validate {d.name} ({k + 1}/{len(dirs)})")
         if exc is not None:  # as calibrate: a file missing skips the capture; a file wrong stops

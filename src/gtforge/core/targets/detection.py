@@ -9,6 +9,8 @@ from __future__ import annotations
 import logging
 import pickle
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -27,6 +29,7 @@ from gtforge.core.targets.models import (
 )
 from gtforge.errors import InputError
 from gtforge.infra.digest import blake3_hex
+from gtforge.infra.threads import ordered_map
 
 log = logging.getLogger("gtforge.core.targets.models")
 
@@ -656,6 +659,23 @@ def detect_ahead(spec, views) -> None:
             detect_target(image, spec, cam)
         except Exception:  # noqa: BLE001 (raised again, in order, by the stage's own call)
             pass
+
+
+def captures_detected_ahead(dirs, load, spec, views) -> Iterator[tuple[Path, object, InputError | None]]:
+    """``load(d)`` for every capture folder of ``dirs``, with ``spec`` detected in the ``(image, camera)`` pairs that
+    ``views(capture)`` names (``detect_ahead``), on ``gtforge.infra.threads.ordered_map``'s threads, yielded in the
+    folders' order as ``(d, capture, None)``, or ``(d, None, exc)`` where ``load`` raised an ``InputError``: the
+    calibration stages' loops skip a missing file and stop on a wrong one, in order, as they read them one by one."""
+    def one(d):
+        try:
+            cap = load(d)
+        except InputError as exc:
+            return None, exc
+        detect_ahead(spec, views(cap))
+        return cap, None
+
+    for d, (cap, exc) in zip(dirs, ordered_map(one, dirs)):
+        yield d, cap, exc
 
 
 def pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarray, np.ndarray]:
