@@ -30,6 +30,7 @@ from gtforge.core.alignment.photometric import (
     spline_prefilter,
 )
 from gtforge.core.camera import RectifiedStereo
+from gtforge.core.geometry import make_T
 
 # blur (px at the images' resolution) of the coarse and the fine pass: the coarse one brings shifts of several pixels
 # into the fine one's reach
@@ -78,10 +79,7 @@ class FruitMotionEstimate:
     @property
     def T_zed_moved_from_zed(self) -> np.ndarray:
         R = so3_exp(self.rotvec_rad)
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = self.centre_mm + self.translation_mm - R @ self.centre_mm
-        return T
+        return make_T(R, self.centre_mm + self.translation_mm - R @ self.centre_mm)
 
     def params_from_T(self, T_zed_moved_from_zed: np.ndarray) -> np.ndarray:
         """Another motion (a truth) in this estimate's parameters about ``centre_mm``: ``(omega, t)``."""
