@@ -308,19 +308,19 @@ def recording_serials(rgbd: RgbdRecording, stereo: StereoRecording | None) -> di
     return out
 
 
-def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording | None) -> None:
+def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording | None,
+                   earlier: list[ImportRun]) -> None:
     """``--add``: the recordings must come from the rig the session was made with: the same device serials as every
-    earlier import (``import.json``), the same texture camera, depth camera and ``T_mech_from_depth``, and the same
-    stereo pair (its rectified model; an SN.conf the same file) as the session's files. A mismatch is a one-line
-    error before anything is written."""
+    earlier import (``earlier``: ``import.json``'s runs), the same texture camera, depth camera and
+    ``T_mech_from_depth``, and the same stereo pair (its rectified model; an SN.conf the same file) as the session's
+    files. A mismatch is a one-line error before anything is written."""
     hint = "these recordings come from another rig, unit or resolution: import them into a new session"
     serials = recording_serials(rgbd, stereo)
-    if (session / "import.json").is_file():
-        for run in ImportRecord.read(session / "import.json").runs:
-            for role, serial in run.serials.items():
-                if serials.get(role, serial) != serial:
-                    raise InputError(session / "import.json", f"serials.{role}", f"the {role} device {serial}",
-                                     f"{serials[role]} ({rgbd.path if role == 'depth' else stereo.path})", hint)
+    for run in earlier:
+        for role, serial in run.serials.items():
+            if serials.get(role, serial) != serial:
+                raise InputError(session / "import.json", f"serials.{role}", f"the {role} device {serial}",
+                                 f"{serials[role]} ({rgbd.path if role == 'depth' else stereo.path})", hint)
     if not (session / "session.yaml").is_file():
         return
     sf = SessionFile.read(session / "session.yaml")
@@ -362,12 +362,10 @@ def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording |
                          f"in {stereo.path.name}", hint)
 
 
-def check_not_imported(session: Path, sources: list[SourceFile]) -> None:
-    """``--add``: a recording file already imported into the session (the same BLAKE3, under any name) would add
-    its captures a second time; a one-line error before anything is written."""
-    if not (session / "import.json").is_file():
-        return
-    seen = {f.blake3: f.path for run in ImportRecord.read(session / "import.json").runs for f in run.sources}
+def check_not_imported(sources: list[SourceFile], earlier: list[ImportRun]) -> None:
+    """``--add``: a recording file already imported into the session (the same BLAKE3 in ``earlier``, ``import.json``'s
+    runs, under any name) would add its captures a second time; a one-line error before anything is written."""
+    seen = {f.blake3: f.path for run in earlier for f in run.sources}
     for f in sources:
         if f.blake3 in seen:
             raise InputError(f.path, "recording", "a recording not yet imported into this session",
@@ -398,8 +396,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         rgbd, stereo = opened.rgbd, opened.stereo
         sources = _sources(paths)
         if add and exists:
-            check_same_rig(session, rgbd, stereo)
-            check_not_imported(session, sources)
+            record = session / "import.json"
+            earlier = ImportRecord.read(record).runs if record.is_file() else []
+            check_same_rig(session, rgbd, stereo, earlier)
+            check_not_imported(sources, earlier)
         kept, dropped, offset, source, n_same = plan_pairs(rgbd, stereo, params, progress)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
