@@ -6,12 +6,17 @@ beside the source (``__pycache__``; numba's own cache folder where that is read-
 round 10). ``make setup`` (scripts/setup.sh) runs ``python -m gtforge.precompile`` once after installing; every later
 process loads the kernels from the cache.
 
+It also writes the package's bytecode (``compile_bytecode``): where Python does not write it on import (an editable
+install run with ``PYTHONDONTWRITEBYTECODE``, as on CI, or a read-only checkout), every command, fork server and
+worker would compile gtforge's source again (0.1-0.2 s of each command's start: benchmarks/RESULTS.md, "Round 6").
+
 It builds one small synthetic scene (default options: verification, sigma map, right view) in this process, once
 with one numba thread (the kernels a build worker runs when ``--workers`` = cores) and once with every core (the
 parallel ones an in-process build runs), into a temporary folder it removes.
 """
 from __future__ import annotations
 
+import compileall
 import logging
 import sys
 import tempfile
@@ -39,6 +44,17 @@ KERNELS = (
     "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
     "gtforge.core.lens._undistort_kernel_serial",
 )
+
+
+def compile_bytecode(package_dir: Path | None = None) -> int:
+    """Write the bytecode (``__pycache__/*.pyc``) of every module under ``package_dir`` (default: gtforge's own folder)
+    that lacks it or whose source changed. Returns how many modules then have a bytecode file; a folder this process
+    may not write to is left as it is (Python compiles its source on import, as before)."""
+    import importlib.util
+
+    root = Path(package_dir) if package_dir is not None else Path(__file__).resolve().parent
+    compileall.compile_dir(root, quiet=2)
+    return sum(Path(importlib.util.cache_from_source(str(p))).is_file() for p in root.rglob("*.py"))
 
 
 def compile_kernels(scale: float = 0.25) -> float:
@@ -74,6 +90,7 @@ def compile_kernels(scale: float = 0.25) -> float:
 
 
 def main() -> int:
+    compile_bytecode()
     print("gtforge: compiling the build's kernels into numba's cache (once after an install; about half a minute)",
           flush=True)
     print(f"gtforge: kernels compiled and cached in {compile_kernels():.0f} s")

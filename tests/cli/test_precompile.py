@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 import subprocess
 import sys
@@ -38,3 +39,25 @@ def test_after_precompile_a_build_compiles_nothing(tmp_path, session_dir, true_c
     assert r.returncode == 0, r.stderr[-3000:]
     assert "failed 0" in r.stdout
     assert _cache_state(cache) == before
+
+
+
+def test_compile_bytecode_writes_what_import_would_not(tmp_path):
+    from gtforge.precompile import compile_bytecode
+
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    for rel, src in (("__init__.py", "A_MM = 1\n"), ("sub/__init__.py", ""), ("sub/mod.py", "B_PX = 2.5\n")):
+        (pkg / rel).write_text(src)
+    pyc = [importlib.util.cache_from_source(str(pkg / rel)) for rel in ("__init__.py", "sub/__init__.py", "sub/mod.py")]
+    assert compile_bytecode(pkg) == 3
+    assert all(os.path.isfile(p) for p in pyc)
+    # a changed source gets fresh bytecode (its header records the source's mtime); an unchanged one keeps its file
+    kept = os.stat(pyc[0]).st_mtime_ns
+    (pkg / "sub" / "mod.py").write_text("B_PX = 3.5  # changed\n")
+    new_s = int(os.stat(pyc[2]).st_mtime) + 5
+    os.utime(pkg / "sub" / "mod.py", (new_s, new_s))
+    assert compile_bytecode(pkg) == 3
+    assert os.stat(pyc[0]).st_mtime_ns == kept
+    with open(pyc[2], "rb") as f:
+        assert int.from_bytes(f.read(12)[8:12], "little") == new_s

@@ -11,6 +11,8 @@ Each command imports its stage inside its function (the package's only function-
 """
 from __future__ import annotations
 
+import atexit
+import gc
 import logging
 import signal
 import sys
@@ -784,6 +786,11 @@ def _raise_interrupted(signum, frame) -> None:
 
 
 def main() -> None:
+    # At exit the interpreter's teardown would garbage-collect every object numba, LLVM and pydantic made: 0.1-0.2 s
+    # of every command that loaded them (benchmarks/RESULTS.md, "The exit"). Frozen, they are left to the OS; by then
+    # every file gtforge writes is complete and closed (the atexit handlers registered later, multiprocessing's
+    # included, run first).
+    atexit.register(gc.freeze)
     # Ctrl-C raises Interrupted (not KeyboardInterrupt, which Click turns into "Aborted!" and exit 1):
     # stages clean up, say what is complete, and the command exits with 130 like any interrupted program.
     signal.signal(signal.SIGINT, _raise_interrupted)
