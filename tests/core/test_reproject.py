@@ -251,3 +251,13 @@ def test_finite_box_is_the_bounding_box_of_the_finite_values():
     a = np.full((5, 6), np.nan)
     a[4, 5] = -2.0
     assert finite_box(a) == (4, 5, 5, 6)
+    # the search reads rows from both ends and, in the rows between, only the columns outside the box found so far:
+    # boxes widened left and right by later rows, single values, full and empty rows, views with other strides
+    for _ in range(400):
+        shape = tuple(rng.integers(1, 25, 2))
+        a = np.full(shape, np.nan, rng.choice([np.float32, np.float64]))
+        a[rng.random(shape) < rng.choice([0.002, 0.02, 0.2, 1.0])] = rng.normal()
+        a[rng.random(shape) < 0.05] = rng.choice([np.inf, -np.inf])
+        for view in (a, a.T, a[:, ::-1]):
+            box = mask_bounding_box(np.isfinite(view))
+            assert finite_box(view) == (box if box else (0, 0, 0, 0))
