@@ -624,6 +624,14 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
     y0, y1, x0, x1 = finite_box(depth_l)  # no depth outside it: no disparity, nothing non-occluded
     disp[:y0] = nan32
     disp[y1:] = nan32
+    # E[k]: the nearer of the two other-view samples around a match, fmin(rrow[k - 1], rrow[k]) (rrow[0], rrow[W - 1]
+    # at the ends): match column u0 (clamped to 0..W-1, and its neighbour u0 + 1 clamped) reads E[u0 + 1], or
+    # E[W - 1 - u0] in the mirrored image's columns. One load a pixel instead of two, mirrored or not
+    E = np.empty(W + 1, np.float32)
+    E1 = E[1:W]
+    ka, ks = (W - 1, -1) if mirrored else (1, 1)  # E's index of u0: ka + ks * u0
+    ub, us = (W - 1 - x0, -1) if mirrored else (x0, 1)  # the (mirrored) image's column of box column i: ub + us * i
+    Wf = W + 0.0
     for v in range(y0, y1):
         drow, rrow = disp[v], depth_r[v]
         drow[:x0] = nan32
@@ -635,18 +643,19 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
             zl = zs[i]
             q = np.float32(fB / np.float64(zl) - doffs)
             ds[i] = q if zl > 0.0 else nan32
+        ra, rb = rrow[:W - 1], rrow[1:]
+        for k in range(W - 1):
+            E1[k] = np.fmin(ra[k], rb[k])  # NaN only if both are NaN
+        E[0] = rrow[0]
+        E[W] = rrow[W - 1]
         for i in range(x1 - x0):
             d = ds[i]
             if abs(d) < np.inf:
-                zl = zs[i]
-                u = x0 + i
-                ur = (W - 1 - u if mirrored else u) - np.float64(d)  # in the (mirrored) image's columns
-                u0 = min(max(math.floor(min(max(ur, -1.0), W + 0.0)), 0), W - 1)
-                u1 = min(u0 + 1, W - 1)
-                if mirrored:
-                    u0, u1 = W - 1 - u0, W - 1 - u1
-                zr = np.fmin(rrow[u0], rrow[u1])  # NaN only if both are NaN
-                occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zl * keep) - tol))
+                ur = np.float64(ub + us * i) - np.float64(d)  # in the (mirrored) image's columns
+                # floor(ur) clamped to 0..W-1: truncation equals floor for the non-negative values clamping leaves
+                u0 = min(np.int64(min(max(ur, 0.0), Wf)), W - 1)
+                zr = E[ka + ks * u0]
+                occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zs[i] * keep) - tol))
                 ns[i] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
     return disp, noc
 
