@@ -388,6 +388,32 @@ def test_fit_plane_robust_counts_as_numpy_and_finds_the_plane():
     assert inliers[1::2].mean() > 0.99 and inliers[::2].mean() < 0.05
 
 
+def test_region_kernels_equal_their_numpy_definitions():
+    """fruit_regions' compiled passes: the first labels and the GT's box (``_gt_region``), the box's GT pixels
+    (``_gt_pixels``) and the height test (``_above_plane``) against the numpy expressions they replace."""
+    from gtforge.core.geometry import mask_bounding_box
+    from gtforge.core.ground_truth.regions import REGION_BG, _above_plane, _gt_pixels, _gt_region
+
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        shape = tuple(int(x) for x in rng.integers(1, 30, 2))
+        depth = rng.uniform(-50, 900, shape).astype(rng.choice([np.float32, np.float64]))
+        depth[rng.random(shape) < rng.choice([0.0, 0.3, 0.97, 1.0])] = np.nan
+        depth[rng.random(shape) < 0.05] = rng.choice([np.inf, -np.inf])
+        valid = np.isfinite(depth)
+        region, box = _gt_region(depth)
+        np.testing.assert_array_equal(region, valid.astype(np.uint8) * np.uint8(REGION_BG))
+        assert region.dtype == np.uint8 and box == mask_bounding_box(valid)
+        if box is None:
+            continue
+        y0, y1, x0, x1 = box
+        np.testing.assert_array_equal(_gt_pixels(depth, *box), np.flatnonzero(valid[y0:y1, x0:x1]))
+        a, b, thr = rng.normal(0, 1, x1 - x0), rng.normal(0, 1, y1 - y0), float(rng.normal(0, 300))
+        n_p = a[None, :] + b[:, None]
+        n_p *= depth[y0:y1, x0:x1]
+        np.testing.assert_array_equal(_above_plane(depth, y0, x0, a, b, thr), (n_p > thr) & valid[y0:y1, x0:x1])
+
+
 def test_fruit_regions_equal_the_point_cloud_computation():
     """fruit_regions builds 3-D points for the plane's sample only and works on bounding boxes; the labels must
     equal the plain computation: every GT pixel's point, its height above the same plane, components of the whole
