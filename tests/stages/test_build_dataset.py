@@ -609,6 +609,16 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
         finite = d[np.isfinite(d)]
         assert _disparity_summary(d, 192.0) == (finite.size, finite.min(), finite.max(), int((finite > 192.0).sum()))
     assert _disparity_summary(np.full((4, 5), np.nan, np.float32), 192.0)[0] == 0
+    # the min and max are integer reductions over the bits in float order: negative values, subnormals, the largest
+    # floats; where one of them is zero, -0.0 or +0.0 as a float min or max gives it (the first in raster order)
+    for values, lo, hi in (([-3.5, -1e-40, 2.0, 3e38], -3.5, 3e38), ([-3e38, -7.0, -1e-40], -3e38, -1e-40),
+                           ([0.0, -0.0, 5.0], 0.0, 5.0), ([-0.0, 0.0, 5.0], -0.0, 5.0), ([-2.0, -0.0, 0.0], -2.0, -0.0),
+                           ([-2.0, 0.0, -0.0], -2.0, 0.0)):
+        d = np.full((3, 7), np.nan, np.float32)
+        d[1, 2:2 + len(values)] = values
+        n, got_lo, got_hi, _ = _disparity_summary(d, 192.0)
+        assert n == len(values) and got_lo == np.float32(lo) and got_hi == np.float32(hi)
+        assert np.signbit(got_lo) == np.signbit(np.float32(lo)) and np.signbit(got_hi) == np.signbit(np.float32(hi))
     from gtforge.core.camera import PinholeCamera, RectifiedStereo
 
     zed = RectifiedStereo(left=PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=40.0, cy_px=30.0, width_px=80,
