@@ -631,7 +631,7 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
     E1 = E[1:W]
     ka, ks = (W - 1, -1) if mirrored else (1, 1)  # E's index of u0: ka + ks * u0
     ub, us = (W - 1 - x0, -1) if mirrored else (x0, 1)  # the (mirrored) image's column of box column i: ub + us * i
-    Wf = W + 0.0
+    Wm1 = W - 1.0
     for v in range(y0, y1):
         drow, rrow = disp[v], depth_r[v]
         drow[:x0] = nan32
@@ -652,9 +652,10 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
             d = ds[i]
             if abs(d) < np.inf:
                 ur = np.float64(ub + us * i) - np.float64(d)  # in the (mirrored) image's columns
-                # floor(ur) clamped to 0..W-1: truncation equals floor for the non-negative values clamping leaves
-                u0 = min(np.int64(min(max(ur, 0.0), Wf)), W - 1)
-                zr = E[ka + ks * u0]
+                # floor(ur) clamped to 0..W-1: truncation equals floor for the non-negative values clamping leaves;
+                # an unsigned index (never negative) needs no wraparound test
+                u0 = np.int64(min(max(ur, 0.0), Wm1))
+                zr = E[np.uint64(ka + ks * u0)]
                 occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zs[i] * keep) - tol))
                 ns[i] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
     return disp, noc
