@@ -310,9 +310,9 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         cand[n] = c
         n += Q[0, c] != 0.0
     for i in range(n):
-        c = cand[i]
+        c = np.uint64(cand[i])  # unsigned indices (never negative here) need no wraparound test
         if Q[0, c] == 1.0:
-            j = int(Q[1, c])
+            j = np.uint64(Q[1, c])
             zf = np.float32(Q[2, c])
             old = flat[j]
             keep = old <= zf  # else empty (NaN) or farther: replaced
@@ -321,7 +321,7 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
                 sflat[j] = sflat[j] if keep else S[c]
         else:  # several pixel centres in the box, or a quad with three valid corners
             fl = F[c]
-            ad, c1 = (fl & 4) != 0, c + 1
+            ad, c1 = (fl & 4) != 0, c + np.uint64(1)
             _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi,
                           Ut[c] if ad else Ut[c1], Vt[c] if ad else Vt[c1], Wt[c] if ad else Wt[c1],
                           Ub[c1] if ad else Ub[c], Vb[c1] if ad else Vb[c], Wb[c1] if ad else Wb[c],
