@@ -632,6 +632,9 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
     ka, ks = (W - 1, -1) if mirrored else (1, 1)  # E's index of u0: ka + ks * u0
     ub, us = (W - 1 - x0, -1) if mirrored else (x0, 1)  # the (mirrored) image's column of box column i: ub + us * i
     Wm1 = W - 1.0
+    J = np.empty(W, np.uint32)  # a row's work: E's index, the occlusion threshold, a match in the image
+    z_limit_mm = np.empty(W, np.float32)
+    has_match = np.empty(W, np.bool_)
     for v in range(y0, y1):
         drow, rrow = disp[v], depth_r[v]
         drow[:x0] = nan32
@@ -648,16 +651,22 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
             E1[k] = np.fmin(ra[k], rb[k])  # NaN only if both are NaN
         E[0] = rrow[0]
         E[W] = rrow[W - 1]
+        # the occlusion test in two passes: the match's table index, threshold and range check for every pixel
+        # (branch-free, vectorised), then the table look-ups where there is a match (scalar loads: a vectorised
+        # gather was slower)
         for i in range(x1 - x0):
             d = ds[i]
-            if abs(d) < np.inf:
-                ur = np.float64(ub + us * i) - np.float64(d)  # in the (mirrored) image's columns
-                # floor(ur) clamped to 0..W-1: truncation equals floor for the non-negative values clamping leaves;
-                # an unsigned index (never negative) needs no wraparound test
-                u0 = np.int64(min(max(ur, 0.0), Wm1))
-                zr = E[np.uint64(ka + ks * u0)]
-                occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zs[i] * keep) - tol))
-                ns[i] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
+            fin = abs(d) < np.inf
+            ur = np.float64(ub + us * i) - np.float64(d if fin else np.float32(0.0))  # in the (mirrored) image
+            # floor(ur) clamped to 0..W-1: truncation equals floor for the non-negative values clamping leaves
+            u0 = np.int64(min(max(ur, 0.0), Wm1))
+            J[i] = np.uint32(ka + ks * u0)
+            z_limit_mm[i] = np.float32(np.float32(zs[i] * keep) - tol)  # an other-view depth below it occludes
+            has_match[i] = fin & (ur >= -0.5) & (ur <= W - 0.5)
+        for i in range(x1 - x0):
+            if has_match[i]:
+                zr = E[np.uint64(J[i])]  # an unsigned index (never negative) needs no wraparound test
+                ns[i] = ~((abs(zr) < np.inf) & (zr < z_limit_mm[i]))
     return disp, noc
 
 
