@@ -105,6 +105,8 @@ def _disparity_summary(disp, over_px):
     boolean selection, which copies the values, and three reductions over the copy). ``disp``: float32. The min and max
     as integer reductions over the values' bits in float order (vectorised; a float min or max is a serial chain);
     where one of them is zero (-0.0 and +0.0 are equal floats but different keys) they are taken again as floats."""
+    if disp.itemsize != 4:  # the bits are read as int32
+        raise ValueError("_disparity_summary needs a float32 disparity map")
     n, n_over = 0, 0
     big, small = np.int32(2147483647), np.int32(-2147483648)
     kmin, kmax = big, small

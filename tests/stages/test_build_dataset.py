@@ -619,6 +619,8 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
         n, got_lo, got_hi, _ = _disparity_summary(d, 192.0)
         assert n == len(values) and got_lo == np.float32(lo) and got_hi == np.float32(hi)
         assert np.signbit(got_lo) == np.signbit(np.float32(lo)) and np.signbit(got_hi) == np.signbit(np.float32(hi))
+    with pytest.raises(ValueError, match="float32"):  # the bits are read as int32
+        _disparity_summary(np.ones((3, 4)), 192.0)
     from gtforge.core.camera import PinholeCamera, RectifiedStereo
 
     zed = RectifiedStereo(left=PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=40.0, cy_px=30.0, width_px=80,
