@@ -118,14 +118,32 @@ def fit_plane(pts: np.ndarray) -> tuple[np.ndarray, float]:
 
 @numba.njit(cache=True)
 def _inlier_counts(x, y, z, normals, offsets, threshold_mm):
-    """For each plane ``k``: how many points ``(x[i], y[i], z[i])`` have ``|n_k . p - c_k| < threshold_mm``."""
-    counts = np.zeros(len(normals), np.int64)
-    for k in range(len(normals)):
-        n0, n1, n2, c = normals[k, 0], normals[k, 1], normals[k, 2], offsets[k]
+    """For each plane ``k``: how many points ``(x[i], y[i], z[i])`` have ``|n_k . p - c_k| < threshold_mm``. Four planes
+    a pass over the points (each point's coordinates loaded once for four tests, the same expression for each), the
+    last ones one at a time."""
+    K = len(normals)
+    counts = np.zeros(K, np.int64)
+    k = 0
+    while k + 4 <= K:
+        a0, a1, a2, ac = normals[k, 0], normals[k, 1], normals[k, 2], offsets[k]
+        b0, b1, b2, bc = normals[k + 1, 0], normals[k + 1, 1], normals[k + 1, 2], offsets[k + 1]
+        c0, c1, c2, cc = normals[k + 2, 0], normals[k + 2, 1], normals[k + 2, 2], offsets[k + 2]
+        d0, d1, d2, dc = normals[k + 3, 0], normals[k + 3, 1], normals[k + 3, 2], offsets[k + 3]
+        ma = mb = mc = md = 0
+        for i in range(len(x)):
+            xi, yi, zi = x[i], y[i], z[i]
+            ma += abs(xi * a0 + yi * a1 + zi * a2 - ac) < threshold_mm
+            mb += abs(xi * b0 + yi * b1 + zi * b2 - bc) < threshold_mm
+            mc += abs(xi * c0 + yi * c1 + zi * c2 - cc) < threshold_mm
+            md += abs(xi * d0 + yi * d1 + zi * d2 - dc) < threshold_mm
+        counts[k], counts[k + 1], counts[k + 2], counts[k + 3] = ma, mb, mc, md
+        k += 4
+    for j in range(k, K):
+        n0, n1, n2, c = normals[j, 0], normals[j, 1], normals[j, 2], offsets[j]
         m = 0
         for i in range(len(x)):
             m += abs(x[i] * n0 + y[i] * n1 + z[i] * n2 - c) < threshold_mm
-        counts[k] = m
+        counts[j] = m
     return counts
 
 
