@@ -624,15 +624,15 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
     y0, y1, x0, x1 = finite_box(depth_l)  # no depth outside it: no disparity, nothing non-occluded
     disp[:y0] = nan32
     disp[y1:] = nan32
-    # E[k]: the nearer of the two other-view samples around a match, fmin(rrow[k - 1], rrow[k]) (rrow[0], rrow[W - 1]
-    # at the ends): match column u0 (clamped to 0..W-1, and its neighbour u0 + 1 clamped) reads E[u0 + 1], or
-    # E[W - 1 - u0] in the mirrored image's columns. One load a pixel instead of two, mirrored or not
-    E = np.empty(W + 1, np.float32)
-    E1 = E[1:W]
-    ka, ks = (W - 1, -1) if mirrored else (1, 1)  # E's index of u0: ka + ks * u0
+    # near_mm[k]: the nearer of the two other-view samples around a match, fmin(rrow[k - 1], rrow[k]) (rrow[0] and
+    # rrow[W - 1] at the ends): match column u0 (clamped to 0..W-1, and its neighbour u0 + 1 clamped) reads
+    # near_mm[u0 + 1], or near_mm[W - 1 - u0] in the mirrored image's columns. One load a pixel instead of two
+    near_mm = np.empty(W + 1, np.float32)
+    near_mid_mm = near_mm[1:W]
+    ka, ks = (W - 1, -1) if mirrored else (1, 1)  # near_mm's index of u0: ka + ks * u0
     ub, us = (W - 1 - x0, -1) if mirrored else (x0, 1)  # the (mirrored) image's column of box column i: ub + us * i
     Wm1 = W - 1.0
-    J = np.empty(W, np.uint32)  # a row's work: E's index, the occlusion threshold, a match in the image
+    J = np.empty(W, np.uint32)  # a row's work: near_mm's index, the occlusion threshold, a match in the image
     z_limit_mm = np.empty(W, np.float32)
     has_match = np.empty(W, np.bool_)
     for v in range(y0, y1):
@@ -648,9 +648,9 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
             ds[i] = q if zl > 0.0 else nan32
         ra, rb = rrow[:W - 1], rrow[1:]
         for k in range(W - 1):
-            E1[k] = np.fmin(ra[k], rb[k])  # NaN only if both are NaN
-        E[0] = rrow[0]
-        E[W] = rrow[W - 1]
+            near_mid_mm[k] = np.fmin(ra[k], rb[k])  # NaN only if both are NaN
+        near_mm[0] = rrow[0]
+        near_mm[W] = rrow[W - 1]
         # the occlusion test in two passes: the match's table index, threshold and range check for every pixel
         # (branch-free, vectorised), then the table look-ups where there is a match (scalar loads: a vectorised
         # gather was slower)
@@ -665,7 +665,7 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
             has_match[i] = fin & (ur >= -0.5) & (ur <= W - 0.5)
         for i in range(x1 - x0):
             if has_match[i]:
-                zr = E[np.uint64(J[i])]  # an unsigned index (never negative) needs no wraparound test
+                zr = near_mm[np.uint64(J[i])]  # an unsigned index (never negative) needs no wraparound test
                 ns[i] = ~((abs(zr) < np.inf) & (zr < z_limit_mm[i]))
     return disp, noc
 
