@@ -93,22 +93,52 @@ class BuildSummary:
 
 
 @numba.njit(cache=True)
+def _key_float(k):
+    """The float32 whose bits ``b`` give the int32 ``k = b ^ ((b >> 31) & 0x7FFFFFFF)``, ordered as the floats are
+    (-0.0 just below +0.0)."""
+    return np.asarray(k ^ ((k >> np.int32(31)) & np.int32(0x7FFFFFFF)), np.int32).reshape(1).view(np.float32)[0]
+
+
+@numba.njit(cache=True)
 def _disparity_summary(disp, over_px):
     """(number of finite values, their min, their max, how many exceed ``over_px``) in one pass (numpy needs a
-    boolean selection, which copies the values, and three reductions over the copy)."""
+    boolean selection, which copies the values, and three reductions over the copy). ``disp``: float32. The min and max
+    as integer reductions over the values' bits in float order (vectorised; a float min or max is a serial chain);
+    where one of them is zero (-0.0 and +0.0 are equal floats but different keys) they are taken again as floats."""
+    if disp.itemsize != 4:  # the bits are read as int32
+        raise ValueError("_disparity_summary needs a float32 disparity map")
     n, n_over = 0, 0
-    lo, hi = np.inf, -np.inf
+    big, small = np.int32(2147483647), np.int32(-2147483648)
+    kmin, kmax = big, small
     y0, y1, x0, x1 = finite_box(disp)  # none outside it
     for v in range(y0, y1):
         row = disp[v, x0:x1]
+        bits = row.view(np.int32)
+        c, c_over, rmin, rmax = 0, 0, big, small
         for u in range(x1 - x0):
             d = row[u]
-            if abs(d) < np.inf:  # finite (NaN compares false)
-                n += 1
-                lo = min(lo, d)
-                hi = max(hi, d)
-                if d > over_px:
-                    n_over += 1
+            f = abs(d) < np.inf  # finite (NaN compares false)
+            c += f
+            c_over += f & (d > over_px)
+            b = bits[u]
+            key = b ^ ((b >> np.int32(31)) & np.int32(0x7FFFFFFF))  # (see _key_float)
+            rmin = min(rmin, key if f else big)
+            rmax = max(rmax, key if f else small)
+        n += c
+        n_over += c_over
+        kmin, kmax = min(kmin, rmin), max(kmax, rmax)
+    if n == 0:
+        return n, np.inf, -np.inf, n_over
+    lo, hi = np.float64(_key_float(kmin)), np.float64(_key_float(kmax))
+    if lo == 0.0 or hi == 0.0:  # which zero: the first in raster order, as a float min or max gives
+        lo, hi = np.inf, -np.inf
+        for v in range(y0, y1):
+            row = disp[v, x0:x1]
+            for u in range(x1 - x0):
+                d = row[u]
+                if abs(d) < np.inf:
+                    lo = min(lo, d)
+                    hi = max(hi, d)
     return n, lo, hi, n_over
 
 

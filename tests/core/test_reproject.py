@@ -237,6 +237,40 @@ def test_fused_disparity_and_occlusion_match_their_definitions():
     assert occluded_right > 0  # there are right-view occlusions to get right
 
 
+def test_disparity_and_occlusion_at_the_image_borders_and_odd_depths():
+    # the occlusion test reads one table a row (the nearer of each pair of neighbouring other-view samples) at the
+    # match column clamped to the image: matches beyond both borders, images 1-15 px wide, and depths that are NaN,
+    # infinite, zero, negative or tiny, against the numpy definitions; the right view against the mirrored left view
+    from gtforge.core.ground_truth.reproject import disparity_and_nonoccluded, nonoccluded_mask, right_view_disparity
+
+    rng = np.random.default_rng(11)
+    n_noc = n_occ = 0
+    for _ in range(300):
+        H, W = (int(x) for x in rng.integers(1, 16, 2))
+        cam = PinholeCamera(width_px=W, height_px=H, fx_px=float(rng.choice([2.0, 20.0])), fy_px=20.0,
+                            cx_px=W / 2, cy_px=H / 2)
+        zed = RectifiedStereo(left=cam, baseline_mm=float(rng.choice([60.0, 300.0])),
+                              doffs_px=float(rng.choice([0.0, 2.5, -3.0])))
+        dl, dr = (rng.uniform(20, 400, (H, W)).astype(np.float32) for _ in range(2))
+        for a in (dl, dr):
+            a[rng.random((H, W)) < rng.choice([0.0, 0.2, 0.9])] = np.nan
+            a[rng.random((H, W)) < 0.05] = rng.choice([-np.inf, 0.0, -5.0, 1e-30])
+        dr[rng.random((H, W)) < 0.05] = np.inf  # (an infinite depth of its own is outside the kernel's box: no GT)
+        rel, tol = float(rng.choice([0.0, 0.01, 0.2])), float(rng.choice([0.0, 0.5, 30.0]))
+        d, n = disparity_and_nonoccluded(dl, dr, zed, rel, tol)
+        d_ref = zed.depth_to_disparity(dl)
+        np.testing.assert_array_equal(d, d_ref)
+        with np.errstate(invalid="ignore"):  # (the definition casts a huge match column to int64 before clipping)
+            np.testing.assert_array_equal(n, nonoccluded_mask(dl, d_ref, dr, rel, tol))
+        d1, n1 = right_view_disparity(dl, dr, zed, rel, tol)
+        dm, nm = disparity_and_nonoccluded(dr[:, ::-1], dl[:, ::-1], zed, rel, tol)
+        np.testing.assert_array_equal(d1, dm[:, ::-1])
+        np.testing.assert_array_equal(n1, nm[:, ::-1])
+        n_noc += n.sum()
+        n_occ += (np.isfinite(d) & ~n).sum()
+    assert n_noc > 1000 and n_occ > 1000
+
+
 def test_finite_box_is_the_bounding_box_of_the_finite_values():
     from gtforge.core.geometry import finite_box, mask_bounding_box
 
@@ -251,3 +285,13 @@ def test_finite_box_is_the_bounding_box_of_the_finite_values():
     a = np.full((5, 6), np.nan)
     a[4, 5] = -2.0
     assert finite_box(a) == (4, 5, 5, 6)
+    # the search reads rows from both ends and, in the rows between, only the columns outside the box found so far:
+    # boxes widened left and right by later rows, single values, full and empty rows, views with other strides
+    for _ in range(400):
+        shape = tuple(rng.integers(1, 25, 2))
+        a = np.full(shape, np.nan, rng.choice([np.float32, np.float64]))
+        a[rng.random(shape) < rng.choice([0.002, 0.02, 0.2, 1.0])] = rng.normal()
+        a[rng.random(shape) < 0.05] = rng.choice([np.inf, -np.inf])
+        for view in (a, a.T, a[:, ::-1]):
+            box = mask_bounding_box(np.isfinite(view))
+            assert finite_box(view) == (box if box else (0, 0, 0, 0))

@@ -379,13 +379,40 @@ def test_fit_plane_robust_counts_as_numpy_and_finds_the_plane():
     normals /= np.linalg.norm(normals, axis=1)[:, None]
     offsets = np.einsum("ij,ij->i", normals, pts[rng.integers(0, 4000, 50)])
     xyz = np.ascontiguousarray(pts.T)
-    np.testing.assert_array_equal(_inlier_counts(xyz[0], xyz[1], xyz[2], normals, offsets, 3.0),
-                                  (np.abs(pts @ normals.T - offsets) < 3.0).sum(axis=0))
+    for k in (50, 6, 3):  # four planes a pass over the points, and the ones left over
+        np.testing.assert_array_equal(_inlier_counts(xyz[0], xyz[1], xyz[2], normals[:k], offsets[:k], 3.0),
+                                      (np.abs(pts @ normals[:k].T - offsets[:k]) < 3.0).sum(axis=0))
     n, c, inliers = fit_plane_robust(pts, 3.0, iterations=100, rng=np.random.default_rng(0))
     if c < 0:
         n, c = -n, -c
     assert abs(n @ n_true) > 0.9999 and abs(c - 650.0) < 0.5
     assert inliers[1::2].mean() > 0.99 and inliers[::2].mean() < 0.05
+
+
+def test_region_kernels_equal_their_numpy_definitions():
+    """fruit_regions' compiled passes: the first labels and the GT's box (``_gt_region``), the box's GT pixels
+    (``_gt_pixels``) and the height test (``_above_plane``) against the numpy expressions they replace."""
+    from gtforge.core.geometry import mask_bounding_box
+    from gtforge.core.ground_truth.regions import REGION_BG, _above_plane, _gt_pixels, _gt_region
+
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        shape = tuple(int(x) for x in rng.integers(1, 30, 2))
+        depth = rng.uniform(-50, 900, shape).astype(rng.choice([np.float32, np.float64]))
+        depth[rng.random(shape) < rng.choice([0.0, 0.3, 0.97, 1.0])] = np.nan
+        depth[rng.random(shape) < 0.05] = rng.choice([np.inf, -np.inf])
+        valid = np.isfinite(depth)
+        region, box = _gt_region(depth)
+        np.testing.assert_array_equal(region, valid.astype(np.uint8) * np.uint8(REGION_BG))
+        assert region.dtype == np.uint8 and box == mask_bounding_box(valid)
+        if box is None:
+            continue
+        y0, y1, x0, x1 = box
+        np.testing.assert_array_equal(_gt_pixels(depth, *box), np.flatnonzero(valid[y0:y1, x0:x1]))
+        a, b, thr = rng.normal(0, 1, x1 - x0), rng.normal(0, 1, y1 - y0), float(rng.normal(0, 300))
+        n_p = a[None, :] + b[:, None]
+        n_p *= depth[y0:y1, x0:x1]
+        np.testing.assert_array_equal(_above_plane(depth, y0, x0, a, b, thr), (n_p > thr) & valid[y0:y1, x0:x1])
 
 
 def test_fruit_regions_equal_the_point_cloud_computation():
@@ -583,6 +610,18 @@ def test_occlusion_mask_and_disparity_summary_match_numpy():
         finite = d[np.isfinite(d)]
         assert _disparity_summary(d, 192.0) == (finite.size, finite.min(), finite.max(), int((finite > 192.0).sum()))
     assert _disparity_summary(np.full((4, 5), np.nan, np.float32), 192.0)[0] == 0
+    # the min and max are integer reductions over the bits in float order: negative values, subnormals, the largest
+    # floats; where one of them is zero, -0.0 or +0.0 as a float min or max gives it (the first in raster order)
+    for values, lo, hi in (([-3.5, -1e-40, 2.0, 3e38], -3.5, 3e38), ([-3e38, -7.0, -1e-40], -3e38, -1e-40),
+                           ([0.0, -0.0, 5.0], 0.0, 5.0), ([-0.0, 0.0, 5.0], -0.0, 5.0), ([-2.0, -0.0, 0.0], -2.0, -0.0),
+                           ([-2.0, 0.0, -0.0], -2.0, 0.0)):
+        d = np.full((3, 7), np.nan, np.float32)
+        d[1, 2:2 + len(values)] = values
+        n, got_lo, got_hi, _ = _disparity_summary(d, 192.0)
+        assert n == len(values) and got_lo == np.float32(lo) and got_hi == np.float32(hi)
+        assert np.signbit(got_lo) == np.signbit(np.float32(lo)) and np.signbit(got_hi) == np.signbit(np.float32(hi))
+    with pytest.raises(ValueError, match="float32"):  # the bits are read as int32
+        _disparity_summary(np.ones((3, 4)), 192.0)
     from gtforge.core.camera import PinholeCamera, RectifiedStereo
 
     zed = RectifiedStereo(left=PinholeCamera(fx_px=1000.0, fy_px=1000.0, cx_px=40.0, cy_px=30.0, width_px=80,

@@ -310,9 +310,9 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
         cand[n] = c
         n += Q[0, c] != 0.0
     for i in range(n):
-        c = cand[i]
+        c = np.uint64(cand[i])  # unsigned indices (never negative here) need no wraparound test
         if Q[0, c] == 1.0:
-            j = int(Q[1, c])
+            j = np.uint64(Q[1, c])
             zf = np.float32(Q[2, c])
             old = flat[j]
             keep = old <= zf  # else empty (NaN) or farther: replaced
@@ -321,7 +321,7 @@ def _raster_quads(buf, sbuf, want_span, y_off, y_lo, y_hi, Ut, Vt, Wt, Ub, Vb, W
                 sflat[j] = sflat[j] if keep else S[c]
         else:  # several pixel centres in the box, or a quad with three valid corners
             fl = F[c]
-            ad, c1 = (fl & 4) != 0, c + 1
+            ad, c1 = (fl & 4) != 0, c + np.uint64(1)
             _quad_general(buf, sbuf, want_span, y_off, y_lo, y_hi,
                           Ut[c] if ad else Ut[c1], Vt[c] if ad else Vt[c1], Wt[c] if ad else Wt[c1],
                           Ub[c1] if ad else Ub[c], Vb[c1] if ad else Vb[c], Wb[c1] if ad else Wb[c],
@@ -624,6 +624,17 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
     y0, y1, x0, x1 = finite_box(depth_l)  # no depth outside it: no disparity, nothing non-occluded
     disp[:y0] = nan32
     disp[y1:] = nan32
+    # near_mm[k]: the nearer of the two other-view samples around a match, fmin(rrow[k - 1], rrow[k]) (rrow[0] and
+    # rrow[W - 1] at the ends): match column u0 (clamped to 0..W-1, and its neighbour u0 + 1 clamped) reads
+    # near_mm[u0 + 1], or near_mm[W - 1 - u0] in the mirrored image's columns. One load a pixel instead of two
+    near_mm = np.empty(W + 1, np.float32)
+    near_mid_mm = near_mm[1:W]
+    ka, ks = (W - 1, -1) if mirrored else (1, 1)  # near_mm's index of u0: ka + ks * u0
+    ub, us = (W - 1 - x0, -1) if mirrored else (x0, 1)  # the (mirrored) image's column of box column i: ub + us * i
+    Wm1 = W - 1.0
+    J = np.empty(W, np.uint32)  # a row's work: near_mm's index, the occlusion threshold, a match in the image
+    z_limit_mm = np.empty(W, np.float32)
+    has_match = np.empty(W, np.bool_)
     for v in range(y0, y1):
         drow, rrow = disp[v], depth_r[v]
         drow[:x0] = nan32
@@ -635,19 +646,27 @@ def _disparity_nonoccluded(depth_l, depth_r, fB, doffs, rel_tol, abs_tol_mm, mir
             zl = zs[i]
             q = np.float32(fB / np.float64(zl) - doffs)
             ds[i] = q if zl > 0.0 else nan32
+        ra, rb = rrow[:W - 1], rrow[1:]
+        for k in range(W - 1):
+            near_mid_mm[k] = np.fmin(ra[k], rb[k])  # NaN only if both are NaN
+        near_mm[0] = rrow[0]
+        near_mm[W] = rrow[W - 1]
+        # the occlusion test in two passes: the match's table index, threshold and range check for every pixel
+        # (branch-free, vectorised), then the table look-ups where there is a match (scalar loads: a vectorised
+        # gather was slower)
         for i in range(x1 - x0):
             d = ds[i]
-            if abs(d) < np.inf:
-                zl = zs[i]
-                u = x0 + i
-                ur = (W - 1 - u if mirrored else u) - np.float64(d)  # in the (mirrored) image's columns
-                u0 = min(max(math.floor(min(max(ur, -1.0), W + 0.0)), 0), W - 1)
-                u1 = min(u0 + 1, W - 1)
-                if mirrored:
-                    u0, u1 = W - 1 - u0, W - 1 - u1
-                zr = np.fmin(rrow[u0], rrow[u1])  # NaN only if both are NaN
-                occluded = (abs(zr) < np.inf) & (zr < np.float32(np.float32(zl * keep) - tol))
-                ns[i] = (ur >= -0.5) & (ur <= W - 0.5) & ~occluded
+            fin = abs(d) < np.inf
+            ur = np.float64(ub + us * i) - np.float64(d if fin else np.float32(0.0))  # in the (mirrored) image
+            # floor(ur) clamped to 0..W-1: truncation equals floor for the non-negative values clamping leaves
+            u0 = np.int64(min(max(ur, 0.0), Wm1))
+            J[i] = np.uint32(ka + ks * u0)
+            z_limit_mm[i] = np.float32(np.float32(zs[i] * keep) - tol)  # an other-view depth below it occludes
+            has_match[i] = fin & (ur >= -0.5) & (ur <= W - 0.5)
+        for i in range(x1 - x0):
+            if has_match[i]:
+                zr = near_mm[np.uint64(J[i])]  # an unsigned index (never negative) needs no wraparound test
+                ns[i] = ~((abs(zr) < np.inf) & (zr < z_limit_mm[i]))
     return disp, noc
 
 

@@ -232,17 +232,26 @@ _LOG_EDGES = np.linspace(-6.0, 2.0, 1601)  # log10(sigma px): 1e-6 .. 100 px, 1.
 def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[str, tuple[int, ...]]
                          ) -> dict[str, "SigmaStats"]:
     """Per group of integer labels: median, 95th percentile (from a log-spaced histogram, 1.2 % bins, interpolated
-    within the bin) and the exact share above 0.1 px of the finite sigma values: two compiled passes over the image."""
+    within the bin) and the exact share above 0.1 px of the finite sigma values: numpy's log10 and one compiled pass
+    over the values' bounding box."""
     s = np.asarray(sigma_px, np.float32)
     labels = np.asarray(labels)
     if labels.shape != s.shape:
         raise ValueError(f"{labels.shape=} but expected {s.shape} (the sigma map's)")
-    # compiled passes around numpy's log10 instead of numpy's masks, selections and histograms: the same counts
-    v, lab = _finite_positive(s, labels.view(np.uint8) if labels.dtype == bool else labels)
+    # numpy's log10 of the values' bounding box (none outside it), copied contiguous: numpy's float32 log10 gives every
+    # element of a contiguous array the same value wherever it lies, so each finite positive value gets the log10 it
+    # gets alone; then one compiled pass counts them (no compacted copy of the values)
+    y0, y1, x0, x1 = finite_box(s)
+    box = np.ascontiguousarray(s[y0:y1, x0:x1])
+    lab = labels[y0:y1, x0:x1]
+    lab = lab.view(np.uint8) if lab.dtype == bool else lab
+    # a row for every label in the box: a label no counted value has gets an empty row, which no statistic reads
     n_labels = int(lab.max()) + 1 if lab.size else 1
     nb = len(_LOG_EDGES) - 1
     step = (_LOG_EDGES[-1] - _LOG_EDGES[0]) / nb
-    hist, over = _log_histogram(np.log10(v), v, lab, np.float32(_LOG_EDGES[0]), np.float32(step), nb, n_labels,
+    with np.errstate(divide="ignore", invalid="ignore"):  # (NaN, zero and negative values: not counted)
+        lg = np.log10(box)
+    hist, over = _log_histogram(lg, box, lab, np.float32(_LOG_EDGES[0]), np.float32(step), nb, n_labels,
                                 np.float32(0.1))
     out = {}
     for name, labs in groups.items():
@@ -266,34 +275,21 @@ def sigma_stats_by_label(sigma_px: np.ndarray, labels: np.ndarray, groups: dict[
 
 
 @numba.njit(cache=True)
-def _finite_positive(s, labels):
-    """The finite values > 0 of ``s`` and their ``labels``, in raster order: one pass over their bounding box."""
-    H, W = s.shape
-    v = np.empty(H * W, np.float32)
-    lab = np.empty(H * W, labels.dtype)
-    n = 0
-    y0, y1, x0, x1 = finite_box(s)  # none outside it
-    for i in range(y0, y1):
-        for j in range(x0, x1):
-            x = s[i, j]
-            if x > 0 and x < np.inf:  # (NaN fails both)
-                v[n] = x
-                lab[n] = labels[i, j]
-                n += 1
-    return v[:n], lab[:n]
-
-
-@numba.njit(cache=True)
-def _log_histogram(lg, v, lab, e0, step, nb, n_labels, over):
-    """Per label: counts of ``lg`` in ``nb`` bins of ``step`` from ``e0`` (float32 arithmetic, truncated and clipped
-    as numpy's ``astype(int64)`` and ``clip`` do), and the count of ``v > over`` (float32, as numpy compares)."""
+def _log_histogram(lg, s, labels, e0, step, nb, n_labels, over):
+    """Per label: counts of the finite positive values of ``s`` (2-D, with their ``lg`` = log10 and ``labels``) in
+    ``nb`` bins of ``step`` from ``e0`` (float32 arithmetic, truncated and clipped as numpy's ``astype(int64)`` and
+    ``clip`` do), and the count of those ``> over`` (float32, as numpy compares)."""
     hist = np.zeros((n_labels, nb), np.int64)
     n_over = np.zeros(n_labels, np.int64)
-    for k in range(lg.shape[0]):
-        b = int((lg[k] - e0) / step)
-        hist[lab[k], min(max(b, 0), nb - 1)] += 1
-        if v[k] > over:
-            n_over[lab[k]] += 1
+    for i in range(s.shape[0]):
+        for j in range(s.shape[1]):
+            x = s[i, j]
+            if x > 0 and x < np.inf:  # (NaN fails both)
+                b = int((lg[i, j] - e0) / step)
+                lab = labels[i, j]
+                hist[lab, min(max(b, 0), nb - 1)] += 1
+                if x > over:
+                    n_over[lab] += 1
     return hist, n_over
 
 
