@@ -284,6 +284,28 @@ def test_decode_png_matches_pillow_for_every_filter(channels, png_inflate_lib):
                 np.testing.assert_array_equal(part, img[:rows])
 
 
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_decode_png_sub_rows_in_pairs_and_alone(channels):
+    """Sub-filtered rows are undone two at a time, 8 bytes at a time (``_unfilter_sub_rows``), the row's last bytes one
+    by one: rows of fewer than 8 bytes, of a multiple of 8 bytes and between, Sub rows in pairs, alone and last,
+    against the image itself and Pillow."""
+    import imageio.v3 as iio
+
+    from gtforge.io.formats import decode_png
+
+    rng = np.random.default_rng(10 + channels)
+    for w in (1, 2, 3, 8, 16, 21, 43):
+        shape = (9, w) if channels == 1 else (9, w, channels)
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+        for kinds in ([1], [1, 1, 2], [2, 1, 1, 1], [1, 0, 1, 4, 1, 1, 3]):
+            data = _png_with_filters(img, kinds)
+            got = decode_png(data)
+            np.testing.assert_array_equal(got, img)
+            np.testing.assert_array_equal(got, iio.imread(data))
+            for rows in (1, 2, 5):
+                np.testing.assert_array_equal(decode_png(data, rows), img[:rows])
+
+
 def test_decode_png_16bit_grey_and_the_variants_left_to_imageio(tmp_path, png_inflate_lib):
     import cv2
     import imageio.v3 as iio
