@@ -43,6 +43,35 @@ except ImportError:  # pragma: no cover - platforms without an isal wheel
     _png_inflate_lib = zlib_ng
 
 
+_LITTLE_ENDIAN = sys.byteorder == "little"
+
+
+@intrinsic
+def _store_bytes(typingctx, arr, i, x):
+    """Store integer ``x`` as its bytes (native byte order) in uint8 array ``arr`` from index ``i`` (any alignment):
+    one store instead of one per byte."""
+    def codegen(context, builder, sig, args):
+        data = context.make_array(sig.args[0])(context, builder, args[0]).data
+        ptr = builder.bitcast(builder.gep(data, [args[1]]), context.get_value_type(sig.args[2]).as_pointer())
+        store = builder.store(args[2], ptr)
+        store.align = 1
+        return context.get_dummy_value()
+
+    return numba.types.void(arr, numba.types.intp, x), codegen
+
+
+@intrinsic
+def _load_u64(typingctx, arr, i):
+    """The 8 bytes of uint8 array ``arr`` from index ``i`` as one uint64 (native byte order; any alignment)."""
+    def codegen(context, builder, sig, args):
+        data = context.make_array(sig.args[0])(context, builder, args[0]).data
+        load = builder.load(builder.bitcast(builder.gep(data, [args[1]]), llvm_ir.IntType(64).as_pointer()))
+        load.align = 1
+        return load
+
+    return numba.types.uint64(arr, numba.types.intp), codegen
+
+
 # ---- PFM ------------------------------------------------------------------------------------
 def write_pfm(path: str | Path, disp_px: np.ndarray) -> Path:
     """Write a single-channel float32 PFM (``Pf``, little-endian, rows bottom-to-top); NaN -> +inf."""
@@ -109,13 +138,25 @@ def write_kitti_disparity_pair(path_occ: str | Path, path_noc: str | Path, disp_
                                nonoccluded: np.ndarray) -> tuple[Path, Path]:
     """One view's KITTI ``disp_occ`` (every valid pixel) and ``disp_noc`` (the ``nonoccluded`` ones) PNGs, the same
     files as two ``write_kitti_disparity`` calls, byte for byte. The two differ only in rows with an occluded valid
-    pixel: each block of ``LABEL_PNG_BLOCK_ROWS`` rows without one is deflated once, for both files."""
-    occ, noc, same = _kitti_png_rows(*_kitti_inputs(disp_px, nonoccluded))
+    pixel: each block of ``LABEL_PNG_BLOCK_ROWS`` rows without one is deflated once, for both files, and only those
+    rows are made a second time, for ``disp_noc``."""
+    occ, same, noc_rows = _kitti_png_rows(*_kitti_inputs(disp_px, nonoccluded))
     h, w = occ.shape[0], (occ.shape[1] - 1) // 2
     occ_blocks = _deflate_blocks(occ)
-    noc_blocks = _deflate_blocks(noc, occ_blocks, same)
-    return (atomic_write_bytes(path_occ, _png_bytes(occ, w, h, 16, occ_blocks)),
-            atomic_write_bytes(path_noc, _png_bytes(noc, w, h, 16, noc_blocks)))
+    noc_blocks, noc_adler, k = [], 1, 0  # (1: the Adler-32 of no data)
+    for i, v in enumerate(range(0, h, LABEL_PNG_BLOCK_ROWS)):
+        block, differs = occ[v:v + LABEL_PNG_BLOCK_ROWS], ~same[v:v + LABEL_PNG_BLOCK_ROWS]
+        if differs.any():
+            n_differ = int(np.count_nonzero(differs))
+            block = block.copy()
+            block[differs] = noc_rows[k:k + n_differ]
+            k += n_differ
+            noc_blocks.append(_deflate_block(block))
+        else:
+            noc_blocks.append(occ_blocks[i])
+        noc_adler = zlib_ng.adler32(block, noc_adler)
+    return (atomic_write_bytes(path_occ, _png_bytes(w, h, 16, occ_blocks, zlib_ng.adler32(occ))),
+            atomic_write_bytes(path_noc, _png_bytes(w, h, 16, noc_blocks, noc_adler)))
 
 
 @numba.njit(cache=True, inline="always")
@@ -141,30 +182,45 @@ def _kitti_quantize(d, mask):
 
 @numba.njit(cache=True)
 def _kitti_png_rows(d, mask):
-    """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)`` and of
-    ``_kitti_quantize(d, mask)``, and whether each row is the same in both. The first pass has no branch (the compiler
-    vectorises it); the second copies the first and clears the masked pixels of the rows that differ."""
+    """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)``, whether each row is the
+    same in ``_kitti_quantize(d, mask)``, and the PNG rows of the latter where it is not (in row order). Each row is
+    quantised into a buffer first, in a loop without stores to the PNG rows that the compiler vectorises, in float32:
+    ``x * 256`` is exact in float32 as in float64 (a power of two), so its rounding is ``_kitti_value``'s."""
     H, W = d.shape
-    occ = np.empty((H, 1 + 2 * W), np.uint8)
+    n = 1 + 2 * W
+    occ = np.empty((H, n), np.uint8)
+    flat = occ.reshape(-1)
     same = np.ones(H, np.bool_)
+    noc = np.empty((H, n), np.uint8)  # (pages only touched for the rows that differ)
+    n_noc = 0
+    q_row = np.empty(W, np.int32)
     for v in range(H):
-        row, d_row, m_row = occ[v], d[v], mask[v]
-        row[0] = 0
-        differs = False
+        d_row, m_row = d[v], mask[v]
         for u in range(W):
-            q = _kitti_value(np.float64(d_row[u]))
-            row[1 + 2 * u] = np.uint8(q >> 8)
-            row[2 + 2 * u] = np.uint8(q & 255)
-            differs |= (q != 0) & (not m_row[u])
-        same[v] = not differs
-    noc = occ.copy()
-    for v in range(H):
-        if not same[v]:
+            x = d_row[u]
+            r = min(max(np.rint(x * np.float32(256.0)), np.float32(1.0)), np.float32(65535.0))
+            q_row[u] = np.int32(r) if (x >= np.float32(0.0)) & (x < np.float32(np.inf)) else np.int32(0)
+        differs = np.int32(0)
+        for u in range(W):
+            differs |= q_row[u] & (np.int32(m_row[u]) - 1)  # a valid value outside the mask
+        flat[v * n] = 0
+        for u in range(W):
+            _store_bytes(flat, v * n + 1 + 2 * u, _big_endian_u16(q_row[u]))
+        if differs:
+            same[v] = False
+            noc[n_noc, 0] = 0
             for u in range(W):
-                if not mask[v, u]:
-                    noc[v, 1 + 2 * u] = 0
-                    noc[v, 2 + 2 * u] = 0
-    return occ, noc, same
+                _store_bytes(noc[n_noc], 1 + 2 * u, _big_endian_u16(q_row[u] if m_row[u] else np.int32(0)))
+            n_noc += 1
+    return occ, same, noc[:n_noc]
+
+
+@numba.njit(inline="always")
+def _big_endian_u16(q):
+    """uint16 ``q`` (given as int32) as the uint16 whose bytes in memory are ``q``'s big-endian bytes."""
+    if _LITTLE_ENDIAN:
+        return np.uint16(((q >> 8) | (q << 8)) & 0xFFFF)
+    return np.uint16(q)
 
 
 def read_kitti_disparity(path: str | Path) -> np.ndarray:
@@ -183,34 +239,37 @@ def write_png16(path: str | Path, a: np.ndarray) -> Path:
 LABEL_PNG_BLOCK_ROWS = 16
 
 
-def _deflate_blocks(rows: np.ndarray, reuse: list[bytes] | None = None, same: np.ndarray | None = None) -> list[bytes]:
+def _deflate_blocks(rows: np.ndarray) -> list[bytes]:
     """PNG image data (``rows``: ``(H, 1 + row bytes)`` uint8, filter bytes included) as raw deflate by zlib-ng at level
-    1, in blocks of ``LABEL_PNG_BLOCK_ROWS`` rows, each compressed on its own and ended by a full flush (byte-aligned,
-    referring to no earlier block): their concatenation is one valid deflate stream, and a block is the same bytes
-    wherever the same rows occur. ``reuse``: another image's blocks, taken as they are for every block whose rows are
-    all ``same`` (a boolean per row)."""
-    n = LABEL_PNG_BLOCK_ROWS
-    out = []
-    for i, v in enumerate(range(0, rows.shape[0], n)):
-        if reuse is not None and same[v:v + n].all():
-            out.append(reuse[i])
-            continue
-        c = zlib_ng.compressobj(1, zlib_ng.DEFLATED, -15)
-        out.append(c.compress(rows[v:v + n]) + c.flush(zlib_ng.Z_FULL_FLUSH))
-    return out
+    1, in blocks of ``LABEL_PNG_BLOCK_ROWS`` rows (``_deflate_block`` each): their concatenation is one valid deflate
+    stream, and a block is the same bytes wherever the same rows occur."""
+    return [_deflate_block(rows[v:v + LABEL_PNG_BLOCK_ROWS]) for v in range(0, rows.shape[0], LABEL_PNG_BLOCK_ROWS)]
 
 
-def _png_bytes(rows: np.ndarray, w: int, h: int, bit_depth: int, blocks: list[bytes]) -> bytes:
-    """A greyscale PNG: signature, IHDR, one IDAT holding the zlib stream of ``blocks`` (``_deflate_blocks`` of
-    ``rows``), IEND."""
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
+def _deflate_block(rows: np.ndarray) -> bytes:
+    """``rows`` deflated on their own (zlib-ng, level 1, raw deflate) and ended by a full flush: byte-aligned, referring
+    to no earlier data, not final."""
+    c = zlib_ng.compressobj(1, zlib_ng.DEFLATED, -15)
+    return c.compress(rows) + c.flush(zlib_ng.Z_FULL_FLUSH)
 
-    # zlib header (deflate, 32 kB window, fastest level), the blocks, an empty final block (fixed Huffman codes),
-    # Adler-32
-    stream = b"".join((b"\x78\x01", *blocks, b"\x03\x00", struct.pack(">I", zlib_ng.adler32(rows))))
-    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no interlace
-    return b"".join((b"\x89PNG\r\n\x1a\n", chunk(b"IHDR", ihdr), chunk(b"IDAT", stream), chunk(b"IEND", b"")))
+
+def _png_bytes(w: int, h: int, bit_depth: int, blocks: list[bytes], adler: int) -> bytes:
+    """A greyscale PNG: signature, IHDR, one IDAT holding the zlib stream of ``blocks`` (``_deflate_blocks`` of the
+    rows) whose Adler-32 is ``adler``, IEND. Joined once (the IDAT's CRC taken over its parts)."""
+    ihdr = b"IHDR" + struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no
+    # interlace
+    head = b"IDAT\x78\x01"  # the zlib header: deflate, 32 kB window, fastest level
+    tail = b"\x03\x00" + struct.pack(">I", adler)  # an empty final block (fixed Huffman codes), the Adler-32
+    crc = zlib_ng.crc32(head)
+    for block in blocks:
+        crc = zlib_ng.crc32(block, crc)
+    crc = zlib_ng.crc32(tail, crc)
+    n_idat = len(head) - 4 + sum(len(block) for block in blocks) + len(tail)
+    return b"".join((PNG_SIGNATURE, struct.pack(">I", len(ihdr) - 4), ihdr, struct.pack(">I", zlib_ng.crc32(ihdr)),
+                     struct.pack(">I", n_idat), head, *blocks, tail, struct.pack(">I", crc), _PNG_IEND))
+
+
+_PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the IEND chunk: no data, its CRC
 
 
 def encode_label_png(a: np.ndarray) -> bytes:
@@ -221,9 +280,10 @@ def encode_label_png(a: np.ndarray) -> bytes:
     if a.ndim != 2 or a.dtype not in (np.uint8, np.uint16) or 0 in a.shape:
         raise ValueError(f"{a.shape=}, {a.dtype=} but expected a non-empty (H, W) uint8 or uint16 label image")
     h, w = a.shape
-    rows = np.zeros((h, 1 + w * a.itemsize), np.uint8)  # column 0: each row's filter type (0: none)
+    rows = np.empty((h, 1 + w * a.itemsize), np.uint8)
+    rows[:, 0] = 0  # each row's filter type (0: none)
     rows[:, 1:] = a.astype(a.dtype.newbyteorder(">"), copy=False).view(np.uint8).reshape(h, -1)  # PNG is big-endian
-    return _png_bytes(rows, w, h, 8 * a.itemsize, _deflate_blocks(rows))
+    return _png_bytes(w, h, 8 * a.itemsize, _deflate_blocks(rows), zlib_ng.adler32(rows))
 
 
 def write_label_png(path: str | Path, a: np.ndarray) -> Path:
@@ -430,33 +490,9 @@ def _png_unfilter(raw, out, bpp):
 
 
 # The Sub filter 8 bytes at a time (``_unfilter_sub_rows``) reads the bytes as little-endian 64-bit words
-_SWAR_SUB = sys.byteorder == "little"
+_SWAR_SUB = _LITTLE_ENDIAN
 _LOW7 = np.uint64(0x7F7F7F7F7F7F7F7F)
 _HIGH1 = np.uint64(0x8080808080808080)
-
-
-@intrinsic
-def _load_u64(typingctx, arr, i):
-    """The 8 bytes of uint8 array ``arr`` from index ``i`` as one uint64 (native byte order; any alignment)."""
-    def codegen(context, builder, sig, args):
-        data = context.make_array(sig.args[0])(context, builder, args[0]).data
-        load = builder.load(builder.bitcast(builder.gep(data, [args[1]]), llvm_ir.IntType(64).as_pointer()))
-        load.align = 1
-        return load
-
-    return numba.types.uint64(arr, numba.types.intp), codegen
-
-
-@intrinsic
-def _store_u64(typingctx, arr, i, x):
-    """Store uint64 ``x`` as the 8 bytes of uint8 array ``arr`` from index ``i`` (native byte order; any alignment)."""
-    def codegen(context, builder, sig, args):
-        data = context.make_array(sig.args[0])(context, builder, args[0]).data
-        store = builder.store(args[2], builder.bitcast(builder.gep(data, [args[1]]), llvm_ir.IntType(64).as_pointer()))
-        store.align = 1
-        return context.get_dummy_value()
-
-    return numba.types.void(arr, numba.types.intp, numba.types.uint64), codegen
 
 
 @numba.njit(inline="always")
@@ -505,8 +541,8 @@ def _unfilter_sub_rows(raw, out, v0, v1, bpp):
             c1 |= t1 << s
             s += shift
         w0, w1 = _add_bytes(x0, c0), _add_bytes(x1, c1)
-        _store_u64(flat, o0 + i, w0)
-        _store_u64(flat, o1 + i, w1)
+        _store_bytes(flat, o0 + i, w0)
+        _store_bytes(flat, o1 + i, w1)
         i += 8
     for j in range(i, n):  # the row's last n % 8 bytes
         flat[o0 + j] = (np.int32(raw[b0 + j]) + flat[o0 + j - bpp]) & 255
