@@ -175,6 +175,42 @@ def test_depth_readers(tmp_path):
         read_depth(tmp_path / "DepthMap.tiff", camera=small)
 
 
+def test_tiff_bytes_read_as_tifffile_reads_them(tmp_path):
+    """``_tiff_image``: a view of the file's bytes for one uncompressed page in native byte order (one strip or several
+    in one run), tifffile's own array for everything else; the same values and dtype either way, and read_depth's
+    result from the bytes is its result from the path."""
+    import io
+
+    import tifffile
+
+    from gtforge.io.captures import _tiff_image
+
+    d = np.arange(37 * 23, dtype=np.float32).reshape(37, 23) + 600.0
+    d[3, 4] = np.nan
+    u16 = np.arange(37 * 5, dtype=np.uint16).reshape(37, 5) + 700
+    native = "<" if sys.byteorder == "little" else ">"
+    cases = {  # name: (imwrite arguments, a view of the bytes)
+        "float32": ({}, True), "uint16": ({"data": u16}, True),
+        "strips": ({"rowsperstrip": 5}, True), "contiguous=False": ({"contiguous": False}, True),
+        "swapped": ({"byteorder": "<" if native == ">" else ">"}, False), "zlib": ({"compression": "zlib"}, False),
+        "tiled": ({"tile": (16, 16)}, False),
+        "predictor": ({"data": u16, "compression": "zlib", "predictor": True}, False),
+        "two pages": ({"data": np.stack([d, d + 1])}, False),
+    }
+    for name, (kwargs, view) in cases.items():
+        f = io.BytesIO()
+        tifffile.imwrite(f, kwargs.pop("data", d), **kwargs)
+        data = f.getvalue()
+        a, want = _tiff_image(data), tifffile.imread(io.BytesIO(data))
+        assert a.dtype == want.dtype and a.shape == want.shape, name
+        np.testing.assert_array_equal(a, want, err_msg=name)
+        assert (not a.flags.owndata and not a.flags.writeable) == view, name
+        if a.ndim == 2 and a.dtype == np.float32:
+            (tmp_path / "DepthMap.tiff").write_bytes(data)
+            np.testing.assert_array_equal(read_depth(tmp_path / "DepthMap.tiff", data=data),
+                                          read_depth(tmp_path / "DepthMap.tiff"), err_msg=name)
+
+
 def test_side_by_side_split():
     img = np.zeros((4, 10, 3), np.uint8)
     img[:, 5:] = 7

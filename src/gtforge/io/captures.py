@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +49,7 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     try:
         source = path if data is None else io.BytesIO(data)
         if suf in (".tif", ".tiff"):
-            a = tifffile.imread(source)
+            a = tifffile.imread(source) if data is None else _tiff_image(data)
         elif suf == ".npy":
             a = np.load(source, allow_pickle=False)
         else:
@@ -90,6 +91,23 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     if camera is not None:
         camera.check_image_size(d.shape, path, "depth map")
     return d
+
+
+def _tiff_image(data: bytes) -> np.ndarray:
+    """What ``tifffile.imread`` returns for a TIFF file's bytes ``data``. Where the image is the file's one page, stored
+    uncompressed as one run of its bytes in this machine's byte order (Mech-Eye's ``DepthMap.tiff``), a read-only view
+    of ``data`` (tifffile would copy it into a new array, for a depth map that is copied once more into mm)."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        if len(tif.pages) == 1 and len(tif.series) == 1 and tif.series[0].shape == page.shape and page.ndim == 2 \
+                and not page.is_tiled and page.compression == 1 and page.predictor == 1 and page.fillorder == 1 \
+                and page.dtype is not None and tif.byteorder == ("<" if sys.byteorder == "little" else ">"):
+            offsets, counts = page.dataoffsets, page.databytecounts
+            n = page.shape[0] * page.shape[1]
+            if sum(counts) == n * page.dtype.itemsize and offsets[0] + sum(counts) <= len(data) \
+                    and all(o == offsets[0] + sum(counts[:i]) for i, o in enumerate(offsets)):
+                return np.frombuffer(data, page.dtype, n, offsets[0]).reshape(page.shape)
+        return tif.asarray()
 
 
 @numba.njit(cache=True)
