@@ -406,25 +406,25 @@ def decode_png(data: bytes, rows: int | None = None) -> np.ndarray | None:
     if bytes(view[:8]) != PNG_SIGNATURE:
         raise ValueError("not a PNG file (bad signature)")
     pos, header, idat = 8, None, []
+    size, crc32, unpack_from = len(view), zlib_ng.crc32, struct.unpack_from
     while True:
-        if pos + 12 > len(view):
+        if pos + 12 > size:
             raise ValueError("truncated PNG: the file ends before its IEND chunk")
-        n, kind = struct.unpack_from(">I4s", view, pos)
-        if pos + 12 + n > len(view):
+        n, kind = unpack_from(">I4s", view, pos)
+        end = pos + 8 + n  # the chunk's data ends here, its CRC follows
+        if end + 4 > size:
             raise ValueError(f"truncated PNG: the {kind!r} chunk runs past the end of the file")
-        body = view[pos + 8:pos + 8 + n]
-        (crc,) = struct.unpack_from(">I", view, pos + 8 + n)
-        if zlib_ng.crc32(body, zlib_ng.crc32(kind)) != crc:
+        if crc32(view[pos + 4:end]) != unpack_from(">I", view, end)[0]:  # (the CRC covers the type and the data)
             raise ValueError(f"corrupt PNG: CRC mismatch in the {kind.decode('latin-1')} chunk")
-        pos += 12 + n
-        if kind == b"IHDR":
-            header = struct.unpack(">IIBBBBB", body)
-        elif kind == b"IDAT":
-            idat.append(body)
+        if kind == b"IDAT":
+            idat.append(view[pos + 8:end])
+        elif kind == b"IHDR":
+            header = struct.unpack(">IIBBBBB", view[pos + 8:end])
         elif kind == b"tRNS":
             return None  # transparency imageio turns into alpha
         elif kind == b"IEND":
             break
+        pos = end + 4
     if header is None or not idat:
         raise ValueError("corrupt PNG: no IHDR or no IDAT chunk")
     w, h, bits, colour, compression, filtering, interlace = header
