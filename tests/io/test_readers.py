@@ -344,6 +344,10 @@ def test_decoded_images_decode_what_load_capture_left_and_only_the_rows_asked(tm
     np.testing.assert_array_equal(right, full.zed_right[:4])
     assert set(lean.read_records) == {"DepthMap.tiff", "2DImage.png", "left.png", "right.png"}
     assert lean.read_records["left.png"].blake3 == blake3.blake3((c / "left.png").read_bytes()).hexdigest()
+    # the ZED PNGs' bytes kept, in page-aligned buffers, for im0/im1 (a capture decoded whole keeps none)
+    assert set(lean.read_buffers) == {"left.png", "right.png"} and not full.read_buffers
+    for name, buf in lean.read_buffers.items():
+        assert buf.data.tobytes() == (c / name).read_bytes() and buf.padded.ctypes.data % 4096 == 0
     _, left, _ = s.decoded_images(lean)  # every row
     np.testing.assert_array_equal(left, full.zed_left)
     same = s.decoded_images(full, zed_rows=4)  # decoded already: given as they are
@@ -467,3 +471,32 @@ def test_a_missing_capture_file_is_told_apart_from_a_wrong_one(tmp_path):
     with pytest.raises(InputError) as wrong:
         read_depth(tmp_path / "DepthMap.bmp")
     assert not missing_capture_file(wrong.value) and "got '.bmp'" in str(wrong.value)
+
+
+@pytest.mark.parametrize("size_change", [0, 3, -3])
+def test_read_recorded_bytes_record_and_buffer(tmp_path, size_change):
+    """``read_recorded``: the file's bytes, recorded (BLAKE3, size) and kept in an aligned buffer when the size read is
+    the size ``stat`` gave; a file that grew or shrank in between is returned as it is, neither recorded nor kept."""
+    import pathlib
+    import types
+
+    import blake3
+
+    from gtforge.io.captures import read_recorded
+
+    class Changed(type(pathlib.Path())):
+        def stat(self, **kwargs):  # the size before the file changed
+            st = super().stat(**kwargs)
+            return types.SimpleNamespace(st_size=st.st_size - size_change, st_mtime_ns=st.st_mtime_ns)
+
+    content = bytes(range(256)) * 40 + b"end"
+    (tmp_path / "f.png").write_bytes(content)
+    records, buffers = {}, {}
+    data = read_recorded(Changed(tmp_path / "f.png"), records, buffers)
+    assert bytes(data) == content
+    if size_change:
+        assert not records and not buffers
+    else:
+        assert records["f.png"].blake3 == blake3.blake3(content).hexdigest() and records["f.png"].size_bytes == 10243
+        assert buffers["f.png"].data.tobytes() == content
+    assert read_recorded(tmp_path / "missing.png", records) is None

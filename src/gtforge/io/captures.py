@@ -24,6 +24,7 @@ from gtforge.core.zed.selfcal import corrected_right
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError, MissingFileError
 from gtforge.infra.digest import blake3_hex
+from gtforge.infra.unbuffered import AlignedBuffer, aligned_buffer
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.formats import PNG_SIGNATURE, read_image
 from gtforge.io.vendors import load_structured_light_cameras
@@ -33,7 +34,8 @@ DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
 # ---- depth ----------------------------------------------------------------------------------
 def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_scale_mm: float | None = None,
-               camera: PinholeCamera | None = None, field: str = "depth", data: bytes | None = None) -> np.ndarray:
+               camera: PinholeCamera | None = None, field: str = "depth",
+               data: bytes | memoryview | None = None) -> np.ndarray:
     """Depth map -> ``(H, W)`` float32 mm with NaN invalid.
 
     float32 TIFF (Mech-Eye ``DepthMap.tiff``; NaN or 0 invalid), 16-bit PNG (``depth_scale_mm`` mm per
@@ -128,7 +130,7 @@ def _depth_mm(a, scale):
 
 
 def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: str = "texture",
-                 data: bytes | None = None) -> np.ndarray:
+                 data: bytes | memoryview | None = None) -> np.ndarray:
     img = read_image(path, field=field, data=data)
     if img.dtype == np.uint16:  # some Mech-Eye exports are 16-bit grey
         img = (img / 257.0).round().astype(np.uint8)
@@ -241,6 +243,9 @@ class Capture:
     zed_right_file: Path | None = None
     # the input files read whole to build the arrays above, by name: the BLAKE3 of exactly the bytes decoded
     read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
+    # the bytes of the ZED PNGs ``Session.decoded_images`` read, by name: a build writes them out as im0/im1 from here
+    # instead of reading the files a second time
+    read_buffers: dict[str, AlignedBuffer] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -254,18 +259,29 @@ class ReadRecord:
     read_at_ns: int
 
 
-def read_recorded(path: Path, records: dict[str, ReadRecord]) -> bytes | None:
+def read_recorded(path: Path, records: dict[str, ReadRecord],
+                  buffers: dict[str, AlignedBuffer] | None = None) -> bytes | memoryview | None:
     """The bytes of ``path``, recorded in ``records`` under its name (hashing what is read saves reading the file
     again to hash it, and the hash is of the very bytes the scene was built from). None when it cannot be read,
-    for the reader to report as usual; not recorded when the file changed size while being read."""
+    for the reader to report as usual; not recorded when the file changed size while being read. The bytes are read
+    into an ``AlignedBuffer``, kept in ``buffers`` (when given) under the file's name: ready to be written out again
+    past the page cache (``atomic.atomic_write_buffer``)."""
     try:
         st = path.stat()
         read_at_ns = time.time_ns()
-        data = path.read_bytes()
+        with open(path, "rb", buffering=0) as f:
+            buf = aligned_buffer(st.st_size)
+            n = f.readinto(buf.padded)  # (one byte more than the size fits, if the file grew)
+            while n < len(buf.padded) and (k := f.readinto(buf.padded[n:])):
+                n += k
+            same_size = n == st.st_size and not f.read(1)
+        data = memoryview(buf.data) if same_size else path.read_bytes()  # (changed while read: as it is now)
     except OSError:
         return None
     if len(data) == st.st_size:
         records[path.name] = ReadRecord(blake3_hex(data), st.st_size, st.st_mtime_ns, read_at_ns)
+        if buffers is not None and same_size:
+            buffers[path.name] = buf
     return data
 
 
@@ -479,8 +495,8 @@ class Session:
         for img, path, name in ((cap.zed_left, cap.zed_left_file, "zed_left"),
                                 (cap.zed_right, cap.zed_right_file, "zed_right")):
             if img is None and path is not None:
-                img = read_image(path, expect="uint8", field=name, data=read_recorded(path, cap.read_records),
-                                 rows=zed_rows)
+                img = read_image(path, expect="uint8", field=name,
+                                 data=read_recorded(path, cap.read_records, cap.read_buffers), rows=zed_rows)
             eyes.append(img)
         return tex, eyes[0], eyes[1]
 

@@ -350,7 +350,7 @@ def write_image(path: str | Path, img: np.ndarray) -> Path:
 
 
 def read_image(path: str | Path, expect: str | None = None, field: str | None = None,
-               data: bytes | None = None, rows: int | None = None) -> np.ndarray:
+               data: bytes | memoryview | None = None, rows: int | None = None) -> np.ndarray:
     """Read PNG/JPG/BMP/TIFF -> RGB ``(H, W, 3)`` uint8, grey ``(H, W)``, or uint16 as stored.
 
     ``data``: the file's bytes, already read (``path`` then names it in errors). Truncated or corrupt files raise
@@ -369,7 +369,7 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
             data = path.read_bytes() if data is None else data
             a = decode_png(data, rows) if data[:8] == PNG_SIGNATURE else None
             if a is None:  # not a PNG, or one of the PNG variants decode_png leaves to imageio
-                a = iio.imread(data, extension=path.suffix or None)
+                a = iio.imread(bytes(data), extension=path.suffix or None)  # (bytes: data may be a memoryview)
         if rows is not None:
             a = a[:rows]
     except Exception as exc:  # imageio raises several types for corrupt data
