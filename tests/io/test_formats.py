@@ -159,6 +159,8 @@ def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
         d[rng.random(d.shape) < 0.3] = np.nan
         d[0, :14] = [0.0, -0.0, 1e-40, 0.5 / 256, 1.5 / 256, 2.5 / 256, 255.998, 255.99805, 256.0, 1e10, 3e38, np.inf,
                      -np.inf, -1.0]  # rounding halves, the clips at 1 and 65535, invalid values
+        if h > 2 * n:  # blocks without a valid pixel (taken deflated once a size): a whole one and the last, shorter
+            d[2 * n:] = np.nan
         noc = np.ones(d.shape, bool)
         noc[h // 2, 3:9] = False  # occluded pixels in one block only (some of them NaN: not a difference)
         noc[~np.isfinite(d[:, 0]), 0] = False  # outside the mask where invalid anyway: no difference either
@@ -172,7 +174,8 @@ def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
             np.testing.assert_array_equal(read_image(path, expect="uint16"), want)
             with Image.open(path) as im:
                 im.verify()
-        _, same, _ = formats._kitti_png_rows(d, noc)
+        _, same, zero, _ = formats._kitti_png_rows(d, noc)
+        np.testing.assert_array_equal(zero, (q == 0).all(axis=1))
         differs = np.isfinite(d[h // 2, 3:9]).any()
         np.testing.assert_array_equal(~same, np.arange(h) == h // 2 if differs else np.zeros(h, bool))
     with pytest.raises(ValueError):

@@ -143,9 +143,9 @@ def write_kitti_disparity_pair(path_occ: str | Path, path_noc: str | Path, disp_
     files as two ``write_kitti_disparity`` calls, byte for byte. The two differ only in rows with an occluded valid
     pixel: each block of ``LABEL_PNG_BLOCK_ROWS`` rows without one is deflated once, for both files, and only those
     rows are made a second time, for ``disp_noc``."""
-    occ, same, noc_rows = _kitti_png_rows(*_kitti_inputs(disp_px, nonoccluded))
+    occ, same, zero, noc_rows = _kitti_png_rows(*_kitti_inputs(disp_px, nonoccluded))
     h, w = occ.shape[0], (occ.shape[1] - 1) // 2
-    occ_blocks = _deflate_blocks(occ)
+    occ_blocks = _deflate_blocks(occ, zero)
     noc_blocks, noc_adler, k = [], 1, 0  # (1: the Adler-32 of no data)
     for i, v in enumerate(range(0, h, LABEL_PNG_BLOCK_ROWS)):
         block, differs = occ[v:v + LABEL_PNG_BLOCK_ROWS], ~same[v:v + LABEL_PNG_BLOCK_ROWS]
@@ -186,7 +186,8 @@ def _kitti_quantize(d, mask):
 @numba.njit(cache=True)
 def _kitti_png_rows(d, mask):
     """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)``, whether each row is the
-    same in ``_kitti_quantize(d, mask)``, and the PNG rows of the latter where it is not (in row order). Each row is
+    same in ``_kitti_quantize(d, mask)``, whether it is all zeros (no valid pixel), and the PNG rows of
+    ``_kitti_quantize(d, mask)`` where they are not the same (in row order). Each row is
     quantised into a buffer first, in a loop without stores to the PNG rows that the compiler vectorises, in float32:
     ``x * 256`` is exact in float32 as in float64 (a power of two), so its rounding is ``_kitti_value``'s."""
     H, W = d.shape
@@ -194,6 +195,7 @@ def _kitti_png_rows(d, mask):
     occ = np.empty((H, n), np.uint8)
     flat = occ.reshape(-1)
     same = np.ones(H, np.bool_)
+    zero = np.empty(H, np.bool_)
     noc = np.empty((H, n), np.uint8)  # (pages only touched for the rows that differ)
     n_noc = 0
     q_row = np.empty(W, np.int32)
@@ -203,9 +205,11 @@ def _kitti_png_rows(d, mask):
             x = d_row[u]
             r = min(max(np.rint(x * np.float32(256.0)), np.float32(1.0)), np.float32(65535.0))
             q_row[u] = np.int32(r) if (x >= np.float32(0.0)) & (x < np.float32(np.inf)) else np.int32(0)
-        differs = np.int32(0)
+        differs = nonzero = np.int32(0)
         for u in range(W):
             differs |= q_row[u] & (np.int32(m_row[u]) - 1)  # a valid value outside the mask
+            nonzero |= q_row[u]
+        zero[v] = nonzero == 0
         flat[v * n] = 0
         for u in range(W):
             _store_bytes(flat, v * n + 1 + 2 * u, _big_endian_u16(q_row[u]))
@@ -215,7 +219,7 @@ def _kitti_png_rows(d, mask):
             for u in range(W):
                 _store_bytes(noc[n_noc], 1 + 2 * u, _big_endian_u16(q_row[u] if m_row[u] else np.int32(0)))
             n_noc += 1
-    return occ, same, noc[:n_noc]
+    return occ, same, zero, noc[:n_noc]
 
 
 @numba.njit(inline="always")
@@ -242,11 +246,21 @@ def write_png16(path: str | Path, a: np.ndarray) -> Path:
 LABEL_PNG_BLOCK_ROWS = 16
 
 
-def _deflate_blocks(rows: np.ndarray) -> list[bytes]:
+def _deflate_blocks(rows: np.ndarray, zero: np.ndarray | None = None) -> list[bytes]:
     """PNG image data (``rows``: ``(H, 1 + row bytes)`` uint8, filter bytes included) as raw deflate by zlib-ng at level
     1, in blocks of ``LABEL_PNG_BLOCK_ROWS`` rows (``_deflate_block`` each): their concatenation is one valid deflate
-    stream, and a block is the same bytes wherever the same rows occur."""
-    return [_deflate_block(rows[v:v + LABEL_PNG_BLOCK_ROWS]) for v in range(0, rows.shape[0], LABEL_PNG_BLOCK_ROWS)]
+    stream, and a block is the same bytes wherever the same rows occur. ``zero``: whether each row is all zeros (filter
+    byte included), when known: a block of such rows is taken from ``_deflated_zeros``."""
+    n = LABEL_PNG_BLOCK_ROWS
+    return [_deflated_zeros(rows[v:v + n].nbytes) if zero is not None and zero[v:v + n].all() else
+            _deflate_block(rows[v:v + n]) for v in range(0, rows.shape[0], n)]
+
+
+@functools.lru_cache(maxsize=16)
+def _deflated_zeros(n_bytes: int) -> bytes:
+    """``_deflate_block`` of ``n_bytes`` zero bytes, made once a size: the rows above and below the ground truth of
+    every KITTI image."""
+    return _deflate_block(np.zeros(n_bytes, np.uint8))
 
 
 def _deflate_block(rows: np.ndarray) -> bytes:
