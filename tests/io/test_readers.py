@@ -162,6 +162,19 @@ def test_depth_readers(tmp_path):
     with pytest.raises(InputError, match="depth_unit: m. in the session.s session.yaml"):
         read_depth(tmp_path / "m.tiff")
     assert read_depth(tmp_path / "m.tiff", depth_unit="m")[2, 2] == pytest.approx(650.0)
+    # the median of every 16th valid pixel, exactly: half of them at 5 mm, half at 14 (median 9.5: refused) or 15 (10)
+    grid = np.full((8, 8), np.nan, np.float32)
+    grid[::4, ::4] = [[5.0, 14.0], [14.0, 5.0]]
+    grid[1, 1] = 3.0  # not on the sampled grid
+    write_tiff_float(tmp_path / "half.tiff", grid)
+    with pytest.raises(InputError, match="median 9.5"):
+        read_depth(tmp_path / "half.tiff")
+    grid[grid == 14.0] = 15.0
+    write_tiff_float(tmp_path / "half.tiff", grid)
+    assert read_depth(tmp_path / "half.tiff")[0, 4] == 15.0
+    grid[0, 0] = 16.0  # one sampled value below 10 of four
+    write_tiff_float(tmp_path / "half.tiff", grid)
+    assert read_depth(tmp_path / "half.tiff")[0, 0] == 16.0
     # 16-bit PNG with a scale
     write_png16(tmp_path / "d.png", np.where(np.isfinite(d), d * 10, 0).astype(np.uint16))
     np.testing.assert_allclose(read_depth(tmp_path / "d.png", depth_scale_mm=0.1)[2, 2], 650.0)
