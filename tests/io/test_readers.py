@@ -488,8 +488,9 @@ def test_a_missing_capture_file_is_told_apart_from_a_wrong_one(tmp_path):
 
 @pytest.mark.parametrize("size_change", [0, 3, -3])
 def test_read_recorded_bytes_record_and_buffer(tmp_path, size_change):
-    """``read_recorded``: the file's bytes, recorded (BLAKE3, size) and kept in an aligned buffer when the size read is
-    the size ``stat`` gave; a file that grew or shrank in between is returned as it is, neither recorded nor kept."""
+    """``read_recorded`` with ``buffers``: the file's bytes, recorded (BLAKE3, size) and kept in an aligned buffer when
+    the size read is the size ``stat`` gave; a file that grew or shrank in between is returned as it is, neither
+    recorded nor kept."""
     import pathlib
     import types
 
@@ -513,3 +514,5 @@ def test_read_recorded_bytes_record_and_buffer(tmp_path, size_change):
         assert records["f.png"].blake3 == blake3.blake3(content).hexdigest() and records["f.png"].size_bytes == 10243
         assert buffers["f.png"].data.tobytes() == content
     assert read_recorded(tmp_path / "missing.png", records) is None
+    plain = read_recorded(tmp_path / "f.png", {})  # nothing kept: the bytes object (io.BytesIO shares it)
+    assert type(plain) is bytes and plain == content

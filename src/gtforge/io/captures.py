@@ -281,19 +281,23 @@ def read_recorded(path: Path, records: dict[str, ReadRecord],
                   buffers: dict[str, AlignedBuffer] | None = None) -> bytes | memoryview | None:
     """The bytes of ``path``, recorded in ``records`` under its name (hashing what is read saves reading the file
     again to hash it, and the hash is of the very bytes the scene was built from). None when it cannot be read,
-    for the reader to report as usual; not recorded when the file changed size while being read. The bytes are read
-    into an ``AlignedBuffer``, kept in ``buffers`` (when given) under the file's name: ready to be written out again
-    past the page cache (``atomic.atomic_write_buffer``)."""
+    for the reader to report as usual; not recorded when the file changed size while being read. ``buffers``: the
+    bytes are read into an ``AlignedBuffer``, kept there under the file's name (ready to be written out again past
+    the page cache, ``atomic.atomic_write_buffer``), and a memoryview of it is returned; without it, ``bytes`` (which
+    ``io.BytesIO`` shares instead of copying, as the TIFF reader's does)."""
     try:
         st = path.stat()
         read_at_ns = time.time_ns()
-        with open(path, "rb", buffering=0) as f:
-            buf = aligned_buffer(st.st_size)
-            n = f.readinto(buf.padded)  # (one byte more than the size fits, if the file grew)
-            while n < len(buf.padded) and (k := f.readinto(buf.padded[n:])):
-                n += k
-            same_size = n == st.st_size and not f.read(1)
-        data = memoryview(buf.data) if same_size else path.read_bytes()  # (changed while read: as it is now)
+        if buffers is None:
+            data = path.read_bytes()
+        else:
+            with open(path, "rb", buffering=0) as f:
+                buf = aligned_buffer(st.st_size)
+                n = f.readinto(buf.padded)  # (one byte more than the size fits, if the file grew)
+                while n < len(buf.padded) and (k := f.readinto(buf.padded[n:])):
+                    n += k
+                same_size = n == st.st_size and not f.read(1)
+            data = memoryview(buf.data) if same_size else path.read_bytes()  # (changed while read: as it is now)
     except OSError:
         return None
     if len(data) == st.st_size:
