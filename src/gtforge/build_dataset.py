@@ -48,7 +48,7 @@ from gtforge.core.zed.scale_corrections import add_depth_pose_sigma, add_scale_s
 from gtforge.core.ground_truth.uncertainty import disparity_sigma
 from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
 from gtforge.errors import InputError, Interrupted
-from gtforge.infra.atomic import atomic_copy_file, atomic_write_text, private_folder
+from gtforge.infra.atomic import atomic_copy_file, atomic_write_buffer, atomic_write_text, private_folder
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import check_scheduler_address, prestart_pool, release_written_pages, run_tasks
 from gtforge.infra.unbuffered import background_writes
@@ -235,8 +235,11 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
             t = time.perf_counter()
             for name, img, src in (("im0.png", left, cap.zed_left_file),
                                    ("im1.png", right, cap.zed_right_file)):
-                if src is not None and crop is None:
-                    atomic_copy_file(src, tmp / name)  # the input is already this RGB PNG: no re-encode
+                if src is not None and crop is None:  # the input is already this RGB PNG: no re-encode
+                    if src.name in cap.read_buffers:  # its bytes as decoded for verification: not read again
+                        atomic_write_buffer(tmp / name, cap.read_buffers[src.name])
+                    else:
+                        atomic_copy_file(src, tmp / name)
                 else:
                     write_image(tmp / name, img)
             write_tiff_float(tmp / "depth0.tiff", depth)

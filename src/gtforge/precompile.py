@@ -40,7 +40,7 @@ KERNELS = (
     "gtforge.core.ground_truth.reproject._mesh_rows_stereo",
     "gtforge.core.ground_truth.reproject._disparity_nonoccluded", "gtforge.core.ground_truth.uncertainty._sigma_kernel",
     "gtforge.core.ground_truth.render._render_kernel", "gtforge.core.alignment.photometric._cubic_at",
-    "gtforge.io.formats._pfm_rows",
+    "gtforge.io.formats._pfm_invalid_to_inf",
     "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
     "gtforge.core.lens._undistort_kernel_serial",
 )

@@ -157,6 +157,10 @@ def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
     for h in (1, n - 1, n, n + 1, 3 * n + 5):
         d = rng.uniform(0, 200, (h, 29)).astype(np.float32)
         d[rng.random(d.shape) < 0.3] = np.nan
+        d[0, :14] = [0.0, -0.0, 1e-40, 0.5 / 256, 1.5 / 256, 2.5 / 256, 255.998, 255.99805, 256.0, 1e10, 3e38, np.inf,
+                     -np.inf, -1.0]  # rounding halves, the clips at 1 and 65535, invalid values
+        if h > 2 * n:  # blocks without a valid pixel (taken deflated once a size): a whole one and the last, shorter
+            d[2 * n:] = np.nan
         noc = np.ones(d.shape, bool)
         noc[h // 2, 3:9] = False  # occluded pixels in one block only (some of them NaN: not a difference)
         noc[~np.isfinite(d[:, 0]), 0] = False  # outside the mask where invalid anyway: no difference either
@@ -170,16 +174,17 @@ def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
             np.testing.assert_array_equal(read_image(path, expect="uint16"), want)
             with Image.open(path) as im:
                 im.verify()
-        _, _, same = formats._kitti_png_rows(d, noc)
+        _, same, zero, _ = formats._kitti_png_rows(d, noc)
+        np.testing.assert_array_equal(zero, (q == 0).all(axis=1))
         differs = np.isfinite(d[h // 2, 3:9]).any()
         np.testing.assert_array_equal(~same, np.arange(h) == h // 2 if differs else np.zeros(h, bool))
     with pytest.raises(ValueError):
         formats.write_kitti_disparity_pair(tmp_path / "o.png", tmp_path / "n.png", d, noc[:, :4])
 
 
-def test_label_png_blocks_reused_only_where_rows_are_the_same():
-    """A block of rows deflated alone is the same bytes wherever those rows occur; a reused block stands for rows
-    that are the same, and the stream still decodes to the other image when one row differs."""
+def test_label_png_blocks_are_the_same_bytes_where_rows_are_the_same():
+    """A block of rows deflated alone is the same bytes wherever those rows occur (what lets ``disp_occ`` and
+    ``disp_noc`` share blocks), another where one row differs, and the streams decode to their images."""
     import zlib
 
     from gtforge.io import formats
@@ -190,12 +195,10 @@ def test_label_png_blocks_reused_only_where_rows_are_the_same():
     b[n + 2, 7] ^= 1  # one byte of the second block
     rows_a = np.concatenate([np.zeros((a.shape[0], 1), np.uint8), a], axis=1)
     rows_b = np.concatenate([np.zeros((b.shape[0], 1), np.uint8), b], axis=1)
-    blocks_a = formats._deflate_blocks(rows_a)
-    same = (rows_a == rows_b).all(axis=1)
-    blocks_b = formats._deflate_blocks(rows_b, blocks_a, same)
-    assert [x is y for x, y in zip(blocks_a, blocks_b)] == [True, False, True]
+    blocks_a, blocks_b = formats._deflate_blocks(rows_a), formats._deflate_blocks(rows_b)
+    assert [x == y for x, y in zip(blocks_a, blocks_b)] == [True, False, True]
     for rows, blocks in ((rows_a, blocks_a), (rows_b, blocks_b)):
-        png = formats._png_bytes(rows, 40, rows.shape[0], 8, blocks)
+        png = formats._png_bytes(40, rows.shape[0], 8, blocks, zlib.adler32(rows))
         assert zlib.decompress(png[png.index(b"IDAT") + 4:-16]) == rows.tobytes()  # (adler-32 checked by zlib)
         np.testing.assert_array_equal(formats.decode_png(png), rows[:, 1:])
 
@@ -282,6 +285,28 @@ def test_decode_png_matches_pillow_for_every_filter(channels, png_inflate_lib):
                 part = decode_png(data, rows)
                 assert part.shape == img[:rows].shape
                 np.testing.assert_array_equal(part, img[:rows])
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_decode_png_sub_rows_in_pairs_and_alone(channels):
+    """Sub-filtered rows are undone two at a time, 8 bytes at a time (``_unfilter_sub_rows``), the row's last bytes one
+    by one: rows of fewer than 8 bytes, of a multiple of 8 bytes and between, Sub rows in pairs, alone and last,
+    against the image itself and Pillow."""
+    import imageio.v3 as iio
+
+    from gtforge.io.formats import decode_png
+
+    rng = np.random.default_rng(10 + channels)
+    for w in (1, 2, 3, 8, 16, 21, 43):
+        shape = (9, w) if channels == 1 else (9, w, channels)
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+        for kinds in ([1], [1, 1, 2], [2, 1, 1, 1], [1, 0, 1, 4, 1, 1, 3]):
+            data = _png_with_filters(img, kinds)
+            got = decode_png(data)
+            np.testing.assert_array_equal(got, img)
+            np.testing.assert_array_equal(got, iio.imread(data))
+            for rows in (1, 2, 5):
+                np.testing.assert_array_equal(decode_png(data, rows), img[:rows])
 
 
 def test_decode_png_16bit_grey_and_the_variants_left_to_imageio(tmp_path, png_inflate_lib):

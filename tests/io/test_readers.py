@@ -162,6 +162,19 @@ def test_depth_readers(tmp_path):
     with pytest.raises(InputError, match="depth_unit: m. in the session.s session.yaml"):
         read_depth(tmp_path / "m.tiff")
     assert read_depth(tmp_path / "m.tiff", depth_unit="m")[2, 2] == pytest.approx(650.0)
+    # the median of every 16th valid pixel, exactly: half of them at 5 mm, half at 14 (median 9.5: refused) or 15 (10)
+    grid = np.full((8, 8), np.nan, np.float32)
+    grid[::4, ::4] = [[5.0, 14.0], [14.0, 5.0]]
+    grid[1, 1] = 3.0  # not on the sampled grid
+    write_tiff_float(tmp_path / "half.tiff", grid)
+    with pytest.raises(InputError, match="median 9.5"):
+        read_depth(tmp_path / "half.tiff")
+    grid[grid == 14.0] = 15.0
+    write_tiff_float(tmp_path / "half.tiff", grid)
+    assert read_depth(tmp_path / "half.tiff")[0, 4] == 15.0
+    grid[0, 0] = 16.0  # one sampled value below 10 of four
+    write_tiff_float(tmp_path / "half.tiff", grid)
+    assert read_depth(tmp_path / "half.tiff")[0, 0] == 16.0
     # 16-bit PNG with a scale
     write_png16(tmp_path / "d.png", np.where(np.isfinite(d), d * 10, 0).astype(np.uint16))
     np.testing.assert_allclose(read_depth(tmp_path / "d.png", depth_scale_mm=0.1)[2, 2], 650.0)
@@ -173,6 +186,42 @@ def test_depth_readers(tmp_path):
     small = PinholeCamera(width_px=6, height_px=4, fx_px=10.0, fy_px=10.0, cx_px=2.0, cy_px=1.5)
     with pytest.raises(InputError, match=r"6x4 px.*5x4 px"):
         read_depth(tmp_path / "DepthMap.tiff", camera=small)
+
+
+def test_tiff_bytes_read_as_tifffile_reads_them(tmp_path):
+    """``_tiff_image``: a view of the file's bytes for one uncompressed page in native byte order (one strip or several
+    in one run), tifffile's own array for everything else; the same values and dtype either way, and read_depth's
+    result from the bytes is its result from the path."""
+    import io
+
+    import tifffile
+
+    from gtforge.io.captures import _tiff_image
+
+    d = np.arange(37 * 23, dtype=np.float32).reshape(37, 23) + 600.0
+    d[3, 4] = np.nan
+    u16 = np.arange(37 * 5, dtype=np.uint16).reshape(37, 5) + 700
+    native = "<" if sys.byteorder == "little" else ">"
+    cases = {  # name: (imwrite arguments, a view of the bytes)
+        "float32": ({}, True), "uint16": ({"data": u16}, True),
+        "strips": ({"rowsperstrip": 5}, True), "contiguous=False": ({"contiguous": False}, True),
+        "swapped": ({"byteorder": "<" if native == ">" else ">"}, False), "zlib": ({"compression": "zlib"}, False),
+        "tiled": ({"tile": (16, 16)}, False),
+        "predictor": ({"data": u16, "compression": "zlib", "predictor": True}, False),
+        "two pages": ({"data": np.stack([d, d + 1])}, False),
+    }
+    for name, (kwargs, view) in cases.items():
+        f = io.BytesIO()
+        tifffile.imwrite(f, kwargs.pop("data", d), **kwargs)
+        data = f.getvalue()
+        a, want = _tiff_image(data), tifffile.imread(io.BytesIO(data))
+        assert a.dtype == want.dtype and a.shape == want.shape, name
+        np.testing.assert_array_equal(a, want, err_msg=name)
+        assert (not a.flags.owndata and not a.flags.writeable) == view, name
+        if a.ndim == 2 and a.dtype == np.float32:
+            (tmp_path / "DepthMap.tiff").write_bytes(data)
+            np.testing.assert_array_equal(read_depth(tmp_path / "DepthMap.tiff", data=data),
+                                          read_depth(tmp_path / "DepthMap.tiff"), err_msg=name)
 
 
 def test_side_by_side_split():
@@ -308,6 +357,10 @@ def test_decoded_images_decode_what_load_capture_left_and_only_the_rows_asked(tm
     np.testing.assert_array_equal(right, full.zed_right[:4])
     assert set(lean.read_records) == {"DepthMap.tiff", "2DImage.png", "left.png", "right.png"}
     assert lean.read_records["left.png"].blake3 == blake3.blake3((c / "left.png").read_bytes()).hexdigest()
+    # the ZED PNGs' bytes kept, in page-aligned buffers, for im0/im1 (a capture decoded whole keeps none)
+    assert set(lean.read_buffers) == {"left.png", "right.png"} and not full.read_buffers
+    for name, buf in lean.read_buffers.items():
+        assert buf.data.tobytes() == (c / name).read_bytes() and buf.padded.ctypes.data % 4096 == 0
     _, left, _ = s.decoded_images(lean)  # every row
     np.testing.assert_array_equal(left, full.zed_left)
     same = s.decoded_images(full, zed_rows=4)  # decoded already: given as they are
@@ -431,3 +484,35 @@ def test_a_missing_capture_file_is_told_apart_from_a_wrong_one(tmp_path):
     with pytest.raises(InputError) as wrong:
         read_depth(tmp_path / "DepthMap.bmp")
     assert not missing_capture_file(wrong.value) and "got '.bmp'" in str(wrong.value)
+
+
+@pytest.mark.parametrize("size_change", [0, 3, -3])
+def test_read_recorded_bytes_record_and_buffer(tmp_path, size_change):
+    """``read_recorded`` with ``buffers``: the file's bytes, recorded (BLAKE3, size) and kept in an aligned buffer when
+    the size read is the size ``stat`` gave; a file that grew or shrank in between is returned as it is, neither
+    recorded nor kept."""
+    import pathlib
+    import types
+
+    import blake3
+
+    from gtforge.io.captures import read_recorded
+
+    class Changed(type(pathlib.Path())):
+        def stat(self, **kwargs):  # the size before the file changed
+            st = super().stat(**kwargs)
+            return types.SimpleNamespace(st_size=st.st_size - size_change, st_mtime_ns=st.st_mtime_ns)
+
+    content = bytes(range(256)) * 40 + b"end"
+    (tmp_path / "f.png").write_bytes(content)
+    records, buffers = {}, {}
+    data = read_recorded(Changed(tmp_path / "f.png"), records, buffers)
+    assert bytes(data) == content
+    if size_change:
+        assert not records and not buffers
+    else:
+        assert records["f.png"].blake3 == blake3.blake3(content).hexdigest() and records["f.png"].size_bytes == 10243
+        assert buffers["f.png"].data.tobytes() == content
+    assert read_recorded(tmp_path / "missing.png", records) is None
+    plain = read_recorded(tmp_path / "f.png", {})  # nothing kept: the bytes object (io.BytesIO shares it)
+    assert type(plain) is bytes and plain == content

@@ -141,3 +141,25 @@ def test_error_maps_are_matplotlibs_colours_and_bars_are_drawn_once():
     fresh = ev._colorbar_strip.__wrapped__(320, 2.0, "|disparity error| (px)", 56)
     assert b.shape == (56, 320, 3) and b.any()
     np.testing.assert_array_equal(b, fresh)
+
+
+def test_sigma_thumbnail_pixels(tmp_path, monkeypatch):
+    """The thumbnail's image before JPEG: turbo colours of sigma over 0..vmax, black where sigma is NaN or inf, the
+    map resized to 640 px wide by nearest neighbour."""
+    import cv2
+
+    from gtforge.reports import build
+
+    rng = np.random.default_rng(5)
+    sigma = rng.uniform(0, 0.15, (90, 1280)).astype(np.float32)
+    sigma[rng.random(sigma.shape) < 0.3] = np.nan
+    sigma[::7, ::5] = np.inf
+    sigma[3, ::3] = -np.inf
+    written = {}
+    monkeypatch.setattr(build, "write_image", lambda path, img: written.setdefault("rgb", img))
+    build.write_sigma_thumbnail(tmp_path / "s.jpg", sigma)
+    s = cv2.resize(sigma, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_NEAREST)
+    grey = np.round(np.clip(np.where(np.isfinite(s), s, 0) / 0.1, 0, 1) * 255).astype(np.uint8)
+    want = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1] * np.isfinite(s)[..., None]
+    assert written["rgb"].shape == (45, 640, 3) and (~np.isfinite(s)).any()
+    np.testing.assert_array_equal(written["rgb"], want)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from gtforge.core.zed.selfcal import corrected_right
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError, MissingFileError
 from gtforge.infra.digest import blake3_hex
+from gtforge.infra.unbuffered import AlignedBuffer, aligned_buffer
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.formats import PNG_SIGNATURE, read_image
 from gtforge.io.vendors import load_structured_light_cameras
@@ -32,7 +34,8 @@ DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 
 # ---- depth ----------------------------------------------------------------------------------
 def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_scale_mm: float | None = None,
-               camera: PinholeCamera | None = None, field: str = "depth", data: bytes | None = None) -> np.ndarray:
+               camera: PinholeCamera | None = None, field: str = "depth",
+               data: bytes | memoryview | None = None) -> np.ndarray:
     """Depth map -> ``(H, W)`` float32 mm with NaN invalid.
 
     float32 TIFF (Mech-Eye ``DepthMap.tiff``; NaN or 0 invalid), 16-bit PNG (``depth_scale_mm`` mm per
@@ -48,7 +51,7 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     try:
         source = path if data is None else io.BytesIO(data)
         if suf in (".tif", ".tiff"):
-            a = tifffile.imread(source)
+            a = tifffile.imread(source) if data is None else _tiff_image(data)
         elif suf == ".npy":
             a = np.load(source, allow_pickle=False)
         else:
@@ -81,15 +84,50 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
     if depth_unit == "m":
         d *= 1000.0
     else:
-        sample = d[::4, ::4]  # every 16th pixel tells metres from mm as well as all do, and the median sorts 16x fewer
-        sample = sample[np.isfinite(sample)]
-        med = float(np.median(sample if sample.size else d[np.isfinite(d)]))
-        if med < 10.0:
-            raise InputError(path, field, "depth in mm (median valid value >= 10)", f"median {med:.4g}",
-                             "this looks like metres: set 'depth_unit: m' in the session's session.yaml")
+        # every 16th pixel tells metres from mm as well as all do. Fewer than half of them below 10 mm: their median
+        # is not below 10 (counted in one pass); the median itself (a sort) only where it may be
+        n_sample, n_below = _grid_count_below(d, 4, np.float32(10.0))
+        if not n_sample or 2 * n_below >= n_sample:
+            sample = d[::4, ::4]
+            sample = sample[np.isfinite(sample)]
+            med = float(np.median(sample if sample.size else d[np.isfinite(d)]))
+            if med < 10.0:
+                raise InputError(path, field, "depth in mm (median valid value >= 10)", f"median {med:.4g}",
+                                 "this looks like metres: set 'depth_unit: m' in the session's session.yaml")
     if camera is not None:
         camera.check_image_size(d.shape, path, "depth map")
     return d
+
+
+@numba.njit(cache=True)
+def _grid_count_below(d, step, limit):
+    """Over every ``step``-th row and column of ``d``: how many values are not NaN, and how many of them are below
+    ``limit``."""
+    n = below = 0
+    for v in range(0, d.shape[0], step):
+        for u in range(0, d.shape[1], step):
+            x = d[v, u]
+            if x == x:
+                n += 1
+                below += x < limit
+    return n, below
+
+
+def _tiff_image(data: bytes | memoryview) -> np.ndarray:
+    """What ``tifffile.imread`` returns for a TIFF file's bytes ``data``. Where the image is the file's one page, stored
+    uncompressed as one run of its bytes in this machine's byte order (Mech-Eye's ``DepthMap.tiff``), a read-only view
+    of ``data`` (tifffile would copy it into a new array, for a depth map that is copied once more into mm)."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        if len(tif.pages) == 1 and len(tif.series) == 1 and tif.series[0].shape == page.shape and page.ndim == 2 \
+                and not page.is_tiled and page.compression == 1 and page.predictor == 1 and page.fillorder == 1 \
+                and page.dtype is not None and tif.byteorder == ("<" if sys.byteorder == "little" else ">"):
+            offsets, counts = page.dataoffsets, page.databytecounts
+            n = page.shape[0] * page.shape[1]
+            if sum(counts) == n * page.dtype.itemsize and offsets[0] + sum(counts) <= len(data) \
+                    and all(o == offsets[0] + sum(counts[:i]) for i, o in enumerate(offsets)):
+                return np.frombuffer(data, page.dtype, n, offsets[0]).reshape(page.shape)
+        return tif.asarray()
 
 
 @numba.njit(cache=True)
@@ -110,7 +148,7 @@ def _depth_mm(a, scale):
 
 
 def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: str = "texture",
-                 data: bytes | None = None) -> np.ndarray:
+                 data: bytes | memoryview | None = None) -> np.ndarray:
     img = read_image(path, field=field, data=data)
     if img.dtype == np.uint16:  # some Mech-Eye exports are 16-bit grey
         img = (img / 257.0).round().astype(np.uint8)
@@ -223,6 +261,9 @@ class Capture:
     zed_right_file: Path | None = None
     # the input files read whole to build the arrays above, by name: the BLAKE3 of exactly the bytes decoded
     read_records: dict[str, "ReadRecord"] = field(default_factory=dict)
+    # the bytes of the ZED PNGs ``Session.decoded_images`` read, by name: a build writes them out as im0/im1 from here
+    # instead of reading the files a second time
+    read_buffers: dict[str, AlignedBuffer] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -236,18 +277,33 @@ class ReadRecord:
     read_at_ns: int
 
 
-def read_recorded(path: Path, records: dict[str, ReadRecord]) -> bytes | None:
+def read_recorded(path: Path, records: dict[str, ReadRecord],
+                  buffers: dict[str, AlignedBuffer] | None = None) -> bytes | memoryview | None:
     """The bytes of ``path``, recorded in ``records`` under its name (hashing what is read saves reading the file
     again to hash it, and the hash is of the very bytes the scene was built from). None when it cannot be read,
-    for the reader to report as usual; not recorded when the file changed size while being read."""
+    for the reader to report as usual; not recorded when the file changed size while being read. ``buffers``: the
+    bytes are read into an ``AlignedBuffer``, kept there under the file's name (ready to be written out again past
+    the page cache, ``atomic.atomic_write_buffer``), and a memoryview of it is returned; without it, ``bytes`` (which
+    ``io.BytesIO`` shares instead of copying, as the TIFF reader's does)."""
     try:
         st = path.stat()
         read_at_ns = time.time_ns()
-        data = path.read_bytes()
+        if buffers is None:
+            data = path.read_bytes()
+        else:
+            with open(path, "rb", buffering=0) as f:
+                buf = aligned_buffer(st.st_size)
+                n = f.readinto(buf.padded)  # (one byte more than the size fits, if the file grew)
+                while n < len(buf.padded) and (k := f.readinto(buf.padded[n:])):
+                    n += k
+                same_size = n == st.st_size and not f.read(1)
+            data = memoryview(buf.data) if same_size else path.read_bytes()  # (changed while read: as it is now)
     except OSError:
         return None
     if len(data) == st.st_size:
         records[path.name] = ReadRecord(blake3_hex(data), st.st_size, st.st_mtime_ns, read_at_ns)
+        if buffers is not None and same_size:
+            buffers[path.name] = buf
     return data
 
 
@@ -461,8 +517,8 @@ class Session:
         for img, path, name in ((cap.zed_left, cap.zed_left_file, "zed_left"),
                                 (cap.zed_right, cap.zed_right_file, "zed_right")):
             if img is None and path is not None:
-                img = read_image(path, expect="uint8", field=name, data=read_recorded(path, cap.read_records),
-                                 rows=zed_rows)
+                img = read_image(path, expect="uint8", field=name,
+                                 data=read_recorded(path, cap.read_records, cap.read_buffers), rows=zed_rows)
             eyes.append(img)
         return tex, eyes[0], eyes[1]
 
