@@ -195,6 +195,30 @@ def test_spline_prefilter_is_scipys():
     np.testing.assert_allclose(spline_prefilter(stack), spline_coefficients(stack), atol=1e-10)
 
 
+def test_spline_prefilter_rows_in_place_are_the_transposed_column_pass():
+    """The row pass runs on blocks of rows in place: the same coefficients, to the last bit, as the column recursion
+    (``_bspline_axis0``) run on the transposed array, for float32 and float64 images, heights that are not a multiple
+    of the row block, and single rows or columns."""
+    from gtforge.core.alignment.photometric import _bspline_axis0
+
+    def reference(x):  # along the columns, then along the rows of the transposed copy
+        cols = np.array(x, np.float64)
+        _bspline_axis0(cols)
+        rows = np.ascontiguousarray(cols.T)
+        _bspline_axis0(rows)
+        return rows.T
+
+    rng = np.random.default_rng(3)
+    for shape in ((37, 53), (8, 45), (9, 3), (1, 6), (6, 1), (1, 1), (2, 2), (41, 60)):
+        for dtype in (np.float32, np.float64):
+            a = (rng.normal(size=shape) * 40).astype(dtype)
+            out = spline_prefilter(a)
+            assert out.dtype == np.float64 and np.array_equal(out, reference(a))
+    stack = rng.normal(size=(3, 11, 17)).astype(np.float32)
+    assert np.array_equal(spline_prefilter(stack), np.stack([reference(x) for x in stack]))
+    assert np.array_equal(spline_prefilter(stack[:, ::2, 1::2]), np.stack([reference(x) for x in stack[:, ::2, 1::2]]))
+
+
 def test_a_fruit_scene_on_a_fronto_parallel_table_verifies_at_zero(tmp_path, monkeypatch):
     """The issue's scene in small: the generator's melon on its textured table, the ZED straight above the table at
     18.3 px of disparity (one phase, 0.3, over the whole table; 0.25x, 2x2 supersampling), exact labels. Keys read
