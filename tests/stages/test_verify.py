@@ -276,3 +276,48 @@ def test_local_normalize_is_the_numpy_expression():
             got, ref = local_normalize(img, m, sigma), reference(img, m, sigma)
             assert got.dtype == np.float32 and np.abs(got).max() > 1.0
             np.testing.assert_array_equal(got, ref)
+
+
+def test_work_array_helpers_are_the_numpy_expressions():
+    """The compiled helpers of the work arrays give what the numpy steps they replace give: the GT's rows
+    (``mask_bounding_box`` of the finite values), the disparity and its finite range (``depth_to_disparity``: NaN,
+    zero, negative and infinite depths), and a 2x2 block's non-occlusion (its area mean equal to 1)."""
+    import cv2
+
+    from gtforge.core.geometry import mask_bounding_box
+    from gtforge.core.camera import PinholeCamera, RectifiedStereo
+    from gtforge.dataset.scene_verification import _all_of_2x2, _disparity_and_range, _finite_rows
+
+    rng = np.random.default_rng(5)
+    a = np.full((40, 30), np.nan, np.float32)
+    assert _finite_rows(a) == (0, 0)
+    for (v, u), val in (((0, 0), 1.0), ((39, 29), -2.0), ((17, 3), 0.0), ((5, 29), 3.0)):
+        b = a.copy()
+        b[v, u] = val
+        b[25, 7] = np.inf  # not finite: not a row of the GT
+        box = mask_bounding_box(np.isfinite(b))
+        assert _finite_rows(b) == (box[0], box[1])
+    b = (rng.random((40, 30)) * 900 + 300).astype(np.float32)
+    b[:6], b[33:], b[10, :] = np.nan, np.nan, np.nan
+    assert _finite_rows(b) == (6, 33)
+
+    zed = RectifiedStereo(left=PinholeCamera(fx_px=701.5, fy_px=701.5, cx_px=640.2, cy_px=360.7, width_px=1280,
+                                          height_px=720), baseline_mm=63.1, doffs_px=1.75)
+    depth = (rng.random((23, 37)) * 1500 + 200).astype(np.float32)
+    depth[3, :5] = [np.nan, 0.0, -40.0, np.inf, -np.inf]
+    out = np.empty(depth.shape, np.float32)
+    n, lo, hi = _disparity_and_range(depth, zed.f_px * zed.baseline_mm, zed.doffs_px, out)
+    with np.errstate(invalid="ignore"):
+        ref = zed.depth_to_disparity(depth)
+    np.testing.assert_array_equal(out, ref)
+    fin = ref[np.isfinite(ref)]
+    assert (n, lo, hi) == (fin.size, fin.min(), fin.max())
+    assert _disparity_and_range(np.full((3, 4), np.nan, np.float32), 1.0, 0.0, np.empty((3, 4), np.float32))[0] == 0
+
+    noc = rng.random((30, 44)) > 0.1
+    got = np.empty((15, 22), bool)
+    _all_of_2x2(noc, got)
+    np.testing.assert_array_equal(got, cv2.resize(noc.astype(np.float32), (22, 15), interpolation=cv2.INTER_AREA) == 1)
+    _all_of_2x2(noc[2:, 4:], got[:14, :20])  # a view
+    np.testing.assert_array_equal(got[:14, :20], cv2.resize(noc[2:, 4:].astype(np.float32), (20, 14),
+                                                            interpolation=cv2.INTER_AREA) == 1)

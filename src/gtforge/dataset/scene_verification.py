@@ -242,12 +242,13 @@ def _area(a: np.ndarray, f: int) -> np.ndarray:
     return cv2.resize(a[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA) if f > 1 else a
 
 
-def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
+def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig, rows: tuple[int, int] | None = None):
     """The arrays the checks run on: everything a factor ``f`` smaller, in the window around the ground truth
     (``Window``, margin ``WINDOW_MARGIN_PX``). Images are reduced by area averaging, depth by the mean of fully valid
     f x f blocks (the block centre's depth on a locally flat surface), labels by the block's top-left pixel; the ZED
-    camera is scaled the same way (pixel centres stay at integer coordinates). Returns ``(depth, disparity,
-    nonoccluded, region, left, right, rig, window)``."""
+    camera is scaled the same way (pixel centres stay at integer coordinates). ``rows``: ``_finite_rows`` of the
+    float32 depth, if the caller has it. Returns ``(depth, disparity, nonoccluded, region, left, right, rig,
+    window)``."""
     H, W = depth.shape
     h, w = H // f, W // f
     rig_w = rig
@@ -259,25 +260,38 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     depth = np.asarray(depth, np.float32)
     # only the block rows of the GT's rows (no valid block above or below them), each whole: OpenCV's vectorised
     # averages depend on where a row's columns start, so a column crop could change a value's last bit
-    gy0, gy1 = finite_box(depth)[:2]
-    depth_w = np.full((h, w), np.nan, np.float32)
+    gy0, gy1 = rows if rows is not None else _finite_rows(depth)
     by0, by1 = gy0 // f, min(-(-gy1 // f), h)
-    if by1 > by0:
-        depth_w[by0:by1] = _area(depth[by0 * f:by1 * f], f)
-    valid = np.isfinite(depth_w)
+    by1 = max(by1, by0)
+    # the work image's rows by0:by1 (NaN above and below them)
+    depth_rows = _area(depth[by0 * f:by1 * f], f) if by1 > by0 else np.empty((0, w), np.float32)
     if f == 1:
-        valid |= np.isfinite(disp)
-    box = mask_bounding_box(valid)
+        valid = np.zeros((h, w), bool)
+        valid[by0:by1] = np.isfinite(depth_rows)
+        box = mask_bounding_box(valid | np.isfinite(disp))
+    else:
+        box = finite_box(depth_rows) if by1 > by0 else (0, 0, 0, 0)
+        box = (box[0] + by0, box[1] + by0, box[2], box[3]) if box[1] else None
     m = WINDOW_MARGIN_PX
     if box:
         y0, y1, x0, x1 = max(box[0] - m, 0), min(box[1] + m, h), max(box[2] - m, 0), min(box[3] + m, w)
     else:
         y0, y1, x0, x1 = 0, h, 0, w
-    depth_c = depth_w[y0:y1, x0:x1]
-    disp_c = rig_w.zed.depth_to_disparity(depth_c) if f > 1 else disp[y0:y1, x0:x1]
-    finite = disp_c[np.isfinite(disp_c)]
-    if finite.size:  # the right image: the columns the matches fall in
-        xr0, xr1 = max(x0 - math.ceil(float(finite.max())), 0), min(x1 - math.floor(float(finite.min())), w)
+    depth_c = np.full((y1 - y0, x1 - x0), np.nan, np.float32)
+    ra, rb = max(by0, y0), min(by1, y1)
+    if rb > ra:
+        depth_c[ra - y0:rb - y0] = depth_rows[ra - by0:rb - by0, x0:x1]
+    if f > 1:  # depth_to_disparity's arithmetic, and the range of its finite values, in one pass
+        disp_c = np.empty(depth_c.shape, np.float32)
+        n_finite, d_min, d_max = _disparity_and_range(depth_c, rig_w.zed.f_px * rig_w.zed.baseline_mm,
+                                                      rig_w.zed.doffs_px, disp_c)
+    else:
+        disp_c = disp[y0:y1, x0:x1]
+        finite = disp_c[np.isfinite(disp_c)]
+        n_finite = finite.size
+        d_min, d_max = (finite.min(), finite.max()) if n_finite else (0.0, 0.0)
+    if n_finite:  # the right image: the columns the matches fall in
+        xr0, xr1 = max(x0 - math.ceil(float(d_max)), 0), min(x1 - math.floor(float(d_min)), w)
         xr0, xr1 = min(xr0, w - 1), max(xr1, xr0 + 1)
     else:
         xr0, xr1 = x0, x1
@@ -285,7 +299,11 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     def cut(a, xa, xb):  # rows y0:y1, columns xa:xb of the work-resolution image, from a dataset-resolution array
         return a[y0 * f:y1 * f, xa * f:xb * f]
 
-    noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
+    if f == 2 and noc.dtype == np.bool_:  # a block's mean is 1 exactly where its 4 pixels are (0.25 x a sum of 0/1)
+        noc_c = np.empty((y1 - y0, x1 - x0), np.bool_)
+        _all_of_2x2(cut(noc, x0, x1), noc_c)
+    else:
+        noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
     region_c = np.ascontiguousarray(cut(region, x0, x1)[::f, ::f])
     left_c = _area(cut(left, x0, x1), f)
     right_c = None if right is None else _area(cut(right, xr0, xr1), f)
@@ -304,21 +322,69 @@ def zed_rows_used(depth_zed_mm: np.ndarray, params: VerifyParams | None = None) 
     params = params or VerifyParams()
     H, W = depth_zed_mm.shape
     f = _work_factor(W, params)
-    end = _rows_with_values(depth_zed_mm)  # every GT pixel lies in rows [0, end)
+    return _rows_used(_finite_rows(depth_zed_mm)[1], H, f)
+
+
+def _rows_used(end: int, H: int, f: int) -> int:
+    """``zed_rows_used`` for a ground truth whose values lie in rows [0, end) of H, work factor f."""
     # a work pixel is valid only where its whole f x f block is: the window's rows end at most here
     return (min(-(-end // f) + WINDOW_MARGIN_PX, H // f) if end else H // f) * f
 
 
 @numba.njit(cache=True)
-def _rows_with_values(a):
-    """1 + the last row of ``a`` holding a finite value (0: none), scanning from the bottom (only the rows below the
-    ground truth are read)."""
+def _finite_rows(a):
+    """``(y0, y1)`` (end exclusive) of the rows of ``a`` holding a finite value, ``(0, 0)`` where none does: rows
+    counted branch-free from the top down to the first such row and from the bottom up to the last (the rows between
+    are not read)."""
     H, W = a.shape
-    for v in range(H - 1, -1, -1):
+    y0 = 0
+    while y0 < H:
+        n = 0
+        row = a[y0]
         for u in range(W):
-            if abs(a[v, u]) < np.inf:
-                return v + 1
-    return 0
+            n += abs(row[u]) < np.inf  # (NaN compares false)
+        if n:
+            break
+        y0 += 1
+    if y0 == H:
+        return 0, 0
+    y1 = H
+    while True:  # row y0 holds one: stops there at the latest
+        n = 0
+        row = a[y1 - 1]
+        for u in range(W):
+            n += abs(row[u]) < np.inf
+        if n:
+            return y0, y1
+        y1 -= 1
+
+
+@numba.njit(cache=True)
+def _all_of_2x2(a, out):
+    """``out[i, j]``: all four pixels of ``a``'s 2x2 block (2i, 2j) are True."""
+    h, w = out.shape
+    for i in range(h):
+        r0, r1 = a[2 * i], a[2 * i + 1]
+        for j in range(w):
+            out[i, j] = r0[2 * j] & r0[2 * j + 1] & r1[2 * j] & r1[2 * j + 1]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _disparity_and_range(depth, f_b, doffs, out):
+    """``out`` = ``StereoCamera.depth_to_disparity(depth)`` (float64 ``f_b / z - doffs``, NaN where not ``z > 0``,
+    rounded to float32), and ``(count, min, max)`` of its finite values (0.0, 0.0 where none)."""
+    H, W = depth.shape
+    n, lo, hi = 0, np.float32(np.inf), np.float32(-np.inf)
+    for v in range(H):
+        for u in range(W):
+            z = np.float64(depth[v, u])
+            d = np.float32(f_b / z - doffs) if z > 0 else np.float32(np.nan)
+            out[v, u] = d
+            if abs(d) < np.inf:
+                n += 1
+                lo = min(lo, d)
+                hi = max(hi, d)
+    return (n, lo, hi) if n else (0, np.float32(0.0), np.float32(0.0))
 
 
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
@@ -338,12 +404,15 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     if float(cv2.meanStdDev(to_gray(texture))[1][0, 0]) < 1.0:
         return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
     f = _work_factor(depth_zed_mm.shape[1], params)
+    depth32 = np.asarray(depth_zed_mm, np.float32)
+    rows = _finite_rows(depth32)  # the GT's rows: the image rows the checks read and the work arrays' rows
     for name, img in (("zed_left", zed_left), ("zed_right", zed_right)):
-        if img is not None and img.shape[0] < depth_zed_mm.shape[0] \
-                and img.shape[0] < (need := zed_rows_used(depth_zed_mm, params)):
+        if img is not None and img.shape[0] < depth_zed_mm.shape[0] and img.shape[0] < (need := _rows_used(
+                (rows if depth_zed_mm.dtype == np.float32 else _finite_rows(depth_zed_mm))[1],
+                depth_zed_mm.shape[0], f)):
             raise ValueError(f"{name}.shape={img.shape} but the checks read its first {need} rows")
     depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
-        f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
+        f, depth32, disparity_px, nonoccluded, region, zed_left, zed_right, rig, rows)
     left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
     # away from depth edges, for both checks (disp_c is the window's GT disparity, as depth_to_disparity gives it)
     smooth = smooth_depth_mask(disp_c)
