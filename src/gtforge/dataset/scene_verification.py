@@ -48,6 +48,7 @@ from gtforge.core.alignment.photometric import (
     pixels_of,
     sample_spline,
     smooth_depth_mask,
+    sobel_gradients,
     spline_prefilter,
     take_at,
     textured_mask,
@@ -115,11 +116,12 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
         local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
     if smooth is None:
         smooth = smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
-    use = ok_support & textured_mask(n_rend) & smooth
+    grads = sobel_gradients(n_rend)  # the mask's and the aligner's (its fine level is n_rend itself)
+    use = ok_support & textured_mask(n_rend, gradients=grads) & smooth
     v, u, idx = pixels_of(use)
     reg = take_at(region, idx)
     fruit = (reg == REGION_CENTRE) | (reg == REGION_EDGE)
-    aligner = ShiftAligner(n_rend, n_zed)
+    aligner = ShiftAligner(n_rend, n_zed, grads)
     e_all = aligner.align_at(v, u, params.min_pixels)
     e_fruit = aligner.align_at(v[fruit], u[fruit], params.min_pixels)
     # several fruit: each one's own shift too (fruit moved in different directions average out over all of them)
@@ -189,24 +191,29 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
 
         best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
         worse = cost(0.0) > params.bad_match_ratio * best_other
-    # the matches in the right array's pixels
-    xr_all = (u + (window.x0_px - window.xr0_px)) - take_at(d, idx).astype(np.float64)
     out = {}
     for name, sel in regions.items():
-        vs, us, xr, wr = (v, u, xr_all, worse) if sel is None else (v[sel], u[sel], xr_all[sel], worse[sel])
-        n = len(vs)
+        at = None if sel is None else np.flatnonzero(sel)  # the region's used pixels
+        wr = worse if sel is None else worse[sel]
+        n = len(wr)
         if n < params.min_pixels:
             out[name] = StereoEstimate(n_pixels=n)
             continue
         keep = even_subset(n, MAX_POINTS)
-        vk, uk, xr = vs[keep], us[keep], xr[keep]
+        at = keep if at is None else at[keep]
+        vk, uk = v[at], u[at]
+        # the matches in the right array's pixels
+        xr = (uk + (window.x0_px - window.xr0_px)) - take_at(d, idx[at]).astype(np.float64)
         b, dy = 0.0, 0.0
         lv = take_at(nl_gn, vk * w + uk).astype(np.float64)
         yr = vk.astype(np.float64)
+        A = np.empty((len(lv), 4))  # the linearised model's columns: d/db, d/d(dy), gain, offset
+        A[:, 2], A[:, 3] = lv, 1.0
         for _ in range(20):
             w_, wx, wy = sample_spline(right, xr - b, yr + dy, derivs=True)
             # right(u - d - b, v + dy): d/db = -gx, d/d(dy) = +gy
-            A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
+            np.negative(wx, out=A[:, 0])
+            A[:, 1] = wy
             step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
             b, dy = b + step[0], dy + step[1]
             if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b), abs(dy)) > 10:

@@ -35,16 +35,32 @@ def local_normalize(img: np.ndarray, mask: np.ndarray | None, sigma_px: float) -
     (normalised convolution; ``None``: every pixel); 0 outside the mask. Removes gain, offset and slow shading
     differences."""
     k = (0, 0)
-    x = np.ascontiguousarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
     if mask is None:  # the weights are all 1: no normalisation by them
+        x = np.ascontiguousarray(img, np.float32)
+        xx = x * x
         w, m = np.ones((1, 1), np.float32), np.ones((1, 1), np.bool_)
     else:
         m = np.ascontiguousarray(mask, np.bool_)
-        w = cv2.GaussianBlur(m.astype(np.float32), k, sigma_px)
+        x, xx, mf = np.empty(m.shape, np.float32), np.empty(m.shape, np.float32), np.empty(m.shape, np.float32)
+        _masked_inputs(np.asarray(img), m, x, xx, mf)
+        w = cv2.GaussianBlur(mf, k, sigma_px)
     out = np.empty(x.shape, np.float32)
-    _normalized(x, cv2.GaussianBlur(x, k, sigma_px), cv2.GaussianBlur(x * x, k, sigma_px), w, m, mask is not None,
-                out)
+    _normalized(x, cv2.GaussianBlur(x, k, sigma_px), cv2.GaussianBlur(xx, k, sigma_px), w, m, mask is not None, out)
     return out
+
+
+@numba.njit(cache=True)
+def _masked_inputs(img, mask, x, xx, mf):
+    """The masked image ``x`` (``img`` rounded to float32, 0 outside ``mask``: ``np.where(mask, img, 0)``), its square
+    (float32) and the mask as float32, in one pass."""
+    H, W = mask.shape
+    zero = np.float32(0.0)
+    for v in range(H):
+        for u in range(W):
+            a = np.float32(img[v, u]) if mask[v, u] else zero
+            x[v, u] = a
+            xx[v, u] = a * a
+            mf[v, u] = np.float32(mask[v, u])
 
 
 
@@ -327,9 +343,26 @@ def even_subset(n: int, max_points: int) -> np.ndarray | slice:
 def pixels_of(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(v, u, flat index)`` of a 2-D mask's pixels in row-major order (``np.nonzero``'s order; flat indices are
     faster to find and to gather with: one index array, ``take_at``)."""
-    idx = np.flatnonzero(mask)
-    v, u = np.divmod(idx, mask.shape[1])
-    return v, u, idx
+    m = np.ascontiguousarray(mask if mask.dtype == np.bool_ else mask != 0)
+    n = np.count_nonzero(m)
+    v, u, idx = np.empty(n + 1, np.int64), np.empty(n + 1, np.int64), np.empty(n + 1, np.int64)
+    _pixels(m, v, u, idx)
+    return v[:n], u[:n], idx[:n]
+
+
+@numba.njit(cache=True)
+def _pixels(mask, v, u, idx):
+    """``pixels_of``'s lists in one pass over the mask: every pixel written at the next free slot, which advances
+    only at a mask pixel (no branch; the lists have one slot more than the mask has pixels)."""
+    H, W = mask.shape
+    k = 0
+    for r in range(H):
+        row = mask[r]
+        for c in range(W):
+            v[k] = r
+            u[k] = c
+            idx[k] = r * W + c
+            k += row[c]
 
 
 
@@ -351,14 +384,16 @@ class ShiftAligner:
     SIGMAS = (2.0, 0.0)
     COARSE_TOL_PX = 0.01
 
-    def __init__(self, ref: np.ndarray, img: np.ndarray):
+    def __init__(self, ref: np.ndarray, img: np.ndarray,
+                 ref_gradients: tuple[np.ndarray, np.ndarray] | None = None):
+        """``ref_gradients``: ``sobel_gradients(ref)``, if the caller has them (``textured_mask``'s)."""
         self.ref = ref
         self.levels = []
         for sigma in self.SIGMAS:
             r = cv2.GaussianBlur(ref, (0, 0), sigma) if sigma else ref
             i = cv2.GaussianBlur(img, (0, 0), sigma) if sigma else img
-            self.levels.append((r, cv2.Sobel(r, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8),
+            self.levels.append((r, *(ref_gradients if not sigma and ref_gradients is not None else
+                                     sobel_gradients(r)),
                                 # the coarse pass only brings the fine one near its solution: Keys' cubic there (no
                                 # prefilter); the fine pass, which gives the figure, samples the B-spline
                                 spline_prefilter(i) if sigma == self.SIGMAS[-1]
@@ -386,7 +421,8 @@ class ShiftAligner:
             tol = tol_px if level == len(self.levels) - 1 else self.COARSE_TOL_PX
             rv = take_at(r, idx).astype(np.float64)
             # img(u + d) * (1 + g) + o ~ ref(u): unknowns (step in d, g, o), linearised at the template
-            At = np.stack([take_at(gx, idx), take_at(gy, idx), rv, np.ones_like(rv)]).astype(np.float64)
+            At = np.empty((4, len(rv)))
+            At[0], At[1], At[2], At[3] = take_at(gx, idx), take_at(gy, idx), rv, 1.0
             try:
                 inv = np.linalg.inv(At @ At.T)
             except np.linalg.LinAlgError:
@@ -453,9 +489,17 @@ def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixel
 
 
 
-def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
-    gx = cv2.Sobel(norm_img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(norm_img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+def sobel_gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(d/dx, d/dy)`` of ``img`` (float32, 3x3 Sobel / 8: per pixel)."""
+    return (cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+            cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8))
+
+
+def textured_mask(norm_img: np.ndarray, thresh: float = 0.15,
+                  gradients: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Pixels whose gradient magnitude exceeds ``thresh``. ``gradients``: ``sobel_gradients(norm_img)``, if the
+    caller has them."""
+    gx, gy = gradients if gradients is not None else sobel_gradients(norm_img)
     return cv2.magnitude(gx, gy) > thresh
 
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from gtforge.core import lens
 from gtforge.core.camera import Rig
+from gtforge.core.geometry import finite_box
 from gtforge.core.alignment.photometric import to_gray
 
 
@@ -26,11 +27,16 @@ def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occl
     tilted = bool(d[12] != 0.0 or d[13] != 0.0)
     out = np.zeros(depth_zed_mm.shape, np.float32)
     ok = np.zeros(depth_zed_mm.shape, bool)
-    _render_kernel(np.asarray(depth_zed_mm, np.float32), float(origin_px[0]), float(origin_px[1]),
+    depth = np.asarray(depth_zed_mm, np.float32)
+    # only the depth's finite box: a pixel without depth is not rendered (a window around the GT has a margin)
+    y0, y1, x0, x1 = finite_box(depth)
+    if y1 == 0:
+        return out, ok
+    _render_kernel(np.ascontiguousarray(depth[y0:y1, x0:x1]), float(origin_px[0] + x0), float(origin_px[1] + y0),
                    np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]), np.ascontiguousarray(T[:3, :3]),
                    np.ascontiguousarray(T[:3, 3]), np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
                    lens.tilt_matrix(d[12], d[13]), tilted, np.ascontiguousarray(to_gray(texture)),
-                   rig.separate_depth_camera, float(occlusion_tol_mm), out, ok)
+                   rig.separate_depth_camera, float(occlusion_tol_mm), out[y0:y1, x0:x1], ok[y0:y1, x0:x1])
     return out, ok
 
 
