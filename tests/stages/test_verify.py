@@ -321,3 +321,19 @@ def test_work_array_helpers_are_the_numpy_expressions():
     _all_of_2x2(noc[2:, 4:], got[:14, :20])  # a view
     np.testing.assert_array_equal(got[:14, :20], cv2.resize(noc[2:, 4:].astype(np.float32), (20, 14),
                                                             interpolation=cv2.INTER_AREA) == 1)
+
+
+def test_pixels_of_is_numpys_nonzero():
+    """``pixels_of``'s compiled pass lists ``np.nonzero``'s pixels and flat indices, in its order, for bool and
+    integer masks, a view, an empty mask and a full one."""
+    from gtforge.core.alignment.photometric import pixels_of
+
+    rng = np.random.default_rng(6)
+    m = rng.random((37, 61)) < 0.6
+    for mask in (m, m.astype(np.uint8) * 7, m[::2, 5:], np.zeros((4, 5), bool), np.ones((3, 2), bool)):
+        v, u, idx = pixels_of(mask)
+        rv, ru = np.nonzero(mask)
+        assert v.dtype == u.dtype == idx.dtype == np.int64
+        np.testing.assert_array_equal(v, rv)
+        np.testing.assert_array_equal(u, ru)
+        np.testing.assert_array_equal(idx, np.flatnonzero(mask))

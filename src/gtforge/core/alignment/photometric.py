@@ -270,6 +270,16 @@ def _spline_at(coeffs, x, y, out, derivs):
     """Cubic B-spline interpolation of each coefficient image of ``coeffs`` (K, H, W) at exact positions: ``out``
     (K, N) holds the values, or (3K, N) with ``derivs`` the values, then d/dx, then d/dy of every image (the
     spline's own derivatives, consistent with its values). Taps beyond the border mirrored (scipy's ``mirror``)."""
+    # the loop compiled once with and once without the derivatives (a constant in each: no branch per point)
+    if derivs:
+        _spline_loop(coeffs, x, y, out, True)
+    else:
+        _spline_loop(coeffs, x, y, out, False)
+
+
+@numba.njit(cache=True, inline="always")
+def _spline_loop(coeffs, x, y, out, derivs):
+    """``_spline_at``'s loop over the points."""
     K, H, W = coeffs.shape
     s6 = 1.0 / 6.0
     for k in range(x.shape[0]):

@@ -50,12 +50,17 @@ def _render_kernel(depth, x0, y0, k_zed, R, t, k_tex, dist, M, tilted, tex, zbuf
     # the positions as three planes, every pixel computed and the unseen ones marked by a NaN depth at the end: no
     # branch in the loop, so the compiler vectorises it (the same arithmetic, the same positions)
     pu, pv, pz = np.empty((H, W)), np.empty((H, W)), np.empty((H, W))
+    # the ray's x / z of each column (and y / z of each row, below) divided once, not at every pixel: the same values
+    x_over_z = np.empty(W)
+    for u in range(W):
+        x_over_z[u] = (u + x0 - k_zed[2]) / k_zed[0]
     for v in range(H):
         ru, rv, rz, drow = pu[v], pv[v], pz[v], depth[v]
+        y_over_z = (v + y0 - k_zed[3]) / k_zed[1]
         for u in range(W):
             z = np.float64(drow[u])
-            X = (u + x0 - k_zed[2]) / k_zed[0] * z
-            Y = (v + y0 - k_zed[3]) / k_zed[1] * z
+            X = x_over_z[u] * z
+            Y = y_over_z * z
             Zm = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * z + t[2]
             Xm = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * z + t[0]
             Ym = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * z + t[1]
