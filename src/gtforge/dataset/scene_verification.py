@@ -160,14 +160,14 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     nl = left_norm if left_norm is not None else \
         local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
     nr = local_normalize(to_gray(zed_right).astype(np.float32), None, params.norm_sigma_px)
-    ok = nonoccluded & np.isfinite(disparity_px)
-    d = np.where(ok, disparity_px, 0).astype(np.float32)
-    x_match = np.arange(window.x0_px, window.x0_px + w, dtype=np.float32) - d  # image column of the GT match
-    v_img = np.arange(window.y0_px, window.y0_px + h, dtype=np.float32)[:, None]
+    # the GT's pixels, their disparity (0 elsewhere), the image column of each one's match, and whether pixel and
+    # match lie inside the image's borders
+    ok, d, x_match, inside = (np.empty((h, w), t) for t in (np.bool_, np.float32, np.float32, np.bool_))
+    _stereo_pixels(np.ascontiguousarray(nonoccluded, np.bool_), np.asarray(disparity_px), window.x0_px,
+                   window.y0_px, window.width_px, window.height_px, ok, d, x_match, inside)
     # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
-    base = interior_mask(ok, 2) & (x_match > 3) & (x_match < window.width_px - 4) & (v_img > 3) & \
-        (v_img < window.height_px - 4)
-    use = base & textured_mask(nl) & (smooth_depth_mask(disparity_px) if smooth is None else smooth)
+    use = interior_mask(ok, 2) & inside & textured_mask(nl) & \
+        (smooth_depth_mask(disparity_px) if smooth is None else smooth)
     v, u, idx = pixels_of(use)
     reg = take_at(region, idx)
     regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
@@ -179,9 +179,11 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     # pixels' bounding box + 2 px (the SAD window)
     worse = np.zeros(len(v), bool)  # at the used pixels (v, u)
     if len(v):
-        sub = (slice(max(int(v.min()) - 2, 0), int(v.max()) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
+        # (v is sorted: pixels_of lists the rows in order)
+        sub = (slice(max(int(v[0]) - 2, 0), int(v[-1]) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
         map_x = x_match[sub] - np.float32(window.xr0_px)  # exact: integers subtracted
-        map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape)
+        # contiguous once (a broadcast view is copied by every remap call)
+        map_y = np.ascontiguousarray(np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape))
         nl_sub = nl[sub]
         idx_sub = (v - sub[0].start) * map_x.shape[1] + (u - sub[1].start)
 
@@ -230,6 +232,26 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
                                    disparity_bias_noise_px=None if noise is None else float(noise[0]),
                                    vertical_noise_px=None if noise is None else float(noise[1]))
     return out
+
+
+@numba.njit(cache=True)
+def _stereo_pixels(noc, disp, x0, y0, width, height, ok, d, x_match, inside):
+    """``stereo_consistency``'s per-pixel inputs in one pass: ``ok`` non-occluded with a finite disparity, ``d`` the
+    disparity there (float32, 0 elsewhere), ``x_match = float32(x0 + u) - d`` the image column of the GT match, and
+    ``inside``: ``3 < x_match < width - 4`` and ``3 < y0 + v < height - 4`` (the float32 comparisons numpy makes)."""
+    H, W = d.shape
+    lo, hx, hy = np.float32(3.0), np.float32(width - 4), np.float32(height - 4)
+    for v in range(H):
+        vi = np.float32(y0 + v)
+        row_in = (vi > lo) & (vi < hy)
+        for u in range(W):
+            o = noc[v, u] & (abs(disp[v, u]) < np.inf)
+            dd = np.float32(disp[v, u]) if o else np.float32(0.0)
+            xm = np.float32(x0 + u) - dd
+            ok[v, u] = o
+            d[v, u] = dd
+            x_match[v, u] = xm
+            inside[v, u] = row_in & (xm > lo) & (xm < hx)
 
 
 def _pm(noise_px: float | None) -> str:

@@ -97,10 +97,35 @@ def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px
     """Pixels whose GT disparity varies by less than ``max_range_px`` within ``radius_px`` (away from depth edges,
     where a rendering through the GT mixes fore- and background and biases an alignment)."""
     k = np.ones((2 * radius_px + 1,) * 2, np.uint8)
-    d = disparity_px.astype(np.float32)
-    hi = cv2.dilate(np.where(np.isfinite(d), d, -1e6).astype(np.float32), k)
-    lo = cv2.erode(np.where(np.isfinite(d), d, 1e6).astype(np.float32), k)
-    return (hi - lo) < max_range_px
+    d = np.asarray(disparity_px)
+    # the disparity as float32, -1e6 (for the maximum) and 1e6 (for the minimum) where not finite
+    hi, lo = np.empty(d.shape, np.float32), np.empty(d.shape, np.float32)
+    _finite_or(d, hi, lo)
+    out = np.empty(d.shape, np.bool_)
+    # (numpy compares a float32 array with a Python float in float32)
+    _range_below(cv2.dilate(hi, k), cv2.erode(lo, k), np.float32(max_range_px), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _finite_or(d, hi, lo):
+    """``hi``, ``lo``: ``d`` rounded to float32, -1e6 / 1e6 where that is not finite."""
+    H, W = d.shape
+    for v in range(H):
+        for u in range(W):
+            x = np.float32(d[v, u])
+            fin = abs(x) < np.inf
+            hi[v, u] = x if fin else np.float32(-1e6)
+            lo[v, u] = x if fin else np.float32(1e6)
+
+
+@numba.njit(cache=True)
+def _range_below(hi, lo, max_range, out):
+    """``out = (hi - lo) < max_range`` (float32)."""
+    H, W = out.shape
+    for v in range(H):
+        for u in range(W):
+            out[v, u] = (hi[v, u] - lo[v, u]) < max_range
 
 
 
