@@ -337,3 +337,52 @@ def test_pixels_of_is_numpys_nonzero():
         np.testing.assert_array_equal(v, rv)
         np.testing.assert_array_equal(u, ru)
         np.testing.assert_array_equal(idx, np.flatnonzero(mask))
+
+
+def test_smooth_depth_mask_and_stereo_pixels_are_the_numpy_expressions():
+    """The compiled passes of ``smooth_depth_mask`` and of the stereo check's per-pixel inputs give what the numpy
+    expressions they replace give: NaN and inf disparities, a float64 disparity beyond float32's range, a view, other
+    radii and a range not representable in float32 (compared in float32, as numpy compares)."""
+    import cv2
+
+    from gtforge.core.alignment.photometric import smooth_depth_mask
+    from gtforge.dataset.scene_verification import _stereo_pixels
+
+    def smooth_reference(disparity_px, radius_px=3, max_range_px=1.0):
+        k = np.ones((2 * radius_px + 1,) * 2, np.uint8)
+        with np.errstate(over="ignore"):
+            d = disparity_px.astype(np.float32)
+        hi = cv2.dilate(np.where(np.isfinite(d), d, -1e6).astype(np.float32), k)
+        lo = cv2.erode(np.where(np.isfinite(d), d, 1e6).astype(np.float32), k)
+        return (hi - lo) < max_range_px
+
+    rng = np.random.default_rng(7)
+    a = (rng.random((50, 60)) * 40).astype(np.float32)
+    holes = rng.random(a.shape) < 0.2
+    holes[14:36, 14:36] = False
+    a[holes] = np.nan
+    a[14:36, 14:36] = 17.3 + rng.random((22, 22)).astype(np.float32) * 0.2  # a smooth patch
+    a[3, 4], a[40, 50] = np.inf, -np.inf
+    b = a.astype(np.float64)
+    b[7, 7] = 1e39  # inf once rounded to float32
+    for x in (a, b, a[::2, 3:]):
+        for r, mr in ((3, 1.0), (1, 0.1), (2, 2.5)):
+            got = smooth_depth_mask(x, r, mr)
+            assert got.any() and not got.all()
+            np.testing.assert_array_equal(got, smooth_reference(x, r, mr))
+
+    noc = rng.random(a.shape) < 0.8
+    for disp in (a, b):
+        x0, y0, width, height = 40, 2, 100, 55
+        ok, d, x_match, inside = (np.empty(a.shape, t) for t in (np.bool_, np.float32, np.float32, np.bool_))
+        _stereo_pixels(noc, disp, x0, y0, width, height, ok, d, x_match, inside)
+        ok_ref = noc & np.isfinite(disp)
+        with np.errstate(over="ignore"):
+            d_ref = np.where(ok_ref, disp, 0).astype(np.float32)
+        xm_ref = np.arange(x0, x0 + a.shape[1], dtype=np.float32) - d_ref
+        v_img = np.arange(y0, y0 + a.shape[0], dtype=np.float32)[:, None]
+        in_ref = (xm_ref > 3) & (xm_ref < width - 4) & (v_img > 3) & (v_img < height - 4)
+        assert in_ref.any() and not in_ref.all()
+        for got, ref in ((ok, ok_ref), (d, d_ref), (x_match, xm_ref), (inside, in_ref)):
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
