@@ -508,14 +508,16 @@ def block_noise(A: np.ndarray, r: np.ndarray, n_params: int) -> np.ndarray | Non
     if n < NOISE_BLOCKS * 4 * A.shape[1]:
         return None
     edges = np.linspace(0, n, NOISE_BLOCKS + 1).astype(np.int64)
-    sols = []
-    for a, b in itertools.pairwise(edges):
+    p = A.shape[1]
+    normal, rhs = np.empty((NOISE_BLOCKS, p, p)), np.empty((NOISE_BLOCKS, p, 1))
+    for k, (a, b) in enumerate(itertools.pairwise(edges)):
         Ab, rb = A[a:b], r[a:b]
-        try:
-            sols.append(np.linalg.solve(Ab.T @ Ab, -(Ab.T @ rb))[:n_params])
-        except np.linalg.LinAlgError:
-            return None
-    return np.std(np.array(sols), axis=0, ddof=1) / math.sqrt(NOISE_BLOCKS)
+        normal[k], rhs[k, :, 0] = Ab.T @ Ab, -(Ab.T @ rb)
+    try:  # the bands' systems solved in one call (LAPACK's gesv on each, as one call per band solves them)
+        sols = np.linalg.solve(normal, rhs)[:, :n_params, 0]
+    except np.linalg.LinAlgError:
+        return None
+    return np.std(sols, axis=0, ddof=1) / math.sqrt(NOISE_BLOCKS)
 
 
 def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixels: int = 400) -> ShiftEstimate:
