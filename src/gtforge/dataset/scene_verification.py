@@ -185,13 +185,16 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         # contiguous once (a broadcast view is copied by every remap call)
         map_y = np.ascontiguousarray(np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape))
         nl_sub = nl[sub]
-        idx_sub = (v - sub[0].start) * map_x.shape[1] + (u - sub[1].start)
+        idx_sub = np.empty(len(v), np.int64)
+        _offset_flat(v, u, sub[0].start, sub[1].start, map_x.shape[1], idx_sub)
 
         def cost(o):  # at (v, u): the 5x5 SAD of the left image and the right one warped to x_match - o
             warped = cv2.remap(nr, map_x - np.float32(o), map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
             return take_at(cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True), idx_sub)
 
-        best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
+        best_other = cost(-1.0)
+        for o in (-0.5, 0.5, 1.0):  # (a minimum is exact: the order does not matter)
+            np.minimum(best_other, cost(o), out=best_other)
         worse = cost(0.0) > params.bad_match_ratio * best_other
     out = {}
     for name, sel in regions.items():
@@ -232,6 +235,14 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
                                    disparity_bias_noise_px=None if noise is None else float(noise[0]),
                                    vertical_noise_px=None if noise is None else float(noise[1]))
     return out
+
+
+@numba.njit(cache=True)
+def _offset_flat(v, u, v0, u0, width, out):
+    """``out = (v - v0) * width + (u - u0)``: the flat indices of the pixels ``(v, u)`` in an array of ``width``
+    columns whose pixel ``[0, 0]`` is ``(v0, u0)``."""
+    for k in range(len(v)):
+        out[k] = (v[k] - v0) * width + (u[k] - u0)
 
 
 @numba.njit(cache=True)
