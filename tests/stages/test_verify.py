@@ -414,3 +414,27 @@ def test_block_noise_solves_the_bands_as_one_solve_each():
     A[:, 0] = 1.0
     assert block_noise(A, np.ones(1000), 2) is None
     assert block_noise(A[:100], np.ones(100), 2) is None  # too few rows
+
+
+def test_interior_mask_and_offset_indices():
+    """``interior_mask`` erodes a bool mask's bytes as they are: what the uint8 copy gave, also for a view and for an
+    integer mask; ``_offset_flat`` gives the flat indices in a window of the pixels."""
+    import cv2
+
+    from gtforge.core.alignment.photometric import interior_mask, pixels_of
+    from gtforge.dataset.scene_verification import _offset_flat
+
+    rng = np.random.default_rng(9)
+    m = rng.random((60, 70)) < 0.9
+    m[10:50, 10:64] = True
+    for mask in (m, m[3:, ::2], m.astype(np.uint8) * 255):
+        for r in (1, 2, 6):
+            got = interior_mask(mask, r)
+            ref = cv2.erode(mask.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)).astype(bool)
+            assert got.dtype == np.bool_ and got.any()
+            np.testing.assert_array_equal(got, ref)
+    v, u, _ = pixels_of(m[10:50, 12:60])
+    v, u = v + 10, u + 12
+    out = np.empty(len(v), np.int64)
+    _offset_flat(v, u, 8, 11, 55, out)
+    np.testing.assert_array_equal(out, (v - 8) * 55 + (u - 11))

@@ -89,6 +89,8 @@ def _normalized(x, blur_x, blur_xx, w, mask, weighted, out):
 def interior_mask(mask: np.ndarray, radius_px: int) -> np.ndarray:
     """Mask pixels whose whole ``radius_px`` neighbourhood is in the mask (normalisation and gradients are exact)."""
     k = 2 * radius_px + 1
+    if mask.dtype == np.bool_:  # its bytes are 0 / 1 already: eroded as they are, no copies
+        return cv2.erode(np.ascontiguousarray(mask).view(np.uint8), np.ones((k, k), np.uint8)).view(np.bool_)
     return cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
 
 
