@@ -219,6 +219,49 @@ def test_spline_prefilter_rows_in_place_are_the_transposed_column_pass():
     assert np.array_equal(spline_prefilter(stack[:, ::2, 1::2]), np.stack([reference(x) for x in stack[:, ::2, 1::2]]))
 
 
+def test_sample_spline_is_the_per_point_formula():
+    """The compiled sampler (its points' weights computed in chunks, then sampled) gives, to the bit, the cubic
+    B-spline's per-point formula evaluated in Python floats: values and derivatives, a stack of two images, points
+    beyond the borders (mirrored taps) and more points than a chunk."""
+    import math
+
+    def mirror(i, n):
+        period = 2 * n - 2
+        i = abs(i) % period
+        return i if i < n else period - i
+
+    def reference(c, x, y):  # (value, d/dx, d/dy) of one coefficient image at one point
+        H, W = c.shape
+        s6 = 1.0 / 6.0
+        fx, fy = math.floor(x), math.floor(y)
+        t, ty = x - fx, y - fy
+        u1, v1 = 1.0 - t, 1.0 - ty
+        wx = (u1 * u1 * u1 * s6, (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6,
+              (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6, t * t * t * s6)
+        dx = (-0.5 * u1 * u1, 1.5 * t * t - 2.0 * t, -1.5 * t * t + t + 0.5, 0.5 * t * t)
+        wy = (v1 * v1 * v1 * s6, (3.0 * ty * ty * ty - 6.0 * ty * ty + 4.0) * s6,
+              (-3.0 * ty * ty * ty + 3.0 * ty * ty + 3.0 * ty + 1.0) * s6, ty * ty * ty * s6)
+        dy = (-0.5 * v1 * v1, 1.5 * ty * ty - 2.0 * ty, -1.5 * ty * ty + ty + 0.5, 0.5 * ty * ty)
+        xs = [mirror(int(fx) + k, W) for k in (-1, 0, 1, 2)]
+        ys = [mirror(int(fy) + k, H) for k in (-1, 0, 1, 2)]
+        rows = [wx[0] * c[yy, xs[0]] + wx[1] * c[yy, xs[1]] + wx[2] * c[yy, xs[2]] + wx[3] * c[yy, xs[3]]
+                for yy in ys]
+        drows = [dx[0] * c[yy, xs[0]] + dx[1] * c[yy, xs[1]] + dx[2] * c[yy, xs[2]] + dx[3] * c[yy, xs[3]]
+                 for yy in ys]
+        return (wy[0] * rows[0] + wy[1] * rows[1] + wy[2] * rows[2] + wy[3] * rows[3],
+                wy[0] * drows[0] + wy[1] * drows[1] + wy[2] * drows[2] + wy[3] * drows[3],
+                dy[0] * rows[0] + dy[1] * rows[1] + dy[2] * rows[2] + dy[3] * rows[3])
+
+    rng = np.random.default_rng(11)
+    coeffs = spline_prefilter(rng.normal(size=(2, 23, 31)))
+    x, y = rng.uniform(-4.0, 34.0, 600), rng.uniform(-4.0, 26.0, 600)
+    got, values = sample_spline(coeffs, x, y, derivs=True), sample_spline(coeffs, x, y)
+    for i in range(2):
+        ref = np.array([reference(coeffs[i], float(a), float(b)) for a, b in zip(x, y)])
+        np.testing.assert_array_equal(got[[i, 2 + i, 4 + i]], ref.T)
+        np.testing.assert_array_equal(values[i], ref[:, 0])
+
+
 def test_a_fruit_scene_on_a_fronto_parallel_table_verifies_at_zero(tmp_path, monkeypatch):
     """The issue's scene in small: the generator's melon on its textured table, the ZED straight above the table at
     18.3 px of disparity (one phase, 0.3, over the whole table; 0.25x, 2x2 supersampling), exact labels. Keys read

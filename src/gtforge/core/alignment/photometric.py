@@ -304,47 +304,77 @@ def _spline_at(coeffs, x, y, out, derivs):
         _spline_loop(coeffs, x, y, out, False)
 
 
+# points whose weights ``_spline_loop`` computes together before it samples them
+_SPLINE_CHUNK = 256
+
+
 @numba.njit(cache=True, inline="always")
 def _spline_loop(coeffs, x, y, out, derivs):
-    """``_spline_at``'s loop over the points."""
+    """``_spline_at``'s loop over the points, in chunks: each chunk's tap positions and weights first (a loop the
+    compiler vectorises), then its samples (the same expressions, in the same order, as one loop doing both)."""
     K, H, W = coeffs.shape
     s6 = 1.0 / 6.0
-    for k in range(x.shape[0]):
-        fx = math.floor(x[k])
-        fy = math.floor(y[k])
-        ix = int(fx)
-        iy = int(fy)
-        t = x[k] - fx
-        u1 = 1.0 - t
-        wx0, wx1, wx2, wx3 = (u1 * u1 * u1 * s6, (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6,
-                              (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6, t * t * t * s6)
-        dx0, dx1, dx2, dx3 = -0.5 * u1 * u1, 1.5 * t * t - 2.0 * t, -1.5 * t * t + t + 0.5, 0.5 * t * t
-        t = y[k] - fy
-        u1 = 1.0 - t
-        wy0, wy1, wy2, wy3 = (u1 * u1 * u1 * s6, (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6,
-                              (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6, t * t * t * s6)
-        dy0, dy1, dy2, dy3 = -0.5 * u1 * u1, 1.5 * t * t - 2.0 * t, -1.5 * t * t + t + 0.5, 0.5 * t * t
-        if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
-            x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
-        else:
-            x0, x1, x2, x3 = _mirror(ix - 1, W), _mirror(ix, W), _mirror(ix + 1, W), _mirror(ix + 2, W)
-            y0, y1, y2, y3 = _mirror(iy - 1, H), _mirror(iy, H), _mirror(iy + 1, H), _mirror(iy + 2, H)
-        for c in range(K):
-            r0 = wx0 * coeffs[c, y0, x0] + wx1 * coeffs[c, y0, x1] + wx2 * coeffs[c, y0, x2] + wx3 * coeffs[c, y0, x3]
-            r1 = wx0 * coeffs[c, y1, x0] + wx1 * coeffs[c, y1, x1] + wx2 * coeffs[c, y1, x2] + wx3 * coeffs[c, y1, x3]
-            r2 = wx0 * coeffs[c, y2, x0] + wx1 * coeffs[c, y2, x1] + wx2 * coeffs[c, y2, x2] + wx3 * coeffs[c, y2, x3]
-            r3 = wx0 * coeffs[c, y3, x0] + wx1 * coeffs[c, y3, x1] + wx2 * coeffs[c, y3, x2] + wx3 * coeffs[c, y3, x3]
-            out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+    ixs, iys = np.empty(_SPLINE_CHUNK, np.int64), np.empty(_SPLINE_CHUNK, np.int64)
+    wx, wy = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
+    dxw, dyw = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
+    for k0 in range(0, x.shape[0], _SPLINE_CHUNK):
+        n = min(_SPLINE_CHUNK, x.shape[0] - k0)
+        for j in range(n):
+            fx = math.floor(x[k0 + j])
+            fy = math.floor(y[k0 + j])
+            ixs[j] = int(fx)
+            iys[j] = int(fy)
+            t = x[k0 + j] - fx
+            u1 = 1.0 - t
+            wx[0, j] = u1 * u1 * u1 * s6
+            wx[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
+            wx[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
+            wx[3, j] = t * t * t * s6
             if derivs:
-                out[K + c, k] = (wy0 * (dx0 * coeffs[c, y0, x0] + dx1 * coeffs[c, y0, x1] + dx2 * coeffs[c, y0, x2]
-                                        + dx3 * coeffs[c, y0, x3])
-                                 + wy1 * (dx0 * coeffs[c, y1, x0] + dx1 * coeffs[c, y1, x1] + dx2 * coeffs[c, y1, x2]
-                                          + dx3 * coeffs[c, y1, x3])
-                                 + wy2 * (dx0 * coeffs[c, y2, x0] + dx1 * coeffs[c, y2, x1] + dx2 * coeffs[c, y2, x2]
-                                          + dx3 * coeffs[c, y2, x3])
-                                 + wy3 * (dx0 * coeffs[c, y3, x0] + dx1 * coeffs[c, y3, x1] + dx2 * coeffs[c, y3, x2]
-                                          + dx3 * coeffs[c, y3, x3]))
-                out[2 * K + c, k] = dy0 * r0 + dy1 * r1 + dy2 * r2 + dy3 * r3
+                dxw[0, j] = -0.5 * u1 * u1
+                dxw[1, j] = 1.5 * t * t - 2.0 * t
+                dxw[2, j] = -1.5 * t * t + t + 0.5
+                dxw[3, j] = 0.5 * t * t
+            t = y[k0 + j] - fy
+            u1 = 1.0 - t
+            wy[0, j] = u1 * u1 * u1 * s6
+            wy[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
+            wy[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
+            wy[3, j] = t * t * t * s6
+            if derivs:
+                dyw[0, j] = -0.5 * u1 * u1
+                dyw[1, j] = 1.5 * t * t - 2.0 * t
+                dyw[2, j] = -1.5 * t * t + t + 0.5
+                dyw[3, j] = 0.5 * t * t
+        for j in range(n):
+            k = k0 + j
+            ix, iy = ixs[j], iys[j]
+            wx0, wx1, wx2, wx3 = wx[0, j], wx[1, j], wx[2, j], wx[3, j]
+            wy0, wy1, wy2, wy3 = wy[0, j], wy[1, j], wy[2, j], wy[3, j]
+            if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
+                x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
+            else:
+                x0, x1, x2, x3 = _mirror(ix - 1, W), _mirror(ix, W), _mirror(ix + 1, W), _mirror(ix + 2, W)
+                y0, y1, y2, y3 = _mirror(iy - 1, H), _mirror(iy, H), _mirror(iy + 1, H), _mirror(iy + 2, H)
+            for c in range(K):
+                cf = coeffs[c]
+                r0 = wx0 * cf[y0, x0] + wx1 * cf[y0, x1] + wx2 * cf[y0, x2] + wx3 * cf[y0, x3]
+                r1 = wx0 * cf[y1, x0] + wx1 * cf[y1, x1] + wx2 * cf[y1, x2] + wx3 * cf[y1, x3]
+                r2 = wx0 * cf[y2, x0] + wx1 * cf[y2, x1] + wx2 * cf[y2, x2] + wx3 * cf[y2, x3]
+                r3 = wx0 * cf[y3, x0] + wx1 * cf[y3, x1] + wx2 * cf[y3, x2] + wx3 * cf[y3, x3]
+                out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+                if derivs:
+                    dx0, dx1, dx2, dx3 = dxw[0, j], dxw[1, j], dxw[2, j], dxw[3, j]
+                    dy0, dy1, dy2, dy3 = dyw[0, j], dyw[1, j], dyw[2, j], dyw[3, j]
+                    out[K + c, k] = (wy0 * (dx0 * cf[y0, x0] + dx1 * cf[y0, x1]
+                                            + dx2 * cf[y0, x2] + dx3 * cf[y0, x3])
+                                     + wy1 * (dx0 * cf[y1, x0] + dx1 * cf[y1, x1]
+                                              + dx2 * cf[y1, x2] + dx3 * cf[y1, x3])
+                                     + wy2 * (dx0 * cf[y2, x0] + dx1 * cf[y2, x1]
+                                              + dx2 * cf[y2, x2] + dx3 * cf[y2, x3])
+                                     + wy3 * (dx0 * cf[y3, x0] + dx1 * cf[y3, x1]
+                                              + dx2 * cf[y3, x2] + dx3 * cf[y3, x3]))
+                    out[2 * K + c, k] = dy0 * r0 + dy1 * r1 + dy2 * r2 + dy3 * r3
 
 
 def sample_spline(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray, derivs: bool = False) -> np.ndarray:
