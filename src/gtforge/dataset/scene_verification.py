@@ -163,7 +163,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     # the GT's pixels, their disparity (0 elsewhere), the image column of each one's match, and whether pixel and
     # match lie inside the image's borders
     ok, d, x_match, inside = (np.empty((h, w), t) for t in (np.bool_, np.float32, np.float32, np.bool_))
-    _stereo_pixels(np.ascontiguousarray(nonoccluded, np.bool_), np.asarray(disparity_px), window.x0_px,
+    _stereo_pixels(np.ascontiguousarray(nonoccluded, np.bool_), np.ascontiguousarray(disparity_px), window.x0_px,
                    window.y0_px, window.width_px, window.height_px, ok, d, x_match, inside)
     # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
     use = interior_mask(ok, 2) & inside & textured_mask(nl) & \
@@ -341,7 +341,7 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig, rows: 
 
     if f == 2 and noc.dtype == np.bool_:  # a block's mean is 1 exactly where its 4 pixels are (0.25 x a sum of 0/1)
         noc_c = np.empty((y1 - y0, x1 - x0), np.bool_)
-        _all_of_2x2(cut(noc, x0, x1), noc_c)
+        _all_of_2x2(np.ascontiguousarray(noc), y0 * f, x0 * f, noc_c)
     else:
         noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
     region_c = np.ascontiguousarray(cut(region, x0, x1)[::f, ::f])
@@ -400,13 +400,13 @@ def _finite_rows(a):
 
 
 @numba.njit(cache=True)
-def _all_of_2x2(a, out):
-    """``out[i, j]``: all four pixels of ``a``'s 2x2 block (2i, 2j) are True."""
+def _all_of_2x2(a, ya, xa, out):
+    """``out[i, j]``: all four pixels of ``a``'s 2x2 block at (ya + 2i, xa + 2j) are True."""
     h, w = out.shape
     for i in range(h):
-        r0, r1 = a[2 * i], a[2 * i + 1]
+        r0, r1 = a[ya + 2 * i], a[ya + 2 * i + 1]
         for j in range(w):
-            out[i, j] = r0[2 * j] & r0[2 * j + 1] & r1[2 * j] & r1[2 * j + 1]
+            out[i, j] = r0[xa + 2 * j] & r0[xa + 2 * j + 1] & r1[xa + 2 * j] & r1[xa + 2 * j + 1]
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -99,7 +99,7 @@ def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px
     """Pixels whose GT disparity varies by less than ``max_range_px`` within ``radius_px`` (away from depth edges,
     where a rendering through the GT mixes fore- and background and biases an alignment)."""
     k = np.ones((2 * radius_px + 1,) * 2, np.uint8)
-    d = np.asarray(disparity_px)
+    d = np.ascontiguousarray(disparity_px)  # (one compiled version for a whole image and for a window of it)
     # the disparity as float32, -1e6 (for the maximum) and 1e6 (for the minimum) where not finite
     hi, lo = np.empty(d.shape, np.float32), np.empty(d.shape, np.float32)
     _finite_or(d, hi, lo)
