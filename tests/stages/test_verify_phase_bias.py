@@ -262,6 +262,38 @@ def test_sample_spline_is_the_per_point_formula():
         np.testing.assert_array_equal(values[i], ref[:, 0])
 
 
+def test_sample_cubic_is_the_per_point_formula():
+    """The compiled Keys sampler (its points' weights computed in chunks, then sampled) gives, to the bit, Keys' cubic
+    convolution evaluated per point in Python floats: a stack of two float32 images, points beyond the borders
+    (replicated taps) and more points than a chunk."""
+    import math
+
+    from gtforge.core.alignment.photometric import sample_cubic
+
+    def keys(t):
+        t2 = t * t
+        t3 = t2 * t
+        return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+                0.5 * t3 - 0.5 * t2)
+
+    def reference(img, x, y):
+        H, W = img.shape
+        fx, fy = math.floor(x), math.floor(y)
+        wx, wy = keys(x - fx), keys(y - fy)
+        xs = [min(max(int(fx) + k, 0), W - 1) for k in (-1, 0, 1, 2)]
+        ys = [min(max(int(fy) + k, 0), H - 1) for k in (-1, 0, 1, 2)]
+        rows = [wx[0] * float(img[yy, xs[0]]) + wx[1] * float(img[yy, xs[1]]) + wx[2] * float(img[yy, xs[2]])
+                + wx[3] * float(img[yy, xs[3]]) for yy in ys]
+        return wy[0] * rows[0] + wy[1] * rows[1] + wy[2] * rows[2] + wy[3] * rows[3]
+
+    rng = np.random.default_rng(12)
+    stack = rng.normal(size=(2, 23, 31)).astype(np.float32)
+    x, y = rng.uniform(-4.0, 34.0, 600), rng.uniform(-4.0, 26.0, 600)
+    got = sample_cubic(stack, x, y)
+    for i in range(2):
+        np.testing.assert_array_equal(got[i], [reference(stack[i], float(a), float(b)) for a, b in zip(x, y)])
+
+
 def test_a_fruit_scene_on_a_fronto_parallel_table_verifies_at_zero(tmp_path, monkeypatch):
     """The issue's scene in small: the generator's melon on its textured table, the ZED straight above the table at
     18.3 px of disparity (one phase, 0.3, over the whole table; 0.25x, 2x2 supersampling), exact labels. Keys read
