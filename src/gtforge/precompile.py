@@ -69,6 +69,12 @@ def compile_kernels(scale: float = 0.25) -> float:
     # the one-thread undistortion: the fork server and the workers run it (NUMBA_NUM_THREADS = 1 in their environment),
     # this process, whose numba may run more, does not choose it by itself
     lens.undistort(np.zeros((1, 2)), [0.1, 0.0, 0.0, 0.0], serial=True)
+    # the verification's kernels for a work factor of 2 (full-resolution ZED images), which the small scene below
+    # (factor 1) does not run: the non-occlusion of 2x2 blocks and the window's disparity
+    from gtforge.dataset.scene_verification import _all_of_2x2, _disparity_and_range
+
+    _all_of_2x2(np.ones((4, 8), np.bool_), 0, 2, np.empty((2, 2), np.bool_))
+    _disparity_and_range(np.ones((2, 2), np.float32), 1.0, 0.0, np.empty((2, 2), np.float32))
     with tempfile.TemporaryDirectory(prefix="gtforge-precompile-") as tmp:
         session_dir = generate_session(Path(tmp) / "session", n_board=0, n_scenes=1, scale=scale, supersample=1)
         session = open_session(session_dir)

@@ -276,3 +276,166 @@ def test_local_normalize_is_the_numpy_expression():
             got, ref = local_normalize(img, m, sigma), reference(img, m, sigma)
             assert got.dtype == np.float32 and np.abs(got).max() > 1.0
             np.testing.assert_array_equal(got, ref)
+
+
+def test_work_array_helpers_are_the_numpy_expressions():
+    """The compiled helpers of the work arrays give what the numpy steps they replace give: the GT's rows
+    (``mask_bounding_box`` of the finite values), the disparity and its finite range (``depth_to_disparity``: NaN,
+    zero, negative and infinite depths), and a 2x2 block's non-occlusion (its area mean equal to 1)."""
+    import cv2
+
+    from gtforge.core.geometry import mask_bounding_box
+    from gtforge.core.camera import PinholeCamera, RectifiedStereo
+    from gtforge.dataset.scene_verification import _all_of_2x2, _disparity_and_range, _finite_rows
+
+    rng = np.random.default_rng(5)
+    a = np.full((40, 30), np.nan, np.float32)
+    assert _finite_rows(a) == (0, 0)
+    for (v, u), val in (((0, 0), 1.0), ((39, 29), -2.0), ((17, 3), 0.0), ((5, 29), 3.0)):
+        b = a.copy()
+        b[v, u] = val
+        b[25, 7] = np.inf  # not finite: not a row of the GT
+        box = mask_bounding_box(np.isfinite(b))
+        assert _finite_rows(b) == (box[0], box[1])
+    b = (rng.random((40, 30)) * 900 + 300).astype(np.float32)
+    b[:6], b[33:], b[10, :] = np.nan, np.nan, np.nan
+    assert _finite_rows(b) == (6, 33)
+
+    zed = RectifiedStereo(left=PinholeCamera(fx_px=701.5, fy_px=701.5, cx_px=640.2, cy_px=360.7, width_px=1280,
+                                          height_px=720), baseline_mm=63.1, doffs_px=1.75)
+    depth = (rng.random((23, 37)) * 1500 + 200).astype(np.float32)
+    depth[3, :5] = [np.nan, 0.0, -40.0, np.inf, -np.inf]
+    out = np.empty(depth.shape, np.float32)
+    n, lo, hi = _disparity_and_range(depth, zed.f_px * zed.baseline_mm, zed.doffs_px, out)
+    with np.errstate(invalid="ignore"):
+        ref = zed.depth_to_disparity(depth)
+    np.testing.assert_array_equal(out, ref)
+    fin = ref[np.isfinite(ref)]
+    assert (n, lo, hi) == (fin.size, fin.min(), fin.max())
+    assert _disparity_and_range(np.full((3, 4), np.nan, np.float32), 1.0, 0.0, np.empty((3, 4), np.float32))[0] == 0
+
+    noc = rng.random((30, 44)) > 0.1
+    got = np.empty((15, 22), bool)
+    _all_of_2x2(noc, 0, 0, got)
+    np.testing.assert_array_equal(got, cv2.resize(noc.astype(np.float32), (22, 15), interpolation=cv2.INTER_AREA) == 1)
+    got = np.empty((13, 19), bool)
+    _all_of_2x2(noc, 2, 4, got)  # a window whose first pixel is (2, 4)
+    np.testing.assert_array_equal(got, cv2.resize(noc[2:28, 4:42].astype(np.float32), (19, 13),
+                                                  interpolation=cv2.INTER_AREA) == 1)
+
+
+def test_pixels_of_is_numpys_nonzero():
+    """``pixels_of``'s compiled pass lists ``np.nonzero``'s pixels and flat indices, in its order, for bool and
+    integer masks, a view, an empty mask and a full one."""
+    from gtforge.core.alignment.photometric import pixels_of
+
+    rng = np.random.default_rng(6)
+    m = rng.random((37, 61)) < 0.6
+    for mask in (m, m.astype(np.uint8) * 7, m[::2, 5:], np.zeros((4, 5), bool), np.ones((3, 2), bool)):
+        v, u, idx = pixels_of(mask)
+        rv, ru = np.nonzero(mask)
+        assert v.dtype == u.dtype == idx.dtype == np.int64
+        np.testing.assert_array_equal(v, rv)
+        np.testing.assert_array_equal(u, ru)
+        np.testing.assert_array_equal(idx, np.flatnonzero(mask))
+
+
+def test_smooth_depth_mask_and_stereo_pixels_are_the_numpy_expressions():
+    """The compiled passes of ``smooth_depth_mask`` and of the stereo check's per-pixel inputs give what the numpy
+    expressions they replace give: NaN and inf disparities, a float64 disparity beyond float32's range, a view, other
+    radii and a range not representable in float32 (compared in float32, as numpy compares)."""
+    import cv2
+
+    from gtforge.core.alignment.photometric import smooth_depth_mask
+    from gtforge.dataset.scene_verification import _stereo_pixels
+
+    def smooth_reference(disparity_px, radius_px=3, max_range_px=1.0):
+        k = np.ones((2 * radius_px + 1,) * 2, np.uint8)
+        with np.errstate(over="ignore"):
+            d = disparity_px.astype(np.float32)
+        hi = cv2.dilate(np.where(np.isfinite(d), d, -1e6).astype(np.float32), k)
+        lo = cv2.erode(np.where(np.isfinite(d), d, 1e6).astype(np.float32), k)
+        return (hi - lo) < max_range_px
+
+    rng = np.random.default_rng(7)
+    a = (rng.random((50, 60)) * 40).astype(np.float32)
+    holes = rng.random(a.shape) < 0.2
+    holes[14:36, 14:36] = False
+    a[holes] = np.nan
+    a[14:36, 14:36] = 17.3 + rng.random((22, 22)).astype(np.float32) * 0.2  # a smooth patch
+    a[3, 4], a[40, 50] = np.inf, -np.inf
+    b = a.astype(np.float64)
+    b[7, 7] = 1e39  # inf once rounded to float32
+    for x in (a, b, a[::2, 3:]):
+        for r, mr in ((3, 1.0), (1, 0.1), (2, 2.5)):
+            got = smooth_depth_mask(x, r, mr)
+            assert got.any() and not got.all()
+            np.testing.assert_array_equal(got, smooth_reference(x, r, mr))
+
+    noc = rng.random(a.shape) < 0.8
+    for disp in (a, b):
+        x0, y0, width, height = 40, 2, 100, 55
+        ok, d, x_match, inside = (np.empty(a.shape, t) for t in (np.bool_, np.float32, np.float32, np.bool_))
+        _stereo_pixels(noc, disp, x0, y0, width, height, ok, d, x_match, inside)
+        ok_ref = noc & np.isfinite(disp)
+        with np.errstate(over="ignore"):
+            d_ref = np.where(ok_ref, disp, 0).astype(np.float32)
+        xm_ref = np.arange(x0, x0 + a.shape[1], dtype=np.float32) - d_ref
+        v_img = np.arange(y0, y0 + a.shape[0], dtype=np.float32)[:, None]
+        in_ref = (xm_ref > 3) & (xm_ref < width - 4) & (v_img > 3) & (v_img < height - 4)
+        assert in_ref.any() and not in_ref.all()
+        for got, ref in ((ok, ok_ref), (d, d_ref), (x_match, xm_ref), (inside, in_ref)):
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
+
+
+def test_block_noise_solves_the_bands_as_one_solve_each():
+    """``block_noise`` solves its bands' normal equations in one batched call: the same standard errors, to the bit, as
+    a solve per band, for C- and F-ordered models; None when a band's system is singular."""
+    import itertools
+    import math
+
+    from gtforge.core.alignment.photometric import NOISE_BLOCKS, block_noise
+
+    def reference(A, r, n_params):
+        edges = np.linspace(0, len(r), NOISE_BLOCKS + 1).astype(np.int64)
+        sols = [np.linalg.solve(A[a:b].T @ A[a:b], -(A[a:b].T @ r[a:b]))[:n_params]
+                for a, b in itertools.pairwise(edges)]
+        return np.std(np.array(sols), axis=0, ddof=1) / math.sqrt(NOISE_BLOCKS)
+
+    rng = np.random.default_rng(8)
+    for n, p in ((300, 4), (5001, 2), (30000, 4), (777, 3)):
+        A = rng.normal(size=(n, p)) * rng.uniform(0.01, 100, size=p)
+        r = rng.normal(size=n)
+        for a in (A, np.asfortranarray(A)):
+            got = block_noise(a, r, 2)
+            assert got.shape == (2,)
+            np.testing.assert_array_equal(got, reference(a, r, 2))
+    A = np.zeros((1000, 4))
+    A[:, 0] = 1.0
+    assert block_noise(A, np.ones(1000), 2) is None
+    assert block_noise(A[:100], np.ones(100), 2) is None  # too few rows
+
+
+def test_interior_mask_and_offset_indices():
+    """``interior_mask`` erodes a bool mask's bytes as they are: what the uint8 copy gave, also for a view and for an
+    integer mask; ``_offset_flat`` gives the flat indices in a window of the pixels."""
+    import cv2
+
+    from gtforge.core.alignment.photometric import interior_mask, pixels_of
+    from gtforge.dataset.scene_verification import _offset_flat
+
+    rng = np.random.default_rng(9)
+    m = rng.random((60, 70)) < 0.9
+    m[10:50, 10:64] = True
+    for mask in (m, m[3:, ::2], m.astype(np.uint8) * 255):
+        for r in (1, 2, 6):
+            got = interior_mask(mask, r)
+            ref = cv2.erode(mask.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)).astype(bool)
+            assert got.dtype == np.bool_ and got.any()
+            np.testing.assert_array_equal(got, ref)
+    v, u, _ = pixels_of(m[10:50, 12:60])
+    v, u = v + 10, u + 12
+    out = np.empty(len(v), np.int64)
+    _offset_flat(v, u, 8, 11, 55, out)
+    np.testing.assert_array_equal(out, (v - 8) * 55 + (u - 11))

@@ -195,6 +195,105 @@ def test_spline_prefilter_is_scipys():
     np.testing.assert_allclose(spline_prefilter(stack), spline_coefficients(stack), atol=1e-10)
 
 
+def test_spline_prefilter_rows_in_place_are_the_transposed_column_pass():
+    """The row pass runs on blocks of rows in place: the same coefficients, to the last bit, as the column recursion
+    (``_bspline_axis0``) run on the transposed array, for float32 and float64 images, heights that are not a multiple
+    of the row block, and single rows or columns."""
+    from gtforge.core.alignment.photometric import _bspline_axis0
+
+    def reference(x):  # along the columns, then along the rows of the transposed copy
+        cols = np.array(x, np.float64)
+        _bspline_axis0(cols)
+        rows = np.ascontiguousarray(cols.T)
+        _bspline_axis0(rows)
+        return rows.T
+
+    rng = np.random.default_rng(3)
+    for shape in ((37, 53), (8, 45), (9, 3), (1, 6), (6, 1), (1, 1), (2, 2), (41, 60)):
+        for dtype in (np.float32, np.float64):
+            a = (rng.normal(size=shape) * 40).astype(dtype)
+            out = spline_prefilter(a)
+            assert out.dtype == np.float64 and np.array_equal(out, reference(a))
+    stack = rng.normal(size=(3, 11, 17)).astype(np.float32)
+    assert np.array_equal(spline_prefilter(stack), np.stack([reference(x) for x in stack]))
+    assert np.array_equal(spline_prefilter(stack[:, ::2, 1::2]), np.stack([reference(x) for x in stack[:, ::2, 1::2]]))
+
+
+def test_sample_spline_is_the_per_point_formula():
+    """The compiled sampler (its points' weights computed in chunks, then sampled) gives, to the bit, the cubic
+    B-spline's per-point formula evaluated in Python floats: values and derivatives, a stack of two images, points
+    beyond the borders (mirrored taps) and more points than a chunk."""
+    import math
+
+    def mirror(i, n):
+        period = 2 * n - 2
+        i = abs(i) % period
+        return i if i < n else period - i
+
+    def reference(c, x, y):  # (value, d/dx, d/dy) of one coefficient image at one point
+        H, W = c.shape
+        s6 = 1.0 / 6.0
+        fx, fy = math.floor(x), math.floor(y)
+        t, ty = x - fx, y - fy
+        u1, v1 = 1.0 - t, 1.0 - ty
+        wx = (u1 * u1 * u1 * s6, (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6,
+              (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6, t * t * t * s6)
+        dx = (-0.5 * u1 * u1, 1.5 * t * t - 2.0 * t, -1.5 * t * t + t + 0.5, 0.5 * t * t)
+        wy = (v1 * v1 * v1 * s6, (3.0 * ty * ty * ty - 6.0 * ty * ty + 4.0) * s6,
+              (-3.0 * ty * ty * ty + 3.0 * ty * ty + 3.0 * ty + 1.0) * s6, ty * ty * ty * s6)
+        dy = (-0.5 * v1 * v1, 1.5 * ty * ty - 2.0 * ty, -1.5 * ty * ty + ty + 0.5, 0.5 * ty * ty)
+        xs = [mirror(int(fx) + k, W) for k in (-1, 0, 1, 2)]
+        ys = [mirror(int(fy) + k, H) for k in (-1, 0, 1, 2)]
+        rows = [wx[0] * c[yy, xs[0]] + wx[1] * c[yy, xs[1]] + wx[2] * c[yy, xs[2]] + wx[3] * c[yy, xs[3]]
+                for yy in ys]
+        drows = [dx[0] * c[yy, xs[0]] + dx[1] * c[yy, xs[1]] + dx[2] * c[yy, xs[2]] + dx[3] * c[yy, xs[3]]
+                 for yy in ys]
+        return (wy[0] * rows[0] + wy[1] * rows[1] + wy[2] * rows[2] + wy[3] * rows[3],
+                wy[0] * drows[0] + wy[1] * drows[1] + wy[2] * drows[2] + wy[3] * drows[3],
+                dy[0] * rows[0] + dy[1] * rows[1] + dy[2] * rows[2] + dy[3] * rows[3])
+
+    rng = np.random.default_rng(11)
+    coeffs = spline_prefilter(rng.normal(size=(2, 23, 31)))
+    x, y = rng.uniform(-4.0, 34.0, 600), rng.uniform(-4.0, 26.0, 600)
+    got, values = sample_spline(coeffs, x, y, derivs=True), sample_spline(coeffs, x, y)
+    for i in range(2):
+        ref = np.array([reference(coeffs[i], float(a), float(b)) for a, b in zip(x, y)])
+        np.testing.assert_array_equal(got[[i, 2 + i, 4 + i]], ref.T)
+        np.testing.assert_array_equal(values[i], ref[:, 0])
+
+
+def test_sample_cubic_is_the_per_point_formula():
+    """The compiled Keys sampler (its points' weights computed in chunks, then sampled) gives, to the bit, Keys' cubic
+    convolution evaluated per point in Python floats: a stack of two float32 images, points beyond the borders
+    (replicated taps) and more points than a chunk."""
+    import math
+
+    from gtforge.core.alignment.photometric import sample_cubic
+
+    def keys(t):
+        t2 = t * t
+        t3 = t2 * t
+        return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+                0.5 * t3 - 0.5 * t2)
+
+    def reference(img, x, y):
+        H, W = img.shape
+        fx, fy = math.floor(x), math.floor(y)
+        wx, wy = keys(x - fx), keys(y - fy)
+        xs = [min(max(int(fx) + k, 0), W - 1) for k in (-1, 0, 1, 2)]
+        ys = [min(max(int(fy) + k, 0), H - 1) for k in (-1, 0, 1, 2)]
+        rows = [wx[0] * float(img[yy, xs[0]]) + wx[1] * float(img[yy, xs[1]]) + wx[2] * float(img[yy, xs[2]])
+                + wx[3] * float(img[yy, xs[3]]) for yy in ys]
+        return wy[0] * rows[0] + wy[1] * rows[1] + wy[2] * rows[2] + wy[3] * rows[3]
+
+    rng = np.random.default_rng(12)
+    stack = rng.normal(size=(2, 23, 31)).astype(np.float32)
+    x, y = rng.uniform(-4.0, 34.0, 600), rng.uniform(-4.0, 26.0, 600)
+    got = sample_cubic(stack, x, y)
+    for i in range(2):
+        np.testing.assert_array_equal(got[i], [reference(stack[i], float(a), float(b)) for a, b in zip(x, y)])
+
+
 def test_a_fruit_scene_on_a_fronto_parallel_table_verifies_at_zero(tmp_path, monkeypatch):
     """The issue's scene in small: the generator's melon on its textured table, the ZED straight above the table at
     18.3 px of disparity (one phase, 0.3, over the whole table; 0.25x, 2x2 supersampling), exact labels. Keys read

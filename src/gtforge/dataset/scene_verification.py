@@ -48,6 +48,7 @@ from gtforge.core.alignment.photometric import (
     pixels_of,
     sample_spline,
     smooth_depth_mask,
+    sobel_gradients,
     spline_prefilter,
     take_at,
     textured_mask,
@@ -115,11 +116,12 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
         local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
     if smooth is None:
         smooth = smooth_depth_mask(rig.zed.depth_to_disparity(depth_zed_mm))
-    use = ok_support & textured_mask(n_rend) & smooth
+    grads = sobel_gradients(n_rend)  # the mask's and the aligner's (its fine level is n_rend itself)
+    use = ok_support & textured_mask(n_rend, gradients=grads) & smooth
     v, u, idx = pixels_of(use)
     reg = take_at(region, idx)
     fruit = (reg == REGION_CENTRE) | (reg == REGION_EDGE)
-    aligner = ShiftAligner(n_rend, n_zed)
+    aligner = ShiftAligner(n_rend, n_zed, grads)
     e_all = aligner.align_at(v, u, params.min_pixels)
     e_fruit = aligner.align_at(v[fruit], u[fruit], params.min_pixels)
     # several fruit: each one's own shift too (fruit moved in different directions average out over all of them)
@@ -158,14 +160,14 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     nl = left_norm if left_norm is not None else \
         local_normalize(to_gray(zed_left).astype(np.float32), None, params.norm_sigma_px)
     nr = local_normalize(to_gray(zed_right).astype(np.float32), None, params.norm_sigma_px)
-    ok = nonoccluded & np.isfinite(disparity_px)
-    d = np.where(ok, disparity_px, 0).astype(np.float32)
-    x_match = np.arange(window.x0_px, window.x0_px + w, dtype=np.float32) - d  # image column of the GT match
-    v_img = np.arange(window.y0_px, window.y0_px + h, dtype=np.float32)[:, None]
+    # the GT's pixels, their disparity (0 elsewhere), the image column of each one's match, and whether pixel and
+    # match lie inside the image's borders
+    ok, d, x_match, inside = (np.empty((h, w), t) for t in (np.bool_, np.float32, np.float32, np.bool_))
+    _stereo_pixels(np.ascontiguousarray(nonoccluded, np.bool_), np.ascontiguousarray(disparity_px), window.x0_px,
+                   window.y0_px, window.width_px, window.height_px, ok, d, x_match, inside)
     # border pixels of the GT (the disparity may jump there) and pixels whose match falls off the image stay out
-    base = interior_mask(ok, 2) & (x_match > 3) & (x_match < window.width_px - 4) & (v_img > 3) & \
-        (v_img < window.height_px - 4)
-    use = base & textured_mask(nl) & (smooth_depth_mask(disparity_px) if smooth is None else smooth)
+    use = interior_mask(ok, 2) & inside & textured_mask(nl) & \
+        (smooth_depth_mask(disparity_px) if smooth is None else smooth)
     v, u, idx = pixels_of(use)
     reg = take_at(region, idx)
     regions = {"all": None, "fruit": (reg == REGION_CENTRE) | (reg == REGION_EDGE), "background": reg == REGION_BG}
@@ -177,36 +179,46 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
     # pixels' bounding box + 2 px (the SAD window)
     worse = np.zeros(len(v), bool)  # at the used pixels (v, u)
     if len(v):
-        sub = (slice(max(int(v.min()) - 2, 0), int(v.max()) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
+        # (v is sorted: pixels_of lists the rows in order)
+        sub = (slice(max(int(v[0]) - 2, 0), int(v[-1]) + 3), slice(max(int(u.min()) - 2, 0), int(u.max()) + 3))
         map_x = x_match[sub] - np.float32(window.xr0_px)  # exact: integers subtracted
-        map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape)
+        # contiguous once (a broadcast view is copied by every remap call)
+        map_y = np.ascontiguousarray(np.broadcast_to(np.arange(h, dtype=np.float32)[sub[0], None], map_x.shape))
         nl_sub = nl[sub]
-        idx_sub = (v - sub[0].start) * map_x.shape[1] + (u - sub[1].start)
+        idx_sub = np.empty(len(v), np.int64)
+        _offset_flat(v, u, sub[0].start, sub[1].start, map_x.shape[1], idx_sub)
 
         def cost(o):  # at (v, u): the 5x5 SAD of the left image and the right one warped to x_match - o
             warped = cv2.remap(nr, map_x - np.float32(o), map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
             return take_at(cv2.boxFilter(cv2.absdiff(nl_sub, warped), -1, (5, 5), normalize=True), idx_sub)
 
-        best_other = np.minimum.reduce([cost(o) for o in (-1.0, -0.5, 0.5, 1.0)])
+        best_other = cost(-1.0)
+        for o in (-0.5, 0.5, 1.0):  # (a minimum is exact: the order does not matter)
+            np.minimum(best_other, cost(o), out=best_other)
         worse = cost(0.0) > params.bad_match_ratio * best_other
-    # the matches in the right array's pixels
-    xr_all = (u + (window.x0_px - window.xr0_px)) - take_at(d, idx).astype(np.float64)
     out = {}
     for name, sel in regions.items():
-        vs, us, xr, wr = (v, u, xr_all, worse) if sel is None else (v[sel], u[sel], xr_all[sel], worse[sel])
-        n = len(vs)
+        at = None if sel is None else np.flatnonzero(sel)  # the region's used pixels
+        wr = worse if sel is None else worse[sel]
+        n = len(wr)
         if n < params.min_pixels:
             out[name] = StereoEstimate(n_pixels=n)
             continue
         keep = even_subset(n, MAX_POINTS)
-        vk, uk, xr = vs[keep], us[keep], xr[keep]
+        at = keep if at is None else at[keep]
+        vk, uk = v[at], u[at]
+        # the matches in the right array's pixels
+        xr = (uk + (window.x0_px - window.xr0_px)) - take_at(d, idx[at]).astype(np.float64)
         b, dy = 0.0, 0.0
         lv = take_at(nl_gn, vk * w + uk).astype(np.float64)
         yr = vk.astype(np.float64)
+        A = np.empty((len(lv), 4))  # the linearised model's columns: d/db, d/d(dy), gain, offset
+        A[:, 2], A[:, 3] = lv, 1.0
         for _ in range(20):
             w_, wx, wy = sample_spline(right, xr - b, yr + dy, derivs=True)
             # right(u - d - b, v + dy): d/db = -gx, d/d(dy) = +gy
-            A = np.stack([-wx, wy, lv, np.ones_like(lv)], axis=1)
+            np.negative(wx, out=A[:, 0])
+            A[:, 1] = wy
             step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
             b, dy = b + step[0], dy + step[1]
             if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b), abs(dy)) > 10:
@@ -223,6 +235,34 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
                                    disparity_bias_noise_px=None if noise is None else float(noise[0]),
                                    vertical_noise_px=None if noise is None else float(noise[1]))
     return out
+
+
+@numba.njit(cache=True)
+def _offset_flat(v, u, v0, u0, width, out):
+    """``out = (v - v0) * width + (u - u0)``: the flat indices of the pixels ``(v, u)`` in an array of ``width``
+    columns whose pixel ``[0, 0]`` is ``(v0, u0)``."""
+    for k in range(len(v)):
+        out[k] = (v[k] - v0) * width + (u[k] - u0)
+
+
+@numba.njit(cache=True)
+def _stereo_pixels(noc, disp, x0, y0, width, height, ok, d, x_match, inside):
+    """``stereo_consistency``'s per-pixel inputs in one pass: ``ok`` non-occluded with a finite disparity, ``d`` the
+    disparity there (float32, 0 elsewhere), ``x_match = float32(x0 + u) - d`` the image column of the GT match, and
+    ``inside``: ``3 < x_match < width - 4`` and ``3 < y0 + v < height - 4`` (the float32 comparisons numpy makes)."""
+    H, W = d.shape
+    lo, hx, hy = np.float32(3.0), np.float32(width - 4), np.float32(height - 4)
+    for v in range(H):
+        vi = np.float32(y0 + v)
+        row_in = (vi > lo) & (vi < hy)
+        for u in range(W):
+            o = noc[v, u] & (abs(disp[v, u]) < np.inf)
+            dd = np.float32(disp[v, u]) if o else np.float32(0.0)
+            xm = np.float32(x0 + u) - dd
+            ok[v, u] = o
+            d[v, u] = dd
+            x_match[v, u] = xm
+            inside[v, u] = row_in & (xm > lo) & (xm < hx)
 
 
 def _pm(noise_px: float | None) -> str:
@@ -242,12 +282,13 @@ def _area(a: np.ndarray, f: int) -> np.ndarray:
     return cv2.resize(a[:h * f, :w * f], (w, h), interpolation=cv2.INTER_AREA) if f > 1 else a
 
 
-def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
+def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig, rows: tuple[int, int] | None = None):
     """The arrays the checks run on: everything a factor ``f`` smaller, in the window around the ground truth
     (``Window``, margin ``WINDOW_MARGIN_PX``). Images are reduced by area averaging, depth by the mean of fully valid
     f x f blocks (the block centre's depth on a locally flat surface), labels by the block's top-left pixel; the ZED
-    camera is scaled the same way (pixel centres stay at integer coordinates). Returns ``(depth, disparity,
-    nonoccluded, region, left, right, rig, window)``."""
+    camera is scaled the same way (pixel centres stay at integer coordinates). ``rows``: ``_finite_rows`` of the
+    float32 depth, if the caller has it. Returns ``(depth, disparity, nonoccluded, region, left, right, rig,
+    window)``."""
     H, W = depth.shape
     h, w = H // f, W // f
     rig_w = rig
@@ -259,25 +300,38 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     depth = np.asarray(depth, np.float32)
     # only the block rows of the GT's rows (no valid block above or below them), each whole: OpenCV's vectorised
     # averages depend on where a row's columns start, so a column crop could change a value's last bit
-    gy0, gy1 = finite_box(depth)[:2]
-    depth_w = np.full((h, w), np.nan, np.float32)
+    gy0, gy1 = rows if rows is not None else _finite_rows(depth)
     by0, by1 = gy0 // f, min(-(-gy1 // f), h)
-    if by1 > by0:
-        depth_w[by0:by1] = _area(depth[by0 * f:by1 * f], f)
-    valid = np.isfinite(depth_w)
+    by1 = max(by1, by0)
+    # the work image's rows by0:by1 (NaN above and below them)
+    depth_rows = _area(depth[by0 * f:by1 * f], f) if by1 > by0 else np.empty((0, w), np.float32)
     if f == 1:
-        valid |= np.isfinite(disp)
-    box = mask_bounding_box(valid)
+        valid = np.zeros((h, w), bool)
+        valid[by0:by1] = np.isfinite(depth_rows)
+        box = mask_bounding_box(valid | np.isfinite(disp))
+    else:
+        box = finite_box(depth_rows) if by1 > by0 else (0, 0, 0, 0)
+        box = (box[0] + by0, box[1] + by0, box[2], box[3]) if box[1] else None
     m = WINDOW_MARGIN_PX
     if box:
         y0, y1, x0, x1 = max(box[0] - m, 0), min(box[1] + m, h), max(box[2] - m, 0), min(box[3] + m, w)
     else:
         y0, y1, x0, x1 = 0, h, 0, w
-    depth_c = depth_w[y0:y1, x0:x1]
-    disp_c = rig_w.zed.depth_to_disparity(depth_c) if f > 1 else disp[y0:y1, x0:x1]
-    finite = disp_c[np.isfinite(disp_c)]
-    if finite.size:  # the right image: the columns the matches fall in
-        xr0, xr1 = max(x0 - math.ceil(float(finite.max())), 0), min(x1 - math.floor(float(finite.min())), w)
+    depth_c = np.full((y1 - y0, x1 - x0), np.nan, np.float32)
+    ra, rb = max(by0, y0), min(by1, y1)
+    if rb > ra:
+        depth_c[ra - y0:rb - y0] = depth_rows[ra - by0:rb - by0, x0:x1]
+    if f > 1:  # depth_to_disparity's arithmetic, and the range of its finite values, in one pass
+        disp_c = np.empty(depth_c.shape, np.float32)
+        n_finite, d_min, d_max = _disparity_and_range(depth_c, rig_w.zed.f_px * rig_w.zed.baseline_mm,
+                                                      rig_w.zed.doffs_px, disp_c)
+    else:
+        disp_c = disp[y0:y1, x0:x1]
+        finite = disp_c[np.isfinite(disp_c)]
+        n_finite = finite.size
+        d_min, d_max = (finite.min(), finite.max()) if n_finite else (0.0, 0.0)
+    if n_finite:  # the right image: the columns the matches fall in
+        xr0, xr1 = max(x0 - math.ceil(float(d_max)), 0), min(x1 - math.floor(float(d_min)), w)
         xr0, xr1 = min(xr0, w - 1), max(xr1, xr0 + 1)
     else:
         xr0, xr1 = x0, x1
@@ -285,7 +339,11 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig):
     def cut(a, xa, xb):  # rows y0:y1, columns xa:xb of the work-resolution image, from a dataset-resolution array
         return a[y0 * f:y1 * f, xa * f:xb * f]
 
-    noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
+    if f == 2 and noc.dtype == np.bool_:  # a block's mean is 1 exactly where its 4 pixels are (0.25 x a sum of 0/1)
+        noc_c = np.empty((y1 - y0, x1 - x0), np.bool_)
+        _all_of_2x2(np.ascontiguousarray(noc), y0 * f, x0 * f, noc_c)
+    else:
+        noc_c = _area(cut(noc, x0, x1).astype(np.float32), f) == 1.0
     region_c = np.ascontiguousarray(cut(region, x0, x1)[::f, ::f])
     left_c = _area(cut(left, x0, x1), f)
     right_c = None if right is None else _area(cut(right, xr0, xr1), f)
@@ -304,21 +362,69 @@ def zed_rows_used(depth_zed_mm: np.ndarray, params: VerifyParams | None = None) 
     params = params or VerifyParams()
     H, W = depth_zed_mm.shape
     f = _work_factor(W, params)
-    end = _rows_with_values(depth_zed_mm)  # every GT pixel lies in rows [0, end)
+    return _rows_used(_finite_rows(depth_zed_mm)[1], H, f)
+
+
+def _rows_used(end: int, H: int, f: int) -> int:
+    """``zed_rows_used`` for a ground truth whose values lie in rows [0, end) of H, work factor f."""
     # a work pixel is valid only where its whole f x f block is: the window's rows end at most here
     return (min(-(-end // f) + WINDOW_MARGIN_PX, H // f) if end else H // f) * f
 
 
 @numba.njit(cache=True)
-def _rows_with_values(a):
-    """1 + the last row of ``a`` holding a finite value (0: none), scanning from the bottom (only the rows below the
-    ground truth are read)."""
+def _finite_rows(a):
+    """``(y0, y1)`` (end exclusive) of the rows of ``a`` holding a finite value, ``(0, 0)`` where none does: rows
+    counted branch-free from the top down to the first such row and from the bottom up to the last (the rows between
+    are not read)."""
     H, W = a.shape
-    for v in range(H - 1, -1, -1):
+    y0 = 0
+    while y0 < H:
+        n = 0
+        row = a[y0]
         for u in range(W):
-            if abs(a[v, u]) < np.inf:
-                return v + 1
-    return 0
+            n += abs(row[u]) < np.inf  # (NaN compares false)
+        if n:
+            break
+        y0 += 1
+    if y0 == H:
+        return 0, 0
+    y1 = H
+    while True:  # row y0 holds one: stops there at the latest
+        n = 0
+        row = a[y1 - 1]
+        for u in range(W):
+            n += abs(row[u]) < np.inf
+        if n:
+            return y0, y1
+        y1 -= 1
+
+
+@numba.njit(cache=True)
+def _all_of_2x2(a, ya, xa, out):
+    """``out[i, j]``: all four pixels of ``a``'s 2x2 block at (ya + 2i, xa + 2j) are True."""
+    h, w = out.shape
+    for i in range(h):
+        r0, r1 = a[ya + 2 * i], a[ya + 2 * i + 1]
+        for j in range(w):
+            out[i, j] = r0[xa + 2 * j] & r0[xa + 2 * j + 1] & r1[xa + 2 * j] & r1[xa + 2 * j + 1]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _disparity_and_range(depth, f_b, doffs, out):
+    """``out`` = ``StereoCamera.depth_to_disparity(depth)`` (float64 ``f_b / z - doffs``, NaN where not ``z > 0``,
+    rounded to float32), and ``(count, min, max)`` of its finite values (0.0, 0.0 where none)."""
+    H, W = depth.shape
+    n, lo, hi = 0, np.float32(np.inf), np.float32(-np.inf)
+    for v in range(H):
+        for u in range(W):
+            z = np.float64(depth[v, u])
+            d = np.float32(f_b / z - doffs) if z > 0 else np.float32(np.nan)
+            out[v, u] = d
+            if abs(d) < np.inf:
+                n += 1
+                lo = min(lo, d)
+                hi = max(hi, d)
+    return (n, lo, hi) if n else (0, np.float32(0.0), np.float32(0.0))
 
 
 def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray, region: np.ndarray,
@@ -338,12 +444,15 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
     if float(cv2.meanStdDev(to_gray(texture))[1][0, 0]) < 1.0:
         return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
     f = _work_factor(depth_zed_mm.shape[1], params)
+    depth32 = np.asarray(depth_zed_mm, np.float32)
+    rows = _finite_rows(depth32)  # the GT's rows: the image rows the checks read and the work arrays' rows
     for name, img in (("zed_left", zed_left), ("zed_right", zed_right)):
-        if img is not None and img.shape[0] < depth_zed_mm.shape[0] \
-                and img.shape[0] < (need := zed_rows_used(depth_zed_mm, params)):
+        if img is not None and img.shape[0] < depth_zed_mm.shape[0] and img.shape[0] < (need := _rows_used(
+                (rows if depth_zed_mm.dtype == np.float32 else _finite_rows(depth_zed_mm))[1],
+                depth_zed_mm.shape[0], f)):
             raise ValueError(f"{name}.shape={img.shape} but the checks read its first {need} rows")
     depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
-        f, depth_zed_mm, disparity_px, nonoccluded, region, zed_left, zed_right, rig)
+        f, depth32, disparity_px, nonoccluded, region, zed_left, zed_right, rig, rows)
     left_norm = local_normalize(to_gray(left_c).astype(np.float32), None, params.norm_sigma_px)  # shared by both
     # away from depth edges, for both checks (disp_c is the window's GT disparity, as depth_to_disparity gives it)
     smooth = smooth_depth_mask(disp_c)

@@ -35,16 +35,32 @@ def local_normalize(img: np.ndarray, mask: np.ndarray | None, sigma_px: float) -
     (normalised convolution; ``None``: every pixel); 0 outside the mask. Removes gain, offset and slow shading
     differences."""
     k = (0, 0)
-    x = np.ascontiguousarray(img, np.float32) if mask is None else np.where(mask, img, 0).astype(np.float32)
     if mask is None:  # the weights are all 1: no normalisation by them
+        x = np.ascontiguousarray(img, np.float32)
+        xx = x * x
         w, m = np.ones((1, 1), np.float32), np.ones((1, 1), np.bool_)
     else:
         m = np.ascontiguousarray(mask, np.bool_)
-        w = cv2.GaussianBlur(m.astype(np.float32), k, sigma_px)
+        x, xx, mf = np.empty(m.shape, np.float32), np.empty(m.shape, np.float32), np.empty(m.shape, np.float32)
+        _masked_inputs(np.asarray(img), m, x, xx, mf)
+        w = cv2.GaussianBlur(mf, k, sigma_px)
     out = np.empty(x.shape, np.float32)
-    _normalized(x, cv2.GaussianBlur(x, k, sigma_px), cv2.GaussianBlur(x * x, k, sigma_px), w, m, mask is not None,
-                out)
+    _normalized(x, cv2.GaussianBlur(x, k, sigma_px), cv2.GaussianBlur(xx, k, sigma_px), w, m, mask is not None, out)
     return out
+
+
+@numba.njit(cache=True)
+def _masked_inputs(img, mask, x, xx, mf):
+    """The masked image ``x`` (``img`` rounded to float32, 0 outside ``mask``: ``np.where(mask, img, 0)``), its square
+    (float32) and the mask as float32, in one pass."""
+    H, W = mask.shape
+    zero = np.float32(0.0)
+    for v in range(H):
+        for u in range(W):
+            a = np.float32(img[v, u]) if mask[v, u] else zero
+            x[v, u] = a
+            xx[v, u] = a * a
+            mf[v, u] = np.float32(mask[v, u])
 
 
 
@@ -73,6 +89,8 @@ def _normalized(x, blur_x, blur_xx, w, mask, weighted, out):
 def interior_mask(mask: np.ndarray, radius_px: int) -> np.ndarray:
     """Mask pixels whose whole ``radius_px`` neighbourhood is in the mask (normalisation and gradients are exact)."""
     k = 2 * radius_px + 1
+    if mask.dtype == np.bool_:  # its bytes are 0 / 1 already: eroded as they are, no copies
+        return cv2.erode(np.ascontiguousarray(mask).view(np.uint8), np.ones((k, k), np.uint8)).view(np.bool_)
     return cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
 
 
@@ -81,48 +99,87 @@ def smooth_depth_mask(disparity_px: np.ndarray, radius_px: int = 3, max_range_px
     """Pixels whose GT disparity varies by less than ``max_range_px`` within ``radius_px`` (away from depth edges,
     where a rendering through the GT mixes fore- and background and biases an alignment)."""
     k = np.ones((2 * radius_px + 1,) * 2, np.uint8)
-    d = disparity_px.astype(np.float32)
-    hi = cv2.dilate(np.where(np.isfinite(d), d, -1e6).astype(np.float32), k)
-    lo = cv2.erode(np.where(np.isfinite(d), d, 1e6).astype(np.float32), k)
-    return (hi - lo) < max_range_px
+    d = np.ascontiguousarray(disparity_px)  # (one compiled version for a whole image and for a window of it)
+    # the disparity as float32, -1e6 (for the maximum) and 1e6 (for the minimum) where not finite
+    hi, lo = np.empty(d.shape, np.float32), np.empty(d.shape, np.float32)
+    _finite_or(d, hi, lo)
+    out = np.empty(d.shape, np.bool_)
+    # (numpy compares a float32 array with a Python float in float32)
+    _range_below(cv2.dilate(hi, k), cv2.erode(lo, k), np.float32(max_range_px), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _finite_or(d, hi, lo):
+    """``hi``, ``lo``: ``d`` rounded to float32, -1e6 / 1e6 where that is not finite."""
+    H, W = d.shape
+    for v in range(H):
+        for u in range(W):
+            x = np.float32(d[v, u])
+            fin = abs(x) < np.inf
+            hi[v, u] = x if fin else np.float32(-1e6)
+            lo[v, u] = x if fin else np.float32(1e6)
+
+
+@numba.njit(cache=True)
+def _range_below(hi, lo, max_range, out):
+    """``out = (hi - lo) < max_range`` (float32)."""
+    H, W = out.shape
+    for v in range(H):
+        for u in range(W):
+            out[v, u] = (hi[v, u] - lo[v, u]) < max_range
 
 
 
 @numba.njit(cache=True)
 def _cubic_at(imgs, x, y, out):
     """Keys cubic convolution (a = -0.5, interpolating) of each image of the stack ``imgs`` (K, H, W) at exact
-    positions into ``out`` (K, N); borders replicated. A point's 4 + 4 weights are computed once, for every image."""
+    positions into ``out`` (K, N); borders replicated. A point's 4 + 4 weights are computed once, for every image:
+    in chunks of points (a loop the compiler vectorises) before their samples, as ``_spline_loop`` does."""
     K, H, W = imgs.shape
-    for k in range(x.shape[0]):
-        fx = math.floor(x[k])
-        fy = math.floor(y[k])
-        ix = int(fx)
-        iy = int(fy)
-        # the Keys kernel at the 4 taps ix - 1 .. ix + 2 (offsets 1 + t, t, 1 - t, 2 - t), as polynomials in t
-        t = x[k] - fx
-        t2 = t * t
-        t3 = t2 * t
-        wx0, wx1, wx2, wx3 = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
-                              0.5 * t3 - 0.5 * t2)
-        t = y[k] - fy
-        t2 = t * t
-        t3 = t2 * t
-        wy0, wy1, wy2, wy3 = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
-                              0.5 * t3 - 0.5 * t2)
-        if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
-            x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
-        else:
-            x0, x1, x2, x3 = (min(max(ix - 1, 0), W - 1), min(max(ix, 0), W - 1), min(max(ix + 1, 0), W - 1),
-                              min(max(ix + 2, 0), W - 1))
-            y0, y1, y2, y3 = (min(max(iy - 1, 0), H - 1), min(max(iy, 0), H - 1), min(max(iy + 1, 0), H - 1),
-                              min(max(iy + 2, 0), H - 1))
-        for c in range(K):
-            r0 = wx0 * imgs[c, y0, x0] + wx1 * imgs[c, y0, x1] + wx2 * imgs[c, y0, x2] + wx3 * imgs[c, y0, x3]
-            r1 = wx0 * imgs[c, y1, x0] + wx1 * imgs[c, y1, x1] + wx2 * imgs[c, y1, x2] + wx3 * imgs[c, y1, x3]
-            r2 = wx0 * imgs[c, y2, x0] + wx1 * imgs[c, y2, x1] + wx2 * imgs[c, y2, x2] + wx3 * imgs[c, y2, x3]
-            r3 = wx0 * imgs[c, y3, x0] + wx1 * imgs[c, y3, x1] + wx2 * imgs[c, y3, x2] + wx3 * imgs[c, y3, x3]
-            out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
-
+    ixs, iys = np.empty(_SPLINE_CHUNK, np.int64), np.empty(_SPLINE_CHUNK, np.int64)
+    wx, wy = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
+    for k0 in range(0, x.shape[0], _SPLINE_CHUNK):
+        n = min(_SPLINE_CHUNK, x.shape[0] - k0)
+        for j in range(n):
+            fx = math.floor(x[k0 + j])
+            fy = math.floor(y[k0 + j])
+            ixs[j] = int(fx)
+            iys[j] = int(fy)
+            # the Keys kernel at the 4 taps ix - 1 .. ix + 2 (offsets 1 + t, t, 1 - t, 2 - t), as polynomials in t
+            t = x[k0 + j] - fx
+            t2 = t * t
+            t3 = t2 * t
+            wx[0, j] = -0.5 * t3 + t2 - 0.5 * t
+            wx[1, j] = 1.5 * t3 - 2.5 * t2 + 1.0
+            wx[2, j] = -1.5 * t3 + 2.0 * t2 + 0.5 * t
+            wx[3, j] = 0.5 * t3 - 0.5 * t2
+            t = y[k0 + j] - fy
+            t2 = t * t
+            t3 = t2 * t
+            wy[0, j] = -0.5 * t3 + t2 - 0.5 * t
+            wy[1, j] = 1.5 * t3 - 2.5 * t2 + 1.0
+            wy[2, j] = -1.5 * t3 + 2.0 * t2 + 0.5 * t
+            wy[3, j] = 0.5 * t3 - 0.5 * t2
+        for j in range(n):
+            k = k0 + j
+            ix, iy = ixs[j], iys[j]
+            wx0, wx1, wx2, wx3 = wx[0, j], wx[1, j], wx[2, j], wx[3, j]
+            wy0, wy1, wy2, wy3 = wy[0, j], wy[1, j], wy[2, j], wy[3, j]
+            if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
+                x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
+            else:
+                x0, x1, x2, x3 = (min(max(ix - 1, 0), W - 1), min(max(ix, 0), W - 1), min(max(ix + 1, 0), W - 1),
+                                  min(max(ix + 2, 0), W - 1))
+                y0, y1, y2, y3 = (min(max(iy - 1, 0), H - 1), min(max(iy, 0), H - 1), min(max(iy + 1, 0), H - 1),
+                                  min(max(iy + 2, 0), H - 1))
+            for c in range(K):
+                im = imgs[c]
+                r0 = wx0 * im[y0, x0] + wx1 * im[y0, x1] + wx2 * im[y0, x2] + wx3 * im[y0, x3]
+                r1 = wx0 * im[y1, x0] + wx1 * im[y1, x1] + wx2 * im[y1, x2] + wx3 * im[y1, x3]
+                r2 = wx0 * im[y2, x0] + wx1 * im[y2, x1] + wx2 * im[y2, x2] + wx3 * im[y2, x3]
+                r3 = wx0 * im[y3, x0] + wx1 * im[y3, x1] + wx2 * im[y3, x2] + wx3 * im[y3, x3]
+                out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
 
 
 def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -141,16 +198,62 @@ def spline_prefilter(img: np.ndarray) -> np.ndarray:
     boundary): what ``sample_spline`` interpolates. The same coefficients as ``gtforge.core.zed.scale_corrections
     .spline_coefficients`` (scipy's ``spline_filter``, ``mode="mirror"``; within 1e-12 relative), by a compiled
     recursive filter several times faster."""
-    a = np.asarray(img, np.float64)
+    a = np.asarray(img)
+    if a.dtype not in (np.float32, np.float64):
+        a = a.astype(np.float64)
     stack = a.reshape((-1,) + a.shape[-2:])
     out = np.empty(stack.shape, np.float64)
-    for i, x in enumerate(stack):
-        cols = np.array(x, np.float64)  # along the columns (axis 0), in place
-        _bspline_axis0(cols)
-        rows = np.ascontiguousarray(cols.T)  # then along the rows
-        _bspline_axis0(rows)
-        out[i] = rows.T
+    for i in range(stack.shape[0]):
+        _bspline_2d(stack[i], out[i])
     return out.reshape(a.shape)
+
+
+# rows filtered together by ``_bspline_2d``'s row pass (one cache line of float64 per row and step)
+_ROW_BLOCK = 8
+
+
+@numba.njit(cache=True)
+def _bspline_2d(x, c):
+    """``c`` (H, W) float64: the cubic B-spline coefficients of ``x`` (H, W): ``_bspline_axis0`` along the columns,
+    then along the rows, without the transposed copies (each row's recursion is the same arithmetic in the same
+    order, so the same coefficients to the last bit). The row pass runs on ``_ROW_BLOCK`` rows at a time, whose
+    recursions are independent (a single row's is a chain of dependent multiply-adds)."""
+    H, W = x.shape
+    for v in range(H):
+        for u in range(W):
+            c[v, u] = np.float64(x[v, u])
+    _bspline_axis0(c)
+    if W == 1:
+        return
+    z = math.sqrt(3.0) - 2.0
+    period = 2 * W - 2
+    horizon = min(period, 40)
+    scale = 1.0 / (1.0 - z ** period) if horizon == period else 1.0
+    f = z / (z * z - 1.0)
+    first = np.zeros(_ROW_BLOCK)
+    for v0 in range(0, H, _ROW_BLOCK):
+        n = min(_ROW_BLOCK, H - v0)
+        for r in range(n):
+            row = c[v0 + r]
+            for u in range(W):
+                row[u] *= 6.0
+            first[r] = 0.0
+        zk = 1.0
+        for k in range(horizon):
+            kk = k if k < W else period - k
+            for r in range(n):
+                first[r] += zk * c[v0 + r, kk]
+            zk *= z
+        for r in range(n):
+            c[v0 + r, 0] = first[r] * scale
+        for k in range(1, W):
+            for r in range(n):
+                c[v0 + r, k] += z * c[v0 + r, k - 1]
+        for r in range(n):
+            c[v0 + r, W - 1] = f * (c[v0 + r, W - 1] + z * c[v0 + r, W - 2])
+        for k in range(W - 2, -1, -1):
+            for r in range(n):
+                c[v0 + r, k] = z * (c[v0 + r, k + 1] - c[v0 + r, k])
 
 
 @numba.njit(cache=True)
@@ -208,44 +311,84 @@ def _spline_at(coeffs, x, y, out, derivs):
     """Cubic B-spline interpolation of each coefficient image of ``coeffs`` (K, H, W) at exact positions: ``out``
     (K, N) holds the values, or (3K, N) with ``derivs`` the values, then d/dx, then d/dy of every image (the
     spline's own derivatives, consistent with its values). Taps beyond the border mirrored (scipy's ``mirror``)."""
+    # the loop compiled once with and once without the derivatives (a constant in each: no branch per point)
+    if derivs:
+        _spline_loop(coeffs, x, y, out, True)
+    else:
+        _spline_loop(coeffs, x, y, out, False)
+
+
+# points whose weights ``_spline_loop`` computes together before it samples them
+_SPLINE_CHUNK = 256
+
+
+@numba.njit(cache=True, inline="always")
+def _spline_loop(coeffs, x, y, out, derivs):
+    """``_spline_at``'s loop over the points, in chunks: each chunk's tap positions and weights first (a loop the
+    compiler vectorises), then its samples (the same expressions, in the same order, as one loop doing both)."""
     K, H, W = coeffs.shape
     s6 = 1.0 / 6.0
-    for k in range(x.shape[0]):
-        fx = math.floor(x[k])
-        fy = math.floor(y[k])
-        ix = int(fx)
-        iy = int(fy)
-        t = x[k] - fx
-        u1 = 1.0 - t
-        wx0, wx1, wx2, wx3 = (u1 * u1 * u1 * s6, (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6,
-                              (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6, t * t * t * s6)
-        dx0, dx1, dx2, dx3 = -0.5 * u1 * u1, 1.5 * t * t - 2.0 * t, -1.5 * t * t + t + 0.5, 0.5 * t * t
-        t = y[k] - fy
-        u1 = 1.0 - t
-        wy0, wy1, wy2, wy3 = (u1 * u1 * u1 * s6, (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6,
-                              (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6, t * t * t * s6)
-        dy0, dy1, dy2, dy3 = -0.5 * u1 * u1, 1.5 * t * t - 2.0 * t, -1.5 * t * t + t + 0.5, 0.5 * t * t
-        if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
-            x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
-        else:
-            x0, x1, x2, x3 = _mirror(ix - 1, W), _mirror(ix, W), _mirror(ix + 1, W), _mirror(ix + 2, W)
-            y0, y1, y2, y3 = _mirror(iy - 1, H), _mirror(iy, H), _mirror(iy + 1, H), _mirror(iy + 2, H)
-        for c in range(K):
-            r0 = wx0 * coeffs[c, y0, x0] + wx1 * coeffs[c, y0, x1] + wx2 * coeffs[c, y0, x2] + wx3 * coeffs[c, y0, x3]
-            r1 = wx0 * coeffs[c, y1, x0] + wx1 * coeffs[c, y1, x1] + wx2 * coeffs[c, y1, x2] + wx3 * coeffs[c, y1, x3]
-            r2 = wx0 * coeffs[c, y2, x0] + wx1 * coeffs[c, y2, x1] + wx2 * coeffs[c, y2, x2] + wx3 * coeffs[c, y2, x3]
-            r3 = wx0 * coeffs[c, y3, x0] + wx1 * coeffs[c, y3, x1] + wx2 * coeffs[c, y3, x2] + wx3 * coeffs[c, y3, x3]
-            out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+    ixs, iys = np.empty(_SPLINE_CHUNK, np.int64), np.empty(_SPLINE_CHUNK, np.int64)
+    wx, wy = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
+    dxw, dyw = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
+    for k0 in range(0, x.shape[0], _SPLINE_CHUNK):
+        n = min(_SPLINE_CHUNK, x.shape[0] - k0)
+        for j in range(n):
+            fx = math.floor(x[k0 + j])
+            fy = math.floor(y[k0 + j])
+            ixs[j] = int(fx)
+            iys[j] = int(fy)
+            t = x[k0 + j] - fx
+            u1 = 1.0 - t
+            wx[0, j] = u1 * u1 * u1 * s6
+            wx[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
+            wx[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
+            wx[3, j] = t * t * t * s6
             if derivs:
-                out[K + c, k] = (wy0 * (dx0 * coeffs[c, y0, x0] + dx1 * coeffs[c, y0, x1] + dx2 * coeffs[c, y0, x2]
-                                        + dx3 * coeffs[c, y0, x3])
-                                 + wy1 * (dx0 * coeffs[c, y1, x0] + dx1 * coeffs[c, y1, x1] + dx2 * coeffs[c, y1, x2]
-                                          + dx3 * coeffs[c, y1, x3])
-                                 + wy2 * (dx0 * coeffs[c, y2, x0] + dx1 * coeffs[c, y2, x1] + dx2 * coeffs[c, y2, x2]
-                                          + dx3 * coeffs[c, y2, x3])
-                                 + wy3 * (dx0 * coeffs[c, y3, x0] + dx1 * coeffs[c, y3, x1] + dx2 * coeffs[c, y3, x2]
-                                          + dx3 * coeffs[c, y3, x3]))
-                out[2 * K + c, k] = dy0 * r0 + dy1 * r1 + dy2 * r2 + dy3 * r3
+                dxw[0, j] = -0.5 * u1 * u1
+                dxw[1, j] = 1.5 * t * t - 2.0 * t
+                dxw[2, j] = -1.5 * t * t + t + 0.5
+                dxw[3, j] = 0.5 * t * t
+            t = y[k0 + j] - fy
+            u1 = 1.0 - t
+            wy[0, j] = u1 * u1 * u1 * s6
+            wy[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
+            wy[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
+            wy[3, j] = t * t * t * s6
+            if derivs:
+                dyw[0, j] = -0.5 * u1 * u1
+                dyw[1, j] = 1.5 * t * t - 2.0 * t
+                dyw[2, j] = -1.5 * t * t + t + 0.5
+                dyw[3, j] = 0.5 * t * t
+        for j in range(n):
+            k = k0 + j
+            ix, iy = ixs[j], iys[j]
+            wx0, wx1, wx2, wx3 = wx[0, j], wx[1, j], wx[2, j], wx[3, j]
+            wy0, wy1, wy2, wy3 = wy[0, j], wy[1, j], wy[2, j], wy[3, j]
+            if 1 <= ix <= W - 3 and 1 <= iy <= H - 3:  # all 16 taps inside
+                x0, x1, x2, x3, y0, y1, y2, y3 = ix - 1, ix, ix + 1, ix + 2, iy - 1, iy, iy + 1, iy + 2
+            else:
+                x0, x1, x2, x3 = _mirror(ix - 1, W), _mirror(ix, W), _mirror(ix + 1, W), _mirror(ix + 2, W)
+                y0, y1, y2, y3 = _mirror(iy - 1, H), _mirror(iy, H), _mirror(iy + 1, H), _mirror(iy + 2, H)
+            for c in range(K):
+                cf = coeffs[c]
+                r0 = wx0 * cf[y0, x0] + wx1 * cf[y0, x1] + wx2 * cf[y0, x2] + wx3 * cf[y0, x3]
+                r1 = wx0 * cf[y1, x0] + wx1 * cf[y1, x1] + wx2 * cf[y1, x2] + wx3 * cf[y1, x3]
+                r2 = wx0 * cf[y2, x0] + wx1 * cf[y2, x1] + wx2 * cf[y2, x2] + wx3 * cf[y2, x3]
+                r3 = wx0 * cf[y3, x0] + wx1 * cf[y3, x1] + wx2 * cf[y3, x2] + wx3 * cf[y3, x3]
+                out[c, k] = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+                if derivs:
+                    dx0, dx1, dx2, dx3 = dxw[0, j], dxw[1, j], dxw[2, j], dxw[3, j]
+                    dy0, dy1, dy2, dy3 = dyw[0, j], dyw[1, j], dyw[2, j], dyw[3, j]
+                    out[K + c, k] = (wy0 * (dx0 * cf[y0, x0] + dx1 * cf[y0, x1]
+                                            + dx2 * cf[y0, x2] + dx3 * cf[y0, x3])
+                                     + wy1 * (dx0 * cf[y1, x0] + dx1 * cf[y1, x1]
+                                              + dx2 * cf[y1, x2] + dx3 * cf[y1, x3])
+                                     + wy2 * (dx0 * cf[y2, x0] + dx1 * cf[y2, x1]
+                                              + dx2 * cf[y2, x2] + dx3 * cf[y2, x3])
+                                     + wy3 * (dx0 * cf[y3, x0] + dx1 * cf[y3, x1]
+                                              + dx2 * cf[y3, x2] + dx3 * cf[y3, x3]))
+                    out[2 * K + c, k] = dy0 * r0 + dy1 * r1 + dy2 * r2 + dy3 * r3
 
 
 def sample_spline(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray, derivs: bool = False) -> np.ndarray:
@@ -281,9 +424,26 @@ def even_subset(n: int, max_points: int) -> np.ndarray | slice:
 def pixels_of(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(v, u, flat index)`` of a 2-D mask's pixels in row-major order (``np.nonzero``'s order; flat indices are
     faster to find and to gather with: one index array, ``take_at``)."""
-    idx = np.flatnonzero(mask)
-    v, u = np.divmod(idx, mask.shape[1])
-    return v, u, idx
+    m = np.ascontiguousarray(mask if mask.dtype == np.bool_ else mask != 0)
+    n = np.count_nonzero(m)
+    v, u, idx = np.empty(n + 1, np.int64), np.empty(n + 1, np.int64), np.empty(n + 1, np.int64)
+    _pixels(m, v, u, idx)
+    return v[:n], u[:n], idx[:n]
+
+
+@numba.njit(cache=True)
+def _pixels(mask, v, u, idx):
+    """``pixels_of``'s lists in one pass over the mask: every pixel written at the next free slot, which advances
+    only at a mask pixel (no branch; the lists have one slot more than the mask has pixels)."""
+    H, W = mask.shape
+    k = 0
+    for r in range(H):
+        row = mask[r]
+        for c in range(W):
+            v[k] = r
+            u[k] = c
+            idx[k] = r * W + c
+            k += row[c]
 
 
 
@@ -305,14 +465,16 @@ class ShiftAligner:
     SIGMAS = (2.0, 0.0)
     COARSE_TOL_PX = 0.01
 
-    def __init__(self, ref: np.ndarray, img: np.ndarray):
+    def __init__(self, ref: np.ndarray, img: np.ndarray,
+                 ref_gradients: tuple[np.ndarray, np.ndarray] | None = None):
+        """``ref_gradients``: ``sobel_gradients(ref)``, if the caller has them (``textured_mask``'s)."""
         self.ref = ref
         self.levels = []
         for sigma in self.SIGMAS:
             r = cv2.GaussianBlur(ref, (0, 0), sigma) if sigma else ref
             i = cv2.GaussianBlur(img, (0, 0), sigma) if sigma else img
-            self.levels.append((r, cv2.Sobel(r, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                                cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8),
+            self.levels.append((r, *(ref_gradients if not sigma and ref_gradients is not None else
+                                     sobel_gradients(r)),
                                 # the coarse pass only brings the fine one near its solution: Keys' cubic there (no
                                 # prefilter); the fine pass, which gives the figure, samples the B-spline
                                 spline_prefilter(i) if sigma == self.SIGMAS[-1]
@@ -340,7 +502,8 @@ class ShiftAligner:
             tol = tol_px if level == len(self.levels) - 1 else self.COARSE_TOL_PX
             rv = take_at(r, idx).astype(np.float64)
             # img(u + d) * (1 + g) + o ~ ref(u): unknowns (step in d, g, o), linearised at the template
-            At = np.stack([take_at(gx, idx), take_at(gy, idx), rv, np.ones_like(rv)]).astype(np.float64)
+            At = np.empty((4, len(rv)))
+            At[0], At[1], At[2], At[3] = take_at(gx, idx), take_at(gy, idx), rv, 1.0
             try:
                 inv = np.linalg.inv(At @ At.T)
             except np.linalg.LinAlgError:
@@ -391,14 +554,16 @@ def block_noise(A: np.ndarray, r: np.ndarray, n_params: int) -> np.ndarray | Non
     if n < NOISE_BLOCKS * 4 * A.shape[1]:
         return None
     edges = np.linspace(0, n, NOISE_BLOCKS + 1).astype(np.int64)
-    sols = []
-    for a, b in itertools.pairwise(edges):
+    p = A.shape[1]
+    normal, rhs = np.empty((NOISE_BLOCKS, p, p)), np.empty((NOISE_BLOCKS, p, 1))
+    for k, (a, b) in enumerate(itertools.pairwise(edges)):
         Ab, rb = A[a:b], r[a:b]
-        try:
-            sols.append(np.linalg.solve(Ab.T @ Ab, -(Ab.T @ rb))[:n_params])
-        except np.linalg.LinAlgError:
-            return None
-    return np.std(np.array(sols), axis=0, ddof=1) / math.sqrt(NOISE_BLOCKS)
+        normal[k], rhs[k, :, 0] = Ab.T @ Ab, -(Ab.T @ rb)
+    try:  # the bands' systems solved in one call (LAPACK's gesv on each, as one call per band solves them)
+        sols = np.linalg.solve(normal, rhs)[:, :n_params, 0]
+    except np.linalg.LinAlgError:
+        return None
+    return np.std(sols, axis=0, ddof=1) / math.sqrt(NOISE_BLOCKS)
 
 
 def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixels: int = 400) -> ShiftEstimate:
@@ -407,9 +572,17 @@ def estimate_shift(ref: np.ndarray, img: np.ndarray, mask: np.ndarray, min_pixel
 
 
 
-def textured_mask(norm_img: np.ndarray, thresh: float = 0.15) -> np.ndarray:
-    gx = cv2.Sobel(norm_img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-    gy = cv2.Sobel(norm_img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+def sobel_gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(d/dx, d/dy)`` of ``img`` (float32, 3x3 Sobel / 8: per pixel)."""
+    return (cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+            cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8))
+
+
+def textured_mask(norm_img: np.ndarray, thresh: float = 0.15,
+                  gradients: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Pixels whose gradient magnitude exceeds ``thresh``. ``gradients``: ``sobel_gradients(norm_img)``, if the
+    caller has them."""
+    gx, gy = gradients if gradients is not None else sobel_gradients(norm_img)
     return cv2.magnitude(gx, gy) > thresh
 
 

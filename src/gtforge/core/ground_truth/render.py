@@ -9,6 +9,7 @@ import numpy as np
 
 from gtforge.core import lens
 from gtforge.core.camera import Rig
+from gtforge.core.geometry import finite_box
 from gtforge.core.alignment.photometric import to_gray
 
 
@@ -26,11 +27,16 @@ def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occl
     tilted = bool(d[12] != 0.0 or d[13] != 0.0)
     out = np.zeros(depth_zed_mm.shape, np.float32)
     ok = np.zeros(depth_zed_mm.shape, bool)
-    _render_kernel(np.asarray(depth_zed_mm, np.float32), float(origin_px[0]), float(origin_px[1]),
+    depth = np.asarray(depth_zed_mm, np.float32)
+    # only the depth's finite box: a pixel without depth is not rendered (a window around the GT has a margin)
+    y0, y1, x0, x1 = finite_box(depth)
+    if y1 == 0:
+        return out, ok
+    _render_kernel(np.ascontiguousarray(depth[y0:y1, x0:x1]), float(origin_px[0] + x0), float(origin_px[1] + y0),
                    np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]), np.ascontiguousarray(T[:3, :3]),
                    np.ascontiguousarray(T[:3, 3]), np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
                    lens.tilt_matrix(d[12], d[13]), tilted, np.ascontiguousarray(to_gray(texture)),
-                   rig.separate_depth_camera, float(occlusion_tol_mm), out, ok)
+                   rig.separate_depth_camera, float(occlusion_tol_mm), out[y0:y1, x0:x1], ok[y0:y1, x0:x1])
     return out, ok
 
 
@@ -44,12 +50,17 @@ def _render_kernel(depth, x0, y0, k_zed, R, t, k_tex, dist, M, tilted, tex, zbuf
     # the positions as three planes, every pixel computed and the unseen ones marked by a NaN depth at the end: no
     # branch in the loop, so the compiler vectorises it (the same arithmetic, the same positions)
     pu, pv, pz = np.empty((H, W)), np.empty((H, W)), np.empty((H, W))
+    # the ray's x / z of each column (and y / z of each row, below) divided once, not at every pixel: the same values
+    x_over_z = np.empty(W)
+    for u in range(W):
+        x_over_z[u] = (u + x0 - k_zed[2]) / k_zed[0]
     for v in range(H):
         ru, rv, rz, drow = pu[v], pv[v], pz[v], depth[v]
+        y_over_z = (v + y0 - k_zed[3]) / k_zed[1]
         for u in range(W):
             z = np.float64(drow[u])
-            X = (u + x0 - k_zed[2]) / k_zed[0] * z
-            Y = (v + y0 - k_zed[3]) / k_zed[1] * z
+            X = x_over_z[u] * z
+            Y = y_over_z * z
             Zm = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * z + t[2]
             Xm = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * z + t[0]
             Ym = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * z + t[1]
