@@ -140,6 +140,17 @@ def load_compare():
     return mod.compare
 
 
+def _chain_is_current(chain: Path) -> bool:
+    """Whether ``chain`` holds a dataset this tree reads (one built before a schema change is built again)."""
+    from gtforge.records.dataset import Manifest
+
+    try:
+        manifest = json.loads((chain / "dataset" / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return manifest.get("schema_version") == Manifest.SCHEMA_VERSION
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", type=float, default=0.5)
@@ -169,7 +180,7 @@ def main(argv=None) -> int:
     # inputs: calibrate's output feeds validate and calibrate-scale, scaled.yaml refine; verify and evaluate need a
     # dataset, built once from refined.yaml by this tree (build-dataset is not timed here)
     chain = work / "chain"
-    if not (chain / "dataset" / "manifest.json").exists():
+    if not _chain_is_current(chain):
         shutil.rmtree(chain, ignore_errors=True)
         chain.mkdir()
         for stage in ("calibrate", "calibrate-scale", "refine"):
