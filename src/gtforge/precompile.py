@@ -97,7 +97,7 @@ def compile_kernels(scale: float = 0.25) -> float:
 
 def main() -> int:
     compile_bytecode()
-    print("gtforge: compiling the build's kernels into numba's cache (once after an install; about half a minute)",
+    print("gtforge: compiling the build's kernels into numba's cache (once after an install; under a minute)",
           flush=True)
     print(f"gtforge: kernels compiled and cached in {compile_kernels():.0f} s")
     return 0
