@@ -64,12 +64,16 @@ def scene(workdir: Path, k: int, scale: float, supersample: int) -> Path:
     return d
 
 
-def measure(d: Path):
+def load_scene(d: Path):
+    """A generated one-scene session's rig (with the true extrinsic), its capture and its exact truth."""
     s = open_session(d)
     truth = SyntheticTruth.read(d / "truth" / "rig_truth.yaml")
     rig = Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=truth.T_zed_from_mech)
-    cap = s.load_capture(s.root / "scenes" / "000")
-    z = np.load(d / "truth" / "scene_000.npz")
+    return rig, s.load_capture(s.root / "scenes" / "000"), np.load(d / "truth" / "scene_000.npz")
+
+
+def measure(d: Path):
+    rig, cap, z = load_scene(d)
     params = BuildParams()
     t, c = time.perf_counter(), cpu_s()
     sd, region, fruit = build_scene_arrays(cap.depth_mm, rig, params, None)

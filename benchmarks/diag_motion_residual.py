@@ -13,13 +13,12 @@ dominant), and each term alone started from the truth (its own optimum).
 from __future__ import annotations
 
 import argparse
-import resource
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-from bench_motion_compensation import scene
+from bench_motion_compensation import cpu_s, load_scene, scene
 
 import gtforge.core.alignment.fruit_motion as fmod
 from gtforge.core.alignment.fruit_motion import FruitMotionEstimate, MotionImages, estimate_fruit_motion
@@ -29,18 +28,11 @@ from gtforge.core.geometry import invert_T, transform_points
 from gtforge.core.ground_truth.render import render_texture
 from gtforge.dataset import motion_compensation as mcm
 from gtforge.dataset.ground_truth import build_scene_arrays
-from gtforge.io.captures import open_session
 from gtforge.records.dataset import BuildParams
-from gtforge.synthetic import SyntheticTruth
 
 VARIANTS = (("fit (texture weight 1)", 1.0, {}), ("texture weight 0.3", 0.3, {}), ("texture weight 0.1", 0.1, {}),
             ("texture weight 0.03", 0.03, {}), ("stereo alone, from the truth", 1.0, {"use_texture": False}),
             ("texture alone, from the truth", 1.0, {"use_stereo": False}))
-
-
-def cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
 
 
 def disparity_effect(e: FruitMotionEstimate, err: np.ndarray, depth_truth: np.ndarray, rig: Rig) -> float:
@@ -59,11 +51,7 @@ def disparity_effect(e: FruitMotionEstimate, err: np.ndarray, depth_truth: np.nd
 
 
 def run(d: Path) -> None:
-    s = open_session(d)
-    truth = SyntheticTruth.read(d / "truth" / "rig_truth.yaml")
-    rig = Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=truth.T_zed_from_mech)
-    cap = s.load_capture(s.root / "scenes" / "000")
-    z = np.load(d / "truth" / "scene_000.npz")
+    rig, cap, z = load_scene(d)
     params = BuildParams()
     sd, region, fruit = build_scene_arrays(cap.depth_mm, rig, params, None)
     H, W = sd.depth_mm.shape
