@@ -284,22 +284,22 @@ def test_work_array_helpers_are_the_numpy_expressions():
     zero, negative and infinite depths), and a 2x2 block's non-occlusion (its area mean equal to 1)."""
     import cv2
 
-    from gtforge.core.geometry import mask_bounding_box
     from gtforge.core.camera import PinholeCamera, RectifiedStereo
-    from gtforge.dataset.scene_verification import _all_of_2x2, _disparity_and_range, _finite_rows
+    from gtforge.core.geometry import finite_rows, mask_bounding_box
+    from gtforge.dataset.scene_verification import _all_of_2x2, _disparity_and_range
 
     rng = np.random.default_rng(5)
     a = np.full((40, 30), np.nan, np.float32)
-    assert _finite_rows(a) == (0, 0)
+    assert finite_rows(a) == (0, 0)
     for (v, u), val in (((0, 0), 1.0), ((39, 29), -2.0), ((17, 3), 0.0), ((5, 29), 3.0)):
         b = a.copy()
         b[v, u] = val
         b[25, 7] = np.inf  # not finite: not a row of the GT
         box = mask_bounding_box(np.isfinite(b))
-        assert _finite_rows(b) == (box[0], box[1])
+        assert finite_rows(b) == (box[0], box[1])
     b = (rng.random((40, 30)) * 900 + 300).astype(np.float32)
     b[:6], b[33:], b[10, :] = np.nan, np.nan, np.nan
-    assert _finite_rows(b) == (6, 33)
+    assert finite_rows(b) == (6, 33)
 
     zed = RectifiedStereo(left=PinholeCamera(fx_px=701.5, fy_px=701.5, cx_px=640.2, cy_px=360.7, width_px=1280,
                                           height_px=720), baseline_mm=63.1, doffs_px=1.75)

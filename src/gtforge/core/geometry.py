@@ -30,6 +30,23 @@ def _n_finite(row, lo, hi):
 
 
 @numba.njit(cache=True)
+def finite_rows(a):
+    """``(y0, y1)`` (end exclusive) of the rows of a 2-D float array holding a finite value, ``(0, 0)`` where none
+    does: rows counted from the top down to the first such row and from the bottom up to the last (the rows between
+    are not read)."""
+    H, W = a.shape
+    y0 = 0
+    while y0 < H and _n_finite(a[y0], 0, W) == 0:
+        y0 += 1
+    if y0 == H:
+        return 0, 0
+    y1 = H
+    while _n_finite(a[y1 - 1], 0, W) == 0:  # row y0 holds one: stops there at the latest
+        y1 -= 1
+    return y0, y1
+
+
+@numba.njit(cache=True)
 def finite_box(a):
     """``(y0, y1, x0, x1)`` (ends exclusive) of a 2-D float array's finite values; ``(0, 0, 0, 0)`` where there are
     none. The image-sized passes of a build run on this box only: a depth camera narrower than the ZED fills about a
@@ -38,14 +55,9 @@ def finite_box(a):
     columns left of the leftmost and right of the rightmost finite value found so far (vectorised counts; a scalar
     search only where one is there)."""
     H, W = a.shape
-    y0 = 0
-    while y0 < H and _n_finite(a[y0], 0, W) == 0:
-        y0 += 1
-    if y0 == H:
+    y0, y1 = finite_rows(a)
+    if y1 == 0:
         return 0, 0, 0, 0
-    y1 = H
-    while _n_finite(a[y1 - 1], 0, W) == 0:
-        y1 -= 1
     x0, x1 = W, 0  # the columns of the finite values found so far: [x0, x1)
     for v in range(y0, y1):
         row = a[v]

@@ -36,7 +36,7 @@ import numba
 import numpy as np
 
 from gtforge.core.camera import Rig
-from gtforge.core.geometry import finite_box, mask_bounding_box, transform_points
+from gtforge.core.geometry import finite_box, finite_rows, mask_bounding_box, transform_points
 from gtforge.core.alignment.photometric import (
     MAX_POINTS,
     ShiftAligner,
@@ -286,7 +286,7 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig, rows: 
     """The arrays the checks run on: everything a factor ``f`` smaller, in the window around the ground truth
     (``Window``, margin ``WINDOW_MARGIN_PX``). Images are reduced by area averaging, depth by the mean of fully valid
     f x f blocks (the block centre's depth on a locally flat surface), labels by the block's top-left pixel; the ZED
-    camera is scaled the same way (pixel centres stay at integer coordinates). ``rows``: ``_finite_rows`` of the
+    camera is scaled the same way (pixel centres stay at integer coordinates). ``rows``: ``finite_rows`` of the
     float32 depth, if the caller has it. Returns ``(depth, disparity, nonoccluded, region, left, right, rig,
     window)``."""
     H, W = depth.shape
@@ -300,7 +300,7 @@ def _work_arrays(f: int, depth, disp, noc, region, left, right, rig: Rig, rows: 
     depth = np.asarray(depth, np.float32)
     # only the block rows of the GT's rows (no valid block above or below them), each whole: OpenCV's vectorised
     # averages depend on where a row's columns start, so a column crop could change a value's last bit
-    gy0, gy1 = rows if rows is not None else _finite_rows(depth)
+    gy0, gy1 = rows if rows is not None else finite_rows(depth)
     by0, by1 = gy0 // f, min(-(-gy1 // f), h)
     by1 = max(by1, by0)
     # the work image's rows by0:by1 (NaN above and below them)
@@ -362,41 +362,13 @@ def zed_rows_used(depth_zed_mm: np.ndarray, params: VerifyParams | None = None) 
     params = params or VerifyParams()
     H, W = depth_zed_mm.shape
     f = _work_factor(W, params)
-    return _rows_used(_finite_rows(depth_zed_mm)[1], H, f)
+    return _rows_used(finite_rows(depth_zed_mm)[1], H, f)
 
 
 def _rows_used(end: int, H: int, f: int) -> int:
     """``zed_rows_used`` for a ground truth whose values lie in rows [0, end) of H, work factor f."""
     # a work pixel is valid only where its whole f x f block is: the window's rows end at most here
     return (min(-(-end // f) + WINDOW_MARGIN_PX, H // f) if end else H // f) * f
-
-
-@numba.njit(cache=True)
-def _finite_rows(a):
-    """``(y0, y1)`` (end exclusive) of the rows of ``a`` holding a finite value, ``(0, 0)`` where none does: rows
-    counted branch-free from the top down to the first such row and from the bottom up to the last (the rows between
-    are not read)."""
-    H, W = a.shape
-    y0 = 0
-    while y0 < H:
-        n = 0
-        row = a[y0]
-        for u in range(W):
-            n += abs(row[u]) < np.inf  # (NaN compares false)
-        if n:
-            break
-        y0 += 1
-    if y0 == H:
-        return 0, 0
-    y1 = H
-    while True:  # row y0 holds one: stops there at the latest
-        n = 0
-        row = a[y1 - 1]
-        for u in range(W):
-            n += abs(row[u]) < np.inf
-        if n:
-            return y0, y1
-        y1 -= 1
 
 
 @numba.njit(cache=True)
@@ -445,10 +417,10 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         return SceneVerification(status="not verifiable", reasons=["the texture image is blank (no contrast)"]), None
     f = _work_factor(depth_zed_mm.shape[1], params)
     depth32 = np.asarray(depth_zed_mm, np.float32)
-    rows = _finite_rows(depth32)  # the GT's rows: the image rows the checks read and the work arrays' rows
+    rows = finite_rows(depth32)  # the GT's rows: the image rows the checks read and the work arrays' rows
     for name, img in (("zed_left", zed_left), ("zed_right", zed_right)):
         if img is not None and img.shape[0] < depth_zed_mm.shape[0] and img.shape[0] < (need := _rows_used(
-                (rows if depth_zed_mm.dtype == np.float32 else _finite_rows(depth_zed_mm))[1],
+                (rows if depth_zed_mm.dtype == np.float32 else finite_rows(depth_zed_mm))[1],
                 depth_zed_mm.shape[0], f)):
             raise ValueError(f"{name}.shape={img.shape} but the checks read its first {need} rows")
     depth_c, disp_c, noc_c, region_c, left_c, right_c, rig_w, win = _work_arrays(
