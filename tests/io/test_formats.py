@@ -169,6 +169,10 @@ def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
             formats.write_kitti_disparity(tmp_path / "sn.png", d, noc)
         assert po.read_bytes() == so.read_bytes() and pn.read_bytes() == sn.read_bytes()
         q = formats._kitti_quantize(d, np.ones(d.shape, bool))
+        d64 = d.astype(np.float64)  # the definition, in float64 (the kernels quantise in float32)
+        with np.errstate(invalid="ignore"):
+            valid = (d64 >= 0) & (d64 < np.inf)
+            np.testing.assert_array_equal(q, np.where(valid, np.clip(np.rint(d64 * 256.0), 1, 65535), 0))
         for path, want in ((po, q), (pn, np.where(noc, q, 0))):
             np.testing.assert_array_equal(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), want)
             np.testing.assert_array_equal(read_image(path, expect="uint16"), want)

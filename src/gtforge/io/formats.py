@@ -164,10 +164,11 @@ def write_kitti_disparity_pair(path_occ: str | Path, path_noc: str | Path, disp_
 
 @numba.njit(cache=True, inline="always")
 def _kitti_value(x):
-    """round(x * 256) (half to even, in float64), clipped to 1..65535; 0 where x is invalid (NaN, inf, < 0)."""
-    if x >= 0.0 and x < np.inf:
-        return np.uint16(min(max(np.rint(x * 256.0), 1.0), 65535.0))
-    return np.uint16(0)
+    """round(x * 256) (half to even), clipped to 1..65535, as an int32; 0 where x is invalid (NaN, inf, < 0). ``x``:
+    float32, computed in float32: ``x * 256`` is exact there as in float64 (a power of two), so its rounding is the
+    float64 one. Without a branch, so that a loop over a row vectorises."""
+    r = min(max(np.rint(x * np.float32(256.0)), np.float32(1.0)), np.float32(65535.0))
+    return np.int32(r) if (x >= np.float32(0.0)) & (x < np.float32(np.inf)) else np.int32(0)
 
 
 @numba.njit(cache=True)
@@ -179,7 +180,7 @@ def _kitti_quantize(d, mask):
     for v in range(H):
         for u in range(W):
             if mask[v, u]:
-                q[v, u] = _kitti_value(np.float64(d[v, u]))
+                q[v, u] = np.uint16(_kitti_value(np.float32(d[v, u])))
     return q
 
 
@@ -187,9 +188,8 @@ def _kitti_quantize(d, mask):
 def _kitti_png_rows(d, mask):
     """The PNG rows (filter byte 0, then big-endian uint16) of ``_kitti_quantize(d, all)``, whether each row is the
     same in ``_kitti_quantize(d, mask)``, whether it is all zeros (no valid pixel), and the PNG rows of
-    ``_kitti_quantize(d, mask)`` where they are not the same (in row order). Each row is
-    quantised into a buffer first, in a loop without stores to the PNG rows that the compiler vectorises, in float32:
-    ``x * 256`` is exact in float32 as in float64 (a power of two), so its rounding is ``_kitti_value``'s."""
+    ``_kitti_quantize(d, mask)`` where they are not the same (in row order). Each row is quantised into a buffer
+    first, in a loop without stores to the PNG rows that the compiler vectorises."""
     H, W = d.shape
     n = 1 + 2 * W
     occ = np.empty((H, n), np.uint8)
@@ -202,9 +202,7 @@ def _kitti_png_rows(d, mask):
     for v in range(H):
         d_row, m_row = d[v], mask[v]
         for u in range(W):
-            x = d_row[u]
-            r = min(max(np.rint(x * np.float32(256.0)), np.float32(1.0)), np.float32(65535.0))
-            q_row[u] = np.int32(r) if (x >= np.float32(0.0)) & (x < np.float32(np.inf)) else np.int32(0)
+            q_row[u] = _kitti_value(d_row[u])
         differs = nonzero = np.int32(0)
         for u in range(W):
             differs |= q_row[u] & (np.int32(m_row[u]) - 1)  # a valid value outside the mask
