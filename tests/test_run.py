@@ -19,7 +19,7 @@ import tifffile
 import yaml
 from typer.testing import CliRunner
 
-from gtforge.cli import app
+from gtforge.cli.commands import app
 from gtforge.records.certificate import Certificate
 from gtforge.records.run import RunState
 from gtforge.reports.certificate import field_value

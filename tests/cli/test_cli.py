@@ -9,7 +9,7 @@ from made_once import session_spec
 from typer.testing import CliRunner
 
 import gtforge
-from gtforge.cli import app
+from gtforge.cli.commands import app
 
 LEAKS = re.compile(r"<bool>|<path>|<int>|<float>|<str>|<list\[|\{[a-z_]+\}|--no-no-")
 
@@ -143,3 +143,64 @@ def test_options_default_to_the_models_values():
     split = next(p for p in group.commands["build-dataset"].params if p.name == "split")
     assert split.default == f"{bp.split_train:g},{bp.split_val:g}"
     assert checked >= 12
+
+
+@pytest.mark.parametrize("argv,module", [
+    (["gtforge", "build-dataset", "S", "-c", "c.yaml", "-o", "out"], "gtforge.build_dataset"),
+    (["gtforge", "-v", "verify", "ds"], "gtforge.verify"),
+    (["gtforge", "build-dataset", "S", "-c", "c.yaml", "--workers", "1"], None),  # the options decide: parsed first
+    (["gtforge", "build-dataset", "S", "--workers=3"], None),
+    (["gtforge", "verify", "ds", "--scheduler", "tcp://h:8786"], None),
+    (["gtforge", "build-dataset", "--help"], None),
+    (["gtforge", "calibrate", "build-dataset"], None),  # a folder named like a command is not one
+    (["gtforge"], None),
+])
+def test_which_command_lines_start_the_pool_before_parsing(argv, module):
+    from gtforge.cli import pool_module_of
+
+    assert pool_module_of(argv) == module
+
+
+SPY = '''
+import json, sys
+from gtforge.infra import scheduling
+calls, start = [], scheduling.prestart_pool
+def spy(module, *args, **kw):
+    calls.append([module, "typer" in sys.modules, kw.get("warm_up_later", False), kw.get("warm_up") is not None,
+                  scheduling._FORK_SERVER.get("n_threads") is not None])
+    return start(module, *args, **kw)
+scheduling.prestart_pool = spy
+if __name__ == "__main__":  # (a pool worker runs this script again, as __mp_main__)
+    from gtforge.cli import main
+    sys.argv = ["gtforge", "build-dataset", *sys.argv[1:]]
+    try:
+        main()
+    except SystemExit as e:
+        print(json.dumps({"calls": calls, "code": e.code}))
+'''
+
+
+def test_build_dataset_starts_its_fork_server_before_the_commands_are_imported(session_dir, true_calibration,
+                                                                                tmp_path):
+    """``gtforge build-dataset`` with the default workers starts the pool's fork server before Typer and the commands
+    are imported (the server's imports start 0.1 s earlier), and hands it the warm-up once the options are parsed."""
+    import subprocess
+    import sys
+
+    from gtforge.infra.scheduling import cpu_count
+
+    script = tmp_path / "spy.py"
+    script.write_text(SPY)
+    r = subprocess.run([sys.executable, str(script), str(session_dir), "-c", str(true_calibration), "-o",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
+    out = __import__("json").loads(r.stdout.strip().splitlines()[-1])
+    assert out["code"] in (0, None), r.stderr[-3000:]
+    assert (tmp_path / "out" / "manifest.json").exists()
+    calls = out["calls"]
+    if cpu_count() < 2:  # no pool: the command line is still judged, nothing starts
+        assert calls[0][:3] == ["gtforge.build_dataset", False, True] and not calls[0][4]
+        return
+    # main (before typer), then the command with the warm-up (the server is running), then the library's own call
+    assert calls[0] == ["gtforge.build_dataset", False, True, False, False]
+    assert calls[1] == ["gtforge.build_dataset", True, False, True, True]
+    assert all(c[4] for c in calls[1:])

@@ -117,7 +117,7 @@ def _assert_complete(out: Path, ids: list[str], reference: Path) -> None:
 def test_dask_build_is_byte_identical_to_local(session_dir, true_calibration, cluster, tmp_path):
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     lc, client = cluster
     _ready(client)
@@ -210,7 +210,7 @@ def test_scene_that_keeps_killing_workers_is_listed_as_failed(session_dir, true_
                                                               tmp_path):
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     lc, client = cluster
     _ready(client)

@@ -11,7 +11,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from gtforge.cli import app
+from gtforge.cli.commands import app
 from gtforge.errors import InputError
 from gtforge.records.calibration import ScaleTerm
 

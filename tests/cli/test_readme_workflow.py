@@ -11,7 +11,7 @@ import pytest
 
 from typer.testing import CliRunner
 
-from gtforge.cli import app
+from gtforge.cli.commands import app
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "calib_data_examples" / "session"

@@ -203,7 +203,7 @@ def test_gauges_only_on_the_command_line(exact, tmp_path):
     s, c, _ = exact
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     r = CliRunner().invoke(app, ["validate", str(s), "-c", str(c), "--gauges-only", "-o", str(tmp_path / "v")])
     assert r.exit_code == 0, r.output
@@ -251,7 +251,7 @@ def test_predicted_size_and_spacing_sigmas(exact, tmp_path):
 def test_synth_writes_gauges_and_validate_refuses_to_write_into_them(exact, tmp_path):
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     r = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--boards", "0", "--scenes", "0", "--scale", "0.1",
                                  "--gauges"])
@@ -269,7 +269,7 @@ def test_validate_measures_the_gauges_beside_the_boards(session_dir, true_calibr
     (validation.json ``gauges``, the validation.html section, the console lines)."""
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
     from gtforge.records.validation import ValidationResult
 
     s = tmp_path / "s"

@@ -312,7 +312,7 @@ def test_coverage_guidance_names_the_gaps_and_predicts_the_gain(charuco_views, c
 def test_generated_session_declares_the_board_and_the_cli_calibrates_with_it(tmp_path):
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
     from gtforge.io.captures import SessionFile
     from gtforge.synthetic import SyntheticTruth, generate_session
 

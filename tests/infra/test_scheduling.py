@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -70,36 +71,53 @@ WARM_SCRIPT = textwrap.dedent('''
         from gtforge.core.ground_truth import reproject
         from gtforge.dataset.worker_cache import WORKER_CACHE
         return (os.getpid(), reproject._ray_planes.cache_info().currsize, sorted(str(k[0]) for k in WORKER_CACHE),
-                os.environ.get("GTFORGE_POOL_WARM_UP"))
+                os.environ.get("GTFORGE_POOL_WARM_UP"), os.environ.get("GTFORGE_POOL_WARM_UP_FILE"))
 
     if __name__ == "__main__":
         from gtforge.infra import scheduling
-        session, calib = sys.argv[1:3]
-        scheduling.prestart_pool("gtforge.build_dataset", workers=2, warm_up=("warm_worker", (session, calib)))
+        session, calib, when = sys.argv[1:4]
+        warm_up = ("warm_worker", (session, calib))
+        if when == "now":
+            scheduling.prestart_pool("gtforge.build_dataset", workers=2, warm_up=warm_up)
+        else:  # as gtforge.cli.main starts it, before the options are parsed; the warm-up follows (or never does)
+            scheduling.prestart_pool("gtforge.build_dataset", warm_up_later=True)
+            scheduling.prestart_pool("gtforge.build_dataset", workers=2, warm_up=warm_up if when == "later" else None)
+        hand_over = scheduling._FORK_SERVER.get("warm_up_file") or os.environ.get("GTFORGE_POOL_WARM_UP_FILE")
         res = []
         scheduling.run_tasks(facts, [(i,) for i in range(2)], res.append, workers=2)
-        print(json.dumps({"threads": scheduling.threads_per_worker(2), "facts": res,
-                          "env_here": os.environ.get("GTFORGE_POOL_WARM_UP")}))
+        print(json.dumps({"threads": scheduling.threads_per_worker(2), "facts": res, "hand_over_left": hand_over,
+                          "env_here": [os.environ.get(k) for k in ("GTFORGE_POOL_WARM_UP",
+                                                                    "GTFORGE_POOL_WARM_UP_FILE")]}))
 ''')
 
 
-@pytest.mark.parametrize("inputs", ["session", "missing"])
-def test_workers_inherit_the_servers_warm_up_and_a_failed_one_leaves_them_working(inputs, session_dir,
+@pytest.mark.parametrize("inputs,when", [("session", "now"), ("missing", "now"), ("session", "later"),
+                                         ("session", "never")])
+def test_workers_inherit_the_servers_warm_up_and_a_failed_one_leaves_them_working(inputs, when, session_dir,
                                                                                    true_calibration, tmp_path):
     """build-dataset's warm-up (``warm_worker``: the calibration, the opened session, the depth camera's ray grid) runs
     once in the fork server and every worker starts with it; a warm-up that fails (missing inputs) leaves the server
-    and its workers as without one (the build reports the inputs itself)."""
+    and its workers as without one (the build reports the inputs itself). A server started before the warm-up was
+    known (``warm_up_later``, as ``gtforge.cli.main`` starts it) gets it through a file once the caller hands it over,
+    or runs none; the file's folder is gone when the caller has exited."""
     script = tmp_path / "warm_facts.py"
     script.write_text(WARM_SCRIPT)
     session, calib = (str(session_dir.resolve()), str(true_calibration.resolve())) if inputs == "session" else \
         (str(tmp_path / "no_session"), str(tmp_path / "no_calibration.yaml"))
-    r = subprocess.run([sys.executable, str(script), session, calib], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, str(script), session, calib, when], capture_output=True, text=True,
+                       timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert out["env_here"] is None and all(f[3] is None for f in out["facts"])  # the hand-over stays in the server
+    # the hand-over stays in the server
+    assert out["env_here"] == [None, None] and all(f[3] is None and f[4] is None for f in out["facts"])
     if out["threads"] != 1:  # more cores than workers: no warm-up (numba's parallel kernels start OpenMP)
         assert all(f[1] == 0 and f[2] == [] for f in out["facts"])
-    elif inputs == "session":
+        return
+    if when == "now":
+        assert out["hand_over_left"] is None
+    else:  # the file's folder was this process's, and went with it
+        assert out["hand_over_left"] is not None and not Path(out["hand_over_left"]).parent.exists()
+    if inputs == "session" and when != "never":
         assert all(f[1] == 1 and f[2] == sorted([session, "calib"]) for f in out["facts"])
     else:
         assert all(f[1] == 0 and f[2] == [] for f in out["facts"])

@@ -216,7 +216,7 @@ def test_bad_scene_is_reported_and_others_built(session_dir, true_calibration, t
         build_dataset(sess, true_calibration, tmp_path / "ds2", strict=True, workers=1)
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     r = CliRunner().invoke(app, ["build-dataset", str(sess), "-c", str(true_calibration), "-o", str(out),
                                  "--workers", "1"])
@@ -638,7 +638,7 @@ def test_no_right_gt_rebuild_leaves_no_right_view_file(dataset, session_dir, tru
     split views link none; the left view's files are those of the first build."""
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     out, _ = dataset
     ds = tmp_path / "ds"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gtforge.cli import app
+from gtforge.cli.commands import app
 from gtforge.errors import InputError
 from gtforge.evaluate import compare, evaluate
 from gtforge.io.formats import read_image, read_pfm, write_kitti_disparity, write_pfm

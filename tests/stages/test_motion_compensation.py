@@ -289,7 +289,7 @@ def test_synth_moves_the_last_scenes_fruit(tmp_path):
     one-line error."""
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
     from gtforge.errors import InputError
 
     r = CliRunner().invoke(app, ["synth", str(tmp_path / "s"), "--boards", "0", "--scenes", "1", "--scale", "0.1",

@@ -167,7 +167,7 @@ def test_without_boards_baseline_and_depth_scale_are_not_separable(errors_sessio
     """Through the CLI, --no-boards."""
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     start, _ = errors_calibrated
     r = CliRunner().invoke(app, ["calibrate-scale", str(errors_session), "-c", str(start), "-o",

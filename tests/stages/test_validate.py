@@ -58,7 +58,7 @@ def test_bilinear_over_valid_neighbours_only():
 def test_cli_validate_exit_codes(session_dir, true_calibration, tmp_path):
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     ok = CliRunner().invoke(app, ["validate", str(session_dir), "-c", str(true_calibration), "-o", str(tmp_path / "a"),
                                   "--captures", "000,001"])

@@ -193,7 +193,7 @@ def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibratio
 def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, true_calibration, tmp_path):
     from typer.testing import CliRunner
 
-    from gtforge.cli import app
+    from gtforge.cli.commands import app
 
     # a session of one clean and two moved scenes, built without motion compensation (tests/stages/
     # test_motion_compensation.py: with it)

@@ -1,14 +1,15 @@
-"""What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that \
-every
-worker starts with it: numba's typing and lowering registries, which numba loads on a process's first compiled call
-(``load_registries``: without the SciPy BLAS check numba runs then): otherwise part of each worker's start, done once
-here through one tiny function from numba's cache. The task's own module is preloaded by name beside this one.
+"""What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that
+every worker starts with it: numba's typing and lowering registries, which numba loads on a process's first compiled
+call (``load_registries``: without the SciPy BLAS check numba runs then): otherwise part of each worker's start, done
+once here through one tiny function from numba's cache. The task's own module is preloaded by name beside this one.
 
 Then the caller's warm-up, where ``prestart_pool`` was given one (``POOL_WARM_UP_ENV``: ``"module:function"`` and its
-arguments, as JSON): what every worker would otherwise compute for its first task (build-dataset: the calibration,
-the opened session, the depth camera's ray grid). A warm-up that fails leaves the workers to do it themselves (and to
-report the error where there is one): the server must start whatever the inputs hold. It must not start threads that
-do not survive a fork (GNU OpenMP: numba's parallel kernels; ``lens.undistort`` runs its serial compilation here)."""
+arguments, as JSON; or ``POOL_WARM_UP_FILE_ENV``: the file the command writes them to once it has parsed its options,
+when it started the server before that): what every worker would otherwise compute for its first task (build-dataset:
+the calibration, the opened session, the depth camera's ray grid). A warm-up that fails leaves the workers to do it
+themselves (and to report the error where there is one): the server must start whatever the inputs hold. It must not
+start threads that do not survive a fork (GNU OpenMP: numba's parallel kernels; ``lens.undistort`` runs its serial
+compilation here)."""
 from __future__ import annotations
 
 import atexit
@@ -22,7 +23,7 @@ import warnings
 
 import numba
 
-from gtforge.infra.scheduling import POOL_WARM_UP_ENV
+from gtforge.infra.scheduling import POOL_WARM_UP_ENV, POOL_WARM_UP_FILE_ENV
 
 
 @numba.njit(cache=True)
@@ -32,7 +33,14 @@ def _first_compiled_call(x):
 
 def warm_up() -> bool:
     """Run the warm-up ``POOL_WARM_UP_ENV`` names, if any. Returns whether one ran and succeeded."""
-    spec = os.environ.pop(POOL_WARM_UP_ENV, None)  # (popped: the workers, forked from here, do not see it)
+    spec = os.environ.pop(POOL_WARM_UP_ENV, None)  # (popped: the workers, forked from here, do not see them)
+    path = os.environ.pop(POOL_WARM_UP_FILE_ENV, None)
+    if not spec and path:
+        try:
+            with open(path, encoding="utf-8") as f:
+                spec = f.read()
+        except OSError:  # not written (yet): no warm-up, or the command is slower than these imports
+            return False
     if not spec:
         return False
     logging.disable(logging.WARNING)  # the caller reports what the inputs hold, once (not the server too)

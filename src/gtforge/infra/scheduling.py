@@ -257,17 +257,22 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
             f.cancel()
         _terminate(ex)
         raise
-    ex.shutdown(wait=True)
+    # every task is done: the workers leave while the caller goes on (a worker's exit, the kernel unmapping its heap,
+    # takes about 0.05 s); the interpreter waits for them when it exits (concurrent.futures joins its pools)
+    ex.shutdown(wait=False)
 
 
-# the environment variable that hands a warm-up to the fork server (``prestart_pool``, ``pool_preload.warm_up``)
+# the environment variables that hand a warm-up to the fork server (``prestart_pool``, ``pool_preload.warm_up``): the
+# warm-up itself, or the file it will be in when the server was started before the command knew it
 POOL_WARM_UP_ENV = "GTFORGE_POOL_WARM_UP"
-# this process's fork server, once started: the numba/OpenMP thread count its environment set
-_FORK_SERVER: dict[str, int] = {}
+POOL_WARM_UP_FILE_ENV = "GTFORGE_POOL_WARM_UP_FILE"
+# this process's fork server, once started: the numba/OpenMP thread count its environment set, the module it preloaded
+# and, when it was started with ``warm_up_later``, the file its warm-up goes to
+_FORK_SERVER: dict[str, Any] = {}
 
 
 def prestart_pool(module: str, workers: int | None = None, scheduler: str | None = None,
-                  warm_up: tuple[str, tuple] | None = None) -> None:
+                  warm_up: tuple[str, tuple] | None = None, warm_up_later: bool = False) -> None:
     """Start the fork server that ``run_tasks`` will fork local workers from (``workers`` processes, tasks from
     ``module``) now, so that its imports overlap what this process does before it calls ``run_tasks``. Nothing when
     the tasks will run on a Dask cluster or in this process, or where there is no fork server. The server exits with
@@ -276,19 +281,45 @@ def prestart_pool(module: str, workers: int | None = None, scheduler: str | None
     ``warm_up``: ``(function name in module, JSON-able arguments)``, called once in the server after its imports
     (``pool_preload.warm_up``): what each worker would otherwise compute for its first task, done once and inherited
     by every worker. Only when each worker gets one thread: the function must not start OpenMP, and with one thread
-    gtforge's kernels do not (``lens.undistort``). Ignored when the server is already running."""
+    gtforge's kernels do not (``lens.undistort``). When the server is already running, the warm-up reaches it only
+    if it was started with ``warm_up_later`` (for ``module``, with as many threads): ``gtforge.cli.main`` starts it
+    that way before the command's options are parsed, and the command's own call then hands the warm-up over, through
+    a file the server reads once its imports are done (0.5 s later; if it is not there yet, each worker warms up
+    itself, which gives the same results)."""
     if scheduler or (workers or cpu_count()) < 2:
         return
     n_threads = threads_per_worker(workers or cpu_count())
-    _pool_context(module, n_threads, warm_up if n_threads == 1 else None)
+    warm_up = warm_up if n_threads == 1 else None
+    started = _FORK_SERVER.get("n_threads")
+    if started is not None:
+        path = _FORK_SERVER.get("warm_up_file")
+        if warm_up is not None and path and not _FORK_SERVER.get("warm_up_handed") and started == n_threads \
+                and _FORK_SERVER.get("module") == module:
+            _FORK_SERVER["warm_up_handed"] = True  # once
+            _hand_over(path, json.dumps([f"{module}:{warm_up[0]}", list(warm_up[1])]))
+        return
+    _pool_context(module, n_threads, warm_up, warm_up_later and n_threads == 1)
 
 
-def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None = None):
+def _hand_over(path: str, text: str) -> None:
+    """Write ``text`` to ``path`` whole (a temporary name, then a rename): the fork server may look at any moment."""
+    tmp = f"{path}.tmp"
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except OSError:  # (the folder is this process's own; if it is gone, the workers warm up themselves)
+        pass
+
+
+def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None = None,
+                  warm_up_later: bool = False):
     """The ``multiprocessing`` context local workers start with: this process's fork server, started here once with
     ``__main__``, ``gtforge.infra.pool_preload`` and ``module`` (the first tasks' module; a worker imports any other
     itself)
     preloaded and numba/OpenMP limited to ``n_threads`` threads, as ``_init_worker`` limits them in a spawned worker;
-    ``spawn`` where the platform has no fork server, or for another thread count than the server was started with."""
+    ``spawn`` where the platform has no fork server, or for another thread count than the server was started with.
+    ``warm_up`` / ``warm_up_later``: see ``prestart_pool``."""
     import multiprocessing as mp
 
     if "forkserver" not in mp.get_all_start_methods():
@@ -303,12 +334,20 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
     if "gtforge.cli" in sys.modules:
         # "__main__" does not reach the server when the main module is a script (CPython's forkserver is never handed
         # its path), so each worker runs the script itself before its first task: the gtforge command's imports
-        # gtforge.cli, 0.06 s a worker unless the server holds it already
+        # gtforge.cli, unless the server holds it already
         preload.insert(1, "gtforge.cli")
     ctx.set_forkserver_preload(preload)
     env = _thread_environment(n_threads)
     if warm_up is not None:
         env[POOL_WARM_UP_ENV] = json.dumps([f"{module}:{warm_up[0]}", list(warm_up[1])])
+    elif warm_up_later:
+        import atexit
+        import shutil
+        import tempfile
+
+        folder = tempfile.mkdtemp(prefix="gtforge-pool-")  # this user's only (0700), outside every session and output
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+        env[POOL_WARM_UP_FILE_ENV] = _FORK_SERVER["warm_up_file"] = os.path.join(folder, "warm_up.json")
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # the server's environment is this process's when it starts (fork + exec, below)
     try:
@@ -327,7 +366,7 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-    _FORK_SERVER["n_threads"] = n_threads
+    _FORK_SERVER.update(n_threads=n_threads, module=module)
     return ctx
 
 
