@@ -39,8 +39,9 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from gtforge.core.bspline import resample_homography
 from gtforge.core.camera import RectifiedStereo
-from gtforge.core.zed.scale_corrections import apply_homography, resample_image, right_yaw_homography
+from gtforge.core.zed.scale_corrections import right_yaw_homography
 from gtforge.core.schema import GTModel
 
 if TYPE_CHECKING:
@@ -301,11 +302,9 @@ class CorrectedRightImage:
     left_unchanged: bool = True  # the left image is the file's pixels (Session.load_capture keeps it verbatim)
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h, w = right.shape[:2]
-        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-        us, vs = apply_homography(right_sampling_homography(self.stereo, self.correction, self.right_yaw_deg),
-                                  uu.ravel(), vv.ravel())
-        return left, resample_image(right, us, vs, (h, w))
+        # (resample_image of apply_homography over the pixel grid, without the grid's arrays: the same pixels)
+        return left, resample_homography(right, right_sampling_homography(self.stereo, self.correction,
+                                                                          self.right_yaw_deg))
 
 
 @dataclass

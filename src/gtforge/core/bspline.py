@@ -1,0 +1,276 @@
+"""Cubic B-spline resampling of an image with ``scipy.ndimage``'s arithmetic, compiled: the coefficients of
+``spline_filter(order=3, mode="mirror")`` and the samples of ``map_coordinates(order=3, prefilter=False,
+mode="mirror")``, the same float64 operations in the same order, so the same values to the last bit (checked against
+SciPy in tests/core/test_bspline.py, on random and on real images). SciPy evaluates one channel at a time, computing
+each point's weights and border taps again for every channel, in one thread of generic N-d code: 0.93 CPU s for a
+2208x1242 RGB image here, against about 0.1 s for these kernels.
+
+The recursive prefilter is Unser, Aldroubi and Eden's (IEEE PAMI 13(3), 1991): the gain, then one causal and one
+anti-causal first-order recursion with the pole ``sqrt(3) - 2``, initialised for a whole-sample mirror boundary (the
+causal one from the whole mirrored line, as SciPy does: no truncation, whatever the line's length). Taps beyond the
+border are mirrored about the edge pixels' centres.
+
+The image is kept channel-last: the coefficients are ``(H, W, K)`` float64, the image's rows filtered along its columns
+as one (H, W*K) array, then its columns along its rows as one (W, H*K) array (each line's recursion independent, the
+inner loop across lines, which the compiler vectorises)."""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# the cubic B-spline's pole, sqrt(3) - 2, as SciPy writes it (a literal; math.sqrt(3.0) - 2.0 is one ulp away)
+POLE = -0.267949192431122706472553658494127633
+
+
+@numba.njit(cache=True)
+def _filter_lines(src, c, z):
+    """``c`` (N, M) float64: the cubic B-spline prefilter of every column of ``src`` (N, M; ``c`` itself, or an image
+    of another type) along axis 0."""
+    n, m = c.shape
+    for i in range(n):
+        for j in range(m):
+            c[i, j] = np.float64(src[i, j])
+    if n < 2:
+        return
+    gain = 1.0 * ((1.0 - z) * (1.0 - 1.0 / z))
+    for i in range(n):
+        for j in range(m):
+            c[i, j] *= gain
+    # causal initialisation: sum over the mirrored line (z^(n-1) underflows to 0 past a few hundred samples)
+    zn1 = math.pow(z, float(n - 1))
+    first = np.empty(m)
+    for j in range(m):
+        first[j] = c[0, j] + zn1 * c[n - 1, j]
+    zi = z
+    for i in range(1, n - 1):
+        for j in range(m):
+            first[j] += zi * (c[i, j] + zn1 * c[n - 1 - i, j])
+        zi *= z
+    d = 1.0 - zn1 * zn1
+    for j in range(m):
+        c[0, j] = first[j] / d
+    for i in range(1, n):
+        for j in range(m):
+            c[i, j] += z * c[i - 1, j]
+    # anti-causal initialisation (mirror)
+    q = z * z - 1.0
+    for j in range(m):
+        c[n - 1, j] = (z * c[n - 2, j] + c[n - 1, j]) * z / q
+    for i in range(n - 2, -1, -1):
+        for j in range(m):
+            c[i, j] = z * (c[i + 1, j] - c[i, j])
+
+
+def coefficients(image: np.ndarray) -> np.ndarray:
+    """The cubic B-spline coefficients of ``image`` (H, W) or (H, W, K), as (H, W, K) float64: SciPy's
+    ``spline_filter(image[..., k], order=3, mode="mirror")`` of every channel ``k``."""
+    a = np.ascontiguousarray(image)
+    h, w = a.shape[:2]
+    k = 1 if a.ndim == 2 else a.shape[2]
+    c = np.empty((h, w, k))
+    _filter_lines(a.reshape(h, w * k), c.reshape(h, w * k), POLE)  # along the columns (SciPy's first axis)
+    _filter_rows(c, POLE)  # then along the rows
+    return c
+
+
+# rows ``_filter_rows`` filters together: a block's lines, side by side, stay in the L2 cache (8 x 2208 x 3 doubles)
+_ROWS = 8
+
+
+@numba.njit(cache=True)
+def _filter_rows(c, z):
+    """In place: the cubic B-spline prefilter of every row of every channel of ``c`` (H, W, K) float64, ``_ROWS``
+    rows at a time: copied side by side into a (W, rows x K) block, filtered as its columns, copied back."""
+    H, W, K = c.shape
+    buf = np.empty((W, _ROWS * K))
+    for y0 in range(0, H, _ROWS):
+        n = min(_ROWS, H - y0)
+        block = buf[:, :n * K]
+        for r in range(n):
+            for x in range(W):
+                for k in range(K):
+                    block[x, r * K + k] = c[y0 + r, x, k]
+        _filter_lines(block, block, z)
+        for r in range(n):
+            for x in range(W):
+                for k in range(K):
+                    c[y0 + r, x, k] = block[x, r * K + k]
+
+
+@numba.njit(cache=True, inline="always")
+def _weights(x):
+    """The four cubic B-spline weights of the taps ``floor(x) - 1 .. floor(x) + 2`` (SciPy's expressions, the last
+    one as 1 less the others, subtracted in order)."""
+    x -= math.floor(x)
+    y = x
+    z = 1.0 - x
+    w1 = (y * y * (y - 2.0) * 3.0 + 4.0) / 6.0
+    w2 = (z * z * (z - 2.0) * 3.0 + 4.0) / 6.0
+    w0 = z * z * z / 6.0
+    return w0, w1, w2, ((1.0 - w0) - w1) - w2
+
+
+@numba.njit(cache=True, inline="always")
+def _tap(idx, n):
+    """Tap ``idx`` of a line of ``n`` samples, mirrored beyond its ends."""
+    if n <= 1:
+        return 0
+    if 0 <= idx < n:
+        return idx
+    s2 = 2 * n - 2
+    if idx < 0:
+        idx = s2 * (-idx // s2) + idx
+        return idx + s2 if idx <= 1 - n else -idx
+    idx -= s2 * (idx // s2)
+    return s2 - idx if idx >= n else idx
+
+
+@numba.njit(cache=True, inline="always")
+def _mirror_coordinate(x, n):
+    """A coordinate beyond a line of ``n`` samples mirrored into it (SciPy's ``map_coordinate``, mode "mirror")."""
+    if x < 0.0:
+        if n <= 1:
+            return 0.0
+        s2 = 2 * n - 2
+        x = s2 * float(int(-x / s2)) + x
+        return x + s2 if x <= 1 - n else -x
+    if x > n - 1:
+        if n <= 1:
+            return 0.0
+        s2 = 2 * n - 2
+        x -= s2 * float(int(x / s2))
+        if x >= n:
+            x = s2 - x
+    return x
+
+
+@numba.njit(cache=True, inline="always")
+def _row_of_taps(c, y, k, x0, x1, x2, x3, wy, wx0, wx1, wx2, wx3, t):
+    """``t`` plus one row of a point's taps, each product ``c * wy * wx``, in SciPy's order."""
+    t += c[y, x0, k] * wy * wx0
+    t += c[y, x1, k] * wy * wx1
+    t += c[y, x2, k] * wy * wx2
+    t += c[y, x3, k] * wy * wx3
+    return t
+
+
+@numba.njit(cache=True, inline="always")
+def _stencil(H, W, u, v):
+    """A point's taps (columns x0..x3, rows y0..y3, mirrored beyond the border) and weights (wx0..wx3, wy0..wy3)."""
+    x = int(math.floor(u)) - 1
+    y = int(math.floor(v)) - 1
+    if 0 <= x and x + 3 < W:
+        xs = (x, x + 1, x + 2, x + 3)
+    else:
+        xs = (_tap(x, W), _tap(x + 1, W), _tap(x + 2, W), _tap(x + 3, W))
+    if 0 <= y and y + 3 < H:
+        ys = (y, y + 1, y + 2, y + 3)
+    else:
+        ys = (_tap(y, H), _tap(y + 1, H), _tap(y + 2, H), _tap(y + 3, H))
+    return xs, ys, _weights(u), _weights(v)
+
+
+@numba.njit(cache=True, inline="always")
+def _sum_taps(c, k, xs, ys, wx, wy):
+    """Channel ``k`` of the spline whose coefficients are ``c`` (H, W, K) over a point's ``_stencil``: the 16 taps'
+    products summed row of taps by row, as SciPy sums them."""
+    x0, x1, x2, x3 = xs
+    y0, y1, y2, y3 = ys
+    wx0, wx1, wx2, wx3 = wx
+    wy0, wy1, wy2, wy3 = wy
+    t = _row_of_taps(c, y0, k, x0, x1, x2, x3, wy0, wx0, wx1, wx2, wx3, 0.0)
+    t = _row_of_taps(c, y1, k, x0, x1, x2, x3, wy1, wx0, wx1, wx2, wx3, t)
+    t = _row_of_taps(c, y2, k, x0, x1, x2, x3, wy2, wx0, wx1, wx2, wx3, t)
+    return _row_of_taps(c, y3, k, x0, x1, x2, x3, wy3, wx0, wx1, wx2, wx3, t)
+
+
+@numba.njit(cache=True)
+def _samples(coef, us, vs, out):
+    """``out`` (N, K) float64: the spline at ``(us, vs)``, points beyond the image mirrored into it."""
+    H, W, K = coef.shape
+    for p in range(us.shape[0]):
+        xs, ys, wx, wy = _stencil(H, W, _mirror_coordinate(us[p], W), _mirror_coordinate(vs[p], H))
+        for k in range(K):
+            out[p, k] = _sum_taps(coef, k, xs, ys, wx, wy)
+
+
+@numba.njit(cache=True, inline="always")
+def _resample_point(coef, u, v, top, out, p):
+    """``out[p]``: the image whose coefficients are ``coef`` (H, W, K) at ``(u, v)``, rounded half to even and
+    clipped to [0, top]; 0 outside the image."""
+    H, W, K = coef.shape
+    if not (u >= 0.0 and u <= W - 1 and v >= 0.0 and v <= H - 1):
+        for k in range(K):
+            out[p, k] = 0
+        return
+    xs, ys, wx, wy = _stencil(H, W, u, v)
+    for k in range(K):
+        r = np.rint(_sum_taps(coef, k, xs, ys, wx, wy))
+        if r < 0.0:
+            r = 0.0
+        elif r > top:
+            r = top
+        out[p, k] = r
+
+
+@numba.njit(cache=True)
+def _resample(coef, us, vs, top, out):
+    """``out`` (N, K): ``_resample_point`` at each ``(us, vs)`` (N,)."""
+    for p in range(us.shape[0]):
+        _resample_point(coef, us[p], vs[p], top, out, p)
+
+
+@numba.njit(cache=True)
+def _resample_homography(coef, M, h, w, top, out):
+    """``out`` (h * w, K): ``_resample_point`` at ``M`` (3x3) times each output pixel, row-major, in
+    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic."""
+    for v in range(h):
+        y = float(v)
+        for u in range(w):
+            x = float(u)
+            d = M[2, 0] * x + M[2, 1] * y + M[2, 2]
+            _resample_point(coef, (M[0, 0] * x + M[0, 1] * y + M[0, 2]) / d,
+                            (M[1, 0] * x + M[1, 1] * y + M[1, 2]) / d, top, out, v * w + u)
+
+
+def sample(coef: np.ndarray, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """(N, K) float64: the spline whose coefficients are ``coef`` (``coefficients``: (H, W, K)) at the points
+    ``(us, vs)`` (N,); points beyond the image mirrored into it. SciPy's ``map_coordinates(c, [vs, us], order=3,
+    prefilter=False, mode="mirror")`` of each channel's coefficients ``c``, to the last bit."""
+    out = np.empty((len(us), coef.shape[2]))
+    _samples(coef, np.ascontiguousarray(us, np.float64), np.ascontiguousarray(vs, np.float64), out)
+    return out
+
+
+def _checked(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"resample: expected an 8- or 16-bit image, got {img.dtype}")
+    return img
+
+
+def resample_homography(image: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``resample`` at ``M`` (3x3) times every pixel of an image of ``image``'s size: the same pixels as ``resample``
+    of ``apply_homography(M, u, v)`` over the pixel grid (float64, row-major), without the grid's arrays."""
+    img = _checked(image)
+    h, w = img.shape[:2]
+    k = 1 if img.ndim == 2 else img.shape[2]
+    out = np.empty((h, w, k), img.dtype)
+    _resample_homography(coefficients(img), np.ascontiguousarray(M, np.float64), h, w,
+                         float(np.iinfo(img.dtype).max), out.reshape(-1, k))
+    return out[..., 0] if img.ndim == 2 else out
+
+
+def resample(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
+    """An ``out_hw`` image of ``image``'s type (8- or 16-bit, grey or with channels) whose pixels (row-major) are
+    ``image`` sampled at ``(us, vs)`` (flat float64, one per output pixel): cubic B-spline at the exact positions,
+    rounded half to even and clipped to the type's range, black where a position is outside ``image``. The same
+    pixels as SciPy's ``map_coordinates`` of ``spline_filter``'s coefficients, then ``np.round`` and ``np.clip``."""
+    img = _checked(image)
+    k = 1 if img.ndim == 2 else img.shape[2]
+    out = np.empty((*out_hw, k), img.dtype)
+    _resample(coefficients(img), np.ascontiguousarray(us, np.float64), np.ascontiguousarray(vs, np.float64),
+              float(np.iinfo(img.dtype).max), out.reshape(-1, k))
+    return out[..., 0] if img.ndim == 2 else out
