@@ -11,6 +11,9 @@ start (imports included), one after the other:
 * the baseline again, pinned to one core (Open3D's projection runs fastest on one: see bench_reproject.py);
 * ``gtforge build-dataset --no-verify`` (the same without the per-scene verification);
 * ``gtforge build-dataset --no-right-gt`` (verification on, no right-view ground truth);
+* ``gtforge build-dataset`` with a calibration that corrects the right camera (calibrate-scale's yaw; 0.0005 deg, too
+  small for the verification to see, as the renders have none): what a user's builds run after ``gtforge calibrate``
+  and ``calibrate-scale``, the right image resampled once (cubic B-spline) and written again;
 * a resume of the default build (nothing to rebuild: the inputs' size + mtime checks).
 
 ``--repeat N`` runs the baseline and the default build N times, alternating, and reports each pair's ratio (the
@@ -101,6 +104,18 @@ def settle(*delete: Path, wait_s: float = 65.0) -> None:
     os.sync()
     if _LAST_DELETION:
         time.sleep(max(0.0, wait_s - (time.perf_counter() - _LAST_DELETION[0])))
+
+
+def corrected_calibration(calib: Path, yaw_deg: float = 0.0005) -> Path:
+    """``calib`` with calibrate-scale's correction of the right camera's yaw (``yaw_deg``), beside it."""
+    from gtforge.core.camera import ScaleCorrections
+    from gtforge.records.calibration import CalibrationFile
+
+    c = CalibrationFile.read(calib)
+    c.rig = c.rig.model_copy(update={"scale_corrections": ScaleCorrections(zed_right_yaw_deg=yaw_deg)})
+    out = calib.with_name("calibration_right_corrected.yaml")
+    c.write(out)
+    return out
 
 
 def baseline_command(session: Path, calib: Path, out: Path) -> list[str]:
@@ -256,6 +271,11 @@ def main():
     settle(outs["noverify"], **wait)
     t = timed(build + ["-o", str(outs["noverify"]), "--no-right-gt"], built)
     runs.append((f"gtforge build-dataset --workers {workers} --no-right-gt (verification on)", *t))
+    settle(outs["noverify"], **wait)
+    t = timed(gtforge_cli + ["build-dataset", str(sess), "-c", str(corrected_calibration(calib)), "--workers",
+                             str(workers), "-o", str(outs["noverify"])], built)
+    runs.append((f"gtforge build-dataset --workers {workers}, a calibration that corrects the right camera "
+                 "(calibrate-scale's yaw: the right image resampled)", *t))
     settle(outs["noverify"], **wait)
     t_resume, _ = timed(build + ["-o", str(outs["gtforge"])], f"unchanged {n},")
     base_rate = n / runs[0][1]

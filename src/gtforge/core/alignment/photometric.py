@@ -195,9 +195,9 @@ def sample_cubic(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def spline_prefilter(img: np.ndarray) -> np.ndarray:
     """Cubic B-spline coefficients of ``img`` (H, W), or of each image of a stack (K, H, W), float64 (mirror
-    boundary): what ``sample_spline`` interpolates. The same coefficients as ``gtforge.core.zed.scale_corrections
-    .spline_coefficients`` (scipy's ``spline_filter``, ``mode="mirror"``; within 1e-12 relative), by a compiled
-    recursive filter several times faster."""
+    boundary): what ``sample_spline`` interpolates. The same coefficients as scipy's ``spline_filter``
+    (``mode="mirror"``) within 1e-12 relative (``gtforge.core.bspline`` has them to the last bit, for the images
+    gtforge resamples; these feed only the verification's own fits)."""
     a = np.asarray(img)
     if a.dtype not in (np.float32, np.float64):
         a = a.astype(np.float64)

@@ -41,34 +41,13 @@ def apply_homography(H: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.nd
 
 
 
-def spline_coefficients(stack: np.ndarray) -> np.ndarray:
-    """Cubic B-spline coefficients of each image of a stack (K, H, W), float64 (``spline_sample``)."""
-    from scipy import ndimage
-
-    return np.stack([ndimage.spline_filter(np.asarray(a, np.float64), order=3, mode="mirror") for a in stack])
-
-
-
-def spline_sample(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(K, N) cubic B-spline samples of each image at the points ``(x, y)`` (exact positions).
-
-    Not verify's Keys cubic convolution: its error depends on the sub-pixel phase, which along a row is the
-    disparity's fractional part, so it correlates with depth, the very thing the scale terms are fitted to. On the
-    synthetic scenes (0.35x, right camera turned 0.15 deg) it biased the scenes' estimate by (b + k, c, yaw) =
-    (+0.0040, -1.6 mm, +0.0074 deg), about 4 sigma; with B-splines (+0.0005, -0.34 mm, -0.0000 deg)."""
-    from scipy import ndimage
-
-    return np.stack([ndimage.map_coordinates(c, [y, x], order=3, prefilter=False, mode="mirror") for c in coeffs])
-
-
-
 def resample_image(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
     """An ``out_hw`` image whose pixels (row-major) are ``image`` (8- or 16-bit) sampled at ``(us, vs)`` (flat, one per
     output pixel): cubic B-spline at the exact positions, black where a position is outside ``image``, rounded to its
     type. One resampling of the right image, whatever its corrections (``gtforge.core.zed.selfcal.corrected_right``).
 
-    ``gtforge.core.bspline.resample``: ``spline_sample`` of ``spline_coefficients``, then ``np.round`` and ``np.clip``,
-    in SciPy's arithmetic, compiled (the same pixels; about 5x faster)."""
+    ``gtforge.core.bspline.resample``: SciPy's ``map_coordinates`` of ``spline_filter``'s coefficients (order 3,
+    mirror), then ``np.round`` and ``np.clip``, in SciPy's arithmetic, compiled (the same pixels; about 5x faster)."""
     return bspline.resample(image, us, vs, out_hw)
 
 
