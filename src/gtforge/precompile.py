@@ -42,7 +42,8 @@ KERNELS = (
     "gtforge.core.ground_truth.render._render_kernel", "gtforge.core.alignment.photometric._cubic_at",
     "gtforge.io.formats._pfm_invalid_to_inf",
     "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
-    "gtforge.core.lens._undistort_kernel_serial",
+    "gtforge.core.lens._undistort_kernel_serial", "gtforge.core.bspline._resample_homography",
+    "gtforge.core.bspline._samples",
 )
 
 
@@ -75,6 +76,14 @@ def compile_kernels(scale: float = 0.25) -> float:
 
     _all_of_2x2(np.ones((4, 8), np.bool_), 0, 2, np.empty((2, 2), np.bool_))
     _disparity_and_range(np.ones((2, 2), np.float32), 1.0, 0.0, np.empty((2, 2), np.float32))
+    # the right image's resampling, which a calibration that corrects the right camera (calibrate's
+    # self-rectification, calibrate-scale's yaw) makes every scene run, and calibrate-scale's own samples
+    from gtforge.core import bspline
+
+    rgb = np.zeros((12, 16, 3), np.uint8)
+    bspline.resample_homography(rgb, np.eye(3))
+    bspline.resample(rgb, np.zeros(1), np.zeros(1), (1, 1))
+    bspline.sample(bspline.coefficients(np.zeros((12, 16, 3), np.float32)), np.zeros(1), np.zeros(1))
     with tempfile.TemporaryDirectory(prefix="gtforge-precompile-") as tmp:
         session_dir = generate_session(Path(tmp) / "session", n_board=0, n_scenes=1, scale=scale, supersample=1)
         session = open_session(session_dir)

@@ -39,6 +39,20 @@ def test_after_precompile_a_build_compiles_nothing(tmp_path, session_dir, true_c
     assert r.returncode == 0, r.stderr[-3000:]
     assert "failed 0" in r.stdout
     assert _cache_state(cache) == before
+    # and with a calibration that corrects the right camera (calibrate-scale's yaw), as a user's: the right image
+    # resampled in every scene (gtforge.core.bspline)
+    from gtforge.core.camera import ScaleCorrections
+    from gtforge.records.calibration import CalibrationFile
+
+    c = CalibrationFile.read(true_calibration)
+    c.rig = c.rig.model_copy(update={"scale_corrections": ScaleCorrections(zed_right_yaw_deg=0.0005)})
+    c.write(tmp_path / "corrected.yaml")
+    r = subprocess.run([sys.executable, "-m", "gtforge.cli", "build-dataset", str(session_dir), "-c",
+                        str(tmp_path / "corrected.yaml"), "-o", str(tmp_path / "dataset_corrected"), "--workers", "2"],
+                       env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "failed 0" in r.stdout
+    assert _cache_state(cache) == before
 
 
 
