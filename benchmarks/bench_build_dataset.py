@@ -49,7 +49,7 @@ import sys
 import time
 from pathlib import Path
 
-from fullres_session import machine_line, make_session, pin_to_one_core, update_results
+from fullres_session import corrected_calibration, machine_line, make_session, pin_to_one_core, update_results
 
 HERE = Path(__file__).resolve().parent
 TARGET_SCENES = 808
@@ -104,18 +104,6 @@ def settle(*delete: Path, wait_s: float = 65.0) -> None:
     os.sync()
     if _LAST_DELETION:
         time.sleep(max(0.0, wait_s - (time.perf_counter() - _LAST_DELETION[0])))
-
-
-def corrected_calibration(calib: Path, yaw_deg: float = 0.0005) -> Path:
-    """``calib`` with calibrate-scale's correction of the right camera's yaw (``yaw_deg``), beside it."""
-    from gtforge.core.camera import ScaleCorrections
-    from gtforge.records.calibration import CalibrationFile
-
-    c = CalibrationFile.read(calib)
-    c.rig = c.rig.model_copy(update={"scale_corrections": ScaleCorrections(zed_right_yaw_deg=yaw_deg)})
-    out = calib.with_name("calibration_right_corrected.yaml")
-    c.write(out)
-    return out
 
 
 def baseline_command(session: Path, calib: Path, out: Path) -> list[str]:

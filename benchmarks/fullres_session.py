@@ -75,6 +75,18 @@ def make_session(workdir: str | Path, n_scenes: int, n_distinct: int = 4, log=pr
     return sess, calib_path
 
 
+def corrected_calibration(calib: Path, yaw_deg: float = 0.0005) -> Path:
+    """``calib`` with calibrate-scale's correction of the right camera's yaw (``yaw_deg``), beside it."""
+    from gtforge.core.camera import ScaleCorrections
+    from gtforge.records.calibration import CalibrationFile
+
+    c = CalibrationFile.read(calib)
+    c.rig = c.rig.model_copy(update={"scale_corrections": ScaleCorrections(zed_right_yaw_deg=yaw_deg)})
+    out = calib.with_name("calibration_right_corrected.yaml")
+    c.write(out)
+    return out
+
+
 def machine_line() -> str:
     """Cores this process may use and the 1-minute load average when the measurement starts."""
     from gtforge.infra.scheduling import cpu_count

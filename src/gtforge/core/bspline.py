@@ -2,17 +2,17 @@
 ``spline_filter(order=3, mode="mirror")`` and the samples of ``map_coordinates(order=3, prefilter=False,
 mode="mirror")``, the same float64 operations in the same order, so the same values to the last bit (checked against
 SciPy in tests/core/test_bspline.py, on random and on real images). SciPy evaluates one channel at a time, computing
-each point's weights and border taps again for every channel, in one thread of generic N-d code: 0.93 CPU s for a
-2208x1242 RGB image here, against about 0.1 s for these kernels.
+each point's weights and border taps again for every channel, in generic N-d code: 0.93-1.1 CPU s for a 2208x1242 RGB
+image on the project's Xeon, against 0.18-0.19 s for these kernels (benchmarks/RESULTS.md, "Round 7").
 
 The recursive prefilter is Unser, Aldroubi and Eden's (IEEE PAMI 13(3), 1991): the gain, then one causal and one
 anti-causal first-order recursion with the pole ``sqrt(3) - 2``, initialised for a whole-sample mirror boundary (the
 causal one from the whole mirrored line, as SciPy does: no truncation, whatever the line's length). Taps beyond the
 border are mirrored about the edge pixels' centres.
 
-The image is kept channel-last: the coefficients are ``(H, W, K)`` float64, the image's rows filtered along its columns
-as one (H, W*K) array, then its columns along its rows as one (W, H*K) array (each line's recursion independent, the
-inner loop across lines, which the compiler vectorises)."""
+The image is kept channel-last: the coefficients are ``(H, W, K)`` float64, filtered along the columns as one (H, W*K)
+array, then along the rows in blocks of rows copied side by side (each line's recursion independent, the inner loop
+across lines, which the compiler vectorises). Each point's taps and weights serve all its channels."""
 from __future__ import annotations
 
 import math
@@ -197,6 +197,15 @@ def _samples(coef, us, vs, out):
 
 
 @numba.njit(cache=True, inline="always")
+def _rounded(t, top):
+    """``t`` rounded half to even and clipped to [0, top] (``np.round``, ``np.clip``)."""
+    r = np.rint(t)
+    if r < 0.0:
+        return 0.0
+    return top if r > top else r
+
+
+@numba.njit(cache=True, inline="always")
 def _resample_point(coef, u, v, top, out, p):
     """``out[p]``: the image whose coefficients are ``coef`` (H, W, K) at ``(u, v)``, rounded half to even and
     clipped to [0, top]; 0 outside the image."""
@@ -207,12 +216,7 @@ def _resample_point(coef, u, v, top, out, p):
         return
     xs, ys, wx, wy = _stencil(H, W, u, v)
     for k in range(K):
-        r = np.rint(_sum_taps(coef, k, xs, ys, wx, wy))
-        if r < 0.0:
-            r = 0.0
-        elif r > top:
-            r = top
-        out[p, k] = r
+        out[p, k] = _rounded(_sum_taps(coef, k, xs, ys, wx, wy), top)
 
 
 @numba.njit(cache=True)
@@ -225,14 +229,33 @@ def _resample(coef, us, vs, top, out):
 @numba.njit(cache=True)
 def _resample_homography(coef, M, h, w, top, out):
     """``out`` (h * w, K): ``_resample_point`` at ``M`` (3x3) times each output pixel, row-major, in
-    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic."""
+    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic. A row's positions and weights first, in a
+    loop the compiler vectorises (its divisions most of all), then its taps; each value as ``_resample_point``'s."""
+    H, W, K = coef.shape
+    xs, ys = np.empty(w), np.empty(w)
+    wx, wy = np.empty((4, w)), np.empty((4, w))
     for v in range(h):
         y = float(v)
         for u in range(w):
             x = float(u)
             d = M[2, 0] * x + M[2, 1] * y + M[2, 2]
-            _resample_point(coef, (M[0, 0] * x + M[0, 1] * y + M[0, 2]) / d,
-                            (M[1, 0] * x + M[1, 1] * y + M[1, 2]) / d, top, out, v * w + u)
+            px = (M[0, 0] * x + M[0, 1] * y + M[0, 2]) / d
+            py = (M[1, 0] * x + M[1, 1] * y + M[1, 2]) / d
+            xs[u], ys[u] = px, py
+            wx[0, u], wx[1, u], wx[2, u], wx[3, u] = _weights(px)
+            wy[0, u], wy[1, u], wy[2, u], wy[3, u] = _weights(py)
+        for u in range(w):
+            p = v * w + u
+            px, py = xs[u], ys[u]
+            if not (px >= 0.0 and px <= W - 1 and py >= 0.0 and py <= H - 1):
+                for k in range(K):
+                    out[p, k] = 0
+                continue
+            xs4, ys4, _, _ = _stencil(H, W, px, py)
+            wx4 = (wx[0, u], wx[1, u], wx[2, u], wx[3, u])
+            wy4 = (wy[0, u], wy[1, u], wy[2, u], wy[3, u])
+            for k in range(K):
+                out[p, k] = _rounded(_sum_taps(coef, k, xs4, ys4, wx4, wy4), top)
 
 
 def sample(coef: np.ndarray, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
