@@ -345,13 +345,9 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
         import shutil
         import tempfile
 
-        try:  # this user's only (0700), outside every session and output
-            folder = tempfile.mkdtemp(prefix="gtforge-pool-")
-        except OSError:  # no writable temporary folder: no hand-over, each worker warms up itself
-            folder = None
-        if folder is not None:
-            atexit.register(shutil.rmtree, folder, ignore_errors=True)
-            env[POOL_WARM_UP_FILE_ENV] = _FORK_SERVER["warm_up_file"] = os.path.join(folder, "warm_up.json")
+        folder = tempfile.mkdtemp(prefix="gtforge-pool-")  # this user's only (0700), outside every session and output
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+        env[POOL_WARM_UP_FILE_ENV] = _FORK_SERVER["warm_up_file"] = os.path.join(folder, "warm_up.json")
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # the server's environment is this process's when it starts (fork + exec, below)
     try:
