@@ -81,11 +81,16 @@ def test_an_unwritable_cache_costs_only_the_computation(tmp_path, monkeypatch):
     assert disk_cache.load_array("k", "key") is None
 
 
-def _ray_grid_twice(cam: PinholeCamera, cache) -> tuple[np.ndarray, np.ndarray]:
+def _clear_memory_caches() -> None:
+    camera._ray_planes_cached.cache_clear()
     camera._ray_grid_cached.cache_clear()
+
+
+def _ray_grid_twice(cam: PinholeCamera, cache) -> tuple[np.ndarray, np.ndarray]:
+    _clear_memory_caches()
     computed = cam.ray_grid()
     assert len(list((cache / "ray_grid").iterdir())) == 1
-    camera._ray_grid_cached.cache_clear()
+    _clear_memory_caches()
     return computed, cam.ray_grid()
 
 
@@ -100,10 +105,30 @@ def test_ray_grid_from_the_disk_cache_is_the_computed_one(cache, monkeypatch):
     vv, uu = np.mgrid[0:200, 0:320]
     assert np.abs(uv - np.stack([uu.ravel(), vv.ravel()], axis=1)).max() < 1e-9
     other = cam.model_copy(update={"cx_px": 161.4})  # another camera: another entry
-    camera._ray_grid_cached.cache_clear()
+    _clear_memory_caches()
     assert other.ray_grid()[0, 0, 0] != cached[0, 0, 0]
     assert len(list((cache / "ray_grid").iterdir())) == 2
     assert not PinholeCamera(width_px=8, height_px=4, fx_px=5.0, fy_px=5.0, cx_px=3.5, cy_px=1.5).has_distortion
+
+
+def test_ray_planes_are_the_grid_split_and_stored_as_planes(cache, monkeypatch):
+    """The reprojection reads the grid as two C-contiguous planes, which the disk cache keeps as they are (read back
+    without a split): the grid's own values, from a fresh computation and from the disk."""
+    monkeypatch.setattr(camera, "RAY_GRID_DISK_CACHE_MIN_PX", 0)
+    cam = PinholeCamera(width_px=96, height_px=64, fx_px=80.0, fy_px=81.0, cx_px=47.2, cy_px=31.9,
+                        dist_coeffs=[0.08, -0.05, 0.0004, 0.0002, 0.01])
+    _clear_memory_caches()
+    planes = cam.ray_planes()
+    (stored,) = (cache / "ray_grid").iterdir()
+    assert np.load(stored).shape == (2, 64, 96)  # the planes, not the (H, W, 2) grid
+    _clear_memory_caches()
+    grid = cam.ray_grid()  # from the disk this time
+    read = cam.ray_planes()
+    for p in (planes, read):
+        assert p.shape == (2, 64, 96) and p.dtype == np.float64 and p.flags.c_contiguous and not p.flags.writeable
+        assert p[0].tobytes() == grid[..., 0].tobytes() and p[1].tobytes() == grid[..., 1].tobytes()
+    assert grid.flags.c_contiguous and not grid.flags.writeable
+    assert np.ptp(grid[..., 0]) > 1.0 and np.ptp(grid[..., 1]) > 0.7  # a real grid, not zeros
 
 
 def test_real_azure_kinect_ray_grid_from_the_disk_cache(cache):

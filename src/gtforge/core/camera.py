@@ -135,8 +135,13 @@ class PinholeCamera(GTModel):
         return np.stack([xy[:, 0] * z, xy[:, 1] * z, z], axis=1)
 
     def ray_grid(self) -> np.ndarray:
-        """``(H, W, 2)`` float64 normalised coordinates of every pixel centre (cached)."""
+        """``(H, W, 2)`` float64 normalised coordinates of every pixel centre (cached, read-only)."""
         return _ray_grid_cached(self.model_dump_json())
+
+    def ray_planes(self) -> np.ndarray:
+        """The ray grid as two planes: ``(2, H, W)`` float64, C-contiguous (x, then y; cached, read-only). The
+        depth reprojection's kernels read x and y each from its own plane."""
+        return _ray_planes_cached(self.model_dump_json())
 
     def check_image_size(self, shape: tuple[int, ...], file=None, what: str = "image") -> None:
         h, w = shape[:2]
@@ -169,15 +174,18 @@ def _ray_grid_code_digest() -> str | None:
 
 
 @functools.lru_cache(maxsize=8)
-def _ray_grid_cached(cam_json: str) -> np.ndarray:
+def _ray_planes_cached(cam_json: str) -> np.ndarray:
     cam = PinholeCamera.model_validate_json(cam_json)
     code = _ray_grid_code_digest() if cam.width_px * cam.height_px >= RAY_GRID_DISK_CACHE_MIN_PX else None
     on_disk = cam.has_distortion and code is not None
+    shape = (2, cam.height_px, cam.width_px)
     if on_disk:
+        # kept as planes, the form the reprojection reads: splitting an (H, W, 2) grid after reading it costs a
+        # fork server more than reading it (benchmarks/RESULTS.md, "Round 8 (issue 39)")
         key = blake3_hex((cam_json + code).encode())[:32]
-        xy = disk_cache.load_array("ray_grid", key)
-        if xy is not None and xy.shape == (cam.height_px, cam.width_px, 2) and xy.dtype == np.float64:
-            return xy
+        planes = disk_cache.load_array("ray_grid", key)
+        if planes is not None and planes.shape == shape and planes.dtype == np.float64:
+            return planes
     # undistort_to_normalized of every pixel centre, without the (N, 2) pixel list: the distorted normalised
     # coordinates are separable in u and v
     xy = np.empty((cam.height_px, cam.width_px, 2))
@@ -185,8 +193,16 @@ def _ray_grid_cached(cam_json: str) -> np.ndarray:
     xy[..., 1] = ((np.arange(cam.height_px, dtype=np.float64) - cam.cy_px) / cam.fy_px)[:, None]
     if cam.has_distortion:
         xy = lens.undistort(xy.reshape(-1, 2), cam.dist_coeffs).reshape(xy.shape)
+    planes = np.ascontiguousarray(np.moveaxis(xy, -1, 0))
     if on_disk:
-        disk_cache.store_array("ray_grid", key, xy)
+        disk_cache.store_array("ray_grid", key, planes)
+    planes.setflags(write=False)
+    return planes
+
+
+@functools.lru_cache(maxsize=8)
+def _ray_grid_cached(cam_json: str) -> np.ndarray:
+    xy = np.stack(tuple(_ray_planes_cached(cam_json)), axis=-1)
     xy.setflags(write=False)
     return xy
 

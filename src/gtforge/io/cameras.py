@@ -27,6 +27,7 @@ from gtforge.core.camera import (
     RectifiedStereo,
     StereoCalibrationFile,
 )
+from gtforge.core.schema import load_yaml
 from gtforge.core.zed.scale_corrections import resample_image
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_text
@@ -44,7 +45,7 @@ def _load_yaml_any(path: Path) -> dict:
     if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
         return {"__opencv__": True}
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as exc:
         raise InputError(path, None, "valid YAML", f"a parse error ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):

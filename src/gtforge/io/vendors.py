@@ -24,7 +24,7 @@ from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import invert_T, make_T
-from gtforge.core.schema import GTModel, VersionedFile
+from gtforge.core.schema import GTModel, VersionedFile, load_yaml
 from gtforge.errors import InputError
 from gtforge.io.cameras import load_camera
 
@@ -380,7 +380,7 @@ def load_structured_light_cameras(path: str | Path, *, depth_mode: str | None = 
                              f"a JSON file with {keys}", "gtforge reads cameras as YAML or as the Kinect JSON")
     elif not text.lstrip().startswith("%YAML"):
         try:
-            data = yaml.safe_load(text)
+            data = load_yaml(text)
         except yaml.YAMLError:
             data = None  # load_camera reports the parse error
     if is_kinect_calibration(data):

@@ -11,9 +11,9 @@ from pathlib import Path
 from statistics import median
 from typing import Any
 
-import yaml
 
 import gtforge
+from gtforge.core.schema import load_yaml
 from gtforge.infra.digest import blake3_hex
 from gtforge.records.certificate import CertFigure, Certificate, CertSection, CertStage
 from gtforge.records.run import STAGES, RunState
@@ -27,7 +27,7 @@ def load(path: Path) -> Any:
     if not path.is_file():
         return None
     text = path.read_text()
-    return json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    return json.loads(text) if path.suffix == ".json" else load_yaml(text)
 
 
 def field_value(doc: Any, dotted: str) -> Any:
