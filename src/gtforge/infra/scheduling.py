@@ -302,12 +302,12 @@ def prestart_pool(module: str, workers: int | None = None, scheduler: str | None
 
 
 def _hand_over(path: str, text: str) -> None:
-    """Write ``text`` to ``path`` whole (a temporary name, then a rename): the fork server may look at any moment."""
-    tmp = f"{path}.tmp"
+    """Write ``text`` to ``path`` whole (atomically): the fork server may look at any moment."""
+    # (imported here: this module is imported before the fork server starts, when nothing may load numpy yet)
+    from gtforge.infra.atomic import atomic_write_text
+
     try:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
+        atomic_write_text(path, text)
     except OSError:  # (the folder is this process's own; if it is gone, the workers warm up themselves)
         pass
 
