@@ -1,6 +1,6 @@
 """gtforge.core.bspline: the compiled cubic B-spline resampling gives SciPy's values to the last bit (the
-coefficients of ``spline_filter``, the samples of ``map_coordinates``, the rounded image of ``resample_image``'s
-reference), on random images of every shape and type it takes and on real camera images."""
+coefficients of ``spline_filter``, the samples of ``map_coordinates``, the rounded image of the
+resampling gtforge did with SciPy), on random images of every shape and type it takes and on real camera images."""
 from __future__ import annotations
 
 import numpy as np
@@ -21,7 +21,8 @@ def _reference_coefficients(img):
 
 
 def _reference_resample(img, us, vs, out_hw):
-    """``resample_image`` as it was: SciPy's coefficients and samples, black outside, np.round, np.clip, the type."""
+    """The resampling as gtforge did it with SciPy: its coefficients and samples, black outside, np.round, np.clip,
+    the type."""
     h, w = img.shape[:2]
     out = np.stack([ndimage.map_coordinates(c, [vs, us], order=3, prefilter=False, mode="mirror")
                     for c in _reference_coefficients(img)])

@@ -401,17 +401,17 @@ def test_one_resampling_is_the_two_without_their_blur(kind):
     assert e_single > 1.1 * e_two and e_single < 1.05 * e_truth
 
 
-def test_resample_image_is_exact_and_keeps_16_bit_values():
+def test_resample_is_exact_and_keeps_16_bit_values():
     """The one resampling of a corrected session (cubic B-spline at the exact positions): the identity returns the
     image unchanged, 8-bit and 16-bit (values above 255 are kept: it once clipped every image to 255), and a
     sub-pixel shift of a linear ramp is the shifted ramp, not rounded to OpenCV's 1/32 px."""
-    from gtforge.core.zed.scale_corrections import resample_image
+    from gtforge.core.bspline import resample
 
     vv, uu = np.mgrid[0:40, 0:50].astype(np.float64)
     for img in ((uu * 1000 + vv).astype(np.uint16),
                 (np.random.default_rng(0).random((40, 50, 3)) * 255).astype(np.uint8)):
-        np.testing.assert_array_equal(resample_image(img, uu.ravel(), vv.ravel(), (40, 50)), img)
+        np.testing.assert_array_equal(resample(img, uu.ravel(), vv.ravel(), (40, 50)), img)
     ramp = uu * 1000.0  # 1000 grey levels per pixel along u: a 1/64 px error would show as 15
-    shifted = resample_image(ramp.astype(np.uint16), uu.ravel() + 0.3, vv.ravel(), (40, 50)).astype(float)
+    shifted = resample(ramp.astype(np.uint16), uu.ravel() + 0.3, vv.ravel(), (40, 50)).astype(float)
     inner = (slice(6, -6), slice(6, -7))  # the mirrored border reaches a few pixels in
     np.testing.assert_allclose(shifted[inner], ramp[inner] + 300.0, atol=2.0)  # 0.002 px

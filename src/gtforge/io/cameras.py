@@ -28,7 +28,7 @@ from gtforge.core.camera import (
     StereoCalibrationFile,
 )
 from gtforge.core.schema import load_yaml
-from gtforge.core.zed.scale_corrections import resample_image
+from gtforge.core.bspline import resample
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_text
 
@@ -320,7 +320,7 @@ class ZedRectification:
     # (gtforge.core.zed.selfcal.corrected_right)
     right_yaw_deg: float = 0.0
     # how both images are sampled at their maps: bilinear (cv2.remap, which rounds positions to 1/32 px), or cubic
-    # B-spline at the exact positions (gtforge.core.zed.scale_corrections.resample_image) once gtforge corrects the
+    # B-spline at the exact positions (gtforge.core.bspline.resample) once gtforge corrects the
     # right camera (gtforge.core.zed.selfcal.corrected_rectification): the same kernel for both eyes, or feature matches
     # (and a network) see two blurs (the real ZED Mini view: 0.123 px of rows with both bilinear, 0.137 with the right
     # image alone by spline, 0.111 with both)
@@ -328,7 +328,7 @@ class ZedRectification:
 
     def rectify(self, left_raw: np.ndarray, right_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.interpolation == "cubic-bspline":
-            return tuple(resample_image(img, mx.ravel().astype(np.float64), my.ravel().astype(np.float64), mx.shape)
+            return tuple(resample(img, mx.ravel().astype(np.float64), my.ravel().astype(np.float64), mx.shape)
                          for img, (mx, my) in ((left_raw, self.maps_left), (right_raw, self.maps_right)))
         left = cv2.remap(left_raw, *self.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         return left, cv2.remap(right_raw, *self.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)

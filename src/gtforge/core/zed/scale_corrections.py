@@ -41,16 +41,6 @@ def apply_homography(H: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.nd
 
 
 
-def resample_image(image: np.ndarray, us: np.ndarray, vs: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
-    """An ``out_hw`` image whose pixels (row-major) are ``image`` (8- or 16-bit) sampled at ``(us, vs)`` (flat, one per
-    output pixel): cubic B-spline at the exact positions, black where a position is outside ``image``, rounded to its
-    type. One resampling of the right image, whatever its corrections (``gtforge.core.zed.selfcal.corrected_right``).
-
-    ``gtforge.core.bspline.resample``: SciPy's ``map_coordinates`` of ``spline_filter``'s coefficients (order 3,
-    mirror), then ``np.round`` and ``np.clip``, in SciPy's arithmetic, compiled (the same pixels; about 5x faster)."""
-    return bspline.resample(image, us, vs, out_hw)
-
-
 def corrected_right_image(image: np.ndarray | None, rig: Rig) -> np.ndarray | None:
     """The right image re-rectified for ``rig.scale_corrections``' yaw (the image itself when none): each rectified
     pixel sampled (cubic B-spline, exact positions; black outside) where the turned camera saw it.

@@ -302,7 +302,7 @@ class CorrectedRightImage:
     left_unchanged: bool = True  # the left image is the file's pixels (Session.load_capture keeps it verbatim)
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # (resample_image of apply_homography over the pixel grid, without the grid's arrays: the same pixels)
+        # (bspline.resample of apply_homography over the pixel grid, without the grid's arrays: the same pixels)
         return left, resample_homography(right, right_sampling_homography(self.stereo, self.correction,
                                                                           self.right_yaw_deg))
 
