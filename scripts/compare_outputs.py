@@ -58,7 +58,8 @@ def _drop_time(x):
 
 def _text(path: Path, root: Path) -> str:
     s = path.read_text(errors="replace")
-    for r in {str(root), str(root.resolve())}:
+    # the absolute form first: a relative folder is part of it, and replaced first would leave "/abs/path/RUN"
+    for r in sorted({str(root), str(root.resolve())}, key=len, reverse=True):
         s = s.replace(r, "RUN")
     return s
 

@@ -45,3 +45,16 @@ def test_only_times_dates_and_folders_may_differ(tmp_path):
     d = _run(tmp_path / "d", disp, 0.126, 1.5, "2026-12-02 14:00")
     diffs = compare(a, d)
     assert [x.split(":")[0] for x in diffs] == ["meta.json", "results.md"]
+
+
+def test_folders_given_relative_are_replaced_in_both_forms(tmp_path, monkeypatch):
+    """A run folder given relative to the working directory appears in its files as an absolute path too (stages
+    record resolved paths); both forms must read as the same folder, whatever order a set iterates them in."""
+    compare = _compare()
+    disp = np.linspace(10, 20, 48, dtype=np.float32).reshape(6, 8)
+    _run(tmp_path / "a", disp, 0.125, 1.5, "2026-12-02 14:00")
+    _run(tmp_path / "bb", disp, 0.125, 1.5, "2026-12-02 14:00")
+    monkeypatch.chdir(tmp_path)
+    assert compare(Path("a"), Path("bb")) == []
+    text = sys.modules["compare_outputs"]._text(Path("a") / "meta.json", Path("a"))
+    assert "RUN/session" in text and str(tmp_path) not in text
