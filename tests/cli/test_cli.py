@@ -145,20 +145,25 @@ def test_options_default_to_the_models_values():
     assert checked >= 12
 
 
-@pytest.mark.parametrize("argv,module", [
-    (["gtforge", "build-dataset", "S", "-c", "c.yaml", "-o", "out"], "gtforge.build_dataset"),
-    (["gtforge", "-v", "verify", "ds"], "gtforge.verify"),
-    (["gtforge", "build-dataset", "S", "-c", "c.yaml", "--workers", "1"], None),  # the options decide: parsed first
-    (["gtforge", "build-dataset", "S", "--workers=3"], None),
+@pytest.mark.parametrize("argv,pool", [
+    (["gtforge", "build-dataset", "S", "-c", "c.yaml", "-o", "out"], ("gtforge.build_dataset", None)),
+    (["gtforge", "-v", "verify", "ds"], ("gtforge.verify", None)),
+    (["gtforge", "build-dataset", "S", "-c", "c.yaml", "--workers", "1"], ("gtforge.build_dataset", 1)),
+    (["gtforge", "build-dataset", "--workers", "3", "S"], ("gtforge.build_dataset", 3)),
+    (["gtforge", "build-dataset", "S", "--workers=3"], ("gtforge.build_dataset", 3)),
+    (["gtforge", "build-dataset", "S", "--workers", "two"], None),  # Typer reports it, once parsed
+    (["gtforge", "build-dataset", "S", "--workers=0"], None),
+    (["gtforge", "build-dataset", "S", "--workers"], None),
     (["gtforge", "verify", "ds", "--scheduler", "tcp://h:8786"], None),
     (["gtforge", "build-dataset", "--help"], None),
     (["gtforge", "calibrate", "build-dataset"], None),  # a folder named like a command is not one
+    (["gtforge", "--workers", "2", "calibrate"], None),
     (["gtforge"], None),
 ])
-def test_which_command_lines_start_the_pool_before_parsing(argv, module):
-    from gtforge.cli import pool_module_of
+def test_which_command_lines_start_the_pool_before_parsing(argv, pool):
+    from gtforge.cli import pool_of
 
-    assert pool_module_of(argv) == module
+    assert pool_of(argv) == pool
 
 
 SPY = '''
@@ -176,14 +181,17 @@ if __name__ == "__main__":  # (a pool worker runs this script again, as __mp_mai
     try:
         main()
     except SystemExit as e:
-        print(json.dumps({"calls": calls, "code": e.code}))
+        print(json.dumps({"calls": calls, "code": e.code,
+                          "handed": scheduling._FORK_SERVER.get("warm_up_handed", False)}))
 '''
 
 
+@pytest.mark.parametrize("workers", [[], ["--workers", "2"]])
 def test_build_dataset_starts_its_fork_server_before_the_commands_are_imported(session_dir, true_calibration,
-                                                                                tmp_path):
-    """``gtforge build-dataset`` with the default workers starts the pool's fork server before Typer and the commands
-    are imported (the server's imports start 0.1 s earlier), and hands it the warm-up once the options are parsed."""
+                                                                                tmp_path, workers):
+    """``gtforge build-dataset`` with the default workers, or a count of them given, starts the pool's fork server
+    before Typer and the commands are imported (the server's imports start 0.1 s earlier), and hands it the warm-up
+    once the options are parsed."""
     import subprocess
     import sys
 
@@ -192,15 +200,16 @@ def test_build_dataset_starts_its_fork_server_before_the_commands_are_imported(s
     script = tmp_path / "spy.py"
     script.write_text(SPY)
     r = subprocess.run([sys.executable, str(script), str(session_dir), "-c", str(true_calibration), "-o",
-                        str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
+                        str(tmp_path / "out"), *workers], capture_output=True, text=True, timeout=300)
     out = __import__("json").loads(r.stdout.strip().splitlines()[-1])
     assert out["code"] in (0, None), r.stderr[-3000:]
     assert (tmp_path / "out" / "manifest.json").exists()
     calls = out["calls"]
-    if cpu_count() < 2:  # no pool: the command line is still judged, nothing starts
+    if not workers and cpu_count() < 2:  # no pool: the command line is still judged, nothing starts
         assert calls[0][:3] == ["gtforge.build_dataset", False, True] and not calls[0][4]
         return
     # main (before typer), then the command with the warm-up (the server is running), then the library's own call
     assert calls[0] == ["gtforge.build_dataset", False, True, False, False]
     assert calls[1] == ["gtforge.build_dataset", True, False, True, True]
     assert all(c[4] for c in calls[1:])
+    assert out["handed"]

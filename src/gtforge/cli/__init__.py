@@ -24,16 +24,26 @@ def _raise_interrupted(signum, frame) -> None:
                       "the same command to finish")
 
 
-def pool_module_of(argv: list[str]) -> str | None:
-    """The task module of the local pool the command line ``argv`` (``sys.argv``) will run scenes on, judged before
-    its options are parsed: only a pool command with the default workers (no ``--workers``, ``--scheduler`` or
-    ``--help``); None otherwise (the command then starts its pool, if any, once its options are parsed)."""
-    words = [a for a in argv[1:] if not a.startswith("-")]
+def pool_of(argv: list[str]) -> tuple[str, int | None] | None:
+    """The local pool the command line ``argv`` (``sys.argv``) will run scenes on, judged before its options are
+    parsed: ``(task module, workers)`` for a pool command, ``workers`` None for the default (every core) or the count
+    ``--workers N`` / ``--workers=N`` gives; None for any other command line, and where ``--scheduler`` or ``--help``
+    is given or ``--workers`` is not a whole number (the command then starts its pool, if any, once its options are
+    parsed, and reports a bad value itself)."""
+    args = argv[1:]
+    workers = None
+    for i, a in enumerate(args):
+        if a in ("--help", "-h") or a.startswith("--scheduler"):
+            return None
+        if a.startswith("--workers"):
+            value = a.partition("=")[2] if "=" in a else (args[i + 1] if i + 1 < len(args) else "")
+            if not value.isdigit() or int(value) < 1:
+                return None
+            workers = int(value)
+    words = [a for i, a in enumerate(args) if not a.startswith("-") and (i == 0 or args[i - 1] != "--workers")]
     if not words or words[0] not in POOL_COMMANDS:
         return None
-    if any(a in ("--help", "-h") or a.startswith(("--workers", "--scheduler")) for a in argv[1:]):
-        return None
-    return POOL_COMMANDS[words[0]]
+    return POOL_COMMANDS[words[0]], workers
 
 
 def main() -> None:
@@ -46,11 +56,12 @@ def main() -> None:
     # stages clean up, say what is complete, and the command exits with 130 like any interrupted program.
     signal.signal(signal.SIGINT, _raise_interrupted)
     try:
-        module = pool_module_of(sys.argv)
-        if module is not None:
+        pool = pool_of(sys.argv)
+        if pool is not None:
             from gtforge.infra.scheduling import prestart_pool
 
-            prestart_pool(module, warm_up_later=True)  # the command hands the server its warm-up once parsed
+            # the command hands the server its warm-up once its options are parsed
+            prestart_pool(pool[0], workers=pool[1], warm_up_later=True)
         from gtforge.cli.commands import app
 
         app(standalone_mode=True)
