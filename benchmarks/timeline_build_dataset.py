@@ -7,7 +7,7 @@ makes itself the child subreaper (Linux ``PR_SET_CHILD_SUBREAPER``), so the fork
 command does not wait for, are reaped and counted here. CPU time moves less with other users' load than wall time; the
 first scene's landing (its ``meta.json``'s time) is the fixed cost's critical path.
 
-    python benchmarks/timeline_build_dataset.py [--scenes 6] [--repeat 4] [CONFIG ...]
+    python benchmarks/timeline_build_dataset.py [--scenes 6] [--repeat 4] [--idle-s 0] [CONFIG ...]
     python benchmarks/timeline_build_dataset.py --scenes 6 /path/to/before/src src src:--workers,1
 """
 from __future__ import annotations
@@ -43,6 +43,10 @@ def main():
     ap.add_argument("--scenes", type=int, default=6)
     ap.add_argument("--repeat", type=int, default=4)
     ap.add_argument("--workdir", default="/tmp/gtforge_bench")
+    ap.add_argument("--idle-s", type=float, default=0.0,
+                    help="wait this long before each run, as bench_build_dataset's settle does: on a VM that returns "
+                         "free memory to its host, a process started after the machine idled touches every new page "
+                         "at a higher cost (benchmarks/RESULTS.md, round 9)")
     args = ap.parse_args()
     if ctypes.CDLL(None).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
         sys.exit("prctl(PR_SET_CHILD_SUBREAPER) failed: Linux only")
@@ -56,6 +60,7 @@ def main():
             src, _, extra = config.partition(":")
             shutil.rmtree(out, ignore_errors=True)
             os.sync()
+            time.sleep(args.idle_s)
             env = {**os.environ, "PYTHONPATH": str(Path(src).resolve())}
             c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.time()

@@ -1,7 +1,10 @@
 """Error types. See docs/conventions.md ("Errors")."""
 from __future__ import annotations
 
-from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # (gtforge.cli imports this module before it starts the fork server: nothing more than it needs)
+    from pathlib import Path
 
 
 class InputError(ValueError):

@@ -36,15 +36,14 @@ import os
 import signal
 import sys
 import threading
-import uuid
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import gtforge
 from gtforge.errors import InputError
 
 if TYPE_CHECKING:
+    from concurrent.futures import ProcessPoolExecutor
+
     from distributed import Client
 
 
@@ -223,6 +222,10 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         for args in arg_list:
             on_result(fn(*args))
         return
+    # (imported here: ``gtforge.cli`` imports this module before it starts the fork server, which waits for it)
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
     n_threads = threads_per_worker(workers)
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(fn.__module__, n_threads),
                              initializer=_init_worker, initargs=(n_threads,))
@@ -467,6 +470,8 @@ def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[t
     for address, n in client.nthreads().items():
         host = get_address_host(address)
         threads_by_host[host] = threads_by_host.get(host, 0) + n
+    import uuid
+
     token = uuid.uuid4().hex[:8]  # keys unique to this run (another client may run the same scenes)
     name = getattr(fn, "__name__", "task")
     todo = list(enumerate(arg_list))[::-1]  # popped from the end: submitted in order
