@@ -89,6 +89,13 @@ class BuildSummary:
         return not self.failures
 
 
+# What a worker's heap grows by in its first scene, a ZED pixel: 174 MB for a full-resolution scene (2208 x 1242,
+# default options), 63.5 bytes a pixel, rounded down: smaller scenes need more a pixel (27 MB at a quarter of the
+# size), and a reservation short of the need leaves the rest to page faults, as without one (``reserve_heap``;
+# benchmarks/RESULTS.md, "Round 9 (issue 39)")
+SCENE_HEAP_BYTES_PER_ZED_PX = 60
+
+
 # ---- regions --------------------------------------------------------------------------------
 
 
@@ -403,7 +410,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             return a[2], None, meta.model_dump(mode="json")
 
         try:
-            run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost)
+            run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost,
+                      heap_bytes=SCENE_HEAP_BYTES_PER_ZED_PX * session.zed.left.width_px * session.zed.left.height_px)
         except (KeyboardInterrupt, Interrupted):
             remove_stale_entries(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)

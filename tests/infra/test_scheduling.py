@@ -15,11 +15,18 @@ SCRIPT = textwrap.dedent('''
     import json, os, sys, time
 
     def facts(_):
-        import numba
+        import ctypes, numba, platform
         time.sleep(0.3)  # long enough for both workers to take a task
+        heap = None
+        if platform.libc_ver()[0] == "glibc":  # the main arena's size (mallinfo2: glibc 2.33)
+            class MallInfo2(ctypes.Structure):
+                _fields_ = [(f"f{i}", ctypes.c_size_t) for i in range(10)]
+            libc = ctypes.CDLL("libc.so.6")
+            libc.mallinfo2.restype = MallInfo2
+            heap = libc.mallinfo2().f0
         return (os.getpid(), os.getppid(), "gtforge.infra.pool_preload" in sys.modules, \
 "gtforge.build_dataset" in sys.modules,
-                numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"))
+                numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"), heap)
 
     def sigint_ignored(pid):
         mask = next(int(line.split()[1], 16) for line in open(f"/proc/{pid}/status") if line.startswith("SigIgn:"))
@@ -31,7 +38,8 @@ SCRIPT = textwrap.dedent('''
         scheduling.prestart_pool("gtforge.build_dataset", workers=2)
         for run in ("first", "second"):
             res = []
-            scheduling.run_tasks(facts, [(i,) for i in range(4)], res.append, workers=2)
+            scheduling.run_tasks(facts, [(i,) for i in range(4)], res.append, workers=2,
+                                 heap_bytes=(48 << 20) if run == "second" else 0)
             out[run] = res
         out["server_ignores_sigint"] = sigint_ignored(out["first"][0][1])
         out["threads"] = scheduling.threads_per_worker(2)
@@ -58,6 +66,9 @@ def test_local_workers_are_forked_from_one_preloaded_server(tmp_path):
     assert all(t[2] and t[3] for t in first + second)
     assert all(t[4] == out["threads"] and t[5] == str(out["threads"]) for t in first + second)
     assert out["server_ignores_sigint"]  # a Ctrl-C while it imports gives no traceback from it
+    # the second pool's workers reserved 48 MB of heap before their first task (reserve_heap), the first's did not
+    if first[0][6] is not None:
+        assert all(t[6] < (40 << 20) for t in first) and all(t[6] >= (48 << 20) for t in second), (first, second)
     # a pool with another thread count than the server was started with: spawned, numba limited as before
     other = out["other_threads"]
     assert {t[1] for t in other} == {out["pid"]} and not any(t[2] for t in other)

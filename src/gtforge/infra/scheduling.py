@@ -59,15 +59,19 @@ def threads_per_worker(workers: int) -> int:
     return max(1, cpu_count() // max(1, workers))
 
 
-def _init_worker(n_threads: int) -> None:
+def _init_worker(n_threads: int, heap_bytes: int = 0) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C does
     limit_threads(n_threads)
-    reuse_freed_memory()
+    if reuse_freed_memory() and heap_bytes > 0:
+        reserve_heap(heap_bytes)
 
 
 # glibc's mallopt parameters (malloc.h) and their defaults
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _GLIBC_DEFAULT_THRESHOLD = 128 * 1024
+# madvise's advice that faults a range in, writable, in one call (Linux 5.14)
+_MADV_POPULATE_WRITE = 23
+_PAGE = 4096
 
 
 def _glibc():
@@ -94,6 +98,41 @@ def reuse_freed_memory() -> bool:
     libc = _glibc()
     return libc is not None and bool(libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)) \
         and bool(libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30))
+
+
+def reserve_heap(n_bytes: int, piece_bytes: int = 16 << 20) -> bool:
+    """Fault ``n_bytes`` of glibc's heap in now, with one ``madvise(MADV_POPULATE_WRITE)`` call a piece, and leave
+    them to malloc: after ``reuse_freed_memory``, arrays up to 32 MB come from the heap and freed memory stays there,
+    so the next allocations use these pages without a page fault each.
+
+    A pool worker's first task otherwise grows the heap a 4 kB page at a time: a full-resolution scene grows it by
+    about 174 MB, some 36,000 page faults, 0.1-0.2 CPU s of system time on a VM, where populating the same memory
+    takes 0.04 s (benchmarks/RESULTS.md, "Round 9 (issue 39)"). Later tasks reuse that memory either way. Returns
+    whether the pages were faulted in (glibc on Linux 5.14 or later; elsewhere nothing happens)."""
+    libc = _glibc()
+    if libc is None or n_bytes <= 0:
+        return False
+    import ctypes
+
+    malloc, free, madvise = libc.malloc, libc.free, libc.madvise
+    malloc.restype, malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+    free.restype, free.argtypes = None, [ctypes.c_void_p]
+    madvise.restype, madvise.argtypes = ctypes.c_int, [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    pieces, ok = [], True
+    try:
+        for _ in range(-(-n_bytes // piece_bytes)):
+            p = malloc(piece_bytes)
+            if not p:
+                break
+            pieces.append(p)
+            start = -(-p // _PAGE) * _PAGE  # the whole pages inside the piece
+            if madvise(start, (p + piece_bytes - start) // _PAGE * _PAGE, _MADV_POPULATE_WRITE) != 0:
+                ok = False  # an older kernel (EINVAL): the memory is reserved, not faulted in; no harm
+                break
+    finally:
+        for p in pieces:
+            free(p)
+    return ok and bool(pieces)
 
 
 @contextlib.contextmanager
@@ -195,15 +234,16 @@ LOST_REASON = "a worker process died while running it (out of memory? killed?); 
 
 def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Callable[[Any], None], *,
               workers: int | None = None, scheduler: str | None = None,
-              lost_result: Callable[[tuple, str], Any] | None = None) -> None:
+              lost_result: Callable[[tuple, str], Any] | None = None, heap_bytes: int = 0) -> None:
     """Run ``fn(*args)`` for every ``args`` in ``arg_list`` and pass each return value to ``on_result``.
 
     ``workers``: local processes (default: one per core); 1 runs in this process. ``scheduler``: the
     address of a Dask scheduler (``tcp://HOST:PORT``); the cluster's workers run the tasks (``workers``
     must then be None). ``lost_result(args, reason)``: the result to pass on for a task lost with its worker:
     one Dask gave up on because its workers kept dying, or one a local pool process took down when it died
-    (without it, ``KilledWorker`` / ``BrokenProcessPool`` propagates). An exception raised by
-    ``fn`` or ``on_result`` cancels the remaining tasks and propagates.
+    (without it, ``KilledWorker`` / ``BrokenProcessPool`` propagates). ``heap_bytes``: the memory a task
+    allocates, about: each local worker process faults that much of its heap in before its first task
+    (``reserve_heap``). An exception raised by ``fn`` or ``on_result`` cancels the remaining tasks and propagates.
     """
     if scheduler and workers is not None:
         raise InputError(None, "--workers", "no local worker count with --scheduler (the cluster's workers "
@@ -228,7 +268,7 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
 
     n_threads = threads_per_worker(workers)
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(fn.__module__, n_threads),
-                             initializer=_init_worker, initargs=(n_threads,))
+                             initializer=_init_worker, initargs=(n_threads, heap_bytes))
     pending = set()
     try:
         futs = {ex.submit(fn, *args): args for args in arg_list}
