@@ -7,7 +7,8 @@
    twice on an empty disk cache (``infra.disk_cache``, a temporary folder): computed and stored, then read back (a
    rerun of the same calibration).
 3. One build worker's scenes: ``build_one_scene`` on ``--scenes`` full-resolution scenes in a process forked as the
-   pool forks its workers (after the server's imports), once without the warm-up (each worker's first scene computes
+   pool forks its workers (after the server's imports; its heap reserved as a pool worker's: ``reserve_heap``, not
+   counted in the first scene), once without the warm-up (each worker's first scene computes
    the calibration, session and ray grid itself) and once from a warmed server; CPU of each scene.
 
 Prints one table (CPU s of this machine's processes: the machine may be shared, and CPU time moves less with other
@@ -67,9 +68,11 @@ def cpu():
 import gtforge.build_dataset as bd
 import gtforge.infra.pool_preload  # noqa: F401 (as the fork server)
 from gtforge.infra.digest import sha256_file
-from gtforge.infra.scheduling import limit_threads, reuse_freed_memory
+from gtforge.infra.scheduling import limit_threads, reserve_heap, reuse_freed_memory
+from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams
 session, calib_path, out, n, warm = sys.argv[1], sys.argv[2], Path(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1"
+zed = CalibrationFile.read(calib_path).rig.zed.left
 t = time.perf_counter(); c = cpu()
 if warm:
     bd.warm_worker(session, calib_path)
@@ -79,6 +82,9 @@ pid = os.fork()  # a worker, as the pool forks it from its server
 if pid == 0:
     os.close(r)
     limit_threads(1); reuse_freed_memory()
+    c0 = cpu()
+    reserve_heap(bd.SCENE_HEAP_BYTES_PER_ZED_PX * zed.width_px * zed.height_px)  # as the pool's workers start
+    reserve_cpu = cpu() - c0
     shutil.rmtree(out, ignore_errors=True); (out / "scenes").mkdir(parents=True)
     sha, pj = sha256_file(calib_path), BuildParams().model_dump_json()
     scenes, res = sorted((Path(session) / "scenes").iterdir())[:n], []
@@ -86,13 +92,14 @@ if pid == 0:
         c0 = cpu()
         assert bd.build_one_scene(session, str(d), d.name, calib_path, sha, str(out), pj)[1] is None
         res.append(cpu() - c0)
-    os.write(w, json.dumps(res).encode()); os._exit(0)
+    os.write(w, json.dumps([reserve_cpu, res]).encode()); os._exit(0)
 os.close(w)
 data = b""
 while chunk := os.read(r, 65536):
     data += chunk
 os.waitpid(pid, 0)
-print(json.dumps({"warm_up_cpu": warm_cpu, "scenes": json.loads(data)}))
+reserve_cpu, res = json.loads(data)
+print(json.dumps({"warm_up_cpu": warm_cpu, "reserve_cpu": reserve_cpu, "scenes": res}))
 """
 
 
@@ -135,6 +142,7 @@ def main():
     for name, r in (("worker forked without the warm-up", cold), ("worker forked from a warmed server", warm)):
         s = r["scenes"]
         steady = sorted(s[1:])[len(s[1:]) // 2] if len(s) > 1 else float("nan")
+        lines.append(f"| {name} | its heap reserved (before the first scene) | | {r['reserve_cpu']:.3f} |")
         lines.append(f"| {name} | first scene / median of the next {len(s) - 1} | | **{s[0]:.3f}** / {steady:.3f} |")
     text = "\n".join(lines)
     print(text)

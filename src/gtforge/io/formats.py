@@ -11,6 +11,10 @@ Encoder settings were chosen by measurement (benchmarks/RESULTS.md, "Output enco
   IDAT, IEND) is written here; zlib-ng does the deflate, in blocks of 16 rows each compressed on its own
   (``_deflate_blocks``: 0.3 % larger), so that a view's ``disp_occ`` and ``disp_noc`` share every block without an
   occluded pixel (``write_kitti_disparity_pair``).
+* image PNGs (im0/im1 where a scene re-encodes them, imported and synthetic captures, overlays): the PNG filter "Up"
+  (each row minus the row above) on every row, deflated by ISA-L at level 1 (``encode_png``): 0.03 s for a 2208 x
+  1242 RGB image against OpenCV's 0.08 s; the real ZED Mini image 0.82 MB against OpenCV's 0.92 (the synthetic render
+  4.48 against 4.10, Middlebury's im1 0.74 against 0.72). Without ISA-L, OpenCV's encoder.
 * float32 TIFF: uncompressed by default (zlib on float depth is slow to encode and to decode, for a 5x smaller
   file); ``compression="zlib"`` for piecewise-constant data such as weights: strips of 64 rows deflated by zlib-ng
   at level 1 (0.12 MB instead of 11 MB; tifffile's own zlib at level 1: 0.06 MB, several times slower).
@@ -39,8 +43,11 @@ from gtforge.infra.unbuffered import aligned_buffer
 
 try:  # PNG inflate: ISA-L where its wheel exists (hand-vectorised, faster than zlib-ng), else zlib-ng (same results)
     from isal import isal_zlib as _png_inflate_lib
+
+    _png_deflate_lib = _png_inflate_lib  # image PNGs' deflate (``encode_png``); without ISA-L, OpenCV's
 except ImportError:  # pragma: no cover - platforms without an isal wheel
     _png_inflate_lib = zlib_ng
+    _png_deflate_lib = None
 
 
 _LITTLE_ENDIAN = sys.byteorder == "little"
@@ -350,9 +357,38 @@ def _tiff_layout(shape: tuple[int, ...], dtype: str) -> tuple[bytes, bytes]:
 
 
 # ---- 8-bit images ---------------------------------------------------------------------------
+def encode_png(a: np.ndarray) -> bytes | None:
+    """An 8-bit grey ``(H, W)`` or RGB ``(H, W, 3)`` image as PNG bytes: filter type 2 ("Up") on every row, deflated by
+    ISA-L at level 1 (see the module docstring). None where ISA-L is not installed (``write_image`` then uses OpenCV)
+    or for any other array."""
+    a = np.asarray(a)
+    if _png_deflate_lib is None or a.dtype != np.uint8 or 0 in a.shape or not (
+            a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)):
+        return None
+    h, w = a.shape[:2]
+    flat = a.reshape(h, -1)
+    rows = np.empty((h, 1 + flat.shape[1]), np.uint8)
+    rows[:, 0] = 2  # each row's filter type: Up (the first row's "row above" is zeros: its bytes as they are)
+    rows[0, 1:] = flat[0]
+    np.subtract(flat[1:], flat[:-1], out=rows[1:, 1:])  # modulo 256, as the filter is defined
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0 if a.ndim == 2 else 2, 0, 0, 0)  # grey or RGB, deflate, filtered rows,
+    # no interlace
+    return b"".join((PNG_SIGNATURE, _png_chunk(b"IHDR", ihdr), _png_chunk(b"IDAT", _png_deflate_lib.compress(rows, 1)),
+                     _PNG_IEND))
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
+
+
 def write_image(path: str | Path, img: np.ndarray) -> Path:
-    """Write an RGB (H, W, 3) or grey (H, W) uint8 image; format from the suffix (PNG, JPG, BMP)."""
+    """Write an RGB (H, W, 3) or grey (H, W) uint8 image; format from the suffix (PNG, JPG, BMP). A PNG is
+    ``encode_png``'s where it can be (OpenCV's otherwise)."""
     a = np.asarray(img)
+    if (Path(path).suffix or ".png").lower() == ".png":
+        data = encode_png(a)
+        if data is not None:
+            return atomic_write_bytes(path, data)
     if a.ndim == 3:
         a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(Path(path).suffix or ".png", a)
