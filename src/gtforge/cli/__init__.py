@@ -28,8 +28,8 @@ def pool_of(argv: list[str]) -> tuple[str, int | None] | None:
     """The local pool the command line ``argv`` (``sys.argv``) will run scenes on, judged before its options are
     parsed: ``(task module, workers)`` for a pool command, ``workers`` None for the default (every core) or the count
     ``--workers N`` / ``--workers=N`` gives; None for any other command line, and where ``--scheduler`` or ``--help``
-    is given or ``--workers`` is not a whole number (the command then starts its pool, if any, once its options are
-    parsed, and reports a bad value itself)."""
+    is given or ``--workers`` is not a positive whole number (the command then starts its pool, if any, once its
+    options are parsed, and reports a bad value itself)."""
     args = argv[1:]
     workers = None
     for i, a in enumerate(args):

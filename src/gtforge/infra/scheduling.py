@@ -71,7 +71,6 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _GLIBC_DEFAULT_THRESHOLD = 128 * 1024
 # madvise's advice that faults a range in, writable, in one call (Linux 5.14)
 _MADV_POPULATE_WRITE = 23
-_PAGE = 4096
 
 
 def _glibc():
@@ -113,7 +112,9 @@ def reserve_heap(n_bytes: int, piece_bytes: int = 16 << 20) -> bool:
     if libc is None or n_bytes <= 0:
         return False
     import ctypes
+    import mmap
 
+    page = mmap.PAGESIZE
     malloc, free, madvise = libc.malloc, libc.free, libc.madvise
     malloc.restype, malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
     free.restype, free.argtypes = None, [ctypes.c_void_p]
@@ -125,8 +126,8 @@ def reserve_heap(n_bytes: int, piece_bytes: int = 16 << 20) -> bool:
             if not p:
                 break
             pieces.append(p)
-            start = -(-p // _PAGE) * _PAGE  # the whole pages inside the piece
-            if madvise(start, (p + piece_bytes - start) // _PAGE * _PAGE, _MADV_POPULATE_WRITE) != 0:
+            start = -(-p // page) * page  # the whole pages inside the piece
+            if madvise(start, (p + piece_bytes - start) // page * page, _MADV_POPULATE_WRITE) != 0:
                 ok = False  # an older kernel (EINVAL): the memory is reserved, not faulted in; no harm
                 break
     finally:
