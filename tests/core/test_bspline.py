@@ -107,3 +107,37 @@ def test_real_images_resample_to_the_same_pixels(name, files):
         want = _reference_resample(img, us, vs, (h, w))
         assert np.array_equal(bspline.resample(img, us, vs, (h, w)), want), f
         assert np.array_equal(bspline.resample_homography(img, H), want), f
+
+
+def test_long_black_lines_and_non_finite_values_are_scipys_to_the_last_bit():
+    """Lines longer than about 566 samples, where the causal initialisation's ``z^i`` underflows to zero and the
+    prefilter stops summing: a black image whose content starts only past that point along both axes (sums that are
+    signed zeros when the stop comes, which the remaining zero terms can still turn from -0 to +0), and float images
+    with an infinity or a NaN far down a line (whose remaining terms are not zeros: no early stop)."""
+    rng = np.random.default_rng(566)
+    img = np.zeros((700, 1300, 3), np.uint8)
+    img[620:] = rng.integers(0, 256, (80, 1300, 3))
+    img[:, 1200:] = rng.integers(0, 256, (700, 100, 3))
+    coef = bspline.coefficients(img)
+    assert (np.signbit(coef) & (coef == 0)).any() and ((coef == 0) & ~np.signbit(coef)).any()  # both zeros occur
+    for k, c in enumerate(_reference_coefficients(img)):
+        assert np.array_equal(_bits(coef[..., k]), _bits(c))
+    for bad in (np.inf, np.nan):
+        f = rng.normal(0, 50, (600, 640)).astype(np.float32)
+        f[590, 630] = bad
+        got, (want,) = bspline.coefficients(f)[..., 0], _reference_coefficients(f)
+        assert np.array_equal(got, want, equal_nan=True) and np.isnan(got).any()
+        fin = np.isfinite(want)
+        assert np.array_equal(_bits(got[fin]), _bits(want[fin]))
+
+
+def test_a_line_whose_sum_is_minus_zero_when_the_initialisation_stops():
+    """The one case where the prefilter's early stop must still add the remaining (zero) terms: a line whose first 566
+    values are zeros signed so that every term of the causal sum is -0, and whose values past 733 are positive, so that
+    a later zero term is +0 and turns the sum into +0 (as SciPy's full sum does)."""
+    line = np.zeros((1, 1300), np.float64)
+    line[0, 0:566:2] = -0.0  # even taps: -0 (z^i > 0), odd taps: +0 (z^i < 0): every term z^i * x_i is -0
+    line[0, 734:] = np.arange(1, 567)
+    coef = bspline.coefficients(line)[..., 0]
+    (want,) = _reference_coefficients(line)
+    assert np.array_equal(_bits(coef), _bits(want))

@@ -3,11 +3,13 @@
 mode="mirror")``, the same float64 operations in the same order, so the same values to the last bit (checked against
 SciPy in tests/core/test_bspline.py, on random and on real images). SciPy evaluates one channel at a time, computing
 each point's weights and border taps again for every channel, in generic N-d code: 0.93-1.1 CPU s for a 2208x1242 RGB
-image on the project's Xeon, against 0.18-0.19 s for these kernels (benchmarks/RESULTS.md, "Round 7").
+image on the project's Xeon, against 0.18-0.19 s for these kernels (benchmarks/RESULTS.md, "Round 7"), 0.15 s since
+round 9.
 
 The recursive prefilter is Unser, Aldroubi and Eden's (IEEE PAMI 13(3), 1991): the gain, then one causal and one
 anti-causal first-order recursion with the pole ``sqrt(3) - 2``, initialised for a whole-sample mirror boundary (the
-causal one from the whole mirrored line, as SciPy does: no truncation, whatever the line's length). Taps beyond the
+causal one from the whole mirrored line, as SciPy does: no truncation, whatever the line's length; its terms past
+``z^i``'s underflow are zeros, summed only where they can still change the sum). Taps beyond the
 border are mirrored about the edge pixels' centres.
 
 The image is kept channel-last: the coefficients are ``(H, W, K)`` float64, filtered along the columns as one (H, W*K)
@@ -25,29 +27,42 @@ POLE = -0.267949192431122706472553658494127633
 
 
 @numba.njit(cache=True)
-def _filter_lines(src, c, z):
+def _filter_lines(src, c, z, finite):
     """``c`` (N, M) float64: the cubic B-spline prefilter of every column of ``src`` (N, M; ``c`` itself, or an image
-    of another type) along axis 0."""
+    of another type) along axis 0. ``finite``: every value of ``src`` is finite (the causal initialisation may then
+    stop early, with the same result)."""
     n, m = c.shape
-    for i in range(n):
-        for j in range(m):
-            c[i, j] = np.float64(src[i, j])
     if n < 2:
+        for i in range(n):
+            for j in range(m):
+                c[i, j] = np.float64(src[i, j])
         return
     gain = 1.0 * ((1.0 - z) * (1.0 - 1.0 / z))
     for i in range(n):
         for j in range(m):
-            c[i, j] *= gain
+            c[i, j] = np.float64(src[i, j]) * gain
     # causal initialisation: sum over the mirrored line (z^(n-1) underflows to 0 past a few hundred samples)
     zn1 = math.pow(z, float(n - 1))
     first = np.empty(m)
     for j in range(m):
         first[j] = c[0, j] + zn1 * c[n - 1, j]
     zi = z
-    for i in range(1, n - 1):
+    i = 1
+    while i < n - 1 and not (finite and zi == 0.0):
         for j in range(m):
             first[j] += zi * (c[i, j] + zn1 * c[n - 1 - i, j])
         zi *= z
+        i += 1
+    if i < n - 1:
+        # z^i has underflowed to zero (past about 566 samples): each remaining term is a zero (its factors finite),
+        # which leaves a nonzero sum as it is and can change only a zero sum's sign (IEEE: +0 + -0 = +0). So only the
+        # lines whose sum is zero take the remaining terms, with the same signed factors.
+        for j in range(m):
+            if first[j] == 0.0:
+                zt = zi
+                for ii in range(i, n - 1):
+                    first[j] += zt * (c[ii, j] + zn1 * c[n - 1 - ii, j])
+                    zt *= z
     d = 1.0 - zn1 * zn1
     for j in range(m):
         c[0, j] = first[j] / d
@@ -70,8 +85,12 @@ def coefficients(image: np.ndarray) -> np.ndarray:
     h, w = a.shape[:2]
     k = 1 if a.ndim == 2 else a.shape[2]
     c = np.empty((h, w, k))
-    _filter_lines(a.reshape(h, w * k), c.reshape(h, w * k), POLE)  # along the columns (SciPy's first axis)
-    _filter_rows(c, POLE)  # then along the rows
+    # every value the two passes see is finite: an integer image's, and a float image's whose values are finite and
+    # far from overflowing (each pass multiplies a line's values by at most about 20)
+    finite = bool(np.issubdtype(a.dtype, np.integer)
+                  or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
+    _filter_lines(a.reshape(h, w * k), c.reshape(h, w * k), POLE, finite)  # along the columns (SciPy's first axis)
+    _filter_rows(c, POLE, finite)  # then along the rows
     return c
 
 
@@ -80,9 +99,10 @@ _ROWS = 8
 
 
 @numba.njit(cache=True)
-def _filter_rows(c, z):
+def _filter_rows(c, z, finite):
     """In place: the cubic B-spline prefilter of every row of every channel of ``c`` (H, W, K) float64, ``_ROWS``
-    rows at a time: copied side by side into a (W, rows x K) block, filtered as its columns, copied back."""
+    rows at a time: copied side by side into a (W, rows x K) block, filtered as its columns, copied back.
+    ``finite``: as ``_filter_lines``'s."""
     H, W, K = c.shape
     buf = np.empty((W, _ROWS * K))
     for y0 in range(0, H, _ROWS):
@@ -92,7 +112,7 @@ def _filter_rows(c, z):
             for x in range(W):
                 for k in range(K):
                     block[x, r * K + k] = c[y0 + r, x, k]
-        _filter_lines(block, block, z)
+        _filter_lines(block, block, z, finite)
         for r in range(n):
             for x in range(W):
                 for k in range(K):
@@ -229,18 +249,22 @@ def _resample(coef, us, vs, top, out):
 @numba.njit(cache=True)
 def _resample_homography(coef, M, h, w, top, out):
     """``out`` (h * w, K): ``_resample_point`` at ``M`` (3x3) times each output pixel, row-major, in
-    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic. A row's positions and weights first, in a
-    loop the compiler vectorises (its divisions most of all), then its taps; each value as ``_resample_point``'s."""
+    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic. A row's positions and weights first, then its
+    taps: a point whose 4 x 4 taps are all inside the image (nearly every point) reads them without the border's
+    mirroring; each value as ``_resample_point``'s."""
     H, W, K = coef.shape
     xs, ys = np.empty(w), np.empty(w)
     wx, wy = np.empty((4, w)), np.empty((4, w))
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
     for v in range(h):
         y = float(v)
         for u in range(w):
             x = float(u)
-            d = M[2, 0] * x + M[2, 1] * y + M[2, 2]
-            px = (M[0, 0] * x + M[0, 1] * y + M[0, 2]) / d
-            py = (M[1, 0] * x + M[1, 1] * y + M[1, 2]) / d
+            d = m20 * x + m21 * y + m22
+            px = (m00 * x + m01 * y + m02) / d
+            py = (m10 * x + m11 * y + m12) / d
             xs[u], ys[u] = px, py
             wx[0, u], wx[1, u], wx[2, u], wx[3, u] = _weights(px)
             wy[0, u], wy[1, u], wy[2, u], wy[3, u] = _weights(py)
@@ -251,9 +275,21 @@ def _resample_homography(coef, M, h, w, top, out):
                 for k in range(K):
                     out[p, k] = 0
                 continue
+            x0 = int(math.floor(px)) - 1
+            y0 = int(math.floor(py)) - 1
+            wx0, wx1, wx2, wx3 = wx[0, u], wx[1, u], wx[2, u], wx[3, u]
+            wy0, wy1, wy2, wy3 = wy[0, u], wy[1, u], wy[2, u], wy[3, u]
+            if 0 <= x0 and x0 + 3 < W and 0 <= y0 and y0 + 3 < H:
+                x1, x2, x3 = x0 + 1, x0 + 2, x0 + 3
+                for k in range(K):
+                    t = _row_of_taps(coef, y0, k, x0, x1, x2, x3, wy0, wx0, wx1, wx2, wx3, 0.0)
+                    t = _row_of_taps(coef, y0 + 1, k, x0, x1, x2, x3, wy1, wx0, wx1, wx2, wx3, t)
+                    t = _row_of_taps(coef, y0 + 2, k, x0, x1, x2, x3, wy2, wx0, wx1, wx2, wx3, t)
+                    t = _row_of_taps(coef, y0 + 3, k, x0, x1, x2, x3, wy3, wx0, wx1, wx2, wx3, t)
+                    out[p, k] = _rounded(t, top)
+                continue
             xs4, ys4, _, _ = _stencil(H, W, px, py)
-            wx4 = (wx[0, u], wx[1, u], wx[2, u], wx[3, u])
-            wy4 = (wy[0, u], wy[1, u], wy[2, u], wy[3, u])
+            wx4, wy4 = (wx0, wx1, wx2, wx3), (wy0, wy1, wy2, wy3)
             for k in range(K):
                 out[p, k] = _rounded(_sum_taps(coef, k, xs4, ys4, wx4, wy4), top)
 
