@@ -277,19 +277,15 @@ def _resample_homography(coef, M, h, w, top, out):
                 continue
             x0 = int(math.floor(px)) - 1
             y0 = int(math.floor(py)) - 1
-            wx0, wx1, wx2, wx3 = wx[0, u], wx[1, u], wx[2, u], wx[3, u]
-            wy0, wy1, wy2, wy3 = wy[0, u], wy[1, u], wy[2, u], wy[3, u]
+            wx4 = (wx[0, u], wx[1, u], wx[2, u], wx[3, u])
+            wy4 = (wy[0, u], wy[1, u], wy[2, u], wy[3, u])
             if 0 <= x0 and x0 + 3 < W and 0 <= y0 and y0 + 3 < H:
-                x1, x2, x3 = x0 + 1, x0 + 2, x0 + 3
+                # its own call: taps at constant offsets from (x0, y0), which the compiler folds into the addresses
+                xs4, ys4 = (x0, x0 + 1, x0 + 2, x0 + 3), (y0, y0 + 1, y0 + 2, y0 + 3)
                 for k in range(K):
-                    t = _row_of_taps(coef, y0, k, x0, x1, x2, x3, wy0, wx0, wx1, wx2, wx3, 0.0)
-                    t = _row_of_taps(coef, y0 + 1, k, x0, x1, x2, x3, wy1, wx0, wx1, wx2, wx3, t)
-                    t = _row_of_taps(coef, y0 + 2, k, x0, x1, x2, x3, wy2, wx0, wx1, wx2, wx3, t)
-                    t = _row_of_taps(coef, y0 + 3, k, x0, x1, x2, x3, wy3, wx0, wx1, wx2, wx3, t)
-                    out[p, k] = _rounded(t, top)
+                    out[p, k] = _rounded(_sum_taps(coef, k, xs4, ys4, wx4, wy4), top)
                 continue
             xs4, ys4, _, _ = _stencil(H, W, px, py)
-            wx4, wy4 = (wx0, wx1, wx2, wx3), (wy0, wy1, wy2, wy3)
             for k in range(K):
                 out[p, k] = _rounded(_sum_taps(coef, k, xs4, ys4, wx4, wy4), top)
 
