@@ -209,8 +209,7 @@ def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_
     z_mm = float(np.median(np.concatenate([sp.z_mm for sp in scenes])))
     step_px = np.r_[fb / z_mm, fb / z_mm ** 2, rig.zed.f_px, pose_effect_px(scenes)][:m]
     # (blurring the coefficients blurs the spline they describe the same way)
-    blurred = [np.stack([cv2.GaussianBlur(np.ascontiguousarray(sp.right_stack[..., k]), (0, 0), COARSE_SIGMA_PX)
-                         for k in range(sp.right_stack.shape[2])], axis=2) for sp in scenes]
+    blurred = [cv2.GaussianBlur(sp.right_stack, (0, 0), COARSE_SIGMA_PX) for sp in scenes]  # each channel alike
 
     def index(k: int) -> np.ndarray:
         return np.r_[0:m, m + 3 * k: m + 3 + 3 * k]
