@@ -340,9 +340,14 @@ def prestart_pool(module: str, workers: int | None = None, scheduler: str | None
         if warm_up is not None and path and not _FORK_SERVER.get("warm_up_handed") and started == n_threads \
                 and _FORK_SERVER.get("module") == module:
             _FORK_SERVER["warm_up_handed"] = True  # once
-            _hand_over(path, json.dumps([f"{module}:{warm_up[0]}", list(warm_up[1])]))
+            _hand_over(path, _warm_up_spec(module, warm_up))
         return
     _pool_context(module, n_threads, warm_up, warm_up_later and n_threads == 1)
+
+
+def _warm_up_spec(module: str, warm_up: tuple[str, tuple]) -> str:
+    """The warm-up as the fork server reads it (``pool_preload.warm_up``): ``["module:function", [arguments]]``."""
+    return json.dumps([f"{module}:{warm_up[0]}", list(warm_up[1])])
 
 
 def _hand_over(path: str, text: str) -> None:
@@ -383,7 +388,7 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
     ctx.set_forkserver_preload(preload)
     env = _thread_environment(n_threads)
     if warm_up is not None:
-        env[POOL_WARM_UP_ENV] = json.dumps([f"{module}:{warm_up[0]}", list(warm_up[1])])
+        env[POOL_WARM_UP_ENV] = _warm_up_spec(module, warm_up)
     elif warm_up_later:
         import atexit
         import shutil
