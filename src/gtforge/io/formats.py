@@ -278,8 +278,7 @@ def _deflate_block(rows: np.ndarray) -> bytes:
 def _png_bytes(w: int, h: int, bit_depth: int, blocks: list[bytes], adler: int) -> bytes:
     """A greyscale PNG: signature, IHDR, one IDAT holding the zlib stream of ``blocks`` (``_deflate_blocks`` of the
     rows) whose Adler-32 is ``adler``, IEND. Joined once (the IDAT's CRC taken over its parts)."""
-    ihdr = b"IHDR" + struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no
-    # interlace
+    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, 0, 0, 0, 0)  # grey, deflate, adaptive filtering, no interlace
     head = b"IDAT\x78\x01"  # the zlib header: deflate, 32 kB window, fastest level
     tail = b"\x03\x00" + struct.pack(">I", adler)  # an empty final block (fixed Huffman codes), the Adler-32
     crc = zlib_ng.crc32(head)
@@ -287,11 +286,16 @@ def _png_bytes(w: int, h: int, bit_depth: int, blocks: list[bytes], adler: int) 
         crc = zlib_ng.crc32(block, crc)
     crc = zlib_ng.crc32(tail, crc)
     n_idat = len(head) - 4 + sum(len(block) for block in blocks) + len(tail)
-    return b"".join((PNG_SIGNATURE, struct.pack(">I", len(ihdr) - 4), ihdr, struct.pack(">I", zlib_ng.crc32(ihdr)),
-                     struct.pack(">I", n_idat), head, *blocks, tail, struct.pack(">I", crc), _PNG_IEND))
+    return b"".join((PNG_SIGNATURE, _png_chunk(b"IHDR", ihdr), struct.pack(">I", n_idat), head, *blocks, tail,
+                     struct.pack(">I", crc), _PNG_IEND))
 
 
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the IEND chunk: no data, its CRC
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    """A PNG chunk: its length, type, data and CRC (of type and data)."""
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
 
 
 def encode_label_png(a: np.ndarray) -> bytes:
@@ -375,10 +379,6 @@ def encode_png(a: np.ndarray) -> bytes | None:
     # no interlace
     return b"".join((PNG_SIGNATURE, _png_chunk(b"IHDR", ihdr), _png_chunk(b"IDAT", _png_deflate_lib.compress(rows, 1)),
                      _PNG_IEND))
-
-
-def _png_chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib_ng.crc32(data, zlib_ng.crc32(kind)))
 
 
 def write_image(path: str | Path, img: np.ndarray) -> Path:
