@@ -213,3 +213,38 @@ def test_build_dataset_starts_its_fork_server_before_the_commands_are_imported(s
     assert calls[1] == ["gtforge.build_dataset", True, False, True, True]
     assert all(c[4] for c in calls[1:])
     assert out["handed"]
+
+
+SPIN = '''
+import os, sys
+seen = []
+class Spy:  # the value OpenBLAS reads when numpy, and with it OpenBLAS, loads
+    def find_spec(self, name, path=None, target=None):
+        if name == "numpy":
+            seen.append(os.environ.get("OPENBLAS_THREAD_TIMEOUT"))
+sys.meta_path.insert(0, Spy())
+from gtforge.cli import main
+sys.argv = ["gtforge", "validate", "/nonexistent"]  # (exits with 2 once the stage, numpy with it, is imported)
+try:
+    main()
+except SystemExit:
+    pass
+print(seen[0])
+'''
+
+
+@pytest.mark.parametrize("preset, expected", [(None, "4"), ("12", "12")])
+def test_the_command_stops_openblas_threads_spinning_unless_the_user_set_it(preset, expected):
+    """numpy and OpenCV each load OpenBLAS, whose idle threads spin 2**28 cycles before they sleep (0.2 CPU s of every
+    command's imports, beside the pool's fork server): the command sets 2**4 before numpy loads, and a user's own
+    value stands."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    if preset is not None:
+        env["OPENBLAS_THREAD_TIMEOUT"] = preset
+    r = subprocess.run([sys.executable, "-c", SPIN], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split()[-1] == expected

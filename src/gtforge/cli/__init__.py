@@ -9,10 +9,17 @@ from __future__ import annotations
 
 import atexit
 import gc
+import os
 import signal
 import sys
 
 from gtforge.errors import InputError, Interrupted
+
+# OpenBLAS's idle threads wait for work by spinning before they sleep: 2**28 cycles by default (about 0.1 s), set
+# when the library loads. numpy and OpenCV each load their own OpenBLAS, so importing them burnt 0.2 CPU s on two
+# spinning threads, beside the pool's fork server starting on the other core (benchmarks/RESULTS.md, "Round 10").
+# 2**4 cycles: the threads sleep at once. Only how long an idle thread spins: the same threads, the same results.
+OPENBLAS_SPIN_ENV = {"OPENBLAS_THREAD_TIMEOUT": "4"}
 
 # the commands whose scenes run on the local pool, and the module of their tasks (the fork server preloads it)
 POOL_COMMANDS = {"build-dataset": "gtforge.build_dataset", "verify": "gtforge.verify"}
@@ -52,6 +59,8 @@ def main() -> None:
     # every file gtforge writes is complete and closed (the atexit handlers registered later, multiprocessing's
     # included, run first).
     atexit.register(gc.freeze)
+    for name, value in OPENBLAS_SPIN_ENV.items():  # before numpy is imported; a user's own setting stands
+        os.environ.setdefault(name, value)
     # Ctrl-C raises Interrupted (not KeyboardInterrupt, which Click turns into "Aborted!" and exit 1):
     # stages clean up, say what is complete, and the command exits with 130 like any interrupted program.
     signal.signal(signal.SIGINT, _raise_interrupted)
