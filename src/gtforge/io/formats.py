@@ -405,8 +405,6 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
     ``InputError`` (OpenCV would silently return part of the image). ``rows``: only the image's first rows are
     wanted (``decode_png`` then stops inflating there; other formats are decoded whole and cut).
     """
-    import imageio.v3 as iio
-
     path = Path(path)
     if data is None and not path.is_file():
         raise MissingFileError(path, field, "an image file", hint="check the capture folder / session.yaml")
@@ -417,6 +415,8 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
             data = path.read_bytes() if data is None else data
             a = decode_png(data, rows) if data[:8] == PNG_SIGNATURE else None
             if a is None:  # not a PNG, or one of the PNG variants decode_png leaves to imageio
+                import imageio.v3 as iio  # (here: imageio's import, 8-15 ms, is for these files only)
+
                 a = iio.imread(bytes(data), extension=path.suffix or None)  # (bytes: data may be a memoryview)
         if rows is not None:
             a = a[:rows]
