@@ -233,10 +233,10 @@ print(seen[0])
 '''
 
 
-@pytest.mark.parametrize("preset, expected", [(None, "4"), ("12", "12")])
+@pytest.mark.parametrize("preset, expected", [(None, "20"), ("12", "12")])
 def test_the_command_stops_openblas_threads_spinning_unless_the_user_set_it(preset, expected):
     """numpy and OpenCV each load OpenBLAS, whose idle threads spin 2**28 cycles before they sleep (0.2 CPU s of every
-    command's imports, beside the pool's fork server): the command sets 2**4 before numpy loads, and a user's own
+    command's imports, beside the pool's fork server): the command sets 2**20 before numpy loads, and a user's own
     value stands."""
     import os
     import subprocess

@@ -17,9 +17,10 @@ from gtforge.errors import InputError, Interrupted
 
 # OpenBLAS's idle threads wait for work by spinning before they sleep: 2**28 cycles by default (about 0.1 s), set
 # when the library loads. numpy and OpenCV each load their own OpenBLAS, so importing them burnt 0.2 CPU s on two
-# spinning threads, beside the pool's fork server starting on the other core (benchmarks/RESULTS.md, "Round 10").
-# 2**4 cycles: the threads sleep at once. Only how long an idle thread spins: the same threads, the same results.
-OPENBLAS_SPIN_ENV = {"OPENBLAS_THREAD_TIMEOUT": "4"}
+# spinning threads, beside the pool's fork server starting on the other core (benchmarks/RESULTS.md, "Round 10 (issue
+# 39)"). 2**20 cycles (about 0.4 ms) still bridges the gap between one BLAS call and the next in a loop (2**4 made a
+# threaded 128 x 128 product 45 % slower, the threads woken every call). The same threads, the same results.
+OPENBLAS_SPIN_ENV = {"OPENBLAS_THREAD_TIMEOUT": "20"}
 
 # the commands whose scenes run on the local pool, and the module of their tasks (the fork server preloads it)
 POOL_COMMANDS = {"build-dataset": "gtforge.build_dataset", "verify": "gtforge.verify"}
