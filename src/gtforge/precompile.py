@@ -1,4 +1,6 @@
-"""Compile the numba kernels a build uses into numba's on-disk cache, before the first real build.
+"""Compile the numba kernels a build uses into numba's on-disk cache, before the first real build; and those the other
+stages of ``gtforge demo`` (calibrate, validate, calibrate-scale, refine, evaluate) would otherwise compile on first use
+(the projection into one camera and refine's float32 spline samples: 5 s of a first validate and refine).
 
 numba compiles a kernel on its first call after an install or a change of its source, and caches the machine code
 beside the source (``__pycache__``; numba's own cache folder where that is read-only). With a cold cache, the first
@@ -12,7 +14,9 @@ worker would compile gtforge's source again (0.1-0.2 s of each command's start: 
 
 It builds one small synthetic scene (default options: verification, sigma map, right view) in this process, once
 with one numba thread (the kernels a build worker runs when ``--workers`` = cores) and once with every core (the
-parallel ones an in-process build runs), into a temporary folder it removes.
+parallel ones an in-process build runs), into a temporary folder it removes, and projects its depth into the ZED's
+left camera with each thread count. After it, ``gtforge demo`` adds nothing to numba's cache (benchmarks/RESULTS.md,
+"Round 10 (issue 39)").
 """
 from __future__ import annotations
 
@@ -27,13 +31,15 @@ import numpy as np
 
 from gtforge.build_dataset import build_dataset
 from gtforge.core.camera import Rig
+from gtforge.core.ground_truth.reproject import ReprojectParams, project_depth_to_camera
 from gtforge.infra.scheduling import cpu_count, limit_threads
 from gtforge.io.captures import open_session
 from gtforge.records.calibration import CalibrationFile
 from gtforge.synthetic import SyntheticTruth, generate_session
 
 # A kernel of each part of a build, by its full name: the reader, both ZED views' rasterisation, the occlusion test,
-# the sigma map, the verification's render and cubic samples, the writers, the fork server's preload.
+# the sigma map, the verification's render and cubic samples, the writers, the fork server's preload; and the
+# projection into one camera, which validate, align-depth and the uncertainty's Monte Carlo run, not a build.
 # tests/cli/test_precompile.py checks that each is in numba's cache after compile_kernels.
 KERNELS = (
     "gtforge.io.captures._depth_mm", "gtforge.io.formats._png_unfilter",
@@ -43,7 +49,7 @@ KERNELS = (
     "gtforge.io.formats._pfm_invalid_to_inf",
     "gtforge.io.formats._kitti_png_rows", "gtforge.infra.pool_preload._first_compiled_call",
     "gtforge.core.lens._undistort_kernel_serial", "gtforge.core.bspline._resample_homography",
-    "gtforge.core.bspline._samples",
+    "gtforge.core.bspline._samples", "gtforge.core.ground_truth.reproject._mesh_rows",
 )
 
 
@@ -84,6 +90,10 @@ def compile_kernels(scale: float = 0.25) -> float:
     bspline.resample_homography(rgb, np.eye(3))
     bspline.resample(rgb, np.zeros(1), np.zeros(1), (1, 1))
     bspline.sample(bspline.coefficients(np.zeros((12, 16, 3), np.float32)), np.zeros(1), np.zeros(1))
+    # refine's samples of the ZED image's float32 coefficients (the verification's, float64, come with the build)
+    from gtforge.core.alignment.photometric import sample_spline
+
+    sample_spline(np.zeros((12, 16), np.float32), np.zeros(1), np.zeros(1))
     with tempfile.TemporaryDirectory(prefix="gtforge-precompile-") as tmp:
         session_dir = generate_session(Path(tmp) / "session", n_board=0, n_scenes=1, scale=scale, supersample=1)
         session = open_session(session_dir)
@@ -95,9 +105,14 @@ def compile_kernels(scale: float = 0.25) -> float:
         level = logger.level
         logger.setLevel(logging.ERROR)  # one scene: the build warns that its val and test splits are empty
         try:
+            depth_mm = session.load_capture(next((session_dir / "scenes").iterdir()), need_right=False,
+                                            decode_images=False).depth_mm
             for n in sorted({1, min(cpu_count(), numba.config.NUMBA_NUM_THREADS)}):
                 limit_threads(n)
                 build_dataset(session_dir, calib_path, Path(tmp) / f"dataset_{n}", workers=1)
+                for span in (False, True):  # (validate without the span, the uncertainty with it)
+                    project_depth_to_camera(depth_mm, rig.depth_camera, rig.T_zed_from_depth, rig.zed.left,
+                                            ReprojectParams(), return_span=span)
         finally:
             limit_threads(threads)
             logger.setLevel(level)
