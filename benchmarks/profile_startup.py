@@ -50,7 +50,7 @@ import gtforge.cli; mark("the command's module (the server's __main__: gtforge.c
 import numba; mark("numba")
 import gtforge.build_dataset; mark("gtforge.build_dataset (the task's module)")
 import gtforge.infra.pool_preload; mark("numba's registries (infra.pool_preload.load_registries)")
-from gtforge.dataset.worker_cache import cached_calibration, cached_session
+from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
 from gtforge.infra.digest import sha256_file
 from gtforge.core.ground_truth.reproject import prepare_rays
 session, calib_path = sys.argv[1:3]
@@ -83,7 +83,7 @@ if pid == 0:
     os.close(r)
     limit_threads(1); reuse_freed_memory()
     c0 = cpu()
-    reserve_heap(bd.SCENE_HEAP_BYTES_PER_ZED_PX * zed.width_px * zed.height_px)  # as the pool's workers start
+    reserve_heap(scene_heap_bytes(zed))  # as the pool's workers start
     reserve_cpu = cpu() - c0
     shutil.rmtree(out, ignore_errors=True); (out / "scenes").mkdir(parents=True)
     sha, pj = sha256_file(calib_path), BuildParams().model_dump_json()

@@ -31,7 +31,7 @@ from gtforge.dataset.layout import (
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
 from gtforge.dataset.scene_verification import write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_scene_views, write_split_views
-from gtforge.dataset.worker_cache import cached_calibration, cached_session
+from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
 from gtforge.reports.build import write_sigma_thumbnail
@@ -87,13 +87,6 @@ class BuildSummary:
     @property
     def ok(self) -> bool:
         return not self.failures
-
-
-# What a worker's heap grows by in its first scene, a ZED pixel: 174 MB for a full-resolution scene (2208 x 1242,
-# default options), 63.5 bytes a pixel, rounded down: smaller scenes need more a pixel (27 MB at a quarter of the
-# size), and a reservation short of the need leaves the rest to page faults, as without one (``reserve_heap``;
-# benchmarks/RESULTS.md, "Round 9 (issue 39)")
-SCENE_HEAP_BYTES_PER_ZED_PX = 60
 
 
 # ---- regions --------------------------------------------------------------------------------
@@ -411,7 +404,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
 
         try:
             run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost,
-                      heap_bytes=SCENE_HEAP_BYTES_PER_ZED_PX * session.zed.left.width_px * session.zed.left.height_px)
+                      heap_bytes=scene_heap_bytes(session.zed.left))
         except (KeyboardInterrupt, Interrupted):
             remove_stale_entries(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)

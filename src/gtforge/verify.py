@@ -12,7 +12,7 @@ import numpy as np
 from gtforge.dataset.motion_compensation import moved_fruit_of
 from gtforge.dataset.scene_verification import verify_scene, write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_split_views
-from gtforge.dataset.worker_cache import cached_calibration, cached_session
+from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
 from gtforge.errors import InputError
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import prestart_pool, run_tasks
@@ -24,10 +24,6 @@ from gtforge.records.verification import SceneVerification, VerificationResult, 
 from gtforge.reports.verification import write_verification_report
 
 log = logging.getLogger("gtforge.verify")
-# What a worker's heap grows by over its first scenes, a ZED pixel (full resolution: 121 MB in the first, 173 MB by the
-# third; build-dataset's estimate, ``build_dataset.SCENE_HEAP_BYTES_PER_ZED_PX``, is alike): reserved before the first
-# (``scheduling.reserve_heap``; benchmarks/RESULTS.md, "Round 9 (issue 39)")
-SCENE_HEAP_BYTES_PER_ZED_PX = 60
 
 
 # ---- image helpers ------------------------------------------------------------------------------
@@ -88,9 +84,8 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
         if progress:
             progress(f"verified {sid} ({len(results)}/{len(args)}): {results[sid].status}")
 
-    zed = cal.rig.zed.left
     run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler,
-              heap_bytes=SCENE_HEAP_BYTES_PER_ZED_PX * zed.width_px * zed.height_px,
+              heap_bytes=scene_heap_bytes(cal.rig.zed.left),
               lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
                                              .model_dump(mode="json")))
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})

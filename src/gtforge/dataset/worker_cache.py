@@ -1,13 +1,30 @@
 """What a build worker keeps between scenes: the opened session and the calibration (keyed by their stamps, so that
-a changed file is read again)."""
+a changed file is read again), and the heap a scene needs (``scene_heap_bytes``)."""
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.records.calibration import CalibrationFile
 
+if TYPE_CHECKING:
+    from gtforge.core.camera import PinholeCamera
+
 # Per worker process. A Dask worker (or this process with workers=1) lives across builds: an entry is
 # reloaded when its files changed (session: their size and mtime; calibration: its sha256).
 WORKER_CACHE: dict = {}
+
+# What a worker's heap grows by over its first scenes, a ZED pixel: build-dataset's first full-resolution scene (2208 x
+# 1242, default options) 174 MB, 63.5 bytes a pixel, rounded down (smaller scenes need more a pixel: 27 MB at a
+# quarter of the size, and a reservation short of the need leaves the rest to page faults, as without one); verify's
+# 121 MB in its first scene, 173 MB by the third (benchmarks/RESULTS.md, "Round 9 (issue 39)")
+SCENE_HEAP_BYTES_PER_ZED_PX = 60
+
+
+def scene_heap_bytes(zed_left: PinholeCamera) -> int:
+    """The heap a pool worker reserves before its first scene (``run_tasks(heap_bytes=)``, ``scheduling.reserve_heap``)
+    for scenes of the ZED's left image ``zed_left``."""
+    return SCENE_HEAP_BYTES_PER_ZED_PX * zed_left.width_px * zed_left.height_px
 
 
 
