@@ -105,7 +105,7 @@ def compile_kernels(scale: float = 0.25) -> float:
         level = logger.level
         logger.setLevel(logging.ERROR)  # one scene: the build warns that its val and test splits are empty
         try:
-            depth_mm = session.load_capture(next((session_dir / "scenes").iterdir()), need_right=False,
+            depth_mm = session.load_capture(session.capture_dirs("scenes")[0], need_right=False,
                                             decode_images=False).depth_mm
             for n in sorted({1, min(cpu_count(), numba.config.NUMBA_NUM_THREADS)}):
                 limit_threads(n)
