@@ -50,7 +50,7 @@ import gtforge.cli; mark("the command's module (the server's __main__: gtforge.c
 import numba; mark("numba")
 import gtforge.build_dataset; mark("gtforge.build_dataset (the task's module)")
 import gtforge.infra.pool_preload; mark("numba's registries (infra.pool_preload.load_registries)")
-from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
+from gtforge.dataset.worker_cache import cached_calibration, cached_session
 from gtforge.infra.digest import sha256_file
 from gtforge.core.ground_truth.reproject import prepare_rays
 session, calib_path = sys.argv[1:3]
@@ -67,6 +67,7 @@ def cpu():
     r = resource.getrusage(resource.RUSAGE_SELF); return r.ru_utime + r.ru_stime
 import gtforge.build_dataset as bd
 import gtforge.infra.pool_preload  # noqa: F401 (as the fork server)
+from gtforge.dataset.worker_cache import scene_heap_bytes
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import limit_threads, reserve_heap, reuse_freed_memory
 from gtforge.records.calibration import CalibrationFile
