@@ -161,3 +161,21 @@ def test_run_without_boards_needs_a_calibration(tmp_path):
     shutil.copytree(EXAMPLE, sess, ignore=shutil.ignore_patterns("truth", "board"))
     r = gtforge("run", sess, "-o", tmp_path / "out")
     assert r.returncode == 2 and one_line_error(r) and "-c FILE" in r.stderr
+
+
+def test_run_refuses_its_session_as_output_and_leaves_no_folder_on_bad_input(tmp_path):
+    sess = tmp_path / "s"
+    shutil.copytree(EXAMPLE, sess, ignore=shutil.ignore_patterns("truth"))
+    before = sorted(p.relative_to(sess) for p in sess.rglob("*"))
+    r = gtforge("run", sess, "-o", sess)  # the session's root holds its capture folders
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "outside the session's capture folders" in r.stderr and f"containing {sess / 'board'}" in r.stderr
+    assert sorted(p.relative_to(sess) for p in sess.rglob("*")) == before  # nothing written into it
+    r = gtforge("run", sess, "--calibration-scenes", "999", "-o", tmp_path / "out")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "[--calibration-scenes]" in r.stderr and "got 999" in r.stderr  # the option the user gave, by its name
+    assert not (tmp_path / "out").exists()  # a run stopped before writing anything leaves no empty folder
+    r = gtforge("run", sess, "--workers", "0", "-o", tmp_path / "out")  # Click's own check: one line too
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert r.stderr.startswith("error: gtforge run: Invalid value for '--workers'") and "gtforge run --help" in r.stderr
+    assert not (tmp_path / "out").exists()

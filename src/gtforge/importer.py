@@ -226,6 +226,14 @@ def _sources(paths: list[Path]) -> list[SourceFile]:
     return out
 
 
+def _dropped_text(dropped: dict[str, int], params: ImportParams) -> str:
+    """Why pairs were dropped, in words: ``2 dropped for skew (frames over 20 ms apart)``."""
+    why = {"skew": f"skew (frames over {params.max_skew_ms:g} ms apart)",
+           "motion": f"motion (over --still-threshold {params.still_threshold:g})",
+           "no image": "a missing right image", "every/max": "--every / --max-captures"}
+    return "; ".join(f"{n} dropped for {why.get(k, k)}" for k, n in dropped.items() if n) or "no frames"
+
+
 def _write_rig_files(folder: Path, rgbd: RgbdRecording, stereo: StereoRecording | None, board: BoardModel | None):
     extra = {}
     if rgbd.kinect_calibration is not None and rgbd.depth_camera is not None:
@@ -403,7 +411,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         kept, dropped, offset, source, n_same = plan_pairs(rgbd, stereo, params, progress)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
-                             f"none ({', '.join(f'{k} {v}' for k, v in dropped.items() if v)})",
+                             f"none ({_dropped_text(dropped, params)})",
                              "raise --max-skew-ms or --still-threshold, or check the clock offset")
         board = params.board
         if board is None and add and (session / "session.yaml").is_file():
@@ -444,8 +452,9 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         streams = {"depth": rgbd.depth.name, "texture": rgbd.texture.name}
         if stereo is not None:
             streams.update(left=stereo.left.name, right=stereo.right.name)
-        warnings = stereo.warnings if stereo is not None else ["no stereo recording: the captures have no "
-                                                               "left.png/right.png"]
+        warnings = stereo.warnings if stereo is not None else [
+            "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
+            "need; import the depth and the stereo recordings together for a complete session"]
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),
                         stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
                         notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "

@@ -17,6 +17,8 @@ calibration must then be given), no gauges, no scenes, too few scenes for refine
 """
 from __future__ import annotations
 
+import contextlib
+
 import json
 import time
 from dataclasses import dataclass
@@ -123,6 +125,7 @@ class _Run:
     def __init__(self, session_dir: Path, out: Path, opts: RunOptions, say, progress):
         self.opts, self.say, self.progress = opts, say, progress
         self.session = open_session(session_dir)
+        self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
         self.root = self.session.root
         self.out = out
         state_path = out / STATE
@@ -223,7 +226,8 @@ class _Run:
         cfg = self.config_files()
         gauges = self.gauge_files()
         if opts.calibration_scenes:
-            self.session.select("scenes", opts.calibration_scenes)  # unknown names: one line, exit 2
+            # unknown names: one line, exit 2
+            self.session.select("scenes", opts.calibration_scenes, option="--calibration-scenes")
         cal_scenes = [d for d in scenes if not opts.calibration_scenes or d.name in opts.calibration_scenes]
         steps = [self.stage_calibrate, self.stage_validate, self.stage_scale, self.stage_refine, self.stage_build,
                  self.stage_verify]
@@ -448,5 +452,13 @@ def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOption
     if not session_dir.is_dir():
         raise InputError(session_dir, None, "a capture session folder (docs/capture-layout.md)", "no such folder",
                          "check the path")
-    out.mkdir(parents=True, exist_ok=True)
-    return _Run(session_dir, out, options or RunOptions(), say, progress).run(after_stage)
+    created = not out.exists()
+    try:
+        run = _Run(session_dir, out, options or RunOptions(), say, progress)
+        out.mkdir(parents=True, exist_ok=True)
+        return run.run(after_stage)
+    except BaseException:
+        if created:  # a run stopped before it wrote anything leaves no empty folder behind (rmdir: only if empty)
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise

@@ -248,3 +248,25 @@ def test_the_command_stops_openblas_threads_spinning_unless_the_user_set_it(pres
     r = subprocess.run([sys.executable, "-c", SPIN], capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split()[-1] == expected
+
+
+def test_a_binary_file_given_as_a_gtforge_file_is_a_one_line_error_and_a_bom_is_read(tmp_path):
+    from gtforge.errors import InputError
+    from gtforge.io.captures import SessionFile
+    from gtforge.records.calibration import CalibrationFile
+
+    blob = tmp_path / "calibration.yaml"
+    blob.write_bytes(b"\x1a\x45\xdf\xa3\x9f\x42\x86")  # how a Matroska (.mkv) file starts
+    with pytest.raises(InputError, match=r"calibration.yaml: expected a gtforge calibration file .*a YAML/JSON text "
+                                         r"file, got binary data \(byte 0x9f at offset 4 is not UTF-8 text\)"):
+        CalibrationFile.read(blob)
+    saved = SessionFile(video_frame=3).write(tmp_path / "session.yaml")
+    saved.write_bytes(b"\xef\xbb\xbf" + saved.read_bytes())  # a byte-order mark, as some editors write one
+    assert SessionFile.read(saved) == SessionFile(video_frame=3)
+
+
+def test_a_refused_board_option_is_named_as_the_user_typed_it(tmp_path):
+    from gtforge.errors import InputError
+
+    with pytest.raises(InputError, match=r"^--board: expected a value 'checkerboard', .* got 'hexagon'$"):
+        CliRunner().invoke(app, ["calibrate", str(tmp_path), "--board", "hexagon"], catch_exceptions=False)

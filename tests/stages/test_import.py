@@ -142,6 +142,15 @@ def test_real_recordings_import_through_the_command(tmp_path):
     assert (cams.texture, cams.depth) == (k.color, k.depth)
     color = read_image(cap / "2DImage.png")
     assert np.abs(color.astype(int) - read_image(frame_dir / "color_720p.jpg")).mean() < 1.0
+    # a depth recording alone: no stereo images, and the chain says so in one line instead of naming a missing file
+    assert "no stereo recording" in r.stderr
+    r = gtforge("run", tmp_path / "k", "-o", tmp_path / "k_run")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "[zed_calibration]" in r.stderr and "imported from a depth recording alone" in r.stderr
+    assert not (tmp_path / "k_run").exists()
+    r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs0")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "got none (2 dropped for skew (frames over 20 ms apart))" in r.stderr and not (tmp_path / "rs0").exists()
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs",
                 "--max-skew-ms", "150")
     assert r.returncode == 0, r.stderr

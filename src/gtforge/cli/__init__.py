@@ -54,6 +54,33 @@ def pool_of(argv: list[str]) -> tuple[str, int | None] | None:
     return POOL_COMMANDS[words[0]], workers
 
 
+def _click_exceptions():
+    """The exceptions module of the Click that Typer runs on: its own copy since Typer 0.2x, else Click's."""
+    try:
+        from typer._click import exceptions
+    except ImportError:
+        from click import exceptions
+    return exceptions
+
+
+def _usage_error(exc) -> None:
+    """Print Click's usage error ``exc`` (an unknown option, a value out of range, a missing argument) as one line
+    naming the command, and exit with its code (2)."""
+    from rich.text import Text
+
+    from gtforge.cli.commands import console
+
+    names, ctx = [], exc.ctx
+    while ctx is not None and ctx.parent is not None:  # the subcommand's name (the root's is how Python was started)
+        names.insert(0, ctx.info_name)
+        ctx = ctx.parent
+    command = " ".join(["gtforge", *names])
+    message = " ".join(exc.format_message().split())
+    console.print(Text.assemble(("error: ", "bold red"), f"{command}: {message} (hint: {command} --help)"),
+                  highlight=False, soft_wrap=True)
+    sys.exit(exc.exit_code)
+
+
 def main() -> None:
     # At exit the interpreter's teardown would garbage-collect every object numba, LLVM and pydantic made: 0.1-0.2 s
     # of every command that loaded them (benchmarks/RESULTS.md, "The exit"). Frozen, they are left to the OS; by then
@@ -72,9 +99,26 @@ def main() -> None:
 
             # the command hands the server its warm-up once its options are parsed
             prestart_pool(pool[0], workers=pool[1], warm_up_later=True)
+        import typer
+
         from gtforge.cli.commands import app
 
-        app(standalone_mode=True)
+        click_errors = _click_exceptions()
+        no_args = getattr(click_errors, "NoArgsIsHelpError", ())
+        try:
+            code = app(standalone_mode=False)
+        except no_args as exc:  # `gtforge` alone: Typer has printed the help
+            sys.exit(exc.exit_code)
+        except click_errors.UsageError as exc:
+            # a bad option or argument gets one line, as bad input does (Typer's own is a boxed usage block)
+            _usage_error(exc)
+        except click_errors.ClickException as exc:
+            exc.show()
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            print("Aborted!", file=sys.stderr)
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
     except InputError as exc:
         from rich.text import Text
 

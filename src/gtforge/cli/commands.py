@@ -26,8 +26,8 @@ from gtforge.infra import defaults
 
 app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.\n\n"
-                       "The whole chain in one command: gtforge run SESSION -o OUT (calibrate -> validate -> "
-                       "calibrate-scale -> refine -> build-dataset -> verify, then OUT/index.html, the dataset's "
+                       "The whole chain in one command: gtforge run SESSION -o DIR (calibrate -> validate -> "
+                       "calibrate-scale -> refine -> build-dataset -> verify, then DIR/index.html, the dataset's "
                        "certificate). Each step is also a command of its own, listed below in that order.")
 console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 out = Console(soft_wrap=True, highlight=False, markup=False)
@@ -71,6 +71,11 @@ def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
                          repr(text)) from None
 
 
+# the board model's fields whose command-line option has another name (calibrate, validate, import)
+BOARD_OPTIONS = {"kind": "--board", "square_size_mm": "--square-mm", "marker_size_mm": "--marker-mm",
+                 "circle_diameter_mm": "--circle-mm"}
+
+
 def _options(model, **values):
     """Build a parameter model from command-line options; a value the model refuses is a one-line error naming the
     option (``--max-shift-px: expected ... > 0, got -1.0``)."""
@@ -80,7 +85,9 @@ def _options(model, **values):
         return model.model_validate(values)
     except ValidationError as exc:
         err = exc.errors()[0]
-        name = "--" + str(err.get("loc", ("value",))[-1]).replace("_", "-")
+        loc = [str(p) for p in err.get("loc", ("value",))]
+        board = model.__name__ == "BoardModel" or "board" in loc
+        name = (BOARD_OPTIONS.get(loc[-1]) if board else None) or "--" + loc[-1].replace("_", "-")
         raise InputError(None, name, err.get("msg", "a valid value").replace("Input should be ", "a value "),
                          repr(err.get("input"))) from None
 
@@ -117,7 +124,7 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
                                         "(the run then passes with a warning)."),
         workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores).")) -> None:
     """Run the whole chain: calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> verify, and write
-    the dataset certificate (OUTPUT/index.html). A rerun redoes only what changed.
+    the dataset certificate (DIR/index.html, DIR given by --output). A rerun redoes only what changed.
 
     Exit code 0: every check passed; 1: a quality check failed (named); 2: bad input."""
     from gtforge.run import RunOptions, run_session

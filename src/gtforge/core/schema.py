@@ -61,7 +61,13 @@ class VersionedFile(GTModel):
             raise InputError(path, None, f"a {cls.KIND}", "a folder", "give the file's path")
         if not path.is_file():
             raise InputError(path, None, f"a {cls.KIND}", "no such file", "check the path")
-        text = path.read_text()
+        try:
+            text = path.read_text(encoding="utf-8-sig")  # (a byte-order mark, as some editors write, is dropped)
+        except UnicodeDecodeError as exc:
+            raise InputError(path, None, f"a {cls.KIND}, a YAML/JSON text file",
+                             f"binary data (byte 0x{exc.object[exc.start]:02x} at offset {exc.start} is not UTF-8 "
+                             "text)",
+                             "is this the right file?") from None
         try:
             data = json.loads(text) if path.suffix.lower() == ".json" else load_yaml(text)
         except (yaml.YAMLError, json.JSONDecodeError) as exc:

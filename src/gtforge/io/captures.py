@@ -404,11 +404,14 @@ class Session:
         return dirs
 
     def select(self, kind: Literal["board", "scenes"], include: list[str] | None = None,
-               exclude: list[str] | None = None) -> list[Path]:
-        """Capture folders of ``kind``, optionally only ``include`` and never ``exclude`` (by folder name)."""
+               exclude: list[str] | None = None, option: str | None = None) -> list[Path]:
+        """Capture folders of ``kind``, optionally only ``include`` and never ``exclude`` (by folder name).
+        ``option``: the command-line option ``include`` came from, named in the error for an unknown name (default
+        ``--captures`` for boards, ``--scenes`` for scenes)."""
         dirs = self.capture_dirs(kind)
         names = {d.name for d in dirs}
-        for given, option in ((include, "--captures" if kind == "board" else "--scenes"), (exclude, "exclude")):
+        option = option or ("--captures" if kind == "board" else "--scenes")
+        for given, option in ((include, option), (exclude, "exclude")):
             unknown = [n for n in (given or []) if n not in names]
             if unknown:
                 listing = ", ".join(sorted(names)[:8]) + (", ..." if len(names) > 8 else "")
@@ -586,6 +589,9 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
         depth_cam = load_camera(root / cfg.depth_intrinsics) if cfg.depth_intrinsics else None
         T_mech_from_depth = np.array(cfg.T_mech_from_depth) if cfg.T_mech_from_depth is not None else None
     zpath = root / cfg.zed_calibration
+    if not zpath.is_file():
+        raise InputError(zpath, "zed_calibration", "the stereo camera's calibration (session.yaml's zed_calibration)",
+                         "no such file", _no_stereo_hint(root))
     rectification = None
     if zpath.suffix.lower() == ".conf":
         # raw images: the eye width comes from the first image found
@@ -603,6 +609,22 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
     rectification = corrected_right(rectification, zed, zed_right_correction, zed_right_yaw_deg)
     return Session(root, cfg, mech, zed, rectification, depth_cam, T_mech_from_depth)
+
+
+def _no_stereo_hint(root: Path) -> str:
+    """What to do about a session without its stereo camera's calibration: a session ``gtforge import`` wrote from
+    a depth recording alone has no stereo images either."""
+    import json
+
+    try:
+        runs = json.loads((root / "import.json").read_text(encoding="utf-8"))["runs"]
+        depth_only = bool(runs) and all(r.get("stereo_recording") is None for r in runs)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        depth_only = False
+    if depth_only:
+        return ("this session was imported from a depth recording alone (import.json): its captures have no stereo "
+                "images; import the depth and the stereo recordings together: gtforge import DEPTH STEREO -o SESSION")
+    return "check the path in session.yaml (docs/capture-layout.md)"
 
 
 def _guess_eye_width(root: Path, cfg: SessionFile) -> int:

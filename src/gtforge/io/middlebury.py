@@ -15,7 +15,7 @@ class SceneCalib:
     def __init__(self, path: Path):
         if not path.is_file():
             raise InputError(path, None, "a Middlebury calib.txt", "no such file")
-        kv = dict(re.findall(r"^(\w+)=(.*)$", path.read_text(), flags=re.M))
+        kv = dict(re.findall(r"^(\w+)=(.*)$", path.read_text(errors="replace"), flags=re.M))
         try:
             cam0 = [float(x) for x in re.split(r"[\s;]+", kv["cam0"].strip("[] "))]
             self.f_px = cam0[0]
