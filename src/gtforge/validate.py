@@ -288,7 +288,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     rect = meter.result()
     warnings += rect.warnings if rect is not None else []
     rep = ValidationResult(
-        calibration_path=str(calib_path), session_dir=str(session_dir),
+        calibration_path=str(Path(calib_path).resolve()), session_dir=str(Path(session_dir).resolve()),
         thresholds={"xy_px": params.xy_threshold_px, "z_pct": params.z_threshold_pct},
         xy_mean_px=xy_mean, xy_median_px=float(np.median(e)), xy_rms_px=float(np.sqrt(np.mean(e ** 2))),
         xy_max_px=float(e.max()), z_error_mean_pct=z_mean, z_error_max_pct=float(np.nanmax(zerr)),
@@ -366,8 +366,9 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         results.append(res)
         maps[spec.capture] = arrays
     worst = max((r.status for r in results), key=lambda s: ORDER[s])
-    rep = GaugesResult(session_dir=str(session_dir), calibration_path=str(calibration), limits=gfile.limits,
-                      params=params, gauges=results, status=worst, time_s=time.perf_counter() - t0)
+    rep = GaugesResult(session_dir=str(Path(session_dir).resolve()), calibration_path=str(Path(calibration).resolve()),
+                       limits=gfile.limits,
+                       params=params, gauges=results, status=worst, time_s=time.perf_counter() - t0)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
