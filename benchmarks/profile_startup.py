@@ -29,6 +29,7 @@ from pathlib import Path
 
 from fullres_session import machine_line, make_session, update_results
 
+from gtforge.cli import OPENBLAS_SPIN_ENV
 from gtforge.infra.disk_cache import CACHE_ENV
 
 IMPORT = """
@@ -121,8 +122,10 @@ def main():
     machine = machine_line()
     sess, calib = make_session(Path(args.workdir), args.scenes, min(args.scenes, 4))
     sess, calib = str(sess.resolve()), str(calib.resolve())
-    one = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    imp = run(IMPORT)
+    # every process as the gtforge command starts it: OpenBLAS's idle threads spin briefly (gtforge.cli.main)
+    spin = dict(OPENBLAS_SPIN_ENV)
+    one = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", **spin}
+    imp = run(IMPORT, env=spin)
     with tempfile.TemporaryDirectory() as cache:
         server = run(SERVER, sess, calib, env={**one, CACHE_ENV: cache})
         rerun = run(SERVER, sess, calib, env={**one, CACHE_ENV: cache})
