@@ -64,13 +64,16 @@ def test_option_values_are_checked(session_dir, true_calibration, dataset, tmp_p
         (("calibrate", session_dir, "--captures", "000,999", "-o", tmp_path / "c.yaml"), "999"),
         (("refine", session_dir, "-c", true_calibration, "--scenes", "000,7", "-o", tmp_path / "r.yaml"),
          "--scenes]: expected capture names of scenes/"),
+        (("calibrate", session_dir, "--square-mm", "-2", "-o", tmp_path / "c.yaml"),
+         "--square-mm: expected a value greater than 0, got -2.0"),
+        (("calibrate", session_dir, "--board", "hexagon", "-o", tmp_path / "c.yaml"), "--board: expected a value"),
     ]
     for args, needle in cases:
         r = gtforge(*args)
         assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
         assert needle in r.stderr, (needle, r.stderr)
     r = gtforge("build-dataset", session_dir, "-c", true_calibration, "-o", tmp_path / "ds", "--workers", "0")
-    assert r.returncode == 2 and "--workers" in r.stderr  # Click's own range check
+    assert r.returncode == 2 and one_line_error(r) and "'--workers'" in r.stderr, r.stderr  # Click's own range check
     assert not [p for p in tmp_path.iterdir() if p.name != "c.yaml"] and not (tmp_path / "c.yaml").exists()
     assert tree_digest(dataset[0]) == before
 

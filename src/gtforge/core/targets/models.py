@@ -20,7 +20,7 @@ from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
-from pydantic import model_serializer
+from pydantic import Field, model_serializer
 
 from gtforge.core.targets.board import BoardSpec, GridCounts, check_board_spec
 from gtforge.core.schema import GTModel
@@ -46,11 +46,11 @@ class BoardModel(GTModel):
     kind: BoardKind = "checkerboard"
     cols: int = 12
     rows: int = 9
-    square_size_mm: float = 20.0
-    marker_size_mm: float | None = None  # ChArUco: the ArUco marker's side
+    square_size_mm: float = Field(20.0, gt=0)
+    marker_size_mm: float | None = Field(None, gt=0)  # ChArUco: the ArUco marker's side
     dictionary: str | None = None  # ChArUco: OpenCV's predefined dictionary name, e.g. DICT_5X5_100
     legacy_pattern: bool = False  # ChArUco boards made before OpenCV 4.6 with an even row count
-    circle_diameter_mm: float | None = None  # circle grids (None: half the spacing)
+    circle_diameter_mm: float | None = Field(None, gt=0)  # circle grids (None: half the spacing)
 
     @model_serializer(mode="wrap")
     def _compact(self, handler):
