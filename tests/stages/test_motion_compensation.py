@@ -7,6 +7,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+import tifffile
 from conftest import synthetic_session
 from made_once import session_spec
 
@@ -179,7 +180,8 @@ def test_moved_fruit_are_compensated(motion_datasets, motion_session):
 def test_too_uncertain_fruit_lose_their_ground_truth(motion_session, motion_datasets, tmp_path):
     """A moved fruit whose motion's disparity sigma exceeds ``MotionParams.max_sigma_px`` is not compensated, and the
     scene is not lost for it: that fruit's pixels become holes (no disparity, not non-occluded; still fruit in
-    region.png) with the reason per fruit, while the rest is compensated. With the bound below every moved fruit's
+    the fruit mask; region.png 0, as wherever there is no ground truth) with the reason per fruit, while the rest is
+    compensated. With the bound below every moved fruit's
     sigma: both moved fruit of scene 000 are holes where the ZED saw them, the still fruit keeps the disparity it had
     (the same reprojection of its points), the scene verifies ok."""
     s = open_session(motion_session)
@@ -202,10 +204,12 @@ def test_too_uncertain_fruit_lose_their_ground_truth(motion_session, motion_data
     P = rig.zed.left.unproject(np.stack([u, v], 1), z["zed_depth_mm"][v, u])
     who = np.argmin(np.linalg.norm(P[:, None] - z["fruit_centre_zed_mm"][None], axis=2), axis=1)
     inner = cv2.erode(fm.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)[v, u]
-    for j in (0, 2):  # the moved fruit, where the ZED saw them (to their limb: the ring): holes, fruit in the regions
+    for j in (0, 2):  # the moved fruit, where the ZED saw them (to their limb: the ring): holes, fruit in the mask
         vj, uj = v[who == j], u[who == j]
         assert len(vj) > 1000 and np.isnan(ch.sd.disparity_px[vj, uj]).all() and not ch.sd.nonoccluded[vj, uj].any()
-        assert (ch.region[v[(who == j) & inner], u[(who == j) & inner]] >= 2).mean() > 0.99
+        assert ch.fruit[v[(who == j) & inner], u[(who == j) & inner]].mean() > 0.99
+    # region.png and weight.tiff: 0 exactly where disp0GT has no value (the holes and the ring around moved fruit)
+    assert np.array_equal(ch.region == 0, np.isnan(ch.sd.disparity_px))
     v, u, who = v[inner], u[inner], who[inner]
     vs, us = v[who == 1], u[who == 1]
     d0, d1 = sd.disparity_px[vs, us], ch.sd.disparity_px[vs, us]
@@ -215,6 +219,8 @@ def test_too_uncertain_fruit_lose_their_ground_truth(motion_session, motion_data
     out = build_dataset(motion_session, motion_datasets[2], tmp_path / "out", params, workers=1, scenes=["000"]).out_dir
     written = read_pfm(out / "scenes" / "000" / "disp0GT.pfm")
     assert np.array_equal(np.isfinite(written), np.isfinite(ch.sd.disparity_px))
+    weight = tifffile.imread(out / "scenes" / "000" / "weight.tiff")
+    assert np.array_equal(weight > 0, np.isfinite(written))  # docs/dataset-format.md: weight 0 where no GT
     rep = verify_dataset(out, scenes=["000"], workers=1)
     label = " (fruit motion compensated; 2 fruit too uncertain: no ground truth)"
     assert rep.scenes["000"].status == "ok" and rep.scenes["000"].compensated_label == label, rep.scenes["000"].reasons

@@ -24,7 +24,7 @@ from gtforge.core.alignment.fruit_motion import FruitMotionEstimate, MotionImage
 from gtforge.core.alignment.photometric import local_normalize, to_gray
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import fit_plane_robust, mask_bounding_box, transform_points
-from gtforge.core.ground_truth.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, fruit_regions
+from gtforge.core.ground_truth.regions import REGION_BG, REGION_CENTRE, REGION_EDGE, REGION_NONE, fruit_regions
 from gtforge.core.ground_truth.render import render_texture
 from gtforge.core.ground_truth.reproject import StereoDepth, disparity_and_nonoccluded, reproject_to_zed
 from gtforge.dataset.scene_verification import verify_scene, write_verification_overlay
@@ -233,8 +233,8 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
     ``T_zed_moved_from_zed @ T_zed_from_depth`` (a rigid motion of the points is a change of the extrinsic for them);
     the views are merged by their z-buffers. A surface the depth camera never saw (the table the fruit uncovered)
     stays without ground truth. Each fruit of ``dropped`` (its motion too uncertain) is moved likewise, so that it
-    occludes where it went, and then its ZED-left pixels lose their ground truth (NaN, not non-occluded); the regions
-    still show it as fruit."""
+    occludes where it went, and then its ZED-left pixels lose their ground truth (NaN, not non-occluded); the fruit
+    mask still shows it, the regions (0: no ground truth) do not."""
     depth = np.asarray(rig.corrected_depth_mm(depth_mm), np.float32)
     Hd, Wd = depth.shape
     cam_d = rig.depth_camera
@@ -322,6 +322,9 @@ def rebuild_with_motion(depth_mm: np.ndarray, rig: Rig, params: BuildParams, sd:
             span[hole] = np.nan
         who[hole] = 0
         right = np.where(np.isin(who_right, list(dropped)), np.nan, right).astype(right.dtype)
+    # region.png is 0 wherever disp0GT has no value, as in every other scene (docs/dataset-format.md): the regions were
+    # found on the merged depth before the ring and the holes lost theirs, and weight.tiff follows the regions
+    region[~np.isfinite(disp)] = REGION_NONE
     sd2 = StereoDepth(left, disp, right, noc, span)
     return sd2, region, fruit, motion_sigma_px(left, who, moved, rig), \
         (who, {k: e.T_zed_moved_from_zed for k, e in moved.items()})

@@ -465,7 +465,8 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
                            f"{params.max_shift_px} px (dx {e.dx_px:+.2f}, dy {e.dy_px:+.2f})")
     for name, s in stereo.items():
         if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
-            reasons.append(f"stereo: disparity bias over the {name} {s.disparity_bias_px:+.3f}"
+            area = "whole area" if name == "all" else name  # the texture checks' words for the same areas
+            reasons.append(f"stereo: disparity bias over the {area} {s.disparity_bias_px:+.3f}"
                            f"{_pm(s.disparity_bias_noise_px)} px (> {params.max_disparity_bias_px} px)")
         if name == "all" and s.vertical_px is not None and abs(s.vertical_px) > params.max_vertical_px:
             reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f}{_pm(s.vertical_noise_px)} px "
