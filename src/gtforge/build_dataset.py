@@ -2,6 +2,7 @@
 stereo training code reads without glue (docs/dataset-format.md). Parallel, resumable, atomic."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import time
@@ -361,6 +362,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     dirs = session.select("scenes", scenes)
     if scheduler:
         check_scheduler_address(scheduler)  # before anything is written
+    created = not out.exists()
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
     phash, expected = scene_params_hash(params, calib), scene_files(params)
@@ -405,6 +407,12 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         try:
             run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost,
                       heap_bytes=scene_heap_bytes(session.zed.left))
+        except InputError:  # the cluster could not be reached: a folder this run made and left empty goes again
+            if created and not built:
+                for folder in (out / "scenes", out):
+                    with contextlib.suppress(OSError):  # (rmdir: only an empty folder)
+                        folder.rmdir()
+            raise
         except (KeyboardInterrupt, Interrupted):
             remove_stale_entries(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)

@@ -279,6 +279,7 @@ def test_scheduler_errors_are_one_line(session_dir, true_calibration, tmp_path, 
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and address in r.stderr and "within 1 s" in r.stderr
     assert "dask scheduler" in r.stderr  # the hint
+    assert not (tmp_path / "ds").exists()  # the output folder the build made for it is gone again (it stayed empty)
     with pytest.raises(InputError, match="expected a Dask scheduler address"):
         run_tasks(len, [("a",)], print, scheduler="no-port-here")
     with pytest.raises(InputError, match="--workers"):
