@@ -2,7 +2,6 @@
 stereo training code reads without glue (docs/dataset-format.md). Parallel, resumable, atomic."""
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import logging
 import time
@@ -61,7 +60,7 @@ from gtforge.io.formats import (
     write_ply,
     write_tiff_float,
 )
-from gtforge.io.outputs import require_output_folder
+from gtforge.io.outputs import new_folders, remove_if_empty, require_output_folder
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.verification import VerificationResult
 from gtforge.reports.build import write_build_report
@@ -362,7 +361,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     dirs = session.select("scenes", scenes)
     if scheduler:
         check_scheduler_address(scheduler)  # before anything is written
-    created = not out.exists()
+    made = new_folders(out / "scenes", out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
     phash, expected = scene_params_hash(params, calib), scene_files(params)
@@ -407,11 +406,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         try:
             run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost,
                       heap_bytes=scene_heap_bytes(session.zed.left))
-        except InputError:  # the cluster could not be reached: a folder this run made and left empty goes again
-            if created and not built:
-                for folder in (out / "scenes", out):
-                    with contextlib.suppress(OSError):  # (rmdir: only an empty folder)
-                        folder.rmdir()
+        except InputError:  # the cluster could not be reached
+            remove_if_empty(made)
             raise
         except (KeyboardInterrupt, Interrupted):
             remove_stale_entries(out)

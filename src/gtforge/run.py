@@ -17,8 +17,6 @@ calibration must then be given), no gauges, no scenes, too few scenes for refine
 """
 from __future__ import annotations
 
-import contextlib
-
 import json
 import time
 from dataclasses import dataclass
@@ -33,6 +31,7 @@ from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.digest import blake3_file
 from gtforge.io.captures import open_session
+from gtforge.io.outputs import new_folders, remove_if_empty
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
 from gtforge.records.certificate import Certificate
 from gtforge.records.dataset import BuildParams
@@ -452,13 +451,11 @@ def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOption
     if not session_dir.is_dir():
         raise InputError(session_dir, None, "a capture session folder (docs/capture-layout.md)", "no such folder",
                          "check the path")
-    created = not out.exists()
+    made = new_folders(out)
     try:
         run = _Run(session_dir, out, options or RunOptions(), say, progress)
         out.mkdir(parents=True, exist_ok=True)
         return run.run(after_stage)
     except BaseException:
-        if created:  # a run stopped before it wrote anything leaves no empty folder behind (rmdir: only if empty)
-            with contextlib.suppress(OSError):
-                out.rmdir()
+        remove_if_empty(made)
         raise

@@ -367,8 +367,8 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         maps[spec.capture] = arrays
     worst = max((r.status for r in results), key=lambda s: ORDER[s])
     rep = GaugesResult(session_dir=str(Path(session_dir).resolve()), calibration_path=str(Path(calibration).resolve()),
-                       limits=gfile.limits,
-                       params=params, gauges=results, status=worst, time_s=time.perf_counter() - t0)
+                       limits=gfile.limits, params=params, gauges=results, status=worst,
+                       time_s=time.perf_counter() - t0)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)

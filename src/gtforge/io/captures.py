@@ -410,12 +410,12 @@ class Session:
         ``--captures`` for boards, ``--scenes`` for scenes)."""
         dirs = self.capture_dirs(kind)
         names = {d.name for d in dirs}
-        option = option or ("--captures" if kind == "board" else "--scenes")
-        for given, option in ((include, option), (exclude, "exclude")):
+        include_option = option or ("--captures" if kind == "board" else "--scenes")
+        for given, given_by in ((include, include_option), (exclude, "exclude")):
             unknown = [n for n in (given or []) if n not in names]
             if unknown:
                 listing = ", ".join(sorted(names)[:8]) + (", ..." if len(names) > 8 else "")
-                raise InputError(dirs[0].parent, option, f"capture names of {kind}/ ({listing})",
+                raise InputError(dirs[0].parent, given_by, f"capture names of {kind}/ ({listing})",
                                  ", ".join(unknown), "names are the capture folders' names")
         if include:
             dirs = [d for d in dirs if d.name in set(include)]
@@ -613,7 +613,8 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
 
 def _no_stereo_hint(root: Path) -> str:
     """What to do about a session without its stereo camera's calibration: a session ``gtforge import`` wrote from
-    a depth recording alone has no stereo images either."""
+    a depth recording alone has no stereo images either. (``import.json`` read as plain JSON: its model,
+    ``records.imports.ImportRecord``, is a layer above this module.)"""
     import json
 
     try:

@@ -1,6 +1,8 @@
-"""Checks on the folders a stage is asked to write into, made before anything is written."""
+"""Checks on the folders a stage is asked to write into, made before anything is written; and the folders a stage
+made, removed again when it stopped on bad input before writing into them."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from gtforge.errors import InputError
@@ -30,3 +32,16 @@ def require_new_or_empty_folder(path: str | Path, option: str, hint: str, reusab
                                                                      else ""),
                              f"a folder with {len(entries)} entries", hint)
     return p
+
+
+def new_folders(*folders: str | Path) -> list[Path]:
+    """Those of ``folders`` that do not exist yet: asked before a stage makes them (give the deepest first)."""
+    return [Path(f) for f in folders if not Path(f).exists()]
+
+
+def remove_if_empty(folders: list[Path]) -> None:
+    """Remove each of ``folders`` (``new_folders``: the ones this stage made) that is still empty, in order; a folder
+    with anything in it stays (``rmdir``). A stage stopped by bad input leaves no empty folder behind."""
+    for f in folders:
+        with contextlib.suppress(OSError):
+            f.rmdir()
