@@ -131,6 +131,35 @@ def _range_below(hi, lo, max_range, out):
 
 
 
+@numba.njit(cache=True, inline="always")
+def _keys_weights(t, w, j):
+    """The Keys kernel (a = -0.5) at the 4 taps ix - 1 .. ix + 2 of a point at ix + t (offsets 1 + t, t, 1 - t,
+    2 - t), as polynomials in t, into ``w[:, j]``."""
+    t2 = t * t
+    t3 = t2 * t
+    w[0, j] = -0.5 * t3 + t2 - 0.5 * t
+    w[1, j] = 1.5 * t3 - 2.5 * t2 + 1.0
+    w[2, j] = -1.5 * t3 + 2.0 * t2 + 0.5 * t
+    w[3, j] = 0.5 * t3 - 0.5 * t2
+
+
+@numba.njit(cache=True, inline="always")
+def _bspline_weights(t, w, dw, j, derivs):
+    """The cubic B-spline's weights at the 4 taps ix - 1 .. ix + 2 of a point at ix + t into ``w[:, j]``, and with
+    ``derivs`` their derivatives in t into ``dw[:, j]``."""
+    s6 = 1.0 / 6.0
+    u1 = 1.0 - t
+    w[0, j] = u1 * u1 * u1 * s6
+    w[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
+    w[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
+    w[3, j] = t * t * t * s6
+    if derivs:
+        dw[0, j] = -0.5 * u1 * u1
+        dw[1, j] = 1.5 * t * t - 2.0 * t
+        dw[2, j] = -1.5 * t * t + t + 0.5
+        dw[3, j] = 0.5 * t * t
+
+
 @numba.njit(cache=True)
 def _cubic_at(imgs, x, y, out):
     """Keys cubic convolution (a = -0.5, interpolating) of each image of the stack ``imgs`` (K, H, W) at exact
@@ -146,21 +175,8 @@ def _cubic_at(imgs, x, y, out):
             fy = math.floor(y[k0 + j])
             ixs[j] = int(fx)
             iys[j] = int(fy)
-            # the Keys kernel at the 4 taps ix - 1 .. ix + 2 (offsets 1 + t, t, 1 - t, 2 - t), as polynomials in t
-            t = x[k0 + j] - fx
-            t2 = t * t
-            t3 = t2 * t
-            wx[0, j] = -0.5 * t3 + t2 - 0.5 * t
-            wx[1, j] = 1.5 * t3 - 2.5 * t2 + 1.0
-            wx[2, j] = -1.5 * t3 + 2.0 * t2 + 0.5 * t
-            wx[3, j] = 0.5 * t3 - 0.5 * t2
-            t = y[k0 + j] - fy
-            t2 = t * t
-            t3 = t2 * t
-            wy[0, j] = -0.5 * t3 + t2 - 0.5 * t
-            wy[1, j] = 1.5 * t3 - 2.5 * t2 + 1.0
-            wy[2, j] = -1.5 * t3 + 2.0 * t2 + 0.5 * t
-            wy[3, j] = 0.5 * t3 - 0.5 * t2
+            _keys_weights(x[k0 + j] - fx, wx, j)
+            _keys_weights(y[k0 + j] - fy, wy, j)
         for j in range(n):
             k = k0 + j
             ix, iy = ixs[j], iys[j]
@@ -327,7 +343,6 @@ def _spline_loop(coeffs, x, y, out, derivs):
     """``_spline_at``'s loop over the points, in chunks: each chunk's tap positions and weights first (a loop the
     compiler vectorises), then its samples (the same expressions, in the same order, as one loop doing both)."""
     K, H, W = coeffs.shape
-    s6 = 1.0 / 6.0
     ixs, iys = np.empty(_SPLINE_CHUNK, np.int64), np.empty(_SPLINE_CHUNK, np.int64)
     wx, wy = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
     dxw, dyw = np.empty((4, _SPLINE_CHUNK)), np.empty((4, _SPLINE_CHUNK))
@@ -338,28 +353,8 @@ def _spline_loop(coeffs, x, y, out, derivs):
             fy = math.floor(y[k0 + j])
             ixs[j] = int(fx)
             iys[j] = int(fy)
-            t = x[k0 + j] - fx
-            u1 = 1.0 - t
-            wx[0, j] = u1 * u1 * u1 * s6
-            wx[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
-            wx[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
-            wx[3, j] = t * t * t * s6
-            if derivs:
-                dxw[0, j] = -0.5 * u1 * u1
-                dxw[1, j] = 1.5 * t * t - 2.0 * t
-                dxw[2, j] = -1.5 * t * t + t + 0.5
-                dxw[3, j] = 0.5 * t * t
-            t = y[k0 + j] - fy
-            u1 = 1.0 - t
-            wy[0, j] = u1 * u1 * u1 * s6
-            wy[1, j] = (3.0 * t * t * t - 6.0 * t * t + 4.0) * s6
-            wy[2, j] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) * s6
-            wy[3, j] = t * t * t * s6
-            if derivs:
-                dyw[0, j] = -0.5 * u1 * u1
-                dyw[1, j] = 1.5 * t * t - 2.0 * t
-                dyw[2, j] = -1.5 * t * t + t + 0.5
-                dyw[3, j] = 0.5 * t * t
+            _bspline_weights(x[k0 + j] - fx, wx, dxw, j, derivs)
+            _bspline_weights(y[k0 + j] - fy, wy, dyw, j, derivs)
         for j in range(n):
             k = k0 + j
             ix, iy = ixs[j], iys[j]
