@@ -23,7 +23,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                 "gtforge.build_dataset", "gtforge.verify", "gtforge.validate", "gtforge.evaluate", "gtforge.predictors",
                 "gtforge.training", "gtforge.importer")),
     ("recipes", ("gtforge.synthetic", "gtforge.synthetic_recordings", "gtforge.demo", "gtforge.run",
-                 "gtforge.precompile", "gtforge.holdout", "gtforge.cli")),
+                 "gtforge.precompile", "gtforge.holdout", "gtforge.cli", "gtforge.__main__")),
 ]
 
 

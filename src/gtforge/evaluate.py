@@ -25,7 +25,7 @@ from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.middlebury import SceneCalib
-from gtforge.io.outputs import require_output_folder
+from gtforge.io.outputs import require_new_or_empty_folder
 from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
 from gtforge.records.evaluation import (
     DEPTH_ERROR_MAP_PERCENTILE,
@@ -140,7 +140,16 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         _check_sigma_maps(ds, ids)
     out = None
     if out_dir:
-        out = require_output_folder(out_dir, "--output")
+        # a folder of its own: new, empty, or an earlier evaluation's (rewritten: maps of scenes not scored this time
+        # are removed); never a folder of other files, such as the predictions being scored
+        if hasattr(predictor, "folder"):
+            o, f = Path(os.path.realpath(out_dir)), Path(os.path.realpath(predictor.folder))
+            if o == f or f in o.parents:
+                raise InputError(out_dir, "--output", "a folder of its own, outside the predictions",
+                                 "the --predictions folder" + ("" if o == f else " (a folder inside it)"),
+                                 "give a new folder for the results")
+        out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the results (an earlier "
+                                          "evaluation's folder is rewritten)", reusable_if="results.json")
         _refuse_output_in_dataset(out, ds)
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
@@ -158,7 +167,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         for sid in absent:
             missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"
     warmed = False
+    from_files = hasattr(predictor, "find")  # a folder of predictions, not a network
     fruit_records, fruit_ms = [], []
+    written: list[Path] = []  # the error maps this run wrote
     for k, sid in enumerate(ids):
         if sid in missing:
             continue
@@ -177,17 +188,24 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                 if sigma.shape != gt.shape:
                     raise InputError(s / SIGMA_FILE, "size", f"{gt.shape[1]}x{gt.shape[0]} px (disp0GT.pfm)",
                                      f"{sigma.shape[1]}x{sigma.shape[0]} px")
-            if not warmed and not hasattr(predictor, "find"):
-                predictor.predict(sid, left, right, cal.ndisp, cal.vmin)  # warm-up (not timed)
-                warmed = True
-            pred, ms = timed_predict(predictor, sid, left, right, cal.ndisp, cal.vmin)
-            if pred.shape != gt.shape:
-                raise InputError(sid, "prediction size", f"{gt.shape[1]}x{gt.shape[0]}",
-                                 f"{pred.shape[1]}x{pred.shape[0]}")
         except InputError as exc:
             missing[sid] = str(exc)
             log.error("scene %s: %s", sid, exc)
             continue
+        if not from_files and not warmed:
+            # a network that fails on its first scene (its inputs' or output's shape or type) fails on every scene:
+            # the error stops the run here, once, before anything is scored
+            predictor.predict(sid, left, right, cal.ndisp, cal.vmin)  # warm-up (not timed)
+            warmed = True
+        try:
+            pred, ms = timed_predict(predictor, sid, left, right, cal.ndisp, cal.vmin)
+        except InputError as exc:  # a folder's file, or a network on a scene unlike the first
+            missing[sid] = str(exc)
+            log.error("scene %s: %s", sid, exc)
+            continue
+        if pred.shape != gt.shape:  # (each predictor checks its own; this is the contract's last line of defence)
+            raise InputError(getattr(predictor, "source", None), "prediction size",
+                             f"{gt.shape[1]}x{gt.shape[0]} px (scene {sid})", f"{pred.shape[1]}x{pred.shape[0]} px")
         times.append(ms)
         res = {}
         for r, m in masks.items():
@@ -201,7 +219,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
             fruit_ms.append((time.perf_counter() - t0) * 1000.0)
         if out is not None:
-            _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px, write_clouds)
+            written += _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px,
+                                         write_clouds)
         per_scene.append(scene)
     if not per_scene:
         raise InputError(ds, "scenes", "at least one scene with a prediction", "none",
@@ -223,16 +242,37 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         write_tables([rep], out)
         if rep.fruit_size is not None:
             write_fruit_csv(rep, out / "fruit_size.csv")
+            written.append(out / "fruit_size.csv")
         rep.write(out / "results.json")
         write_eval_html(rep, out)
+        _remove_earlier_outputs(out, written)
     return rep
+
+
+# what an evaluation writes besides its tables, by folder (``_write_error_maps``), and its fruit table
+_MAP_FOLDERS = {"heatmaps": ("_disp_error.png", "_depth_error.png"),
+                "heatmaps/preview": ("_disp_error.jpg", "_depth_error.jpg"), "clouds": ("_depth_error.ply",)}
+
+
+def _remove_earlier_outputs(out: Path, written: list[Path]) -> None:
+    """In a folder an earlier evaluation wrote: remove its maps, clouds and fruit table that this one did not write
+    again (scenes not scored now, a fruit without depth error, --no-clouds, --no-fruit-size), so that every file in
+    the folder is this evaluation's."""
+    keep = set(written)
+    stale = [out / "fruit_size.csv"] if (out / "fruit_size.csv") not in keep else []
+    for folder, suffixes in _MAP_FOLDERS.items():
+        if (out / folder).is_dir():
+            stale += [f for f in (out / folder).iterdir() if f.name.endswith(suffixes) and f not in keep]
+    for f in stale:
+        f.unlink(missing_ok=True)
 
 
 def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray, gt: np.ndarray,
                       masks: dict[str, np.ndarray], cal: SceneCalib, sigma: np.ndarray | None,
-                      max_gt_sigma_px: float | None, max_disp_px: float | None, write_clouds: bool) -> None:
+                      max_gt_sigma_px: float | None, max_disp_px: float | None, write_clouds: bool) -> list[Path]:
     """``heatmaps/<id>_{disp,depth}_error.png`` (full size, colour bar below) + small previews for results.html,
-    and with ``write_clouds`` the fruit points coloured by depth error. Only scored pixels are coloured."""
+    and with ``write_clouds`` the fruit points coloured by depth error. Only scored pixels are coloured. Returns the
+    files written."""
 
     scored = masks["all"] & np.isfinite(gt)
     if max_disp_px is not None:
@@ -243,25 +283,29 @@ def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray,
     err = np.where(scored, np.abs(pred - gt), np.nan)
     scene.disp_error_map_max_px = DISP_ERROR_MAP_MAX_PX
     full, preview = error_map_images(err, DISP_ERROR_MAP_MAX_PX, "|disparity error| (px)")
-    write_image(out / "heatmaps" / f"{sid}_disp_error.png", full)
-    atomic_write_bytes(out / "heatmaps" / "preview" / f"{sid}_disp_error.jpg", preview_jpeg(preview))
+    written = [out / "heatmaps" / f"{sid}_disp_error.png", out / "heatmaps" / "preview" / f"{sid}_disp_error.jpg"]
+    write_image(written[0], full)
+    atomic_write_bytes(written[1], preview_jpeg(preview))
     fruit = scored & masks["fruit"]
     with np.errstate(invalid="ignore"):
         zerr = np.where(fruit, np.abs(cal.depth(pred) - cal.depth(gt)), np.nan)
     finite = zerr[np.isfinite(zerr)]
     if finite.size == 0:
-        return
+        return written
     zmax = nice_ceil(float(np.percentile(finite, DEPTH_ERROR_MAP_PERCENTILE)))
     scene.depth_error_map_max_mm = zmax
     full, preview = error_map_images(zerr, zmax, "|depth error| (mm)")
-    write_image(out / "heatmaps" / f"{sid}_depth_error.png", full)
-    atomic_write_bytes(out / "heatmaps" / "preview" / f"{sid}_depth_error.jpg", preview_jpeg(preview))
+    written += [out / "heatmaps" / f"{sid}_depth_error.png", out / "heatmaps" / "preview" / f"{sid}_depth_error.jpg"]
+    write_image(written[-2], full)
+    atomic_write_bytes(written[-1], preview_jpeg(preview))
     if write_clouds:
         v, u = np.nonzero(np.isfinite(zerr))
         zp = cal.depth(pred[v, u])
         pts = np.stack([(u - cal.cx_px) / cal.f_px * zp, (v - cal.cy_px) / cal.f_px * zp, zp], axis=1)
         e = np.clip(zerr[v, u] / zmax, 0, 1.0)  # blue 0 mm -> red at the map's scale top
-        write_ply(out / "clouds" / f"{sid}_depth_error.ply", pts, np.stack([e, np.zeros_like(e), 1 - e], axis=1))
+        written.append(out / "clouds" / f"{sid}_depth_error.ply")
+        write_ply(written[-1], pts, np.stack([e, np.zeros_like(e), 1 - e], axis=1))
+    return written
 
 
 def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, list[str]]:
@@ -271,12 +315,13 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
     limits, and model names used by more than one result (their rows are then labelled with the folder)."""
 
     files = [Path(p) for p in result_files]
+    out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the comparison (an earlier "
+                                      "comparison's folder is rewritten)", reusable_if="comparison.md")
     reports = [EvalResult.read(p) for p in files]
     warnings = comparison_warnings(reports, files)
     for w in warnings:
         log.warning(w)
     labels = row_labels(reports, files)
-    out = Path(out_dir)
     write_tables(reports, out, "comparison", labels=labels, warnings=warnings)
     write_comparison_html(reports, files, labels, warnings, out / "comparison.html")
     return tables_markdown(reports, labels=labels, warnings=warnings), warnings

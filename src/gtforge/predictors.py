@@ -9,6 +9,7 @@ from typing import Literal, Protocol
 
 import cv2
 import numpy as np
+from pydantic import model_validator
 
 from gtforge.core.schema import GTModel
 from gtforge.errors import InputError
@@ -32,6 +33,14 @@ class InputConvention(GTModel):
     pad_where: Literal["top-right", "bottom-right"] = "top-right"  # Fast-ACVNet pads top and right
     resize_wh: tuple[int, int] | None = None  # with fit="resize": the network's input size
 
+    @model_validator(mode="after")
+    def _resize_with_fit(self) -> "InputConvention":
+        if self.fit == "resize" and not self.resize_wh:
+            raise ValueError("fit='resize' needs resize_wh, the network's input size (W, H)")
+        if self.fit != "resize" and self.resize_wh:
+            raise ValueError(f"resize_wh is used only with fit='resize' (fit is {self.fit!r})")
+        return self
+
     def prepare(self, img: np.ndarray) -> np.ndarray:
         x = img.astype(np.float32)
         if self.channels == "BGR":
@@ -52,15 +61,29 @@ class Predictor(Protocol):
 
 def _fit(conv: InputConvention, img: np.ndarray) -> tuple[np.ndarray, tuple]:
     H, W = img.shape[:2]
-    if conv.fit == "resize":
-        if not conv.resize_wh:
-            raise InputError(None, "resize_wh", "a network input size with fit=resize", "none")
+    if conv.fit == "resize":  # (resize_wh is set: InputConvention checks it)
         return cv2.resize(img, conv.resize_wh, interpolation=cv2.INTER_LINEAR), ("resize", H, W)
     m = conv.pad_multiple
     ph, pw = (-H) % m, (-W) % m
     top = ph if conv.pad_where == "top-right" else 0
     out = cv2.copyMakeBorder(img, top, ph - top, 0, pw, cv2.BORDER_CONSTANT, value=0)
     return out, ("pad", H, W, top)
+
+
+def _disparity_from_output(path: Path, out: np.ndarray, fitted_hw: tuple[int, int], info: tuple) -> np.ndarray:
+    """A network's output as the scene's disparity (``_unfit``), after checking it is one map of the right size:
+    the same for every scene, so a mistake here is the model's (one error, before any scoring)."""
+    out = np.squeeze(out)
+    if out.ndim != 2:
+        raise InputError(path, "output", "a disparity map (1 x 1 x H x W, 1 x H x W or H x W)",
+                         f"shape {tuple(np.shape(out))} after dropping its size-1 axes",
+                         "export the model's final disparity output first")
+    if info[0] == "pad" and out.shape != tuple(fitted_hw):
+        raise InputError(path, "output", f"a disparity map of the input's size, {fitted_hw[1]}x{fitted_hw[0]} px",
+                         f"{out.shape[1]}x{out.shape[0]} px",
+                         "export the model's full-resolution output (a low-resolution disparity upsampled and "
+                         "scaled), or evaluate with --fit resize --resize WxH")
+    return _unfit(out, info).astype(np.float32)
 
 
 def _unfit(disp: np.ndarray, info: tuple) -> np.ndarray:
@@ -83,7 +106,8 @@ class OnnxModel:
                              "pip install 'gtforge[onnx]'") from None
         self.path = Path(path)
         if not self.path.is_file():
-            raise InputError(self.path, None, "an ONNX model file", "no such file")
+            raise InputError(self.path, None, "an ONNX model file",
+                             "a folder" if self.path.is_dir() else "no such file")
         self.conv = convention or InputConvention()
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
         try:
@@ -93,29 +117,71 @@ class OnnxModel:
                              f"{type(exc).__name__}: {str(exc)[:100]}") from None
         self.provider = self.sess.get_providers()[0]
         self.inputs = self.sess.get_inputs()
-        shapes = [i.shape for i in self.inputs]
-        if len(self.inputs) == 2 and all(len(s) == 4 for s in shapes):
-            self.layout = "two"
-        elif len(self.inputs) == 1 and len(shapes[0]) == 4 and shapes[0][1] == 6:
-            self.layout = "six"
-        else:
-            desc = ", ".join(f"{i.name}{list(i.shape)}" for i in self.inputs)
-            raise InputError(self.path, "inputs", "two NCHW inputs (left, right) or one N x 6 x H x W input", desc,
-                             "export the model with left and right image inputs")
+        self.layout = _onnx_layout(self.path, self.inputs)
+        self.dtype = _onnx_input_dtype(self.path, self.inputs)
+        # the height and width the model was exported with, where they are fixed numbers (None: any)
+        dims = self.inputs[0].shape
+        self.fixed_hw = tuple(d if isinstance(d, int) and d > 0 else None for d in dims[2:4])
         self.name = name or self.path.stem
         self.source = str(self.path.resolve())
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
         l, info = _fit(self.conv, left)
         r, _ = _fit(self.conv, right)
-        a, b = self.conv.prepare(l), self.conv.prepare(r)
+        self._check_size(l.shape[:2])
+        a, b = self.conv.prepare(l).astype(self.dtype), self.conv.prepare(r).astype(self.dtype)
         feeds = {self.inputs[0].name: a, self.inputs[1].name: b} if self.layout == "two" else \
             {self.inputs[0].name: np.concatenate([a, b], axis=1)}
-        out = np.asarray(self.sess.run(None, feeds)[0], np.float32)
-        out = np.squeeze(out)
-        if out.ndim != 2:
-            raise InputError(self.path, "output", "a disparity map (N=1, H, W)", f"shape {out.shape}")
-        return _unfit(out, info).astype(np.float32)
+        try:
+            out = self.sess.run(None, feeds)[0]
+        except Exception as exc:  # onnxruntime's own errors (a shape or type the graph cannot take) name no file
+            raise InputError(self.path, None, "a model that runs on N x 3 x H x W float images",
+                             f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}",
+                             "check the model's inputs against docs/metrics.md, 'Models'") from None
+        return _disparity_from_output(self.path, np.asarray(out, np.float32), l.shape[:2], info)
+
+    def _check_size(self, hw: tuple[int, int]) -> None:
+        """A model exported with a fixed height or width takes only that: say so before onnxruntime does."""
+        if all(f is None or f == n for f, n in zip(self.fixed_hw, hw)):
+            return
+        fh, fw = self.fixed_hw
+        want = f"{fw or 'any'}x{fh or 'any'} px (its fixed input size)"
+        how = (f"evaluate with --fit resize --resize {fw}x{fh}" if fh and fw else
+               "export the model with dynamic height and width")
+        raise InputError(self.path, "inputs", want, f"{hw[1]}x{hw[0]} px after --fit {self.conv.fit}", how)
+
+
+# ONNX element types an image input may have, and the array type gtforge feeds it
+_ONNX_FLOAT_TYPES = {"tensor(float)": np.float32, "tensor(float16)": np.float16, "tensor(double)": np.float64}
+
+
+def _onnx_layout(path: Path, inputs) -> str:
+    """``"two"`` (left, right: N x 3 x H x W each) or ``"six"`` (one N x 6 x H x W); anything else is refused here,
+    where the message can say what the model has (onnxruntime's own says only which axis of which input)."""
+    shapes = [list(i.shape) for i in inputs]
+    desc = ", ".join(f"{i.name}{list(i.shape)}" for i in inputs)
+    want = "two NCHW inputs (left, right: N x 3 x H x W) or one N x 6 x H x W input"
+    if len(inputs) == 2 and all(len(s) == 4 for s in shapes):
+        if all(s[1] == 3 for s in shapes):
+            return "two"
+        if all(s[3] == 3 for s in shapes):  # (a width fixed at 3 px is no image)
+            raise InputError(path, "inputs", want, f"{desc} (channels last, NHWC)",
+                             "export the model with NCHW inputs (a transpose at the graph's start)")
+        if all(not isinstance(s[1], int) for s in shapes):  # a channel axis left open: it gets 3
+            return "two"
+        raise InputError(path, "inputs", want, desc, "the images are RGB (or BGR with --channels BGR): 3 channels")
+    if len(inputs) == 1 and len(shapes[0]) == 4 and shapes[0][1] == 6:
+        return "six"
+    raise InputError(path, "inputs", want, desc, "export the model with left and right image inputs")
+
+
+def _onnx_input_dtype(path: Path, inputs) -> type:
+    types = {i.type for i in inputs}
+    if len(types) == 1 and next(iter(types)) in _ONNX_FLOAT_TYPES:
+        return _ONNX_FLOAT_TYPES[next(iter(types))]
+    desc = ", ".join(f"{i.name} {i.type}" for i in inputs)
+    raise InputError(path, "inputs", "float image inputs (tensor(float), or float16 / double)", desc,
+                     "export the model with float inputs: gtforge scales the images itself (--normalize)")
 
 
 class TorchScriptModel:
@@ -132,7 +198,8 @@ class TorchScriptModel:
         self.device = "cuda" if torch.cuda.is_available() else "cpu"
         path = Path(path)
         if not path.is_file():
-            raise InputError(path, None, "a TorchScript (.pt) or torch.export (.pt2) file", "no such file")
+            raise InputError(path, None, "a TorchScript (.pt) or torch.export (.pt2) file",
+                             "a folder" if path.is_dir() else "no such file")
         try:
             if path.suffix == ".pt2":
                 self.model = torch.export.load(str(path)).module().to(self.device)
@@ -142,6 +209,7 @@ class TorchScriptModel:
             raise InputError(path, None, "a loadable TorchScript / torch.export model",
                              f"{type(exc).__name__}: {str(exc)[:100]}") from None
         self.conv = convention or InputConvention()
+        self.path = path
         self.name = name or Path(path).stem
         self.source = str(path.resolve())
         self.provider = self.device
@@ -150,12 +218,17 @@ class TorchScriptModel:
         torch = self.torch
         l, info = _fit(self.conv, left)
         r, _ = _fit(self.conv, right)
-        with torch.no_grad():
-            out = self.model(torch.from_numpy(self.conv.prepare(l)).to(self.device),
-                             torch.from_numpy(self.conv.prepare(r)).to(self.device))
+        try:
+            with torch.no_grad():
+                out = self.model(torch.from_numpy(self.conv.prepare(l)).to(self.device),
+                                 torch.from_numpy(self.conv.prepare(r)).to(self.device))
+        except Exception as exc:  # the model's own errors (a shape or type it cannot take) name no file
+            raise InputError(self.path, None, "a model that runs on two 1 x 3 x H x W float32 images",
+                             f"{type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}",
+                             "check the model's inputs against docs/metrics.md, 'Models'") from None
         if isinstance(out, (list, tuple)):
             out = out[-1]
-        return _unfit(out.squeeze().float().cpu().numpy(), info).astype(np.float32)
+        return _disparity_from_output(self.path, out.float().cpu().numpy(), l.shape[:2], info)
 
 
 class SGBM:

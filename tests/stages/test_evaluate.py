@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import gtforge, one_line_error
 from typer.testing import CliRunner
 
 from gtforge.cli.commands import app
@@ -17,25 +18,37 @@ from gtforge.records.evaluation import EvalResult
 from gtforge.training import StereoDataset
 
 
-def constant_onnx(path, value: float, six_channels=False):
+def constant_onnx(path, value: float, six_channels=False, elem_type=None, dims=("N", 3, "H", "W"), step=1):
+    """A stereo "network" whose disparity is ``value`` everywhere. ``elem_type``: its inputs' ONNX type (float32 by
+    default; others are cast to float inside); ``dims``: each input's shape; ``step``: its output has every
+    ``step``-th row and column of the input's (a 1/step-size disparity)."""
     import onnx
     from onnx import TensorProto, helper
 
+    elem_type = TensorProto.FLOAT if elem_type is None else elem_type
     zero = helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0])
     c = helper.make_tensor("c", TensorProto.FLOAT, [], [value])
     axes = helper.make_tensor("axes", TensorProto.INT64, [1], [1])
+    big = helper.make_tensor("big", TensorProto.INT64, [2], [1 << 30, 1 << 30])
+    start = helper.make_tensor("start", TensorProto.INT64, [2], [0, 0])
+    hw = helper.make_tensor("hw", TensorProto.INT64, [2], [2, 3])
+    steps = helper.make_tensor("steps", TensorProto.INT64, [2], [step, step])
     if six_channels:
-        inputs = [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 6, "H", "W"])]
-        nodes = [helper.make_node("Mul", ["x", "zero"], ["z"])]
+        inputs = [helper.make_tensor_value_info("x", elem_type, ["N", 6, "H", "W"])]
+        nodes = [helper.make_node("Cast", ["x"], ["s"], to=TensorProto.FLOAT)]
     else:
-        inputs = [helper.make_tensor_value_info("left", TensorProto.FLOAT, ["N", 3, "H", "W"]),
-                  helper.make_tensor_value_info("right", TensorProto.FLOAT, ["N", 3, "H", "W"])]
-        nodes = [helper.make_node("Add", ["left", "right"], ["s"]), helper.make_node("Mul", ["s", "zero"], ["z"])]
-    nodes += [helper.make_node("ReduceSum", ["z", "axes"], ["r"], keepdims=0),
+        inputs = [helper.make_tensor_value_info("left", elem_type, list(dims)),
+                  helper.make_tensor_value_info("right", elem_type, list(dims))]
+        nodes = [helper.make_node("Cast", ["left"], ["lf"], to=TensorProto.FLOAT),
+                 helper.make_node("Cast", ["right"], ["rf"], to=TensorProto.FLOAT),
+                 helper.make_node("Add", ["lf", "rf"], ["s"])]
+    nodes += [helper.make_node("Mul", ["s", "zero"], ["z0"]),
+              helper.make_node("Slice", ["z0", "start", "big", "hw", "steps"], ["z"]),
+              helper.make_node("ReduceSum", ["z", "axes"], ["r"], keepdims=0),
               helper.make_node("Add", ["r", "c"], ["disp"])]
     graph = helper.make_graph(nodes, "const", inputs,
-                              [helper.make_tensor_value_info("disp", TensorProto.FLOAT, ["N", "H", "W"])],
-                              initializer=[zero, c, axes])
+                              [helper.make_tensor_value_info("disp", TensorProto.FLOAT, ["N", "h", "w"])],
+                              initializer=[zero, c, axes, big, start, hw, steps])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
     model.ir_version = 8
     onnx.save(model, path)
@@ -92,6 +105,84 @@ def test_onnx_with_unexpected_inputs_is_refused(tmp_path):
     onnx.save(mdl, tmp_path / "bad.onnx")
     with pytest.raises(InputError, match=r"inputs.*two NCHW inputs.*x\[1, 3\]"):
         OnnxModel(tmp_path / "bad.onnx")
+
+
+@pytest.mark.slow
+def test_onnx_model_mistakes_stop_before_scoring(dataset, tmp_path):
+    """A model onnxruntime cannot run on the scenes (a fixed input size, a channels-last or integer input, a
+    1/4-size output) is refused in one line naming the model and what to do, before any scene is scored: not once
+    per scene, not an onnxruntime traceback. A float16 model is fed float16 and scores as the float32 one."""
+    from onnx import TensorProto
+
+    from gtforge.predictors import InputConvention
+
+    ds, _ = dataset
+    fixed = constant_onnx(tmp_path / "fixed.onnx", 35.0, dims=(1, 3, 256, 512))
+    with pytest.raises(InputError, match=r"fixed\.onnx \[inputs\]: expected 512x256 px \(its fixed input size\), "
+                                         r"got 896x512 px after --fit pad.*--fit resize --resize 512x256"):
+        evaluate(ds, OnnxModel(fixed), tmp_path / "ev")
+    assert not (tmp_path / "ev").exists()  # nothing written
+    rep = evaluate(ds, OnnxModel(fixed, InputConvention(fit="resize", resize_wh=(512, 256))), tmp_path / "ev")
+    assert rep.pooled["all"].coverage_pct == 100.0 and not rep.missing
+    quarter = constant_onnx(tmp_path / "quarter.onnx", 35.0, step=4)
+    with pytest.raises(InputError, match=r"quarter\.onnx \[output\]: expected a disparity map of the input's size, "
+                                         r"896x512 px, got 224x128 px"):
+        evaluate(ds, OnnxModel(quarter), tmp_path / "ev2")
+    with pytest.raises(InputError, match=r"\[inputs\]: expected two NCHW inputs.*\(channels last, NHWC\)"):
+        OnnxModel(constant_onnx(tmp_path / "nhwc.onnx", 1.0, dims=("N", "H", "W", 3)))
+    with pytest.raises(InputError, match=r"\[inputs\]: expected float image inputs.*left tensor\(uint8\)"):
+        OnnxModel(constant_onnx(tmp_path / "u8.onnx", 1.0, elem_type=TensorProto.UINT8))
+    half = OnnxModel(constant_onnx(tmp_path / "half.onnx", 35.0, elem_type=TensorProto.FLOAT16))
+    assert half.dtype == np.float16
+    rep = evaluate(ds, half, tmp_path / "ev3")
+    assert rep.pooled["all"].epe_px == pytest.approx(_expected_epe(ds, 35.0), rel=1e-5)
+    with pytest.raises(InputError, match=r"_0: expected an ONNX model file, got a folder"):
+        OnnxModel(tmp_path)
+
+
+def test_network_input_options_are_checked_by_name(tmp_path):
+    """--resize without --fit resize was ignored, --fit resize without --resize failed once per scene, and a bad
+    --fit printed pydantic's 'validation error for InputConvention': each is now one line naming the option."""
+    cases = [(["--resize", "512x256"], "--resize: expected --fit resize with it, got --fit pad"),
+             (["--fit", "resize"], "--resize: expected the network's input size WxH with --fit resize, got none"),
+             (["--fit", "crop"], "--fit: expected pad or resize, got 'crop'"),
+             (["--channels", "GBR"], "--channels: expected RGB or BGR, got 'GBR'")]
+    for extra, message in cases:
+        r = gtforge("evaluate", tmp_path, "--sgbm", "-o", tmp_path / "ev", *extra)
+        assert r.returncode == 2 and one_line_error(r) and message in r.stderr, (extra, r.stderr)
+
+
+@pytest.mark.slow
+def test_evaluation_folder_of_its_own_and_rewritten_whole(dataset, tmp_path):
+    """evaluate wrote its results among the predictions it scored (-o PREDICTIONS), and a folder reused from an
+    earlier evaluation kept that one's maps of scenes not scored now; compare wrote into any folder."""
+    ds, _ = dataset
+    preds = _constant_offset_predictions(ds, tmp_path / "p", 0.5)
+    for out in (preds, preds / "ev"):
+        with pytest.raises(InputError, match=r"\[--output\]: expected a folder of its own, outside the predictions"):
+            evaluate(ds, PredictionFolder(preds), out)
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "mine.txt").write_text("a user's file")
+    with pytest.raises(InputError, match=r"notes \[--output\]: expected a new or empty folder \(or one with "
+                                         r"results\.json\), got a folder with 1 entries"):
+        evaluate(ds, PredictionFolder(preds), other)
+    ev = tmp_path / "ev"
+    evaluate(ds, PredictionFolder(preds), ev, write_clouds=True)
+    assert len(list((ev / "heatmaps").glob("*.png"))) == 6 and len(list((ev / "clouds").glob("*.ply"))) == 3
+    (preds / "002.pfm").unlink()
+    rep = evaluate(ds, PredictionFolder(preds), ev, fruit_size=False)
+    assert rep.scenes == ["000", "001"]
+    assert sorted(p.name for p in (ev / "heatmaps").glob("*.png")) == [
+        "000_depth_error.png", "000_disp_error.png", "001_depth_error.png", "001_disp_error.png"]
+    assert len(list((ev / "heatmaps" / "preview").glob("*.jpg"))) == 4
+    assert not (ev / "clouds").exists() or not list((ev / "clouds").iterdir())
+    assert not (ev / "fruit_size.csv").exists()
+    with pytest.raises(InputError, match=r"\[--output\]: expected a new or empty folder \(or one with "
+                                         r"comparison\.md\)"):
+        compare([ev / "results.json"], ev)
+    with pytest.raises(InputError, match=r"expected an evaluation result \(results\.json"):
+        compare([ev], tmp_path / "cmp")
 
 
 @pytest.mark.slow

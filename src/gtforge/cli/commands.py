@@ -556,19 +556,14 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
     Exactly one model option is required: --onnx, --torchscript, --predictions or --sgbm.
     Exit code 1 when some scenes could not be scored (listed first and last), 2 on bad input."""
     from gtforge.evaluate import evaluate as run
-    from gtforge.predictors import SGBM, InputConvention, OnnxModel, PredictionFolder, TorchScriptModel
+    from gtforge.predictors import SGBM, OnnxModel, PredictionFolder, TorchScriptModel
     from gtforge.reports.evaluation import tables_markdown
 
     chosen = [x for x in (onnx, torchscript, predictions) if x is not None] + ([True] if sgbm else [])
     if len(chosen) != 1:
         raise InputError(None, "model", "exactly one of --onnx, --torchscript, --predictions, --sgbm",
                          f"{len(chosen)} given")
-    try:
-        conv = InputConvention(channels=channels, normalize=normalize, fit=fit, resize_wh=_wh(resize, "--resize"))
-    except Exception as exc:
-        raise InputError(None, "input convention",
-                         "--channels RGB|BGR, --normalize imagenet|0-255|0-1, --fit pad|resize",
-                         f"{channels}/{normalize}/{fit}", str(exc).splitlines()[0]) from None
+    conv = _input_convention(channels, normalize, fit, resize)
     if onnx:
         pred = OnnxModel(onnx, conv, name)
     elif torchscript:
@@ -585,10 +580,32 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
     out.print(tables_markdown([rep]))
     if rep.fruit_size is not None and rep.fruit_size.time_ms_per_scene is not None:
         out.print(f"fruit size measured in {rep.fruit_size.time_ms_per_scene:.0f} ms per scene (median)")
-    out.print(f"median warm inference {rep.time_ms_median:.1f} ms/frame ({rep.provider}); results in {output}")
+    if predictions:
+        out.print(f"median {rep.time_ms_median:.1f} ms/frame to read a prediction; results in {output}")
+    else:
+        out.print(f"median warm inference {rep.time_ms_median:.1f} ms/frame ({rep.provider}); results in {output}")
     if rep.missing:
         out.print(f"{len(rep.missing)} scene(s) excluded: " + "; ".join(f"{k}: {v}" for k, v in rep.missing.items()))
         raise typer.Exit(1)
+
+
+def _input_convention(channels: str, normalize: str, fit: str, resize: Optional[str]):
+    """evaluate's network options as an ``InputConvention``, each mistake named by its option."""
+    from gtforge.predictors import InputConvention
+
+    choices = {"--channels": (channels, ("RGB", "BGR")), "--normalize": (normalize, ("imagenet", "0-255", "0-1")),
+               "--fit": (fit, ("pad", "resize"))}
+    for option, (value, allowed) in choices.items():
+        if value not in allowed:
+            raise InputError(None, option, " or ".join(allowed), repr(value), "gtforge evaluate --help")
+    wh = _wh(resize, "--resize")
+    if fit == "resize" and wh is None:
+        raise InputError(None, "--resize", "the network's input size WxH with --fit resize", "none",
+                         "e.g. --fit resize --resize 1248x384")
+    if fit != "resize" and wh is not None:
+        raise InputError(None, "--resize", "--fit resize with it", f"--fit {fit}",
+                         "add --fit resize, or drop --resize (--fit pad pads each image to a multiple of 32)")
+    return InputConvention(channels=channels, normalize=normalize, fit=fit, resize_wh=wh)
 
 
 @app.command()

@@ -43,6 +43,11 @@ class VersionedFile(GTModel):
             raise ValueError(f"schema_version {v} is not supported (this gtforge reads {cls.SCHEMA_VERSION})")
         return v
 
+    @classmethod
+    def kind_with_article(cls) -> str:
+        """``KIND`` after "a" or "an", as a message says "expected a calibration file"."""
+        return ("an " if cls.KIND[:1].lower() in "aeiou" else "a ") + cls.KIND
+
     # ---- I/O -------------------------------------------------------------------------------
     def write(self, path: str | Path) -> Path:
         path = Path(path)
@@ -58,13 +63,13 @@ class VersionedFile(GTModel):
     def read(cls: type[M], path: str | Path) -> M:
         path = Path(path)
         if path.is_dir():
-            raise InputError(path, None, f"a {cls.KIND}", "a folder", "give the file's path")
+            raise InputError(path, None, cls.kind_with_article(), "a folder", "give the file's path")
         if not path.is_file():
-            raise InputError(path, None, f"a {cls.KIND}", "no such file", "check the path")
+            raise InputError(path, None, cls.kind_with_article(), "no such file", "check the path")
         try:
             text = path.read_text(encoding="utf-8-sig")  # (a byte-order mark, as some editors write, is dropped)
         except UnicodeDecodeError as exc:
-            raise InputError(path, None, f"a {cls.KIND}, a YAML/JSON text file",
+            raise InputError(path, None, f"{cls.kind_with_article()}, a YAML/JSON text file",
                              f"binary data (byte 0x{exc.object[exc.start]:02x} at offset {exc.start} is not UTF-8 "
                              "text)",
                              "is this the right file?") from None
@@ -78,7 +83,7 @@ class VersionedFile(GTModel):
     @classmethod
     def from_dict(cls: type[M], data: Any, path: str | Path | None = None) -> M:
         if not isinstance(data, dict):
-            raise InputError(path, None, f"a {cls.KIND} (a YAML/JSON mapping)", type(data).__name__)
+            raise InputError(path, None, f"{cls.kind_with_article()} (a YAML/JSON mapping)", type(data).__name__)
         try:
             return cls.model_validate(data)
         except ValidationError as exc:

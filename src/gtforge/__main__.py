@@ -1,0 +1,4 @@
+"""``python -m gtforge``: the ``gtforge`` command (as ``python -m gtforge.cli``)."""
+from gtforge.cli import main
+
+main()
