@@ -148,9 +148,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                 raise InputError(out_dir, "--output", "a folder of its own, outside the predictions",
                                  "the --predictions folder" + ("" if o == f else " (a folder inside it)"),
                                  "give a new folder for the results")
+        _refuse_output_in_dataset(Path(out_dir), ds)
         out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the results (an earlier "
                                           "evaluation's folder is rewritten)", reusable_if="results.json")
-        _refuse_output_in_dataset(out, ds)
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
     absent = [sid for sid in ids if predictor.find(sid) is None] if hasattr(predictor, "find") else []

@@ -137,11 +137,15 @@ def _times(s: Stream) -> np.ndarray:
     return np.array([f.t_ns for f in s.frames], np.int64)
 
 
+_NO_FRAMES_HINT = "is the recording empty, or cut short (a truncated file)?"
+
+
 def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: ImportParams, progress=None):
     """The kept pairs (one per still stretch), the drop counts, and the clock offset used (ns) with its source."""
     td, tt = _times(rgbd.depth), _times(rgbd.texture)
     if not td.size or not tt.size:
-        raise InputError(rgbd.path, rgbd.depth.name if not td.size else rgbd.texture.name, "frames", "none")
+        raise InputError(rgbd.path, rgbd.depth.name if not td.size else rgbd.texture.name, "frames", "none",
+                         _NO_FRAMES_HINT)
     scores = motion_scores([rgbd.texture] + ([stereo.left] if stereo is not None else []), progress)
     tex_still = scores[0] <= params.still_threshold
     tex_seg = _segments(tex_still)
@@ -150,7 +154,7 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
     if stereo is not None:
         tl, tr = _times(stereo.left), _times(stereo.right)
         if not tl.size:
-            raise InputError(stereo.path, stereo.left.name, "frames", "none")
+            raise InputError(stereo.path, stereo.left.name, "frames", "none", _NO_FRAMES_HINT)
         left_still = scores[1] <= params.still_threshold
         left_seg = _segments(left_still)
         if stereo.path == rgbd.path:

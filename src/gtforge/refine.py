@@ -272,6 +272,10 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
         if s not in used:
             reports[s].status, reports[s].reason = "excluded", flagged.get(s, "flagged by verification")
     held_before, held_after, jack = [], [], []
+    if params.leave_one_out and len(used) <= params.min_scenes:
+        log.warning("leave-one-out skipped: %d scene(s) used, and a refinement without one of them needs %d; no "
+                    "held-out figures (heldout_* null) and no jackknife on the covariance (capture more scenes)",
+                    len(used), params.min_scenes)
     if params.leave_one_out and len(used) > params.min_scenes:
         for s in used:
             if progress:

@@ -31,7 +31,7 @@ from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.digest import blake3_file
 from gtforge.io.captures import open_session
-from gtforge.io.outputs import new_folders, remove_if_empty
+from gtforge.io.outputs import new_folders, remove_if_empty, require_output_folder
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
 from gtforge.records.certificate import Certificate
 from gtforge.records.dataset import BuildParams
@@ -125,6 +125,7 @@ class _Run:
         self.opts, self.say, self.progress = opts, say, progress
         self.session = open_session(session_dir)
         self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
+        require_output_folder(out, "--output")
         self.root = self.session.root
         self.out = out
         state_path = out / STATE

@@ -588,10 +588,16 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     unit = np.array([1.0, np.degrees(1.0), 1.0, 1.0] + [np.degrees(1.0)] * 3)  # angles to degrees in the file
     n_out = len(PARAMS) if separate else 4  # the depth camera's rotation: only with a separate depth camera
     terms = {}
+    sig_held = np.sqrt(np.maximum(np.diag(cov), 0))  # the applied terms' sigmas with the others held at 0
     for i, name in enumerate(PARAMS[:n_out]):
         if applied[i]:
+            # significance is decided with the terms not applied held at 0 (a correlated term held takes its share);
+            # where the all-free estimate alone would not be significant, the line says which figures decided it
+            why = None if abs(x_est[i]) > params.apply_z * sig[i] else (
+                f"significant with the terms not applied held at 0: {x[i] * unit[i]:+.4g} +- "
+                f"{sig_held[i] * unit[i]:.3g}; with every term free within {params.apply_z:g} sigma of 0")
             terms[name] = ScaleTerm(value=float(x[i] * unit[i]), estimate=float(x_est[i] * unit[i]),
-                                    sigma=float(sig[i] * unit[i]), status="applied", sources=srcs[i])
+                                    sigma=float(sig[i] * unit[i]), status="applied", sources=srcs[i], reason=why)
         elif determined[i]:
             terms[name] = ScaleTerm(value=0.0, estimate=float(x_est[i] * unit[i]), sigma=float(sig[i] * unit[i]),
                                     status="not significant", sources=srcs[i],

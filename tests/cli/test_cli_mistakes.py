@@ -168,3 +168,69 @@ def test_synth_refuses_a_depth_pose_error_it_cannot_render(tmp_path):
     r = gtforge("synth", tmp_path / "a", "--scale", "0.1", "--depth-pose-error-deg", "0.1,0.2,0")
     assert r.returncode == 2 and one_line_error(r) and "add --separate-depth-camera" in r.stderr, r.stderr
     assert not (tmp_path / "a").exists()
+
+
+@pytest.mark.slow
+def test_output_places_are_checked_before_any_work(session_dir, true_calibration, tmp_path):
+    """A calibrate whose report folder's name was taken by a file, or a validate given an existing file as its
+    folder, crashed with FileExistsError after all the work (calibrate had written its calibration already); -c with
+    --holdout was silently unused. Each is one line now, before anything is computed or written."""
+    (tmp_path / "x_report").touch()
+    cases = [(("calibrate", session_dir, "-o", tmp_path / "x.yaml", "--no-loo"),
+              "x_report [--report-dir]: expected a folder (new or existing), got a file"),
+             (("calibrate", session_dir, "-o", tmp_path / "x_report" / "c.yaml"),
+              "c.yaml [--output]: expected a path whose parents are folders, got"),
+             (("validate", session_dir, "-c", true_calibration, "-o", tmp_path / "x_report"),
+              "x_report [--output]: expected a folder (new or existing), got a file"),
+             (("validate", session_dir, "-c", true_calibration, "--holdout", "2", "-o", tmp_path / "v"),
+              "[--calibration]: expected no calibration file with --holdout K")]
+    for args, message in cases:
+        t0 = time.perf_counter()
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r) and message in r.stderr, (args[0], r.stderr)
+        assert time.perf_counter() - t0 < 60  # (refused at once: calibrate's work alone takes longer)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x_report"]
+
+
+def test_an_unwritable_place_is_named_before_work_and_in_one_line_after(tmp_path, monkeypatch, capsys):
+    """A read-only output folder: refused before the stage's work by the output checks, and, where the system says
+    so only at the write (a full disk), one line naming the file (exit 2), not an OSError traceback."""
+    import errno
+    import os
+
+    import gtforge.cli as cli
+    import gtforge.cli.commands as commands
+    from gtforge.errors import InputError
+    from gtforge.io.outputs import require_output_file, require_output_folder
+
+    class ReadOnly:
+        f_flag = os.ST_RDONLY
+
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    monkeypatch.setattr(os, "statvfs", lambda path: ReadOnly())
+    with pytest.raises(InputError, match=rf"new \[--output\]: expected a place this user can write, got "
+                                         rf"{tmp_path} is on a read-only file system"):
+        require_output_folder(tmp_path / "new", "--output")
+    with pytest.raises(InputError, match=r"c\.yaml \[-o\]: expected a place this user can write"):
+        require_output_file(tmp_path / "c.yaml", "-o")
+    monkeypatch.undo()
+
+    def full_disk(**kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "out" / "a.png"))
+
+    monkeypatch.setattr(commands, "app", full_disk)
+    monkeypatch.setattr(cli.sys, "argv", ["gtforge", "evaluate"])
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main()
+    assert exit_info.value.code == 2
+    said = capsys.readouterr()
+    lines = [line for line in (said.out + said.err).splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"error: {tmp_path / 'out' / 'a.png'}: could not be written or "
+                                                   "read (No space left on device) (hint: check the path"), lines
+
+    def bug(**kwargs):
+        raise OSError(errno.EBADF, "Bad file descriptor")
+
+    monkeypatch.setattr(commands, "app", bug)
+    with pytest.raises(OSError, match="Bad file descriptor"):  # not explained by a user's input: its traceback
+        cli.main()

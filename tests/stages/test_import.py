@@ -148,6 +148,18 @@ def test_real_recordings_import_through_the_command(tmp_path):
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert "[zed_calibration]" in r.stderr and "imported from a depth recording alone" in r.stderr
     assert not (tmp_path / "k_run").exists()
+    # the recording cut short: where its IR track has no frame left, the depth and colour import without it (was an
+    # IndexError traceback); where no depth frame is left, one line that says the file may be cut short
+    data = (rec_dir / "azure_kinect_recording.mkv").read_bytes()
+    for size, ok in ((1_600_000, True), (800_000, False)):
+        (tmp_path / "cut.mkv").write_bytes(data[:size])
+        r = gtforge("import", tmp_path / "cut.mkv", "-o", tmp_path / f"cut{size}")
+        if ok:
+            assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+            cap = tmp_path / f"cut{size}" / "scenes" / "000"
+            assert (cap / "DepthMap.tiff").is_file() and not (cap / "IR.png").exists()
+        else:
+            assert r.returncode == 2 and one_line_error(r) and "cut short" in r.stderr, r.stderr
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs0")
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert "got none (2 dropped for skew (frames over 20 ms apart))" in r.stderr and not (tmp_path / "rs0").exists()
@@ -181,8 +193,24 @@ def _metres_as_mm(recs, tmp_path):
     return [recs.rgbd_bag, recs.stereo_bag], ["--depth-unit", "mm", "--clock-offset-ms", str(recs.clock_offset_ms)]
 
 
+def _empty(recs, tmp_path):
+    """A rosbag2 recording whose topics are declared and hold no message (a recorder stopped at once)."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer(tmp_path / "empty", version=8) as w:
+        for topic in ("/camera/depth/image_raw", "/camera/color/image_raw"):
+            w.add_connection(topic, "sensor_msgs/msg/Image", typestore=ts)
+        w.add_connection("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
+    return [tmp_path / "empty"], []
+
+
 BAD = {
     "truncated bag": (_truncated, "truncated"),
+    "empty recording": (_empty, "got an empty one (3 topic(s) declared, 0 messages)"),
+    "half a stereo pair": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--right-topic", "/zed/none"]),
+                           "[right topic]: expected the right image beside"),
     "no depth topic": (lambda recs, tmp: ([recs.stereo_bag], []), "depth"),
     "32FC1 declared mm": (_metres_as_mm, "metres"),
     "intrinsics of another resolution": (_wrong_resolution, "another resolution"),

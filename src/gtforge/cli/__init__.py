@@ -8,6 +8,7 @@ imports only this module.
 from __future__ import annotations
 
 import atexit
+import errno
 import gc
 import os
 import signal
@@ -129,6 +130,24 @@ def main() -> None:
     except Interrupted as exc:
         print(str(exc), file=sys.stderr)
         sys.exit(130)
+    except OSError as exc:
+        if exc.errno not in _PLACE_ERRNOS:
+            raise  # (a bug, or something no user input explains: its traceback is wanted)
+        from rich.text import Text
+
+        from gtforge.cli.commands import console
+
+        where = f"{exc.filename}: " if exc.filename else ""
+        console.print(Text.assemble(("error: ", "bold red"), f"{where}could not be written or read ({exc.strerror}) "
+                                    "(hint: check the path, its permissions and the free space; every file already "
+                                    "written is complete)"), highlight=False, soft_wrap=True)
+        sys.exit(2)
+
+
+# what an output's or input's place can refuse once a stage runs (most are checked before it starts): read-only,
+# not permitted, full, a file where a folder goes or the reverse
+_PLACE_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.EEXIST, errno.ENOTDIR,
+                 errno.EISDIR, errno.ENAMETOOLONG}
 
 
 if __name__ == "__main__":

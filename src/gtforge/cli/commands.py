@@ -180,12 +180,18 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     params = _options(CalibrateParams, **({"board": _options(BoardModel, **given)} if given else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     output = calibration_output_path(output)
-    if report_dir is not None:
-        from gtforge.io.captures import open_session
+    report_dir = report_dir or output.parent / (output.stem + "_report")
+    from gtforge.io.captures import open_session
+    from gtforge.io.outputs import require_output_folder
 
-        open_session(session).refuse_output_over_inputs(report_dir, "--report-dir")
-    res = run(session, output, params, captures.split(",") if captures else None, progress=_status)
-    rep = write_calibration_report(res, report_dir or output.parent / (output.stem + "_report"))
+    opened = open_session(session)
+    opened.refuse_output_over_inputs(output)
+    opened.refuse_output_over_inputs(report_dir, "--report-dir")
+    require_output_folder(report_dir, "--report-dir")
+    res = run(session, None, params, captures.split(",") if captures else None, progress=_status)
+    rep = write_calibration_report(res, report_dir)
+    # the calibration, which the next stages read, last: a run stopped (Ctrl-C) before it leaves none half-reported
+    res.write(output)
     n_used = len(res.captures_used)
     n_bad = sum(p.status != "used" for p in res.poses)
     out.print(f"poses used {n_used}, skipped/outliers {n_bad}; RMS {res.rms_px:.3f} px, worst {res.max_px:.3f} px")
@@ -461,6 +467,11 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
     from gtforge.records.validation import REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidateParams
     from gtforge.validate import validate as run
     from gtforge.validate import validate_gauges
+
+    if holdout and calibration is not None:  # (--holdout calibrates anew: the file given would go unused)
+        raise InputError(calibration, "--calibration", "no calibration file with --holdout K (it calibrates on the "
+                         "other captures and validates that)", "both",
+                         "drop -c, or drop --holdout to validate the file")
 
     if gauges_only:
         if calibration is None:

@@ -83,7 +83,9 @@ class VersionedFile(GTModel):
     @classmethod
     def from_dict(cls: type[M], data: Any, path: str | Path | None = None) -> M:
         if not isinstance(data, dict):
-            raise InputError(path, None, f"{cls.kind_with_article()} (a YAML/JSON mapping)", type(data).__name__)
+            got = "an empty file" if data is None else f"a YAML/JSON {type(data).__name__}, not a mapping"
+            raise InputError(path, None, f"{cls.kind_with_article()} (a YAML/JSON mapping)", got,
+                             "is this the right file?")
         try:
             return cls.model_validate(data)
         except ValidationError as exc:

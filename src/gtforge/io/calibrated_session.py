@@ -10,6 +10,7 @@ from gtforge.core.camera import Rig
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.captures import Session, open_session
+from gtforge.io.outputs import require_output_file
 
 
 def open_with_calibration(session_dir: str | Path, calib: Any, right_yaw: bool = True) -> Session:
@@ -67,5 +68,5 @@ def calibration_output_path(out_path: str | Path) -> Path:
     """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
     p = Path(out_path)
     if p.is_dir() or str(out_path).endswith(("/", "\\")):
-        return p / "calibration.yaml"
-    return p
+        p = p / "calibration.yaml"
+    return require_output_file(p, "--output")  # (before any work: a read-only folder is not found by the write)

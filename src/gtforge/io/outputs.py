@@ -3,22 +3,50 @@ made, removed again when it stopped on bad input before writing into them."""
 from __future__ import annotations
 
 import contextlib
+import os
 from pathlib import Path
 
 from gtforge.errors import InputError
 
 
 def require_output_folder(path: str | Path, option: str = "--output") -> Path:
-    """``path`` is an existing folder or does not exist yet (it is then created by the stage); a file is refused."""
+    """``path`` is an existing folder or does not exist yet (it is then created by the stage), and this user can
+    write there; a file is refused. Checked before a stage's work, not found when it writes."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise InputError(p, option, "a folder (new or existing)", "a file", "give a folder path for the outputs")
-    for parent in p.parents:  # mkdir would fail on a file further up with a traceback
-        if parent.exists():
-            if not parent.is_dir():
-                raise InputError(p, option, "a path whose parents are folders", f"{parent} is a file")
-            break
+    _require_writable_parents(p, option)
     return p
+
+
+def require_output_file(path: str | Path, option: str = "--output") -> Path:
+    """``path`` is a file that may be written (new, or replaced whole): not a folder, its parents folders (or not
+    there yet), writable by this user."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(p, option, "a file path", "a folder", "give the output file's name, e.g. FOLDER/out.yaml")
+    _require_writable_parents(p, option)
+    return p
+
+
+def _require_writable_parents(p: Path, option: str) -> None:
+    """The nearest existing folder at or above ``p`` is a folder this user can write into (what ``mkdir -p`` and a
+    file's creation there need); a file further up is refused (mkdir would fail on it with a traceback)."""
+    for q in [p, *p.parents]:
+        if not (q.exists() or q.is_symlink()):
+            continue
+        if q != p and not q.is_dir():
+            raise InputError(p, option, "a path whose parents are folders", f"{q} is a file")
+        folder = q if q.is_dir() else q.parent
+        if not os.access(folder, os.W_OK | os.X_OK):
+            try:
+                read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+            except OSError:
+                read_only = False
+            raise InputError(p, option, "a place this user can write",
+                             f"{folder} is on a read-only file system" if read_only
+                             else f"{folder} is not writable by this user", "choose another output path")
+        return
 
 
 def require_new_or_empty_folder(path: str | Path, option: str, hint: str, reusable_if: str | None = None) -> Path:

@@ -249,10 +249,17 @@ class Bag:
             self.reader = AnyReader([_bag_source(self.path)])
             self.reader.open()
         except Exception as exc:
+            hint = ("a ROS 2 bag is a folder with metadata.yaml beside its .db3 / .mcap files; a ROS 1 bag is one "
+                    ".bag file" if self.path.is_dir() and not (self.path / "metadata.yaml").is_file() else
+                    "the file may be truncated (was the recording stopped cleanly?)")
             raise InputError(self.path, None, "a readable ROS 1 / ROS 2 bag", f"{type(exc).__name__}: "
-                             f"{str(exc)[:100]}", "the file may be truncated (was the recording stopped cleanly?)") \
-                from None
+                             f"{str(exc)[:100]}", hint) from None
         self.topics = {c.topic: c.msgtype for c in self.reader.connections}
+        if getattr(self.reader, "message_count", None) == 0:  # (before any topic is looked for: none would be found)
+            self.reader.close()
+            raise InputError(self.path, None, "a recording with messages",
+                             f"an empty one ({len(self.topics)} topic(s) declared, 0 messages)",
+                             "the recorder stopped before any message arrived; record again")
 
     def close(self):
         self.reader.close()
@@ -467,7 +474,8 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
         decoders["COLOR"] = lambda b: _kinect_color(b, tag, cw, ch, path)
     source = KinectMkv(path, {k: s.index for k, s in tracks.items()}, decoders)
     depth = _indexed_stream("DEPTH", stamps["DEPTH"], source, post=[lambda a: depth_mm(a, "mm", 1.0, path, "DEPTH")])
-    ir = _indexed_stream("IR", stamps["IR"], source) if "IR" in tracks else None
+    # (a recording cut short can hold an IR track without one frame in it: as good as none)
+    ir = _indexed_stream("IR", stamps["IR"], source) if stamps.get("IR") else None
     # depth-only recording: the IR image is the texture (pixel-aligned with the depth)
     texture = _indexed_stream("COLOR", stamps["COLOR"], source) if ctrack is not None else ir
     k = kinect_calibration_from_dict(data, path, dmode, cmode)

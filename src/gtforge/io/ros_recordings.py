@@ -172,8 +172,14 @@ def _images(bag: Bag) -> list[str]:
 def _ros_stereo(bag: Bag, topics: Topics) -> StereoRecording | None:
     left_t = bag.match(_pats(topics.left, LEFT_TOPICS), role="left")
     right_t = bag.match(_pats(topics.right, RIGHT_TOPICS), role="right")
-    if left_t is None or right_t is None:
+    if left_t is None and right_t is None:
         return None
+    if left_t is None or right_t is None:  # half a pair: a stereo recording that lost a topic, not a depth-only one
+        found, role = (left_t, "right") if right_t is None else (right_t, "left")
+        pats = _pats(getattr(topics, role), RIGHT_TOPICS if role == "right" else LEFT_TOPICS)
+        raise InputError(bag.path, f"{role} topic", f"the {role} image beside {found} (a topic matching "
+                         f"{', '.join(pats[:2])}, ...)", f"none among {', '.join(_images(bag))}",
+                         f"name it with --{role}-topic, or record both cameras of the pair")
     infos = [bag.info_for(t) for t in (left_t, right_t)]
     if any(i is None for i in infos):
         raise InputError(bag.path, "camera_info", f"CameraInfo beside {left_t} and {right_t}", "missing",
@@ -272,7 +278,8 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     rgbd = rgbd_c[0]
     first = rgbd.depth.frames[0].decode() if rgbd.depth.frames else None
     if first is None:
-        raise InputError(rgbd.path, rgbd.depth.name, "depth frames", "none")
+        raise InputError(rgbd.path, rgbd.depth.name, "depth frames", "none",
+                         "is the recording empty, or cut short (a truncated file)?")
     check_size(rgbd.depth_camera or rgbd.texture_camera, first, rgbd.path, rgbd.depth.name)
     if rgbd.texture.frames:
         check_size(rgbd.texture_camera, rgbd.texture.frames[0].decode(), rgbd.path, rgbd.texture.name)

@@ -411,8 +411,10 @@ def summary_lines(rep: GaugesResult) -> list[str]:
             raw = g.raw.spheres[k] if g.raw is not None and g.raw.measurable else None
             parts.append(f"size error {s.size_error_mm:+.3f} mm (raw depth {raw.size_error_mm:+.3f})" if raw else
                          f"size error {s.size_error_mm:+.3f} mm")
-            pr = f", predicted {s.form_range_predicted_mm:.3f}" if s.form_range_predicted_mm is not None else ""
-            parts.append(f"form {s.form_range_mm:.3f} mm range{pr} / {s.form_rms_mm:.3f} mm RMS, {s.n_points} points")
+            pr = f" (predicted {s.form_range_predicted_mm:.3f})" if s.form_range_predicted_mm is not None else ""
+            prms = f" (predicted {s.form_rms_predicted_mm:.3f})" if s.form_rms_predicted_mm is not None else ""
+            parts.append(f"form {s.form_range_mm:.3f} mm range{pr}, {s.form_rms_mm:.3f} mm RMS{prms}, "
+                         f"{s.n_points} points")
         if g.gt.spacing_error_mm is not None:
             raw = g.raw.spacing_error_mm if g.raw is not None and g.raw.measurable else None
             parts.append(f"spacing error {g.gt.spacing_error_mm:+.3f} mm"
