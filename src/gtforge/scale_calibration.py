@@ -593,7 +593,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         if applied[i]:
             # significance is decided with the terms not applied held at 0 (a correlated term held takes its share);
             # where the all-free estimate alone would not be significant, the line says which figures decided it
-            why = None if abs(x_est[i]) > params.apply_z * sig[i] else (
+            why = "" if abs(x_est[i]) > params.apply_z * sig[i] else (
                 f"significant with the terms not applied held at 0: {x[i] * unit[i]:+.4g} +- "
                 f"{sig_held[i] * unit[i]:.3g}; with every term free within {params.apply_z:g} sigma of 0")
             terms[name] = ScaleTerm(value=float(x[i] * unit[i]), estimate=float(x_est[i] * unit[i]),

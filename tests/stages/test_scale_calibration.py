@@ -92,6 +92,8 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
         assert abs(t.estimate - truth[name]) < 3 * t.sigma, (name, t.estimate, t.sigma)
         assert any(s.startswith("boards") for s in t.sources)
         assert t.status == "applied" or t.value == 0.0  # what is not applied is held at 0
+        if t.status == "applied":  # a reason only where the all-free estimate alone is not significant
+            assert (t.reason == "") == (abs(t.estimate) > 2 * t.sigma), (name, t)
     # the covariance is a covariance, its diagonal the sigmas
     C = np.array(info.covariance)
     np.testing.assert_allclose(np.sqrt(np.diag(C)), [info.terms[n].sigma for n in info.terms], rtol=1e-9)
@@ -198,6 +200,9 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
         # every estimate within 2 sigma of 0 (a term left alone once the others are held at 0 may still be applied:
         # its conditional sigma is smaller; its change to the GT is then tiny, checked below)
         assert t.status in ("applied", "not significant") and abs(t.estimate) <= 2 * t.sigma, (name, t)
+        if t.status == "applied":  # the line says which figures decided it (the estimate beside it does not)
+            assert t.reason.startswith("significant with the terms not applied held at 0: "), (name, t.reason)
+            assert t.reason.endswith("with every term free within 2 sigma of 0")
     c0 = CalibrationFile.read(start)
     s = open_session(session_dir)
     for d in s.select("scenes", None):

@@ -17,6 +17,8 @@ def test_true_extrinsic_passes_with_tiny_errors(session_dir, true_calibration, t
     assert rep.warnings and "optimistic" in rep.warnings[0]  # these poses calibrated it
     html = (tmp_path / "validation.html").read_text()
     assert "PASS" in html and "0.56" in html and "data:image/png;base64" in html
+    # the detectors' noise floor and XY without it, as the console and validation.json give them
+    assert f"<td>{rep.xy_noise_floor_px:.4f}</td>" in html and f"<td>{rep.xy_model_mean_px:.4f}</td>" in html
     assert (tmp_path / "validation.json").exists()
 
 
