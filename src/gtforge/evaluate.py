@@ -153,7 +153,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                                           "evaluation's folder is rewritten)", reusable_if="results.json")
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
-    absent = [sid for sid in ids if predictor.find(sid) is None] if hasattr(predictor, "find") else []
+    from_files = hasattr(predictor, "find")  # a folder of predictions, not a network
+    absent = [sid for sid in ids if predictor.find(sid) is None] if from_files else []
     if absent:
         where = getattr(predictor, "folder", "")
         if len(absent) == len(ids):
@@ -167,7 +168,6 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         for sid in absent:
             missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"
     warmed = False
-    from_files = hasattr(predictor, "find")  # a folder of predictions, not a network
     fruit_records, fruit_ms = [], []
     written: list[Path] = []  # the error maps this run wrote
     for k, sid in enumerate(ids):

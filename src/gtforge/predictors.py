@@ -129,7 +129,7 @@ class OnnxModel:
         l, info = _fit(self.conv, left)
         r, _ = _fit(self.conv, right)
         self._check_size(l.shape[:2])
-        a, b = self.conv.prepare(l).astype(self.dtype), self.conv.prepare(r).astype(self.dtype)
+        a, b = self.conv.prepare(l).astype(self.dtype, copy=False), self.conv.prepare(r).astype(self.dtype, copy=False)
         feeds = {self.inputs[0].name: a, self.inputs[1].name: b} if self.layout == "two" else \
             {self.inputs[0].name: np.concatenate([a, b], axis=1)}
         try:
