@@ -52,6 +52,25 @@ def test_a_calibration_of_another_session_is_one_line(session_dir, true_calibrat
 
 
 @pytest.mark.slow
+def test_a_calibration_made_with_other_intrinsics_is_one_line(session_dir, true_calibration, tmp_path):
+    """The session's texture intrinsics edited after calibrating (fx 8 px more, the same image size): the extrinsic
+    was solved with the old ones. validate and refine ran on without a word; now one line names the camera."""
+    other = tmp_path / "edited"
+    shutil.copytree(session_dir, other)
+    p = other / "mech_intrinsics.yaml"
+    d = yaml.safe_load(p.read_text())
+    d["camera"]["fx_px"] += 8.0
+    p.write_text(yaml.safe_dump(d))
+    for args in (("validate", other, "-c", true_calibration, "-o", tmp_path / "va"),
+                 ("refine", other, "-c", true_calibration, "-o", tmp_path / "refined.yaml")):
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args[0], r.stderr)
+        assert "[rig.mech]: expected the session's camera (mech_intrinsics.yaml: fx " in r.stderr, r.stderr
+        assert "the session's intrinsics changed since this calibration" in r.stderr
+    assert not (tmp_path / "va").exists() and not (tmp_path / "refined.yaml").exists()
+
+
+@pytest.mark.slow
 def test_option_values_are_checked(session_dir, true_calibration, dataset, tmp_path):
     before = tree_digest(dataset[0])
     cases = [

@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gtforge.core.camera import Rig
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
@@ -45,6 +47,28 @@ def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
         if (a.width_px, a.height_px) != (b.width_px, b.height_px):
             raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
                              f"{a.width_px}x{a.height_px} px", hint)
+    # the structured-light unit's cameras are the session's files' as calibrate read them: other intrinsics mean the
+    # files changed after calibrating (the extrinsic was solved with the old ones) or another unit's session
+    files = {"mech": session.config.mech_intrinsics, "depth_cam": session.config.depth_intrinsics
+             or session.config.mech_intrinsics}
+    for name, a, b in (("mech", rig.mech, session.mech), ("depth_cam", rig.depth_camera, session.depth_camera)):
+        if not _same_intrinsics(a, b):
+            raise InputError(calib_path, f"rig.{name}", f"the session's camera ({files[name]}: {_intrinsics_text(b)})",
+                             _intrinsics_text(a), "the session's intrinsics changed since this calibration, or it "
+                             "is another session's: calibrate this session again")
+
+
+def _same_intrinsics(a, b) -> bool:
+    """The same pinhole and lens model, to the last digits a YAML file keeps."""
+    da, db = np.asarray(a.dist_coeffs, float), np.asarray(b.dist_coeffs, float)
+    n = max(da.size, db.size)  # (OpenCV's trailing zeros: (k1, k2, p1, p2) is (k1, k2, p1, p2, 0))
+    da, db = np.pad(da, (0, n - da.size)), np.pad(db, (0, n - db.size))
+    return bool(np.allclose([a.fx_px, a.fy_px, a.cx_px, a.cy_px], [b.fx_px, b.fy_px, b.cx_px, b.cy_px], rtol=1e-9,
+                            atol=1e-9) and np.allclose(da, db, rtol=1e-9, atol=1e-12))
+
+
+def _intrinsics_text(cam) -> str:
+    return f"fx {cam.fx_px:.3f} fy {cam.fy_px:.3f} cx {cam.cx_px:.3f} cy {cam.cy_px:.3f}"
 
 
 def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str | Path,
