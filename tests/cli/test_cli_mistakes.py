@@ -28,13 +28,14 @@ def test_synth_and_demo_never_write_into_an_existing_folder(tmp_path, session_di
     assert r.returncode == 2 and "--scale" in r.stderr and not (tmp_path / "new").exists()
 
 
-def _foreign_session(session_dir, tmp_path):
-    """The same captures with a texture camera of another size: the test calibration is not this session's."""
+def _foreign_session(session_dir, tmp_path, field="width_px", change=2):
+    """The same captures with the texture camera's ``field`` changed by ``change`` (default: another image size): the
+    test calibration is not this session's."""
     sess = tmp_path / "other"
     shutil.copytree(session_dir, sess)
     p = sess / "mech_intrinsics.yaml"
     d = yaml.safe_load(p.read_text())
-    d["camera"]["width_px"] += 2
+    d["camera"][field] += change
     p.write_text(yaml.safe_dump(d))
     return sess
 
@@ -55,12 +56,7 @@ def test_a_calibration_of_another_session_is_one_line(session_dir, true_calibrat
 def test_a_calibration_made_with_other_intrinsics_is_one_line(session_dir, true_calibration, tmp_path):
     """The session's texture intrinsics edited after calibrating (fx 8 px more, the same image size): the extrinsic
     was solved with the old ones. validate and refine ran on without a word; now one line names the camera."""
-    other = tmp_path / "edited"
-    shutil.copytree(session_dir, other)
-    p = other / "mech_intrinsics.yaml"
-    d = yaml.safe_load(p.read_text())
-    d["camera"]["fx_px"] += 8.0
-    p.write_text(yaml.safe_dump(d))
+    other = _foreign_session(session_dir, tmp_path, "fx_px", 8.0)
     for args in (("validate", other, "-c", true_calibration, "-o", tmp_path / "va"),
                  ("refine", other, "-c", true_calibration, "-o", tmp_path / "refined.yaml")):
         r = gtforge(*args)
