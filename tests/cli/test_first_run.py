@@ -15,7 +15,7 @@ from gtforge.cli.commands import app
 from gtforge.errors import InputError
 from gtforge.records.calibration import ScaleTerm
 
-from conftest import gtforge
+from conftest import gtforge, one_line_error
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "calib_data_examples" / "session"
 
@@ -95,3 +95,7 @@ def test_a_capture_with_a_missing_file_is_skipped_with_a_hint(tmp_path):
     (sess / "board" / "001" / "2DImage.png").write_bytes(b"not a png")
     r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--no-loo", "--no-self-rectify")
     assert r.returncode == 2 and "2DImage.png" in r.stderr and "leave capture 001 out with --captures" in r.stderr
+    # the same with the self-rectification on (the default), which reads every capture first: the same hint
+    r = gtforge("calibrate", sess, "-o", tmp_path / "c2.yaml", "--no-loo")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "2DImage.png" in r.stderr and "leave capture 001 out with --captures" in r.stderr

@@ -38,7 +38,7 @@ from gtforge.io.cameras import (
     check_zed_conf_reading,
     describe_zed_conf_reading,
 )
-from gtforge.io.captures import Session, missing_capture_file, open_session
+from gtforge.io.captures import Session, leave_out_hint, missing_capture_file, open_session
 
 log = logging.getLogger("gtforge.io.zed_rectification")
 
@@ -321,9 +321,11 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
         try:
             cap = session.load_capture(d, need_right=True)
         except InputError as exc:  # a capture's file missing: no matches from it (calibrate skips it); wrong: stop
-            if not missing_capture_file(exc):
-                raise
-            return None, f"file missing: {exc}"
+            if missing_capture_file(exc):
+                return None, f"file missing: {exc}"
+            if d.parent.name == session.config.board_dir:  # (calibrate --captures leaves a board capture out)
+                raise leave_out_hint(exc, d.name) from None
+            raise
         if cap.zed_right is None:
             return None, "no right image"
         pl, pr = match_points(cap.zed_left, cap.zed_right, max_features=max_features)
