@@ -17,6 +17,7 @@ from gtforge.errors import InputError
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import prestart_pool, run_tasks
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
+from gtforge.io.captures import read_depth
 from gtforge.io.formats import read_image, read_pfm
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import Manifest, SceneMeta
@@ -100,6 +101,28 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     return rep
 
 
+DEPTH_FILE = "depth0.tiff"  # build-dataset's z-depth, float32 mm (docs/dataset-format.md)
+# how far depth0.tiff may lie from the depth disp0GT.pfm implies: float32 disparities carry about 1e-7 of it
+DEPTH_AGREEMENT_REL = 1e-6
+
+
+def depth_mismatch(written: np.ndarray, implied: np.ndarray) -> str | None:
+    """Why ``written`` (depth0.tiff) is not the depth ``implied`` by disp0GT.pfm, or None when it is (the same
+    pixels, each within ``DEPTH_AGREEMENT_REL``)."""
+    if written.shape != implied.shape:
+        return f"{DEPTH_FILE} is {written.shape[1]}x{written.shape[0]} px, disp0GT.pfm {implied.shape[1]}x" \
+               f"{implied.shape[0]} px (checked on the disparity's depth)"
+    fw, fi = np.isfinite(written), np.isfinite(implied)
+    both = fw & fi
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off = np.count_nonzero(np.abs(written[both] - implied[both]) > DEPTH_AGREEMENT_REL * np.abs(implied[both]))
+    n = off + int(np.count_nonzero(fw != fi))
+    if n == 0:
+        return None
+    return (f"{DEPTH_FILE} and disp0GT.pfm disagree at {n} pixel(s) (more than {DEPTH_AGREEMENT_REL:g} apart or one "
+            "without a value): was a file changed after the build? (checked on the disparity's depth)")
+
+
 def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: str,
                      params_json: str, calib_sha256: str | None = None) -> tuple[str, dict]:
     """Worker for ``gtforge verify``: re-check a built scene against its captures. Returns (sid, SceneVerification).
@@ -122,6 +145,7 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
         disp = read_pfm(s / "disp0GT.pfm")
         mask = read_image(s / "mask0nocc.png")
         region = read_image(s / "region.png")
+        written = read_depth(s / DEPTH_FILE) if (s / DEPTH_FILE).is_file() else None
     except InputError as exc:
         return sid, SceneVerification(status="not verifiable", reasons=[str(exc)]).model_dump(mode="json")
     H, W = cap.zed_left.shape[:2]
@@ -134,13 +158,23 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
             return full
 
         disp, mask, region = uncrop(disp, np.nan), uncrop(mask, 0), uncrop(region, 0)
+        written = uncrop(written, np.nan) if written is not None and written.shape == (ch, cw) else written
     depth = rig.zed.disparity_to_depth(disp)
+    mismatch = None
+    if written is not None:
+        # the depth the build checked (depth0.tiff), where the labels agree with it: the build's own figures to the
+        # last digit (the depth disp0GT.pfm implies differs by 1e-7, which can move a pixel across a mask's edge)
+        mismatch = depth_mismatch(written, depth)
+        if mismatch is None:
+            depth = written
     mc = meta.verification.motion_compensation if meta.verification is not None else None
     moved = moved_fruit_of(region, depth, rig, mc) if mc is not None and mc.status == "compensated" else None
     ver, rendered = verify_scene(depth, disp, mask == 255, region, cap.zed_left, cap.zed_right, cap.mech_texture, rig,
                                  params, moved)
     if moved is not None:  # the ground truth's fruit moved between the exposures: still so
         ver = ver.model_copy(update={"motion_compensation": mc})
+    if mismatch is not None:  # checked on the labels' own depth; the scene's two files no longer tell one story
+        ver = ver.model_copy(update={"status": "flagged", "reasons": [*ver.reasons, mismatch]})
     if ver.status == "flagged" and rendered is not None:
         write_verification_overlay(Path(dataset_dir) / "verification" / f"{sid}_overlay.jpg", cap.zed_left, rendered)
     return sid, ver.model_dump(mode="json")

@@ -439,3 +439,29 @@ def test_interior_mask_and_offset_indices():
     out = np.empty(len(v), np.int64)
     _offset_flat(v, u, 8, 11, 55, out)
     np.testing.assert_array_equal(out, (v - 8) * 55 + (u - 11))
+
+
+@pytest.mark.slow
+def test_verify_gives_the_builds_figures_and_flags_a_depth_changed_after_it(dataset, tmp_path):
+    """verify checks the depth the build checked (depth0.tiff, where disp0GT.pfm agrees with it): every scene's
+    figures are the build's to the last digit (verify derived the depth from disp0GT.pfm, 1e-7 away, which moved the
+    demo's scene 003 from -0.0042 to -0.0010 px). A depth0.tiff changed after the build flags its scene."""
+    from gtforge.io.captures import read_depth
+    from gtforge.io.formats import write_tiff_float
+
+    out = tmp_path / "ds"
+    shutil.copytree(dataset[0], out)
+    built = VerificationResult.read(out / "verification.json").scenes
+    rep = verify_dataset(out, VerifyParams(), workers=1)
+    for sid, v in rep.scenes.items():
+        assert v.model_dump(exclude={"time_s"}) == built[sid].model_dump(exclude={"time_s"}), sid
+    z = read_depth(out / "scenes" / "001" / "depth0.tiff")
+    v, u = np.argwhere(np.isfinite(z))[len(np.argwhere(np.isfinite(z))) // 2]
+    z[v, u] *= 1.001  # one pixel, 0.1 % deeper
+    write_tiff_float(out / "scenes" / "001" / "depth0.tiff", z)
+    rep = verify_dataset(out, VerifyParams(), scenes=["001"], workers=1)
+    v1 = rep.scenes["001"]
+    assert v1.status == "flagged" and v1.reasons[-1].startswith(
+        "depth0.tiff and disp0GT.pfm disagree at 1 pixel(s) (more than 1e-06 apart or one without a value)")
+    # checked on the labels' own depth (as before this check): within the noise of the build's figures
+    assert abs(v1.texture_all.dx_px - built["001"].texture_all.dx_px) < 0.01
