@@ -151,6 +151,13 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         _refuse_output_in_dataset(Path(out_dir), ds)
         out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the results (an earlier "
                                           "evaluation's folder is rewritten)", reusable_if="results.json")
+        if (out / "results.json").is_file():  # its maps are removed below: only an evaluation's own folder
+            try:
+                EvalResult.read(out / "results.json")
+            except InputError:
+                raise InputError(out, "--output", "a new or empty folder, or an earlier evaluation's",
+                                 "a folder whose results.json is not gtforge evaluate's",
+                                 "give a new folder for the results") from None
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
     from_files = hasattr(predictor, "find")  # a folder of predictions, not a network
@@ -179,6 +186,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         try:
             left, right = read_image(s / "im0.png"), read_image(s / "im1.png")
             gt = read_pfm(s / "disp0GT.pfm")
+            if gt.shape != left.shape[:2]:
+                raise InputError(s / "disp0GT.pfm", "size", f"{left.shape[1]}x{left.shape[0]} px (im0.png)",
+                                 f"{gt.shape[1]}x{gt.shape[0]} px", "the scene's files are not one build's")
             region = read_image(s / "region.png")
             masks = region_masks(region, read_image(s / "mask0nocc.png"))
             cal = SceneCalib(s / "calib.txt")
@@ -203,9 +213,12 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             missing[sid] = str(exc)
             log.error("scene %s: %s", sid, exc)
             continue
-        if pred.shape != gt.shape:  # (each predictor checks its own; this is the contract's last line of defence)
-            raise InputError(getattr(predictor, "source", None), "prediction size",
-                             f"{gt.shape[1]}x{gt.shape[0]} px (scene {sid})", f"{pred.shape[1]}x{pred.shape[0]} px")
+        if pred.shape != gt.shape:  # (each predictor returns the image's size; the contract's last line of defence)
+            missing[sid] = str(InputError(getattr(predictor, "source", None), "prediction size",
+                                          f"{gt.shape[1]}x{gt.shape[0]} px (scene {sid})",
+                                          f"{pred.shape[1]}x{pred.shape[0]} px"))
+            log.error("scene %s: %s", sid, missing[sid])
+            continue
         times.append(ms)
         res = {}
         for r, m in masks.items():

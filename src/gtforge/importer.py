@@ -456,9 +456,9 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         streams = {"depth": rgbd.depth.name, "texture": rgbd.texture.name}
         if stereo is not None:
             streams.update(left=stereo.left.name, right=stereo.right.name)
-        warnings = stereo.warnings if stereo is not None else [
+        warnings = rgbd.warnings + (stereo.warnings if stereo is not None else [
             "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
-            "need; import the depth and the stereo recordings together for a complete session"]
+            "need; import the depth and the stereo recordings together for a complete session"])
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),
                         stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
                         notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "

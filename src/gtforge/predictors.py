@@ -135,9 +135,7 @@ class OnnxModel:
         try:
             out = self.sess.run(None, feeds)[0]
         except Exception as exc:  # onnxruntime's own errors (a shape or type the graph cannot take) name no file
-            raise InputError(self.path, None, "a model that runs on N x 3 x H x W float images",
-                             f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}",
-                             "check the model's inputs against docs/metrics.md, 'Models'") from None
+            raise _model_error(self.path, exc, "two N x 3 x H x W" if self.layout == "two" else "one N x 6 x H x W")
         return _disparity_from_output(self.path, np.asarray(out, np.float32), l.shape[:2], info)
 
     def _check_size(self, hw: tuple[int, int]) -> None:
@@ -149,6 +147,20 @@ class OnnxModel:
         how = (f"evaluate with --fit resize --resize {fw}x{fh}" if fh and fw else
                "export the model with dynamic height and width")
         raise InputError(self.path, "inputs", want, f"{hw[1]}x{hw[0]} px after --fit {self.conv.fit}", how)
+
+
+# what a runtime's error says when the machine, not the model, ran out (memory on the GPU or the host)
+_OUT_OF_MEMORY = ("out of memory", "failed to allocate", "bad_alloc", "cudaerrormemoryallocation")
+
+
+def _model_error(path: Path, exc: Exception, inputs: str) -> Exception:
+    """A runtime's error on a model's first call as one line naming the model, or ``exc`` itself where it is the
+    machine's (out of memory): that is no mistake in the model or its inputs."""
+    text = str(exc).splitlines()[0][:160] if str(exc) else ""
+    if isinstance(exc, MemoryError) or any(m in str(exc).lower() for m in _OUT_OF_MEMORY):
+        return exc
+    return InputError(path, None, f"a model that runs on {inputs} float images", f"{type(exc).__name__}: {text}",
+                      "check the model's inputs and output against docs/metrics.md, 'Models'")
 
 
 # ONNX element types an image input may have, and the array type gtforge feeds it
@@ -223,9 +235,7 @@ class TorchScriptModel:
                 out = self.model(torch.from_numpy(self.conv.prepare(l)).to(self.device),
                                  torch.from_numpy(self.conv.prepare(r)).to(self.device))
         except Exception as exc:  # the model's own errors (a shape or type it cannot take) name no file
-            raise InputError(self.path, None, "a model that runs on two 1 x 3 x H x W float32 images",
-                             f"{type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}",
-                             "check the model's inputs against docs/metrics.md, 'Models'") from None
+            raise _model_error(self.path, exc, "two 1 x 3 x H x W float32")
         if isinstance(out, (list, tuple)):
             out = out[-1]
         return _disparity_from_output(self.path, out.float().cpu().numpy(), l.shape[:2], info)

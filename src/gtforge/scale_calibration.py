@@ -599,9 +599,11 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
             terms[name] = ScaleTerm(value=float(x[i] * unit[i]), estimate=float(x_est[i] * unit[i]),
                                     sigma=float(sig[i] * unit[i]), status="applied", sources=srcs[i], reason=why)
         elif determined[i]:
+            why = f"within {params.apply_z:g} sigma of 0: not applied" if abs(x_est[i]) <= params.apply_z * sig[i] \
+                else (f"within {params.apply_z:g} sigma of 0 when it was held (the least significant term first, "
+                      f"the others solved again each time), though the all-free estimate is not: not applied")
             terms[name] = ScaleTerm(value=0.0, estimate=float(x_est[i] * unit[i]), sigma=float(sig[i] * unit[i]),
-                                    status="not significant", sources=srcs[i],
-                                    reason=f"within {params.apply_z:g} sigma of 0: not applied")
+                                    status="not significant", sources=srcs[i], reason=why)
         elif not free[i]:
             terms[name] = ScaleTerm(value=0.0, estimate=None, sigma=None, status="not separable", sources=[],
                                     reason="no board capture measures the depth scale or the baseline: scenes see "

@@ -145,9 +145,13 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
         disp = read_pfm(s / "disp0GT.pfm")
         mask = read_image(s / "mask0nocc.png")
         region = read_image(s / "region.png")
-        written = read_depth(s / DEPTH_FILE) if (s / DEPTH_FILE).is_file() else None
     except InputError as exc:
         return sid, SceneVerification(status="not verifiable", reasons=[str(exc)]).model_dump(mode="json")
+    unreadable = None
+    try:
+        written = read_depth(s / DEPTH_FILE) if (s / DEPTH_FILE).is_file() else None
+    except InputError as exc:  # the labels are still there to check: on the disparity's depth, the scene flagged
+        written, unreadable = None, f"{DEPTH_FILE} is unreadable ({exc}): checked on the disparity's depth"
     H, W = cap.zed_left.shape[:2]
     if meta.crop_xywh:  # a cropped dataset: put the crop back where it was cut from
         x0, y0, cw, ch = meta.crop_xywh
@@ -160,7 +164,7 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
         disp, mask, region = uncrop(disp, np.nan), uncrop(mask, 0), uncrop(region, 0)
         written = uncrop(written, np.nan) if written is not None and written.shape == (ch, cw) else written
     depth = rig.zed.disparity_to_depth(disp)
-    mismatch = None
+    mismatch = unreadable
     if written is not None:
         # the depth the build checked (depth0.tiff), where the labels agree with it: the build's own figures to the
         # last digit (the depth disp0GT.pfm implies differs by 1e-7, which can move a pixel across a mask's edge)

@@ -61,7 +61,8 @@ def test_a_calibration_made_with_other_intrinsics_is_one_line(session_dir, true_
                  ("refine", other, "-c", true_calibration, "-o", tmp_path / "refined.yaml")):
         r = gtforge(*args)
         assert r.returncode == 2 and one_line_error(r), (args[0], r.stderr)
-        assert "[rig.mech]: expected the session's camera (mech_intrinsics.yaml: fx " in r.stderr, r.stderr
+        assert "[rig.mech.fx_px]: expected " in r.stderr, r.stderr
+        assert "(the session's mech_intrinsics.yaml), got " in r.stderr
         assert "the session's intrinsics changed since this calibration" in r.stderr
     assert not (tmp_path / "va").exists() and not (tmp_path / "refined.yaml").exists()
 
@@ -218,6 +219,11 @@ def test_an_unwritable_place_is_named_before_work_and_in_one_line_after(tmp_path
     from gtforge.errors import InputError
     from gtforge.io.outputs import require_output_file, require_output_folder
 
+    (tmp_path / "gone").symlink_to(tmp_path / "nothing")  # a link to nothing: mkdir would fail with EEXIST
+    with pytest.raises(InputError, match=r"gone/ds \[--output\]: expected a path whose folders exist or can be made, "
+                                         r"got .*gone is a symbolic link to nothing"):
+        require_output_folder(tmp_path / "gone" / "ds", "--output")
+
     class ReadOnly:
         f_flag = os.ST_RDONLY
 
@@ -230,11 +236,13 @@ def test_an_unwritable_place_is_named_before_work_and_in_one_line_after(tmp_path
         require_output_file(tmp_path / "c.yaml", "-o")
     monkeypatch.undo()
 
-    def full_disk(**kwargs):
-        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "out" / "a.png"))
+    def full_disk(**kwargs):  # (the name an atomic write's temporary file has: the user's file is named)
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "out" / ".a.k2j_8x.tmp.png"))
 
     monkeypatch.setattr(commands, "app", full_disk)
     monkeypatch.setattr(cli.sys, "argv", ["gtforge", "evaluate"])
+    monkeypatch.setattr(cli.signal, "signal", lambda *a: None)  # (main's Ctrl-C handler and exit hook: not pytest's)
+    monkeypatch.setattr(cli.atexit, "register", lambda *a: None)
     with pytest.raises(SystemExit) as exit_info:
         cli.main()
     assert exit_info.value.code == 2
@@ -243,9 +251,14 @@ def test_an_unwritable_place_is_named_before_work_and_in_one_line_after(tmp_path
     assert len(lines) == 1 and lines[0].startswith(f"error: {tmp_path / 'out' / 'a.png'}: could not be written or "
                                                    "read (No space left on device) (hint: check the path"), lines
 
-    def bug(**kwargs):
-        raise OSError(errno.EBADF, "Bad file descriptor")
-
-    monkeypatch.setattr(commands, "app", bug)
-    with pytest.raises(OSError, match="Bad file descriptor"):  # not explained by a user's input: its traceback
+    monkeypatch.setenv("GTFORGE_DEBUG", "1")  # asked for: the traceback
+    with pytest.raises(OSError, match="No space left"):
         cli.main()
+    monkeypatch.delenv("GTFORGE_DEBUG")
+    for code, text in ((errno.EBADF, "Bad file descriptor"), (errno.EEXIST, "File exists")):
+        def bug(code=code, text=text, **kwargs):
+            raise OSError(code, text, "/x/y")
+
+        monkeypatch.setattr(commands, "app", bug)
+        with pytest.raises(OSError, match=text):  # not explained by a user's input (checked before): its traceback
+            cli.main()

@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -118,15 +119,17 @@ def test_onnx_model_mistakes_stop_before_scoring(dataset, tmp_path):
 
     ds, _ = dataset
     fixed = constant_onnx(tmp_path / "fixed.onnx", 35.0, dims=(1, 3, 256, 512))
-    with pytest.raises(InputError, match=r"fixed\.onnx \[inputs\]: expected 512x256 px \(its fixed input size\), "
-                                         r"got 896x512 px after --fit pad.*--fit resize --resize 512x256"):
+    # (each message starts with the model: one error, not the per-scene errors' summary, which names the dataset)
+    with pytest.raises(InputError, match=rf"^{re.escape(str(fixed))} \[inputs\]: expected 512x256 px \(its fixed "
+                                         r"input size\), got 896x512 px after --fit pad.*"
+                                         r"--fit resize --resize 512x256"):
         evaluate(ds, OnnxModel(fixed), tmp_path / "ev")
     assert not (tmp_path / "ev").exists()  # nothing written
     rep = evaluate(ds, OnnxModel(fixed, InputConvention(fit="resize", resize_wh=(512, 256))), tmp_path / "ev")
     assert rep.pooled["all"].coverage_pct == 100.0 and not rep.missing
     quarter = constant_onnx(tmp_path / "quarter.onnx", 35.0, step=4)
-    with pytest.raises(InputError, match=r"quarter\.onnx \[output\]: expected a disparity map of the input's size, "
-                                         r"896x512 px, got 224x128 px"):
+    with pytest.raises(InputError, match=rf"^{re.escape(str(quarter))} \[output\]: expected a disparity map of the "
+                                         r"input's size, 896x512 px, got 224x128 px"):
         evaluate(ds, OnnxModel(quarter), tmp_path / "ev2")
     with pytest.raises(InputError, match=r"\[inputs\]: expected two NCHW inputs.*\(channels last, NHWC\)"):
         OnnxModel(constant_onnx(tmp_path / "nhwc.onnx", 1.0, dims=("N", "H", "W", 3)))
@@ -136,7 +139,7 @@ def test_onnx_model_mistakes_stop_before_scoring(dataset, tmp_path):
     assert half.dtype == np.float16
     rep = evaluate(ds, half, tmp_path / "ev3")
     assert rep.pooled["all"].epe_px == pytest.approx(_expected_epe(ds, 35.0), rel=1e-5)
-    with pytest.raises(InputError, match=r"_0: expected an ONNX model file, got a folder"):
+    with pytest.raises(InputError, match=rf"^{re.escape(str(tmp_path))}: expected an ONNX model file, got a folder"):
         OnnxModel(tmp_path)
 
 
@@ -146,7 +149,8 @@ def test_network_input_options_are_checked_by_name(tmp_path):
     cases = [(["--resize", "512x256"], "--resize: expected --fit resize with it, got --fit pad"),
              (["--fit", "resize"], "--resize: expected the network's input size WxH with --fit resize, got none"),
              (["--fit", "crop"], "--fit: expected pad or resize, got 'crop'"),
-             (["--channels", "GBR"], "--channels: expected RGB or BGR, got 'GBR'")]
+             (["--channels", "GBR"], "--channels: expected RGB or BGR, got 'GBR'"),
+             (["--fit", "resize", "--resize", "0x256"], "--resize: expected a width and height of at least 1 px")]
     for extra, message in cases:
         r = gtforge("evaluate", tmp_path, "--sgbm", "-o", tmp_path / "ev", *extra)
         assert r.returncode == 2 and one_line_error(r) and message in r.stderr, (extra, r.stderr)
@@ -167,14 +171,22 @@ def test_evaluation_folder_of_its_own_and_rewritten_whole(dataset, tmp_path):
     with pytest.raises(InputError, match=r"notes \[--output\]: expected a new or empty folder \(or one with "
                                          r"results\.json\), got a folder with 1 entries"):
         evaluate(ds, PredictionFolder(preds), other)
+    (other / "results.json").write_text('{"mine": 1}')  # a results.json, but no evaluation's: not taken as one
+    with pytest.raises(InputError, match=r"notes \[--output\]: expected a new or empty folder, or an earlier "
+                                         r"evaluation's, got a folder whose results\.json is not gtforge evaluate's"):
+        evaluate(ds, PredictionFolder(preds), other)
+    assert sorted(p.name for p in other.iterdir()) == ["mine.txt", "results.json"]
     ev = tmp_path / "ev"
     evaluate(ds, PredictionFolder(preds), ev, write_clouds=True)
     assert len(list((ev / "heatmaps").glob("*.png"))) == 6 and len(list((ev / "clouds").glob("*.ply"))) == 3
+    (ev / "notes.txt").write_text("mine")  # a user's files in the folder stay
+    (ev / "heatmaps" / "mine.png").write_bytes(b"x")
     (preds / "002.pfm").unlink()
     rep = evaluate(ds, PredictionFolder(preds), ev, fruit_size=False)
     assert rep.scenes == ["000", "001"]
     assert sorted(p.name for p in (ev / "heatmaps").glob("*.png")) == [
-        "000_depth_error.png", "000_disp_error.png", "001_depth_error.png", "001_disp_error.png"]
+        "000_depth_error.png", "000_disp_error.png", "001_depth_error.png", "001_disp_error.png", "mine.png"]
+    assert (ev / "notes.txt").read_text() == "mine"
     assert len(list((ev / "heatmaps" / "preview").glob("*.jpg"))) == 4
     assert not (ev / "clouds").exists() or not list((ev / "clouds").iterdir())
     assert not (ev / "fruit_size.csv").exists()

@@ -219,6 +219,26 @@ BAD = {
 }
 
 
+def test_a_stray_camera_topic_warns_and_the_depth_imports(hand, recs, tmp_path):
+    """A depth recording that also carries one camera of a stereo pair (no topic named): imported depth-only, as
+    before, with a warning naming the missing side; naming the topic makes it an error (BAD's 'half a stereo pair')."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    mixed = tmp_path / "mixed"
+    with AnyReader([Path(recs.rgbd_bag), Path(recs.stereo_bag)]) as reader, Writer(mixed, version=8) as w:
+        keep = [c for c in reader.connections if "/right/" not in c.topic]
+        out = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in keep}
+        for conn, t_ns, raw in reader.messages(connections=keep):
+            w.write(out[conn.topic], t_ns, raw)
+    r = gtforge("import", mixed, "-o", tmp_path / "s", "--max-captures", "1")
+    assert r.returncode == 0, r.stderr
+    assert "warning: half a stereo pair, not imported: " in r.stderr and "[right topic]" in r.stderr
+    assert "no stereo recording" in r.stderr and not list((tmp_path / "s").glob("*/*/left.png"))
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_bad_input_is_a_one_line_error_and_writes_nothing(hand, recs, tmp_path, case):
     recs.hand = hand

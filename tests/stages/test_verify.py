@@ -465,3 +465,8 @@ def test_verify_gives_the_builds_figures_and_flags_a_depth_changed_after_it(data
         "depth0.tiff and disp0GT.pfm disagree at 1 pixel(s) (more than 1e-06 apart or one without a value)")
     # checked on the labels' own depth (as before this check): within the noise of the build's figures
     assert abs(v1.texture_all.dx_px - built["001"].texture_all.dx_px) < 0.01
+    f = out / "scenes" / "002" / "depth0.tiff"
+    f.write_bytes(f.read_bytes()[:1000])  # cut short: the labels are still checked, the scene flagged
+    v2 = verify_dataset(out, VerifyParams(), scenes=["002"], workers=1).scenes["002"]
+    assert v2.status == "flagged" and v2.reasons[-1].startswith("depth0.tiff is unreadable (")
+    assert v2.reasons[-1].endswith("): checked on the disparity's depth") and v2.texture_all.dx_px is not None

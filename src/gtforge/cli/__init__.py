@@ -131,23 +131,35 @@ def main() -> None:
         print(str(exc), file=sys.stderr)
         sys.exit(130)
     except OSError as exc:
-        if exc.errno not in _PLACE_ERRNOS:
+        if exc.errno not in _PLACE_ERRNOS or os.environ.get("GTFORGE_DEBUG"):
             raise  # (a bug, or something no user input explains: its traceback is wanted)
         from rich.text import Text
 
         from gtforge.cli.commands import console
 
-        where = f"{exc.filename}: " if exc.filename else ""
-        console.print(Text.assemble(("error: ", "bold red"), f"{where}could not be written or read ({exc.strerror}) "
-                                    "(hint: check the path, its permissions and the free space; every file already "
-                                    "written is complete)"), highlight=False, soft_wrap=True)
+        name = _destination(exc.filename or exc.filename2)
+        console.print(Text.assemble(("error: ", "bold red"), f"{name + ': ' if name else ''}could not be written or "
+                                    f"read ({exc.strerror}) (hint: check the path, its permissions and the free "
+                                    "space; every file already written is complete; GTFORGE_DEBUG=1 shows where)"),
+                      highlight=False, soft_wrap=True)
         sys.exit(2)
 
 
-# what an output's or input's place can refuse once a stage runs (most are checked before it starts): read-only,
-# not permitted, full, a file where a folder goes or the reverse
-_PLACE_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.EEXIST, errno.ENOTDIR,
-                 errno.EISDIR, errno.ENAMETOOLONG}
+# what a place refuses once a stage runs, whatever gtforge does (most is checked before it starts): read-only, not
+# permitted, full. (A file where a folder goes, or the reverse, is checked before; at a write it would be a bug.)
+_PLACE_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT}
+
+
+def _destination(name) -> str:
+    """The file a user knows for ``name``: an atomic write's temporary ``.STEM.XXXX.tmp.SUFFIX`` is ``STEM.SUFFIX``
+    (``gtforge.infra.atomic``)."""
+    if not name:
+        return ""
+    import re
+
+    p = str(name)
+    m = re.match(r"^(.*/)?\.(.+)\.[^./]+\.tmp(\.[^./]+)?$", p)
+    return f"{m.group(1) or ''}{m.group(2)}{m.group(3) or ''}" if m else p
 
 
 if __name__ == "__main__":

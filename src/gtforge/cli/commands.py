@@ -65,10 +65,12 @@ def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
         return CROP_PRESETS[text.lower()]
     try:
         w, h = (int(x) for x in text.lower().split("x"))
-        return w, h
     except ValueError:
         raise InputError(None, name, "WIDTHxHEIGHT (e.g. 1088x376) or a preset (kitti = 1242x375)",
                          repr(text)) from None
+    if w <= 0 or h <= 0:
+        raise InputError(None, name, "a width and height of at least 1 px", repr(text))
+    return w, h
 
 
 # the board model's fields whose command-line option has another name (calibrate, validate, import)
@@ -189,9 +191,13 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     opened.refuse_output_over_inputs(report_dir, "--report-dir")
     require_output_folder(report_dir, "--report-dir")
     res = run(session, None, params, captures.split(",") if captures else None, progress=_status)
-    rep = write_calibration_report(res, report_dir)
-    # the calibration, which the next stages read, last: a run stopped (Ctrl-C) before it leaves none half-reported
-    res.write(output)
+    from gtforge.infra.atomic import atomic_path
+
+    # the calibration, which the next stages read, lands once its report is written: a run stopped (Ctrl-C) or failing
+    # in the report leaves the earlier calibration (if any) as it was, never a new one without its report
+    with atomic_path(output) as staged:
+        res.write(staged)
+        rep = write_calibration_report(res, report_dir)
     n_used = len(res.captures_used)
     n_bad = sum(p.status != "used" for p in res.poses)
     out.print(f"poses used {n_used}, skipped/outliers {n_bad}; RMS {res.rms_px:.3f} px, worst {res.max_px:.3f} px")

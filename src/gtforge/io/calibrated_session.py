@@ -6,8 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from gtforge.core.camera import Rig
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
@@ -52,23 +50,31 @@ def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
     files = {"mech": session.config.mech_intrinsics, "depth_cam": session.config.depth_intrinsics
              or session.config.mech_intrinsics}
     for name, a, b in (("mech", rig.mech, session.mech), ("depth_cam", rig.depth_camera, session.depth_camera)):
-        if not _same_intrinsics(a, b):
-            raise InputError(calib_path, f"rig.{name}", f"the session's camera ({files[name]}: {_intrinsics_text(b)})",
-                             _intrinsics_text(a), "the session's intrinsics changed since this calibration, or it "
-                             "is another session's: calibrate this session again")
+        differs = _intrinsics_difference(a, b)
+        if differs is not None:
+            field, theirs, ours = differs
+            raise InputError(calib_path, f"rig.{name}.{field}", f"{ours} (the session's {files[name]})", theirs,
+                             "the session's intrinsics changed since this calibration (calibrate again), or " + hint)
 
 
-def _same_intrinsics(a, b) -> bool:
-    """The same pinhole and lens model, to the last digits a YAML file keeps."""
-    da, db = np.asarray(a.dist_coeffs, float), np.asarray(b.dist_coeffs, float)
-    n = max(da.size, db.size)  # (OpenCV's trailing zeros: (k1, k2, p1, p2) is (k1, k2, p1, p2, 0))
-    da, db = np.pad(da, (0, n - da.size)), np.pad(db, (0, n - db.size))
-    return bool(np.allclose([a.fx_px, a.fy_px, a.cx_px, a.cy_px], [b.fx_px, b.fy_px, b.cx_px, b.cy_px], rtol=1e-9,
-                            atol=1e-9) and np.allclose(da, db, rtol=1e-9, atol=1e-12))
+# how far a calibration's copy of an intrinsic may lie from the session's file: rounding when a file is re-exported
+# (6 decimals), far below anything a pose or a label feels
+INTRINSICS_TOL_PX = 1e-3
+DIST_COEFF_TOL = 1e-6
 
 
-def _intrinsics_text(cam) -> str:
-    return f"fx {cam.fx_px:.3f} fy {cam.fy_px:.3f} cx {cam.cx_px:.3f} cy {cam.cy_px:.3f}"
+def _intrinsics_difference(a, b) -> tuple[str, str, str] | None:
+    """The first intrinsic in which camera ``a`` differs from ``b`` (field, a's value, b's value), or None."""
+    for field in ("fx_px", "fy_px", "cx_px", "cy_px"):
+        if abs(getattr(a, field) - getattr(b, field)) > INTRINSICS_TOL_PX:
+            return field, f"{getattr(a, field):.6g}", f"{getattr(b, field):.6g}"
+    da, db = list(a.dist_coeffs), list(b.dist_coeffs)
+    n = max(len(da), len(db))  # (OpenCV's trailing zeros: (k1, k2, p1, p2) is (k1, k2, p1, p2, 0))
+    da, db = da + [0.0] * (n - len(da)), db + [0.0] * (n - len(db))
+    for k in range(n):
+        if abs(da[k] - db[k]) > DIST_COEFF_TOL:
+            return f"dist_coeffs[{k}]", f"{da[k]:.6g}", f"{db[k]:.6g}"
+    return None
 
 
 def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str | Path,

@@ -35,6 +35,9 @@ def _require_writable_parents(p: Path, option: str) -> None:
     for q in [p, *p.parents]:
         if not (q.exists() or q.is_symlink()):
             continue
+        if not q.exists():  # (a symbolic link to nothing: mkdir and open both fail on it)
+            raise InputError(p, option, "a path whose folders exist or can be made",
+                             f"{q} is a symbolic link to nothing ({os.readlink(q)})", "remove the link or fix it")
         if q != p and not q.is_dir():
             raise InputError(p, option, "a path whose parents are folders", f"{q} is a file")
         folder = q if q.is_dir() else q.parent

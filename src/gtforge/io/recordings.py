@@ -88,6 +88,7 @@ class RgbdRecording:
     kinect_modes: tuple[str, str] | None = None  # (depth mode, colour mode)
     notes: list[str] = field(default_factory=list)
     serial: str | None = None  # the device's serial number where the recording names it
+    warnings: list[str] = field(default_factory=list)  # for the user (the import's summary)
 
 
 @dataclass
@@ -476,6 +477,9 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
     depth = _indexed_stream("DEPTH", stamps["DEPTH"], source, post=[lambda a: depth_mm(a, "mm", 1.0, path, "DEPTH")])
     # (a recording cut short can hold an IR track without one frame in it: as good as none)
     ir = _indexed_stream("IR", stamps["IR"], source) if stamps.get("IR") else None
+    if ctrack is None and ir is None:  # a depth-only recording: the IR image is its texture
+        raise InputError(path, "IR track", "IR frames (a depth-only recording's texture)",
+                         "none" if "IR" in tracks else "no IR track", "is the recording cut short (a truncated file)?")
     # depth-only recording: the IR image is the texture (pixel-aligned with the depth)
     texture = _indexed_stream("COLOR", stamps["COLOR"], source) if ctrack is not None else ir
     k = kinect_calibration_from_dict(data, path, dmode, cmode)

@@ -169,17 +169,28 @@ def _images(bag: Bag) -> list[str]:
     return sorted(t for t, ty in bag.topics.items() if ty.startswith("sensor_msgs/msg/") and "Image" in ty)
 
 
-def _ros_stereo(bag: Bag, topics: Topics) -> StereoRecording | None:
+def _half_pair(bag: Bag, topics: Topics, left_t: str | None, right_t: str | None) -> InputError:
+    """What is wrong with a bag holding one camera of a stereo pair (a topic of one side, none of the other)."""
+    found, role = (left_t, "right") if right_t is None else (right_t, "left")
+    pats = _pats(getattr(topics, role), RIGHT_TOPICS if role == "right" else LEFT_TOPICS)
+    return InputError(bag.path, f"{role} topic", f"the {role} image beside {found} (a topic matching "
+                      f"{', '.join(pats[:2])}, ...)", f"none among {', '.join(_images(bag))}",
+                      f"name it with --{role}-topic, or record both cameras of the pair")
+
+
+def _ros_stereo(bag: Bag, topics: Topics, halves: list[InputError]) -> StereoRecording | None:
+    """The bag's stereo pair, or None. One camera of a pair without the other is refused when its topics were named
+    (--left-topic / --right-topic); otherwise it is added to ``halves`` (a depth bag may carry a stray camera topic:
+    said only if no stereo recording is found at all)."""
     left_t = bag.match(_pats(topics.left, LEFT_TOPICS), role="left")
     right_t = bag.match(_pats(topics.right, RIGHT_TOPICS), role="right")
     if left_t is None and right_t is None:
         return None
-    if left_t is None or right_t is None:  # half a pair: a stereo recording that lost a topic, not a depth-only one
-        found, role = (left_t, "right") if right_t is None else (right_t, "left")
-        pats = _pats(getattr(topics, role), RIGHT_TOPICS if role == "right" else LEFT_TOPICS)
-        raise InputError(bag.path, f"{role} topic", f"the {role} image beside {found} (a topic matching "
-                         f"{', '.join(pats[:2])}, ...)", f"none among {', '.join(_images(bag))}",
-                         f"name it with --{role}-topic, or record both cameras of the pair")
+    if left_t is None or right_t is None:
+        if topics.left or topics.right:
+            raise _half_pair(bag, topics, left_t, right_t)
+        halves.append(_half_pair(bag, topics, left_t, right_t))
+        return None
     infos = [bag.info_for(t) for t in (left_t, right_t)]
     if any(i is None for i in infos):
         raise InputError(bag.path, "camera_info", f"CameraInfo beside {left_t} and {right_t}", "missing",
@@ -228,6 +239,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     """The depth camera's and the stereo camera's recordings among ``paths`` (one or two files/folders)."""
     topics = topics or Topics()
     rgbd_c, stereo_c, bags = [], [], []
+    halves: list[InputError] = []  # bags with one camera of a stereo pair (``_ros_stereo``)
     calibration_used = False  # --zed-calibration applies to a ZED export folder or an .svo2 only
     for p in paths:
         p = Path(p)
@@ -255,7 +267,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         if is_realsense_bag(bag):
             rgbd_c.append(read_realsense(bag))
             continue
-        s = _ros_stereo(bag, topics)
+        s = _ros_stereo(bag, topics, halves)
         r = _ros_rgbd(bag, topics) if (s is None or len(paths) == 1 or topics.depth) else None
         if s is None and r is None:
             raise InputError(p, "depth topic", "a depth image topic (or a left/right stereo pair)", "none",
@@ -270,6 +282,8 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     if not rgbd_c:
         raise InputError(paths[0], "depth topic", "a depth recording (depth image topic)", "none",
                          "name the depth camera's recording too, or its topic with --depth-topic")
+    if not stereo_c and halves:  # imported depth-only, as asked; the warning says what looked like half a pair
+        rgbd_c[0].warnings.append(f"half a stereo pair, not imported: {halves[0]}")
     if topics.zed_calibration is not None and not calibration_used:
         raise InputError(topics.zed_calibration, "--zed-calibration", "a ZED .svo2 or ZED SDK export folder to apply "
                          "it to", "none among the recordings" if not stereo_c else

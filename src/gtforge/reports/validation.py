@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from gtforge.core.camera import PinholeCamera
+from gtforge.infra.atomic import atomic_path
 from gtforge.records.validation import REFERENCE_SOURCE, REFERENCE_XY_PX, REFERENCE_Z_PCT, ValidationResult
 from gtforge.reports import rectification as rectification_report
 from gtforge.reports.gauges import gauge_sections
@@ -187,7 +188,8 @@ def write_validation_report(rep: ValidationResult, out: Path, zed_cam: PinholeCa
     header = standard_header(("session", rep.session_dir), ("calibration", rep.calibration_path),
                              *((("board (inner corners, square)", f"{board.cols} x {board.rows}, "
                                  f"{board.square_size_mm:g} mm"),) if board is not None else ()))
-    html = write_html(out / "validation.html", "gtforge validation", built, header=header)
-    # the result a script reads, last: a run stopped (Ctrl-C) before it leaves no validation.json that looks complete
-    rep.write(out / "validation.json")
-    return html
+    # validation.json, the result a script reads, lands once the page is written: a run stopped (Ctrl-C) before leaves
+    # no new validation.json without its page
+    with atomic_path(out / "validation.json") as staged:
+        rep.write(staged)
+        return write_html(out / "validation.html", "gtforge validation", built, header=header)
