@@ -177,6 +177,11 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     warmed = False
     fruit_records, fruit_ms = [], []
     written: list[Path] = []  # the error maps this run wrote
+
+    def leave_out(sid: str, exc: InputError) -> None:  # a scene not scored: said now, listed in the results
+        missing[sid] = str(exc)
+        log.error("scene %s: %s", sid, exc)
+
     for k, sid in enumerate(ids):
         if sid in missing:
             continue
@@ -199,8 +204,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                     raise InputError(s / SIGMA_FILE, "size", f"{gt.shape[1]}x{gt.shape[0]} px (disp0GT.pfm)",
                                      f"{sigma.shape[1]}x{sigma.shape[0]} px")
         except InputError as exc:
-            missing[sid] = str(exc)
-            log.error("scene %s: %s", sid, exc)
+            leave_out(sid, exc)
             continue
         if not from_files and not warmed:
             # a network that fails on its first scene (its inputs' or output's shape or type) fails on every scene:
@@ -210,14 +214,12 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         try:
             pred, ms = timed_predict(predictor, sid, left, right, cal.ndisp, cal.vmin)
         except InputError as exc:  # a folder's file, or a network on a scene unlike the first
-            missing[sid] = str(exc)
-            log.error("scene %s: %s", sid, exc)
+            leave_out(sid, exc)
             continue
         if pred.shape != gt.shape:  # (each predictor returns the image's size; the contract's last line of defence)
-            missing[sid] = str(InputError(getattr(predictor, "source", None), "prediction size",
-                                          f"{gt.shape[1]}x{gt.shape[0]} px (scene {sid})",
-                                          f"{pred.shape[1]}x{pred.shape[0]} px"))
-            log.error("scene %s: %s", sid, missing[sid])
+            leave_out(sid, InputError(getattr(predictor, "source", None), "prediction size",
+                                      f"{gt.shape[1]}x{gt.shape[0]} px (scene {sid})",
+                                      f"{pred.shape[1]}x{pred.shape[0]} px"))
             continue
         times.append(ms)
         res = {}

@@ -29,7 +29,7 @@ from gtforge.infra.digest import blake3_file
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
-from gtforge.io.recordings import RgbdRecording, StereoRecording, Stream, iter_frames
+from gtforge.io.recordings import NO_FRAMES_HINT, RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
 from gtforge.io.vendors import load_structured_light_cameras
 from gtforge.records.imports import ImportParams, ImportRecord, ImportRun, PairRecord, SourceFile
@@ -137,15 +137,12 @@ def _times(s: Stream) -> np.ndarray:
     return np.array([f.t_ns for f in s.frames], np.int64)
 
 
-_NO_FRAMES_HINT = "is the recording empty, or cut short (a truncated file)?"
-
-
 def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: ImportParams, progress=None):
     """The kept pairs (one per still stretch), the drop counts, and the clock offset used (ns) with its source."""
     td, tt = _times(rgbd.depth), _times(rgbd.texture)
     if not td.size or not tt.size:
         raise InputError(rgbd.path, rgbd.depth.name if not td.size else rgbd.texture.name, "frames", "none",
-                         _NO_FRAMES_HINT)
+                         NO_FRAMES_HINT)
     scores = motion_scores([rgbd.texture] + ([stereo.left] if stereo is not None else []), progress)
     tex_still = scores[0] <= params.still_threshold
     tex_seg = _segments(tex_still)
@@ -154,7 +151,7 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
     if stereo is not None:
         tl, tr = _times(stereo.left), _times(stereo.right)
         if not tl.size:
-            raise InputError(stereo.path, stereo.left.name, "frames", "none", _NO_FRAMES_HINT)
+            raise InputError(stereo.path, stereo.left.name, "frames", "none", NO_FRAMES_HINT)
         left_still = scores[1] <= params.still_threshold
         left_seg = _segments(left_still)
         if stereo.path == rgbd.path:

@@ -114,8 +114,7 @@ def depth_mismatch(written: np.ndarray, implied: np.ndarray) -> str | None:
                f"{implied.shape[0]} px (checked on the disparity's depth)"
     fw, fi = np.isfinite(written), np.isfinite(implied)
     both = fw & fi
-    with np.errstate(invalid="ignore", divide="ignore"):
-        off = np.count_nonzero(np.abs(written[both] - implied[both]) > DEPTH_AGREEMENT_REL * np.abs(implied[both]))
+    off = np.count_nonzero(np.abs(written[both] - implied[both]) > DEPTH_AGREEMENT_REL * np.abs(implied[both]))
     n = off + int(np.count_nonzero(fw != fi))
     if n == 0:
         return None

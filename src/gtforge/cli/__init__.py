@@ -64,21 +64,25 @@ def _click_exceptions():
     return exceptions
 
 
-def _usage_error(exc) -> None:
-    """Print Click's usage error ``exc`` (an unknown option, a value out of range, a missing argument) as one line
-    naming the command, and exit with its code (2)."""
+def _print_error(message: str) -> None:
+    """``error: MESSAGE``, one line on stderr (the shape of every error the command reports itself)."""
     from rich.text import Text
 
     from gtforge.cli.commands import console
 
+    console.print(Text.assemble(("error: ", "bold red"), message), highlight=False, soft_wrap=True)
+
+
+def _usage_error(exc) -> None:
+    """Print Click's usage error ``exc`` (an unknown option, a value out of range, a missing argument) as one line
+    naming the command, and exit with its code (2)."""
     names, ctx = [], exc.ctx
     while ctx is not None and ctx.parent is not None:  # the subcommand's name (the root's is how Python was started)
         names.insert(0, ctx.info_name)
         ctx = ctx.parent
     command = " ".join(["gtforge", *names])
     message = " ".join(exc.format_message().split())
-    console.print(Text.assemble(("error: ", "bold red"), f"{command}: {message} (hint: {command} --help)"),
-                  highlight=False, soft_wrap=True)
+    _print_error(f"{command}: {message} (hint: {command} --help)")
     sys.exit(exc.exit_code)
 
 
@@ -121,11 +125,7 @@ def main() -> None:
             sys.exit(1)
         sys.exit(code if isinstance(code, int) else 0)
     except InputError as exc:
-        from rich.text import Text
-
-        from gtforge.cli.commands import console
-
-        console.print(Text.assemble(("error: ", "bold red"), str(exc)), highlight=False, soft_wrap=True)
+        _print_error(str(exc))
         sys.exit(2)
     except Interrupted as exc:
         print(str(exc), file=sys.stderr)
@@ -133,15 +133,10 @@ def main() -> None:
     except OSError as exc:
         if exc.errno not in _PLACE_ERRNOS or os.environ.get("GTFORGE_DEBUG"):
             raise  # (a bug, or something no user input explains: its traceback is wanted)
-        from rich.text import Text
-
-        from gtforge.cli.commands import console
-
         name = _destination(exc.filename or exc.filename2)
-        console.print(Text.assemble(("error: ", "bold red"), f"{name + ': ' if name else ''}could not be written or "
-                                    f"read ({exc.strerror}) (hint: check the path, its permissions and the free "
-                                    "space; every file already written is complete; GTFORGE_DEBUG=1 shows where)"),
-                      highlight=False, soft_wrap=True)
+        _print_error(f"{name + ': ' if name else ''}could not be written or read ({exc.strerror}) (hint: check the "
+                     "path, its permissions and the free space; every file already written is complete; "
+                     "GTFORGE_DEBUG=1 shows where)")
         sys.exit(2)
 
 

@@ -608,13 +608,14 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
 
 def _input_convention(channels: str, normalize: str, fit: str, resize: Optional[str]):
     """evaluate's network options as an ``InputConvention``, each mistake named by its option."""
+    from typing import get_args
+
     from gtforge.predictors import InputConvention
 
-    choices = {"--channels": (channels, ("RGB", "BGR")), "--normalize": (normalize, ("imagenet", "0-255", "0-1")),
-               "--fit": (fit, ("pad", "resize"))}
-    for option, (value, allowed) in choices.items():
+    for field, value in (("channels", channels), ("normalize", normalize), ("fit", fit)):
+        allowed = get_args(InputConvention.model_fields[field].annotation)  # (the model's Literal: one list)
         if value not in allowed:
-            raise InputError(None, option, " or ".join(allowed), repr(value), "gtforge evaluate --help")
+            raise InputError(None, f"--{field}", " or ".join(allowed), repr(value), "gtforge evaluate --help")
     wh = _wh(resize, "--resize")
     if fit == "resize" and wh is None:
         raise InputError(None, "--resize", "the network's input size WxH with --fit resize", "none",

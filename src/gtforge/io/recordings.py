@@ -114,6 +114,10 @@ def require_extra(module: str):
 
 
 # ---- image decoding -------------------------------------------------------------------------------
+# the hint where a recording holds no frame of a stream
+NO_FRAMES_HINT = "is the recording empty, or cut short (a truncated file)?"
+
+
 def _bad(path, topic, expected, actual, hint=None):
     return InputError(path, topic, expected, actual, hint)
 
@@ -479,7 +483,7 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
     ir = _indexed_stream("IR", stamps["IR"], source) if stamps.get("IR") else None
     if ctrack is None and ir is None:  # a depth-only recording: the IR image is its texture
         raise InputError(path, "IR track", "IR frames (a depth-only recording's texture)",
-                         "none" if "IR" in tracks else "no IR track", "is the recording cut short (a truncated file)?")
+                         "none" if "IR" in tracks else "no IR track", NO_FRAMES_HINT)
     # depth-only recording: the IR image is the texture (pixel-aligned with the depth)
     texture = _indexed_stream("COLOR", stamps["COLOR"], source) if ctrack is not None else ir
     k = kinect_calibration_from_dict(data, path, dmode, cmode)

@@ -20,6 +20,7 @@ from gtforge.io.recordings import (
     COLOR_TOPICS,
     DEPTH_TOPICS,
     LEFT_TOPICS,
+    NO_FRAMES_HINT,
     RIGHT_TOPICS,
     Bag,
     Frame,
@@ -292,8 +293,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     rgbd = rgbd_c[0]
     first = rgbd.depth.frames[0].decode() if rgbd.depth.frames else None
     if first is None:
-        raise InputError(rgbd.path, rgbd.depth.name, "depth frames", "none",
-                         "is the recording empty, or cut short (a truncated file)?")
+        raise InputError(rgbd.path, rgbd.depth.name, "depth frames", "none", NO_FRAMES_HINT)
     check_size(rgbd.depth_camera or rgbd.texture_camera, first, rgbd.path, rgbd.depth.name)
     if rgbd.texture.frames:
         check_size(rgbd.texture_camera, rgbd.texture.frames[0].decode(), rgbd.path, rgbd.texture.name)
