@@ -63,11 +63,11 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
         raise InputError(session.root, None, "board or scene captures", "none", "capture scenes with objects first")
     if progress:
         progress(f"aligning the depth edges of {len(edge_caps)} captures")
-    T_file = rig.T_mech_from_depth_or_identity
-    res = align_captures(edge_caps, rig.mech, T_file, params)
+    T_mech_from_depth_file = rig.T_mech_from_depth_or_identity
+    res = align_captures(edge_caps, rig.mech, T_mech_from_depth_file, params)
     new_rig = Rig.model_validate({**rig.model_dump(), "T_mech_from_depth": np.array(res.T_color_from_depth)})
-    info = DepthAlignment(calibrated_from=str(calib_path.resolve()), T_mech_from_depth_file=T_file, params=params,
-                          result=res, time_s=time.perf_counter() - t0)
+    info = DepthAlignment(calibrated_from=str(calib_path.resolve()), T_mech_from_depth_file=T_mech_from_depth_file,
+                          params=params, result=res, time_s=time.perf_counter() - t0)
     out = calib.model_copy(update={"rig": new_rig, "depth_alignment": info})
     out = CalibrationFile.model_validate(out.model_dump())
     if out_path is not None:

@@ -100,8 +100,8 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
     if len(obs) < params.min_poses:
         raise InputError(None, "captures", f"at least {params.min_poses} poses where both cameras see the board",
                          f"{len(obs)} usable", "add board captures, or check the board size (--cols/--rows)")
-    Ts = [o.T_zed_from_board @ invert_T(o.T_mech_from_board) for o in obs]
-    T0, keep, rot_dev, tr_dev = robust_initial_extrinsic(Ts, params)
+    T_zed_from_mech_per_pose = [o.T_zed_from_board @ invert_T(o.T_mech_from_board) for o in obs]
+    T_zed_from_mech_init, keep, rot_dev, tr_dev = robust_initial_extrinsic(T_zed_from_mech_per_pose, params)
     rep_by_name = {r.capture: r for r in reports}
     for o, k, rd, td in zip(obs, keep, rot_dev, tr_dev):
         r = rep_by_name[o.name]
@@ -134,7 +134,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
                              "depth is off (depth_unit / depth_scale_mm in session.yaml)")
     if progress:
         progress("joint refinement")
-    ref = joint_refine(used, mech, zed.left, board, T0, params.huber_px)
+    ref = joint_refine(used, mech, zed.left, board, T_zed_from_mech_init, params.huber_px)
     allres = []
     region_res: dict[str, list[float]] = {}
     for i, o in enumerate(used):
@@ -157,31 +157,32 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
             if progress:
                 progress(f"leave-one-out {i + 1}/{len(used)}")
             rest = [u for j, u in enumerate(used) if j != i]
-            Tb = [t for j, t in enumerate(ref.T_mech_from_board) if j != i]
-            ref_i = joint_refine(rest, mech, zed.left, board, ref.T_zed_from_mech, params.huber_px, Tb)
+            T_mech_from_board_rest = [t for j, t in enumerate(ref.T_mech_from_board) if j != i]
+            ref_i = joint_refine(rest, mech, zed.left, board, ref.T_zed_from_mech, params.huber_px,
+                                 T_mech_from_board_rest)
             e = transfer_error(o, ref_i.T_zed_from_mech, zed.left, board)
             r = rep_by_name[o.name]
             r.loo_transfer_mean_px, r.loo_transfer_max_px = float(e.mean()), float(e.max())
             loo_means.append(e.mean())
             loo_maxs.append(e.max())
             loo_T.append(ref_i.T_zed_from_mech)
-    T_final = ref.T_zed_from_mech
+    T_zed_from_mech = ref.T_zed_from_mech
     # The Jacobian covariance assumes independent corner errors; a detector's errors are not (perspective and
     # blur bias whole poses). The leave-one-pose-out solutions' jackknife spread sees that: where it is larger (the
     # RMS ratio over the six parameters), the covariance is scaled up by the ratio (never down).
-    jack_scale = jackknife_scale(T_final, loo_T, ref.cov_extrinsic)
+    jack_scale = jackknife_scale(T_zed_from_mech, loo_T, ref.cov_extrinsic)
     cov = cov * (jack_scale or 1.0)
-    methods = [MethodResult(method="reprojection", T_zed_from_mech=T_final.tolist(),
+    methods = [MethodResult(method="reprojection", T_zed_from_mech=T_zed_from_mech.tolist(),
                             rms_zed_px=rms_px(np.concatenate([np.reshape(r, (-1, 2)) for r in ref.res_zed])))]
     method = "reprojection"
     verdict_reasons: list[str] = []
     fail = False
     if params.use_depth:
-        T_depth_method, rms_d, cov_d = _depth_method(used, corners_depth, zed, T_final)
-        if T_depth_method is not None:
-            dr, dt = pose_difference(T_final, T_depth_method)
-            methods.append(MethodResult(method="depth", T_zed_from_mech=T_depth_method.tolist(), rms_zed_px=rms_d,
-                                        rot_diff_to_primary_deg=dr, trans_diff_to_primary_mm=dt))
+        T_zed_from_mech_depth, rms_d, cov_d = _depth_method(used, corners_depth, zed, T_zed_from_mech)
+        if T_zed_from_mech_depth is not None:
+            dr, dt = pose_difference(T_zed_from_mech, T_zed_from_mech_depth)
+            methods.append(MethodResult(method="depth", T_zed_from_mech=T_zed_from_mech_depth.tolist(),
+                                        rms_zed_px=rms_d, rot_diff_to_primary_deg=dr, trans_diff_to_primary_mm=dt))
             sr = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
             st = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
             lim_deg, lim_mm = max(params.methods_agree_deg, 5 * sr), max(params.methods_agree_mm, 5 * st)
@@ -191,7 +192,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
                     f"--use-depth: the depth method differs from the reprojection method by {dr:.3f} deg / {dt:.2f} mm "
                     f"(allowed {lim_deg:.3f} deg / {lim_mm:.2f} mm): the depth's scale or bias, or the board size, "
                     "is off")
-            T_final, method = T_depth_method, "depth"
+            T_zed_from_mech, method = T_zed_from_mech_depth, "depth"
             if cov_d is not None:
                 cov = cov_d * (jack_scale or 1.0)  # the ZED corners' correlated errors affect both solves
         else:
@@ -208,7 +209,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
     loo_mean = float(np.mean(loo_means)) if loo_means else None
     if loo_mean is not None and loo_mean > LOO_WARN_PX:
         verdict_reasons.append(f"leave-one-out transfer {loo_mean:.3f} px > {LOO_WARN_PX} px")
-    rig = Rig(zed=zed, mech=mech, T_zed_from_mech=T_final, depth_cam=depth_cam,
+    rig = Rig(zed=zed, mech=mech, T_zed_from_mech=T_zed_from_mech, depth_cam=depth_cam,
               T_mech_from_depth=None if T_mech_from_depth is None else np.asarray(T_mech_from_depth).tolist())
     result = CalibrationFile(
         rig=rig, board=params.board, method=method, captures_used=[o.name for o in used],
@@ -236,7 +237,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
 
 
 def _depth_method(used: list[PoseObs], corners_depth: dict[str, np.ndarray], zed: RectifiedStereo,
-                  T_init: np.ndarray) -> tuple[np.ndarray | None, float, np.ndarray | None]:
+                  T_zed_from_mech_init: np.ndarray) -> tuple[np.ndarray | None, float, np.ndarray | None]:
     """3D-2D solve: the depth camera's board corners (mech frame) against the ZED detections, all poses at once.
     Returns (T_zed_from_mech, RMS px, 6x6 covariance in the CalibrationFile parameterisation)."""
     from scipy.optimize import least_squares
@@ -248,20 +249,20 @@ def _depth_method(used: list[PoseObs], corners_depth: dict[str, np.ndarray], zed
     P3, P2 = np.concatenate(P3), np.concatenate(P2)
 
     def residuals(x):
-        return (zed.left.project(transform_points(perturb_left(T_init, x), P3)) - P2).ravel()
+        return (zed.left.project(transform_points(perturb_left(T_zed_from_mech_init, x), P3)) - P2).ravel()
 
     sol = least_squares(residuals, np.zeros(6), method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
-    T = perturb_left(T_init, sol.x)
+    T_zed_from_mech = perturb_left(T_zed_from_mech_init, sol.x)
     res = sol.fun.reshape(-1, 2)
-    # re-linearise at the solution so the covariance is in the parameterisation around the written T
-    J = least_squares(lambda x: (zed.left.project(transform_points(perturb_left(T, x), P3)) - P2).ravel(),
+    # re-linearise at the solution so the covariance is in the parameterisation around the written T_zed_from_mech
+    J = least_squares(lambda x: (zed.left.project(transform_points(perturb_left(T_zed_from_mech, x), P3)) - P2).ravel(),
                       np.zeros(6), max_nfev=1, method="lm").jac
     s2 = float(np.sum(res ** 2) / max(res.size - 6, 1))
     try:
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
         cov = None
-    return T, rms_px(res), cov
+    return T_zed_from_mech, rms_px(res), cov
 
 
 def calibrate(session_dir: str | Path, out_path: str | Path | None = None, params: CalibrateParams | None = None,

@@ -53,7 +53,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
                      zed_right_rotation_error_rad=DEMO_RIGHT_TURN_RAD, zed_baseline_error_frac=DEMO_BASELINE_ERROR_FRAC,
                      right_yaw_deg=DEMO_RIGHT_YAW_DEG)
     truth = SyntheticTruth.read(session / "truth" / "rig_truth.yaml")
-    T_true = np.array(truth.T_zed_from_mech)
+    T_zed_from_mech_true = np.array(truth.T_zed_from_mech)
 
     boards = sorted(p.name for p in (session / "board").iterdir())
     held = boards[-holdout:] if holdout else []
@@ -61,7 +61,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     calib_path = d / "calibration.yaml"
     cal = calibrate(session, calib_path, CalibrateParams(use_depth=True), exclude=held, progress=status)
     write_calibration_report(cal, d / "calibration_report")
-    rot_err, tr_err = pose_difference(cal.rig.T_zed_from_mech, T_true)
+    rot_err, tr_err = pose_difference(cal.rig.T_zed_from_mech, T_zed_from_mech_true)
     say(f"      RMS {cal.rms_px:.3f} px; sigma {cal.sigma_rot_deg:.4f} deg / {cal.sigma_trans_mm:.3f} mm; "
         f"vs truth: {rot_err:.4f} deg / {tr_err:.3f} mm; verdict {cal.verdict}")
     stage = f"calibrate ({len(cal.captures_used)} poses, `--use-depth`, {cal.method} method written)"
@@ -110,7 +110,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
         say("[5/7] refine the extrinsic from the scenes' texture alignment")
         refined_path = d / "refined.yaml"
         ref = refine(session, scaled_path, refined_path, RefineParams(leave_one_out=False), progress=status)
-        ref_err = pose_difference(ref.rig.T_zed_from_mech, T_true)
+        ref_err = pose_difference(ref.rig.T_zed_from_mech, T_zed_from_mech_true)
         say(f"      used {', '.join(ref.refinement.scenes_used)}; left out "
             f"{', '.join(ref.refinement.scenes_excluded) or 'none'}; vs truth: {ref_err[0]:.4f} deg / "
             f"{ref_err[1]:.3f} mm (board calibration: {rot_err:.4f} deg / {tr_err:.3f} mm)")

@@ -336,17 +336,18 @@ def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording |
     mech = session / sf.mech_intrinsics
     if mech.is_file():
         cams = load_structured_light_cameras(mech, depth_mode=sf.kinect_depth_mode, color_mode=sf.kinect_color_mode)
-        depth_cam, T = cams.depth, cams.T_mech_from_depth
+        depth_cam, T_mech_from_depth = cams.depth, cams.T_mech_from_depth
         if sf.depth_intrinsics:
-            depth_cam, T = load_camera(session / sf.depth_intrinsics), np.array(sf.T_mech_from_depth)
+            depth_cam, T_mech_from_depth = load_camera(session / sf.depth_intrinsics), np.array(sf.T_mech_from_depth)
         depth_file = session / (sf.depth_intrinsics or sf.mech_intrinsics)
         for what, mine, theirs, file in (("texture camera", rgbd.texture_camera, cams.texture, mech),
                                          ("depth camera", rgbd.depth_camera, depth_cam, depth_file)):
             if not _same_camera(mine, theirs):
                 raise InputError(file, what, f"the session's {_describe(theirs)}", f"{_describe(mine)} in "
                                  f"{rgbd.path.name}", hint)
-        T_new = rgbd.T_texture_from_depth
-        if (T is None) != (T_new is None) or T is not None and not np.allclose(T, T_new, rtol=0, atol=1e-6):
+        T_mech_from_depth_new = rgbd.T_texture_from_depth
+        if (T_mech_from_depth is None) != (T_mech_from_depth_new is None) or T_mech_from_depth is not None \
+                and not np.allclose(T_mech_from_depth, T_mech_from_depth_new, rtol=0, atol=1e-6):
             raise InputError(session / "session.yaml", "T_mech_from_depth", "the session's depth-to-texture transform",
                              f"another one in {rgbd.path.name}", hint)
     zpath = session / sf.zed_calibration

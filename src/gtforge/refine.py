@@ -4,15 +4,17 @@ The board calibration fixes the extrinsic from a few dozen corners; a scene offe
 pixels. For each scene the ground truth is built once with the starting calibration; every usable ZED-left pixel
 (textured, away from depth edges, seen by the texture camera) gives a 3-D point fixed in the structured-light frame,
 ``X_mech = T_mech_from_zed0 @ X_zed``, and the locally normalised texture value rendered there. A candidate extrinsic
-``T`` moves those points to ``pi(T @ X_mech)`` in the ZED-left image; Gauss-Newton (iteratively re-weighted with a
-Huber loss, a free gain and offset per scene) minimises the difference between the normalised ZED-left image there and
-the texture values, over all scenes at once (direct photometric alignment, as ETH3D aligned its images to its scans).
+``T_zed_from_mech`` moves those points to ``pi(T_zed_from_mech @ X_mech)`` in the ZED-left image; Gauss-Newton
+(iteratively re-weighted with a Huber loss, a free gain and offset per scene) minimises the difference between the
+normalised ZED-left image there and the texture values, over all scenes at once (direct photometric alignment, as ETH3D
+aligned its images to its scans).
 
 Robustness: after each solve every scene is verified with the new extrinsic (``gtforge.verify``); a scene that stays
 flagged (a fruit that moved, a knocked rig) is left out and the rest solved again. Generalisation: each scene is also
 held out in turn (leave-one-scene-out), refined without it, and its texture shift measured before and after.
 
-Parameterisation (as ``gtforge.calibrate``): ``T = [exp(omega) R | t + delta_t]``, omega in rad, delta_t in mm.
+Parameterisation (as ``gtforge.calibrate``): ``T_zed_from_mech = [exp(omega) R | t + delta_t]``, omega in rad, delta_t
+in mm.
 """
 from __future__ import annotations
 
@@ -117,12 +119,13 @@ def _scene_at(cap, rig: Rig, build: BuildParams, params: RefineParams):
     return scene_points(cap.name, sd.depth_mm, sd.disparity_px, cap.mech_texture, cap.zed_left, rig, params), ver
 
 
-def _scene_system(sp: ScenePoints, T: np.ndarray, rig: Rig, params: RefineParams, tile_px: float | None = None):
-    """One scene's Huber-IRLS normal equations at ``T`` over (omega, delta_t, gain, offset): ``(JTJ 8x8, JTr 8,
-    weighted rss, count, S 8x8)``; ``S`` (only with ``tile_px``) sums the outer products of the score summed over
+def _scene_system(sp: ScenePoints, T_zed_from_mech: np.ndarray, rig: Rig, params: RefineParams,
+                  tile_px: float | None = None):
+    """One scene's Huber-IRLS normal equations at ``T_zed_from_mech`` over (omega, delta_t, gain, offset): ``(JTJ 8x8,
+    JTr 8, weighted rss, count, S 8x8)``; ``S`` (only with ``tile_px``) sums the outer products of the score summed over
     ``tile_px``-square tiles of the ZED-left image (the cluster-robust "meat" of a sandwich covariance)."""
     cam = rig.zed.left
-    X = transform_points(T, sp.X_mech)
+    X = transform_points(T_zed_from_mech, sp.X_mech)
     Z = X[:, 2]
     u = cam.fx_px * X[:, 0] / Z + cam.cx_px
     v = cam.fy_px * X[:, 1] / Z + cam.cy_px
@@ -135,7 +138,7 @@ def _scene_system(sp: ScenePoints, T: np.ndarray, rig: Rig, params: RefineParams
     du = np.stack([cam.fx_px / Z, np.zeros_like(Z), -cam.fx_px * X[:, 0] / Z ** 2], axis=1)
     dv = np.stack([np.zeros_like(Z), cam.fy_px / Z, -cam.fy_px * X[:, 1] / Z ** 2], axis=1)
     dI_dX = gx[:, None] * du + gy[:, None] * dv  # (N, 3)
-    RX = X - T[:3, 3]  # R @ X_mech
+    RX = X - T_zed_from_mech[:3, 3]  # R @ X_mech
     # X = exp(w) R X_mech + t + dt: dX/dw = -[R X_mech]x, dX/ddt = I
     dI_dw = np.cross(RX, dI_dX)  # (a . (-[p]x w)) = (p x a) . w
     J = np.concatenate([dI_dw, dI_dX, -sp.value[:, None], -np.ones((len(r), 1))], axis=1)
@@ -143,14 +146,15 @@ def _scene_system(sp: ScenePoints, T: np.ndarray, rig: Rig, params: RefineParams
     return H, g, float(np.sum(w * r * r)), len(r), S
 
 
-def _assemble(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams, tile_px: float | None = None):
+def _assemble(scenes: list[ScenePoints], T_zed_from_mech: np.ndarray, rig: Rig, params: RefineParams,
+              tile_px: float | None = None):
     n = len(scenes)
     JTJ = np.zeros((6 + 2 * n, 6 + 2 * n))
     JTr = np.zeros(6 + 2 * n)
     S = np.zeros_like(JTJ) if tile_px is not None else None
     rss, cnt = 0.0, 0
     for k, sp in enumerate(scenes):
-        A, b, rk, ck, Sk = _scene_system(sp, T, rig, params, tile_px)
+        A, b, rk, ck, Sk = _scene_system(sp, T_zed_from_mech, rig, params, tile_px)
         idx = np.r_[0:6, 6 + 2 * k, 7 + 2 * k]
         JTJ[np.ix_(idx, idx)] += A
         JTr[idx] += b
@@ -161,50 +165,50 @@ def _assemble(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: Refine
     return JTJ, JTr, rss, cnt, S
 
 
-def sandwich_covariance(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams,
+def sandwich_covariance(scenes: list[ScenePoints], T_zed_from_mech: np.ndarray, rig: Rig, params: RefineParams,
                         tile_px: float | None = None) -> np.ndarray:
-    """The extrinsic's 6x6 covariance at the solution ``T``: ``H^-1 S H^-1`` over every parameter (the extrinsic and
-    each scene's gain/offset), ``H = sum J^T w J`` and ``S = sum_tiles g g^T`` with ``g`` the score ``sum J^T w r`` of
-    one ``tile_px`` tile of one scene (``params.cov_tile_px`` by default). It takes the residuals' size and their
-    correlation within a tile from the data (a plain Gauss-Newton ``s^2 H^-1`` assumes independent pixels)."""
-    H, _, _, _, S = _assemble(scenes, T, rig, params, float(tile_px or params.cov_tile_px))
+    """The extrinsic's 6x6 covariance at the solution ``T_zed_from_mech``: ``H^-1 S H^-1`` over every parameter (the
+    extrinsic and each scene's gain/offset), ``H = sum J^T w J`` and ``S = sum_tiles g g^T`` with ``g`` the score ``sum
+    J^T w r`` of one ``tile_px`` tile of one scene (``params.cov_tile_px`` by default). It takes the residuals' size and
+    their correlation within a tile from the data (a plain Gauss-Newton ``s^2 H^-1`` assumes independent pixels)."""
+    H, _, _, _, S = _assemble(scenes, T_zed_from_mech, rig, params, float(tile_px or params.cov_tile_px))
     Hi = np.linalg.inv(H)
     C = (Hi @ S @ Hi)[:6, :6]
     return 0.5 * (C + C.T)
 
 
-def covariance_estimates(scenes: list[ScenePoints], T: np.ndarray, rig: Rig, params: RefineParams,
+def covariance_estimates(scenes: list[ScenePoints], T_zed_from_mech: np.ndarray, rig: Rig, params: RefineParams,
                          tiles_px: tuple[float, ...] = (1, 4, 16, 64)) -> dict[str, np.ndarray]:
-    """Diagnostics (benchmarks/bench_refine_uncertainty.py): the extrinsic's covariance at ``T`` by the sandwich with
-    several tile sizes, the plain Gauss-Newton ``s^2 H^-1`` and that times the normalisation window's area (the
-    estimator refine used first: one independent sample per window)."""
-    out = {f"sandwich_{tp:g}px": sandwich_covariance(scenes, T, rig, params, tp) for tp in tiles_px}
-    H, _, rss, cnt, _ = _assemble(scenes, T, rig, params)
+    """Diagnostics (benchmarks/bench_refine_uncertainty.py): the extrinsic's covariance at ``T_zed_from_mech`` by the
+    sandwich with several tile sizes, the plain Gauss-Newton ``s^2 H^-1`` and that times the normalisation window's
+    area (the estimator refine used first: one independent sample per window)."""
+    out = {f"sandwich_{tp:g}px": sandwich_covariance(scenes, T_zed_from_mech, rig, params, tp) for tp in tiles_px}
+    H, _, rss, cnt, _ = _assemble(scenes, T_zed_from_mech, rig, params)
     out["gn_iid"] = np.linalg.inv(H)[:6, :6] * rss / max(cnt - len(H), 1)
     out["gn_window"] = out["gn_iid"] * np.pi * (2 * params.verify.norm_sigma_px) ** 2
     return out
 
 
-def solve_extrinsic(scenes: list[ScenePoints], T0: np.ndarray, rig: Rig, params: RefineParams
+def solve_extrinsic(scenes: list[ScenePoints], T_zed_from_mech_init: np.ndarray, rig: Rig, params: RefineParams
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Newton (Huber IRLS) over the extrinsic and a gain/offset per scene. Returns (T, 6x6 covariance: the
-    tile sandwich of ``sandwich_covariance`` at T)."""
-    T = T0.copy()
+    """Gauss-Newton (Huber IRLS) over the extrinsic and a gain/offset per scene. Returns (T_zed_from_mech, 6x6
+    covariance: the tile sandwich of ``sandwich_covariance`` at T_zed_from_mech)."""
+    T_zed_from_mech = T_zed_from_mech_init.copy()
     for _ in range(params.iterations):
-        JTJ, JTr, rss, cnt, _ = _assemble(scenes, T, rig, params)
+        JTJ, JTr, rss, cnt, _ = _assemble(scenes, T_zed_from_mech, rig, params)
         try:
             step = -np.linalg.solve(JTJ, JTr)
         except np.linalg.LinAlgError:
             raise InputError(None, "scenes", "scenes whose texture constrains the extrinsic", "a singular system",
                              "add scenes with texture over the whole image") from None
-        T = perturb_left(T, step[:6])
+        T_zed_from_mech = perturb_left(T_zed_from_mech, step[:6])
         if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:6]).max() < 1e-5:
             break
     # Not s^2 H^-1 times the normalisation window's area (pi (2 sigma)^2 = 113 px, "one independent sample per
     # window"): the sampled pixels' residuals are nearly independent, so that made the covariance ~100x too large
     # (NEES ~0.04 instead of 6 on synthetic truth; benchmarks/bench_refine_uncertainty.py). The sandwich measures the
     # correlation instead of assuming it.
-    return T, sandwich_covariance(scenes, T, rig, params)
+    return T_zed_from_mech, sandwich_covariance(scenes, T_zed_from_mech, rig, params)
 
 
 def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None = None,
@@ -239,7 +243,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
                          f"at least {params.min_scenes} scenes with textured ground truth", f"{len(pts)}",
                          "refinement needs several scenes; add scene captures")
     used = sorted(pts)
-    T = rig0.T_zed_from_mech
+    T_zed_from_mech = rig0.T_zed_from_mech
     cov = None
     flagged: dict[str, str] = {}
     # Solve; rebuild every scene's ground truth (and so its points and texture templates) with the result, verify
@@ -248,7 +252,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     for outer in range(params.outer_iterations):
         if progress:
             progress(f"solving over {len(used)} scenes (pass {outer + 1})")
-        T_zed_from_mech_new, cov = solve_extrinsic([pts[s] for s in used], T, rig0, params)
+        T_zed_from_mech_new, cov = solve_extrinsic([pts[s] for s in used], T_zed_from_mech, rig0, params)
         rig = rig0.with_extrinsic(T_zed_from_mech_new)
         flagged = {}
         for s in sorted(pts):
@@ -259,8 +263,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
             reports[s].fruit_shift_after_px = ver.texture_fruit.magnitude_px
             if ver.status == "flagged":
                 flagged[s] = "; ".join(ver.reasons)
-        dr, dt = pose_difference(T, T_zed_from_mech_new)
-        T = T_zed_from_mech_new
+        dr, dt = pose_difference(T_zed_from_mech, T_zed_from_mech_new)
+        T_zed_from_mech = T_zed_from_mech_new
         if progress:
             progress(f"pass {outer + 1}: moved {dr:.5f} deg / {dt:.4f} mm; {len(flagged)} scene(s) flagged")
         new_used = [s for s in sorted(pts) if s not in flagged]
@@ -280,7 +284,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
         for s in used:
             if progress:
                 progress(f"leave-one-out: refine without {s}")
-            T_zed_from_mech_without_s, _ = solve_extrinsic([pts[x] for x in used if x != s], T, rig0, params)
+            T_zed_from_mech_without_s, _ = solve_extrinsic([pts[x] for x in used if x != s], T_zed_from_mech, rig0,
+                                                           params)
             jack.append(T_zed_from_mech_without_s)
             _, ver = _scene_at(caps[s], rig0.with_extrinsic(T_zed_from_mech_without_s), build, params)
             reports[s].heldout_shift_px = ver.texture_all.magnitude_px
@@ -290,17 +295,19 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     jack_scale = None  # the refined file's own: not the board calibration's (leave-one-pose-out) factor
     if len(jack) >= 3:
         # jackknife spread of the leave-one-out solutions (captures scene-to-scene error the pixel model cannot)
-        xs = np.array([np.concatenate([rotvec_between(T, Tk), Tk[:3, 3] - T[:3, 3]]) for Tk in jack])
+        xs = np.array([np.concatenate([rotvec_between(T_zed_from_mech, T_zed_from_mech_k),
+                                       T_zed_from_mech_k[:3, 3] - T_zed_from_mech[:3, 3]])
+                       for T_zed_from_mech_k in jack])
         n = len(jack)
         cj = (n - 1) / n * (xs - xs.mean(0)).T @ (xs - xs.mean(0))
         sig_jr = float(np.degrees(np.sqrt(np.trace(cj[:3, :3]))))
         sig_jt = float(np.sqrt(np.trace(cj[3:, 3:])))
         # scaled up (never down) where the leave-one-scene-out spread is larger: the RMS ratio of the six variances,
         # as calibrate's leave-one-pose-out (the largest ratio of a few scenes' noisy spread over-inflated it)
-        jack_scale = jackknife_scale(T, jack, cov)
+        jack_scale = jackknife_scale(T_zed_from_mech, jack, cov)
         if jack_scale is not None:
             cov = cov * jack_scale
-    dr, dt = pose_difference(rig0.T_zed_from_mech, T)
+    dr, dt = pose_difference(rig0.T_zed_from_mech, T_zed_from_mech)
     info = RefinementInfo(refined_from=str(calib_path.resolve()), scenes_used=used,
                           scenes_excluded={s: r.reason for s, r in reports.items() if r.status != "used"},
                           change_rot_deg=dr, change_trans_mm=dt,
@@ -311,8 +318,8 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     sig_r = np.degrees(np.sqrt(np.clip(np.diag(cov)[:3], 0, None)))
     sig_t = np.sqrt(np.clip(np.diag(cov)[3:], 0, None))
     out = calib.model_copy(update=dict(
-        rig=rig0.with_extrinsic(T), cov_extrinsic_rad_mm=cov.tolist(), cov_jackknife_scale=jack_scale,
-        sigma_rot_xyz_deg=sig_r.tolist(),
+        rig=rig0.with_extrinsic(T_zed_from_mech), cov_extrinsic_rad_mm=cov.tolist(),
+        cov_jackknife_scale=jack_scale, sigma_rot_xyz_deg=sig_r.tolist(),
         sigma_trans_xyz_mm=sig_t.tolist(), sigma_rot_deg=float(np.sqrt(np.sum(sig_r ** 2))),
         sigma_trans_mm=float(np.sqrt(np.sum(sig_t ** 2))), refinement=info,
         time_s=calib.time_s + time.perf_counter() - t0))

@@ -411,8 +411,8 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
                 continue
             if isinstance(board, CircleGridSpec) and not board.asymmetric:
                 dm = unmirror_symmetric_grid(board, dm, rig.mech, solve_pnp)
-            T_mb, _ = pnp_bias_corrected(board, dm, rig.mech, solve_pnp)
-            depth_poses.append((d.name, transform_points(T_mb, X[ids]), cap.depth_mm))
+            T_mech_from_board, _ = pnp_bias_corrected(board, dm, rig.mech, solve_pnp)
+            depth_poses.append((d.name, transform_points(T_mech_from_board, X[ids]), cap.depth_mm))
     out = [m for m in (board_zed_measurement(zed_poses, rig),
                        board_depth_measurement(depth_poses, rig, params.board_depth_window_px)) if m is not None]
     return out

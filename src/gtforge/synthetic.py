@@ -79,14 +79,14 @@ class ValueNoise:
 class PlaneObject:
     def __init__(self, obj_id: int, T_world_from_local: np.ndarray, albedo, extent=None):
         self.obj_id = obj_id
-        self.T = T_world_from_local
-        self.T_inv = invert_T(T_world_from_local)
+        self.T_world_from_local = T_world_from_local
+        self.T_local_from_world = invert_T(T_world_from_local)
         self.albedo_fn = albedo
         self.extent = extent
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        ol = transform_points(self.T_inv, o)
-        dl = d @ self.T_inv[:3, :3].T
+        ol = transform_points(self.T_local_from_world, o)
+        dl = d @ self.T_local_from_world[:3, :3].T
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -ol[:, 2] / dl[:, 2]
         t = np.where(np.isfinite(t) & (t > 1e-9), t, np.inf)
@@ -98,12 +98,12 @@ class PlaneObject:
         return t
 
     def shade(self, p_world: np.ndarray) -> np.ndarray:
-        pl = transform_points(self.T_inv, p_world)
+        pl = transform_points(self.T_local_from_world, p_world)
         a = self.albedo_fn(pl[:, :2])
         return a[:, None] * np.ones(3) if a.ndim == 1 else a
 
     def normal(self, p_world: np.ndarray) -> np.ndarray:
-        return np.broadcast_to(self.T[:3, 2], p_world.shape)
+        return np.broadcast_to(self.T_world_from_local[:3, 2], p_world.shape)
 
 
 class SpheroidObject:
@@ -371,21 +371,24 @@ def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
     """Exact fruit shapes in the ZED-left frame: every ``SpheroidObject`` (world-axis-aligned ellipsoid, or one moved
     rigidly: ``RigidlyMoved``) as ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus
     ``T_zed_from_world``."""
-    fr, T_moved = [], []
+    fr, T_world_moved_from_world_per_fruit = [], []
     for o in scene.objects:
         if isinstance(o, RigidlyMoved) and isinstance(o.obj, SpheroidObject) and o.obj_id == OBJ_FRUIT:
             fr.append(o.obj)
-            T_moved.append(o.T)
+            T_world_moved_from_world_per_fruit.append(o.T_world_moved_from_world)
         elif isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT:
             fr.append(o)
-            T_moved.append(None)
+            T_world_moved_from_world_per_fruit.append(None)  # (not moved)
     R = T_zed_from_world[:3, :3]
-    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world if T is None else T_zed_from_world @ T,
+    moved = T_world_moved_from_world_per_fruit
+    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world if T_world_moved_from_world is None
+                                                               else T_zed_from_world @ T_world_moved_from_world,
                                                                o.c[None])[0]
-                                              for o, T in zip(fr, T_moved)]).reshape(-1, 3),
+                                              for o, T_world_moved_from_world in zip(fr, moved)]).reshape(-1, 3),
                 fruit_radii_mm=np.array([o.r for o in fr]).reshape(-1, 3),
-                fruit_R_zed_from_fruit=np.array([R if T is None else R @ T[:3, :3]
-                                                 for T in T_moved]).reshape(-1, 3, 3),
+                fruit_R_zed_from_fruit=np.array([R if T_world_moved_from_world is None
+                                                 else R @ T_world_moved_from_world[:3, :3]
+                                                 for T_world_moved_from_world in moved]).reshape(-1, 3, 3),
                 T_zed_from_world=np.asarray(T_zed_from_world, float))
 
 
@@ -487,15 +490,15 @@ def random_board_pose(rng: np.random.Generator, rig: SyntheticRig, board: BoardS
         tilt = rng.uniform(-35, 35, size=2)
         yaw = rng.uniform(-180, 180)
         R = cv2.Rodrigues(np.radians([180.0 + tilt[0], tilt[1], 0.0]))[0] @ cv2.Rodrigues(np.radians([0, 0, yaw]))[0]
-        T = make_T(R, np.zeros(3))
-        T[:3, 3] = c_world - R @ centre_b
+        T_world_from_board = make_T(R, np.zeros(3))
+        T_world_from_board[:3, 3] = c_world - R @ centre_b
         ok = True
         views = [(rig.mech, rig.T_mech_from_world), (rig.zed.left, rig.T_zed_from_world),
                  (rig.zed.right, rig.zed.T_zedr_from_zed @ rig.T_zed_from_world)]
         if rig.depth_cam is not None:
             views.append((rig.depth_cam, rig.T_depth_from_world))
         for cam, T_cam_from_world in views:
-            pc = transform_points(T_cam_from_world @ T, outline)
+            pc = transform_points(T_cam_from_world @ T_world_from_board, outline)
             if np.any(pc[:, 2] <= 0):
                 ok = False
                 break
@@ -505,13 +508,13 @@ def random_board_pose(rng: np.random.Generator, rig: SyntheticRig, board: BoardS
                 ok = False
                 break
             # obliquity: board normal vs viewing direction below 60 deg
-            n_cam = (T_cam_from_world @ T)[:3, 2]
+            n_cam = (T_cam_from_world @ T_world_from_board)[:3, 2]
             view = pc.mean(0) / np.linalg.norm(pc.mean(0))
             if n_cam @ view < np.cos(np.radians(60)):
                 ok = False
                 break
-        if ok and T[2, 3] > 60 and (T @ np.array([*centre_b, 1]))[2] > 100:
-            return T
+        if ok and T_world_from_board[2, 3] > 60 and (T_world_from_board @ np.array([*centre_b, 1]))[2] > 100:
+            return T_world_from_board
     raise RuntimeError("could not place the board inside both cameras; the rig geometry is off")
 
 
@@ -561,18 +564,20 @@ class RigidlyMoved:
     def __init__(self, obj, T_world_moved_from_world: np.ndarray):
         self.obj = obj
         self.obj_id = obj.obj_id
-        self.T = np.asarray(T_world_moved_from_world, float)
-        self.T_inv = invert_T(self.T)
+        self.T_world_moved_from_world = np.asarray(T_world_moved_from_world, float)
+        self.T_world_from_world_moved = invert_T(self.T_world_moved_from_world)
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         # a rigid map keeps the ray's parameter t: the original object's hit along the ray taken back
-        return self.obj.intersect(transform_points(self.T_inv, np.broadcast_to(o, d.shape)), d @ self.T_inv[:3, :3].T)
+        return self.obj.intersect(transform_points(self.T_world_from_world_moved, np.broadcast_to(o, d.shape)),
+                                  d @ self.T_world_from_world_moved[:3, :3].T)
 
     def shade(self, p_world: np.ndarray) -> np.ndarray:
-        return self.obj.shade(transform_points(self.T_inv, p_world))
+        return self.obj.shade(transform_points(self.T_world_from_world_moved, p_world))
 
     def normal(self, p_world: np.ndarray) -> np.ndarray:
-        return self.obj.normal(transform_points(self.T_inv, p_world)) @ self.T[:3, :3].T
+        return (self.obj.normal(transform_points(self.T_world_from_world_moved, p_world))
+                @ self.T_world_moved_from_world[:3, :3].T)
 
 
 def fruit_motion_T(centre_world_mm: np.ndarray, translation_mm, rotvec_deg) -> np.ndarray:
@@ -610,19 +615,19 @@ def several_fruit_scene(rng: np.random.Generator, rig: SyntheticRig, seed: int, 
 def rigidly_moved_fruit(scene: Scene, motions) -> tuple[Scene, np.ndarray]:
     """The scene with its k-th fruit moved by ``motions[k] = (translation_mm, rotvec_deg)`` (world frame, about the
     fruit's own centre; ``fruit_motion_T``), and those ``T_world_moved_from_world`` ``(K, 4, 4)``."""
-    objs, Ts, k = [], [], 0
+    objs, T_world_moved_from_world_per_fruit, k = [], [], 0
     for o in scene.objects:
         if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT:
             t, r = motions[k] if k < len(motions) else ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-            T = fruit_motion_T(o.c, t, r)
-            Ts.append(T)
+            T_world_moved_from_world = fruit_motion_T(o.c, t, r)
+            T_world_moved_from_world_per_fruit.append(T_world_moved_from_world)
             k += 1
             if np.any(np.asarray(t, float)) or np.any(np.asarray(r, float)):
-                o = RigidlyMoved(o, T)
+                o = RigidlyMoved(o, T_world_moved_from_world)
         objs.append(o)
     if k != len(motions):
         raise ValueError(f"{len(motions)} fruit motions for a scene of {k} fruit")
-    return Scene(objs, scene.shade_by_object), np.array(Ts).reshape(-1, 4, 4)
+    return Scene(objs, scene.shade_by_object), np.array(T_world_moved_from_world_per_fruit).reshape(-1, 4, 4)
 
 
 # ---- session writer --------------------------------------------------------------------------
@@ -735,15 +740,15 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
     kw = dict(supersample=supersample, depth_noise_mm=depth_noise_mm, image_noise=image_noise)
     fruit_ids = {}
     for i in range(n_board):
-        T = random_board_pose(rng, rig, board)
-        cap = board_capture(f"{i:03d}", rig, board, T, rng, seed + i, **kw)
+        T_world_from_board = random_board_pose(rng, rig, board)
+        cap = board_capture(f"{i:03d}", rig, board, T_world_from_board, rng, seed + i, **kw)
         write_capture(out / "board" / cap.name, cap, out / "truth")
         if progress:
             progress(f"board {cap.name}")
     if partial_poses:
         for k in range(partial_poses):
-            T = random_partial_board_pose(rng, rig, board, k % 4, partial_camera)
-            cap = board_capture(f"{n_board + k:03d}", rig, board, T, rng, seed + n_board + k, **kw)
+            T_world_from_board = random_partial_board_pose(rng, rig, board, k % 4, partial_camera)
+            cap = board_capture(f"{n_board + k:03d}", rig, board, T_world_from_board, rng, seed + n_board + k, **kw)
             write_capture(out / "board" / cap.name, cap, out / "truth")
     motions = fruit_motion_mm or {}
     rigid = fruit_rigid_motion or {}
@@ -751,12 +756,15 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         motion_truth = None
         if i in rigid:  # several fruit, each with its own rigid motion (issue #37)
             scene = several_fruit_scene(rng, rig, seed + 100 + i, len(rigid[i]), partly_out_of_view)
-            zed_scene, T_moved = rigidly_moved_fruit(scene, rigid[i])
+            zed_scene, T_world_moved_from_world_per_fruit = rigidly_moved_fruit(scene, rigid[i])
             motion = np.zeros(3)
-            T_zw = rig.T_zed_from_world
-            z_still, _, _ = raycast_depth(scene, rig.zed.left, T_zw)
+            T_zed_from_world = rig.T_zed_from_world
+            z_still, _, _ = raycast_depth(scene, rig.zed.left, T_zed_from_world)
             motion_truth = dict(
-                fruit_T_zed_moved_from_zed=np.array([T_zw @ T @ invert_T(T_zw) for T in T_moved]).reshape(-1, 4, 4),
+                fruit_T_zed_moved_from_zed=np.array([T_zed_from_world @ T_world_moved_from_world
+                                                     @ invert_T(T_zed_from_world)
+                                                     for T_world_moved_from_world in T_world_moved_from_world_per_fruit]
+                                                    ).reshape(-1, 4, 4),
                 fruit_motion_translation_mm=np.array([m[0] for m in rigid[i]], float).reshape(-1, 3),
                 fruit_motion_rotvec_deg=np.array([m[1] for m in rigid[i]], float).reshape(-1, 3),
                 still_zed_disparity_px=rig.zed.depth_to_disparity(np.where(np.isfinite(z_still), z_still, np.nan)))
@@ -817,21 +825,21 @@ def default_raw_zed() -> RawZed:
     right = PinholeCamera(width_px=672, height_px=376, fx_px=337.8, fy_px=337.4, cx_px=339.2, cy_px=186.8,
                           dist_coeffs=[-0.171, 0.0247, -0.00014, 0.00029, -0.0012])
     R = cv2.Rodrigues(np.array([[0.0031], [-0.0042], [0.0011]]))[0]
-    T = np.array([-63.0, 0.21, -0.35])
-    return RawZed("VGA", left, right, R, T)
+    t_mm = np.array([-63.0, 0.21, -0.35])
+    return RawZed("VGA", left, right, R, t_mm)
 
 
 def zed_conf_values(raw: RawZed, reading: str) -> dict[str, float]:
-    """The STEREO numbers (Baseline, TY, TZ, RX, CV, RZ) that ``reading`` decodes into ``raw``'s exact (R, T):
-    the inverse of ``gtforge.io.cameras.ZedFactoryCalibration.extrinsics``."""
+    """The STEREO numbers (Baseline, TY, TZ, RX, CV, RZ) that ``reading`` decodes into ``raw``'s exact
+    ``(R, T_mm)``: the inverse of ``gtforge.io.cameras.ZedFactoryCalibration.R_t_right_from_left``."""
 
     check_zed_conf_reading(reading)
     inv = reading.endswith("+inv-rot")
     R_conf = raw.R.T if inv else raw.R  # the reading applies Rodrigues(r)^T for "+inv-rot"
     r = cv2.Rodrigues(R_conf)[0].ravel()
-    T = raw.T_mm
-    t = {"neg-x": np.array([-T[0], T[1], T[2]]), "neg-all": -T, "as-is": T,
-         "right-centre": -raw.R.T @ T}[reading.removesuffix("+inv-rot")]
+    t_mm = raw.T_mm
+    t = {"neg-x": np.array([-t_mm[0], t_mm[1], t_mm[2]]), "neg-all": -t_mm, "as-is": t_mm,
+         "right-centre": -raw.R.T @ t_mm}[reading.removesuffix("+inv-rot")]
     return dict(Baseline=float(t[0]), TY=float(t[1]), TZ=float(t[2]), RX=float(r[0]), CV=float(r[1]), RZ=float(r[2]))
 
 
@@ -916,9 +924,9 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
     kw = dict(supersample=supersample, depth_noise_mm=depth_noise_mm, image_noise=image_noise)
     fruit_ids = {}
     for i in range(n_board):
-        T = random_board_pose(rng, rig, board)
-        cap = board_capture(f"{i:03d}", rig, board, T, rng, seed + i, **kw)
-        scene = Scene([_table(seed + i), PlaneObject(OBJ_BOARD, T, board.albedo, board.extent_mm())])
+        T_world_from_board = random_board_pose(rng, rig, board)
+        cap = board_capture(f"{i:03d}", rig, board, T_world_from_board, rng, seed + i, **kw)
+        scene = Scene([_table(seed + i), PlaneObject(OBJ_BOARD, T_world_from_board, board.albedo, board.extent_mm())])
         cap.zed_left, cap.zed_right = render_raw_zed_images(scene, rig, raw, rng, supersample, image_noise=image_noise)
         write_capture(out / "board" / cap.name, cap, out / "truth")
         if progress:
@@ -1019,10 +1027,12 @@ def gauge_scenes(rig: SyntheticRig, seed: int, sphere_diameter_mm: float = 100.0
                           dict(kind="sphere_pair", centres_world_mm=cs, diameter_mm=pair_diameter_mm,
                                centre_distance_mm=pair_distance_mm))
     w, h = plane_wh_mm
-    T_plate = make_T(cv2.Rodrigues(np.array([np.radians(plane_tilt_deg), 0.0, 0.0]))[0], c_table + [0, 0, 60.0])
+    T_world_from_plate = make_T(cv2.Rodrigues(np.array([np.radians(plane_tilt_deg), 0.0, 0.0]))[0],
+                                c_table + [0, 0, 60.0])
     out["plane"] = (Scene([_table(seed + 3),
-                           PlaneObject(OBJ_GAUGE, T_plate, _gauge_albedo, (-w / 2, w / 2, -h / 2, h / 2))]),
-                    dict(kind="plane", normal_world=T_plate[:3, 2], point_world_mm=T_plate[:3, 3]))
+                           PlaneObject(OBJ_GAUGE, T_world_from_plate, _gauge_albedo, (-w / 2, w / 2, -h / 2, h / 2))]),
+                    dict(kind="plane", normal_world=T_world_from_plate[:3, 2],
+                         point_world_mm=T_world_from_plate[:3, 3]))
     return out
 
 
@@ -1047,14 +1057,14 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
         cap.depth_mm = (cap.depth_mm * np.float32(depth_scale)).astype(np.float32)
         cap.fruit_truth = None
         write_capture(root / "gauges" / name, cap, root / "truth")
-        T = rig.T_zed_from_world
+        T_zed_from_world = rig.T_zed_from_world
         extra = {}
         if "centres_world_mm" in truth:
-            extra["centres_zed_mm"] = transform_points(T, truth["centres_world_mm"])
+            extra["centres_zed_mm"] = transform_points(T_zed_from_world, truth["centres_world_mm"])
         if truth["kind"] == "plane":
-            n = T[:3, :3] @ truth["normal_world"]
-            extra.update(plane_normal_zed=n,
-                         plane_offset_zed_mm=float(n @ transform_points(T, truth["point_world_mm"][None])[0]))
+            n = T_zed_from_world[:3, :3] @ truth["normal_world"]
+            extra.update(plane_normal_zed=n, plane_offset_zed_mm=float(
+                n @ transform_points(T_zed_from_world, truth["point_world_mm"][None])[0]))
         with np.load(root / "truth" / f"gauge_{name}.npz") as z:
             arrays = {k: z[k] for k in z.files}
         np.savez_compressed(root / "truth" / f"gauge_{name}.npz", **arrays, **extra)
@@ -1093,13 +1103,13 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
              @ cv2.Rodrigues(np.radians([0, 0, rng.uniform(-30, 30)]))[0])
         T_cam_from_board = make_T(R, np.zeros(3))
         T_cam_from_board[:3, 3] = p_cam - R @ centre_b
-        T = invert_T(T_cam_from_world) @ T_cam_from_board
-        if (transform_points(T, outline)[:, 2] < 5).any():
+        T_world_from_board = invert_T(T_cam_from_world) @ T_cam_from_board
+        if (transform_points(T_world_from_board, outline)[:, 2] < 5).any():
             continue  # under the table
         inside_all, ok = [], True
-        for c, Tcw in views:
-            pc = transform_points(Tcw @ T, X)
-            n_cam = (Tcw @ T)[:3, 2]
+        for c, T_c_from_world in views:
+            pc = transform_points(T_c_from_world @ T_world_from_board, X)
+            n_cam = (T_c_from_world @ T_world_from_board)[:3, 2]
             m = pc.mean(0)
             if np.any(pc[:, 2] <= 0) or n_cam @ (m / np.linalg.norm(m)) < np.cos(np.radians(60)):
                 ok = False
@@ -1113,7 +1123,7 @@ def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int,
         both = inside_all[0] & inside_all[1]
         if own.all() or both.sum() < min_common or collinear(X[both]):
             continue
-        return T
+        return T_world_from_board
     raise RuntimeError(f"could not place a board cut by the {camera} image's corner {corner}")
 
 
@@ -1173,7 +1183,8 @@ def render_board_views(name: str, rig, board, T_world_from_board: np.ndarray, rn
                                         supersample), rng, blur_sigma_px, image_noise)
     z, _, _ = raycast_depth(scene, rig.depth_camera, rig.T_depth_from_world)
     depth = np.where(np.isfinite(z), z, np.nan).astype(np.float32)
-    T_mb = rig.T_mech_from_world @ T_world_from_board
+    T_mech_from_board = rig.T_mech_from_world @ T_world_from_board
     X = board.corners_board()
-    return BoardViews(name, tex, depth, left, T_mb, rig.mech.project(transform_points(T_mb, X)),
+    return BoardViews(name, tex, depth, left, T_mech_from_board,
+                      rig.mech.project(transform_points(T_mech_from_board, X)),
                       rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_world_from_board, X)))

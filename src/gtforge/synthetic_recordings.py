@@ -48,10 +48,10 @@ def _ros_types():
 
 
 def _header(ts, t_ns: int, frame_id: str):
-    T = ts.types
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=int(t_ns // 1_000_000_000),
-                                                                          nanosec=int(t_ns % 1_000_000_000)),
-                                    frame_id=frame_id)
+    types = ts.types
+    return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=int(t_ns // 1_000_000_000),
+                                                                                  nanosec=int(t_ns % 1_000_000_000)),
+                                        frame_id=frame_id)
 
 
 def _image(ts, t_ns: int, frame_id: str, a: np.ndarray, encoding: str):
@@ -63,16 +63,16 @@ def _image(ts, t_ns: int, frame_id: str, a: np.ndarray, encoding: str):
 
 
 def _info(ts, t_ns: int, frame_id: str, cam: PinholeCamera, P: np.ndarray | None = None):
-    T = ts.types
+    types = ts.types
     D = np.asarray(cam.dist_coeffs, np.float64)
     model = "rational_polynomial" if D.size == 8 else "plumb_bob"
     D = D if D.size in (5, 8) else np.zeros(5)
     K = np.array([[cam.fx_px, 0, cam.cx_px], [0, cam.fy_px, cam.cy_px], [0, 0, 1.0]])
     P = np.c_[K, np.zeros(3)] if P is None else P
-    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    return T["sensor_msgs/msg/CameraInfo"](header=_header(ts, t_ns, frame_id), height=cam.height_px,
-                                           width=cam.width_px, distortion_model=model, d=D, k=K.ravel(),
-                                           r=np.eye(3).ravel(), p=P.ravel(), binning_x=0, binning_y=0, roi=roi)
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return types["sensor_msgs/msg/CameraInfo"](header=_header(ts, t_ns, frame_id), height=cam.height_px,
+                                               width=cam.width_px, distortion_model=model, d=D, k=K.ravel(),
+                                               r=np.eye(3).ravel(), p=P.ravel(), binning_x=0, binning_y=0, roi=roi)
 
 
 def _shifted(a: np.ndarray, px: int) -> np.ndarray:

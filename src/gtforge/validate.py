@@ -64,11 +64,12 @@ def corners_3d_from_depth(corners_uv: np.ndarray, depth_mm: np.ndarray, cam: Pin
     is empty). With a separate depth camera (``depth_cam``, ``T_cam_from_depth``) the patch is found by mapping
     ``approx_cam`` (``(N, 3)`` approximate corners in ``cam``'s frame, e.g. from PnP) into the depth image."""
     depth_cam = depth_cam or cam
-    T = np.eye(4) if T_cam_from_depth is None else np.asarray(T_cam_from_depth, float)
-    if depth_cam is cam and T_cam_from_depth is None:
+    same_camera = depth_cam is cam and T_cam_from_depth is None
+    T_cam_from_depth = np.eye(4) if T_cam_from_depth is None else np.asarray(T_cam_from_depth, float)
+    if same_camera:
         centres = np.asarray(corners_uv, float)
     else:
-        centres = depth_cam.project(transform_points(invert_T(T), approx_cam))
+        centres = depth_cam.project(transform_points(invert_T(T_cam_from_depth), approx_cam))
     rays = depth_cam.ray_grid()
     H, W = depth_mm.shape
     xy = cam.undistort_to_normalized(corners_uv)
@@ -85,7 +86,7 @@ def corners_3d_from_depth(corners_uv: np.ndarray, depth_mm: np.ndarray, cam: Pin
         if ok.sum() < 6:
             continue
         r = rays[v0:v1, u0:u1][ok]
-        pts = transform_points(T, np.stack([r[:, 0] * z[ok], r[:, 1] * z[ok], z[ok]], axis=1))
+        pts = transform_points(T_cam_from_depth, np.stack([r[:, 0] * z[ok], r[:, 1] * z[ok], z[ok]], axis=1))
         n, c, _ = fit_plane_robust(pts, threshold_mm=1.0, iterations=30)
         d = np.array([xy[k, 0], xy[k, 1], 1.0])
         out[k] = d * (c / (d @ n))

@@ -70,9 +70,9 @@ def test_rig_file_round_trip_and_extra_field(tmp_path):
     r = Rig(zed=RectifiedStereo(left=cam(), baseline_mm=63.0), mech=cam((-0.1, 0.05, 0, 0, 0)), T_zed_from_mech=T)
     p = r.write(tmp_path / "rig.yaml")
     r2 = Rig.read(p)
-    np.testing.assert_allclose(r2.T, T)
-    np.testing.assert_allclose(transform_points(r2.T_mech_from_zed, transform_points(r2.T, [[1, 2, 3]])), [[1, 2, 3]],
-                               atol=1e-9)
+    np.testing.assert_allclose(r2.T_zed_from_mech, T)
+    np.testing.assert_allclose(transform_points(r2.T_mech_from_zed, transform_points(r2.T_zed_from_mech, [[1, 2, 3]])),
+                               [[1, 2, 3]], atol=1e-9)
     p.write_text(p.read_text() + "unexpected_field: 1\n")
     with pytest.raises(InputError, match="unexpected_field"):
         Rig.read(p)

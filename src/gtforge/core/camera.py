@@ -236,9 +236,9 @@ class RectifiedStereo(GTModel):
 
     @property
     def T_zedr_from_zed(self) -> np.ndarray:
-        T = np.eye(4)
-        T[0, 3] = -self.baseline_mm
-        return T
+        T_zedr_from_zed = np.eye(4)
+        T_zedr_from_zed[0, 3] = -self.baseline_mm
+        return T_zedr_from_zed
 
     def depth_to_disparity(self, depth_mm: np.ndarray) -> np.ndarray:
         """z-depth (mm) -> disparity (px); NaN stays NaN."""
@@ -307,11 +307,6 @@ class Rig(VersionedFile):
         return isinstance(other, Rig) and self.model_dump(mode="json") == other.model_dump(mode="json")
 
     __hash__ = None
-
-    @property
-    def T(self) -> np.ndarray:
-        """``T_zed_from_mech`` (a copy), by its name before round 3; it goes in the next release."""
-        return np.array(self.T_zed_from_mech)
 
     @property
     def T_mech_from_zed(self) -> np.ndarray:

@@ -7,10 +7,10 @@ import numpy as np
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Build a 4x4 transform from a 3x3 rotation and a 3-vector translation (mm)."""
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(R, dtype=np.float64)
-    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
-    return T
+    T_dst_from_src = np.eye(4)
+    T_dst_from_src[:3, :3] = np.asarray(R, dtype=np.float64)
+    T_dst_from_src[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T_dst_from_src
 
 
 def mask_bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -80,10 +80,10 @@ def T_from_rotvec(rotvec_rad: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
     return make_T(Rotation.from_rotvec(np.asarray(rotvec_rad, float).reshape(3)).as_matrix(), t_mm)
 
 
-def invert_T(T: np.ndarray) -> np.ndarray:
+def invert_T(T_dst_from_src: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform: ``T_src_from_dst = invert_T(T_dst_from_src)``."""
-    R = T[:3, :3]
-    t = T[:3, 3]
+    R = T_dst_from_src[:3, :3]
+    t = T_dst_from_src[:3, 3]
     return make_T(R.T, -R.T @ t)
 
 
@@ -99,9 +99,10 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+def pose_difference(T_dst_from_src_a: np.ndarray, T_dst_from_src_b: np.ndarray) -> tuple[float, float]:
     """(rotation angle deg, translation distance mm) between two transforms of the same frames."""
-    return rotation_angle_deg(T_a[:3, :3].T @ T_b[:3, :3]), float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+    return (rotation_angle_deg(T_dst_from_src_a[:3, :3].T @ T_dst_from_src_b[:3, :3]),
+            float(np.linalg.norm(T_dst_from_src_a[:3, 3] - T_dst_from_src_b[:3, 3])))
 
 
 def look_at_T_cam_from_world(cam_pos_mm: np.ndarray, target_mm: np.ndarray,
@@ -199,18 +200,18 @@ def fit_plane_robust(pts: np.ndarray, threshold_mm: float = 1.0, iterations: int
     return n, off, best
 
 
-def perturb_left(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``T = [exp(omega) R0 | t0 + delta_t]`` with ``x = (omega_rad (3), delta_t_mm (3))``: the left perturbation every
-    covariance of gtforge is written in (``cov_extrinsic_rad_mm``)."""
+def perturb_left(T_dst_from_src: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``[exp(omega) R | t + delta_t]`` for ``T_dst_from_src = [R | t]`` and ``x = (omega_rad (3), delta_t_mm (3))``:
+    the left perturbation every covariance of gtforge is written in (``cov_extrinsic_rad_mm``)."""
     from scipy.spatial.transform import Rotation  # here, not at import: importing scipy costs every process start
 
-    return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T0[:3, :3], T0[:3, 3] + x[3:])
+    return make_T(Rotation.from_rotvec(x[:3]).as_matrix() @ T_dst_from_src[:3, :3], T_dst_from_src[:3, 3] + x[3:])
 
 
-def rotvec_between(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+def rotvec_between(T_dst_from_src_a: np.ndarray, T_dst_from_src_b: np.ndarray) -> np.ndarray:
     """``omega`` (rad) with ``R_b = exp(omega) R_a``: the rotation part of the left perturbation (``perturb_left``)
-    that takes ``T_a`` to ``T_b``."""
+    that takes ``T_dst_from_src_a`` (rotation ``R_a``) to ``T_dst_from_src_b`` (``R_b``)."""
     from scipy.spatial.transform import Rotation  # here, not at import: importing scipy costs every process start
 
-    return Rotation.from_matrix(T_b[:3, :3] @ T_a[:3, :3].T).as_rotvec()
+    return Rotation.from_matrix(T_dst_from_src_b[:3, :3] @ T_dst_from_src_a[:3, :3].T).as_rotvec()
 

@@ -403,8 +403,9 @@ def moved_fruit_of(region: np.ndarray, depth_zed_mm: np.ndarray, rig: Rig, recor
     owner = np.zeros(region.shape, np.int64)
     if not motions:
         return owner, motions
-    centres = {k: transform_points(T, np.array([next(f.centre_zed_mm for f in record.fruit if f.component == k)]))[0]
-               for k, T in motions.items()}
+    centres = {k: transform_points(T_zed_moved_from_zed,
+                                   np.array([next(f.centre_zed_mm for f in record.fruit if f.component == k)]))[0]
+               for k, T_zed_moved_from_zed in motions.items()}
     fruit = (region == REGION_CENTRE) | (region == REGION_EDGE)
     n_cc, labels = cv2.connectedComponents(fruit.view(np.uint8), connectivity=8)
     for j in range(1, n_cc):

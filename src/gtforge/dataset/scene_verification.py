@@ -103,11 +103,12 @@ def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np
                               (window.x0_px, window.y0_px))
     if moved is not None:
         owner, motions = moved
-        for k, T in motions.items():
+        for k, T_zed_moved_from_zed in motions.items():
             sel = owner == k
             if sel.any():  # a fruit's point as the texture camera saw it: T_mech_from_zed @ T_zed_moved_from_zed^-1
-                r_k, ok_k = render_texture(np.where(sel, depth_zed_mm, np.nan), rig.with_extrinsic(
-                    T @ rig.T_zed_from_mech), texture, params.texture_occlusion_tol_mm, (window.x0_px, window.y0_px))
+                r_k, ok_k = render_texture(np.where(sel, depth_zed_mm, np.nan),
+                                           rig.with_extrinsic(T_zed_moved_from_zed @ rig.T_zed_from_mech), texture,
+                                           params.texture_occlusion_tol_mm, (window.x0_px, window.y0_px))
                 rend[sel], ok[sel] = r_k[sel], ok_k[sel]
     r = int(np.ceil(2 * params.norm_sigma_px))
     ok_support = interior_mask(ok, r)

@@ -233,7 +233,7 @@ class ZedFactoryCalibration:
     """Raw (unrectified) ZED calibration for one resolution, as written in SN<serial>.conf.
 
     The STEREO values are kept as written (``baseline_conf_mm`` keeps its sign); ``R_t_right_from_left(reading)``
-    turns them into OpenCV's ``(R, T)``."""
+    turns them into OpenCV's ``(R, t_mm)`` (``cv2.stereoRectify``'s ``R, T``)."""
 
     resolution: str
     left: PinholeCamera
@@ -250,24 +250,25 @@ class ZedFactoryCalibration:
         return self.left.width_px, self.left.height_px
 
     def R_t_right_from_left(self, reading: str = DEFAULT_ZED_CONF_READING) -> tuple[np.ndarray, np.ndarray]:
-        """``(R, T)`` of ``X_right = R @ X_left + T`` (mm) under ``reading`` (``ZED_CONF_READINGS``): the pair
-        ``cv2.stereoRectify`` takes."""
+        """``(R, t_mm)`` of ``X_right = R @ X_left + t_mm`` under ``reading`` (``ZED_CONF_READINGS``): the pair
+        ``cv2.stereoRectify`` takes (its ``R, T``)."""
         check_zed_conf_reading(reading)
         R = cv2.Rodrigues(np.asarray(self.rotvec_conf_rad, np.float64).reshape(3, 1))[0]
         if reading.endswith("+inv-rot"):
             R = R.T
-        t = np.array([self.baseline_conf_mm, self.ty_mm, self.tz_mm])
+        t_conf_mm = np.array([self.baseline_conf_mm, self.ty_mm, self.tz_mm])
         base = reading.removesuffix("+inv-rot")
-        T = {"neg-x": np.array([-t[0], t[1], t[2]]), "neg-all": -t, "as-is": t, "right-centre": -R @ t}[base]
-        return R, T
+        t_mm = {"neg-x": np.array([-t_conf_mm[0], t_conf_mm[1], t_conf_mm[2]]), "neg-all": -t_conf_mm,
+                "as-is": t_conf_mm, "right-centre": -R @ t_conf_mm}[base]
+        return R, t_mm
 
     def stereo_rectify(self, reading: str = DEFAULT_ZED_CONF_READING) -> StereoRectifyResult:
-        R, T = self.R_t_right_from_left(reading)
+        R, t_mm = self.R_t_right_from_left(reading)
         size = self.size_wh
         R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(self.left.K, self.left.dist, self.right.K, self.right.dist,
-                                                    size, R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
+                                                    size, R, t_mm.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY,
                                                     alpha=0, newImageSize=size)
-        return StereoRectifyResult(R, T, R1, R2, P1, P2)
+        return StereoRectifyResult(R, t_mm, R1, R2, P1, P2)
 
     # the default reading's extrinsics, by the names used before readings were explicit
     @property
@@ -277,8 +278,8 @@ class ZedFactoryCalibration:
     @property
     def t_right_in_left_mm(self) -> np.ndarray:
         """The right camera's centre in the left camera frame (mm) under the default reading."""
-        R, T = self.R_t_right_from_left()
-        return -R.T @ T
+        R, t_mm = self.R_t_right_from_left()
+        return -R.T @ t_mm
 
     def rectification(self, reading: str = DEFAULT_ZED_CONF_READING) -> ZedRectification:
         """Rectification maps and the rectified model under ``reading``; refuses a reading that puts the

@@ -410,7 +410,8 @@ def read_realsense(bag: Bag) -> RgbdRecording:
             raise InputError(path, info_t, "the stream's camera_info", "missing")
         cams[t] = camera_from_info(info, path, info_t)
     tf_t = tex_t.replace("/image/data", "/tf/0")
-    T = quat_T_mm(*(lambda m: (m.translation, m.rotation))(bag.first(tf_t))) if tf_t in bag.topics else None
+    T_texture_from_depth = (quat_T_mm(*(lambda m: (m.translation, m.rotation))(bag.first(tf_t)))
+                            if tf_t in bag.topics else None)
     got = bag.streams([depth_t, tex_t], lenient=True)
     depth, tex = got[depth_t], got[tex_t]
     depth.camera, tex.camera = cams[depth_t], cams[tex_t]
@@ -420,7 +421,7 @@ def read_realsense(bag: Bag) -> RgbdRecording:
         for conn, _, raw in bag.messages(["/device_0/info"]):
             kv = bag.deserialize(raw, conn)
             serial = kv.value if kv.key == "Serial Number" else serial
-    return RgbdRecording(path, "realsense", depth, tex, cams[depth_t], cams[tex_t], T,
+    return RgbdRecording(path, "realsense", depth, tex, cams[depth_t], cams[tex_t], T_texture_from_depth,
                          notes=[f"depth units {scale_mm:g} mm per count"], serial=serial)
 
 

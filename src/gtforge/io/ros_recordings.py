@@ -130,14 +130,14 @@ def _ros_rgbd(bag: Bag, topics: Topics) -> RgbdRecording | None:
 
     depth.post.append(to_mm)
     registered = "aligned" in depth_t or "registered" in depth_t or cams[depth_t] == cams[color_t]
-    T = None
+    T_color_from_depth = None
     if not registered:
-        T = _tf_static(bag, color_t, depth_t)
-        if T is None:
+        T_color_from_depth = _tf_static(bag, color_t, depth_t)
+        if T_color_from_depth is None:
             raise InputError(bag.path, "/tf_static", f"the transform between {color_t} and {depth_t}", "none",
                              "record aligned_depth_to_color, or /tf_static")
     return RgbdRecording(bag.path, "ros", depth, tex, None if registered else cams[depth_t], cams[color_t],
-                         T, notes=[f"topics {depth_t}, {color_t}"])
+                         T_color_from_depth, notes=[f"topics {depth_t}, {color_t}"])
 
 
 def _tf_static(bag: Bag, color_t: str, depth_t: str):
@@ -152,18 +152,18 @@ def _tf_static(bag: Bag, color_t: str, depth_t: str):
     edges: dict[str, dict[str, np.ndarray]] = {}
     for conn, _, raw in bag.messages(["/tf_static"]):
         for tr in bag.deserialize(raw, conn).transforms:
-            T = quat_T_mm(tr.transform.translation, tr.transform.rotation)  # T_parent_from_child
-            edges.setdefault(tr.header.frame_id, {})[tr.child_frame_id] = T
-            edges.setdefault(tr.child_frame_id, {})[tr.header.frame_id] = invert_T(T)
-    T_color_from = {cf: np.eye(4)}  # breadth first from the colour frame
+            T_parent_from_child = quat_T_mm(tr.transform.translation, tr.transform.rotation)
+            edges.setdefault(tr.header.frame_id, {})[tr.child_frame_id] = T_parent_from_child
+            edges.setdefault(tr.child_frame_id, {})[tr.header.frame_id] = invert_T(T_parent_from_child)
+    T_color_from_frame = {cf: np.eye(4)}  # breadth first from the colour frame
     todo = [cf]
     while todo:
         f = todo.pop(0)
         for g, T_f_from_g in edges.get(f, {}).items():
-            if g not in T_color_from:
-                T_color_from[g] = T_color_from[f] @ T_f_from_g
+            if g not in T_color_from_frame:
+                T_color_from_frame[g] = T_color_from_frame[f] @ T_f_from_g
                 todo.append(g)
-    return T_color_from.get(df)
+    return T_color_from_frame.get(df)
 
 
 def _images(bag: Bag) -> list[str]:

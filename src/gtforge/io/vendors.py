@@ -287,7 +287,7 @@ class MechEyeTransformation(GTModel):
         return v
 
     @property
-    def T(self) -> np.ndarray:
+    def T_texture_from_depth(self) -> np.ndarray:
         return make_T(np.array(self.rotation), np.array(self.translation))
 
 
@@ -336,10 +336,10 @@ class MechEyeIntrinsicsFile(VersionedFile):
         ci, res = self.camera_intrinsics, self.camera_resolutions
         texture = self._camera(ci.texture, res.texture)
         depth = self._camera(ci.depth, res.depth)
-        T = ci.depth_to_texture.T
-        if depth == texture and np.array_equal(T, np.eye(4)):
+        T_mech_from_depth = ci.depth_to_texture.T_texture_from_depth  # (mech: the texture camera)
+        if depth == texture and np.array_equal(T_mech_from_depth, np.eye(4)):
             return StructuredLightCameras(texture, None, None)
-        return StructuredLightCameras(texture, depth, T)
+        return StructuredLightCameras(texture, depth, T_mech_from_depth)
 
 
 def read_mecheye_intrinsics(path: str | Path) -> StructuredLightCameras:

@@ -58,8 +58,9 @@ def sigma_method(calib: CalibrationFile) -> str:
     return calib.method if getattr(calib, "cov_extrinsic_rad_mm", None) is not None else "reprojection"
 
 
-def _matrix(T) -> Raw:
-    rows = ["  ".join(f"{x:+.6f}" if j < 3 else f"{x:+10.3f}" for j, x in enumerate(r)) for r in np.asarray(T)]
+def _matrix(T_dst_from_src) -> Raw:
+    rows = ["  ".join(f"{x:+.6f}" if j < 3 else f"{x:+10.3f}" for j, x in enumerate(r))
+            for r in np.asarray(T_dst_from_src)]
     return Raw("<pre style='margin:0;text-align:left'>" + "\n".join(rows) + "</pre>")
 
 

@@ -171,7 +171,7 @@ class EdgeCapture:
 
 
 # ---- the estimator -----------------------------------------------------------------------------
-def _prepare(cap: EdgeCapture, color_cam: PinholeCamera, T0: np.ndarray, kinds: list[str],
+def _prepare(cap: EdgeCapture, color_cam: PinholeCamera, T_color_from_depth_initial: np.ndarray, kinds: list[str],
              params: EdgeAlignmentParams) -> _Cap:
     """A capture's edges (at the factory extrinsic) and undistorted colour image; InputError for a blank image."""
     und, pinhole = undistort_image(cap.color_rgb, color_cam)
@@ -179,12 +179,12 @@ def _prepare(cap: EdgeCapture, color_cam: PinholeCamera, T0: np.ndarray, kinds: 
         raise InputError(None, "colour image", f"edges (a blurred gradient of >= {params.min_gradient} grey levels)",
                          "none: a blank image", "is the colour image exposed and from this capture?")
     edges = DepthEdges(np.zeros((0, 3)), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int64))
-    rendered = render_depth(cap.depth_mm, cap.depth_cam, T0, pinhole)
+    rendered = render_depth(cap.depth_mm, cap.depth_cam, T_color_from_depth_initial, pinhole)
     if "silhouettes" in kinds:
-        edges = edges + depth_edges(cap.depth_mm, cap.depth_cam, T0, pinhole, params.jump_ratio, params.gap_px,
-                                    rendered)
+        edges = edges + depth_edges(cap.depth_mm, cap.depth_cam, T_color_from_depth_initial, pinhole,
+                                    params.jump_ratio, params.gap_px, rendered)
     if "texture" in kinds:
-        edges = edges + texture_edges(cap.texture, cap.depth_mm, cap.depth_cam, T0, pinhole,
+        edges = edges + texture_edges(cap.texture, cap.depth_mm, cap.depth_cam, T_color_from_depth_initial, pinhole,
                                       params.texture_top_fraction, params.texture_max_relief,
                                       params.texture_min_length_px, rendered_z_mm=rendered)
     return _Cap(cap.name, edges, und)
@@ -197,7 +197,7 @@ def _coarse_search(problem: _Problem, params: EdgeAlignmentParams) -> tuple[np.n
     n = sum(len(c.edges) for c in problem.caps)
     stride = max(1, -(-n // 8000))  # a grid of hundreds of points on wide blur: every stride-th edge is enough
     problem = _Problem([_Cap(c.name, c.edges.subset(slice(None, None, stride)), c.undistorted, c.strengths)
-                        for c in problem.caps], problem.pinhole, problem.T0, problem.scale)
+                        for c in problem.caps], problem.pinhole, problem.T_color_from_depth_initial, problem.scale)
     r, s, b = params.search_px, params.search_step_px, params.coarse_blur_sigma_px
     levels = []
     while True:
@@ -225,8 +225,8 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
     """Refine ``T_color_from_depth`` (shared by every capture) from the edges of all ``captures`` together (the
     module docstring says how). A capture with a blank colour image takes no part (its ``excluded`` says why); a
     depth map or image of another size than its intrinsics is an ``InputError``, so are too few edges in all."""
-    T0 = np.asarray(T_color_from_depth, np.float64)
-    matrix4_field(T0)
+    T_color_from_depth_initial = np.asarray(T_color_from_depth, np.float64)
+    matrix4_field(T_color_from_depth_initial)
     if not captures:
         raise InputError(None, "captures", "at least one capture", "none", "select board or scene captures")
     caps, reports, kinds_used = [], [], set()
@@ -240,7 +240,7 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
             raise InputError(None, "texture", f"the depth camera's own image for edges={params.edges!r}",
                              "none given", "pass the infrared / 2-D texture image, or use edges='silhouettes'")
         try:
-            caps.append(_prepare(c, color_cam, T0, kinds, params))
+            caps.append(_prepare(c, color_cam, T_color_from_depth_initial, kinds, params))
             kinds_used |= set(kinds)
             reports.append(CaptureAlignment(name=c.name))
         except InputError as e:
@@ -251,7 +251,7 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
     # keep the edges that project inside the image with a margin for the blur (a fixed set: a smooth objective)
     margin = 3 * params.coarse_blur_sigma_px + 2
     for c in caps:
-        uv = project_edges(c.edges, T0, pinhole)
+        uv = project_edges(c.edges, T_color_from_depth_initial, pinhole)
         c.edges = c.edges.subset((uv[:, 0] > margin) & (uv[:, 0] < pinhole.width_px - 1 - margin)
                                  & (uv[:, 1] > margin) & (uv[:, 1] < pinhole.height_px - 1 - margin))
     n_edges = sum(len(c.edges) for c in caps)
@@ -260,7 +260,7 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
                          f"{n_edges}", "a scene with objects in front of a background, seen by both cameras")
     caps = [c for c in caps if len(c.edges)]
     base = [(r.name, r.excluded) for r in reports]
-    res = _fit(caps, base, T0, pinhole, params, kinds_used, {})
+    res = _fit(caps, base, T_color_from_depth_initial, pinhole, params, kinds_used, {})
     # a capture that disagrees with the others after the joint fit (a knocked rig, a moved object) pulls the fit
     # towards itself: left out, and the others fitted again (it is still measured and reported)
     bad = {c.name: c.offset_after_px for c in res.captures if c.disagrees and not c.excluded}
@@ -268,12 +268,13 @@ def align_captures(captures: list[EdgeCapture], color_cam: PinholeCamera, T_colo
         left_out = {n: f"left out of the fit: its edges lay ({o[0]:+.2f}, {o[1]:+.2f}) px off after the joint fit "
                        f"with the others (> {params.disagree_px:g} px: a knocked rig or a moved object?)"
                     for n, o in bad.items()}
-        res = _fit(caps, base, T0, pinhole, params, kinds_used, left_out)
+        res = _fit(caps, base, T_color_from_depth_initial, pinhole, params, kinds_used, left_out)
     return res
 
 
-def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinhole: PinholeCamera,
-         params: EdgeAlignmentParams, kinds_used: set, left_out: dict[str, str]) -> EdgeAlignmentResult:
+def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T_color_from_depth_initial: np.ndarray,
+         pinhole: PinholeCamera, params: EdgeAlignmentParams, kinds_used: set, left_out: dict[str, str]
+         ) -> EdgeAlignmentResult:
     """The fit on the captures not ``left_out`` (name -> why); every capture measured and reported."""
     reports = [CaptureAlignment(name=n, excluded=e or left_out.get(n, "")) for n, e in base]
     caps = [c for c in all_caps if c.name not in left_out]
@@ -281,7 +282,7 @@ def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinh
     f_px = 0.5 * (pinhole.fx_px + pinhole.fy_px)
     z_med = float(np.median(np.concatenate([c.edges.pts_depth_mm[:, 2] for c in caps])))
     scale = np.array([1 / f_px] * 3 + [z_med / f_px] * 3)
-    problem = _Problem(caps, pinhole, T0, scale)
+    problem = _Problem(caps, pinhole, T_color_from_depth_initial, scale)
     fine, coarse = params.blur_sigma_px, params.coarse_blur_sigma_px
     _, sizes = np.unique(problem.structure, return_counts=True)
     n_structures = int((sizes >= 10).sum())
@@ -332,8 +333,8 @@ def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinh
     # what the edges' scatter cannot show: the silhouette placement's own bias (edge_bias_px), and, with three or
     # more captures, how much the captures' offsets at the estimate scatter (a random offset per capture, averaged
     # over them), each added to every determined parameter's variance (pixel units)
-    T_est = problem.pose(theta)
-    per_cap = {c.name: edge_offset_px(c.edges, T_est, pinhole, c.strength(fine)) for c in caps}
+    T_color_from_depth_estimate = problem.pose(theta)
+    per_cap = {c.name: edge_offset_px(c.edges, T_color_from_depth_estimate, pinhole, c.strength(fine)) for c in caps}
     floor_var = params.edge_bias_px ** 2
     if len(caps) >= 3:
         off = np.array([[o.dx_px, o.dy_px] for o in per_cap.values()])
@@ -354,18 +355,20 @@ def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinh
         else:
             decision = "not significant"
             reason = f"the correction is {significance:.1f} sigma from the factory value (<= {params.apply_z:g}): kept"
-    T = problem.pose(applied_theta)
+    T_color_from_depth = problem.pose(applied_theta)
     # the pixel offsets, per capture (the left-out ones too) and all together (those fitted), before and after
     fine_strengths = [c.strength(fine) for c in caps]
     applied = decision == "applied"
     R0 = int(np.ceil(np.abs(start).max())) + 4  # the factory pose's offset: at least as far as the coarse search's
-    per_cap.update({c.name: edge_offset_px(c.edges, T_est, pinhole, c.strength(fine), R0) for c in all_caps
-                    if c.name in left_out})
-    per_cap_before = {c.name: edge_offset_px(c.edges, T0, pinhole, c.strength(fine), R0) for c in all_caps}
+    per_cap.update({c.name: edge_offset_px(c.edges, T_color_from_depth_estimate, pinhole, c.strength(fine), R0)
+                    for c in all_caps if c.name in left_out})
+    per_cap_before = {c.name: edge_offset_px(c.edges, T_color_from_depth_initial, pinhole, c.strength(fine), R0)
+                      for c in all_caps}
     per_cap_after = per_cap if applied else per_cap_before  # (the pose applied is the estimate or the factory one)
     one = len(caps) == 1
-    before_all = per_cap_before[caps[0].name] if one else _offset_all(caps, T0, pinhole, fine_strengths, R0)
-    after_all = per_cap_after[caps[0].name] if one else _offset_all(caps, T, pinhole, fine_strengths)
+    before_all = (per_cap_before[caps[0].name] if one
+                  else _offset_all(caps, T_color_from_depth_initial, pinhole, fine_strengths, R0))
+    after_all = per_cap_after[caps[0].name] if one else _offset_all(caps, T_color_from_depth, pinhole, fine_strengths)
     by_name = {c.name: c for c in all_caps}
     for r in reports:
         c = by_name.get(r.name)
@@ -391,13 +394,14 @@ def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinh
     value = theta * scale
     sigma_phys = sigma * scale
     return EdgeAlignmentResult(
-        T_color_from_depth_initial=T0, T_color_from_depth=T,
+        T_color_from_depth_initial=T_color_from_depth_initial, T_color_from_depth=T_color_from_depth,
         omega_deg=np.degrees(value[:3]).tolist(), delta_t_mm=value[3:].tolist(),
         status=["estimated" if e else "determined" if d else "not determined" if f else "not fitted"
                 for d, e, f in zip(determined, estimated, fitted)],
         sigma_omega_deg=np.degrees(sigma_phys[:3]).tolist(), sigma_delta_t_mm=sigma_phys[3:].tolist(),
         decision=decision, reason=reason, significance_sigma=significance, covariance_rad_mm=cov_rad_mm.tolist(),
-        rotation_deg=rotation_angle_deg(T[:3, :3] @ T0[:3, :3].T), n_edges=n_edges, n_structures=n_structures,
+        rotation_deg=rotation_angle_deg(T_color_from_depth[:3, :3] @ T_color_from_depth_initial[:3, :3].T),
+        n_edges=n_edges, n_structures=n_structures,
         edge_kinds=[k for k in ("silhouettes", "texture") if k in kinds_used],
         score_initial=float(problem.scores(np.zeros(6), fine).mean()),
         score_final=float(problem.scores(applied_theta, fine).mean()), f_px=f_px, median_depth_mm=z_med,
@@ -405,10 +409,11 @@ def _fit(all_caps: list[_Cap], base: list[tuple[str, str]], T0: np.ndarray, pinh
         offset_after_px=[after_all.dx_px, after_all.dy_px], captures=reports, warnings=warnings)
 
 
-def _offset_all(caps: list[_Cap], T: np.ndarray, pinhole: PinholeCamera, strengths, radius_px: int = 4) -> EdgeOffset:
+def _offset_all(caps: list[_Cap], T_color_from_depth: np.ndarray, pinhole: PinholeCamera, strengths,
+                radius_px: int = 4) -> EdgeOffset:
     """The offset of every capture's edges together (each capture's edges read its own colour image)."""
-    return points_offset_px([(project_edges(c.edges, T, pinhole), c.edges.axis, st) for c, st in zip(caps, strengths)],
-                            radius_px)
+    return points_offset_px([(project_edges(c.edges, T_color_from_depth, pinhole), c.edges.axis, st)
+                             for c, st in zip(caps, strengths)], radius_px)
 
 
 def align_color_to_depth(depth_mm: np.ndarray, depth_cam: PinholeCamera, color_rgb: np.ndarray,

@@ -31,7 +31,7 @@ class _Problem:
 
     caps: list[_Cap]
     pinhole: PinholeCamera
-    T0: np.ndarray
+    T_color_from_depth_initial: np.ndarray
     scale: np.ndarray  # (6,) theta * scale = (omega rad, delta_t mm)
 
     @property
@@ -44,11 +44,12 @@ class _Problem:
 
     def pose(self, theta: np.ndarray) -> np.ndarray:
         p = np.asarray(theta, float) * self.scale
-        return perturb(self.T0, p[:3], p[3:])
+        return perturb(self.T_color_from_depth_initial, p[:3], p[3:])
 
     def scores(self, theta: np.ndarray, blur: float) -> np.ndarray:
-        T = self.pose(theta)
-        return np.concatenate([edge_scores(c.edges, T, self.pinhole, c.strength(blur)) for c in self.caps])
+        T_color_from_depth = self.pose(theta)
+        return np.concatenate([edge_scores(c.edges, T_color_from_depth, self.pinhole, c.strength(blur))
+                               for c in self.caps])
 
 
 def _quadratic_model(f, theta: np.ndarray, step_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:

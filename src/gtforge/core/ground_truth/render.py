@@ -22,7 +22,7 @@ def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occl
     or hidden behind another GT point by more than ``occlusion_tol_mm``) is left out. ``depth_zed_mm`` may be a
     window of the ZED-left image whose pixel ``[0, 0]`` is the image's pixel ``(u, v) = origin_px``."""
     zed, mech = rig.zed.left, rig.mech
-    T = rig.T_mech_from_zed
+    T_mech_from_zed = rig.T_mech_from_zed
     d = lens.full_coeffs(mech.dist_coeffs)
     tilted = bool(d[12] != 0.0 or d[13] != 0.0)
     out = np.zeros(depth_zed_mm.shape, np.float32)
@@ -33,8 +33,9 @@ def render_texture(depth_zed_mm: np.ndarray, rig: Rig, texture: np.ndarray, occl
     if y1 == 0:
         return out, ok
     _render_kernel(np.ascontiguousarray(depth[y0:y1, x0:x1]), float(origin_px[0] + x0), float(origin_px[1] + y0),
-                   np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]), np.ascontiguousarray(T[:3, :3]),
-                   np.ascontiguousarray(T[:3, 3]), np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
+                   np.array([zed.fx_px, zed.fy_px, zed.cx_px, zed.cy_px]),
+                   np.ascontiguousarray(T_mech_from_zed[:3, :3]), np.ascontiguousarray(T_mech_from_zed[:3, 3]),
+                   np.array([mech.fx_px, mech.fy_px, mech.cx_px, mech.cy_px]), d,
                    lens.tilt_matrix(d[12], d[13]), tilted, np.ascontiguousarray(to_gray(texture)),
                    rig.separate_depth_camera, float(occlusion_tol_mm), out[y0:y1, x0:x1], ok[y0:y1, x0:x1])
     return out, ok

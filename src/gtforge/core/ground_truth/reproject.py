@@ -494,8 +494,8 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
         raise ValueError("return_span needs mode 'mesh' (a splat has no triangles)")
     mesh = params.mode == "mesh"
     depth = np.ascontiguousarray(depth, dtype=np.float32)
-    T = np.asarray(T_cam_from_depth, np.float64)
-    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+    T_cam_from_depth = np.asarray(T_cam_from_depth, np.float64)
+    R, t = np.ascontiguousarray(T_cam_from_depth[:3, :3]), np.ascontiguousarray(T_cam_from_depth[:3, 3])
     rx, ry = _ray_planes(depth_cam.model_dump_json())
     H, W = cam.height_px, cam.width_px
     fx, fy, cx, cy = cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px
@@ -547,9 +547,11 @@ def _project_depth_to_stereo(depth_mech_mm: np.ndarray, mech: PinholeCamera, T_z
     ``(depth_left, span_left or None, depth_right)``, the same arrays as the two calls. The views differ only by the
     baseline along x and cx (``doffs``): the same 1/Z, so the same drawn triangles, decided once."""
     depth = np.ascontiguousarray(depth_mech_mm, dtype=np.float32)
-    T, Tr = np.asarray(T_zed_from_mech, np.float64), np.asarray(T_zedr_from_mech, np.float64)
-    R, t, t_r = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), np.ascontiguousarray(Tr[:3, 3])
-    if not (np.array_equal(Tr[:3, :3], R) and np.array_equal(Tr[1:3, 3], t[1:3])):
+    T_zed_from_mech = np.asarray(T_zed_from_mech, np.float64)
+    T_zedr_from_mech = np.asarray(T_zedr_from_mech, np.float64)
+    R, t = np.ascontiguousarray(T_zed_from_mech[:3, :3]), np.ascontiguousarray(T_zed_from_mech[:3, 3])
+    t_r = np.ascontiguousarray(T_zedr_from_mech[:3, 3])
+    if not (np.array_equal(T_zedr_from_mech[:3, :3], R) and np.array_equal(T_zedr_from_mech[1:3, 3], t[1:3])):
         raise ValueError("the right camera must differ from the left by a translation along x only (rectified)")
     rx, ry = _ray_planes(mech.model_dump_json())
     cam, cam_r = zed.left, zed.right

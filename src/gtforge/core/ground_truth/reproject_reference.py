@@ -71,8 +71,8 @@ def project_points(depth: np.ndarray, depth_cam: PinholeCamera, T_cam_from_depth
     z = depth.astype(np.float64)
     rays = depth_cam.ray_grid()  # normalised x, y of every depth-camera pixel centre through its lens, float64
     x, y = rays[..., 0] * z, rays[..., 1] * z
-    T = np.asarray(T_cam_from_depth, np.float64)
-    R, t = T[:3, :3], T[:3, 3]
+    T_cam_from_depth = np.asarray(T_cam_from_depth, np.float64)
+    R, t = T_cam_from_depth[:3, :3], T_cam_from_depth[:3, 3]
     with np.errstate(invalid="ignore", divide="ignore"):
         # the terms summed left to right, as the kernels do
         Xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]

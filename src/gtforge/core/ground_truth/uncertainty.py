@@ -207,8 +207,9 @@ def disparity_sigma(disparity_px: np.ndarray, depth_mm: np.ndarray, rig: Rig, co
     span = np.zeros((0, 0), np.float32) if span_mm is None else _float_map(span_mm)  # (0, 0): no mesh term
     if span_mm is not None and span.shape != disp.shape:
         raise ValueError(f"{span.shape=} but expected {disp.shape} (the disparity's shape)")
-    T_zd = rig.T_zed_from_depth
-    c_depth, axis_depth = T_zd[:3, 3], T_zd[:3, 2]  # the depth camera's centre and optical axis in the ZED frame
+    T_zed_from_depth = rig.T_zed_from_depth
+    # the depth camera's centre and optical axis in the ZED frame
+    c_depth, axis_depth = T_zed_from_depth[:3, 3], T_zed_from_depth[:3, 2]
     shift = float(texture_shift_px) if (params.use_verification and texture_shift_px is not None
                                         and math.isfinite(texture_shift_px)) else 0.0
     out = np.empty(disp.shape, np.float32)  # each sigma computed in float64, rounded once on storing

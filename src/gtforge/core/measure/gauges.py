@@ -392,9 +392,9 @@ def measure_raw_depth(spec: GaugeSpec, gt: SourceFigures, depth_mm: np.ndarray, 
     if params.erosion_px:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.erosion_px + 1,) * 2)
         masks = [cv2.erode(m.astype(np.uint8), k).astype(bool) for m in masks]
-    T = rig.T_zed_from_depth
+    T_zed_from_depth = rig.T_zed_from_depth
     sig = params.depth_noise.sigma_mm(depth_mm)
-    out, _ = measure_source(spec, Q, masks, sig, T[:3, 3], T[:3, 2], params, "raw")
+    out, _ = measure_source(spec, Q, masks, sig, T_zed_from_depth[:3, 3], T_zed_from_depth[:3, 2], params, "raw")
     return out
 
 

@@ -89,10 +89,10 @@ def pose_information(T_zed_from_mech: np.ndarray, T_mech_from_board: np.ndarray,
     from one pose whose points ``X`` both cameras see, its board pose marginalised out (Schur complement)."""
 
     def res(x):
-        Te = perturb_left(T_zed_from_mech, x[:6])
-        Tb = perturb_left(T_mech_from_board, x[6:])
-        return np.concatenate([mech.project(transform_points(Tb, X)).ravel(),
-                               zed_cam.project(transform_points(Te @ Tb, X)).ravel()])
+        T_zed_from_mech_x = perturb_left(T_zed_from_mech, x[:6])
+        T_mech_from_board_x = perturb_left(T_mech_from_board, x[6:])
+        return np.concatenate([mech.project(transform_points(T_mech_from_board_x, X)).ravel(),
+                               zed_cam.project(transform_points(T_zed_from_mech_x @ T_mech_from_board_x, X)).ravel()])
 
     x0 = np.zeros(12)
     f0 = res(x0)
@@ -121,10 +121,11 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
     for name, cam, attr, obs_attr in (("zed", zed_cam, "det_zed", "zed_uv"), ("mech", mech, "det_mech", "mech_uv")):
         pts = [getattr(o, attr).corners_uv if getattr(o, attr) is not None else getattr(o, obs_attr) for o in used]
         cams.append(_camera_coverage(name, cam, np.concatenate(pts) if pts else np.zeros((0, 2))))
-    T_zb = [T_zed_from_mech @ T for T in T_mech_from_board]
+    T_zed_from_boards = [T_zed_from_mech @ T_mech_from_board_k for T_mech_from_board_k in T_mech_from_board]
     centre_b = X_all.mean(0)
-    dist = np.array([transform_points(T, centre_b[None])[0, 2] for T in T_zb])
-    tilts = np.array([_tilts_deg(T) for T in T_zb])
+    dist = np.array([transform_points(T_zed_from_board, centre_b[None])[0, 2]
+                     for T_zed_from_board in T_zed_from_boards])
+    tilts = np.array([_tilts_deg(T_zed_from_board) for T_zed_from_board in T_zed_from_boards])
     guidance: list[str] = []
     gaps: list[tuple[str, str]] = []  # (kind, detail) for the proposals
     for c in cams:
@@ -151,17 +152,19 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
         sigma_px = max(float(rms_px), 1e-3) / np.sqrt(2.0) * np.sqrt(jack_scale or 1.0)
         for kind, detail in gaps:
             best = None
-            for T_mb, T in _sources(kind, detail, T_mech_from_board, T_zb, centre_b, mech, zed_cam):
-                for T_new, text in _proposals(kind, detail, T, T_zed_from_mech, centre_b, mech, zed_cam):
-                    T_mb_new = invert_T(T_zed_from_mech) @ T_new
-                    vis = (_visible(mech, transform_points(T_mb_new, X_all))
-                           & _visible(zed_cam, transform_points(T_new, X_all)))
+            for _, T_zed_from_board in _sources(kind, detail, T_mech_from_board, T_zed_from_boards, centre_b, mech,
+                                                zed_cam):
+                for T_zed_from_board_new, text in _proposals(kind, detail, T_zed_from_board, T_zed_from_mech, centre_b,
+                                                             mech, zed_cam):
+                    T_mech_from_board_new = invert_T(T_zed_from_mech) @ T_zed_from_board_new
+                    vis = (_visible(mech, transform_points(T_mech_from_board_new, X_all))
+                           & _visible(zed_cam, transform_points(T_zed_from_board_new, X_all)))
                     if vis.sum() < min_common:
                         continue
 
                     if collinear(X_all[vis]):
                         continue
-                    info = pose_information(T_zed_from_mech, T_mb_new, X_all[vis], mech, zed_cam, sigma_px)
+                    info = pose_information(T_zed_from_mech, T_mech_from_board_new, X_all[vis], mech, zed_cam, sigma_px)
                     sr, st = _predict(cov, info)
                     if best is None or sr + st / 10 < best.sigma_rot_deg + best.sigma_trans_mm / 10:
                         best = PredictedPose(description=text, n_points_common=int(vis.sum()), sigma_rot_deg=sr,
@@ -181,18 +184,19 @@ def coverage_report(used, T_mech_from_board: list[np.ndarray], T_zed_from_mech: 
                           guidance=guidance, predictions=predictions)
 
 
-def _sources(kind: str, detail: str, T_mech_from_board, T_zb, centre_b, mech, zed_cam, n: int = 3):
+def _sources(kind: str, detail: str, T_mech_from_boards, T_zed_from_boards, centre_b, mech, zed_cam, n: int = 3):
     """The used poses a proposal starts from (at most ``n``: the cost stays a fraction of the calibration's): for a
     corner gap the poses whose board centre is imaged nearest that corner, for a tilt the first ``n``."""
-    pairs = list(zip(T_mech_from_board, T_zb))
+    pairs = list(zip(T_mech_from_boards, T_zed_from_boards))
     if kind != "corner":
         return pairs[:n]
     cam_name, corner = detail.split(":")
     cam = zed_cam if cam_name == "zed" else mech
     k = {"top-left": (0, 0), "top-right": (1, 0), "bottom-right": (1, 1), "bottom-left": (0, 1)}[corner]
     c = np.array([k[0] * (cam.width_px - 1), k[1] * (cam.height_px - 1)])
-    d = [np.linalg.norm(cam.project(transform_points(T_mb if cam_name == "mech" else T, centre_b[None]))[0] - c)
-         for T_mb, T in pairs]
+    d = [np.linalg.norm(cam.project(transform_points(T_mech_from_board if cam_name == "mech" else T_zed_from_board,
+                                                     centre_b[None]))[0] - c)
+         for T_mech_from_board, T_zed_from_board in pairs]
     return [pairs[i] for i in np.argsort(d)[:n]]
 
 
@@ -207,10 +211,10 @@ def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_
             import cv2
 
             R = cv2.Rodrigues(axis * ang)[0]
-            T = T_zed_from_board.copy()
-            T[:3, :3] = R @ T[:3, :3]
-            T[:3, 3] = c_zed - T[:3, :3] @ centre_b  # turned about its own centre
-            yield T, f"a board turned {30 * sign:+d} deg about the {detail} axis"
+            T_zed_from_board_turned = T_zed_from_board.copy()
+            T_zed_from_board_turned[:3, :3] = R @ T_zed_from_board[:3, :3]
+            T_zed_from_board_turned[:3, 3] = c_zed - T_zed_from_board_turned[:3, :3] @ centre_b  # about its own centre
+            yield T_zed_from_board_turned, f"a board turned {30 * sign:+d} deg about the {detail} axis"
         return
     cam_name, corner = detail.split(":")
     cam = zed_cam if cam_name == "zed" else mech
@@ -224,10 +228,10 @@ def _proposals(kind: str, detail: str, T_zed_from_board: np.ndarray, T_zed_from_
         depth = c_zed[2]
         p = np.array([xy[0], xy[1], 1.0]) * depth
     else:
-        T_mb = invert_T(T_zed_from_mech) @ T_zed_from_board
-        depth = transform_points(T_mb, centre_b[None])[0, 2]
+        T_mech_from_board = invert_T(T_zed_from_mech) @ T_zed_from_board
+        depth = transform_points(T_mech_from_board, centre_b[None])[0, 2]
         p = transform_points(T_zed_from_mech, (np.array([xy[0], xy[1], 1.0]) * depth)[None])[0]
-    T = T_zed_from_board.copy()
-    T[:3, 3] = p - T[:3, :3] @ centre_b
+    T_zed_from_board_moved = T_zed_from_board.copy()
+    T_zed_from_board_moved[:3, 3] = p - T_zed_from_board[:3, :3] @ centre_b
     label = "ZED" if cam_name == "zed" else "structured-light"
-    yield T, f"a board centred near the {label} image's {corner} corner, cut by its border"
+    yield T_zed_from_board_moved, f"a board centred near the {label} image's {corner} corner, cut by its border"

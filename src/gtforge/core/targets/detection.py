@@ -680,15 +680,16 @@ def captures_detected_ahead(dirs, load, spec, views) -> Iterator[tuple[Path, obj
 
 def pnp_bias_corrected(spec, det: Detection, cam, solve_pnp) -> tuple[np.ndarray, np.ndarray]:
     """PnP from a detection; for circles, the centroids are corrected for the perspective bias at the PnP pose and
-    solved again (the bias changes by far less than itself between the two poses). Returns (T, uv used)."""
+    solved again (the bias changes by far less than itself between the two poses). Returns (T_cam_from_board, uv
+    used)."""
     X = spec.corners_board()[det.ids]
-    T = solve_pnp(X, det.corners_uv, cam)
+    T_cam_from_board = solve_pnp(X, det.corners_uv, cam)
     uv = det.corners_uv
     if isinstance(spec, CircleGridSpec):
         for _ in range(2):
-            uv = det.corners_uv - circle_centre_bias(spec, T, cam)[det.ids]
-            T = solve_pnp(X, uv, cam)
-    return T, uv
+            uv = det.corners_uv - circle_centre_bias(spec, T_cam_from_board, cam)[det.ids]
+            T_cam_from_board = solve_pnp(X, uv, cam)
+    return T_cam_from_board, uv
 
 
 
@@ -696,8 +697,8 @@ def unmirror_symmetric_grid(spec: CircleGridSpec, det: Detection, cam, solve_pnp
     """A symmetric grid's numbering may come back mirrored (rows counted from the other side): PnP then puts the
     board's z axis (into the board) towards the camera, a board seen from behind. Count the rows the other way."""
     X = spec.corners_board()
-    T = solve_pnp(X, det.corners_uv, cam)
-    if T[:3, 2] @ T[:3, 3] >= 0:
+    T_cam_from_board = solve_pnp(X, det.corners_uv, cam)
+    if T_cam_from_board[:3, 2] @ T_cam_from_board[:3, 3] >= 0:
         return det
     uv = det.corners_uv.reshape(spec.rows, spec.cols, 2)[::-1].reshape(-1, 2).copy()
     return Detection(uv, det.sharpness_px, det.method, det.pattern_contrast, det.ids)
@@ -757,18 +758,19 @@ def match_target_views(spec, det_a: Detection, cam_a, det_b: Detection, cam_b, n
     if symmetric:
         det_a = unmirror_symmetric_grid(spec, det_a, cam_a, solve_pnp)
         det_b = unmirror_symmetric_grid(spec, det_b, cam_b, solve_pnp)
-    T_a, uv_a_all = pnp_bias_corrected(spec, det_a, cam_a, solve_pnp)
-    T_b, uv_b_all = pnp_bias_corrected(spec, det_b, cam_b, solve_pnp)
-    if symmetric and T_a[:3, 0] @ T_b[:3, 0] < 0:
+    T_a_from_board, uv_a_all = pnp_bias_corrected(spec, det_a, cam_a, solve_pnp)
+    T_b_from_board, uv_b_all = pnp_bias_corrected(spec, det_b, cam_b, solve_pnp)
+    if symmetric and T_a_from_board[:3, 0] @ T_b_from_board[:3, 0] < 0:
         det_b = Detection(det_b.corners_uv[::-1].copy(), det_b.sharpness_px, det_b.method, det_b.pattern_contrast,
                           det_b.ids)
-        T_b, uv_b_all = pnp_bias_corrected(spec, det_b, cam_b, solve_pnp)
+        T_b_from_board, uv_b_all = pnp_bias_corrected(spec, det_b, cam_b, solve_pnp)
     common, ia, ib = np.intersect1d(det_a.ids, det_b.ids, return_indices=True)
     if len(common) < min_common:
         return PairSkipped(f"only {len(common)} board points seen by both cameras (need {min_common})", len(common))
     if collinear(X[common]):
         return PairSkipped("the board points both cameras see lie on one line", len(common))
-    return TargetPair(common, uv_a_all[ia], uv_b_all[ib], T_a, T_b, det_a, det_b, uv_a_all, uv_b_all)
+    return TargetPair(common, uv_a_all[ia], uv_b_all[ib], T_a_from_board, T_b_from_board, det_a, det_b, uv_a_all,
+                      uv_b_all)
 
 
 def matched_points(name: str, texture, zed_left, mech, zed_cam, spec,

@@ -24,21 +24,21 @@ class OutlierSettings(Protocol):
     outlier_floor_mm: float
 
 
-def robust_initial_extrinsic(Ts: list[np.ndarray], params: OutlierSettings
+def robust_initial_extrinsic(T_zed_from_mech_per_pose: list[np.ndarray], params: OutlierSettings
                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rotation mean on SO(3) + translation mean over poses kept by a median/MAD rule.
 
-    Returns (T, inlier mask, rotation deviation deg, translation deviation mm)."""
+    Returns (T_zed_from_mech, inlier mask, rotation deviation deg, translation deviation mm)."""
     from scipy.spatial.transform import Rotation
-    Rs = Rotation.from_matrix(np.stack([T[:3, :3] for T in Ts]))
-    ts = np.stack([T[:3, 3] for T in Ts])
-    keep = np.ones(len(Ts), bool)
+    Rs = Rotation.from_matrix(np.stack([T_zed_from_mech[:3, :3] for T_zed_from_mech in T_zed_from_mech_per_pose]))
+    ts = np.stack([T_zed_from_mech[:3, 3] for T_zed_from_mech in T_zed_from_mech_per_pose])
+    keep = np.ones(len(ts), bool)
     for _ in range(3):
         R_mean = Rs[keep].mean()
         t_med = np.median(ts[keep], axis=0)
         rot_dev = np.degrees((R_mean.inv() * Rs).magnitude())
         tr_dev = np.linalg.norm(ts - t_med, axis=1)
-        new_keep = np.ones(len(Ts), bool)
+        new_keep = np.ones(len(ts), bool)
         for dev, floor in ((rot_dev, params.outlier_floor_deg), (tr_dev, params.outlier_floor_mm)):
             med = np.median(dev[keep])
             mad = 1.4826 * np.median(np.abs(dev[keep] - med))
@@ -48,10 +48,10 @@ def robust_initial_extrinsic(Ts: list[np.ndarray], params: OutlierSettings
             break
         keep = new_keep
     R_mean = Rs[keep].mean()
-    T = make_T(R_mean.as_matrix(), ts[keep].mean(axis=0))
+    T_zed_from_mech = make_T(R_mean.as_matrix(), ts[keep].mean(axis=0))
     rot_dev = np.degrees((R_mean.inv() * Rs).magnitude())
-    tr_dev = np.linalg.norm(ts - T[:3, 3], axis=1)
-    return T, keep, rot_dev, tr_dev
+    tr_dev = np.linalg.norm(ts - T_zed_from_mech[:3, 3], axis=1)
+    return T_zed_from_mech, keep, rot_dev, tr_dev
 
 
 
@@ -93,8 +93,9 @@ def joint_refine(obs: list[PoseObs], mech: PinholeCamera, zed_cam: PinholeCamera
 
     def residuals(x):
         T_zed_from_mech, T_mech_from_boards = unpack(x)
-        pm = np.stack([transform_points(T, X) for T in T_mech_from_boards])
-        pz = np.stack([transform_points(T_zed_from_mech @ T, X) for T in T_mech_from_boards])
+        pm = np.stack([transform_points(T_mech_from_board, X) for T_mech_from_board in T_mech_from_boards])
+        pz = np.stack([transform_points(T_zed_from_mech @ T_mech_from_board, X)
+                       for T_mech_from_board in T_mech_from_boards])
         rm = _project_many(mech, pm) - uv_m
         rz = _project_many(zed_cam, pz) - uv_z
         return np.concatenate([rm.reshape(P, -1), rz.reshape(P, -1)], axis=1).ravel()
@@ -148,8 +149,8 @@ def _joint_refine_ragged(obs: list[PoseObs], mech: PinholeCamera, zed_cam: Pinho
 
     def residuals(x):
         T_zed_from_mech, T_mech_from_boards = unpack(x)
-        Tm = np.stack(T_mech_from_boards)[pose_of]  # (n, 4, 4): each point's board pose
-        pm = np.einsum("nij,nj->ni", Tm[:, :3], Xh)
+        T_mech_from_board_of_point = np.stack(T_mech_from_boards)[pose_of]  # (n, 4, 4): each point's board pose
+        pm = np.einsum("nij,nj->ni", T_mech_from_board_of_point[:, :3], Xh)
         pz = pm @ T_zed_from_mech[:3, :3].T + T_zed_from_mech[:3, 3]
         return np.concatenate([(mech.project(pm) - uv_m).ravel(), (zed_cam.project(pz) - uv_z).ravel()])
 
@@ -230,18 +231,22 @@ def rms_px(a: np.ndarray) -> float:
 
 
 
-def jackknife_scale(T: np.ndarray, T_loo: list[np.ndarray], cov: np.ndarray) -> float | None:
+def jackknife_scale(T_zed_from_mech: np.ndarray, T_zed_from_mech_loo: list[np.ndarray], cov: np.ndarray
+                    ) -> float | None:
     """``max(1, rms_i(C_jack[i, i] / cov[i, i]))`` over the six parameters, where ``C_jack`` is the jackknife
-    covariance of the leave-one-out solutions ``T_loo`` around ``T`` (parameterised as ``cov``). None below 4.
+    covariance of the leave-one-out solutions ``T_zed_from_mech_loo`` around ``T_zed_from_mech`` (parameterised as
+    ``cov``). None below 4.
 
     Measured (benchmarks/bench_uncertainty.py, tests/core/test_uncertainty.py): the normalised squared error of the
     extrinsic averages 10.9 with the Jacobian covariance on rendered boards (correlated detector errors) and 7.6 once
     scaled; with independent corner noise 5.7 unscaled and 4.5 scaled (6 is right). The mean ratio gave 8.5 / 4.7,
     the largest 4.5 / 3.5."""
-    n = len(T_loo)
+    n = len(T_zed_from_mech_loo)
     if n < 4 or not np.all(np.isfinite(cov)):
         return None
-    xs = np.array([np.concatenate([rotvec_between(T, Ti), Ti[:3, 3] - T[:3, 3]]) for Ti in T_loo])
+    xs = np.array([np.concatenate([rotvec_between(T_zed_from_mech, T_zed_from_mech_i),
+                                   T_zed_from_mech_i[:3, 3] - T_zed_from_mech[:3, 3]])
+                   for T_zed_from_mech_i in T_zed_from_mech_loo])
     d = xs - xs.mean(axis=0)
     c_jack = (n - 1) / n * (d.T @ d)
     ratio = float(np.sqrt(np.mean((np.diag(c_jack) / np.maximum(np.diag(cov), 1e-30)) ** 2)))
