@@ -22,10 +22,11 @@ import numpy as np
 
 from gtforge.core.camera import CameraFile, StereoCalibrationFile
 from gtforge.core.targets.detection import detect_target
-from gtforge.core.targets.models import BoardModel
+from gtforge.core.targets.models import BoardModel, check_board_model
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
+from gtforge.infra.signals import interrupt_deferred
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
@@ -179,11 +180,13 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
                              "give --clock-offset-ms (stereo clock minus depth clock), or check the recordings")
     drops: Counter = Counter()
     pairs: list[Pair] = []
+    nearest_skew_ns = np.inf  # the least skew of a pair dropped for skew (what --max-skew-ms would have to allow)
     for i, t in enumerate(td):
         k = _nearest(tt, int(t))
         skew = abs(int(tt[k]) - int(t))
         if skew > tol:
             drops["skew"] += 1
+            nearest_skew_ns = min(nearest_skew_ns, skew)
             continue
         left = right = None
         seg = (int(tex_seg[k]), 0)
@@ -194,6 +197,7 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
             s2 = abs(int(tl[left]) - ts)
             if s2 > tol:
                 drops["skew"] += 1
+                nearest_skew_ns = min(nearest_skew_ns, max(skew, s2))
                 continue
             if not tr.size or abs(int(tr[right := _nearest(tr, int(tl[left]))]) - int(tl[left])) > tol:
                 drops["no image"] += 1
@@ -215,7 +219,7 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
     if params.max_captures is not None:
         kept_every = kept_every[:params.max_captures]
     drops["every/max"] += len(kept) - len(kept_every)
-    return kept_every, {r: drops.get(r, 0) for r in REASONS}, offset, source, n_same
+    return kept_every, {r: drops.get(r, 0) for r in REASONS}, offset, source, n_same, nearest_skew_ns / 1e6
 
 
 # ---- writing ------------------------------------------------------------------------------------
@@ -227,9 +231,10 @@ def _sources(paths: list[Path]) -> list[SourceFile]:
     return out
 
 
-def _dropped_text(dropped: dict[str, int], params: ImportParams) -> str:
-    """Why pairs were dropped, in words: ``2 dropped for skew (frames over 20 ms apart)``."""
-    why = {"skew": f"skew (frames over {params.max_skew_ms:g} ms apart)",
+def _dropped_text(dropped: dict[str, int], params: ImportParams, nearest_skew_ms: float = np.inf) -> str:
+    """Why pairs were dropped, in words: ``2 dropped for skew (frames over 20 ms apart; the nearest 101.6 ms)``."""
+    nearest = f"; the nearest {nearest_skew_ms:.1f} ms" if np.isfinite(nearest_skew_ms) else ""
+    why = {"skew": f"skew (frames over {params.max_skew_ms:g} ms apart{nearest})",
            "motion": f"motion (over --still-threshold {params.still_threshold:g})",
            "no image": "a missing right image", "every/max": "--every / --max-captures"}
     return "; ".join(f"{n} dropped for {why.get(k, k)}" for k, n in dropped.items() if n) or "no frames"
@@ -391,16 +396,22 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     paths = [Path(p) for p in paths]
     session = Path(session)
     params, topics = params or ImportParams(), topics or Topics()
+    if params.board is not None:
+        check_board_model(params.board)  # as calibrate will: refused now, not written into session.yaml
     for p in paths:
-        if p.resolve() == session.resolve() or session.resolve().is_relative_to(p.resolve() if p.is_dir() else p):
+        if session.resolve().is_relative_to(_recording_folder(p)):
             raise InputError(session, "output", "a session folder outside the recordings", "inside a recording",
                              "gtforge never writes into a recording's folder")
+    if session.exists() and not session.is_dir():
+        raise InputError(session, "output", "a folder", "a file")
     exists = session.is_dir() and any(session.iterdir())
     if exists and not add:
         raise InputError(session, "output", "a new or empty session folder", "a non-empty folder",
                          "pass --add to add these recordings' captures to it")
-    if session.exists() and not session.is_dir():
-        raise InputError(session, "output", "a folder", "a file")
+    if exists and not (session / "session.yaml").is_file():
+        raise InputError(session / "session.yaml", "--add", "a gtforge session to add the captures to",
+                         "a folder without session.yaml", "import into a new folder (without --add)")
+    add = add and exists  # --add into a new or empty folder: a new session, its rig files included
     opened = open_recordings(paths, topics)
     try:
         rgbd, stereo = opened.rgbd, opened.stereo
@@ -410,10 +421,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             earlier = ImportRecord.read(record).runs if record.is_file() else []
             check_same_rig(session, rgbd, stereo, earlier)
             check_not_imported(sources, earlier)
-        kept, dropped, offset, source, n_same = plan_pairs(rgbd, stereo, params, progress)
+        kept, dropped, offset, source, n_same, nearest_skew_ms = plan_pairs(rgbd, stereo, params, progress)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
-                             f"none ({_dropped_text(dropped, params)})",
+                             f"none ({_dropped_text(dropped, params, nearest_skew_ms)})",
                              "raise --max-skew-ms or --still-threshold, or check the clock offset")
         board = params.board
         if board is None and add and (session / "session.yaml").is_file():
@@ -421,7 +432,9 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         board = board or BoardModel()
         spec = board.spec()
         partial = session.parent / f".{session.name}.import-partial"
-        stamp = json.dumps({"sources": [str(p.resolve()) for p in paths], "params": params.model_dump(mode="json"),
+        # the recordings' bytes, not only their names: a partial folder left by an import of other bytes at the same
+        # paths is started again, never resumed
+        stamp = json.dumps({"sources": [(f.path, f.blake3) for f in sources], "params": params.model_dump(mode="json"),
                             "topics": {k: str(v) for k, v in topics.__dict__.items()}, "add": add})
         if partial.is_dir() and (partial / ".plan").is_file() and (partial / ".plan").read_text() != stamp:
             shutil.rmtree(partial)
@@ -464,11 +477,23 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                         serials=recording_serials(rgbd, stereo), params=params, clock_offset_ms=offset / 1e6,
                         clock_offset_source=source, pairs=records,
                         dropped=dropped)
-        _land(partial, session, run, add)
+        with interrupt_deferred():  # the captures and the record that lists them land together
+            _land(partial, session, run, add)
     finally:
         opened.close()
     return ImportSummary(session, names, sum(k == "board" for k in kinds.values()),
                          sum(k == "scenes" for k in kinds.values()), dropped, offset / 1e6, source, warnings)
+
+
+def _recording_folder(p: Path) -> Path:
+    """The folder a recording owns: a folder recording itself, a rosbag2 folder for one of its files (beside its
+    metadata.yaml); a single-file recording owns only its file (a session may be written beside it)."""
+    p = p.resolve()
+    if p.is_dir():
+        return p
+    if (p.parent / "metadata.yaml").is_file():
+        return p.parent
+    return p
 
 
 def _next_index(folder: Path) -> int:

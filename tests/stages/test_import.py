@@ -158,11 +158,13 @@ def test_real_recordings_import_through_the_command(tmp_path):
             assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
             cap = tmp_path / f"cut{size}" / "scenes" / "000"
             assert (cap / "DepthMap.tiff").is_file() and not (cap / "IR.png").exists()
+            assert "warning: cut.mkv: its IR track holds no frame (a recording cut short?)" in r.stderr
         else:
             assert r.returncode == 2 and one_line_error(r) and "cut short" in r.stderr, r.stderr
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs0")
     assert r.returncode == 2 and one_line_error(r), r.stderr
-    assert "got none (2 dropped for skew (frames over 20 ms apart))" in r.stderr and not (tmp_path / "rs0").exists()
+    assert "got none (2 dropped for skew (frames over 20 ms apart; the nearest 101.6 ms))" in r.stderr
+    assert not (tmp_path / "rs0").exists()
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs",
                 "--max-skew-ms", "150")
     assert r.returncode == 0, r.stderr
@@ -206,7 +208,23 @@ def _empty(recs, tmp_path):
     return [tmp_path / "empty"], []
 
 
+def _renamed(recs, tmp_path):
+    """The depth recording's .mcap copied under a .mkv name (a file renamed by mistake)."""
+    shutil.copy(Path(recs.rgbd_bag) / "rgbd.mcap", tmp_path / "rgbd.mkv")
+    return [tmp_path / "rgbd.mkv", recs.stereo_bag], []
+
+
 BAD = {
+    "renamed recording": (_renamed, "expected the recording its suffix .mkv names, got an MCAP file (.mcap, .svo2) "
+                          "(by its first bytes)"),
+    "missing recording": (lambda recs, tmp: ([tmp / "nope.mkv"], []), "nope.mkv: expected a recording (file or "
+                          "folder), got no such file or folder"),
+    "board no detector can find": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--cols", "2"]),
+                                   "expected at least 3x3 inner corners, got 2x9"),
+    "clock offset not a number": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--clock-offset-ms", "nan"]),
+                                  "--clock-offset-ms: expected a finite number, got nan"),
+    "an option no recording reads": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--fps", "15"]),
+                                     "error: --fps: expected a recording it applies to (a ZED SDK export folder"),
     "truncated bag": (_truncated, "truncated"),
     "empty recording": (_empty, "got an empty one (3 topic(s) declared, 0 messages)"),
     "half a stereo pair": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--right-topic", "/zed/none"]),
@@ -324,6 +342,87 @@ def test_an_interrupted_import_resumes_with_the_captures_already_written(hand, r
     assert len(s.captures) == 4 and not partial.exists()
     assert (out / "board" / "000" / "left.png").stat().st_mtime_ns == stamp  # reused, not written again
     _same_session(hand, out, s.captures)
+
+
+def test_add_needs_a_session_and_into_a_new_folder_writes_a_whole_one(hand, recs, tmp_path):
+    """--add into a folder that is no session (its rig files would be missing) is refused, the folder untouched;
+    --add into a new folder writes a whole session (session.yaml and the cameras), as without --add."""
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=1)
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "notes.txt").write_text("mine")
+    with pytest.raises(InputError) as err:
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], notes, p, add=True)
+    assert str(err.value).startswith(f"{notes / 'session.yaml'} [--add]: expected a gtforge session to add the "
+                                     "captures to, got a folder without session.yaml")
+    assert [x.name for x in notes.iterdir()] == ["notes.txt"] and not (tmp_path / ".notes.import-partial").exists()
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "new", p, add=True)
+    assert s.captures == ["board/000"]
+    assert {"session.yaml", "mech_intrinsics.yaml", "zed_calibration.yaml", "import.json"} <= \
+        {x.name for x in (tmp_path / "new").iterdir()}
+    for f in ("mech_intrinsics.yaml", "zed_calibration.yaml", "board/000/left.png"):
+        assert (tmp_path / "new" / f).read_bytes() == (hand / f).read_bytes(), f
+
+
+def test_a_partial_import_of_other_bytes_at_the_same_paths_is_not_resumed(hand, tmp_path):
+    """An import stopped, then the recordings at its paths replaced by others (the same options): the rerun starts
+    again; the partial folder's captures came from the other bytes."""
+    rec = tmp_path / "rec"
+    a = write_ros2_recordings(hand, tmp_path / "a", captures=["board/000", "board/001"])
+    b = write_ros2_recordings(hand, tmp_path / "b", captures=["board/001", "board/000"])
+    assert a.clock_offset_ms == b.clock_offset_ms
+    shutil.copytree(tmp_path / "a", rec)
+    paths, p = [rec / "rgbd", rec / "zed"], ImportParams(clock_offset_ms=a.clock_offset_ms)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_second(msg):
+        if msg == "capture 2/2":
+            raise Stop
+
+    with pytest.raises(Stop):
+        import_recordings(paths, tmp_path / "s", p, progress=stop_at_second)
+    assert (tmp_path / ".s.import-partial" / "board" / "000").is_dir()
+    shutil.rmtree(rec)
+    shutil.copytree(tmp_path / "b", rec)
+    s = import_recordings(paths, tmp_path / "s", p)
+    assert s.captures == ["board/000", "board/001"]
+    for name, theirs in (("board/000", "board/001"), ("board/001", "board/000")):  # b's order, not a's
+        assert (tmp_path / "s" / name / "left.png").read_bytes() == (hand / theirs / "left.png").read_bytes()
+
+
+def test_ctrl_c_while_added_captures_land_lands_them_all_first(hand, recs, tmp_path, monkeypatch):
+    """A Ctrl-C while --add moves the captures into the session takes effect once they and import.json are in place:
+    never a capture in the session that import.json does not list, nor a rerun numbering them again."""
+    import os
+    import signal
+
+    import gtforge.importer as importer
+
+    out = tmp_path / "s"
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=1)
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
+    more = write_ros2_recordings(hand, tmp_path / "more", captures=["board/001", "scenes/000"], seed=1)
+    real_replace, moved = os.replace, []
+
+    def replace_then_ctrl_c(src, dst):
+        real_replace(src, dst)
+        if Path(dst).parent.parent == out:  # a capture landing in the session (not a capture's own write)
+            moved.append(dst)
+            if len(moved) == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(importer.os, "replace", replace_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        import_recordings([more.rgbd_bag, more.stereo_bag], out, ImportParams(clock_offset_ms=more.clock_offset_ms),
+                          add=True)
+    assert len(moved) >= 2  # the second capture landed after the Ctrl-C
+    runs = ImportRecord.read(out / "import.json").runs
+    assert [r.capture for run in runs for r in run.pairs] == ["board/000", "board/001", "scenes/000"]
+    assert sorted(f"{k}/{x.name}" for k in ("board", "scenes") for x in (out / k).iterdir()) == \
+        ["board/000", "board/001", "scenes/000"]
+    assert not (tmp_path / ".s.import-partial").exists()
 
 
 def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):

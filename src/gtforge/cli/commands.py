@@ -90,7 +90,8 @@ def _options(model, **values):
         loc = [str(p) for p in err.get("loc", ("value",))]
         board = model.__name__ == "BoardModel" or "board" in loc
         name = (BOARD_OPTIONS.get(loc[-1]) if board else None) or "--" + loc[-1].replace("_", "-")
-        raise InputError(None, name, err.get("msg", "a valid value").replace("Input should be ", "a value "),
+        msg = err.get("msg", "a valid value").removeprefix("Input should be ")
+        raise InputError(None, name, msg if msg.startswith(("a ", "an ")) else f"a value {msg}",
                          repr(err.get("input"))) from None
 
 

@@ -388,7 +388,9 @@ class Session:
         d = self.root / (self.config.board_dir if kind == "board" else self.config.scenes_dir)
         if not d.is_dir():
             raise InputError(d, None, f"a folder of {kind} captures", "no such folder",
-                             "see docs/capture-layout.md")
+                             "see docs/capture-layout.md" + ("; gtforge import puts a capture in board/ only where it "
+                                                             "finds the board its --board/--cols/--rows declare"
+                                                             if (self.root / "import.json").is_file() else ""))
         dirs = sorted(p for p in d.iterdir() if p.is_dir() and not p.name.startswith("."))
         if not dirs:
             raise InputError(d, None, "at least one capture folder", "none")

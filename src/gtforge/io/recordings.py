@@ -401,7 +401,7 @@ def read_realsense(bag: Bag) -> RgbdRecording:
     if tex_t is None:
         raise InputError(path, "colour topic", "a RealSense colour or infrared stream", "none")
     units = [t for t in bag.topics if re.search(r"/option/Depth[ _]Units/value$", t)]
-    scale_mm = float(bag.first(units[0]).data) * 1000.0 if units else 1.0
+    scale_mm = float(bag.first(units[0]).data) * 1000.0 if units else 1.0  # librealsense's default: 1 mm a count
     cams = {}
     for t in (depth_t, tex_t):
         info_t = t.replace("/image/data", "/info/camera_info")
@@ -422,7 +422,8 @@ def read_realsense(bag: Bag) -> RgbdRecording:
             kv = bag.deserialize(raw, conn)
             serial = kv.value if kv.key == "Serial Number" else serial
     return RgbdRecording(path, "realsense", depth, tex, cams[depth_t], cams[tex_t], T_texture_from_depth,
-                         notes=[f"depth units {scale_mm:g} mm per count"], serial=serial)
+                         notes=[f"depth units {scale_mm:g} mm per count" + ("" if units else " (assumed: the bag has "
+                                "no Depth Units option; librealsense's default)")], serial=serial)
 
 
 # ---- Azure Kinect .mkv -----------------------------------------------------------------------------
@@ -498,6 +499,9 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
         rec = RgbdRecording(path, "kinect", depth, texture, k.depth, k.color, k.T_color_from_depth, ir=ir,
                             kinect_calibration=calib, kinect_modes=(dmode, cmode))
     rec.notes.append(f"depth mode {dmode}, colour mode {cmode}")
+    if "IR" in tracks and ir is None:
+        rec.warnings.append(f"{path.name}: its IR track holds no frame (a recording cut short?): the captures have "
+                            "no IR.png")
     rec.serial = (container.metadata or {}).get("K4A_DEVICE_SERIAL_NUMBER") or None
     container.close()
     return rec

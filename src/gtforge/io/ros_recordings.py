@@ -57,9 +57,9 @@ def read_zed_export(folder: Path, fps: float | None, calibration: Path | None) -
     both = sorted(set(files["left"]) & set(files["right"]))
     if not both:
         raise InputError(folder, "left/right", "left%06d.png and right%06d.png with the same numbers", "no pair")
-    if fps is None or fps <= 0:
-        raise InputError(folder, "--fps", "the frame rate of the ZED export (its images carry no time)", "none",
-                         "pass --fps (e.g. 15)")
+    if fps is None or not fps > 0 or not np.isfinite(fps):
+        raise InputError(folder, "--fps", "the frame rate of the ZED export (its images carry no time), a positive "
+                         "number", "none" if fps is None else f"{fps:g}", "pass --fps (e.g. 15)")
     if calibration is None:
         raise InputError(folder, "--zed-calibration", "the ZED's calibration (SN<serial>.conf or rectified YAML)",
                          "none", "pass --zed-calibration SN12345.conf")
@@ -225,6 +225,27 @@ def _rectify_map(info):
     return rectify
 
 
+# what a recording's first bytes say it is
+_MAGIC = ((b"\x1a\x45\xdf\xa3", "a Matroska file (.mkv)", (".mkv",)),
+          (b"#ROSBAG V2.0", "a ROS 1 bag (.bag)", (".bag",)),
+          (b"\x89MCAP", "an MCAP file (.mcap, .svo2)", (".mcap", ".svo2", ".svo")),
+          (b"SQLite format 3\x00", "a rosbag2 SQLite file (.db3)", (".db3",)))
+
+
+def _looks_like(p: Path) -> str | None:
+    """What ``p``'s first bytes show it to be when its suffix says otherwise (a file renamed by mistake), else None
+    (a folder, a suffix gtforge does not know, a match, or bytes none of the formats start with)."""
+    suffix = p.suffix.lower()
+    if p.is_dir() or suffix not in {s for _, _, suffixes in _MAGIC for s in suffixes}:
+        return None
+    with open(p, "rb") as f:
+        head = f.read(16)
+    for magic, what, suffixes in _MAGIC:
+        if head.startswith(magic):
+            return None if suffix in suffixes else what
+    return None
+
+
 @dataclass
 class Opened:
     rgbd: RgbdRecording | None
@@ -242,14 +263,23 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     rgbd_c, stereo_c, bags = [], [], []
     halves: list[InputError] = []  # bags with one camera of a stereo pair (``_ros_stereo``)
     calibration_used = False  # --zed-calibration applies to a ZED export folder or an .svo2 only
+    used: set[str] = set()  # the options some recording here reads (the others are refused, not ignored)
     for p in paths:
         p = Path(p)
+        if not p.exists():
+            raise InputError(p, None, "a recording (file or folder)", "no such file or folder")
+        looks_like = _looks_like(p)
+        if looks_like is not None:
+            raise InputError(p, None, f"the recording its suffix {p.suffix} names",
+                             f"{looks_like} (by its first bytes)",
+                             "name the file by what it holds (.bag for a ROS 1 / RealSense bag, .mcap, .db3, .mkv)")
         if p.suffix.lower() == ".mkv":
             rgbd_c.append(read_kinect_mkv(p))
             continue
         if is_zed_export(p):
             stereo_c.append(read_zed_export(p, topics.fps, topics.zed_calibration))
             calibration_used = True
+            used.add("fps")
             continue
         if p.suffix.lower() == ".svo2" or p.suffix.lower() == ".svo" and is_mcap(p):  # an SVO2 renamed .svo too
             stereo_c.append(read_zed_svo2(p, topics.zed_calibration))
@@ -257,7 +287,8 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
             continue
         if p.suffix.lower() == ".svo":
             raise InputError(p, None, "a recording gtforge reads (.svo2 of ZED SDK 4.x and later)",
-                             "a ZED SVO version 1 file (an undocumented container)",
+                             "an .svo that is no .svo2 (MCAP): a ZED SVO version 1 file (an undocumented container) "
+                             "or another file",
                              "export left/right PNGs with the ZED SDK (ZED_SVO_Export), or record .svo2 with ZED SDK "
                              ">= 4")
         if not (p.suffix.lower() in BAG_SUFFIXES or p.is_dir()):
@@ -269,7 +300,10 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
             rgbd_c.append(read_realsense(bag))
             continue
         s = _ros_stereo(bag, topics, halves)
+        used |= {"left", "right"}
         r = _ros_rgbd(bag, topics) if (s is None or len(paths) == 1 or topics.depth) else None
+        if r is not None:
+            used |= {"depth", "color", "depth_unit"}
         if s is None and r is None:
             raise InputError(p, "depth topic", "a depth image topic (or a left/right stereo pair)", "none",
                              f"image topics: {', '.join(_images(bag)) or 'none'}; choose with --depth-topic")
@@ -285,6 +319,18 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
                          "name the depth camera's recording too, or its topic with --depth-topic")
     if not stereo_c and halves:  # imported depth-only, as asked; the warning says what looked like half a pair
         rgbd_c[0].warnings.append(f"half a stereo pair, not imported: {halves[0]}")
+    for name, option, applies in (("depth", "--depth-topic", "a ROS bag's depth topic"),
+                                  ("color", "--color-topic", "a ROS bag's colour topic beside its depth"),
+                                  ("depth_unit", "--depth-unit", "a ROS bag's depth images"),
+                                  ("left", "--left-topic", "a ROS bag's stereo pair"),
+                                  ("right", "--right-topic", "a ROS bag's stereo pair"),
+                                  ("fps", "--fps", "a ZED SDK export folder (left%06d.png, no timestamps)")):
+        if getattr(topics, name) is not None and name not in used:
+            kinds = ", ".join(sorted({c.kind for c in rgbd_c} | {"stereo" for _ in stereo_c}))
+            raise InputError(None, option, f"a recording it applies to ({applies})",
+                             f"{getattr(topics, name)!r} given for {kinds or 'these'} recordings, which do not "
+                             "read it", f"leave {option} out (a RealSense .bag, an Azure Kinect .mkv and a ZED "
+                             ".svo2 name their own streams, units and timing)")
     if topics.zed_calibration is not None and not calibration_used:
         raise InputError(topics.zed_calibration, "--zed-calibration", "a ZED .svo2 or ZED SDK export folder to apply "
                          "it to", "none among the recordings" if not stereo_c else
@@ -300,4 +346,6 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     stereo = stereo_c[0] if stereo_c else None
     if stereo is not None and stereo.left.frames:
         check_size(stereo.stereo.left, stereo.left.frames[0].decode(), stereo.path, stereo.left.name)
+    if stereo is not None and stereo.right.frames:
+        check_size(stereo.stereo.right, stereo.right.frames[0].decode(), stereo.path, stereo.right.name)
     return Opened(rgbd, stereo, bags)

@@ -19,7 +19,7 @@ class ImportParams(GTModel):
     still_threshold: float = Field(2.0, gt=0)
     # the stereo camera's clock minus the depth camera's (ms); None: 0 where the clocks overlap, else estimated from
     # the motion events both recordings saw
-    clock_offset_ms: float | None = None
+    clock_offset_ms: float | None = Field(None, allow_inf_nan=False)
     estimate_clock_offset: bool = False  # estimate it from motion events even where the clocks overlap
     every: int = Field(1, ge=1)  # keep every N-th still capture
     max_captures: int | None = Field(None, ge=1)
