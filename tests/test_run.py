@@ -149,7 +149,8 @@ def test_rerun_edit_and_interrupt(chain):
     said = []
     res = run_session(sess, out, OPTS, say=said.append)
     assert res.redone == ["refine", "build-dataset", "verify"]
-    assert any("refine: running (" in s and "out/scaled.yaml" in s and "scenes/001/DepthMap.tiff" in s for s in said)
+    # (calibrate-scale came to the same terms: scaled.yaml kept as it was, so the depth file is refine's one reason)
+    assert any("refine: running (session/scenes/001/DepthMap.tiff changed)" in s for s in said), said
     st = RunState.read(out / "run_state.json").stages
     assert st["build-dataset"].detail["built"] == ["000", "001", "002", "003"]
     assert st["verify"].detail["verified"] == ["000", "001", "002", "003"]
@@ -179,3 +180,54 @@ def test_run_refuses_its_session_as_output_and_leaves_no_folder_on_bad_input(tmp
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert r.stderr.startswith("error: gtforge run: Invalid value for '--workers'") and "gtforge run --help" in r.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_deleted_outputs_are_written_again_and_a_removed_scene_leaves_the_dataset(chain):
+    """Files a run wrote and the user deleted are noticed and written again (a scene's disparity, a KITTI view, the
+    calibration report); calibrate run again to the same result leaves calibration.yaml as it was, so the stages
+    after it are not redone; no hidden temporary file stays in the views; a scene taken out of the session leaves
+    every folder of the dataset; the certificate is withdrawn while stages run and written again."""
+    sess, out = chain["session"], chain["out"]
+    ds = out / "dataset"
+    cal_bytes = (out / "calibration.yaml").read_bytes()
+    gone = [ds / "scenes" / "002" / "disp0GT.pfm", ds / "kitti" / "training" / "disp_occ_0" / "001_10.png",
+            out / "calibration_report" / "calibration_report.json"]
+    for f in gone:
+        f.unlink()
+    said: list[str] = []
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert res.redone == ["calibrate", "build-dataset", "verify"], said
+    assert all(f.is_file() for f in gone)
+    assert (out / "calibration.yaml").read_bytes() == cal_bytes
+    assert not [p for p in out.rglob(".*") if p.is_file()]
+    assert (out / "index.html").is_file()
+
+    moved = chain["base"] / "scene_003_moved_away"
+    shutil.move(sess / "scenes" / "003", moved)
+    try:
+        said = []
+        run_session(sess, out, OPTS, say=said.append)
+        assert any("removed from the dataset (no longer in the session): 003" in s for s in said)
+        left = [p for p in ds.rglob("*003*") if "views" not in p.parts]
+        assert left == [] and "003" not in (ds / "filenames" / "train.txt").read_text() + \
+            (ds / "filenames" / "val.txt").read_text() + (ds / "filenames" / "test.txt").read_text()
+    finally:
+        shutil.move(moved, sess / "scenes" / "003")
+
+
+def test_run_refuses_a_folder_of_the_users_own(tmp_path):
+    """-o at an existing folder that is no earlier run's (no run_state.json): refused before anything is written; the
+    user's calibration.yaml was replaced before."""
+    sess = tmp_path / "s"
+    shutil.copytree(EXAMPLE, sess, ignore=shutil.ignore_patterns("truth"))
+    mine = tmp_path / "mine"
+    (mine / "dataset").mkdir(parents=True)
+    (mine / "calibration.yaml").write_text("mine\n")
+    (mine / "dataset" / "readme.txt").write_text("keep\n")
+    r = gtforge("run", sess, "-o", mine)
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert f"{mine} [--output]: expected a new or empty folder (or one with run_state.json), got a folder with 2 " \
+           "entries" in r.stderr
+    assert sorted(str(p.relative_to(mine)) for p in mine.rglob("*")) == ["calibration.yaml", "dataset",
+                                                                       "dataset/readme.txt"]
+    assert (mine / "calibration.yaml").read_text() == "mine\n"

@@ -30,7 +30,7 @@ from gtforge.dataset.layout import (
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
 from gtforge.dataset.scene_verification import write_verification_overlay
-from gtforge.dataset.views import final_splits, write_lists, write_scene_views, write_split_views
+from gtforge.dataset.views import final_splits, scene_view_files, write_lists, write_scene_views, write_split_views
 from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
@@ -454,9 +454,8 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
     splits = final_splits(ok_ids, fruit_ids, params, quarantined)
     if params.verification:
         _write_verification(out, params, metas)
-    for sid in unchanged:  # views of scenes built by an earlier run with other view options
-        if (params.kitti and not (out / "kitti" / "training" / "disp_noc_0" / f"{sid}_10.png").exists()) or \
-                (params.eth3d and not (out / "eth3d" / "two_view_training_gt" / sid / "mask0nocc.png").exists()):
+    for sid in unchanged:  # views of scenes built by an earlier run with other view options, or deleted since
+        if not all(f.exists() for f in scene_view_files(out, sid, params)):
             write_scene_views(out, sid, params)
     for sid in recovered:  # its worker died while writing them, or before: any of them may be missing
         write_scene_views(out, sid, params)

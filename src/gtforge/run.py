@@ -18,6 +18,7 @@ calibration must then be given), no gauges, no scenes, too few scenes for refine
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,9 +30,10 @@ from gtforge.calibrate import calibrate
 from gtforge.core.schema import GTModel
 from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted
+from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
 from gtforge.io.captures import open_session
-from gtforge.io.outputs import new_folders, remove_if_empty, require_output_folder
+from gtforge.io.outputs import new_folders, remove_if_empty, require_new_or_empty_folder
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
 from gtforge.records.certificate import Certificate
 from gtforge.records.dataset import BuildParams
@@ -92,6 +94,36 @@ class _Hasher:
         return h
 
 
+_TIME_LINE = re.compile(rb"^\s*time_s: .*\n", re.M)
+
+
+def _previous(path: Path) -> bytes | None:
+    return path.read_bytes() if path.is_file() else None
+
+
+def _keep_if_same(path: Path, before: bytes | None) -> None:
+    """A stage's calibration file computed again to the same result (only its ``time_s`` differs) is put back as it
+    was, byte for byte: the stages after it, which hash it, then see no change and are not redone."""
+    if before is not None and path.is_file():
+        now = path.read_bytes()
+        if now != before and _TIME_LINE.sub(b"", now) == _TIME_LINE.sub(b"", before):
+            atomic_write_bytes(path, before)
+
+
+def _remove_scene_outputs(ds: Path, sid: str) -> None:
+    """Every file of scene ``sid`` in the run's dataset ``ds`` (its folder, its KITTI and ETH3D views, its report and
+    verification images): a scene the session no longer has must not stay where a loader scanning the views finds
+    it. The split lists and the manifest are rewritten by the build that follows."""
+    import shutil
+
+    for folder in (ds / "scenes" / sid, ds / "eth3d" / "two_view_training" / sid,
+                   ds / "eth3d" / "two_view_training_gt" / sid):
+        shutil.rmtree(folder, ignore_errors=True)
+    for f in [*(ds / "kitti" / "training").glob(f"*/{sid}_10.png"), *(ds / "report").glob(f"{sid}_*"),
+              *(ds / "verification").glob(f"{sid}_*")]:
+        f.unlink(missing_ok=True)
+
+
 def _plain(x: Any) -> Any:
     return json.loads(json.dumps(x))
 
@@ -101,13 +133,26 @@ def _versioned(options: dict) -> dict:
     return {**options, "gtforge": gtforge.__version__}
 
 
+def _option_changes(before: dict, now: dict, prefix: str = "") -> list[str]:
+    """``key old -> new`` for each option that differs, a nested model's by its own keys (``params.quarantine``)."""
+    out = []
+    for k in sorted(set(before) | set(now)):
+        a, b = before.get(k), now.get(k)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _option_changes(a, b, f"{prefix}{k}.")
+        else:
+            out.append(f"{prefix}{k} {a!r} -> {b!r}")
+    return out
+
+
 def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs_ok: str) -> str | None:
     """Why a stage must run again (None: it need not)."""
     if rec is None or rec.status != "done":
         return "not run before" if rec is None else "it did not apply last time"
     if rec.options != options:
-        keys = sorted(k for k in set(rec.options) | set(options) if rec.options.get(k) != options.get(k))
-        return "options changed: " + ", ".join(f"{k} {rec.options.get(k)!r} -> {options.get(k)!r}" for k in keys)
+        return "options changed: " + ", ".join(_option_changes(rec.options, options))
     changed = [k for k in inputs if k in rec.inputs and rec.inputs[k] != inputs[k]]
     added = [k for k in inputs if k not in rec.inputs]
     removed = [k for k in rec.inputs if k not in inputs]
@@ -125,7 +170,10 @@ class _Run:
         self.opts, self.say, self.progress = opts, say, progress
         self.session = open_session(session_dir)
         self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
-        require_output_folder(out, "--output")
+        # a folder of the user's (not an earlier run's, which holds run_state.json) is never written into: the run's
+        # files (calibration.yaml, dataset/ ...) would replace theirs
+        require_new_or_empty_folder(out, "--output", "choose a new folder for the run (or an earlier run's folder)",
+                                    reusable_if=STATE)
         self.root = self.session.root
         self.out = out
         state_path = out / STATE
@@ -138,7 +186,10 @@ class _Run:
         if self.state is not None and self.state.session_dir != str(self.root.resolve()):
             say(f"{out} was a run of {self.state.session_dir}: every stage runs again")
             self.state = None
-        self.state = self.state or RunState(gtforge_version=gtforge.__version__, session_dir=str(self.root.resolve()))
+        if self.state is None:
+            self.state = RunState(gtforge_version=gtforge.__version__, session_dir=str(self.root.resolve()))
+            out.mkdir(parents=True, exist_ok=True)
+            self.save()  # the folder is a run's from now on: a run stopped before its first stage resumes in it
         self.hash = _Hasher(self.state.hashes)
         self.redone: list[str] = []
         self.skipped: list[str] = []
@@ -207,6 +258,10 @@ class _Run:
             return False
         self.header(k, name, f"running ({why})")
         self.redone.append(name)
+        # the certificate describes the files as they were: once a stage writes new ones it is withdrawn, until this
+        # run writes the new one (a run stopped now leaves none rather than one citing figures no file holds)
+        for f in ("index.html", "certificate.json"):
+            (self.out / f).unlink(missing_ok=True)
         return True
 
     def done(self, name: str, options: dict, inputs: dict, outputs: list[Path], exist_only: list[Path] = (),
@@ -269,12 +324,16 @@ class _Run:
         if not self.decide(k, name, options, inputs):
             return
         t0 = time.perf_counter()
+        before = _previous(ctx["calib"])
         cal = calibrate(self.root, ctx["calib"], CalibrateParams(use_depth=opts.use_depth, leave_one_out=opts.loo),
                         progress=self.progress)
+        _keep_if_same(ctx["calib"], before)
         rep = write_calibration_report(cal, self.out / CALIBRATION_REPORT)
         self.say(f"      RMS {cal.rms_px:.3f} px over {len(cal.captures_used)} poses; 1-sigma {cal.sigma_rot_deg:.4f} "
                  f"deg / {cal.sigma_trans_mm:.3f} mm; verdict {cal.verdict}")
-        self.done(name, options, inputs, [ctx["calib"]], [rep], cal.verdict, cal.verdict_reasons, t0=t0)
+        report_files = [p for p in (self.out / CALIBRATION_REPORT).rglob("*") if p.is_file()]
+        self.done(name, options, inputs, [ctx["calib"]], [rep, *report_files], cal.verdict, cal.verdict_reasons,
+                  t0=t0)
 
     def stage_validate(self, k: int, ctx: dict) -> None:
         name = "validate"
@@ -306,7 +365,8 @@ class _Run:
             outputs = [vdir / "gauges.json"]
         if g is not None and g.status == "FAIL":
             reasons += [f"gauge {r.capture}: " + "; ".join(r.reasons) for r in g.gauges if r.status == "FAIL"]
-        self.done(name, options, inputs, outputs, verdict="FAIL" if reasons else "PASS", reasons=reasons, t0=t0)
+        self.done(name, options, inputs, outputs, [p for p in vdir.rglob("*") if p.is_file() and p not in outputs],
+                  verdict="FAIL" if reasons else "PASS", reasons=reasons, t0=t0)
 
     def stage_scale(self, k: int, ctx: dict) -> None:
         name = "calibrate-scale"
@@ -323,8 +383,10 @@ class _Run:
         scaled = self.out / SCALED
         if self.decide(k, name, options, inputs):
             t0 = time.perf_counter()
+            before = _previous(scaled)
             res = calibrate_scale(self.root, ctx["calib"], scaled, ScaleParams(), self.opts.calibration_scenes,
                                   progress=self.progress)
+            _keep_if_same(scaled, before)
             for line in scale_term_lines(res.scale_calibration):
                 self.say("      " + line)
             self.done(name, options, inputs, [scaled], verdict="PASS", t0=t0)
@@ -337,7 +399,9 @@ class _Run:
         if not self.opts.refine:
             reason = "--no-refine"
         elif len(ctx["cal_scenes"]) < need:
-            reason = f"refinement needs at least {need} scenes, the session has {len(ctx['cal_scenes'])}"
+            reason = (f"refinement needs at least {need} scenes, "
+                      f"{'--calibration-scenes names' if self.opts.calibration_scenes else 'the session has'} "
+                      f"{len(ctx['cal_scenes'])}")
         if reason is None:
             options = _plain({"scenes": self.opts.calibration_scenes, "loo": self.opts.loo})
             inputs = self.hashes(ctx["cfg"] + [ctx["calib"]]
@@ -347,9 +411,11 @@ class _Run:
                 ctx["calib"] = refined
                 return
             t0 = time.perf_counter()
+            before = _previous(refined)
             try:
                 res = refine(self.root, ctx["calib"], refined, RefineParams(leave_one_out=self.opts.loo),
                              self.opts.calibration_scenes, progress=self.progress)
+                _keep_if_same(refined, before)
             except InputError as exc:
                 if "scenes with textured ground truth" not in exc.expected:
                     raise
@@ -388,15 +454,25 @@ class _Run:
             why = {s: "the calibration, the camera files or the options changed" if rec else "first build"
                    for s in per_scene}
         t0 = time.perf_counter()
+        if rec is not None and rec.status == "done":
+            gone = sorted(set(rec.detail.get("built", []) + rec.detail.get("unchanged", [])) - set(per_scene))
+            for sid in gone:  # built by an earlier run from a capture no longer in the session
+                _remove_scene_outputs(ds, sid)
+            if gone:
+                self.say(f"      removed from the dataset (no longer in the session): {', '.join(gone)}")
         summ = build_dataset(self.root, ctx["calib"], ds, params, workers=self.opts.workers, progress=False)
         for sid in summ.built:
             self.say(f"      built {sid} ({why.get(sid) or 'its dataset files were missing or stale'})")
         if summ.skipped_unchanged:
             self.say(f"      unchanged: {', '.join(summ.skipped_unchanged)}")
         reasons = [f"scene {s} failed: {r}" for s, r in summ.failures.items()]
-        metas = [ds / "scenes" / s / "meta.json" for s in summ.built + summ.skipped_unchanged]
-        self.done(name, options, inputs, [], [ds / "manifest.json"] + metas, "FAIL" if reasons else "PASS", reasons,
-                  detail={"built": summ.built, "unchanged": summ.skipped_unchanged, "failures": summ.failures}, t0=t0)
+        # every file the build wrote for its scenes (their folders, the KITTI and ETH3D views): one deleted since is
+        # noticed by the next run, whose build then writes it again
+        scene_files = [p for sub in ("scenes", "kitti", "eth3d") for p in (ds / sub).rglob("*")
+                       if p.is_file() and not p.name.startswith(".")]
+        self.done(name, options, inputs, [], [ds / "manifest.json", *scene_files], "FAIL" if reasons else "PASS",
+                  reasons, detail={"built": summ.built, "unchanged": summ.skipped_unchanged, "failures": summ.failures},
+                  t0=t0)
 
     def stage_verify(self, k: int, ctx: dict) -> None:
         name = "verify"
@@ -450,13 +526,15 @@ def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOption
         raise InputError(out, "--output", "a folder for the run's outputs", "a file", "choose a folder")
     session_dir = Path(session_dir)
     if not session_dir.is_dir():
-        raise InputError(session_dir, None, "a capture session folder (docs/capture-layout.md)", "no such folder",
-                         "check the path")
+        raise InputError(session_dir, None, "a capture session folder (docs/capture-layout.md)",
+                         "a file" if session_dir.exists() else "no such folder", "check the path")
     made = new_folders(out)
     try:
         run = _Run(session_dir, out, options or RunOptions(), say, progress)
         out.mkdir(parents=True, exist_ok=True)
         return run.run(after_stage)
     except BaseException:
+        if made and [e.name for e in out.iterdir()] == [STATE]:  # nothing but the mark this run made: nothing done
+            (out / STATE).unlink()
         remove_if_empty(made)
         raise

@@ -45,7 +45,24 @@ def _link(src: Path, dst: Path) -> None:
     except OSError:
         shutil.copy2(src, tmp)
     os.replace(tmp, dst)
+    if tmp.exists():  # dst was already a link to src: POSIX rename of two links to one file does nothing
+        tmp.unlink()
 
+
+
+def scene_view_files(out: Path, sid: str, params: BuildParams) -> list[Path]:
+    """The files ``write_scene_views`` writes for scene ``sid`` (the right view's KITTI disparities where the scene
+    has ``disp1GT.pfm``)."""
+    files = []
+    if params.kitti:
+        kinds = ["image_2", "image_3", "disp_occ_0", "disp_noc_0"]
+        if (out / "scenes" / sid / "disp1GT.pfm").exists():
+            kinds += ["disp_occ_1", "disp_noc_1"]
+        files += [out / "kitti" / "training" / k / f"{sid}_10.png" for k in kinds]
+    if params.eth3d:
+        files += [out / "eth3d" / "two_view_training" / sid / f for f in ("im0.png", "im1.png", "calib.txt")]
+        files += [out / "eth3d" / "two_view_training_gt" / sid / f for f in ("disp0GT.pfm", "mask0nocc.png")]
+    return files
 
 
 def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray | None = None,

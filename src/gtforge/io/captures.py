@@ -403,6 +403,9 @@ class Session:
                 raise InputError(p, None, "each capture folder once", f"the same capture as {seen[real].name} ({real})",
                                  "remove the duplicate link")
             seen[real] = p
+            if kind == "scenes" and any(c.isspace() for c in p.name):
+                raise InputError(p, "scene id", "a folder name without spaces (the scene's id in the dataset's "
+                                 "space-separated split lists)", repr(p.name), "rename the folder")
         return dirs
 
     def select(self, kind: Literal["board", "scenes"], include: list[str] | None = None,
