@@ -226,6 +226,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     build = BuildParams()
     dirs = session.select("scenes", scenes)
     caps, pts, reports = {}, {}, {}
+    flagged_before: set[str] = set()
     for k, d in enumerate(dirs):
         if progress:
             progress(f"scene {d.name} ({k + 1}/{len(dirs)}): ground truth with the starting calibration")
@@ -237,12 +238,20 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
         else:
             rep.n_points = len(sp.value)
             caps[d.name], pts[d.name] = cap, sp
+            if ver.status == "flagged":
+                flagged_before.add(d.name)
         reports[d.name] = rep
     if len(pts) < params.min_scenes:
         raise InputError(session.root / session.config.scenes_dir, None,
                          f"at least {params.min_scenes} scenes with textured ground truth", f"{len(pts)}",
                          "refinement needs several scenes; add scene captures")
-    used = sorted(pts)
+    # the first solve over the scenes that verify with the starting calibration, where enough do: a few scenes off by
+    # themselves (a depth bias, a fruit that moved) would otherwise pull the extrinsic towards them, and the good
+    # scenes then verify as flagged too, so none could be left out. Where too few verify (the starting extrinsic
+    # itself is off), every scene.
+    used = [s for s in sorted(pts) if s not in flagged_before]
+    if len(used) < params.min_scenes:
+        used = sorted(pts)
     T_zed_from_mech = rig0.T_zed_from_mech
     cov = None
     flagged: dict[str, str] = {}
