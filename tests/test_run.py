@@ -104,9 +104,13 @@ def test_certificate_figures_are_the_stage_files_figures(chain):
     assert figs["board XY reprojection error, mean"].value == val["xy_mean_px"]
     assert figs["corner detectors' noise floor (XY error their noise alone gives)"].value == val["xy_noise_floor_px"]
     assert figs["board Z geometric error, mean"].value == val["z_error_mean_pct"]
+    notes = [n for s in cert.sections for n in s.notes]
     for name, t in scaled["terms"].items():
-        assert figs[f"{name}: estimate"].value == t["estimate"] and figs[f"{name}: estimate"].sigma == t["sigma"]
-        assert figs[f"{name}: estimate"].status == t["status"]
+        est = figs[f"{name}: estimate (all terms free)"]
+        assert est.value == t["estimate"] and est.sigma == t["sigma"] and est.status == t["status"]
+        unit = {"mm": "mm", "deg": "deg"}.get(name.rsplit("_", 1)[-1], "")  # _frac: a fraction, no unit
+        assert est.unit == unit and figs[f"{name}: applied"].unit == unit
+        assert not t["reason"] or f"{name}: {t['reason']}" in notes  # the figures that decided it
     man = json.loads((out / "dataset" / "manifest.json").read_text())
     assert cert.scenes_built == sorted(man["scenes"]) and cert.splits == {k: len(v) for k, v in man["splits"].items()}
     assert any(k.endswith("scenes/003/DepthMap.tiff") for k in cert.inputs_blake3)
@@ -119,11 +123,11 @@ def test_rerun_edit_and_interrupt(chain):
     sess, out = chain["session"], chain["out"]
     # nothing changed: nothing redone, and it says so
     said: list[str] = []
-    stamp = (out / "calibration.yaml").stat().st_mtime_ns
+    stamps = {f: (out / f).stat().st_mtime_ns for f in ("calibration.yaml", "index.html", "certificate.json")}
     res = run_session(sess, out, OPTS, say=said.append)
     assert res.redone == [] and len(res.skipped) == 6
     assert any("nothing to redo" in s for s in said)
-    assert (out / "calibration.yaml").stat().st_mtime_ns == stamp
+    assert {f: (out / f).stat().st_mtime_ns for f in stamps} == stamps  # the certificate too: not rewritten
 
     # a scene calibrate-scale and refine do not read: its build and its verification only
     _edit_depth(sess / "scenes" / "003" / "DepthMap.tiff")
@@ -231,3 +235,22 @@ def test_run_refuses_a_folder_of_the_users_own(tmp_path):
     assert sorted(str(p.relative_to(mine)) for p in mine.rglob("*")) == ["calibration.yaml", "dataset",
                                                                        "dataset/readme.txt"]
     assert (mine / "calibration.yaml").read_text() == "mine\n"
+
+
+def test_a_calibration_given_with_c_is_in_the_certificate(chain, tmp_path):
+    """-c FILE: the certificate shows the given calibration's figures (read from that file), lists its BLAKE3 among
+    the inputs, and takes its verdict: a FAIL calibration fails the run's certificate."""
+    sess = chain["session"]
+    doc = yaml.safe_load((chain["out"] / "calibration.yaml").read_text())
+    doc["verdict"], doc["verdict_reasons"] = "FAIL", ["made to fail for the test"]
+    given = tmp_path / "given.yaml"
+    given.write_text(yaml.safe_dump(doc))
+    said: list[str] = []
+    res = run_session(sess, tmp_path / "out", RunOptions(loo=False, calibration_scenes=CAL_SCENES, workers=1,
+                                                         calibration=str(given)), say=said.append)
+    cert = res.certificate
+    assert cert.verdict == "FAIL" and "calibrate: made to fail for the test" in cert.verdict_reasons
+    sec = {s.title: s for s in cert.sections}["Calibration (given with -c)"]
+    rms = {f.name: f for f in sec.figures}["board reprojection RMS"]
+    assert rms.value == doc["rms_px"] and rms.source_file == str(given.resolve())
+    assert str(given.resolve()) in cert.inputs_blake3

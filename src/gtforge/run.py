@@ -298,7 +298,13 @@ class _Run:
                          "complete (each writes its files whole); run the same command again to resume: it redoes "
                          "only what is not")
                 raise
-        cert = write_certificate(out, self.state, self.root)
+        cert = None
+        if not self.redone and (out / "index.html").is_file():
+            try:  # nothing redone: the certificate stands as written
+                cert = Certificate.read(out / "certificate.json")
+            except InputError:
+                cert = None
+        cert = cert or write_certificate(out, self.state, self.root)
         self.say(f"certificate: {cert.verdict}" + "".join(f"\n  - {r}" for r in cert.verdict_reasons)
                  + f"\n  {out / 'index.html'} (and certificate.json)")
         if not self.redone:
@@ -309,9 +315,16 @@ class _Run:
         opts, name = self.opts, "calibrate"
         if opts.calibration is not None:
             given = Path(opts.calibration)
-            CalibrationFile.read(given)  # a bad file stops here, with its one line
+            cal = CalibrationFile.read(given)  # a bad file stops here, with its one line
             ctx["calib"] = given
-            self.not_applicable(k, name, f"calibration given: {given}")
+            reason = f"calibration given: {given}"
+            self.header(k, name, f"skipped, does not apply ({reason}; its verdict {cal.verdict})")
+            # its verdict and figures are the certificate's (a FAIL calibration given with -c fails the run as one
+            # made here would)
+            self.state.stages[name] = StageRecord(stage=name, status="not applicable", reason=reason,
+                                                  verdict=cal.verdict, verdict_reasons=list(cal.verdict_reasons),
+                                                  detail={"given": str(given.resolve())})
+            self.save()
             return
         if not ctx["boards"]:
             raise InputError(self.root / self.session.config.board_dir, None,

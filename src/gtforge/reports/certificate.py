@@ -130,8 +130,9 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
         sections.append(_gauges(out, "validation/gauges.json", ""))
 
     rows = []
-    cal = _Figures(out, "calibration.yaml", CALIBRATION_REPORT)
-    if not ran("calibrate"):
+    given = st["calibrate"].detail.get("given") if "calibrate" in st and not ran("calibrate") else None
+    cal = _Figures(out, given, None) if given else _Figures(out, "calibration.yaml", CALIBRATION_REPORT)
+    if not ran("calibrate") and not given:
         cal.doc = None
     if cal.doc is not None:
         sr = cal.doc.get("zed_self_rectification")
@@ -149,30 +150,36 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
         rows += v2.items
     if rows:
         sections.append(CertSection(title="ZED rows after self-rectification", figures=rows,
-                                    link=CALIBRATION_REPORT if cal.doc is not None else None))
+                                    link=cal.link if cal.doc is not None else None))
 
     if cal.doc is not None:
-        c = _Figures(out, "calibration.yaml", CALIBRATION_REPORT)
+        c = _Figures(out, cal.file, cal.link)
         c.add("board reprojection RMS", "rms_px", "px")
         c.items.append(CertFigure(name="poses used", value=len(cal.doc["captures_used"]),
-                                  source_file="calibration.yaml", derivation="number of captures_used", link=c.link))
+                                  source_file=cal.file, derivation="number of captures_used", link=c.link))
         c.add("extrinsic 1-sigma rotation", "sigma_rot_deg", "deg")
         c.add("extrinsic 1-sigma translation", "sigma_trans_mm", "mm")
         c.add("leave-one-pose-out transfer error, mean", "loo_transfer_mean_px", "px")
-        sections.append(CertSection(title="Calibration (calibrate)", verdict=cal.doc.get("verdict"),
+        sections.append(CertSection(title="Calibration (given with -c)" if given else "Calibration (calibrate)",
+                                    verdict=cal.doc.get("verdict"),
                                     figures=c.items, notes=list(cal.doc.get("verdict_reasons") or []), link=c.link))
 
     sc = _Figures(out, "scaled.yaml", "scaled.yaml")
     if ran("calibrate-scale") and sc.doc is not None and sc.doc.get("scale_calibration"):
+        reasons = []
         for name, t in sc.doc["scale_calibration"]["terms"].items():
-            sc.add(f"{name}: estimate", f"scale_calibration.terms.{name}.estimate", "",
+            unit = name.rsplit("_", 1)[-1] if name.rsplit("_", 1)[-1] in ("mm", "deg", "px") else ""
+            sc.add(f"{name}: estimate (all terms free)", f"scale_calibration.terms.{name}.estimate", unit,
                    sigma=f"scale_calibration.terms.{name}.sigma", status=t["status"])
-            sc.add(f"{name}: applied", f"scale_calibration.terms.{name}.value")
+            sc.add(f"{name}: applied", f"scale_calibration.terms.{name}.value", unit)
+            if t.get("reason"):
+                reasons.append(f"{name}: {t['reason']}")
         sc.add("baseline in the ZED file", "scale_calibration.baseline_file_mm", "mm")
         sc.add("baseline used", "rig.zed.baseline_mm", "mm")
         sections.append(CertSection(title="Scale terms (calibrate-scale)", figures=sc.items, link=sc.link,
-                                    notes=["a term is applied only when its estimate is beyond 2 sigma of 0; the "
-                                           "others stay 0 and their sigma goes into the per-pixel sigma"]))
+                                    notes=["a term is applied when its estimate with the other terms held is beyond 2 "
+                                           "sigma of 0 (the figures that decided it follow); the others stay 0 and "
+                                           "their sigma goes into the per-pixel sigma", *reasons]))
 
     rf = _Figures(out, "refined.yaml", "refined.yaml")
     if ran("refine") and rf.doc is not None and rf.doc.get("refinement"):
@@ -259,7 +266,9 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
     fails = [f"{s.stage}: {r}" for s in stages if s.verdict == "FAIL" for r in (s.reasons or ["FAIL"])]
     warns = [f"{s.stage}: {r}" for s in stages if s.verdict == "WARN" for r in (s.reasons or ["WARN"])]
     verdict = "FAIL" if fails else ("WARN" if warns else "PASS")
-    inputs = {k[len("session/"):]: v for rec in st.values() for k, v in rec.inputs.items() if k.startswith("session/")}
+    # the session's files by their path in it, a file from elsewhere (a calibration given with -c) by its own
+    inputs = {k.removeprefix("session/").removeprefix("file:"): v for rec in st.values()
+              for k, v in rec.inputs.items() if k.startswith(("session/", "file:"))}
     inputs = dict(sorted(inputs.items()))
     digest = blake3_hex("".join(f"{k} {v}\n" for k, v in inputs.items()).encode())
     return Certificate(gtforge_version=gtforge.__version__,
