@@ -410,6 +410,12 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             remove_if_empty(made)
             raise
         except (KeyboardInterrupt, Interrupted):
+            for a in args:  # scenes a worker finished whose result had not reached this process: complete all the same
+                if a[2] not in metas and a[2] not in failures:
+                    meta = landed_meta(out, a[2], before[a[2]], phash, calib_sha, expected)
+                    if meta is not None:
+                        built.append(a[2])
+                        metas[a[2]] = meta
             remove_stale_entries(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
             raise Interrupted(f"interrupted: {len(built)} scene(s) built in this run and complete, "

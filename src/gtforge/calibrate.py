@@ -306,7 +306,8 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
         if exc is not None:  # a file missing: skipped, as a capture without the board; a file wrong: stop
             if not missing_capture_file(exc):
                 raise leave_out_hint(exc, d.name) from None
-            log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
+            log.warning("capture %s skipped: %s (restore the file, or leave the capture out: --captures NAMES, or "
+                        "for gtforge run its folder moved out of the session)",
                         d.name, exc)
             reports.append(PoseResult(capture=d.name, status="skipped", reason=f"file missing: {exc}"))
             continue

@@ -260,7 +260,8 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
             if not missing_capture_file(exc):
                 raise leave_out_hint(exc, d.name) from None
             skipped[d.name] = f"file missing: {exc}"
-            log.warning("capture %s skipped: %s (restore the file, or leave the capture out with --captures NAMES)",
+            log.warning("capture %s skipped: %s (restore the file, or leave the capture out: --captures NAMES, or "
+                        "for gtforge run its folder moved out of the session)",
                         d.name, exc)
             continue
         pv, vec, err = validate_pose(d.name, cap.mech_texture, cap.depth_mm, cap.zed_left, calib.rig, board, params,

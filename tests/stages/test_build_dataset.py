@@ -783,3 +783,23 @@ def test_pool_from_a_warmed_fork_server_writes_the_files_of_the_one_process_buil
             assert (ds / f).read_bytes() == (out / f).read_bytes()
         a, b = one.scenes[sid], pool.scenes[sid]
         assert a.verification == b.verification and a.sigma == b.sigma and a.stats == b.stats
+
+
+def test_ctrl_c_counts_the_scenes_a_worker_landed_before_reporting(session_dir, true_calibration, tmp_path,
+                                                                   monkeypatch):
+    """A Ctrl-C after a worker landed a scene whole but before its result reached the command: the message and the
+    manifest count that scene as built (the message said 0 built while the scene was complete on disk)."""
+    import gtforge.build_dataset as bd
+    from gtforge.errors import Interrupted
+
+    def first_lands_then_ctrl_c(fn, arg_list, on_result, **kw):
+        fn(*arg_list[0])  # the scene's files land; its result is never handed back
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bd, "run_tasks", first_lands_then_ctrl_c)
+    out = tmp_path / "ds"
+    with pytest.raises(Interrupted) as stop:
+        build_dataset(session_dir, true_calibration, out, workers=1)
+    n = len([d for d in (session_dir / "scenes").iterdir() if d.is_dir()])
+    assert str(stop.value).startswith(f"interrupted: 1 scene(s) built in this run and complete, {n - 1} not built")
+    assert list(Manifest.read(out / "manifest.json").scenes) == ["000"]

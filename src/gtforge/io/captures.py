@@ -316,7 +316,8 @@ def missing_capture_file(exc: InputError) -> bool:
 
 def leave_out_hint(exc: InputError, capture: str, option: str = "--captures") -> InputError:
     """``exc`` with a hint that names the option that leaves the capture out."""
-    hint = f"or leave capture {capture} out with {option} (the other captures' names)"
+    hint = (f"or leave capture {capture} out with {option} (the other captures' names; gtforge run has no such option: "
+            "move the folder out of the session)")
     return InputError(exc.file, exc.field, exc.expected, exc.actual, f"{exc.hint}; {hint}" if exc.hint else hint)
 
 

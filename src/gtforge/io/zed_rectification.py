@@ -336,7 +336,7 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
     out, skipped = [], {}
     for k, (d, (m, why)) in enumerate(zip(dirs, ordered_map(one, dirs))):
         if progress:
-            progress(f"left-right matches {d.name} ({k + 1}/{len(dirs)})")
+            progress(f"left-right matches {d.parent.name}/{d.name} ({k + 1}/{len(dirs)})")
         if m is None:
             skipped[d.name] = why
         else:
