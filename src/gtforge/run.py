@@ -547,7 +547,8 @@ def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOption
         out.mkdir(parents=True, exist_ok=True)
         return run.run(after_stage)
     except BaseException:
-        if made and [e.name for e in out.iterdir()] == [STATE]:  # nothing but the mark this run made: nothing done
+        # nothing in the folder this run made but its mark: nothing was done, nothing stays
+        if made and out.is_dir() and [e.name for e in out.iterdir()] == [STATE]:
             (out / STATE).unlink()
         remove_if_empty(made)
         raise
