@@ -320,19 +320,22 @@ def test_import_calibrate_build_gives_the_hand_laid_ground_truth(session_dir, ca
     assert np.abs(epe["imported"] - truth)[t_ok].mean() < 0.05
 
 
+class Stop(Exception):
+    """An import stopped from its progress callback (as a Ctrl-C would stop it there)."""
+
+
+def stop_at(message: str):
+    def progress(msg: str) -> None:
+        if msg == message:
+            raise Stop
+    return progress
+
+
 def test_an_interrupted_import_resumes_with_the_captures_already_written(hand, recs, tmp_path):
     out = tmp_path / "session"
     p = ImportParams(clock_offset_ms=recs.clock_offset_ms)
-
-    class Stop(Exception):
-        pass
-
-    def stop_at_third(msg):
-        if msg == "capture 3/4":
-            raise Stop
-
     with pytest.raises(Stop):
-        import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p, progress=stop_at_third)
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p, progress=stop_at("capture 3/4"))
     assert not out.exists()
     partial = tmp_path / ".session.import-partial"
     done = sorted(str(x.relative_to(partial)) for x in partial.glob("*/0*"))
@@ -373,16 +376,8 @@ def test_a_partial_import_of_other_bytes_at_the_same_paths_is_not_resumed(hand, 
     assert a.clock_offset_ms == b.clock_offset_ms
     shutil.copytree(tmp_path / "a", rec)
     paths, p = [rec / "rgbd", rec / "zed"], ImportParams(clock_offset_ms=a.clock_offset_ms)
-
-    class Stop(Exception):
-        pass
-
-    def stop_at_second(msg):
-        if msg == "capture 2/2":
-            raise Stop
-
     with pytest.raises(Stop):
-        import_recordings(paths, tmp_path / "s", p, progress=stop_at_second)
+        import_recordings(paths, tmp_path / "s", p, progress=stop_at("capture 2/2"))
     assert (tmp_path / ".s.import-partial" / "board" / "000").is_dir()
     shutil.rmtree(rec)
     shutil.copytree(tmp_path / "b", rec)
