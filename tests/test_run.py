@@ -195,7 +195,8 @@ def test_deleted_outputs_are_written_again_and_a_removed_scene_leaves_the_datase
     ds = out / "dataset"
     cal_bytes = (out / "calibration.yaml").read_bytes()
     gone = [ds / "scenes" / "002" / "disp0GT.pfm", ds / "kitti" / "training" / "disp_occ_0" / "001_10.png",
-            out / "calibration_report" / "calibration_report.json"]
+            out / "calibration_report" / "calibration_report.json", ds / "filenames" / "train.txt",
+            ds / "build_report.html", ds / "verification.html"]
     for f in gone:
         f.unlink()
     said: list[str] = []
@@ -206,16 +207,20 @@ def test_deleted_outputs_are_written_again_and_a_removed_scene_leaves_the_datase
     assert not [p for p in out.rglob(".*") if p.is_file()]
     assert (out / "index.html").is_file()
 
+    # 003 leaves the session as 003_b (an id it is a prefix of) joins: 003_b's files stay
     moved = chain["base"] / "scene_003_moved_away"
     shutil.move(sess / "scenes" / "003", moved)
+    shutil.copytree(sess / "scenes" / "000", sess / "scenes" / "003_b")
     try:
         said = []
         run_session(sess, out, OPTS, say=said.append)
         assert any("removed from the dataset (no longer in the session): 003" in s for s in said)
-        left = [p for p in ds.rglob("*003*") if "views" not in p.parts]
-        assert left == [] and "003" not in (ds / "filenames" / "train.txt").read_text() + \
+        left = [p for p in ds.rglob("*003*") if "003_b" not in p.as_posix()]
+        assert left == [] and "scenes/003/" not in (ds / "filenames" / "train.txt").read_text() + \
             (ds / "filenames" / "val.txt").read_text() + (ds / "filenames" / "test.txt").read_text()
+        assert (ds / "report" / "003_b_sigma.jpg").is_file() and (ds / "scenes" / "003_b" / "meta.json").is_file()
     finally:
+        shutil.rmtree(sess / "scenes" / "003_b")
         shutil.move(moved, sess / "scenes" / "003")
 
 

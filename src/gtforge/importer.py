@@ -436,7 +436,8 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         # paths is started again, never resumed
         stamp = json.dumps({"sources": [(f.path, f.blake3) for f in sources], "params": params.model_dump(mode="json"),
                             "topics": {k: str(v) for k, v in topics.__dict__.items()}, "add": add})
-        if partial.is_dir() and (partial / ".plan").is_file() and (partial / ".plan").read_text() != stamp:
+        # resumed only when its plan is this one: a partial folder without .plan (a landing cut off) is started again
+        if partial.is_dir() and (not (partial / ".plan").is_file() or (partial / ".plan").read_text() != stamp):
             shutil.rmtree(partial)
         partial.mkdir(parents=True, exist_ok=True)
         (partial / ".plan").write_text(stamp)

@@ -119,8 +119,12 @@ def _remove_scene_outputs(ds: Path, sid: str) -> None:
     for folder in (ds / "scenes" / sid, ds / "eth3d" / "two_view_training" / sid,
                    ds / "eth3d" / "two_view_training_gt" / sid):
         shutil.rmtree(folder, ignore_errors=True)
-    for f in [*(ds / "kitti" / "training").glob(f"*/{sid}_10.png"), *(ds / "report").glob(f"{sid}_*"),
-              *(ds / "verification").glob(f"{sid}_*")]:
+    # by their exact names (a glob on the id would also take scene 003_b's for 003)
+    kitti = ds / "kitti" / "training"
+    files = [kitti / d.name / f"{sid}_10.png" for d in kitti.iterdir() if d.is_dir()] if kitti.is_dir() else []
+    files += [ds / "report" / f"{sid}_sigma.jpg"]
+    files += [ds / "verification" / f"{sid}_{k}.jpg" for k in ("overlay", "motion_before", "motion_after")]
+    for f in files:
         f.unlink(missing_ok=True)
 
 
@@ -172,8 +176,9 @@ class _Run:
         self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
         # a folder of the user's (not an earlier run's, which holds run_state.json) is never written into: the run's
         # files (calibration.yaml, dataset/ ...) would replace theirs
-        require_new_or_empty_folder(out, "--output", "choose a new folder for the run (or an earlier run's folder)",
-                                    reusable_if=STATE)
+        require_new_or_empty_folder(out, "--output", "choose a new folder for the run, or an earlier run's folder (a "
+                                    "run's folder without run_state.json was cut off before it recorded anything: "
+                                    "delete it)", reusable_if=STATE)
         self.root = self.session.root
         self.out = out
         state_path = out / STATE
@@ -188,11 +193,15 @@ class _Run:
             self.state = None
         if self.state is None:
             self.state = RunState(gtforge_version=gtforge.__version__, session_dir=str(self.root.resolve()))
-            out.mkdir(parents=True, exist_ok=True)
-            self.save()  # the folder is a run's from now on: a run stopped before its first stage resumes in it
+            if not state_path.exists():
+                # the folder is a run's from now on: a run stopped before its first stage resumes in it (an existing
+                # state, unreadable or another session's, is replaced only when the first stage records itself)
+                out.mkdir(parents=True, exist_ok=True)
+                self.save()
         self.hash = _Hasher(self.state.hashes)
         self.redone: list[str] = []
         self.skipped: list[str] = []
+        self.changed = False  # a stage ran or its record changed: the certificate is written again
 
     # ---- inputs ------------------------------------------------------------------------------------------------
     def key(self, p: Path) -> str:
@@ -244,8 +253,19 @@ class _Run:
 
     def not_applicable(self, k: int, name: str, reason: str) -> None:
         self.header(k, name, f"skipped, does not apply ({reason})")
+        rec = self.state.stages.get(name)
+        if rec is None or rec.status != "not applicable" or rec.reason != reason:
+            self.withdraw_certificate()  # the stage's part of it changes
         self.state.stages[name] = StageRecord(stage=name, status="not applicable", reason=reason)
         self.save()
+
+    def withdraw_certificate(self) -> None:
+        """The certificate describes the files as they were: once a stage writes new ones (or no longer applies) it is
+        withdrawn, until this run writes the new one (a run stopped now leaves none rather than one citing figures no
+        file holds)."""
+        self.changed = True
+        for f in ("index.html", "certificate.json"):
+            (self.out / f).unlink(missing_ok=True)
 
     def decide(self, k: int, name: str, options: dict, inputs: dict[str, str]) -> bool:
         """Whether stage ``name`` runs; says so, and why."""
@@ -258,10 +278,7 @@ class _Run:
             return False
         self.header(k, name, f"running ({why})")
         self.redone.append(name)
-        # the certificate describes the files as they were: once a stage writes new ones it is withdrawn, until this
-        # run writes the new one (a run stopped now leaves none rather than one citing figures no file holds)
-        for f in ("index.html", "certificate.json"):
-            (self.out / f).unlink(missing_ok=True)
+        self.withdraw_certificate()
         return True
 
     def done(self, name: str, options: dict, inputs: dict, outputs: list[Path], exist_only: list[Path] = (),
@@ -299,7 +316,7 @@ class _Run:
                          "only what is not")
                 raise
         cert = None
-        if not self.redone and (out / "index.html").is_file():
+        if not self.changed and (out / "index.html").is_file():
             try:  # nothing redone: the certificate stands as written
                 cert = Certificate.read(out / "certificate.json")
             except InputError:
@@ -321,9 +338,11 @@ class _Run:
             self.header(k, name, f"skipped, does not apply ({reason}; its verdict {cal.verdict})")
             # its verdict and figures are the certificate's (a FAIL calibration given with -c fails the run as one
             # made here would)
-            self.state.stages[name] = StageRecord(stage=name, status="not applicable", reason=reason,
-                                                  verdict=cal.verdict, verdict_reasons=list(cal.verdict_reasons),
-                                                  detail={"given": str(given.resolve())})
+            rec = StageRecord(stage=name, status="not applicable", reason=reason, verdict=cal.verdict,
+                              verdict_reasons=list(cal.verdict_reasons), detail={"given": str(given.resolve())})
+            if self.state.stages.get(name) != rec:
+                self.withdraw_certificate()
+            self.state.stages[name] = rec
             self.save()
             return
         if not ctx["boards"]:
@@ -467,8 +486,12 @@ class _Run:
             why = {s: "the calibration, the camera files or the options changed" if rec else "first build"
                    for s in per_scene}
         t0 = time.perf_counter()
-        if rec is not None and rec.status == "done":
-            gone = sorted(set(rec.detail.get("built", []) + rec.detail.get("unchanged", [])) - set(per_scene))
+        if rec is not None:
+            # the scenes an earlier build of this run wrote (its record, and any folder with a meta.json: a build
+            # stopped before it recorded itself) that the session no longer has
+            earlier = set(rec.detail.get("built", []) + rec.detail.get("unchanged", []))
+            earlier |= {m.parent.name for m in (ds / "scenes").glob("*/meta.json")}
+            gone = sorted(earlier - set(per_scene))
             for sid in gone:  # built by an earlier run from a capture no longer in the session
                 _remove_scene_outputs(ds, sid)
             if gone:
@@ -481,8 +504,8 @@ class _Run:
         reasons = [f"scene {s} failed: {r}" for s, r in summ.failures.items()]
         # every file the build wrote for its scenes (their folders, the KITTI and ETH3D views): one deleted since is
         # noticed by the next run, whose build then writes it again
-        scene_files = [p for sub in ("scenes", "kitti", "eth3d") for p in (ds / sub).rglob("*")
-                       if p.is_file() and not p.name.startswith(".")]
+        scene_files = [p for sub in ("scenes", "kitti", "eth3d", "report", "filenames") for p in (ds / sub).rglob("*")
+                       if p.is_file() and not p.name.startswith(".")] + [ds / "build_report.html"]
         self.done(name, options, inputs, [], [ds / "manifest.json", *scene_files], "FAIL" if reasons else "PASS",
                   reasons, detail={"built": summ.built, "unchanged": summ.skipped_unchanged, "failures": summ.failures},
                   t0=t0)
@@ -524,8 +547,9 @@ class _Run:
         if quarantined:
             reasons.append(f"flagged and quarantined (left out of the split lists): {', '.join(quarantined)}")
         self.say(f"      {len(rep.scenes)} scene(s): {len(rep.flagged)} flagged -> {verdict}")
-        self.done(name, options, inputs, [ds / "verification.json"], verdict=verdict, reasons=reasons,
-                  detail={"verified": todo}, t0=t0)
+        pages = [ds / "verification.html", *(p for p in (ds / "verification").glob("*") if p.is_file())]
+        self.done(name, options, inputs, [ds / "verification.json"], [p for p in pages if p.is_file()],
+                  verdict=verdict, reasons=reasons, detail={"verified": todo}, t0=t0)
 
 
 def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOptions | None = None,

@@ -168,6 +168,15 @@ def test_real_recordings_import_through_the_command(tmp_path):
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs",
                 "--max-skew-ms", "150")
     assert r.returncode == 0, r.stderr
+    # options the recording does not read are refused by name, not ignored
+    for rec, opt in (("realsense_d435_single_depth_color_640x480.bag", ["--depth-topic", "/nope"]),
+                     ("realsense_d435_single_depth_color_640x480.bag", ["--depth-unit", "m"]),
+                     ("azure_kinect_recording.mkv", ["--color-topic", "/x"]),
+                     ("azure_kinect_recording.mkv", ["--fps", "15"])):
+        r = gtforge("import", rec_dir / rec, "-o", tmp_path / "refused", "--max-skew-ms", "150", *opt)
+        assert r.returncode == 2 and one_line_error(r), r.stderr
+        assert r.stderr.startswith(f"error: {opt[0]}: expected a recording it applies to"), r.stderr
+        assert not (tmp_path / "refused").exists()
     run = json.loads((tmp_path / "rs" / "import.json").read_text())["runs"][0]
     assert run["dropped"]["skew"] == 1 and len(run["pairs"]) == 1  # 2 depth frames, 1 colour frame 101 ms away
     assert sorted(os.listdir(rec_dir)) == before  # nothing written beside the recordings

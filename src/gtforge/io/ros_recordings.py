@@ -300,9 +300,10 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
             rgbd_c.append(read_realsense(bag))
             continue
         s = _ros_stereo(bag, topics, halves)
-        used |= {"left", "right"}
+        if s is not None:  # the stereo topics chose this pair
+            used |= {"left", "right"}
         r = _ros_rgbd(bag, topics) if (s is None or len(paths) == 1 or topics.depth) else None
-        if r is not None:
+        if r is not None:  # the depth topics chose these streams
             used |= {"depth", "color", "depth_unit"}
         if s is None and r is None:
             raise InputError(p, "depth topic", "a depth image topic (or a left/right stereo pair)", "none",
@@ -328,9 +329,9 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         if getattr(topics, name) is not None and name not in used:
             kinds = ", ".join(sorted({c.kind for c in rgbd_c} | {"stereo" for _ in stereo_c}))
             raise InputError(None, option, f"a recording it applies to ({applies})",
-                             f"{getattr(topics, name)!r} given for {kinds or 'these'} recordings, which do not "
-                             "read it", f"leave {option} out (a RealSense .bag, an Azure Kinect .mkv and a ZED "
-                             ".svo2 name their own streams, units and timing)")
+                             f"{getattr(topics, name)!r}, which none of these recordings ({kinds or 'none'}) took its "
+                             "streams from", f"leave {option} out, or check the topic's name in the bag (a RealSense "
+                             ".bag, an Azure Kinect .mkv and a ZED .svo2 name their own streams, units and timing)")
     if topics.zed_calibration is not None and not calibration_used:
         raise InputError(topics.zed_calibration, "--zed-calibration", "a ZED .svo2 or ZED SDK export folder to apply "
                          "it to", "none among the recordings" if not stereo_c else
