@@ -459,6 +459,22 @@ def test_a_zed_calibration_with_a_ros_stereo_pair_is_refused_not_ignored(hand, r
     assert not (tmp_path / "s").exists()
 
 
+def test_depth_topic_named_with_a_separate_stereo_bag(hand, recs, tmp_path):
+    """--depth-topic with the depth and the stereo camera in two bags: the depth bag's topic is taken (the stereo bag,
+    which lacks it, stopped the import: 'expected an image topic'); a topic neither bag has is refused by name."""
+    from gtforge.io.ros_recordings import Topics
+
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=1)
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s", p,
+                          topics=Topics(depth="/camera/camera/aligned_depth_to_color/image_raw"))
+    assert s.captures == ["board/000"]
+    for f in ("2DImage.png", "left.png"):
+        assert (tmp_path / "s" / "board" / "000" / f).read_bytes() == (hand / "board" / "000" / f).read_bytes()
+    with pytest.raises(InputError, match="depth"):
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "t", p, topics=Topics(depth="/nope"))
+    assert not (tmp_path / "t").exists()
+
+
 def test_every_and_no_classify(recs, tmp_path):
     s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "s",
                           ImportParams(clock_offset_ms=recs.clock_offset_ms, every=2, classify=False))

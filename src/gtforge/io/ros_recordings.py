@@ -302,7 +302,9 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         s = _ros_stereo(bag, topics, halves)
         if s is not None:  # the stereo topics chose this pair
             used |= {"left", "right"}
-        r = _ros_rgbd(bag, topics) if (s is None or len(paths) == 1 or topics.depth) else None
+        # a stereo bag beside another recording holds depth only where --depth-topic names one of its topics
+        named = topics.depth is not None and bag.match((topics.depth,), role="depth") is not None
+        r = _ros_rgbd(bag, topics) if (s is None or len(paths) == 1 or named) else None
         if r is not None:  # the depth topics chose these streams
             used |= {"depth", "color", "depth_unit"}
         if s is None and r is None:
