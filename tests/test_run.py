@@ -20,6 +20,7 @@ import yaml
 from typer.testing import CliRunner
 
 from gtforge.cli.commands import app
+from gtforge.errors import INTERRUPTED, Interrupted
 from gtforge.records.certificate import Certificate
 from gtforge.records.run import RunState
 from gtforge.reports.certificate import field_value
@@ -159,6 +160,20 @@ def test_rerun_edit_and_interrupt(chain):
     assert st["build-dataset"].detail["built"] == ["000", "001", "002", "003"]
     assert st["verify"].detail["verified"] == ["000", "001", "002", "003"]
     assert run_session(sess, out, OPTS, say=said.append).redone == []
+
+    # the command's Ctrl-C (Interrupted): one message, the command's to print, with what the stage said was complete
+    for exc, words in [(Interrupted(INTERRUPTED), "interrupted during or right after refine: every stage recorded"),
+                       (Interrupted("interrupted: 2 scene(s) ...", detail="2 scene(s) built in this run and complete"),
+                        "interrupted during or right after refine (2 scene(s) built in this run and complete): ")]:
+        def stop_cli(name, exc=exc):
+            if name == "refine":
+                raise exc
+
+        said = []
+        with pytest.raises(Interrupted) as raised:
+            run_session(sess, out, OPTS, say=said.append, after_stage=stop_cli)
+        assert str(raised.value).startswith(words) and "run the same command again to resume" in str(raised.value)
+        assert str(raised.value).count("interrupted") == 1 and not any("interrupted" in s for s in said)
 
 
 def test_run_without_boards_needs_a_calibration(tmp_path):

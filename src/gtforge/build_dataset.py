@@ -418,9 +418,9 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                         metas[a[2]] = meta
             remove_stale_entries(out)
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
-            raise Interrupted(f"interrupted: {len(built)} scene(s) built in this run and complete, "
-                              f"{len(args) - len(built) - len(failures)} not built; rerun the same command to "
-                              f"resume") from None
+            detail = (f"{len(built)} scene(s) built in this run and complete, "
+                      f"{len(args) - len(built) - len(failures)} not built")
+            raise Interrupted(f"interrupted: {detail}; rerun the same command to resume", detail) from None
     splits, flagged, quarantined = finish_dataset(out, session_dir, calib_path, calib_sha, params, metas, failures,
                                                   unchanged, recovered)
     ok_ids = sorted(metas)

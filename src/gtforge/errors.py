@@ -41,4 +41,16 @@ class MissingFileError(InputError):
 class Interrupted(Exception):
     """Ctrl-C, as the ``gtforge`` command raises it (its SIGINT handler) and as a stage re-raises it after
     stopping cleanly, with ``str()`` saying what is complete. The CLI prints it and exits with code 130.
-    Library callers get the usual ``KeyboardInterrupt``; stages treat both alike."""
+    Library callers get the usual ``KeyboardInterrupt``; stages treat both alike.
+
+    ``detail``: what the stage that stopped says is complete, where it says more than ``INTERRUPTED`` (build-dataset:
+    the scenes built), for a caller that words its own message (``gtforge run``)."""
+
+    def __init__(self, message: str, detail: str | None = None):
+        super().__init__(message)
+        self.detail = detail
+
+
+# what the user sees of a Ctrl-C no stage words itself
+INTERRUPTED = ("interrupted: every file already written is complete (gtforge writes each one whole); rerun the same "
+               "command to finish")

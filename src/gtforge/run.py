@@ -309,11 +309,16 @@ class _Run:
                 step(k, ctx)
                 if after_stage is not None:
                     after_stage(name)
-            except (KeyboardInterrupt, Interrupted):
+            except (KeyboardInterrupt, Interrupted) as exc:
                 self.save()
-                self.say(f"interrupted during or right after {name}: every stage recorded in {out / STATE} is "
-                         "complete (each writes its files whole); run the same command again to resume: it redoes "
-                         "only what is not")
+                # one message: what the stage said is complete (build-dataset counts its scenes), then how to resume
+                detail = getattr(exc, "detail", None)
+                message = (f"interrupted during or right after {name}" + (f" ({detail})" if detail else "")
+                           + f": every stage recorded in {out / STATE} is complete (each writes its files whole); "
+                           "run the same command again to resume: it redoes only what is not")
+                if isinstance(exc, Interrupted):  # the command prints it
+                    raise Interrupted(message) from None
+                self.say(message)
                 raise
         cert = None
         if not self.changed and (out / "index.html").is_file():

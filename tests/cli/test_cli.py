@@ -270,3 +270,29 @@ def test_a_refused_board_option_is_named_as_the_user_typed_it(tmp_path):
 
     with pytest.raises(InputError, match=r"^--board: expected a value 'checkerboard', .* got 'hexagon'$"):
         CliRunner().invoke(app, ["calibrate", str(tmp_path), "--board", "hexagon"], catch_exceptions=False)
+
+
+@pytest.mark.parametrize("args", [["-v", "verify", "MISSING"], ["verify", "MISSING", "-v"],
+                                  ["verify", "--verbose", "MISSING"]])
+def test_verbose_is_taken_before_or_after_the_command(args, tmp_path, monkeypatch):
+    import logging
+
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code != 0 and "No such option" not in r.output  # (the missing dataset's error)
+    assert logging.getLogger().level == logging.INFO
+    logging.getLogger().setLevel(logging.WARNING)
+
+
+def test_no_command_has_a_v_of_its_own_and_a_v_after_dashdash_is_an_argument(tmp_path, monkeypatch):
+    import logging
+
+    group, names = _commands()
+    for n in names:
+        for p in group.commands[n].params:
+            assert not {"-v", "--verbose"} & set(getattr(p, "opts", []) + getattr(p, "secondary_opts", [])), n
+    monkeypatch.chdir(tmp_path)
+    logging.getLogger().setLevel(logging.WARNING)
+    r = CliRunner().invoke(app, ["verify", "MISSING", "--", "-v"], env={"COLUMNS": "200"})
+    assert r.exit_code == 2 and "unexpected extra argument(s) (-v)" in r.output
+    assert logging.getLogger().level == logging.WARNING

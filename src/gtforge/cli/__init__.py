@@ -14,7 +14,7 @@ import os
 import signal
 import sys
 
-from gtforge.errors import InputError, Interrupted
+from gtforge.errors import INTERRUPTED, InputError, Interrupted
 
 # OpenBLAS's idle threads wait for work by spinning before they sleep: 2**28 cycles by default (about 0.1 s), set
 # when the library loads. numpy and OpenCV each load their own OpenBLAS, so importing them burnt 0.2 CPU s on two
@@ -29,8 +29,7 @@ POOL_COMMANDS = {"build-dataset": "gtforge.build_dataset", "verify": "gtforge.ve
 
 def _raise_interrupted(signum, frame) -> None:
     # a stage that catches it says what is complete; this text is what the user sees otherwise
-    raise Interrupted("interrupted: every file already written is complete (gtforge writes each one whole); rerun "
-                      "the same command to finish")
+    raise Interrupted(INTERRUPTED)
 
 
 def pool_of(argv: list[str]) -> tuple[str, int | None] | None:

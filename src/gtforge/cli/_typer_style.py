@@ -12,6 +12,10 @@ WORKFLOW = ("run", "calibrate", "align-depth", "validate", "calibrate-scale", "r
             "evaluate", "compare", "synth", "demo")
 
 
+# the group's flags a command line may also give after the command's name (``_Group.parse_args``)
+GROUP_FLAGS = ("-v", "--verbose")
+
+
 def _unwrapped(text: str | None) -> str | None:
     """A docstring's paragraphs as single lines: the help wraps them to the terminal, never at the source's line
     ends (which made a help line break mid-sentence)."""
@@ -76,6 +80,19 @@ class _Group(TyperGroup):
                 cmd.__class__ = _Command
             _plain_metavars(cmd.params)
             cmd.help = _unwrapped(cmd.help)
+
+    def parse_args(self, ctx, args: list[str]) -> list[str]:
+        """The group's ``-v``/``--verbose`` is taken after the command too (``gtforge build-dataset S -v``, as users
+        type it): moved before the command's name, up to a ``--``. No command has a ``-v`` of its own
+        (``tests/cli/test_cli.py`` checks)."""
+        first = next((i for i, a in enumerate(args) if a in self.commands), None)
+        if first is not None:
+            end = first + args[first:].index("--") if "--" in args[first:] else len(args)
+            flags = [a for a in args[first + 1:end] if a in GROUP_FLAGS]
+            if flags:
+                args = args[:first] + flags + [a for i, a in enumerate(args)
+                                               if i >= first and not (first < i < end and a in GROUP_FLAGS)]
+        return super().parse_args(ctx, args)
 
     def list_commands(self, ctx) -> list[str]:
         names = list(self.commands)

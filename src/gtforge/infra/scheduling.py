@@ -61,6 +61,13 @@ def threads_per_worker(workers: int) -> int:
 
 def _init_worker(n_threads: int, heap_bytes: int = 0) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C does
+    # numba makes a named semaphore in a process whose start method has "fork" in its name (forkserver too) when its
+    # threads start; a worker stopped on Ctrl-C (terminated) then leaves it to multiprocessing's resource tracker,
+    # which warns of "leaked semaphore objects". The lock guards processes forked from this one, and a worker starts
+    # none: with "spawn" as its default numba takes a no-op lock instead.
+    import multiprocessing
+
+    multiprocessing.set_start_method("spawn", force=True)
     limit_threads(n_threads)
     if reuse_freed_memory() and heap_bytes > 0:
         reserve_heap(heap_bytes)
