@@ -36,7 +36,7 @@ def load_rig(calibration: Path):
     return dict(K_mech=K(mech), dist_mech=np.array(mech.get("dist_coeffs") or [0.0] * 5, np.float64),
                 mech_wh=(mech["width_px"], mech["height_px"]), K_zed=K(zed["left"]),
                 zed_wh=(zed["left"]["width_px"], zed["left"]["height_px"]), baseline_mm=zed["baseline_mm"],
-                doffs_px=zed.get("doffs_px", 0.0), T=np.array(rig["T_zed_from_mech"], np.float64))
+                doffs_px=zed.get("doffs_px", 0.0), T_zed_from_mech=np.array(rig["T_zed_from_mech"], np.float64))
 
 
 def write_pfm(path: Path, disp: np.ndarray) -> None:
@@ -53,7 +53,7 @@ def main(session: Path, calibration: Path, out: Path) -> int:
     K_m = o3d.core.Tensor(rig["K_mech"])
     K_z = o3d.core.Tensor(rig["K_zed"])
     I4 = o3d.core.Tensor(np.eye(4))
-    T = o3d.core.Tensor(rig["T"])
+    T_zed_from_mech = o3d.core.Tensor(rig["T_zed_from_mech"])
     W, H = rig["zed_wh"]
     fB = rig["K_zed"][0, 0] * rig["baseline_mm"]
     scenes = sorted(p for p in (session / "scenes").iterdir() if p.is_dir())
@@ -63,7 +63,8 @@ def main(session: Path, calibration: Path, out: Path) -> int:
         depth = cv2.remap(depth, map1, map2, cv2.INTER_NEAREST)
         pcd = o3d.t.geometry.PointCloud.create_from_depth_image(o3d.t.geometry.Image(depth), K_m, I4,
                                                                 depth_scale=1.0, depth_max=1e5)
-        z = pcd.project_to_depth_image(W, H, K_z, T, depth_scale=1.0, depth_max=1e5).as_tensor().numpy()[..., 0]
+        z = pcd.project_to_depth_image(W, H, K_z, T_zed_from_mech, depth_scale=1.0,
+                                       depth_max=1e5).as_tensor().numpy()[..., 0]
         disp = np.full(z.shape, np.nan, np.float32)
         ok = z > 0
         disp[ok] = fB / z[ok] - rig["doffs_px"]

@@ -44,11 +44,11 @@ def main():
     t0 = time.perf_counter()
     renders = []
     for i in range(args.poses):
-        T = random_board_pose(rng, rig, board)
-        scene = Scene([_table(i), PlaneObject(OBJ_BOARD, T, board.albedo, board.extent_mm())])
+        T_world_from_board = random_board_pose(rng, rig, board)
+        scene = Scene([_table(i), PlaneObject(OBJ_BOARD, T_world_from_board, board.albedo, board.extent_mm())])
         renders.append((render_image(scene, rig.mech, rig.T_mech_from_world, args.supersample),
                         render_image(scene, rig.zed.left, rig.T_zed_from_world, args.supersample),
-                        rig.T_mech_from_world @ T))
+                        rig.T_mech_from_world @ T_world_from_board))
         print(f"\rrendered {i + 1}/{args.poses} poses ({time.perf_counter() - t0:.0f} s)", end="", flush=True)
     print()
     counts = [n for n in (6, 12, 20) if n <= args.poses]
@@ -58,7 +58,7 @@ def main():
         nrng = np.random.default_rng(1)
         obs, reps, cerr = [], [], []
         t_det = 0.0
-        for i, (lin_m, lin_z, T_mb) in enumerate(renders):
+        for i, (lin_m, lin_z, T_mech_from_board) in enumerate(renders):
             tex = finish_image(lin_m, nrng, 0.6, sigma, gray=True)
             left = finish_image(lin_z, nrng, 0.6, sigma)
             t = time.perf_counter()
@@ -67,8 +67,8 @@ def main():
             if o is None:
                 continue
             X = board.corners_board()
-            cerr.append(np.linalg.norm(rig.zed.left.project(transform_points(rig.T_zed_from_mech @ T_mb, X)) - o.zed_uv,
-                                       axis=1))
+            cerr.append(np.linalg.norm(
+                rig.zed.left.project(transform_points(rig.T_zed_from_mech @ T_mech_from_board, X)) - o.zed_uv, axis=1))
             obs.append(o)
             reps.append(r)
         for n in counts:
@@ -77,9 +77,9 @@ def main():
             res = calibrate_observations(sub, subr, rig.mech, rig.zed, CalibrateParams())
             t_solve = time.perf_counter() - t
             rot, tr = pose_difference(res.rig.T_zed_from_mech, rig.T_zed_from_mech)
-            T0, *_ = robust_initial_extrinsic([o.T_zed_from_board @ invert_T(o.T_mech_from_board) for o in sub],
-                                              CalibrateParams())
-            irot, itr = pose_difference(T0, rig.T_zed_from_mech)
+            T_zed_from_mech_init, *_ = robust_initial_extrinsic(
+                [o.T_zed_from_board @ invert_T(o.T_mech_from_board) for o in sub], CalibrateParams())
+            irot, itr = pose_difference(T_zed_from_mech_init, rig.T_zed_from_mech)
             print(f"{sigma:>6.1f} {np.concatenate(cerr).mean():>10.3f} {n:>5d} {rot:>12.4f} {tr:>13.3f} {irot:>9.4f} "
                   f"{itr:>8.3f} {res.sigma_rot_deg:>10.4f} {res.sigma_trans_mm:>9.3f} {res.loo_transfer_mean_px:>7.3f} "
                   f"{t_det * n / len(obs):>9.2f} {t_solve:>8.2f}")

@@ -45,7 +45,7 @@ def main() -> None:
         (sess / "done").write_text("")
         print(f"rendered in {time.perf_counter() - t:.0f} s")
     truth = SyntheticTruth.read(sess / "truth" / "rig_truth.yaml")
-    T_true = np.array(truth.T_zed_from_mech) @ np.array(truth.T_mech_from_depth)
+    T_zed_from_depth_true = np.array(truth.T_zed_from_mech) @ np.array(truth.T_mech_from_depth)
     board = calibrate(sess, work / "board.yaml", CalibrateParams())
     refined = refine(sess, work / "board.yaml", work / "refined.yaml", RefineParams(leave_one_out=False))
     t = time.perf_counter()
@@ -62,7 +62,7 @@ def main() -> None:
     print("|---|---|---|")
     for name, c in (("board", board), ("board, refined", refined), ("board, calibrate-scale", scaled),
                     ("board, calibrate-scale, refined", scaled_refined)):
-        rot, tr = pose_difference(c.rig.T_zed_from_depth, T_true)
+        rot, tr = pose_difference(c.rig.T_zed_from_depth, T_zed_from_depth_true)
         epes = []
         for d in s.select("scenes", None):
             cap = s.load_capture(d)

@@ -86,9 +86,9 @@ def measure(d: Path):
                                cap.mech_texture)
     wall, cpu = time.perf_counter() - t, cpu_s() - c
     tr = z["zed_disparity_px"]
-    T_truth = z["fruit_T_zed_moved_from_zed"]
-    centres_before = np.array([transform_points(invert_T(T), c[None])[0]
-                               for T, c in zip(T_truth, z["fruit_centre_zed_mm"])])
+    T_zed_moved_from_zed_true = z["fruit_T_zed_moved_from_zed"]
+    centres_before = np.array([transform_points(invert_T(T_zed_moved_from_zed), c[None])[0]
+                               for T_zed_moved_from_zed, c in zip(T_zed_moved_from_zed_true, z["fruit_centre_zed_mm"])])
     moved_truth = np.any(z["fruit_motion_translation_mm"] != 0, axis=1) | np.any(z["fruit_motion_rotvec_deg"] != 0,
                                                                                  axis=1)
 
@@ -105,7 +105,7 @@ def measure(d: Path):
     after_centres = z["fruit_centre_zed_mm"]
     who = np.argmin(np.linalg.norm(P[:, None, :] - after_centres[None], axis=2), axis=1)
     per_fruit, lost = [], []
-    for j in range(len(T_truth)):
+    for j in range(len(T_zed_moved_from_zed_true)):
         m = np.zeros_like(both)
         m[v[who == j], u[who == j]] = True
         per_fruit.append((epe(sd.disparity_px, m), epe(ch.sd.disparity_px, m), int(m.sum())))
@@ -121,7 +121,8 @@ def measure(d: Path):
             j = int(np.argmin(np.linalg.norm(centres_before - c, axis=1)))
             e = FruitMotionEstimate(c, np.radians(f.rotvec_deg), np.array(f.translation_mm), np.array(f.cov_rad_mm),
                                     f.n_pixels, 0, True, 0.0, None, np.zeros((0, 3)))
-            maha.append((j, bool(moved_truth[j]), e.mahalanobis_sq(T_truth[j]), f.status, f.disparity_sigma_px))
+            maha.append((j, bool(moved_truth[j]), e.mahalanobis_sq(T_zed_moved_from_zed_true[j]), f.status,
+                         f.disparity_sigma_px))
     return dict(status=ch.verification.status, compensated=ch.verification.compensated,
                 reasons=mc.reasons if mc is not None else ch.verification.reasons, per_fruit=per_fruit, maha=maha,
                 lost=lost, wall=wall, cpu=cpu, base_wall=base_wall, base_cpu=base_cpu)

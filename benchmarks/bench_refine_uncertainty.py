@@ -27,8 +27,9 @@ from gtforge.records.dataset import BuildParams
 from gtforge.synthetic import SyntheticTruth, generate_session
 
 
-def _err(T, T_true):
-    return np.concatenate([Rotation.from_matrix(T[:3, :3] @ T_true[:3, :3].T).as_rotvec(), T[:3, 3] - T_true[:3, 3]])
+def _err(T_zed_from_mech, T_zed_from_mech_true):
+    return np.concatenate([Rotation.from_matrix(T_zed_from_mech[:3, :3] @ T_zed_from_mech_true[:3, :3].T).as_rotvec(),
+                           T_zed_from_mech[:3, 3] - T_zed_from_mech_true[:3, 3]])
 
 
 def _row(e, est):
@@ -63,11 +64,11 @@ def main():
         generate_session(wd / "board", n_board=7, n_scenes=0, scale=0.4, seed=11, depth_noise_mm=0.0, image_noise=1.0)
         calibrate(wd / "board", wd / "board_calib.yaml", CalibrateParams(use_depth=False))
         c = CalibrationFile.read(wd / "board_calib.yaml")
-        T = SyntheticTruth.read(wd / "board" / "truth" / "rig_truth.yaml").T_zed_from_mech
-        c.rig = c.rig.model_copy(update={"T_zed_from_mech": T})
+        T_zed_from_mech_true = SyntheticTruth.read(wd / "board" / "truth" / "rig_truth.yaml").T_zed_from_mech
+        c.rig = c.rig.model_copy(update={"T_zed_from_mech": T_zed_from_mech_true})
         c.write(true_path)
     true = CalibrationFile.read(true_path)
-    T_true = true.rig.T_zed_from_mech
+    T_zed_from_mech_true = true.rig.T_zed_from_mech
     pools = []
     for i in range(args.pools):
         p = wd / f"pool{201 + i}"
@@ -81,9 +82,9 @@ def main():
         s = open_session(p)
         for d in s.select("scenes", None):
             sp, _ = R._scene_at(s.load_capture(d), true.rig, BuildParams(), params)
-            T, _ = R.solve_extrinsic([sp], T_true, true.rig, params)
-            e = _err(T, T_true)
-            single.append(_row(e, R.covariance_estimates([sp], T, true.rig, params)))
+            T_zed_from_mech, _ = R.solve_extrinsic([sp], T_zed_from_mech_true, true.rig, params)
+            e = _err(T_zed_from_mech, T_zed_from_mech_true)
+            single.append(_row(e, R.covariance_estimates([sp], T_zed_from_mech, true.rig, params)))
             single_e.append(e)
     _table("each scene alone", single, single_e)
     rng = np.random.default_rng(5)
@@ -92,17 +93,17 @@ def main():
         for j in range(0, len(names) - args.k + 1, args.k):
             c = CalibrationFile.read(true_path)
             c.rig = c.rig.with_extrinsic(T_from_rotvec(np.radians(rng.normal(0, 0.03, 3)), rng.normal(0, 0.3, 3))
-                                         @ T_true)
+                                         @ T_zed_from_mech_true)
             start = wd / f"start_{p.name}_{j}.yaml"
             c.write(start)
             res = R.refine(p, start, None, params, scenes=names[j:j + args.k])
-            T = res.rig.T_zed_from_mech
+            T_zed_from_mech = res.rig.T_zed_from_mech
             s = open_session(p)
-            pts = [R._scene_at(s.load_capture(s.root / "scenes" / n), true.rig.with_extrinsic(T), BuildParams(),
-                               params)[0] for n in res.refinement.scenes_used]
-            est = R.covariance_estimates(pts, T, true.rig, params)
+            pts = [R._scene_at(s.load_capture(s.root / "scenes" / n), true.rig.with_extrinsic(T_zed_from_mech),
+                               BuildParams(), params)[0] for n in res.refinement.scenes_used]
+            est = R.covariance_estimates(pts, T_zed_from_mech, true.rig, params)
             est["as written"] = np.array(res.cov_extrinsic_rad_mm)
-            e = _err(T, T_true)
+            e = _err(T_zed_from_mech, T_zed_from_mech_true)
             full.append(_row(e, est))
             full_e.append(e)
             scales.append(res.cov_jackknife_scale)

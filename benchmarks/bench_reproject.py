@@ -147,19 +147,20 @@ def main():
     args = ap.parse_args()
     rig = default_rig(1.0)
     depth = scene_depth(rig)
-    mech, cam, T = rig.mech, rig.zed.left, rig.T_zed_from_mech
+    mech, cam, T_zed_from_mech = rig.mech, rig.zed.left, rig.T_zed_from_mech
     n_threads = numba.get_num_threads()
 
     map1, map2 = cv2.initUndistortRectifyMap(mech.K, mech.dist, None, mech.K, (mech.width_px, mech.height_px),
                                              cv2.CV_32FC1)
     K_m, K_z = o3d.core.Tensor(mech.K), o3d.core.Tensor(cam.K)
-    I4, T_t = o3d.core.Tensor(np.eye(4)), o3d.core.Tensor(T)
+    I4, T_zed_from_mech_tensor = o3d.core.Tensor(np.eye(4)), o3d.core.Tensor(T_zed_from_mech)
     depth0 = np.nan_to_num(depth, nan=0.0)
 
     def o3d_project(d):
         pcd = o3d.t.geometry.PointCloud.create_from_depth_image(o3d.t.geometry.Image(d), K_m, I4, depth_scale=1.0,
                                                                 depth_max=1e5)
-        return pcd.project_to_depth_image(cam.width_px, cam.height_px, K_z, T_t, depth_scale=1.0, depth_max=1e5)
+        return pcd.project_to_depth_image(cam.width_px, cam.height_px, K_z, T_zed_from_mech_tensor, depth_scale=1.0,
+                                          depth_max=1e5)
 
     def with_threads(n, fn):
         def run():
@@ -177,14 +178,16 @@ def main():
         "Open3D + cv2.remap undistortion (baseline)":
             lambda: o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)),
         "Open3D alone (no undistortion)": lambda: o3d_project(depth0),
-        f"gtforge splat (default: {n_threads} numba threads)": lambda: project_depth_to_camera(depth, mech, T, cam,
-                                                                                                splat),
-        f"gtforge mesh (default: {n_threads} numba threads)": lambda: project_depth_to_camera(depth, mech, T, cam,
-                                                                                               mesh),
+        f"gtforge splat (default: {n_threads} numba threads)": lambda: project_depth_to_camera(
+            depth, mech, T_zed_from_mech, cam, splat),
+        f"gtforge mesh (default: {n_threads} numba threads)": lambda: project_depth_to_camera(
+            depth, mech, T_zed_from_mech, cam, mesh),
         f"gtforge mesh + span_mm (default: {n_threads} numba threads)": lambda: project_depth_to_camera(
-            depth, mech, T, cam, mesh, return_span=True),
-        "gtforge splat (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T, cam, splat)),
-        "gtforge mesh (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T, cam, mesh)),
+            depth, mech, T_zed_from_mech, cam, mesh, return_span=True),
+        "gtforge splat (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T_zed_from_mech, cam,
+                                                                                    splat)),
+        "gtforge mesh (1 thread)": with_threads(1, lambda: project_depth_to_camera(depth, mech, T_zed_from_mech, cam,
+                                                                                   mesh)),
     }
     if n_threads >= 2:  # the windowed multi-thread path, used from reproject.MIN_PARALLEL_THREADS threads on
         def windowed(params):
@@ -192,7 +195,7 @@ def main():
                 before = reproject.MIN_PARALLEL_THREADS
                 reproject.MIN_PARALLEL_THREADS = 2
                 try:
-                    return project_depth_to_camera(depth, mech, T, cam, params)
+                    return project_depth_to_camera(depth, mech, T_zed_from_mech, cam, params)
                 finally:
                     reproject.MIN_PARALLEL_THREADS = before
             return run
@@ -201,11 +204,11 @@ def main():
     if args.against:
         old = module_at_revision(args.against)
         methods[f"gtforge mesh @{args.against} ({n_threads} threads)"] = lambda: old.project_depth_to_camera(
-            depth, mech, T, cam, old.ReprojectParams(mode="mesh"))
+            depth, mech, T_zed_from_mech, cam, old.ReprojectParams(mode="mesh"))
         methods[f"gtforge mesh @{args.against} (1 thread)"] = with_threads(1, lambda: old.project_depth_to_camera(
-            depth, mech, T, cam, old.ReprojectParams(mode="mesh")))
+            depth, mech, T_zed_from_mech, cam, old.ReprojectParams(mode="mesh")))
         methods[f"gtforge splat @{args.against} ({n_threads} threads)"] = lambda: old.project_depth_to_camera(
-            depth, mech, T, cam, old.ReprojectParams(mode="splat"))
+            depth, mech, T_zed_from_mech, cam, old.ReprojectParams(mode="splat"))
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from fullres_session import pin_to_one_core, update_results
 
@@ -217,8 +220,8 @@ def main():
     # "identical output" means identical to the float64 reference of the same computation, not only to the
     # previous optimisation (issue #26: float32 ray planes passed a comparison with the float32 code before them)
     t0 = time.perf_counter()
-    reference = {"mesh": project_depth_reference(depth, mech, T, cam, mesh, return_span=True),
-                 "splat": (project_depth_reference(depth, mech, T, cam, splat),)}
+    reference = {"mesh": project_depth_reference(depth, mech, T_zed_from_mech, cam, mesh, return_span=True),
+                 "splat": (project_depth_reference(depth, mech, T_zed_from_mech, cam, splat),)}
     print(f"float64 reference (gtforge.core.ground_truth.reproject_reference) on the benchmark's scene: "
           f"{time.perf_counter() - t0:.1f} s", flush=True)
 
@@ -250,8 +253,8 @@ def main():
         busy.kill()
         busy.wait()
     o = o3d_project(cv2.remap(depth0, map1, map2, cv2.INTER_NEAREST)).as_tensor().numpy()[..., 0]
-    s = project_depth_to_camera(depth, mech, T, cam, splat)
-    m = project_depth_to_camera(depth, mech, T, cam, mesh)
+    s = project_depth_to_camera(depth, mech, T_zed_from_mech, cam, splat)
+    m = project_depth_to_camera(depth, mech, T_zed_from_mech, cam, mesh)
 
     cmd = (f"python benchmarks/bench_reproject.py --repeat {args.repeat}"
            + (f" --against {args.against}" if args.against else ""))

@@ -46,11 +46,11 @@ def main():
         shutil.rmtree(full, ignore_errors=True)
         generate_session(full, n_board=0, n_scenes=2, scale=1.0, seed=9, depth_noise_mm=0.0, image_noise=1.0)
         (full / "done").write_text("")
-    T = np.array(SyntheticTruth.read(full / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    T_zed_from_mech_true = np.array(SyntheticTruth.read(full / "truth" / "rig_truth.yaml").T_zed_from_mech)
     s = open_session(full)
     # a board calibration's covariance at full resolution, roughly: 0.002 deg / 0.02 mm per axis
-    calib = CalibrationFile.known_extrinsic(Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T), sigma_rot_deg=0.002,
-                                            sigma_trans_mm=0.02)
+    calib = CalibrationFile.known_extrinsic(Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T_zed_from_mech_true),
+                                            sigma_rot_deg=0.002, sigma_trans_mm=0.02)
     C = np.array(calib.cov_extrinsic_rad_mm)
     calib.write(wd / "calib.yaml")
     sha = "bench"
@@ -111,7 +111,7 @@ def main():
         generate_session(boards, n_board=args.pool, n_scenes=0, scale=0.5, seed=13, depth_noise_mm=0.0)
         (boards / "done").write_text("")
     sb = open_session(boards)
-    Tb = np.array(SyntheticTruth.read(boards / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    T_zed_from_mech_true_boards = np.array(SyntheticTruth.read(boards / "truth" / "rig_truth.yaml").T_zed_from_mech)
     board = BoardModel().spec()
     obs = []
     for d in sb.capture_dirs("board"):
@@ -128,8 +128,9 @@ def main():
                                      CalibrateParams(leave_one_out=True, square_check_pct=0))
         Ck = np.array(res.cov_extrinsic_rad_mm)
         scale = res.cov_jackknife_scale or 1.0
-        e = np.concatenate([Rotation.from_matrix(res.rig.T_zed_from_mech[:3, :3] @ Tb[:3, :3].T).as_rotvec(),
-                            res.rig.T_zed_from_mech[:3, 3] - Tb[:3, 3]])
+        e = np.concatenate([
+            Rotation.from_matrix(res.rig.T_zed_from_mech[:3, :3] @ T_zed_from_mech_true_boards[:3, :3].T).as_rotvec(),
+            res.rig.T_zed_from_mech[:3, 3] - T_zed_from_mech_true_boards[:3, 3]])
         nees.append(float(e @ np.linalg.solve(Ck, e)))
         nees_gn.append(float(e @ np.linalg.solve(Ck / scale, e)))
         scales.append(scale)

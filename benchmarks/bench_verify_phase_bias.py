@@ -60,7 +60,7 @@ def band_limited_texture(seed: int = 0, n: int = 300, fmax: float = 0.45) -> Ban
     return BandLimitedTexture(seed, n, fmax)
 
 
-def plane_pair(T: BandLimitedTexture, d0: float, slope_u: float = 0.0, slope_v: float = 0.0, shape=(200, 400),
+def plane_pair(texture: BandLimitedTexture, d0: float, slope_u: float = 0.0, slope_v: float = 0.0, shape=(200, 400),
                right_dy: float = 0.0):
     """8-bit left and right images of a plane whose disparity is ``d0 + slope_u u + slope_v v`` (left pixels), and
     that disparity (exact labels): the right pixel ``x`` shows the left pixel ``u`` with ``u - d(u, v) = x``.
@@ -74,8 +74,8 @@ def plane_pair(T: BandLimitedTexture, d0: float, slope_u: float = 0.0, slope_v: 
     v, x = np.mgrid[0:H, 0:W].astype(np.float64)
     disp = (d0 + slope_u * x + slope_v * v).astype(np.float32)  # at left pixel (v, x)
     k = 1.0 / (1.0 - slope_u)  # u = (x + d0 + slope_v y') k at the right pixel (y, x), y' = y - right_dy
-    right = T.affine(shape, ((d0 - slope_v * right_dy) * k, k, slope_v * k), (-right_dy, 0.0, 1.0))
-    return q(T.affine(shape, (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))), q(right), disp
+    right = texture.affine(shape, ((d0 - slope_v * right_dy) * k, k, slope_v * k), (-right_dy, 0.0, 1.0))
+    return q(texture.affine(shape, (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))), q(right), disp
 
 
 def labelled_inside(disp: np.ndarray, margin_px: int = 16) -> np.ndarray:
@@ -103,14 +103,14 @@ def sweep() -> None:
     from gtforge.dataset.scene_verification import _area, stereo_consistency
     from gtforge.records.verification import VerifyParams
 
-    T = band_limited_texture()
+    texture = band_limited_texture()
     for name, su, sv, f in (("fronto-parallel", 0.0, 0.0, 1), ("slanted 0.03 u + 0.01 v", 0.03, 0.01, 1),
                             ("fronto-parallel, 800x400 checked at half resolution (verify's factor 2 on a ZED 2K)",
                              0.0, 0.0, 2)):
         print(f"\n{name}: phase | disparity bias ± noise | vertical ± noise (px) | time")
         worst, times = 0.0, []
         for ph in np.arange(10) / 10:
-            L, R, disp = plane_pair(T, f * (20.0 + ph), su, sv, shape=(200 * f, 400 * f))
+            L, R, disp = plane_pair(texture, f * (20.0 + ph), su, sv, shape=(200 * f, 400 * f))
             if f > 1:  # as verify_scene reduces the images (figures below in the full-resolution pixels)
                 L, R, disp = _area(L, f), _area(R, f), (disp[::f, ::f] / f).astype(np.float32)
             disp = labelled_inside(disp)

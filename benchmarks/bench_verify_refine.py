@@ -44,9 +44,9 @@ def session(workdir: Path, n: int) -> Path:
     return d
 
 
-def calib_file(d: Path, T: np.ndarray, path: Path) -> Path:
+def calib_file(d: Path, T_zed_from_mech: np.ndarray, path: Path) -> Path:
     s = open_session(d)
-    CalibrationFile.known_extrinsic(Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T)).write(path)
+    CalibrationFile.known_extrinsic(Rig(zed=s.zed, mech=s.mech, T_zed_from_mech=T_zed_from_mech)).write(path)
     return path
 
 
@@ -66,8 +66,8 @@ def main():
     wd.mkdir(parents=True, exist_ok=True)
     print(f"{os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f} at start")
     d = session(wd, args.scenes)
-    T = np.array(SyntheticTruth.read(d / "truth" / "rig_truth.yaml").T_zed_from_mech)
-    rig = CalibrationFile.read(calib_file(d, T, wd / "exact.yaml")).rig
+    T_zed_from_mech_true = np.array(SyntheticTruth.read(d / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    rig = CalibrationFile.read(calib_file(d, T_zed_from_mech_true, wd / "exact.yaml")).rig
     s = open_session(d)
     ids = [f"{i:03d}" for i in range(args.scenes)]
     caps = {sid: s.load_capture(s.root / "scenes" / sid) for sid in ids}
@@ -99,10 +99,10 @@ def main():
     print(f"fruit rolled 0.5 mm: fruit shift {ver.texture_fruit.magnitude_px:.3f} px, whole area "
           f"{ver.texture_all.magnitude_px:.3f} px -> {ver.status}")
     for axis in ([0, 0.05, 0], [0.05, 0, 0]):
-        Tw = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T
-        rw = rig.with_extrinsic(Tw)
+        T_zed_from_mech_wrong = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T_zed_from_mech_true
+        rw = rig.with_extrinsic(T_zed_from_mech_wrong)
         ver, sd = verify(caps[ids[0]], rw)
-        pred = predicted_shift(sd.depth_mm, rw, T)
+        pred = predicted_shift(sd.depth_mm, rw, T_zed_from_mech_true)
         got = np.array([ver.texture_all.dx_px, ver.texture_all.dy_px])
         print(f"0.05 deg about {'xyz'[int(np.argmax(axis))]}: predicted ({pred[0]:+.3f}, {pred[1]:+.3f}) px, measured "
               f"({got[0]:+.3f}, {got[1]:+.3f}) px, difference {np.linalg.norm(got - pred):.4f} px (target <= 0.05)")
@@ -110,16 +110,16 @@ def main():
     print("\n## 3. refinement from 0.05 deg / 0.5 mm off (target: 0.005 deg / 0.05 mm with 6+ scenes)")
     print("| scenes | start deg / mm | refined deg / mm | scenes left out | time (s) |")
     print("|---|---|---|---|---|")
-    T0 = T_from_rotvec(np.radians([0.03, -0.03, 0.025]), [0.3, -0.3, 0.25]) @ T
-    start = calib_file(d, T0, wd / "start.yaml")
-    r0, t0 = pose_difference(T0, T)
+    T_zed_from_mech_init = T_from_rotvec(np.radians([0.03, -0.03, 0.025]), [0.3, -0.3, 0.25]) @ T_zed_from_mech_true
+    start = calib_file(d, T_zed_from_mech_init, wd / "start.yaml")
+    r0, t0 = pose_difference(T_zed_from_mech_init, T_zed_from_mech_true)
     for n in sorted({3, 6, args.scenes}):
         if n > args.scenes:
             continue
         use = ids[:n] + [f"{args.scenes:03d}"]  # plus the rolled fruit, which refinement must leave out
         t = time.perf_counter()
         res = refine(d, start, None, RefineParams(leave_one_out=False), scenes=use)
-        r, tr = pose_difference(res.rig.T_zed_from_mech, T)
+        r, tr = pose_difference(res.rig.T_zed_from_mech, T_zed_from_mech_true)
         print(f"| {n} (+1 rolled) | {r0:.4f} / {t0:.3f} | {r:.4f} / {tr:.3f} | "
               f"{', '.join(res.refinement.scenes_excluded) or 'none'} | {time.perf_counter() - t:.0f} |", flush=True)
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end")

@@ -58,8 +58,9 @@ def run(d: Path) -> None:
     n_cc, labels = cv2.connectedComponents(fruit.view(np.uint8), connectivity=8)
     rec, _ = mcm._compensate(cap.depth_mm, rig, params, sd, region, fruit, cap.zed_left, cap.zed_right,
                              cap.mech_texture, None)
-    T_truth = z["fruit_T_zed_moved_from_zed"]
-    before = np.array([transform_points(invert_T(T), c[None])[0] for T, c in zip(T_truth, z["fruit_centre_zed_mm"])])
+    T_zed_moved_from_zed_true = z["fruit_T_zed_moved_from_zed"]
+    before = np.array([transform_points(invert_T(T_zed_moved_from_zed), c[None])[0]
+                       for T_zed_moved_from_zed, c in zip(T_zed_moved_from_zed_true, z["fruit_centre_zed_mm"])])
     est, tru = {}, {}
     for f in rec.fruit:
         if f.status not in ("moved", "no ground truth"):
@@ -69,7 +70,7 @@ def run(d: Path) -> None:
         e = FruitMotionEstimate(c, np.radians(f.rotvec_deg), np.array(f.translation_mm), np.array(f.cov_rad_mm), 0, 0,
                                 True, 0.0, None, np.zeros((0, 3)))
         est[f.component] = e
-        p = e.params_from_T(T_truth[j])
+        p = e.params_from_T(T_zed_moved_from_zed_true[j])
         tru[f.component] = FruitMotionEstimate(c, p[:3], p[3:], np.eye(6) * 1e-12, 0, 0, True, 0.0, None,
                                                np.zeros((0, 3)))
     ring0 = mcm.SILHOUETTE_RING_PX
@@ -90,7 +91,7 @@ def run(d: Path) -> None:
     print(f"{d.name}: ring of {ring0} px: {lost.sum()} pixels without ground truth "
           f"({lost.sum() / np.isfinite(rebuilt['estimated', 0]).sum():.3%}); {np.sum(e_lost > 1)} of them were off "
           f"by > 1 px, the rest median {np.median(e_lost[e_lost <= 1]):.4f} px")
-    for j in range(len(T_truth)):
+    for j in range(len(T_zed_moved_from_zed_true)):
         line = []
         parts = (("all", who == j), ("inner", (who == j) & inner[v, u]), ("outer 5 px", (who == j) & ~inner[v, u]))
         for part, m in parts:
@@ -127,19 +128,19 @@ def run(d: Path) -> None:
         for name, w, kw in VARIANTS:
             fmod.TEXTURE_WEIGHT = w
             if "use_texture" in kw or "use_stereo" in kw:
-                kw = {**kw, "initial_T": T_truth[j]}
+                kw = {**kw, "initial_T": T_zed_moved_from_zed_true[j]}
             t0 = cpu_s()
             e = estimate_fruit_motion(X, (vk, uk), images, rig.zed, **kw)
             fmod.TEXTURE_WEIGHT = w0
             if e is None:
                 print(f"  truth fruit {j}, {name}: no estimate")
                 continue
-            err = e.params_from_T(T_truth[j]) - np.r_[e.rotvec_rad, e.translation_mm]
+            err = e.params_from_T(T_zed_moved_from_zed_true[j]) - np.r_[e.rotvec_rad, e.translation_mm]
             print(f"  truth fruit {j}, {name}: converged {e.converged} ({e.iterations} it.), error rotation "
                   f"{np.degrees(np.linalg.norm(err[:3])):.4f} deg, translation {np.linalg.norm(err[3:]) * 1e3:.1f} um "
                   f"(z {err[5] * 1e3:+.1f} um) -> mean |disparity change| "
                   f"{disparity_effect(e, err, depth_truth, rig):.4f} px; squared Mahalanobis "
-                  f"{e.mahalanobis_sq(T_truth[j]):.1f}; {cpu_s() - t0:.1f} s CPU", flush=True)
+                  f"{e.mahalanobis_sq(T_zed_moved_from_zed_true[j]):.1f}; {cpu_s() - t0:.1f} s CPU", flush=True)
 
 
 def main():

@@ -95,8 +95,8 @@ def main():
     numba.set_num_threads(1)
     rig = default_rig(1.0)
     depth = scene_depth(rig)
-    mech, cam, T = rig.mech, rig.zed.left, rig.T_zed_from_mech
-    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+    mech, cam, T_zed_from_mech = rig.mech, rig.zed.left, rig.T_zed_from_mech
+    R, t = np.ascontiguousarray(T_zed_from_mech[:3, :3]), np.ascontiguousarray(T_zed_from_mech[:3, 3])
     rx, ry = rp._ray_planes(mech.model_dump_json())
     H, W = cam.height_px, cam.width_px
     fx, fy, cx, cy = cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px
@@ -120,8 +120,8 @@ def main():
 
     def wrapper_only():  # the Python work of project_depth_to_camera around the kernel
         np.ascontiguousarray(depth, dtype=np.float32)
-        Ta = np.asarray(T, np.float64)
-        np.ascontiguousarray(Ta[:3, :3]), np.ascontiguousarray(Ta[:3, 3])
+        T_zed_from_mech_f64 = np.asarray(T_zed_from_mech, np.float64)
+        np.ascontiguousarray(T_zed_from_mech_f64[:3, :3]), np.ascontiguousarray(T_zed_from_mech_f64[:3, 3])
         rp._ray_planes(mech.model_dump_json())
         rp._slant_bounds(mech, params)
         numba.get_num_threads()
@@ -134,29 +134,31 @@ def main():
         "splat: projection pass": splat_pass(_splat_projection),
         "splat: + pixel-index pass": splat_pass(_splat_index),
         "splat: + row initialisation and z-buffer (the kernel)": splat_kernel,
-        "splat: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T, cam, splat),
+        "splat: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T_zed_from_mech, cam, splat),
         "mesh: projection (both rows' slots)": mesh_stage(1),
         "mesh: + edge flags (_quad_flags)": mesh_stage(2),
         "mesh: + the quads' vectorised pass": mesh_stage(3),
         "mesh: + compaction, z-buffer, general quads": mesh_stage(4),
-        "mesh: project_depth_to_camera (+ row initialisation)": lambda: project_depth_to_camera(depth, mech, T, cam,
-                                                                                               mesh),
-        "mesh + span_mm: project_depth_to_camera": lambda: project_depth_to_camera(depth, mech, T, cam, mesh,
-                                                                                  return_span=True),
+        "mesh: project_depth_to_camera (+ row initialisation)": lambda: project_depth_to_camera(
+            depth, mech, T_zed_from_mech, cam, mesh),
+        "mesh + span_mm: project_depth_to_camera": lambda: project_depth_to_camera(
+            depth, mech, T_zed_from_mech, cam, mesh, return_span=True),
         "build-dataset's call: both ZED views + the left span_mm in one pass (_project_depth_to_stereo)":
-            lambda: rp._project_depth_to_stereo(depth, mech, T, rig.zed.T_zedr_from_zed @ T, rig.zed, mesh, True),
+            lambda: rp._project_depth_to_stereo(depth, mech, T_zed_from_mech, rig.zed.T_zedr_from_zed @ T_zed_from_mech,
+                                                rig.zed, mesh, True),
     }
     if args.against:  # the same calls with the kernels of another revision (bench_reproject.module_at_revision)
         old = module_at_revision(args.against)
         ms, ss = old.ReprojectParams(mode="mesh"), old.ReprojectParams(mode="splat")
         methods[f"@{args.against} splat: project_depth_to_camera"] = lambda: old.project_depth_to_camera(
-            depth, mech, T, cam, ss)
+            depth, mech, T_zed_from_mech, cam, ss)
         methods[f"@{args.against} mesh: project_depth_to_camera"] = lambda: old.project_depth_to_camera(
-            depth, mech, T, cam, ms)
+            depth, mech, T_zed_from_mech, cam, ms)
         methods[f"@{args.against} mesh + span_mm: project_depth_to_camera"] = lambda: old.project_depth_to_camera(
-            depth, mech, T, cam, ms, return_span=True)
+            depth, mech, T_zed_from_mech, cam, ms, return_span=True)
         methods[f"@{args.against} build-dataset's call (_project_depth_to_stereo)"] = \
-            lambda: old._project_depth_to_stereo(depth, mech, T, rig.zed.T_zedr_from_zed @ T, rig.zed, ms, True)
+            lambda: old._project_depth_to_stereo(depth, mech, T_zed_from_mech,
+                                                 rig.zed.T_zedr_from_zed @ T_zed_from_mech, rig.zed, ms, True)
     for fn in methods.values():
         fn()
     cpu = {k: [] for k in methods}

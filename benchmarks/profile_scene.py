@@ -106,12 +106,13 @@ def main():
     # ---- read
     depth_in = measure("read", f"depth {f.mech_depth} (float32 TIFF)", lambda: read_depth(cap_dir / f.mech_depth))
     measure("read", f"texture {f.mech_texture}", lambda: read_texture(cap_dir / f.mech_texture))
-    T_l = rig.T_zed_from_depth
-    T_r = zed.T_zedr_from_zed @ T_l
+    T_zed_from_depth = rig.T_zed_from_depth
+    T_zedr_from_depth = zed.T_zedr_from_zed @ T_zed_from_depth
     try:  # gtforge >= issue 12's round 5: a build decodes the ZED images down to the rows verification reads
         from gtforge.dataset.scene_verification import zed_rows_used
 
-        zed_rows = zed_rows_used(project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp), params.verify)
+        zed_rows = zed_rows_used(project_depth_to_camera(depth_in, rig.depth_camera, T_zed_from_depth, zed.left, rp),
+                                 params.verify)
         h_zed = f" (decode, rows 0-{zed_rows} of {zed.left.height_px})"
         measure("read", f"ZED left {f.zed_left}{h_zed}", lambda: read_image(cap_dir / f.zed_left, rows=zed_rows))
         measure("read", f"ZED right {f.zed_right}{h_zed}", lambda: read_image(cap_dir / f.zed_right, rows=zed_rows))
@@ -121,12 +122,12 @@ def main():
     # ---- compute
     if getattr(params, "sigma", False) and rp.mode == "mesh":  # the build asks for the span (sigma maps)
         depth_l, depth_span = measure("compute", "reproject left (mesh, with span_mm)", lambda: project_depth_to_camera(
-            depth_in, rig.depth_camera, T_l, zed.left, rp, return_span=True))
+            depth_in, rig.depth_camera, T_zed_from_depth, zed.left, rp, return_span=True))
     else:
         depth_l = measure("compute", f"reproject left ({rp.mode})",
-                          lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_l, zed.left, rp))
+                          lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_zed_from_depth, zed.left, rp))
     depth_r = measure("compute", f"reproject right ({rp.mode}, occlusion test)",
-                      lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_r, zed.right, rp))
+                      lambda: project_depth_to_camera(depth_in, rig.depth_camera, T_zedr_from_depth, zed.right, rp))
     disp, noc = measure("compute", "disparity + occlusion (non-occluded mask)",
                         lambda: disparity_and_nonoccluded(depth_l, depth_r, zed, params.occlusion_rel_tol))
     region, _ = measure("compute", "regions (table plane, fruit, erosion)",

@@ -158,8 +158,8 @@ def calibrate(views: list[tuple[np.ndarray, np.ndarray]], size: tuple[int, int])
     return PinholeCamera.from_K(K, W, H, dist.ravel()), float(rms)
 
 
-def residual(cam: PinholeCamera, T: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(cam.project(transform_points(T, X)) - uv, axis=1)
+def residual(cam: PinholeCamera, T_cam_from_board: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(cam.project(transform_points(T_cam_from_board, X)) - uv, axis=1)
 
 
 def measure(folder: Path, boards: list[tuple[str, int, int, bool]], diameter_ratio: float | None = None,
@@ -213,27 +213,27 @@ def measure(folder: Path, boards: list[tuple[str, int, int, bool]], diameter_rat
     for r in ok:
         spec = spec_of[r.image]
         X = spec.corners_board()[r.ids]
-        T = solve_pnp(X, r.uv, cam)
-        e = residual(cam, T, X, r.uv)
+        T_cam_from_board = solve_pnp(X, r.uv, cam)
+        e = residual(cam, T_cam_from_board, X, r.uv)
         r.rms_raw, r.max_raw = float(np.sqrt(np.mean(e ** 2))), float(e.max())
-        bias = circle_centre_bias(spec, T, cam)[r.ids]
+        bias = circle_centre_bias(spec, T_cam_from_board, cam)[r.ids]
         corrected[r.image] = r.uv - bias
         if r.opencv_uv is not None:
-            To = solve_pnp(X, r.opencv_uv, cam)
-            r.rms_opencv = float(np.sqrt(np.mean(residual(cam, To, X, r.opencv_uv) ** 2)))
+            T_cam_from_board_opencv = solve_pnp(X, r.opencv_uv, cam)
+            r.rms_opencv = float(np.sqrt(np.mean(residual(cam, T_cam_from_board_opencv, X, r.opencv_uv) ** 2)))
     # second camera: on the centres less their perspective bias, then gtforge's bias-corrected PnP with it
     cam2, calib_rms2 = calibrate([(spec_of[r.image].corners_board()[r.ids], corrected[r.image]) for r in ok], size)
     for r in ok:
         spec = spec_of[r.image]
         X = spec.corners_board()[r.ids]
         det = Detection(r.uv, 0.0, "circles", 0.0, r.ids)
-        T, uv = pnp_bias_corrected(spec, det, cam2, solve_pnp)
-        e = residual(cam2, T, X, uv)
+        T_cam_from_board, uv = pnp_bias_corrected(spec, det, cam2, solve_pnp)
+        e = residual(cam2, T_cam_from_board, X, uv)
         r.rms_corr, r.max_corr = float(np.sqrt(np.mean(e ** 2))), float(e.max())
         r.bias_max = float(np.linalg.norm(r.uv - uv, axis=1).max())
-        T_raw = solve_pnp(X, r.uv, cam2)
-        r.moved_deg, dt = pose_difference(T_raw, T)
-        r.moved_pct = 100 * dt / float(np.linalg.norm(T[:3, 3]))
+        T_cam_from_board_raw = solve_pnp(X, r.uv, cam2)
+        r.moved_deg, dt = pose_difference(T_cam_from_board_raw, T_cam_from_board)
+        r.moved_pct = 100 * dt / float(np.linalg.norm(T_cam_from_board[:3, 3]))
     return dict(results=results, camera=cam, camera_corr=cam2, diameter_ratio=ratio, calib_rms=calib_rms,
                 calib_rms_corr=calib_rms2, size=size)
 

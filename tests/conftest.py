@@ -38,7 +38,7 @@ def session_dir(request):
 
 
 @pytest.fixture(scope="session")
-def T_true(session_dir):
+def T_zed_from_mech_true(session_dir):
     return np.array(SyntheticTruth.read(session_dir / "truth" / "rig_truth.yaml").T_zed_from_mech)
 
 
@@ -50,12 +50,12 @@ def calibration(session_dir, request):
 
 
 @pytest.fixture(scope="session")
-def true_calibration(session_dir, calibration, T_true, tmp_path_factory):
+def true_calibration(session_dir, calibration, T_zed_from_mech_true, tmp_path_factory):
     """The calibration file with the exact extrinsic (isolates the later stages from calibration error)."""
     from gtforge.records.calibration import CalibrationFile
 
     c = CalibrationFile.read(calibration[0])
-    c.rig = c.rig.with_extrinsic(T_true)
+    c.rig = c.rig.with_extrinsic(T_zed_from_mech_true)
     path = tmp_path_factory.mktemp("calib_true") / "calibration.yaml"
     c.write(path)
     return path

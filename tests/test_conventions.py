@@ -1,13 +1,16 @@
-"""docs/conventions.md's pose names, checked on the package's source: a rigid transform is named
-``T_<dst>_from_<src>``; never a bare ``T`` (or ``T0``, ``Tb``, ``T_zw`` ...), ``pose``, ``w2c``, ``c2w`` or
-``extrinsics``."""
+"""docs/conventions.md's pose names, checked on the package's source and on the tests, the benchmarks and the
+scripts: a rigid transform is named ``T_<dst>_from_<src>``; never a bare ``T`` (or ``T0``, ``Tb``, ``T_zw`` ...),
+``pose``, ``w2c``, ``c2w`` or ``extrinsics``."""
 from __future__ import annotations
 
 import ast
 import re
 from pathlib import Path
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "gtforge"
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src" / "gtforge"
+# the project's other Python: the tests (this file included), the benchmarks and the scripts
+OTHER_FOLDERS = ("tests", "benchmarks", "scripts")
 
 POSE_NAME = re.compile(r"^T_[a-z0-9]+(?:_[a-z0-9]+)*_from_[a-z0-9]+(?:_[a-z0-9]+)*$")
 # what reads as a transform's name: T alone, or T followed by a digit, an underscore or a short abbreviation (Tb, Tcw)
@@ -49,6 +52,14 @@ def bad_pose_names(source: str) -> list[tuple[int, str]]:
 
 def test_every_transform_in_the_package_is_named_dst_from_src():
     bad = [f"{p.relative_to(SRC.parent)}:{line}: {name}" for p in sorted(SRC.rglob("*.py"))
+           for line, name in bad_pose_names(p.read_text(encoding="utf-8"))]
+    assert not bad, "names that break docs/conventions.md 'Poses':\n" + "\n".join(bad)
+
+
+def test_every_transform_in_the_tests_benchmarks_and_scripts_is_named_dst_from_src():
+    files = {folder: sorted((ROOT / folder).rglob("*.py")) for folder in OTHER_FOLDERS}
+    assert all(files.values()) and Path(__file__).resolve() in files["tests"], {k: len(v) for k, v in files.items()}
+    bad = [f"{p.relative_to(ROOT)}:{line}: {name}" for paths in files.values() for p in paths
            for line, name in bad_pose_names(p.read_text(encoding="utf-8"))]
     assert not bad, "names that break docs/conventions.md 'Poses':\n" + "\n".join(bad)
 

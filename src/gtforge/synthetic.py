@@ -371,24 +371,24 @@ def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
     """Exact fruit shapes in the ZED-left frame: every ``SpheroidObject`` (world-axis-aligned ellipsoid, or one moved
     rigidly: ``RigidlyMoved``) as ``centre_mm`` (K, 3), ``radii_mm`` (K, 3), ``R_zed_from_fruit`` (K, 3, 3), plus
     ``T_zed_from_world``."""
-    fr, T_world_moved_from_world_per_fruit = [], []
+    fr, T_world_from_still_per_fruit = [], []
     for o in scene.objects:
         if isinstance(o, RigidlyMoved) and isinstance(o.obj, SpheroidObject) and o.obj_id == OBJ_FRUIT:
             fr.append(o.obj)
-            T_world_moved_from_world_per_fruit.append(o.T_world_moved_from_world)
+            T_world_from_still_per_fruit.append(o.T_world_from_still)
         elif isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT:
             fr.append(o)
-            T_world_moved_from_world_per_fruit.append(None)  # (not moved)
+            T_world_from_still_per_fruit.append(None)  # (not moved)
     R = T_zed_from_world[:3, :3]
-    moved = T_world_moved_from_world_per_fruit
-    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world if T_world_moved_from_world is None
-                                                               else T_zed_from_world @ T_world_moved_from_world,
+    moved = T_world_from_still_per_fruit
+    return dict(fruit_centre_zed_mm=np.array([transform_points(T_zed_from_world if T_world_from_still is None
+                                                               else T_zed_from_world @ T_world_from_still,
                                                                o.c[None])[0]
-                                              for o, T_world_moved_from_world in zip(fr, moved)]).reshape(-1, 3),
+                                              for o, T_world_from_still in zip(fr, moved)]).reshape(-1, 3),
                 fruit_radii_mm=np.array([o.r for o in fr]).reshape(-1, 3),
-                fruit_R_zed_from_fruit=np.array([R if T_world_moved_from_world is None
-                                                 else R @ T_world_moved_from_world[:3, :3]
-                                                 for T_world_moved_from_world in moved]).reshape(-1, 3, 3),
+                fruit_R_zed_from_fruit=np.array([R if T_world_from_still is None
+                                                 else R @ T_world_from_still[:3, :3]
+                                                 for T_world_from_still in moved]).reshape(-1, 3, 3),
                 T_zed_from_world=np.asarray(T_zed_from_world, float))
 
 
@@ -558,30 +558,32 @@ def moved_fruit(scene: Scene, delta_mm) -> Scene:
 
 
 class RigidlyMoved:
-    """A scene object moved rigidly by ``T_world_moved_from_world`` (its shape, texture and normals go with it): a
-    fruit that rolled or turned between the structured-light exposure and the ZED exposure."""
+    """A scene object moved rigidly by ``T_world_from_still`` (its shape, texture and normals go with it): a
+    fruit that rolled or turned between the structured-light exposure and the ZED exposure. ``still`` is the object's
+    own frame as the structured-light exposure saw it (coordinates the world's at that exposure): a point ``p`` of it
+    is at ``T_world_from_still @ p`` at the ZED's."""
 
-    def __init__(self, obj, T_world_moved_from_world: np.ndarray):
+    def __init__(self, obj, T_world_from_still: np.ndarray):
         self.obj = obj
         self.obj_id = obj.obj_id
-        self.T_world_moved_from_world = np.asarray(T_world_moved_from_world, float)
-        self.T_world_from_world_moved = invert_T(self.T_world_moved_from_world)
+        self.T_world_from_still = np.asarray(T_world_from_still, float)
+        self.T_still_from_world = invert_T(self.T_world_from_still)
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         # a rigid map keeps the ray's parameter t: the original object's hit along the ray taken back
-        return self.obj.intersect(transform_points(self.T_world_from_world_moved, np.broadcast_to(o, d.shape)),
-                                  d @ self.T_world_from_world_moved[:3, :3].T)
+        return self.obj.intersect(transform_points(self.T_still_from_world, np.broadcast_to(o, d.shape)),
+                                  d @ self.T_still_from_world[:3, :3].T)
 
     def shade(self, p_world: np.ndarray) -> np.ndarray:
-        return self.obj.shade(transform_points(self.T_world_from_world_moved, p_world))
+        return self.obj.shade(transform_points(self.T_still_from_world, p_world))
 
     def normal(self, p_world: np.ndarray) -> np.ndarray:
-        return (self.obj.normal(transform_points(self.T_world_from_world_moved, p_world))
-                @ self.T_world_moved_from_world[:3, :3].T)
+        return (self.obj.normal(transform_points(self.T_still_from_world, p_world))
+                @ self.T_world_from_still[:3, :3].T)
 
 
 def fruit_motion_T(centre_world_mm: np.ndarray, translation_mm, rotvec_deg) -> np.ndarray:
-    """``T_world_moved_from_world`` of a fruit turned by ``rotvec_deg`` (world axes, degrees) about its own centre
+    """``T_world_from_still`` of a fruit turned by ``rotvec_deg`` (world axes, degrees) about its own centre
     ``centre_world_mm`` and then translated by ``translation_mm`` (world, mm)."""
     R = cv2.Rodrigues(np.radians(np.asarray(rotvec_deg, float)).reshape(3, 1))[0]
     c = np.asarray(centre_world_mm, float)
@@ -614,20 +616,20 @@ def several_fruit_scene(rng: np.random.Generator, rig: SyntheticRig, seed: int, 
 
 def rigidly_moved_fruit(scene: Scene, motions) -> tuple[Scene, np.ndarray]:
     """The scene with its k-th fruit moved by ``motions[k] = (translation_mm, rotvec_deg)`` (world frame, about the
-    fruit's own centre; ``fruit_motion_T``), and those ``T_world_moved_from_world`` ``(K, 4, 4)``."""
-    objs, T_world_moved_from_world_per_fruit, k = [], [], 0
+    fruit's own centre; ``fruit_motion_T``), and those ``T_world_from_still`` ``(K, 4, 4)``."""
+    objs, T_world_from_still_per_fruit, k = [], [], 0
     for o in scene.objects:
         if isinstance(o, SpheroidObject) and o.obj_id == OBJ_FRUIT:
             t, r = motions[k] if k < len(motions) else ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-            T_world_moved_from_world = fruit_motion_T(o.c, t, r)
-            T_world_moved_from_world_per_fruit.append(T_world_moved_from_world)
+            T_world_from_still = fruit_motion_T(o.c, t, r)
+            T_world_from_still_per_fruit.append(T_world_from_still)
             k += 1
             if np.any(np.asarray(t, float)) or np.any(np.asarray(r, float)):
-                o = RigidlyMoved(o, T_world_moved_from_world)
+                o = RigidlyMoved(o, T_world_from_still)
         objs.append(o)
     if k != len(motions):
         raise ValueError(f"{len(motions)} fruit motions for a scene of {k} fruit")
-    return Scene(objs, scene.shade_by_object), np.array(T_world_moved_from_world_per_fruit).reshape(-1, 4, 4)
+    return Scene(objs, scene.shade_by_object), np.array(T_world_from_still_per_fruit).reshape(-1, 4, 4)
 
 
 # ---- session writer --------------------------------------------------------------------------
@@ -756,14 +758,16 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
         motion_truth = None
         if i in rigid:  # several fruit, each with its own rigid motion (issue #37)
             scene = several_fruit_scene(rng, rig, seed + 100 + i, len(rigid[i]), partly_out_of_view)
-            zed_scene, T_world_moved_from_world_per_fruit = rigidly_moved_fruit(scene, rigid[i])
+            zed_scene, T_world_from_still_per_fruit = rigidly_moved_fruit(scene, rigid[i])
             motion = np.zeros(3)
             T_zed_from_world = rig.T_zed_from_world
+            T_still_from_zed = invert_T(T_zed_from_world)
             z_still, _, _ = raycast_depth(scene, rig.zed.left, T_zed_from_world)
             motion_truth = dict(
-                fruit_T_zed_moved_from_zed=np.array([T_zed_from_world @ T_world_moved_from_world
-                                                     @ invert_T(T_zed_from_world)
-                                                     for T_world_moved_from_world in T_world_moved_from_world_per_fruit]
+                # (T_still_from_zed: the ZED frame's points in the still fruit's frame, the world's at the depth
+                # exposure)
+                fruit_T_zed_moved_from_zed=np.array([T_zed_from_world @ T_world_from_still @ T_still_from_zed
+                                                     for T_world_from_still in T_world_from_still_per_fruit]
                                                     ).reshape(-1, 4, 4),
                 fruit_motion_translation_mm=np.array([m[0] for m in rigid[i]], float).reshape(-1, 3),
                 fruit_motion_rotvec_deg=np.array([m[1] for m in rigid[i]], float).reshape(-1, 3),

@@ -56,21 +56,22 @@ def test_stereo_depth_disparity_and_invalid():
 
 
 def test_rig_refuses_non_rigid_transform():
-    T = T_from_rotvec([0.1, 0.0, 0.0], [1, 2, 3])
+    T_zed_from_mech = T_from_rotvec([0.1, 0.0, 0.0], [1, 2, 3])
     s = RectifiedStereo(left=cam(), baseline_mm=63.0)
-    Rig(zed=s, mech=cam(), T_zed_from_mech=T)
-    bad = T.copy()
+    Rig(zed=s, mech=cam(), T_zed_from_mech=T_zed_from_mech)
+    bad = T_zed_from_mech.copy()
     bad[0, 0] = 2.0
     with pytest.raises(Exception, match="rigid"):
         Rig(zed=s, mech=cam(), T_zed_from_mech=bad)
 
 
 def test_rig_file_round_trip_and_extra_field(tmp_path):
-    T = T_from_rotvec([0.01, -0.1, 0.02], [115, 18, 4])
-    r = Rig(zed=RectifiedStereo(left=cam(), baseline_mm=63.0), mech=cam((-0.1, 0.05, 0, 0, 0)), T_zed_from_mech=T)
+    T_zed_from_mech = T_from_rotvec([0.01, -0.1, 0.02], [115, 18, 4])
+    r = Rig(zed=RectifiedStereo(left=cam(), baseline_mm=63.0), mech=cam((-0.1, 0.05, 0, 0, 0)),
+            T_zed_from_mech=T_zed_from_mech)
     p = r.write(tmp_path / "rig.yaml")
     r2 = Rig.read(p)
-    np.testing.assert_allclose(r2.T_zed_from_mech, T)
+    np.testing.assert_allclose(r2.T_zed_from_mech, T_zed_from_mech)
     np.testing.assert_allclose(transform_points(r2.T_mech_from_zed, transform_points(r2.T_zed_from_mech, [[1, 2, 3]])),
                                [[1, 2, 3]], atol=1e-9)
     p.write_text(p.read_text() + "unexpected_field: 1\n")
@@ -79,5 +80,5 @@ def test_rig_file_round_trip_and_extra_field(tmp_path):
 
 
 def test_invert_T():
-    T = T_from_rotvec([0.3, -0.2, 0.1], [10, -20, 30])
-    np.testing.assert_allclose(T @ invert_T(T), np.eye(4), atol=1e-12)
+    T_a_from_b = T_from_rotvec([0.3, -0.2, 0.1], [10, -20, 30])
+    np.testing.assert_allclose(T_a_from_b @ invert_T(T_a_from_b), np.eye(4), atol=1e-12)

@@ -28,7 +28,7 @@ DEPTH_CAM = PinholeCamera(width_px=320, height_px=288, fx_px=252.0, fy_px=252.5,
                           dist_coeffs=[0.04, -0.02, 0.0008, -0.0005, 0.0])
 COLOR_CAM = PinholeCamera(width_px=640, height_px=360, fx_px=306.0, fy_px=306.4, cx_px=318.7, cy_px=181.2,
                           dist_coeffs=[0.06, -0.05, -0.0004, 0.0006, 0.01])
-T_COLOR_FROM_DEPTH = T_from_rotvec(np.radians([-6.0, 0.3, 0.2]), [-32.0, -2.0, 4.0])
+T_color_from_depth_true = T_from_rotvec(np.radians([-6.0, 0.3, 0.2]), [-32.0, -2.0, 4.0])
 ERROR_DEG = np.array([0.08, -0.25, 0.12])  # the "factory" extrinsic's rotation error (left perturbation)
 
 
@@ -47,8 +47,9 @@ def _scene() -> Scene:
         objs.append(SpheroidObject(2 + i, np.array(c, float) + [0, 0, r[2]], np.array(r, float), 8, 0.7 * i, 3 + i))
     for i, (x, y, h, ang, grey) in enumerate(((-270, -170, 120, 10, 0.9), (280, 190, 180, -25, 0.12),
                                               (-60, -150, 220, 40, 0.8), (300, -190, 90, 0, 0.2))):
-        T = make_T(T_from_rotvec(np.radians([0, 0, ang]), np.zeros(3))[:3, :3], [x, y, h])
-        objs.append(PlaneObject(5 + i, T, lambda xy, g=grey: np.full(len(xy), g), extent=(-45, 45, -30, 30)))
+        T_world_from_plate = make_T(T_from_rotvec(np.radians([0, 0, ang]), np.zeros(3))[:3, :3], [x, y, h])
+        objs.append(PlaneObject(5 + i, T_world_from_plate, lambda xy, g=grey: np.full(len(xy), g),
+                                extent=(-45, 45, -30, 30)))
     return Scene(objs)
 
 
@@ -60,24 +61,26 @@ def synthetic_pair():
     rng = np.random.default_rng(7)
     z, _, _ = raycast_depth(scene, DEPTH_CAM, T_depth_from_world)
     depth = np.where(np.isfinite(z), z + rng.normal(0, 0.5, z.shape), np.nan).astype(np.float32)
-    T_color_from_world = T_COLOR_FROM_DEPTH @ T_depth_from_world
+    T_color_from_world = T_color_from_depth_true @ T_depth_from_world
     color = finish_image(render_image(scene, COLOR_CAM, T_color_from_world, supersample=3), rng)
     return depth, color
 
 
-def _rotvec_deg(T_a, T_b) -> np.ndarray:
-    """The left-perturbation rotation (deg) that takes T_b to T_a."""
+def _rotvec_deg(T_dst_from_src_a, T_dst_from_src_b) -> np.ndarray:
+    """The left-perturbation rotation (deg) that takes T_dst_from_src_b to T_dst_from_src_a."""
     from scipy.spatial.transform import Rotation
 
-    return np.degrees(Rotation.from_matrix(T_a[:3, :3] @ T_b[:3, :3].T).as_rotvec())
+    return np.degrees(Rotation.from_matrix(T_dst_from_src_a[:3, :3] @ T_dst_from_src_b[:3, :3].T).as_rotvec())
 
 
 def test_perturb_is_the_left_perturbation():
     omega, dt = np.radians([0.3, -0.2, 0.1]), np.array([1.0, -2.0, 0.5])
-    T = perturb(T_COLOR_FROM_DEPTH, omega, dt)
-    np.testing.assert_allclose(T[:3, :3], T_from_rotvec(omega, np.zeros(3))[:3, :3] @ T_COLOR_FROM_DEPTH[:3, :3])
-    np.testing.assert_allclose(T[:3, 3], T_COLOR_FROM_DEPTH[:3, 3] + dt)
-    np.testing.assert_allclose(_rotvec_deg(T, T_COLOR_FROM_DEPTH), np.degrees(omega), atol=1e-9)
+    T_color_from_depth_perturbed = perturb(T_color_from_depth_true, omega, dt)
+    np.testing.assert_allclose(T_color_from_depth_perturbed[:3, :3],
+                               T_from_rotvec(omega, np.zeros(3))[:3, :3] @ T_color_from_depth_true[:3, :3])
+    np.testing.assert_allclose(T_color_from_depth_perturbed[:3, 3], T_color_from_depth_true[:3, 3] + dt)
+    np.testing.assert_allclose(_rotvec_deg(T_color_from_depth_perturbed, T_color_from_depth_true), np.degrees(omega),
+                               atol=1e-9)
 
 
 def test_depth_edges_cover_every_direction():
@@ -85,15 +88,15 @@ def test_depth_edges_cover_every_direction():
     structure as one observation)."""
     depth, color = synthetic_pair()
     und, pinhole = undistort_image(color, COLOR_CAM)
-    e = depth_edges(depth, DEPTH_CAM, T_COLOR_FROM_DEPTH, pinhole)
+    e = depth_edges(depth, DEPTH_CAM, T_color_from_depth_true, pinhole)
     assert len(e) > 500 and set(np.unique(e.axis)) == {0, 1} and len(np.unique(e.structure)) >= 7
 
 
 def test_synthetic_error_is_recovered():
     depth, color = synthetic_pair()
-    T_factory = perturb(T_COLOR_FROM_DEPTH, np.radians(ERROR_DEG), np.zeros(3))
-    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_factory)
-    T = np.array(res.T_color_from_depth)
+    T_color_from_depth_factory = perturb(T_color_from_depth_true, np.radians(ERROR_DEG), np.zeros(3))
+    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_factory)
+    T_color_from_depth_refined = np.array(res.T_color_from_depth)
     assert res.status == ["determined"] * 3 + ["not fitted"] * 3
     # the correction undoes the error: each axis within 3 sigma and 0.02 deg (0.1 px at f = 306 px); measured
     # (-0.092, +0.253, -0.113) deg against the truth (-0.08, +0.25, -0.12), sigma (0.006, 0.007, 0.009) deg
@@ -101,14 +104,14 @@ def test_synthetic_error_is_recovered():
     sigma = np.array(res.sigma_omega_deg)
     assert np.all(np.abs(correction + ERROR_DEG) <= 3 * sigma)
     assert np.all(np.abs(correction + ERROR_DEG) < 0.02)
-    rot_deg, trans_mm = pose_difference(T, T_COLOR_FROM_DEPTH)
+    rot_deg, trans_mm = pose_difference(T_color_from_depth_refined, T_color_from_depth_true)
     assert rot_deg < 0.02 and trans_mm == 0.0  # measured 0.014 deg
     assert res.score_final > res.score_initial
 
 
 def test_synthetic_no_error_gives_no_correction():
     depth, color = synthetic_pair()
-    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH)
+    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_true)
     correction, sigma = np.array(res.omega_deg), np.array(res.sigma_omega_deg)
     assert res.status[:3] == ["determined"] * 3
     # measured (-0.012, +0.021, +0.042) deg, sigma (0.006, 0.011, 0.032) deg: the roll (0.22 px at the image's
@@ -130,25 +133,26 @@ def test_synthetic_error_is_recovered_from_the_depth_cameras_texture(edges):
     (-0.0798, +0.2556, -0.1274) deg against the truth (-0.08, +0.25, -0.12), sigma (0.002, 0.002, 0.004) deg: a
     0.006 deg (0.03 px) bias on omega_y that is the same without any error."""
     depth, color = synthetic_pair()
-    T_factory = perturb(T_COLOR_FROM_DEPTH, np.radians(ERROR_DEG), np.zeros(3))
-    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_factory, EdgeAlignmentParams(edges=edges),
-                               texture=synthetic_texture())
+    T_color_from_depth_factory = perturb(T_color_from_depth_true, np.radians(ERROR_DEG), np.zeros(3))
+    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_factory,
+                               EdgeAlignmentParams(edges=edges), texture=synthetic_texture())
     assert res.edge_kinds == (["texture"] if edges == "texture" else ["silhouettes", "texture"])
     assert res.status == ["determined"] * 3 + ["not fitted"] * 3
     assert np.all(np.abs(np.array(res.omega_deg) + ERROR_DEG) < 0.01)
     # (the floor edge_bias_px = 0.05 px alone is 0.0094 deg at f = 306 px)
     assert np.all(np.array(res.sigma_omega_deg) < 0.012)
-    rot_deg, _ = pose_difference(np.array(res.T_color_from_depth), T_COLOR_FROM_DEPTH)
+    rot_deg, _ = pose_difference(np.array(res.T_color_from_depth), T_color_from_depth_true)
     assert rot_deg < 0.012  # measured 0.009 (texture), 0.007 (both); the silhouettes alone: 0.014
 
 
 def test_texture_mistakes_are_refused():
     depth, color = synthetic_pair()
     with pytest.raises(InputError, match="texture"):
-        align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH,
+        align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_true,
                              EdgeAlignmentParams(edges="texture"))
     with pytest.raises(InputError, match="pixel-aligned"):
-        align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH, texture=synthetic_texture()[:-2])
+        align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_true,
+                             texture=synthetic_texture()[:-2])
 
 
 def test_too_few_edge_structures_determine_nothing(tmp_path):
@@ -170,8 +174,8 @@ def test_too_few_edge_structures_determine_nothing(tmp_path):
     assert res.decision == "not determined" and "structures" in res.reason
     assert np.hypot(*res.offset_before_px) > 1 and any("factory extrinsic is kept" in w for w in res.warnings)
     depth, color = synthetic_pair()
-    n = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH).n_structures
-    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH,
+    n = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_true).n_structures
+    res = align_color_to_depth(depth, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_true,
                                EdgeAlignmentParams(min_extra_structures=n))  # not even one parameter
     assert res.status[:3] == ["not determined"] * 3
 
@@ -180,7 +184,7 @@ def test_too_few_edges_is_refused():
     flat = np.full((DEPTH_CAM.height_px, DEPTH_CAM.width_px), 700.0, np.float32)
     color = np.full((COLOR_CAM.height_px, COLOR_CAM.width_px, 3), 128, np.uint8)
     with pytest.raises(InputError, match="depth edges"):
-        align_color_to_depth(flat, DEPTH_CAM, color, COLOR_CAM, T_COLOR_FROM_DEPTH)
+        align_color_to_depth(flat, DEPTH_CAM, color, COLOR_CAM, T_color_from_depth_true)
 
 
 # ---- the real Azure Kinect frame ----------------------------------------------------------------
@@ -270,9 +274,10 @@ def test_real_frame_far_off_factory_pose_is_found(shift_px):
     trf, k, res = real_result()
     _, depth, color = trf.frame()
     f = res.f_px
-    T_good = np.array(res.T_color_from_depth)
-    T_bad = perturb(T_good, np.array([-shift_px[1] / f, shift_px[0] / f, 0.0]), np.zeros(3))
-    bad = align_color_to_depth(depth, k.depth, color, k.color, T_bad)
+    T_color_from_depth_good = np.array(res.T_color_from_depth)
+    T_color_from_depth_bad = perturb(T_color_from_depth_good, np.array([-shift_px[1] / f, shift_px[0] / f, 0.0]),
+                                     np.zeros(3))
+    bad = align_color_to_depth(depth, k.depth, color, k.color, T_color_from_depth_bad)
     assert bad.search_px == 12 and bad.search_interior and bad.decision == "applied"
     assert np.hypot(*bad.offset_before_px) > 9 and np.hypot(*bad.offset_after_px) < 0.2
     after = trf.alignment(trf.Chain(k.depth, k.color, np.array(bad.T_color_from_depth)), R=6)
@@ -284,8 +289,10 @@ def test_real_frame_beyond_the_search_says_so():
     "not determined", the reason names the border, the factory pose is kept and a warning gives the offset."""
     trf, k, res = real_result()
     _, depth, color = trf.frame()
-    T_bad = perturb(np.array(res.T_color_from_depth), np.array([-4.1, 8.8, 0.0]) / res.f_px, np.zeros(3))
-    bad = align_color_to_depth(depth, k.depth, color, k.color, T_bad, EdgeAlignmentParams(max_search_px=6))
+    T_color_from_depth_bad = perturb(np.array(res.T_color_from_depth), np.array([-4.1, 8.8, 0.0]) / res.f_px,
+                                     np.zeros(3))
+    bad = align_color_to_depth(depth, k.depth, color, k.color, T_color_from_depth_bad,
+                               EdgeAlignmentParams(max_search_px=6))
     assert not bad.search_interior and bad.decision == "not determined" and "border" in bad.reason
-    np.testing.assert_array_equal(np.array(bad.T_color_from_depth), T_bad)
+    np.testing.assert_array_equal(np.array(bad.T_color_from_depth), T_color_from_depth_bad)
     assert any("factory extrinsic is kept" in w for w in bad.warnings)

@@ -51,20 +51,20 @@ def _rotvec_deg(R_a, R_b) -> np.ndarray:
 
 def test_the_toolbox_calibration_is_kept_and_said_so():
     depth, color, dcam, ccam, A, t = frame()
-    T = make_T(np.linalg.inv(A), -t)
-    res = align_color_to_depth(depth, dcam, color, ccam, T)
+    T_color_from_depth = make_T(np.linalg.inv(A), -t)
+    res = align_color_to_depth(depth, dcam, color, ccam, T_color_from_depth)
     # measured: offset (-0.74, +0.16) px, 56 structures, no rotation to 0.3 px from this one frame
     assert np.hypot(*res.offset_before_px) < 1.0 and res.search_px == 6
     assert res.decision == "not determined" and "structures" in res.reason
-    np.testing.assert_array_equal(np.array(res.T_color_from_depth), T)
+    np.testing.assert_array_equal(np.array(res.T_color_from_depth), T_color_from_depth)
 
 
 @pytest.mark.parametrize("reading", ["translation sign flipped", "rotation not inverted"])
 def test_misread_calibrations_are_found(reading):
     depth, color, dcam, ccam, A, t = frame()
-    R_true, T_true = np.linalg.inv(A), -t
-    R, T = (R_true, t) if reading == "translation sign flipped" else (A, T_true)
-    res = align_color_to_depth(depth, dcam, color, ccam, make_T(R, T))
+    R_true, t_true = np.linalg.inv(A), -t
+    R, t_read = (R_true, t) if reading == "translation sign flipped" else (A, t_true)
+    res = align_color_to_depth(depth, dcam, color, ccam, make_T(R, t_read))
     assert res.decision == "applied" and res.search_interior
     assert np.hypot(*res.offset_before_px) > 5 and np.hypot(*res.offset_after_px) < 0.2  # measured 0.05, 0.10
     if reading == "rotation not inverted":

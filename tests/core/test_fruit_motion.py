@@ -31,15 +31,15 @@ def test_motion_parameters_round_trip_and_mahalanobis():
     np.testing.assert_allclose(e.params_from_T(e.T_zed_moved_from_zed), np.r_[e.rotvec_rad, e.translation_mm],
                                atol=1e-12)
     assert abs(e.mahalanobis_sq(e.T_zed_moved_from_zed)) < 1e-18
-    T = e.T_zed_moved_from_zed.copy()
-    T[:3, 3] += [0.0, 0.2, 0.0]  # one sigma of t_y
-    assert abs(e.mahalanobis_sq(T) - 1.0) < 1e-9
+    T_zed_moved_from_zed_shifted = e.T_zed_moved_from_zed.copy()
+    T_zed_moved_from_zed_shifted[:3, 3] += [0.0, 0.2, 0.0]  # one sigma of t_y
+    assert abs(e.mahalanobis_sq(T_zed_moved_from_zed_shifted) - 1.0) < 1e-9
     R = so3_exp([0.0, 0.0, 0.03])  # one sigma of omega_z, a left perturbation about the moved centroid
-    Tm = np.eye(4)
-    Tm[:3, :3] = R
+    T_zed_turned_from_zed_moved = np.eye(4)
+    T_zed_turned_from_zed_moved[:3, :3] = R
     cm = c + e.translation_mm
-    Tm[:3, 3] = cm - R @ cm
-    assert abs(e.mahalanobis_sq(Tm @ e.T_zed_moved_from_zed) - 1.0) < 1e-6
+    T_zed_turned_from_zed_moved[:3, 3] = cm - R @ cm
+    assert abs(e.mahalanobis_sq(T_zed_turned_from_zed_moved @ e.T_zed_moved_from_zed) - 1.0) < 1e-6
 
 
 def test_motion_sigma_is_the_disparity_change_of_the_moved_surface():

@@ -30,10 +30,10 @@ def _session(root, noise):
     return root
 
 
-def _calib(path, T=None):
+def _calib(path, T_zed_from_mech=None):
     r = default_rig(SCALE)
-    T = r.T_zed_from_mech if T is None else T
-    CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech, T_zed_from_mech=T.tolist())).write(path)
+    T_zed_from_mech = r.T_zed_from_mech if T_zed_from_mech is None else T_zed_from_mech
+    CalibrationFile.known_extrinsic(Rig(zed=r.zed, mech=r.mech, T_zed_from_mech=T_zed_from_mech.tolist())).write(path)
     return path
 
 
@@ -140,17 +140,17 @@ def test_extrinsic_error_of_005_deg_moves_the_gauges_rigidly(exact, tmp_path):
     """A 0.05 deg rotation error of T_zed_from_mech moves the labels rigidly: size, form and spacing do not change
     (these figures cannot see it), and the sphere centres move to exp(w) (c - t) + t as predicted."""
     s, _, rep0 = exact
-    T = default_rig(SCALE).T_zed_from_mech
+    T_zed_from_mech = default_rig(SCALE).T_zed_from_mech
     w = np.radians(0.05) * np.array([0.6, 0.8, 0.0])
-    T_err = perturb_left(T, np.r_[w, 0.0, 0.0, 0.0])
-    rep = validate_gauges(s, _calib(tmp_path / "c.yaml", T_err), None)
+    T_zed_from_mech_error = perturb_left(T_zed_from_mech, np.r_[w, 0.0, 0.0, 0.0])
+    rep = validate_gauges(s, _calib(tmp_path / "c.yaml", T_zed_from_mech_error), None)
     a, b = _by(rep0), _by(rep)
-    R_w = T_err[:3, :3] @ T[:3, :3].T
+    R_w = T_zed_from_mech_error[:3, :3] @ T_zed_from_mech[:3, :3].T
     for name in ("sphere", "sphere_pair"):
         for s0_, s1_ in zip(a[name].gt.spheres, b[name].gt.spheres):
             assert abs(s1_.size_error_mm - s0_.size_error_mm) <= 0.01
             assert abs(s1_.form_range_mm - s0_.form_range_mm) <= 0.01
-            want = R_w @ (np.array(s0_.centre_mm) - T[:3, 3]) + T[:3, 3]
+            want = R_w @ (np.array(s0_.centre_mm) - T_zed_from_mech[:3, 3]) + T_zed_from_mech[:3, 3]
             moved = np.linalg.norm(np.array(s1_.centre_mm) - s0_.centre_mm)
             assert moved > 0.3  # the labels did move (0.05 deg at about 650 mm)
             assert np.abs(np.array(s1_.centre_mm) - want).max() <= 0.02

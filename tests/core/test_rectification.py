@@ -88,9 +88,9 @@ def test_conf_values_decode_exactly_and_readings_differ(tmp_path):
     decoded = {}
     for reading in ZED_CONF_READINGS:
         f = read_zed_conf(write_raw_zed_conf(tmp_path / f"{reading}.conf", raw, reading), 672)
-        R, T = f.R_t_right_from_left(reading)
+        R, T_mm = f.R_t_right_from_left(reading)
         np.testing.assert_allclose(R, raw.R, atol=1e-12)
-        np.testing.assert_allclose(T, raw.T_mm, atol=1e-9)
+        np.testing.assert_allclose(T_mm, raw.T_mm, atol=1e-9)
         decoded[reading] = {r: f.R_t_right_from_left(r) for r in ZED_CONF_READINGS}
     # the Stereolabs-sample encoding is the plain one: Baseline = -T_x, TY = T_y, TZ = T_z, (RX, CV, RZ) = rotvec(R)
     v = zed_conf_values(raw, "neg-x")
@@ -99,9 +99,9 @@ def test_conf_values_decode_exactly_and_readings_differ(tmp_path):
     assert zed_conf_values(raw, "as-is")["Baseline"] == -63.0  # T_x itself: the right camera sits at +x
     # under a conf written for one reading, every other reading decodes a different (R, T)
     for reading, dec in decoded.items():
-        for other, (R, T) in dec.items():
+        for other, (R, T_mm) in dec.items():
             if other != reading:
-                assert np.abs(R - raw.R).max() > 1e-3 or np.abs(T - raw.T_mm).max() > 0.1, (reading, other)
+                assert np.abs(R - raw.R).max() > 1e-3 or np.abs(T_mm - raw.T_mm).max() > 0.1, (reading, other)
     # gtforge's rectification under the true reading is the truth's rectification
     stereo, R1, R2 = raw.rectified()
     f = read_zed_conf(write_raw_zed_conf(tmp_path / "x.conf", raw, "right-centre+inv-rot"), 672)
@@ -183,9 +183,9 @@ def test_calibrate_chooses_records_and_the_ground_truth_is_exact(raw_session, ca
     html = write_calibration_report(res, tmp_path / "report").read_text()
     assert "vertical disparity" in html.lower() and SESSION_READING in html
     # ground truth with the exact extrinsic (as tests/conftest.py): the chosen rectification makes it exact
-    T_true = np.array(SyntheticTruth.read(raw_session / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    T_zed_from_mech_true = np.array(SyntheticTruth.read(raw_session / "truth" / "rig_truth.yaml").T_zed_from_mech)
     c = CalibrationFile.read(path)
-    c.rig = c.rig.with_extrinsic(T_true)
+    c.rig = c.rig.with_extrinsic(T_zed_from_mech_true)
     c.write(tmp_path / "true_calibration.yaml")
     out = tmp_path / "dataset"
     summary = build_dataset(raw_session, tmp_path / "true_calibration.yaml", out, workers=1)

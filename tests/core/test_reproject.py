@@ -45,12 +45,12 @@ def test_zbuffer_keeps_nearest_and_mesh_is_exact_on_planes():
     # a slanted plane z = 600 + 0.8 x (in the depth camera); mesh must reproduce it exactly
     x = (u - cam.cx_px) / cam.fx_px
     depth = (600.0 / (1 - 0.8 * x)).astype(np.float32)
-    T = T_from_rotvec([0.0, 0.02, 0.0], [5.0, 0.0, 0.0])
-    out = project_depth_to_camera(depth, cam, T, cam, ReprojectParams(mode="mesh", max_slant_deg=89))
+    T_cam_from_depth = T_from_rotvec([0.0, 0.02, 0.0], [5.0, 0.0, 0.0])
+    out = project_depth_to_camera(depth, cam, T_cam_from_depth, cam, ReprojectParams(mode="mesh", max_slant_deg=89))
     ok = np.isfinite(out)
     assert ok.mean() > 0.8
     # truth: intersect each target ray with the transformed plane
-    Rt, t = T[:3, :3], T[:3, 3]
+    Rt, t = T_cam_from_depth[:3, :3], T_cam_from_depth[:3, 3]
     n_m = np.array([-0.8, 0.0, 1.0])  # plane n.p = 600 in the depth camera
     n_c = Rt @ n_m
     c_c = 600.0 + n_c @ t
@@ -92,8 +92,8 @@ def test_nonoccluded_mask_marks_right_view_occlusions():
     zed = RectifiedStereo(left=cam, baseline_mm=63.0)
     depth = np.full((80, 120), 1000.0, np.float32)
     depth[30:50, 50:70] = 500.0  # box in front of a wall
-    T = np.eye(4)  # depth camera = ZED left
-    sd = reproject_to_zed(depth, cam, T, zed, ReprojectParams(mode="mesh"))
+    T_zed_from_depth = np.eye(4)  # depth camera = ZED left
+    sd = reproject_to_zed(depth, cam, T_zed_from_depth, zed, ReprojectParams(mode="mesh"))
     valid = np.isfinite(sd.disparity_px)
     occ = valid & ~sd.nonoccluded
     # the wall just left of the box is hidden from the right camera by (12.6 - 6.3) = 6.3 px
@@ -165,32 +165,33 @@ def test_both_views_in_one_pass_are_the_two_single_views(fruit_cap, monkeypatch)
 
     rig, cap = fruit_cap
     zed = rig.zed.model_copy(update={"doffs_px": 3.25})
-    T = rig.T_zed_from_mech
+    T_zed_from_mech = rig.T_zed_from_mech
     for params in (ReprojectParams(), ReprojectParams(max_slant_deg=70.0, abs_tol_mm=0.2)):
-        left, span, right = rp._project_depth_to_stereo(cap.depth_mm, rig.mech, T, zed.T_zedr_from_zed @ T,
-                                                        zed, params, True)
-        z1, s1 = project_depth_to_camera(cap.depth_mm, rig.mech, T, zed.left, params, return_span=True)
-        r1 = project_depth_to_camera(cap.depth_mm, rig.mech, zed.T_zedr_from_zed @ T, zed.right, params)
+        left, span, right = rp._project_depth_to_stereo(cap.depth_mm, rig.mech, T_zed_from_mech,
+                                                        zed.T_zedr_from_zed @ T_zed_from_mech, zed, params, True)
+        z1, s1 = project_depth_to_camera(cap.depth_mm, rig.mech, T_zed_from_mech, zed.left, params, return_span=True)
+        r1 = project_depth_to_camera(cap.depth_mm, rig.mech, zed.T_zedr_from_zed @ T_zed_from_mech, zed.right, params)
         assert np.isfinite(left).mean() > 0.2 and np.isfinite(right).mean() > 0.2
         assert not np.array_equal(left, right, equal_nan=True)
         np.testing.assert_array_equal(left, z1)
         np.testing.assert_array_equal(span, s1)
         np.testing.assert_array_equal(right, r1)
     # reproject_to_zed takes the one-pass path with one thread, and the single views with several
-    sd = reproject_to_zed(cap.depth_mm, rig.mech, T, zed, left_span=True)
+    sd = reproject_to_zed(cap.depth_mm, rig.mech, T_zed_from_mech, zed, left_span=True)
     if numba.config.NUMBA_NUM_THREADS >= 2:
         monkeypatch.setattr(rp, "MIN_PARALLEL_THREADS", 2)
         before = numba.get_num_threads()
         numba.set_num_threads(2)
         try:
-            sd2 = reproject_to_zed(cap.depth_mm, rig.mech, T, zed, left_span=True)
+            sd2 = reproject_to_zed(cap.depth_mm, rig.mech, T_zed_from_mech, zed, left_span=True)
         finally:
             numba.set_num_threads(before)
         for a, b in ((sd.depth_mm, sd2.depth_mm), (sd.span_mm, sd2.span_mm), (sd.depth_right_mm, sd2.depth_right_mm),
                      (sd.nonoccluded, sd2.nonoccluded)):
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="translation along x"):
-        rp._project_depth_to_stereo(cap.depth_mm, rig.mech, T, T_from_rotvec([0.0, 0.01, 0.0], [-60.0, 0, 0]) @ T,
+        rp._project_depth_to_stereo(cap.depth_mm, rig.mech, T_zed_from_mech,
+                                    T_from_rotvec([0.0, 0.01, 0.0], [-60.0, 0, 0]) @ T_zed_from_mech,
                                     zed, ReprojectParams(), False)
 
 

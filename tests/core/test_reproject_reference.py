@@ -56,14 +56,14 @@ def small_scene():
     return rig, np.where(hit & lit, z, np.nan).astype(np.float32)
 
 
-def check_both_modes(depth, mech, T, cam, mesh=MESH, what=""):
-    fast, fast_span = project_depth_to_camera(depth, mech, T, cam, mesh, return_span=True)
-    ref, ref_span = project_depth_reference(depth, mech, T, cam, mesh, return_span=True)
+def check_both_modes(depth, mech, T_cam_from_depth, cam, mesh=MESH, what=""):
+    fast, fast_span = project_depth_to_camera(depth, mech, T_cam_from_depth, cam, mesh, return_span=True)
+    ref, ref_span = project_depth_reference(depth, mech, T_cam_from_depth, cam, mesh, return_span=True)
     assert_identical(fast, ref, f"{what} mesh")
     assert_identical(fast_span, ref_span, f"{what} mesh span_mm")
     splat = ReprojectParams(mode="splat", max_slant_deg=mesh.max_slant_deg, abs_tol_mm=mesh.abs_tol_mm)
-    assert_identical(project_depth_to_camera(depth, mech, T, cam, splat),
-                     project_depth_reference(depth, mech, T, cam, splat), f"{what} splat")
+    assert_identical(project_depth_to_camera(depth, mech, T_cam_from_depth, cam, splat),
+                     project_depth_reference(depth, mech, T_cam_from_depth, cam, splat), f"{what} splat")
 
 
 def test_synthetic_distorted_depth_camera():
@@ -126,12 +126,12 @@ def test_the_comparison_catches_float32_rays(monkeypatch):
     """The guard has teeth: the kernels fed float32-rounded ray planes (issue #26's speed change) differ from the
     reference on the real scene: measured 2026-12-02, mesh 18,173 pixels differ, 4,564 of them holes the reference
     fills (splat: 6 pixels)."""
-    z0, cam0, cam1, T, _, _ = motorcycle()
+    z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
     rx, ry = reproject._ray_planes(cam0.model_dump_json())
     rounded = (rx.astype(np.float32).astype(np.float64), ry.astype(np.float32).astype(np.float64))
     monkeypatch.setattr(reproject, "_ray_planes", lambda cam_json: rounded)
-    fast = project_depth_to_camera(z0, cam0, T, cam1, MESH)
-    ref = project_depth_reference(z0, cam0, T, cam1, MESH)
+    fast = project_depth_to_camera(z0, cam0, T_cam1_from_cam0, cam1, MESH)
+    ref = project_depth_reference(z0, cam0, T_cam1_from_cam0, cam1, MESH)
     differ = ~((fast == ref) | (np.isnan(fast) & np.isnan(ref)))
     assert differ.sum() > 1000 and np.isnan(fast).sum() > np.isnan(ref).sum()  # the float32 rays lost pixels
 
@@ -154,36 +154,37 @@ def test_kernels_ignore_what_the_output_held(upside_down):
     reached before it was reset or never reset at all, still give the reference's images. Upside down (the target
     camera rolled 180 degrees), the grid's first rows land on the image's last rows."""
     rig, depth = small_scene()
-    mech, zed, T = rig.mech, rig.zed, rig.T_zed_from_mech
+    mech, zed, T_zed_from_mech = rig.mech, rig.zed, rig.T_zed_from_mech
     if upside_down:
-        T = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T
+        T_zed_from_mech = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T_zed_from_mech
         left = zed.left
         flipped = left.model_copy(update={"cx_px": left.width_px - 1 - left.cx_px,
                                           "cy_px": left.height_px - 1 - left.cy_px})
         zed = zed.model_copy(update={"left": flipped})
     cam = zed.left
-    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+    R, t = np.ascontiguousarray(T_zed_from_mech[:3, :3]), np.ascontiguousarray(T_zed_from_mech[:3, 3])
     rx, ry = reproject._ray_planes(mech.model_dump_json())
     k1, k2 = reproject._slant_bounds(mech, MESH)
     H, W, Hm = cam.height_px, cam.width_px, depth.shape[0]
     intrinsics = (cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px)
     splat = np.zeros((H, W), np.float32)
     reproject._splat_rows(splat, 0, depth, rx, ry, R, t, *intrinsics, 0, Hm)
-    assert_identical(splat, project_depth_reference(depth, mech, T, cam, SPLAT), "splat into zeros")
+    assert_identical(splat, project_depth_reference(depth, mech, T_zed_from_mech, cam, SPLAT), "splat into zeros")
     mesh, span = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
     reproject._mesh_rows(mesh, span, True, 0, 0, H - 1, depth, rx, ry, R, t, *intrinsics, k1, k2, MESH.abs_tol_mm, 0,
                          Hm - 1)
-    ref, ref_span = project_depth_reference(depth, mech, T, cam, MESH, return_span=True)
+    ref, ref_span = project_depth_reference(depth, mech, T_zed_from_mech, cam, MESH, return_span=True)
     assert_identical(mesh, ref, "mesh into zeros")
     assert_identical(span, ref_span, "mesh span_mm into zeros")
     if not upside_down:  # the one-pass stereo path (the right view differs from the left by a shift along x only)
-        T_r = zed.T_zedr_from_zed @ T
+        T_zedr_from_mech = zed.T_zedr_from_zed @ T_zed_from_mech
         left, right = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
         reproject._mesh_rows_stereo(left, np.zeros((1, 1), np.float32), False, right, depth, rx, ry, R, t,
-                                    *intrinsics, np.ascontiguousarray(T_r[:3, 3]), zed.right.cx_px, k1, k2,
+                                    *intrinsics, np.ascontiguousarray(T_zedr_from_mech[:3, 3]), zed.right.cx_px, k1, k2,
                                     MESH.abs_tol_mm)
         assert_identical(left, ref, "stereo left into zeros")
-        assert_identical(right, project_depth_reference(depth, mech, T_r, zed.right, MESH), "stereo right into zeros")
+        assert_identical(right, project_depth_reference(depth, mech, T_zedr_from_mech, zed.right, MESH),
+                         "stereo right into zeros")
 
 
 def test_middlebury_motorcycle_stereo_one_pass():

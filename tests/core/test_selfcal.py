@@ -326,10 +326,10 @@ def _one_and_two_resamplings(kind: str):
     if kind == "sdk":
         rig = default_rig(0.3)
         stereo, rect = rig.zed, None
-        T_zedr = stereo.T_zedr_from_zed @ rig.T_zed_from_world
+        T_zedr_from_world = stereo.T_zedr_from_zed @ rig.T_zed_from_world
         scene = random_fruit_scene(rng, rig, 101)
-        right_in = finish_image(render_image(scene, stereo.right, make_T(R_turn, np.zeros(3)) @ T_zedr, 2,
-                                             T_light_from_world=T_zedr), rng, 0.6, 0.0)
+        right_in = finish_image(render_image(scene, stereo.right, make_T(R_turn, np.zeros(3)) @ T_zedr_from_world, 2,
+                                             T_light_from_world=T_zedr_from_world), rng, 0.6, 0.0)
         left_in = right_in
         h, w = right_in.shape[:2]
         # the stages' first pass as it was: OpenCV's bilinear warp
@@ -343,19 +343,21 @@ def _one_and_two_resamplings(kind: str):
         with TemporaryDirectory() as tmp:
             rect = read_zed_conf(write_raw_zed_conf(f"{tmp}/SN1.conf", raw, "neg-x"), 672).rectification("neg-x")
         stereo = rect.stereo
-        T_zedr = stereo.T_zedr_from_zed @ rig.T_zed_from_world
-        T_rawl = make_T(R1.T, np.zeros(3)) @ rig.T_zed_from_world
-        T_rawr = make_T(raw.R, raw.T_mm) @ T_rawl
+        T_zedr_from_world = stereo.T_zedr_from_zed @ rig.T_zed_from_world
+        T_rawl_from_world = make_T(R1.T, np.zeros(3)) @ rig.T_zed_from_world
+        T_rawr_from_world = make_T(raw.R, raw.T_mm) @ T_rawl_from_world
         scene = random_fruit_scene(rng, rig, 102)
-        left_in = finish_image(render_image(scene, raw.left, T_rawl, 2), rng, 0.6, 0.0)
-        right_in = finish_image(render_image(scene, raw.right, make_T(R2.T @ R_turn @ R2, np.zeros(3)) @ T_rawr, 2,
-                                             T_light_from_world=T_rawr), rng, 0.6, 0.0)
+        left_in = finish_image(render_image(scene, raw.left, T_rawl_from_world, 2), rng, 0.6, 0.0)
+        right_in = finish_image(render_image(scene, raw.right,
+                                             make_T(R2.T @ R_turn @ R2, np.zeros(3)) @ T_rawr_from_world, 2,
+                                             T_light_from_world=T_rawr_from_world), rng, 0.6, 0.0)
         import dataclasses
 
         # the stages' first pass as it was: the self-rectification's maps through OpenCV's bilinear remap
         first = dataclasses.replace(corrected_rectification(rect, corr), interpolation="linear")
         first_right = first.rectify(left_in, right_in)[1]
-    truth = finish_image(render_image(scene, stereo.right, T_zedr, 2, T_light_from_world=T_zedr), rng, 0.6, 0.0)
+    truth = finish_image(render_image(scene, stereo.right, T_zedr_from_world, 2, T_light_from_world=T_zedr_from_world),
+                         rng, 0.6, 0.0)
     single = corrected_right(rect, stereo, corr, YAW_DEG).rectify(left_in, right_in)[1]
     two = corrected_right_image(first_right, _yaw_rig(stereo, YAW_DEG))
     return truth, single, two

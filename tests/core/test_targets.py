@@ -427,9 +427,9 @@ def _true_vertical_disparity(session, spec, capture: str, uv_left: np.ndarray, R
     from gtforge.synthetic import SyntheticTruth
 
     s = open_session(session)
-    T_zm = np.array(SyntheticTruth.read(session / "truth" / "rig_truth.yaml").T_zed_from_mech)
+    T_zed_from_mech_true = np.array(SyntheticTruth.read(session / "truth" / "rig_truth.yaml").T_zed_from_mech)
     tr = np.load(session / "truth" / f"board_{capture}.npz")
-    X = transform_points(T_zm @ tr["T_mech_from_board"], spec.corners_board())
+    X = transform_points(T_zed_from_mech_true @ tr["T_mech_from_board"], spec.corners_board())
     uv_l = s.zed.left.project(X)
     uv_r = s.zed.right.project((X - [s.zed.baseline_mm, 0.0, 0.0]) @ np.asarray(R_right_err).T)
     near = np.linalg.norm(uv_left[:, None] - uv_l[None], axis=2)

@@ -31,15 +31,15 @@ def test_calibration_covariance_matches_the_spread_of_errors():
     X = board.corners_board()
     rng = np.random.default_rng(7)
     poses = [random_board_pose(rng, rig, board) for _ in range(6)]
-    T_true = rig.T_zed_from_mech
+    T_zed_from_mech_true = rig.T_zed_from_mech
     nees = {False: [], True: []}
     for seed in range(40):
         noise = np.random.default_rng(1000 + seed)
         obs, reps = [], []
-        for i, T_wb in enumerate(poses):
-            T_mb = rig.T_mech_from_world @ T_wb
-            uv_m = rig.mech.project(transform_points(T_mb, X)) + noise.normal(0, 0.08, (len(X), 2))
-            uv_z = (rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_wb, X))
+        for i, T_world_from_board in enumerate(poses):
+            T_mech_from_board = rig.T_mech_from_world @ T_world_from_board
+            uv_m = rig.mech.project(transform_points(T_mech_from_board, X)) + noise.normal(0, 0.08, (len(X), 2))
+            uv_z = (rig.zed.left.project(transform_points(rig.T_zed_from_world @ T_world_from_board, X))
                     + noise.normal(0, 0.08, (len(X), 2)))
             obs.append(PoseObs(f"{i:03d}", uv_m, uv_z, solve_pnp(X, uv_m, rig.mech), solve_pnp(X, uv_z, rig.zed.left)))
             reps.append(PoseResult(capture=f"{i:03d}", status="used"))
@@ -48,18 +48,20 @@ def test_calibration_covariance_matches_the_spread_of_errors():
         scale = res.cov_jackknife_scale
         assert scale is not None and scale >= 1.0
         C = np.array(res.cov_extrinsic_rad_mm)
-        T = res.rig.T_zed_from_mech
-        err = np.concatenate([Rotation.from_matrix(T[:3, :3] @ T_true[:3, :3].T).as_rotvec(), T[:3, 3] - T_true[:3, 3]])
+        T_zed_from_mech = res.rig.T_zed_from_mech
+        err = np.concatenate([
+            Rotation.from_matrix(T_zed_from_mech[:3, :3] @ T_zed_from_mech_true[:3, :3].T).as_rotvec(),
+            T_zed_from_mech[:3, 3] - T_zed_from_mech_true[:3, 3]])
         nees[True].append(err @ np.linalg.solve(C, err))
         nees[False].append(err @ np.linalg.solve(C / scale, err))  # the covariance without the jackknife's scale
     for loo in (False, True):  # issue target: about 6, within 30 %
         assert 6 * 0.7 <= np.mean(nees[loo]) <= 6 * 1.3, (loo, np.mean(nees[loo]))
 
 
-def _coverage(session_dir, calibration, T_true, draws, noise_mm, cov_scale=1.0):
+def _coverage(session_dir, calibration, T_zed_from_mech_true, draws, noise_mm, cov_scale=1.0):
     calib = CalibrationFile.read(calibration)
     C = np.array(calib.cov_extrinsic_rad_mm) * cov_scale
-    rig0 = calib.rig.with_extrinsic(T_true)
+    rig0 = calib.rig.with_extrinsic(T_zed_from_mech_true)
     up = UncertaintyParams(depth_noise=DepthNoiseModel(a_mm=noise_mm, b_mm_per_m2=0.0))
     s = open_session(session_dir)
     rng = np.random.default_rng(3)
@@ -80,11 +82,11 @@ def _coverage(session_dir, calibration, T_true, draws, noise_mm, cov_scale=1.0):
 
 @pytest.mark.parametrize("noise_mm,cov_scale", [(0.05, 1.0), (0.01, 25.0)])
 @pytest.mark.slow
-def test_sigma_map_coverage_per_region(session_dir, calibration, T_true, noise_mm, cov_scale):
+def test_sigma_map_coverage_per_region(session_dir, calibration, T_zed_from_mech_true, noise_mm, cov_scale):
     """A perturbed extrinsic drawn from the covariance, noisy depth: |GT - truth| is within 1 sigma for 68 % +- 10 %
     of the pixels and within 2 sigma for 95 % +- 5 %, on the fruit top, the fruit edge and the table (issue target).
     Two mixes: depth noise dominating, and the extrinsic dominating."""
-    cov = _coverage(session_dir, calibration[0], T_true, draws=8, noise_mm=noise_mm, cov_scale=cov_scale)
+    cov = _coverage(session_dir, calibration[0], T_zed_from_mech_true, draws=8, noise_mm=noise_mm, cov_scale=cov_scale)
     for lab, name in ((2, "fruit top"), (3, "fruit edge"), (1, "table")):
         e, s = cov[lab][:, 0], cov[lab][:, 1]
         assert len(e) > 5000

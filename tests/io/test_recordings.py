@@ -74,8 +74,10 @@ def test_realsense_bag_depth_in_mm_and_intrinsics_match_its_camera_info():
     assert np.array_equal(np.nan_to_num(depth).astype(np.uint16), raw)
     assert 300 < np.nanmedian(depth) < 5000
     assert color.shape == (480, 640, 3)
-    T = r.T_texture_from_depth  # the colour camera sits ~15 mm along the depth camera's x axis (D435)
-    assert 10 < T[0, 3] < 20 and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+    # the colour camera sits ~15 mm along the depth camera's x axis (D435)
+    T_texture_from_depth = r.T_texture_from_depth
+    assert 10 < T_texture_from_depth[0, 3] < 20 and np.allclose(
+        T_texture_from_depth[:3, :3] @ T_texture_from_depth[:3, :3].T, np.eye(3), atol=1e-9)
 
 
 def _ros1_bag(path, extra_bytes: bool):
@@ -84,23 +86,25 @@ def _ros1_bag(path, extra_bytes: bool):
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC)
-    T = ts.types
+    types = ts.types
     depth = (np.arange(48, dtype=np.uint16).reshape(6, 8) * 10 + 500)
     color = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
 
     def header(t):
-        return T["std_msgs/msg/Header"](seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=t, nanosec=5), frame_id="")
+        return types["std_msgs/msg/Header"](seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=t, nanosec=5),
+                                            frame_id="")
 
     def image(t, a, enc):
         data = a.view(np.uint8).reshape(-1)
-        return T["sensor_msgs/msg/Image"](header=header(t), height=6, width=8, encoding=enc, is_bigendian=0,
-                                          step=data.size // 6, data=data)
+        return types["sensor_msgs/msg/Image"](header=header(t), height=6, width=8, encoding=enc, is_bigendian=0,
+                                              step=data.size // 6, data=data)
 
     def info(fx):
-        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        return T["sensor_msgs/msg/CameraInfo"](header=header(0), height=6, width=8, distortion_model="Brown Conrady",
-                                               D=np.zeros(5), K=np.array([fx, 0, 4, 0, fx, 3, 0, 0, 1.0]),
-                                               R=np.zeros(9), P=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
+        roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return types["sensor_msgs/msg/CameraInfo"](header=header(0), height=6, width=8,
+                                                   distortion_model="Brown Conrady",
+                                                   D=np.zeros(5), K=np.array([fx, 0, 4, 0, fx, 3, 0, 0, 1.0]),
+                                                   R=np.zeros(9), P=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
     with Writer(path) as w:
         def put(topic, msgtype, msg, t=1):
             c = w.add_connection(topic, msgtype, typestore=ts)
@@ -111,7 +115,8 @@ def _ros1_bag(path, extra_bytes: bool):
         put("/device_0/sensor_1/Color_0/image/data", "sensor_msgs/msg/Image", image(1, color, "rgb8"))
         put("/device_0/sensor_0/Depth_0/info/camera_info", "sensor_msgs/msg/CameraInfo", info(10.0))
         put("/device_0/sensor_1/Color_0/info/camera_info", "sensor_msgs/msg/CameraInfo", info(12.0))
-        put("/device_0/sensor_0/option/Depth_Units/value", "std_msgs/msg/Float32", T["std_msgs/msg/Float32"](data=1e-4))
+        put("/device_0/sensor_0/option/Depth_Units/value", "std_msgs/msg/Float32",
+            types["std_msgs/msg/Float32"](data=1e-4))
     return depth, color
 
 
@@ -231,19 +236,18 @@ def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
     from gtforge.synthetic_recordings import _header, _image, _info
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
+    types = ts.types
     cam = PinholeCamera.from_K(np.array([[50.0, 0, 16], [0, 50, 12], [0, 0, 1]]), 32, 24, np.zeros(0))
     dcam = cam.model_copy(update={"fx_px": 45.0, "fy_px": 45.0})
     depth = np.full((24, 32), 800, np.uint16)
     color = np.zeros((24, 32, 3), np.uint8)
 
     def tf(parent, child, xyz, q):
-        return T["geometry_msgs/msg/TransformStamped"](
+        return types["geometry_msgs/msg/TransformStamped"](
             header=_header(ts, 0, parent), child_frame_id=child,
-            transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1],
-                                                                                                  z=xyz[2]),
-                                                       rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1],
-                                                                                                  z=q[2], w=q[3])))
+            transform=types["geometry_msgs/msg/Transform"](
+                translation=types["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
+                rotation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
     opt = (-0.5, 0.5, -0.5, 0.5)  # camera_*_frame -> optical frame (x forward -> z forward)
     tfs = [tf("camera_link", "camera_depth_frame", (0, 0, 0), (0, 0, 0, 1)),
            tf("camera_depth_frame", "camera_depth_optical_frame", (0, 0, 0), opt),
@@ -253,7 +257,7 @@ def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
         def put(topic, msgtype, msg):
             c = w.add_connection(topic, msgtype, typestore=ts)
             w.write(c, 1, ts.serialize_cdr(msg, msgtype))
-        put("/tf_static", "tf2_msgs/msg/TFMessage", T["tf2_msgs/msg/TFMessage"](transforms=tfs))
+        put("/tf_static", "tf2_msgs/msg/TFMessage", types["tf2_msgs/msg/TFMessage"](transforms=tfs))
         for ns, frame, img, enc, c in (("depth", "camera_depth_optical_frame", depth, "16UC1", dcam),
                                        ("color", "camera_color_optical_frame", color, "rgb8", cam)):
             put(f"/camera/camera/{ns}/image_rect_raw" if ns == "depth" else "/camera/camera/color/image_raw",
@@ -264,8 +268,8 @@ def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
         from gtforge.io.recordings import quat_T_mm
 
         def Tq(xyz, q):
-            return quat_T_mm(T["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
-                             T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+            return quat_T_mm(types["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
+                             types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
         T_link_from_depth = Tq((0, 0, 0), (0, 0, 0, 1)) @ Tq((0, 0, 0), opt)
         T_link_from_color = Tq((0.0005, 0.015, 0.0001), (0, 0, 0.0087265, 0.9999619)) @ Tq((0, 0, 0), opt)
         expected = invert_T(T_link_from_color) @ T_link_from_depth
@@ -390,11 +394,12 @@ def test_realsense_extrinsic_direction_puts_depth_edges_on_colour_edges():
     finally:
         bag.close()
     assert r.serial == "728612070259"
-    T = r.T_texture_from_depth
+    T_texture_from_depth = r.T_texture_from_depth
     image, pinhole = undistort_image(color, r.texture_camera)
     strength = edge_strength(image, 1.5)
     offsets = {}
-    candidates = {"as read": T, "inverse": invert_T(T), "rotation transposed": make_T(T[:3, :3].T, T[:3, 3])}
+    candidates = {"as read": T_texture_from_depth, "inverse": invert_T(T_texture_from_depth),
+                  "rotation transposed": make_T(T_texture_from_depth[:3, :3].T, T_texture_from_depth[:3, 3])}
     for name, cand in candidates.items():
         offsets[name] = [edge_offset_px(depth_edges(d, r.depth_camera, cand, pinhole), cand, pinhole, strength)
                          for d in depths]

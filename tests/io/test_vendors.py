@@ -171,14 +171,15 @@ def test_kinect_legacy_16_9_colour_calibration(tmp_path):
 def test_kinect_extrinsic_from_both_cameras(tmp_path):
     """Each camera's Rt is T_camera_from_world: T_color_from_depth = Rt_color @ inv(Rt_depth), rows first, metres."""
     data = kinect_data()
-    T_d = T_from_rotvec([0.02, -0.01, 0.03], [5.0, -3.0, 1.0])  # mm
-    T_c = T_from_rotvec([-0.05, 0.08, 0.01], [-32.0, 2.0, 4.0])
-    for loc, T in (("CALIBRATION_CameraLocationD0", T_d), ("CALIBRATION_CameraLocationPV0", T_c)):
-        camera_entry(data, loc)["Rt"] = {"Rotation": T[:3, :3].ravel().tolist(),
-                                         "Translation": (T[:3, 3] / 1000.0).tolist()}
+    T_depth_from_world = T_from_rotvec([0.02, -0.01, 0.03], [5.0, -3.0, 1.0])  # mm
+    T_color_from_world = T_from_rotvec([-0.05, 0.08, 0.01], [-32.0, 2.0, 4.0])
+    for loc, T_camera_from_world in (("CALIBRATION_CameraLocationD0", T_depth_from_world),
+                                     ("CALIBRATION_CameraLocationPV0", T_color_from_world)):
+        camera_entry(data, loc)["Rt"] = {"Rotation": T_camera_from_world[:3, :3].ravel().tolist(),
+                                         "Translation": (T_camera_from_world[:3, 3] / 1000.0).tolist()}
     k = read_kinect_calibration(write_json(tmp_path, data), "WFOV_UNBINNED", "720P")
     p_world = np.array([[100.0, -50.0, 900.0], [-300.0, 200.0, 1500.0]])
-    p_depth, p_color = transform_points(T_d, p_world), transform_points(T_c, p_world)
+    p_depth, p_color = transform_points(T_depth_from_world, p_world), transform_points(T_color_from_world, p_world)
     np.testing.assert_allclose(transform_points(k.T_color_from_depth, p_depth), p_color, atol=1e-9)
 
 
@@ -226,16 +227,16 @@ def test_kinect_modes_and_broken_files(tmp_path):
 
 # ---- Mech-Eye API intrinsics ------------------------------------------------------------------
 def test_mecheye_example_file():
-    texture, depth, T = read_mecheye_intrinsics(MECHEYE_EXAMPLE)
+    texture, depth, T_mech_from_depth = read_mecheye_intrinsics(MECHEYE_EXAMPLE)
     raw = yaml.safe_load(MECHEYE_EXAMPLE.read_text())["camera_intrinsics"]
     assert (texture.width_px, texture.height_px, depth.width_px, depth.height_px) == (2048, 1536, 1920, 1200)
     m = raw["texture"]["camera_matrix"]
     assert (texture.fx_px, texture.fy_px, texture.cx_px, texture.cy_px) == (m["fx"], m["fy"], m["cx"], m["cy"])
     dd = raw["depth"]["camera_distortion"]
     assert depth.dist_coeffs == [dd["k1"], dd["k2"], dd["p1"], dd["p2"], dd["k3"]]  # OpenCV order, as the API's
-    np.testing.assert_array_equal(T[:3, :3], raw["depth_to_texture"]["rotation"])
-    np.testing.assert_array_equal(T[:3, 3], raw["depth_to_texture"]["translation"])  # mm, as the API's
-    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+    np.testing.assert_array_equal(T_mech_from_depth[:3, :3], raw["depth_to_texture"]["rotation"])
+    np.testing.assert_array_equal(T_mech_from_depth[:3, 3], raw["depth_to_texture"]["translation"])  # mm, as the API's
+    np.testing.assert_array_equal(T_mech_from_depth[3], [0, 0, 0, 1])
 
 
 def test_mecheye_one_camera_and_errors(tmp_path):
@@ -244,8 +245,8 @@ def test_mecheye_one_camera_and_errors(tmp_path):
     one["camera_intrinsics"]["depth"] = one["camera_intrinsics"]["texture"]
     one["camera_intrinsics"]["depth_to_texture"] = {"rotation": np.eye(3).tolist(), "translation": [0, 0, 0]}
     one["camera_resolutions"]["depth"] = one["camera_resolutions"]["texture"]
-    texture, depth, T = MechEyeIntrinsicsFile.from_dict(one, "one.yaml").cameras()
-    assert depth is None and T is None and texture.width_px == 2048
+    texture, depth, T_mech_from_depth = MechEyeIntrinsicsFile.from_dict(one, "one.yaml").cameras()
+    assert depth is None and T_mech_from_depth is None and texture.width_px == 2048
 
     def refused(change, field, words):
         d = copy.deepcopy(data)

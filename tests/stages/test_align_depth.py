@@ -44,8 +44,8 @@ def _calibration(session: Path, out: Path, T_mech_from_depth: np.ndarray | None 
     """A calibration with the exact extrinsic and the session's (factory) depth camera pose, or the one given."""
     s = open_session(session)
     tr = SyntheticTruth.read(session / "truth" / "rig_truth.yaml")
-    T_md = s.T_mech_from_depth if T_mech_from_depth is None else T_mech_from_depth
-    rig = Rig(zed=s.zed, mech=s.mech, depth_cam=s.depth_cam, T_mech_from_depth=T_md,
+    T_mech_from_depth = s.T_mech_from_depth if T_mech_from_depth is None else T_mech_from_depth
+    rig = Rig(zed=s.zed, mech=s.mech, depth_cam=s.depth_cam, T_mech_from_depth=T_mech_from_depth,
               T_zed_from_mech=np.array(tr.T_zed_from_mech))
     return CalibrationFile.known_extrinsic(rig).write(out)
 
@@ -86,9 +86,9 @@ def test_a_diagonal_one_degree_error_is_recovered(session, aligned):
     assert all(np.hypot(*c.offset_before_px) > 5 and np.hypot(*c.offset_after_px) < 0.3 for c in r.captures)
     # written: the corrected pose in the rig, the file's kept, the covariance of the applied rotation (rad)
     back = CalibrationFile.read(path)
-    T_file = np.array(back.depth_alignment.T_mech_from_depth_file)
-    np.testing.assert_allclose(back.rig.T_mech_from_depth, perturb_left(T_file, np.r_[np.radians(est), 0, 0, 0]),
-                               atol=1e-9)
+    T_mech_from_depth_file = np.array(back.depth_alignment.T_mech_from_depth_file)
+    np.testing.assert_allclose(back.rig.T_mech_from_depth,
+                               perturb_left(T_mech_from_depth_file, np.r_[np.radians(est), 0, 0, 0]), atol=1e-9)
     C = np.array(back.depth_alignment.result.covariance_rad_mm)
     np.testing.assert_allclose(np.degrees(np.sqrt(np.diag(C)[:3])), sig, rtol=1e-9)
     assert "applied" in summary_lines(back.depth_alignment)[0]

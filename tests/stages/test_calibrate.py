@@ -11,9 +11,9 @@ from gtforge.reports.calibration import write_calibration_report
 pytestmark = pytest.mark.slow  # every test uses the shared session and its calibration (conftest.py: minutes)
 
 
-def test_calibration_recovers_the_true_extrinsic(calibration, T_true):
+def test_calibration_recovers_the_true_extrinsic(calibration, T_zed_from_mech_true):
     path, res = calibration
-    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_true)
+    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_zed_from_mech_true)
     assert rot < 0.05 and tr < 0.5, (rot, tr)  # issue target at 12 poses full res: 0.02 deg / 0.2 mm (benchmarks/)
     assert res.rms_px < 0.2 and res.max_px < 0.6
     assert 0 < res.sigma_rot_deg < 0.05 and 0 < res.sigma_trans_mm < 0.5
@@ -47,7 +47,7 @@ def _observations(session_dir, names=None):
     return s, obs, reps
 
 
-def test_outlier_pose_is_rejected_and_use_depth_agrees(session_dir, T_true):
+def test_outlier_pose_is_rejected_and_use_depth_agrees(session_dir, T_zed_from_mech_true):
     s, obs, reps = _observations(session_dir)
     # corrupt one pose: its ZED detections shifted by 6 px (a mismatched image pair, say)
     obs[2].zed_uv = obs[2].zed_uv + np.array([6.0, 0.0])
@@ -58,7 +58,7 @@ def test_outlier_pose_is_rejected_and_use_depth_agrees(session_dir, T_true):
     bad = [p for p in res.poses if p.capture == obs[2].name][0]
     assert bad.status == "outlier"
     assert obs[2].name not in res.captures_used
-    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_true)
+    rot, tr = pose_difference(res.rig.T_zed_from_mech, T_zed_from_mech_true)
     assert rot < 0.05 and tr < 0.5
     assert [m.method for m in res.methods] == ["reprojection", "depth"] and res.method == "depth"
     assert res.methods[1].rot_diff_to_primary_deg < 0.05 and res.methods[1].trans_diff_to_primary_mm < 0.5

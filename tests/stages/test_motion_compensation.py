@@ -99,15 +99,16 @@ def test_generator_writes_the_truth_at_the_zed_exposure(motion_session):
     identity, a moved fruit's maps its centre at the depth exposure onto its centre at the ZED's; the disparity
     differs from the still scene's only where a moved fruit is, or was."""
     z = np.load(motion_session / "truth" / "scene_000.npz")
-    T = z["fruit_T_zed_moved_from_zed"]
-    assert T.shape == (3, 4, 4) and np.allclose(T[1], np.eye(4), atol=1e-9)
+    T_zed_moved_from_zed_true = z["fruit_T_zed_moved_from_zed"]
+    assert T_zed_moved_from_zed_true.shape == (3, 4, 4) and np.allclose(T_zed_moved_from_zed_true[1], np.eye(4),
+                                                                         atol=1e-9)
     rig_T = z["T_zed_from_world"]
     for k in (0, 2):
         t_mm, r_deg = z["fruit_motion_translation_mm"][k], z["fruit_motion_rotvec_deg"][k]
         c_after = z["fruit_centre_zed_mm"][k]
-        c_before = transform_points(invert_T(T[k]), c_after[None])[0]
+        c_before = transform_points(invert_T(T_zed_moved_from_zed_true[k]), c_after[None])[0]
         np.testing.assert_allclose(c_after - c_before, rig_T[:3, :3] @ t_mm, atol=1e-9)  # turned about its centre
-        R = T[k][:3, :3]
+        R = T_zed_moved_from_zed_true[k][:3, :3]
         np.testing.assert_allclose(np.degrees(np.linalg.norm(cv2.Rodrigues(R)[0])), np.linalg.norm(r_deg), atol=1e-9)
     diff = ~np.isclose(z["zed_disparity_px"], z["still_zed_disparity_px"], rtol=0, atol=1e-6, equal_nan=True)
     assert diff.any() and not diff[~_dilate(z["fruit_mask"], 6)].any()  # (2 mm: under 2 px here)
@@ -136,17 +137,19 @@ def test_moved_fruit_are_compensated(motion_datasets, motion_session):
     mc = meta.verification.motion_compensation
     assert meta.verification.status == "ok" and mc.status == "compensated" and mc.before.status == "flagged"
     z = np.load(motion_session / "truth" / "scene_000.npz")
-    T_truth = z["fruit_T_zed_moved_from_zed"]
-    before = [transform_points(invert_T(T), c[None])[0] for T, c in zip(T_truth, z["fruit_centre_zed_mm"])]
+    T_zed_moved_from_zed_true = z["fruit_T_zed_moved_from_zed"]
+    before = [transform_points(invert_T(T_zed_moved_from_zed), c[None])[0]
+              for T_zed_moved_from_zed, c in zip(T_zed_moved_from_zed_true, z["fruit_centre_zed_mm"])]
     status = {}
     for f in mc.fruit:
         j = int(np.argmin([np.linalg.norm(b - f.centre_zed_mm) for b in before]))
         status[j] = f.status
         e = FruitMotionEstimate(np.array(f.centre_zed_mm), np.radians(f.rotvec_deg), np.array(f.translation_mm),
                                 np.array(f.cov_rad_mm), f.n_pixels, 0, True, 0.0, None, np.zeros((0, 3)))
-        assert e.mahalanobis_sq(T_truth[j]) < CHI2_6_999, (j, f)
+        assert e.mahalanobis_sq(T_zed_moved_from_zed_true[j]) < CHI2_6_999, (j, f)
         if j != 1:  # the motion recovered to a fraction of itself
-            assert np.linalg.norm(np.array(f.translation_mm) - e.params_from_T(T_truth[j])[3:]) < 0.25, f
+            assert np.linalg.norm(np.array(f.translation_mm)
+                                  - e.params_from_T(T_zed_moved_from_zed_true[j])[3:]) < 0.25, f
     assert status == {0: "moved", 1: "still", 2: "moved"}
     truth = z["zed_disparity_px"]
     fruit_truth = z["fruit_mask"]

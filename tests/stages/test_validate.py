@@ -25,8 +25,9 @@ def test_true_extrinsic_passes_with_tiny_errors(session_dir, true_calibration, t
 @pytest.mark.slow
 def test_perturbed_extrinsic_fails(session_dir, true_calibration, tmp_path):
     c = CalibrationFile.read(true_calibration)
-    T = T_from_rotvec(np.radians([0.0, 0.2, 0.0]), [0, 0, 0]) @ c.rig.T_zed_from_mech  # 0.2 deg about the ZED y axis
-    c.rig = c.rig.with_extrinsic(T)
+    # 0.2 deg about the ZED y axis
+    T_zed_from_mech_bad = T_from_rotvec(np.radians([0.0, 0.2, 0.0]), [0, 0, 0]) @ c.rig.T_zed_from_mech
+    c.rig = c.rig.with_extrinsic(T_zed_from_mech_bad)
     path = tmp_path / "bad.yaml"
     c.write(path)
     rep = validate(session_dir, path, tmp_path / "out")

@@ -145,13 +145,13 @@ def test_checks_read_the_zed_images_only_down_to_zed_rows_used(session_dir, true
 
 
 @pytest.mark.slow
-def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibration, T_true):
+def test_extrinsic_error_shows_as_the_predicted_shift(session_dir, true_calibration, T_zed_from_mech_true):
     base = CalibrationFile.read(true_calibration).rig
     for axis in ([0.0, 0.05, 0.0], [0.05, 0.0, 0.0]):
-        T_wrong = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T_true
-        rig = base.with_extrinsic(T_wrong)
+        T_zed_from_mech_wrong = T_from_rotvec(np.radians(axis), [0, 0, 0]) @ T_zed_from_mech_true
+        rig = base.with_extrinsic(T_zed_from_mech_wrong)
         ver, sd, _ = _verify(session_dir, "001", rig)
-        predicted = predicted_shift(sd.depth_mm, rig, T_true)
+        predicted = predicted_shift(sd.depth_mm, rig, T_zed_from_mech_true)
         got = np.array([ver.texture_all.dx_px, ver.texture_all.dy_px])
         assert np.linalg.norm(predicted) > 0.3  # 0.05 deg at f = 426 px
         assert np.linalg.norm(got - predicted) < 0.05, (axis, got, predicted)  # issue target
