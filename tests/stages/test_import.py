@@ -418,9 +418,14 @@ def test_ctrl_c_while_added_captures_land_lands_them_all_first(hand, recs, tmp_p
                 os.kill(os.getpid(), signal.SIGINT)
 
     monkeypatch.setattr(importer.os, "replace", replace_then_ctrl_c)
-    with pytest.raises(KeyboardInterrupt):
-        import_recordings([more.rgbd_bag, more.stereo_bag], out, ImportParams(clock_offset_ms=more.clock_offset_ms),
-                          add=True)
+    # Python's own Ctrl-C (a test that ran gtforge.cli.main in this process may have left the command's handler)
+    old_handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            import_recordings([more.rgbd_bag, more.stereo_bag], out,
+                              ImportParams(clock_offset_ms=more.clock_offset_ms), add=True)
+    finally:
+        signal.signal(signal.SIGINT, old_handler)
     assert len(moved) >= 2  # the second capture landed after the Ctrl-C
     runs = ImportRecord.read(out / "import.json").runs
     assert [r.capture for run in runs for r in run.pairs] == ["board/000", "board/001", "scenes/000"]
