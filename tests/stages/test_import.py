@@ -118,6 +118,22 @@ def test_add_to_an_existing_session_and_refuse_without_add(hand, recs, tmp_path)
     assert len(rec.runs) == 2 and rec.runs[0].dropped["every/max"] == 2
 
 
+def test_a_charuco_board_is_declared_at_import_as_at_calibrate(tmp_path):
+    """--board charuco needs its dictionary and marker size, as calibrate takes them (import had no --dictionary, so
+    a ChArUco board could not be declared)."""
+    rec = shared_data("recordings") / "azure_kinect_recording.mkv"
+    base = ["import", rec, "--board", "charuco", "--cols", "7", "--rows", "5", "--square-mm", "40"]
+    r = gtforge(*base, "-o", tmp_path / "no")
+    assert r.returncode == 2 and one_line_error(r) and "board.dictionary" in r.stderr and "--dictionary" in r.stderr
+    r = gtforge(*base, "--marker-mm", "30", "--dictionary", "DICT_4X4_50", "--legacy-pattern", "-o", tmp_path / "k")
+    assert r.returncode == 0, r.stderr
+    from gtforge.io.captures import SessionFile
+
+    board = SessionFile.read(tmp_path / "k" / "session.yaml").board
+    assert (board.kind, board.cols, board.rows, board.square_size_mm, board.marker_size_mm, board.dictionary,
+            board.legacy_pattern) == ("charuco", 7, 5, 40.0, 30.0, "DICT_4X4_50", True)
+
+
 def test_real_recordings_import_through_the_command(tmp_path):
     rec_dir, frame_dir = shared_data("recordings"), shared_data("azure-kinect-frame")
     from gtforge.io.captures import read_depth

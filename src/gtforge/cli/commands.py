@@ -691,6 +691,11 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             cols: Optional[int] = typer.Option(None, help="Board columns (as calibrate)."),
             rows: Optional[int] = typer.Option(None, help="Board rows (as calibrate)."),
             square_mm: Optional[float] = typer.Option(None, help="Square size or circle spacing (mm)."),
+            marker_mm: Optional[float] = typer.Option(None, help="ChArUco marker side (mm; as calibrate)."),
+            dictionary: Optional[str] = typer.Option(None, help="ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
+            legacy_pattern: Optional[bool] = typer.Option(None, "--legacy-pattern/--no-legacy-pattern",
+                                                          help="ChArUco board made before OpenCV 4.6 (even rows)."),
+            circle_mm: Optional[float] = typer.Option(None, help="Circle diameter (mm; default half the spacing)."),
             classify: bool = typer.Option(True, "--classify/--no-classify",
                                           help="Put captures showing the board into board/ (else all in scenes/).")
             ) -> None:
@@ -713,7 +718,9 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
                 offset = float(clock_offset_ms)
             except ValueError:
                 raise InputError(None, "--clock-offset-ms", "a number of ms or auto", repr(clock_offset_ms)) from None
-    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm).items() if v is not None}
+    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
+                                   dictionary=dictionary, legacy_pattern=legacy_pattern,
+                                   circle_diameter_mm=circle_mm).items() if v is not None}
     params = _options(ImportParams, max_skew_ms=max_skew_ms, still_threshold=still_threshold, clock_offset_ms=offset,
                       estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
                       board=_options(BoardModel, **given) if given else None)
