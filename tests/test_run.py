@@ -274,3 +274,17 @@ def test_a_calibration_given_with_c_is_in_the_certificate(chain, tmp_path):
     rms = {f.name: f for f in sec.figures}["board reprojection RMS"]
     assert rms.value == doc["rms_px"] and rms.source_file == str(given.resolve())
     assert str(given.resolve()) in cert.inputs_blake3
+
+
+def test_another_sessions_run_folder_is_refused(chain, tmp_path):
+    """-o at the run folder of another session (a mistyped -o) is refused before anything is written: that run's
+    calibration and dataset are the other session's (they were replaced, with one line of notice)."""
+    from gtforge.errors import InputError
+
+    other = tmp_path / "other"
+    shutil.copytree(EXAMPLE, other, ignore=shutil.ignore_patterns("truth"))
+    out = chain["out"]
+    before = {p: p.read_bytes() for p in (out / "run_state.json", out / "calibration.yaml", out / "certificate.json")}
+    with pytest.raises(InputError, match=r"\[--output\].*the run folder of another session.*delete the folder first"):
+        run_session(other, out, OPTS)
+    assert {p: p.read_bytes() for p in before} == before

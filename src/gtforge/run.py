@@ -189,8 +189,11 @@ class _Run:
             except InputError as exc:
                 say(f"{state_path} unreadable ({exc}): every stage runs again")
         if self.state is not None and self.state.session_dir != str(self.root.resolve()):
-            say(f"{out} was a run of {self.state.session_dir}: every stage runs again")
-            self.state = None
+            # another session's dataset and calibration: never replaced on a mistyped -o
+            raise InputError(out, "--output", f"a new folder or an earlier run of {self.root.resolve()}",
+                             f"the run folder of another session ({self.state.session_dir})",
+                             "choose another -o; to replace that run (or if this session was moved there from "
+                             "elsewhere), delete the folder first")
         if self.state is None:
             self.state = RunState(gtforge_version=gtforge.__version__, session_dir=str(self.root.resolve()))
             if not state_path.exists():
