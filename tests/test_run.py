@@ -288,3 +288,12 @@ def test_another_sessions_run_folder_is_refused(chain, tmp_path):
     with pytest.raises(InputError, match=r"\[--output\].*the run folder of another session.*delete the folder first"):
         run_session(other, out, OPTS)
     assert {p: p.read_bytes() for p in before} == before
+
+
+def test_a_session_yaml_given_as_the_calibration_is_called_another_kind_of_file(tmp_path):
+    """-c session.yaml: one short line saying the file is of another kind (it listed 26 problems field by field)."""
+    r = gtforge("run", EXAMPLE, "-o", tmp_path / "out", "-c", EXAMPLE / "session.yaml")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "got a file of another kind (its fields: mech_intrinsics" in r.stderr and "missing: rig" in r.stderr
+    assert "problems" not in r.stderr and len(r.stderr) < 600
+    assert not (tmp_path / "out").exists()

@@ -111,6 +111,14 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
     if len(errs) == 1:
         err = errs[0]
         return InputError(path, field(err) or None, f"a valid {what} ({err.get('msg')})", actual(err))
+    top = [e for e in errs if len(e.get("loc", ())) == 1]
+    missing = [field(e) for e in top if e.get("type") == "missing"]
+    extra = [field(e) for e in top if e.get("type") == "extra_forbidden"]
+    if len(missing) >= 2 and len(extra) >= 2 and len(top) == len(errs):
+        # none of the fields it should have, others instead: another kind of file, not one to fix field by field
+        return InputError(path, None, f"a {what}", f"a file of another kind (its fields: {', '.join(extra[:6])}"
+                          f"{' ...' if len(extra) > 6 else ''}; missing: {', '.join(missing[:6])}"
+                          f"{' ...' if len(missing) > 6 else ''})", f"give the {what} itself (docs/pipeline.md)")
     fields = list(dict.fromkeys(field(e) or "(top level)" for e in errs))
     return InputError(path, ", ".join(fields), f"a valid {what}",
                       f"{len(errs)} problems: " + "; ".join(f"{field(e) or '(top level)'}: {e.get('msg')} "
