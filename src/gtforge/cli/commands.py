@@ -95,6 +95,16 @@ def _options(model, **values):
                          repr(err.get("input"))) from None
 
 
+def _board_model(kind, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm):
+    """The board the options declare (calibrate's and import's), from the options given only; None where none is."""
+    from gtforge.core.targets.models import BoardModel
+
+    given = {k: v for k, v in dict(kind=kind, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
+                                   dictionary=dictionary, legacy_pattern=legacy_pattern,
+                                   circle_diameter_mm=circle_mm).items() if v is not None}
+    return _options(BoardModel, **given) if given else None
+
+
 def _print_version(value: bool) -> None:
     if value:
         import gtforge
@@ -171,16 +181,13 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                                      "where the captures determine it (docs/pipeline.md).")) -> None:
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
-    from gtforge.core.targets.models import BoardModel
     from gtforge.io.calibrated_session import calibration_output_path
     from gtforge.records.calibration import CalibrateParams
     from gtforge.reports.calibration import write_calibration_report
 
-    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
-                                   dictionary=dictionary, legacy_pattern=legacy_pattern,
-                                   circle_diameter_mm=circle_mm).items() if v is not None}
     # only the board options given: session.yaml's board (if any) fills the rest
-    params = _options(CalibrateParams, **({"board": _options(BoardModel, **given)} if given else {}),
+    board_model = _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm)
+    params = _options(CalibrateParams, **({"board": board_model} if board_model else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     output = calibration_output_path(output)
     report_dir = report_dir or output.parent / (output.stem + "_report")
@@ -702,7 +709,6 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
     """Write a capture session (docs/capture-layout.md, "From recordings") from sensor recordings."""
     from rich.table import Table
 
-    from gtforge.core.targets.models import BoardModel
     from gtforge.importer import import_recordings
     from gtforge.io.ros_recordings import Topics
     from gtforge.records.imports import ImportParams
@@ -718,12 +724,10 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
                 offset = float(clock_offset_ms)
             except ValueError:
                 raise InputError(None, "--clock-offset-ms", "a number of ms or auto", repr(clock_offset_ms)) from None
-    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
-                                   dictionary=dictionary, legacy_pattern=legacy_pattern,
-                                   circle_diameter_mm=circle_mm).items() if v is not None}
     params = _options(ImportParams, max_skew_ms=max_skew_ms, still_threshold=still_threshold, clock_offset_ms=offset,
                       estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
-                      board=_options(BoardModel, **given) if given else None)
+                      board=_board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern,
+                                         circle_mm))
     bar, tick = _progress_bar()
     topics = Topics(depth_topic, color_topic, left_topic, right_topic, depth_unit, fps, zed_calibration)
     with bar:
