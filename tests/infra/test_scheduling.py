@@ -132,3 +132,56 @@ def test_workers_inherit_the_servers_warm_up_and_a_failed_one_leaves_them_workin
         assert all(f[1] == 1 and f[2] == sorted([session, "calib"]) for f in out["facts"])
     else:
         assert all(f[1] == 0 and f[2] == [] for f in out["facts"])
+
+
+CTRL_C_SCRIPT = textwrap.dedent('''
+    import json, os, signal, sys, time
+    from multiprocessing import popen_forkserver
+
+    launched = []
+    original = popen_forkserver.Popen._launch
+
+    def launch(self, process_obj):
+        original(self, process_obj)  # the server has forked the worker and told its pid
+        launched.append(self.pid)
+        if len(launched) == 2:
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C while the pool starts its second worker
+
+    def nap(i):
+        time.sleep(2)
+        return i
+
+    if __name__ == "__main__":
+        from gtforge.infra import scheduling
+        popen_forkserver.Popen._launch = launch
+        scheduling.prestart_pool(__name__, workers=2)
+        res = []
+        t0 = time.monotonic()
+        try:
+            scheduling.run_tasks(nap, [(i,) for i in range(4)], res.append, workers=2)
+            outcome = "finished"
+        except KeyboardInterrupt:
+            outcome = "interrupted"
+        alive = [pid for pid in launched if os.path.exists(f"/proc/{pid}") and
+                 open(f"/proc/{pid}/stat").read().split(") ")[1][0] != "Z"]
+        print(json.dumps({"outcome": outcome, "launched": launched, "alive": alive, "results": res,
+                          "seconds": time.monotonic() - t0}))
+''')
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_ctrl_c_while_the_pool_starts_its_workers_stops_every_one(tmp_path):
+    """A Ctrl-C while the pool asks the fork server for a worker: every worker started so far is stopped before
+    run_tasks raises, none left running (or forked after this process has gone, with a traceback)."""
+    script = tmp_path / "ctrl_c_pool.py"
+    script.write_text(CTRL_C_SCRIPT)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    try:
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-3000:]
+        assert out["outcome"] == "interrupted" and out["results"] == [] and len(out["launched"]) == 2
+        assert out["alive"] == [] and out["seconds"] < 1.5  # stopped, not waited for (a task naps 2 s)
+    finally:
+        for pid in out["launched"]:
+            with __import__("contextlib").suppress(OSError):
+                __import__("os").kill(pid, 9)

@@ -278,8 +278,15 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(fn.__module__, n_threads),
                              initializer=_init_worker, initargs=(n_threads, heap_bytes))
     pending = set()
+    futs: dict = {}
+    any_broken = False
     try:
-        futs = {ex.submit(fn, *args): args for args in arg_list}
+        # the first submits start the workers: a Ctrl-C while one starts would leave it unknown to the pool (never
+        # stopped) and forked after this process had left, unpickling its queues' freed semaphores (a traceback on the
+        # user's terminal); so it takes effect once every submit has returned
+        with _sigint_deferred():
+            for args in arg_list:
+                futs[ex.submit(fn, *args)] = args
         pending = set(futs)
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
@@ -300,14 +307,20 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
                     continue
                 on_result(res)
             if broken:
+                any_broken = True
                 for f in pending:
                     on_result(lost_result(futs[f], LOST_REASON))
                 pending = set()
     except BaseException:
-        for f in pending:
+        for f in pending or futs:
             f.cancel()
         _terminate(ex)
         raise
+    if any_broken:
+        # the pool marks its tasks failed before it terminates its other workers: wait until they have exited, so
+        # that none still holds a scene's lock when the caller tidies up
+        ex.shutdown(wait=True)
+        return
     # every task is done: the workers leave while the caller goes on (a worker's exit, the kernel unmapping its heap,
     # takes about 0.05 s); the interpreter waits for them when it exits (concurrent.futures joins its pools)
     ex.shutdown(wait=False)
@@ -424,6 +437,23 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
                 os.environ[k] = v
     _FORK_SERVER.update(n_threads=n_threads, module=module)
     return ctx
+
+
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Hold a Ctrl-C (SIGINT) that arrives inside the block until it ends, then deliver it to the handler that was
+    there before. Nothing is held outside the main thread (Python runs signal handlers there only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if old is None else old)
+        if held:
+            signal.raise_signal(signal.SIGINT)
 
 
 def _terminate(ex: ProcessPoolExecutor) -> None:
