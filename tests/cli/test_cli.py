@@ -33,6 +33,25 @@ def test_every_help_page_is_free_of_type_leaks_and_every_option_has_help():
             assert "--no-no-" not in " ".join(getattr(p, "secondary_opts", []))
 
 
+def test_help_never_cuts_an_option_name_short_on_a_narrow_terminal():
+    """At 80 columns typer's boxed table cut long names to "--legacy-patte…" (newcomer run-through): a command whose
+    table does not fit gets click's plain help, which wraps; every width shows every option's names whole."""
+    group, names = _commands()
+    runner = CliRunner()
+    plain = set()
+    for width in (80, 100, 120, 160):
+        for n in names:
+            out = runner.invoke(app, [n, "--help"], env={"COLUMNS": str(width)}).output
+            assert "…" not in out, (n, width, [line for line in out.splitlines() if "…" in line])
+            words = set(re.findall(r"--[a-z][a-z0-9-]*", out))
+            for p in group.commands[n].params:
+                assert set(o for o in p.opts + p.secondary_opts if o.startswith("--")) <= words, (n, width, p.name)
+            if "╭" not in out:
+                plain.add((n, width))
+    assert ("import", 80) in plain and ("build-dataset", 100) in plain  # the two the run-through saw cut
+    assert not {n for n, w in plain if w == 160}  # a wide terminal keeps the boxed help
+
+
 def test_usage_errors_name_arguments_plainly():
     r = CliRunner().invoke(app, ["calibrate"], env={"COLUMNS": "200"})
     assert r.exit_code == 2

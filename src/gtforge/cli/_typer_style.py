@@ -4,6 +4,7 @@ click)."""
 from __future__ import annotations
 
 import re
+import shutil
 
 from typer.core import TyperArgument, TyperCommand, TyperGroup
 
@@ -57,7 +58,28 @@ class _Argument(TyperArgument):
 
 
 
+def _rich_table_width(cmd, ctx) -> int:
+    """About the width typer's option table needs to show every option's names, placeholder and one help word whole
+    (it cuts a cell that does not fit to "…", names included): its columns side by side, plus borders and gaps."""
+    names = secondary = metavar = 0
+    word = 20
+    for p in cmd.get_params(ctx):
+        opts = [o for o in p.opts if o.startswith("--")] or p.opts
+        names = max(names, len(", ".join(opts)))
+        secondary = max(secondary, len(", ".join(p.secondary_opts + [o for o in p.opts if o not in opts])))
+        metavar = max(metavar, len(p.make_metavar(ctx) if p.metavar is None else p.metavar) + 12)
+        word = max([word] + [len(w) for w in (getattr(p, "help", None) or "").split()])
+    return 4 + names + 2 + secondary + 2 + metavar + 2 + word + 8  # (+6: rich's own padding, measured)
+
+
 class _Command(TyperCommand):
+    def format_help(self, ctx, formatter):
+        """typer's boxed help where the terminal is wide enough for it; else click's plain help, which wraps
+        instead of cutting option names short (``--legacy-patte…`` at 80 columns)."""
+        if shutil.get_terminal_size().columns < _rich_table_width(self, ctx):
+            return super(TyperCommand, self).format_help(ctx, formatter)
+        return super().format_help(ctx, formatter)
+
     def collect_usage_pieces(self, ctx) -> list[str]:
         return [piece.replace("{", "").replace("}", "") for piece in super().collect_usage_pieces(ctx)]
 
