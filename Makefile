@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 
 setup: $(STAMP)
 
-demo: $(STAMP)  ## set up, then run calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> evaluate on synthetic data
+demo: $(STAMP)  ## set up, then run calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> evaluate on synthetic data, then gtforge run (the dataset certificate)
 	$(VENV)/bin/gtforge demo demo_out
 
 # test processes side by side (pytest-xdist); the synthetic sessions are rendered once and shared (tests/conftest.py).

@@ -1,4 +1,5 @@
-"""``gtforge demo``: the whole chain on a freshly generated synthetic session, checked against truth."""
+"""``gtforge demo``: the whole chain on a freshly generated synthetic session, stage by stage and checked against truth,
+then as the one command a lab types (``gtforge run``), which writes the dataset certificate."""
 from __future__ import annotations
 
 import os
@@ -21,6 +22,7 @@ from gtforge.records.dataset import BuildParams, Manifest
 from gtforge.refine import RefineParams, refine
 from gtforge.reports.calibration import write_calibration_report
 from gtforge.reports.evaluation import tables_markdown
+from gtforge.run import RunOptions, run_session
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, generate_session
 from gtforge.validate import validate
@@ -45,7 +47,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     rows: list[tuple[str, str, str]] = []  # (stage, figure, value): DIR/figures.md, the table docs/pipeline.md shows
     session = d / "session"
     rolled = f"{n_scenes - 1:03d}" if n_scenes >= 4 else None
-    say(f"[1/7] rendering a synthetic session ({n_board} board poses, {n_scenes} fruit scenes, scale {scale}"
+    say(f"[1/8] rendering a synthetic session ({n_board} board poses, {n_scenes} fruit scenes, scale {scale}"
         + (f"; in scene {rolled} the fruit rolls 0.6 mm between the two captures" if rolled else "")
         + f") -> {session}")
     generate_session(session, n_board=n_board, n_scenes=n_scenes, scale=scale, seed=seed, progress=status,
@@ -57,7 +59,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
 
     boards = sorted(p.name for p in (session / "board").iterdir())
     held = boards[-holdout:] if holdout else []
-    say(f"[2/7] calibrate on {len(boards) - len(held)} poses (holding out {', '.join(held) or 'none'})")
+    say(f"[2/8] calibrate on {len(boards) - len(held)} poses (holding out {', '.join(held) or 'none'})")
     calib_path = d / "calibration.yaml"
     cal = calibrate(session, calib_path, CalibrateParams(use_depth=True), exclude=held, progress=status)
     write_calibration_report(cal, d / "calibration_report")
@@ -81,7 +83,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
                      + (f"{sr.median_abs_before_px:.3f} -> {sr.median_abs_after_px:.3f} px"
                         if sr.median_abs_after_px is not None else "-")))
 
-    say("[3/7] validate on the held-out poses")
+    say("[3/8] validate on the held-out poses")
     val = validate(session, calib_path, d / "validation", captures=held or None, progress=status)
     say(f"      XY {val.xy_mean_px:.3f} px (detectors' noise floor {val.xy_noise_floor_px:.3f}, without it "
         f"{val.xy_model_mean_px:.3f}; published 0.56), Z {val.z_error_mean_pct:.4f} % (published 0.08) -> "
@@ -91,7 +93,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
              ("", "XY: the corner detectors' noise floor / without it (board models)",
               f"{val.xy_noise_floor_px:.3f} / {val.xy_model_mean_px:.3f} px")]
 
-    say("[4/7] calibrate-scale: the ZED baseline, the right camera's yaw, the depth scale and offset from the scenes "
+    say("[4/8] calibrate-scale: the ZED baseline, the right camera's yaw, the depth scale and offset from the scenes "
         "and boards")
     scaled_path = d / "scaled.yaml"
     scaled = calibrate_scale(session, calib_path, scaled_path, progress=status).scale_calibration
@@ -107,7 +109,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     used_calib = scaled_path
     ref_err = (None, None)
     if n_scenes >= 4:
-        say("[5/7] refine the extrinsic from the scenes' texture alignment")
+        say("[5/8] refine the extrinsic from the scenes' texture alignment")
         refined_path = d / "refined.yaml"
         ref = refine(session, scaled_path, refined_path, RefineParams(leave_one_out=False), progress=status)
         ref_err = pose_difference(ref.rig.T_zed_from_mech, T_zed_from_mech_true)
@@ -120,9 +122,9 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
                      f"{ref_err[0]:.4f} deg / {ref_err[1]:.3f} mm"))
         used_calib = refined_path
     else:
-        say("[5/7] refinement skipped (it needs at least 4 scenes here)")
+        say("[5/8] refinement skipped (it needs at least 4 scenes here)")
 
-    say(f"[6/7] build the dataset with {used_calib.name} (verification and per-pixel sigma included)")
+    say(f"[6/8] build the dataset with {used_calib.name} (verification and per-pixel sigma included)")
     ds = d / "dataset"
     summ = build_dataset(session, used_calib, ds, BuildParams(ply=True), progress=True)
     epes, rolled_epe = [], None
@@ -152,15 +154,24 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     elif rolled is not None and rolled in summ.compensated:
         rows.append(("", f"scene {rolled} (its fruit rolled): fruit motion compensated, its motion too uncertain for "
                      "0.01 px: the fruit has no ground truth (holes)", "-"))
-    say("[7/7] evaluate the SGBM baseline against the ground truth")
+    say("[7/8] evaluate the SGBM baseline against the ground truth")
     ev = evaluate(ds, SGBM(), d / "evaluation", progress=status)
     fr = ev.pooled.get("fruit")
     rows.append(("evaluate (OpenCV SGBM, every scene)", "EPE all / fruit; depth MAE fruit",
                  f"{ev.pooled['all'].epe_px:.3f} / {fr.epe_px:.3f} px; {fr.depth_mae_mm:.3f} mm" if fr is not None
                  and fr.epe_px is not None and fr.depth_mae_mm is not None else f"{ev.pooled['all'].epe_px:.3f} px"))
-    write_figures(d / "figures.md", rows, time.perf_counter() - t0, scale, n_board, n_scenes, seed)
     say(tables_markdown([ev]))
+
+    # what a lab types: the same chain as one command, which ends in the dataset certificate
+    say(f"[8/8] the same chain as one command: gtforge run {session} -o {d / 'run'} --use-depth")
+    res = run_session(session, d / "run", RunOptions(use_depth=True),
+                      say=lambda m: say("\n".join("      " + line for line in m.splitlines())), progress=status)
+    cert = res.certificate
+    rows.append(("run (the chain as one command, `--use-depth`; every board pose calibrates and validates)",
+                 "dataset certificate", cert.verdict + "".join(f"; {r}" for r in cert.verdict_reasons)))
+    write_figures(d / "figures.md", rows, time.perf_counter() - t0, scale, n_board, n_scenes, seed)
     say(f"done in {time.perf_counter() - t0:.0f} s. Open:\n"
+        f"  {d / 'run' / 'index.html'} (the dataset certificate of gtforge run: every stage's figures)\n"
         f"  {d / 'calibration_report' / 'calibration_report.html'}\n  {d / 'validation' / 'validation.html'}\n"
         f"  {ds / 'verification.html'}\n  {ds / 'build_report.html'}  (dataset: {ds})\n"
         f"  {d / 'evaluation' / 'results.html'} (and results.md/.csv/.json)\n  {d / 'figures.md'} (this run's "

@@ -825,7 +825,8 @@ def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo
                                                          "between the two captures; 4 or more also run refine)."),
          seed: int = typer.Option(0, help="Random seed.")) -> None:
     """Generate a synthetic session and run calibrate -> validate -> calibrate-scale -> refine -> build-dataset (with
-    verification and sigma maps) -> evaluate, each checked against the exact truth."""
+    verification and sigma maps) -> evaluate, each checked against the exact truth; then the same chain as one command
+    (gtforge run), which writes the dataset certificate (DIRECTORY/run/index.html)."""
     from gtforge.demo import run_demo
 
     run_demo(directory, scale=scale, n_board=boards, n_scenes=scenes, seed=seed, say=out.print, status=_status)
