@@ -262,3 +262,29 @@ def test_an_unwritable_place_is_named_before_work_and_in_one_line_after(tmp_path
         monkeypatch.setattr(commands, "app", bug)
         with pytest.raises(OSError, match=text):  # not explained by a user's input (checked before): its traceback
             cli.main()
+
+
+def test_a_folder_that_is_no_session_is_named_as_such(dataset, tmp_path):
+    """A folder without session.yaml, camera files, board/ or scenes/ (a typo's sibling, a dataset, a run's outputs)
+    was reported as a missing mech_intrinsics.yaml (newcomer run-through): now what a session holds and what the
+    folder holds, exit 2, nothing written."""
+    dataset = dataset[0]
+    other = tmp_path / "notes"
+    (other / "photos").mkdir(parents=True)
+    (other / "readme.txt").write_text("x")
+    run_out = tmp_path / "run_out"
+    run_out.mkdir()
+    (run_out / "run_state.json").write_text("{}")
+    cases = [(other, "a folder with none of them (it holds photos/, readme.txt)"),
+             (tmp_path / "empty", "a folder with none of them (it is empty)"),
+             (dataset, "got a dataset gtforge built (no session.yaml)"),
+             (run_out, "got gtforge run's output folder (no session.yaml)")]
+    (tmp_path / "empty").mkdir()
+    for folder, got in cases:
+        for args in (["calibrate", folder, "-o", tmp_path / "c.yaml"], ["run", folder, "-o", tmp_path / "r"]):
+            r = gtforge(*args)
+            assert r.returncode == 2 and one_line_error(r), r.stderr
+            assert f"{folder}: expected a capture session folder (session.yaml" in r.stderr and got in r.stderr, \
+                r.stderr
+            assert "gtforge import writes a session from recordings" in r.stderr
+    assert not (tmp_path / "c.yaml").exists() and not (tmp_path / "r").exists()

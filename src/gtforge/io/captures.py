@@ -565,6 +565,23 @@ def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[in
     return h is not None and (h[0], h[1]) == tuple(size_wh) and h[2] == 8 and h[3] in colour_types and h[4]
 
 
+def _output_kind(root: Path) -> str | None:
+    """What gtforge wrote a folder as, where it is one of its outputs (a run's or a dataset), else None."""
+    for marker, kind in (("run_state.json", "gtforge run's output folder"),
+                         ("manifest.json", "a dataset gtforge built")):
+        if (root / marker).is_file():
+            return kind
+    return None
+
+
+def _what_folder_holds(root: Path) -> str:
+    """A folder's first few entries, named for an error message."""
+    names = sorted(e.name + ("/" if e.is_dir() else "") for e in root.iterdir())
+    if not names:
+        return "it is empty"
+    return "it holds " + ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+
 def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_right_correction=None,
                  zed_right_yaw_deg: float = 0.0) -> Session:
     """Read ``session.yaml`` (optional) and the camera files of a capture session.
@@ -583,6 +600,14 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
         raise InputError(root, None, "a capture session folder", "no such folder", "see docs/capture-layout.md")
     cfg_path = root / "session.yaml"
     cfg = SessionFile.read(cfg_path) if cfg_path.exists() else SessionFile()
+    if not cfg_path.exists() and (_output_kind(root) or not any(
+            (root / n).exists() for n in (cfg.mech_intrinsics, cfg.zed_calibration, "board", "scenes"))):
+        raise InputError(root, None, "a capture session folder (session.yaml, mech_intrinsics.yaml, "
+                         "zed_calibration.yaml, board/, scenes/: docs/capture-layout.md)",
+                         f"{kind} (no session.yaml)" if (kind := _output_kind(root)) else
+                         f"a folder with none of them ({_what_folder_holds(root)})",
+                         "check the path; gtforge import writes a session from recordings, gtforge synth a "
+                         "synthetic one")
     # a vendor file may hold both cameras (Kinect calibration.json, Mech-Eye API YAML): docs/cameras.md
     cams = load_structured_light_cameras(root / cfg.mech_intrinsics, depth_mode=cfg.kinect_depth_mode,
                                          color_mode=cfg.kinect_color_mode)
