@@ -137,8 +137,11 @@ def test_rerun_edit_and_interrupt(chain):
     assert res.redone == ["build-dataset", "verify"]
     st = RunState.read(out / "run_state.json").stages
     assert st["build-dataset"].detail["built"] == ["003"] and st["verify"].detail["verified"] == ["003"]
-    assert any("build-dataset: running (session/scenes/003/DepthMap.tiff changed)" in s for s in said)
+    # the file as the user's folder names it (the state's "session/..." key was printed before)
+    assert any(f"build-dataset: running ({(sess / 'scenes/003/DepthMap.tiff').as_posix()} changed)" in s
+               for s in said), said
     assert any("built 003 (its inputs changed)" in s for s in said)
+    assert any(f"verify: running ({(out / 'dataset/scenes/003/meta.json').as_posix()} changed)" in s for s in said)
 
     # a scene they read: calibrate-scale, refine and so every scene; Ctrl-C after calibrate-scale, then resume
     _edit_depth(sess / "scenes" / "001" / "DepthMap.tiff")
@@ -155,7 +158,7 @@ def test_rerun_edit_and_interrupt(chain):
     res = run_session(sess, out, OPTS, say=said.append)
     assert res.redone == ["refine", "build-dataset", "verify"]
     # (calibrate-scale came to the same terms: scaled.yaml kept as it was, so the depth file is refine's one reason)
-    assert any("refine: running (session/scenes/001/DepthMap.tiff changed)" in s for s in said), said
+    assert any(f"refine: running ({(sess / 'scenes/001/DepthMap.tiff').as_posix()} changed)" in s for s in said), said
     st = RunState.read(out / "run_state.json").stages
     assert st["build-dataset"].detail["built"] == ["000", "001", "002", "003"]
     assert st["verify"].detail["verified"] == ["000", "001", "002", "003"]

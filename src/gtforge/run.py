@@ -151,8 +151,9 @@ def _option_changes(before: dict, now: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs_ok: str) -> str | None:
-    """Why a stage must run again (None: it need not)."""
+def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs_ok: str,
+         shown: Callable[[str], str] = str) -> str | None:
+    """Why a stage must run again (None: it need not); ``shown``: an input's key as the message names it."""
     if rec is None or rec.status != "done":
         return "not run before" if rec is None else "it did not apply last time"
     if rec.options != options:
@@ -163,7 +164,8 @@ def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs
     parts = []
     for what, keys in (("changed", changed), ("new", added), ("gone", removed)):
         if keys:
-            parts.append(f"{', '.join(keys[:3])}{f' (+{len(keys) - 3} more)' if len(keys) > 3 else ''} {what}")
+            parts.append(f"{', '.join(map(shown, keys[:3]))}{f' (+{len(keys) - 3} more)' if len(keys) > 3 else ''}"
+                         f" {what}")
     if parts:
         return "; ".join(parts)
     return outputs_ok or None
@@ -214,6 +216,13 @@ class _Run:
                 return prefix + p.relative_to(base).as_posix()
         return "file:" + str(p)
 
+    def shown(self, key: str) -> str:
+        """An input's key (``key``) as a message names it: the path under the session or output folder as given."""
+        for prefix, base in (("out/", self.out), ("session/", self.root)):
+            if key.startswith(prefix):
+                return (base / key[len(prefix):]).as_posix()
+        return key.removeprefix("file:")
+
     def hashes(self, paths) -> dict[str, str]:
         return {self.key(p): self.hash(p) for p in paths}
 
@@ -242,9 +251,9 @@ class _Run:
         for k, h in (rec.outputs.items() if rec else ()):
             p = self.out / k[len("out/"):]
             if not p.is_file():
-                return f"its output {k[4:]} is missing"
+                return f"its output {self.shown(k)} is missing"
             if h and self.hash(p) != h:
-                return f"its output {k[4:]} changed since"
+                return f"its output {self.shown(k)} changed since"
         return ""
 
     def save(self) -> None:
@@ -273,7 +282,7 @@ class _Run:
     def decide(self, k: int, name: str, options: dict, inputs: dict[str, str]) -> bool:
         """Whether stage ``name`` runs; says so, and why."""
         rec = self.state.stages.get(name)
-        why = _why(rec, _versioned(options), inputs, self.outputs_ok(rec))
+        why = _why(rec, _versioned(options), inputs, self.outputs_ok(rec), self.shown)
         if why is None:
             self.header(k, name, "unchanged since the last run (inputs, options and outputs): skipped"
                         + (f" [{rec.verdict}]" if rec.verdict else ""))
