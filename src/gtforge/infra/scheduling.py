@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import gtforge
 from gtforge.errors import InputError
+from gtforge.infra.signals import interrupt_deferred
 
 if TYPE_CHECKING:
     from concurrent.futures import ProcessPoolExecutor
@@ -284,7 +285,7 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         # the first submits start the workers: a Ctrl-C while one starts would leave it unknown to the pool (never
         # stopped) and forked after this process had left, unpickling its queues' freed semaphores (a traceback on the
         # user's terminal); so it takes effect once every submit has returned
-        with _sigint_deferred():
+        with interrupt_deferred():
             for args in arg_list:
                 futs[ex.submit(fn, *args)] = args
         pending = set(futs)
@@ -437,23 +438,6 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
                 os.environ[k] = v
     _FORK_SERVER.update(n_threads=n_threads, module=module)
     return ctx
-
-
-@contextlib.contextmanager
-def _sigint_deferred():
-    """Hold a Ctrl-C (SIGINT) that arrives inside the block until it ends, then deliver it to the handler that was
-    there before. Nothing is held outside the main thread (Python runs signal handlers there only)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held: list[int] = []
-    old = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, signal.SIG_DFL if old is None else old)
-        if held:
-            signal.raise_signal(signal.SIGINT)
 
 
 def _terminate(ex: ProcessPoolExecutor) -> None:

@@ -1,6 +1,6 @@
-"""Ctrl-C held back over a few milliseconds of work that must finish once begun (a landing's renames and the record
-that lists them): the interrupt is raised when the block ends, so a stop leaves the earlier state or the finished
-one, never half of it."""
+"""Ctrl-C held back over short work that must finish once begun (a landing's renames and the record that lists them;
+a local pool's start of its workers, at most the fork server's start): the interrupt is raised when the block ends,
+so a stop leaves the earlier state or the finished one, never half of it."""
 from __future__ import annotations
 
 import contextlib
@@ -18,10 +18,10 @@ def interrupt_deferred():
     previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append((signum, frame)))
     try:
         yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
+    finally:  # (None: a handler not set from Python; the default's is the closest)
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
     if received:
         if callable(previous):
             previous(*received[0])
-        elif previous == signal.SIG_DFL:
+        elif previous in (signal.SIG_DFL, None):
             raise KeyboardInterrupt
