@@ -418,6 +418,13 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         sources = _sources(paths)
         if add and exists:
             record = session / "import.json"
+            landing = _partial_folder(session) / LANDING
+            if landing.is_file():  # an --add whose captures were landing when it was cut off (a crash): finish it
+                with interrupt_deferred():
+                    done = _finish_landing(landing.parent, session)
+                if [f.blake3 for f in done.sources] == [f.blake3 for f in sources]:  # this very import: it is done
+                    return _summary(session, done, ["an earlier run of this import was cut off while its captures "
+                                                    "landed: finished now"])
             earlier = ImportRecord.read(record).runs if record.is_file() else []
             check_same_rig(session, rgbd, stereo, earlier)
             check_not_imported(sources, earlier)
@@ -431,7 +438,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             board = SessionFile.read(session / "session.yaml").board  # the session's own target
         board = board or BoardModel()
         spec = board.spec()
-        partial = session.parent / f".{session.name}.import-partial"
+        partial = _partial_folder(session)
         # the recordings' bytes, not only their names: a partial folder left by an import of other bytes at the same
         # paths is started again, never resumed
         stamp = json.dumps({"sources": [(f.path, f.blake3) for f in sources], "params": params.model_dump(mode="json"),
@@ -486,6 +493,17 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                          sum(k == "scenes" for k in kinds.values()), dropped, offset / 1e6, source, warnings)
 
 
+def _partial_folder(session: Path) -> Path:
+    """Where an import into ``session`` writes its captures before they land (beside it: a rename away)."""
+    return session.parent / f".{session.name}.import-partial"
+
+
+def _summary(session: Path, run: ImportRun, warnings: list[str]) -> ImportSummary:
+    kinds = Counter(p.capture.split("/")[0] for p in run.pairs)
+    return ImportSummary(session, [p.capture for p in run.pairs], kinds["board"], kinds["scenes"], run.dropped,
+                         run.clock_offset_ms, run.clock_offset_source, warnings)
+
+
 def _recording_folder(p: Path) -> Path:
     """The folder a recording owns: a folder recording itself, a rosbag2 folder for one of its files (beside its
     metadata.yaml); a single-file recording owns only its file (a session may be written beside it)."""
@@ -502,21 +520,42 @@ def _next_index(folder: Path) -> int:
     return max(ids, default=-1) + 1
 
 
+# an --add landing's journal in the partial folder: the run being landed, written whole before its first capture moves
+LANDING = ".landing"
+
+
 def _land(partial: Path, session: Path, run: ImportRun, add: bool) -> None:
-    """Move the finished import into place: the whole folder (new session) or each capture folder (``add``)."""
-    previous = []
-    if add and (session / "import.json").is_file():
-        previous = ImportRecord.read(session / "import.json").runs
-    (partial / ".plan").unlink()
+    """Move the finished import into place: the whole folder (new session, one rename) or each capture folder
+    (``add``; journalled, so that a landing cut off by a crash is finished by the next import: ``_finish_landing``)."""
     if not add:
+        (partial / ".plan").unlink()
         ImportRecord(runs=[run]).write(partial / "import.json")
         if session.is_dir():
             session.rmdir()  # empty (checked before)
-        os.replace(partial, session)
+        os.replace(partial, session)  # (cut off before this: the next import starts again, from the recordings)
         return
+    atomic_write_bytes(partial / LANDING, run.model_dump_json().encode())
+    (partial / ".plan").unlink()
+    _finish_landing(partial, session)
+
+
+def _finish_landing(partial: Path, session: Path) -> ImportRun:
+    """Move the captures of the journalled run (``partial/.landing``) still in ``partial`` into ``session``, add the
+    run to ``import.json`` unless it is there already, and remove ``partial``: what ``_land`` does, and what the next
+    import does for a landing a crash (kill -9, power) cut off: never a capture that import.json does not list, nor
+    one numbered again."""
+    run = ImportRun.model_validate_json((partial / LANDING).read_bytes())
     for kind in ("board", "scenes"):
         for cap in sorted((partial / kind).glob("*")) if (partial / kind).is_dir() else []:
+            if (session / kind / cap.name).exists():
+                raise InputError(session / kind / cap.name, "capture", "no capture of this name (an import cut off "
+                                 f"while its captures landed holds one in {partial})", "one already there",
+                                 f"the session changed since; move {partial} away and import again")
             (session / kind).mkdir(parents=True, exist_ok=True)
             os.replace(cap, session / kind / cap.name)
-    ImportRecord(runs=previous + [run]).write(session / "import.json")
+    record = session / "import.json"
+    previous = ImportRecord.read(record).runs if record.is_file() else []
+    if run not in previous:
+        ImportRecord(runs=previous + [run]).write(record)
     shutil.rmtree(partial)
+    return run

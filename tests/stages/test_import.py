@@ -450,6 +450,58 @@ def test_ctrl_c_while_added_captures_land_lands_them_all_first(hand, recs, tmp_p
     assert not (tmp_path / ".s.import-partial").exists()
 
 
+class _Crash(BaseException):
+    """A process killed at this point (kill -9, power): nothing after it runs, no handler, no clean-up."""
+
+
+@pytest.mark.parametrize("crash_at", ["second capture", "clean-up"])
+def test_an_add_cut_off_while_its_captures_land_is_finished_by_the_next_import(hand, recs, tmp_path, monkeypatch,
+                                                                              crash_at):
+    """--add lands capture by capture (a journal first): a crash part-way left captures that import.json did not
+    list, and the same import run again numbered them a second time. Now the next import finishes that landing, and
+    the same import run again says it is done."""
+    import gtforge.importer as importer
+
+    out = tmp_path / "s"
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=1)
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
+    more = write_ros2_recordings(hand, tmp_path / "more", captures=["board/001", "scenes/000"], seed=1)
+    real_replace, real_rmtree, moved = os.replace, shutil.rmtree, []
+
+    def replace_then_crash(src, dst):
+        if Path(dst).parent.parent == out:  # a capture landing in the session
+            if crash_at == "second capture" and moved:
+                raise _Crash
+            moved.append(dst)
+        real_replace(src, dst)
+
+    def rmtree_crash(path, *args, **kwargs):
+        if crash_at == "clean-up" and Path(path).name == ".s.import-partial":
+            raise _Crash
+        real_rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(importer.os, "replace", replace_then_crash)
+    monkeypatch.setattr(importer.shutil, "rmtree", rmtree_crash)
+    args = ([more.rgbd_bag, more.stereo_bag], out, ImportParams(clock_offset_ms=more.clock_offset_ms))
+    with pytest.raises(_Crash):
+        import_recordings(*args, add=True)
+    assert (tmp_path / ".s.import-partial" / ".landing").is_file()
+    monkeypatch.setattr(importer.os, "replace", real_replace)
+    monkeypatch.setattr(importer.shutil, "rmtree", real_rmtree)
+    s = import_recordings(*args, add=True)  # the same command again
+    assert s.captures == ["board/001", "scenes/000"] and "cut off" in " ".join(s.warnings)
+    runs = ImportRecord.read(out / "import.json").runs
+    assert [r.capture for run in runs for r in run.pairs] == ["board/000", "board/001", "scenes/000"]
+    assert sorted(f"{k}/{x.name}" for k in ("board", "scenes") for x in (out / k).iterdir()) == \
+        ["board/000", "board/001", "scenes/000"]
+    assert not (tmp_path / ".s.import-partial").exists()
+    for c in ("board/001", "scenes/000"):  # each landed whole: the recordings' frames (hand-laid board/001, scenes/000)
+        for f in CAPTURE_FILES:
+            assert (out / c / f).read_bytes() == (hand / c / f).read_bytes(), f"{c}/{f}"
+    with pytest.raises(InputError, match="import.json"):  # and once done, a third time is refused as ever
+        import_recordings(*args, add=True)
+
+
 def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     recs = write_ros2_recordings(hand, tmp_path / "rec", zed_export=True, motion_frames=3, seed=2)
     assert (recs.stereo_bag / "left000000.png").is_file()
