@@ -32,7 +32,10 @@ self-rectification into the one resampling of the right image that opening the s
 ``CalibrationFile.open_session``).
 
 Covariances: the scenes' is a tile sandwich (scores summed over ``cov_tile_px`` tiles, as refine's), the boards' a
-pose-clustered sandwich (a PnP pose's error moves all its corners together).
+pose-clustered sandwich (a PnP pose's error moves all its corners together), raised where it is smaller than the
+model's: each corner's own scatter plus its pose's PnP covariance (from the pose's reprojection residuals) carried to
+the corners. A session's few poses make the clustered one alone a draw of a few degrees of freedom, now and then many
+times too small (benchmarks/RESULTS.md, "calibrate-scale's sigma").
 
 About 600 lines: the physics above, the three measurements and their combination read together.
 """
@@ -258,8 +261,49 @@ class BoardMeasurement:
     poses: list[str]
 
 
-def _cluster_ls(J: np.ndarray, r: np.ndarray, clusters: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares ``J x ~ r`` with a cluster-robust covariance (clusters: a pose's corners)."""
+def pnp_pose_covariance(X_cam: np.ndarray, uv: np.ndarray, cam) -> np.ndarray:
+    """The 6x6 covariance of a PnP pose, as a left perturbation ``(omega_rad, tau_mm)`` of the points ``X_cam``
+    (N, 3) in the camera's frame: ``s^2 (J^T J)^-1`` with ``J`` the pinhole projection's derivative and ``s^2`` the
+    pose's own reprojection residual variance (``uv`` (N, 2) the detected points it was solved from: 2N - 6 degrees
+    of freedom, stable where the pose-clustered spread of a few poses is not)."""
+    X = np.asarray(X_cam, np.float64)
+    x, y, z = X.T
+    res = np.asarray(uv, np.float64) - cam.project(X)
+    s2 = float(np.sum(res ** 2)) / max(2 * len(X) - 6, 1)
+    zero = np.zeros_like(z)
+    dX = point_along_pose(X)
+    du = np.stack([cam.fx_px / z, zero, -cam.fx_px * x / z ** 2], 1)[:, None, :]
+    dv = np.stack([zero, cam.fy_px / z, -cam.fy_px * y / z ** 2], 1)[:, None, :]
+    J = np.concatenate([(du @ dX)[:, 0], (dv @ dX)[:, 0]])
+    return s2 * np.linalg.inv(J.T @ J)
+
+
+def point_along_pose(X_cam: np.ndarray) -> np.ndarray:
+    """(N, 3, 6): how each point moves with its pose's left perturbation ``(omega_rad, tau_mm)``."""
+    x, y, z = np.asarray(X_cam, np.float64).T
+    zero, one = np.zeros_like(z), np.ones_like(z)
+    return np.stack([np.stack([zero, z, -y, one, zero, zero], 1),
+                     np.stack([-z, zero, x, zero, one, zero], 1),
+                     np.stack([y, -x, zero, zero, zero, one], 1)], 1)
+
+
+def _psd_max(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A covariance at least as large as ``A`` (positive definite) and ``B`` in every direction: ``B`` in ``A``'s
+    whitened frame, its eigenvalues raised to 1 where below."""
+    L = np.linalg.cholesky(A)
+    Li = np.linalg.inv(L)
+    lam, Q = np.linalg.eigh(Li @ B @ Li.T)
+    C = L @ Q @ np.diag(np.maximum(lam, 1.0)) @ Q.T @ L.T
+    return 0.5 * (C + C.T)
+
+
+def _cluster_ls(J: np.ndarray, r: np.ndarray, clusters: np.ndarray, K: list[np.ndarray] | None = None,
+                pose_covs: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares ``J x ~ r`` (clusters: a pose's corners) and its covariance: the pose-clustered sandwich, and
+    where ``K`` (each cluster's residuals' derivative by its pose, rows in the cluster's order) and ``pose_covs``
+    (each pose's PnP covariance) are given, at least the model's: each residual's own scatter plus its pose's error
+    carried through ``K``. With a few poses the clustered spread alone is one draw of a few degrees of freedom and now
+    and then far too small (benchmarks/RESULTS.md, "calibrate-scale's sigma")."""
     x, *_ = np.linalg.lstsq(J, r, rcond=None)
     e = r - J @ x
     Hi = np.linalg.inv(J.T @ J)
@@ -267,7 +311,14 @@ def _cluster_ls(J: np.ndarray, r: np.ndarray, clusters: np.ndarray) -> tuple[np.
     g = np.stack([J[clusters == c].T @ e[clusters == c] for c in ids])
     G = len(ids)
     C = Hi @ (g.T @ g) @ Hi * (G / max(G - J.shape[1], 1))
-    return x, C
+    if K is None or pose_covs is None:
+        return x, C
+    s2 = float(e @ e) / max(len(e) - J.shape[1], 1)
+    meat = s2 * (J.T @ J)
+    for c, Kc, Pc in zip(ids, K, pose_covs):
+        M = J[clusters == c].T @ Kc
+        meat += M @ Pc @ M.T
+    return x, _psd_max(Hi @ meat @ Hi, C)
 
 
 def board_zed_measurement(poses: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], rig: Rig
@@ -284,6 +335,7 @@ def board_zed_measurement(poses: list[tuple[str, np.ndarray, np.ndarray, np.ndar
     ul = np.concatenate([p[2] for p in poses])
     ur = np.concatenate([p[3] for p in poses])
     clusters = np.concatenate([np.full(len(p[1]), i) for i, p in enumerate(poses)])
+    pose_covs = [p[4] for p in poses] if all(len(p) > 4 for p in poses) else None
     d0 = fb / Z - zed.doffs_px
     x = np.zeros(3)  # b, yaw, dy0 (a vertical rectification offset, not ours)
     for _ in range(5):
@@ -294,7 +346,11 @@ def board_zed_measurement(poses: list[tuple[str, np.ndarray, np.ndarray, np.ndar
         zero = np.zeros_like(Z)
         J = np.concatenate([np.stack([-fb / Z, f * (1 + xn * xn), zero], axis=1),
                             np.stack([zero, f * xn * yn, np.ones_like(Z)], axis=1)])
-        dx, C = _cluster_ls(J, r, np.concatenate([clusters, clusters]))
+        K = None
+        if pose_covs is not None:  # a pose's depth error moves its right points along x: d(xr)/dZ = f B (1 + b) / Z^2
+            K = [np.concatenate([(-fb * (1 + x[0]) / p[1][:, 2] ** 2)[:, None] * point_along_pose(p[1])[:, 2],
+                                 np.zeros((len(p[1]), 6))]) for p in poses]
+        dx, C = _cluster_ls(J, r, np.concatenate([clusters, clusters]), K, pose_covs)
         x = x + dx
         if np.abs(dx[:2]).max() < 1e-9:
             break
@@ -336,11 +392,11 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
     ``(k, c)``; the measurement says what it equals, ``(k, c) + P omega`` (``P``: the fit applied to that motion).
     Not ``omega`` itself: a PnP pose error moves a board's corners by a plane, as ``omega`` does, so only the poses
     tell them apart, and the pose-clustered covariance of five parameters from five poses is singular."""
-    zs, dz, jp, cl, names = [], [], [], [], []
+    zs, dz, jp, cl, names, K, pose_covs = [], [], [], [], [], [], []
     T_mech_from_depth = rig.T_mech_from_depth_or_identity
     T_depth_from_mech = invert_T(T_mech_from_depth)
     cam = rig.depth_camera
-    for i, (name, X_mech, depth) in enumerate(poses):
+    for i, (name, X_mech, depth, *pose_cov) in enumerate(poses):
         X = transform_points(T_depth_from_mech, X_mech)
         zm = depth_at_rays(depth, cam.project(X), half_px)
         ok = np.isfinite(zm)
@@ -355,11 +411,15 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
             jp.append((X[ok, 2] / h)[:, None] * np.cross(n_mech, q))
         cl.append(np.full(ok.sum(), i))
         names.append(name)
+        if pose_cov:  # the texture camera's PnP error moves each corner's z in the depth camera: dz = -d(z)
+            K.append(-(T_depth_from_mech[2, :3] @ point_along_pose(X_mech[ok])))
+            pose_covs.append(pose_cov[0])
     if len(names) < 3:
         return None
     z = np.concatenate(zs)
     J = np.stack([z, np.ones_like(z)], axis=1)
-    x, C = _cluster_ls(J, np.concatenate(dz), np.concatenate(cl))
+    full = len(pose_covs) == len(names)
+    x, C = _cluster_ls(J, np.concatenate(dz), np.concatenate(cl), K if full else None, pose_covs if full else None)
     A = np.zeros((2, len(PARAMS)))
     A[0, IK], A[1, IC] = 1.0, 1.0
     if rig.separate_depth_camera:
@@ -401,7 +461,9 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
             if isinstance(pair, PairSkipped):
                 log.info("board capture %s: ZED left/right %s; not used", d.name, pair.reason)
             else:
-                zed_poses.append((d.name, transform_points(pair.T_a_from_board, X[pair.ids]), pair.uv_a, pair.uv_b))
+                X_zed = transform_points(pair.T_a_from_board, X[pair.ids])
+                zed_poses.append((d.name, X_zed, pair.uv_a, pair.uv_b,
+                                  pnp_pose_covariance(X_zed, pair.uv_a, rig.zed.left)))
         dm = detect_target(cap.mech_texture, board, rig.mech, where=f"{d.name}: structured-light image")
         if dm is not None and cap.depth_mm is not None:
             ids = np.arange(len(dm.corners_uv)) if dm.ids is None else dm.ids
@@ -412,7 +474,8 @@ def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
             if isinstance(board, CircleGridSpec) and not board.asymmetric:
                 dm = unmirror_symmetric_grid(board, dm, rig.mech, solve_pnp)
             T_mech_from_board, _ = pnp_bias_corrected(board, dm, rig.mech, solve_pnp)
-            depth_poses.append((d.name, transform_points(T_mech_from_board, X[ids]), cap.depth_mm))
+            X_mech = transform_points(T_mech_from_board, X[ids])
+            depth_poses.append((d.name, X_mech, cap.depth_mm, pnp_pose_covariance(X_mech, dm.corners_uv, rig.mech)))
     out = [m for m in (board_zed_measurement(zed_poses, rig),
                        board_depth_measurement(depth_poses, rig, params.board_depth_window_px)) if m is not None]
     return out

@@ -448,3 +448,66 @@ def test_separate_depth_cameras_pose_is_recovered(pose_session, tmp_path, boards
     Jp = depth_pose_jacobian_image(sd.depth_mm, res.rig)[m] * np.pi / 180
     np.testing.assert_allclose(got, np.sqrt(np.einsum("ni,ij,nj->n", Jp, C[4:, 4:], Jp)), rtol=1e-9)
     assert 0.001 < np.median(got) < 0.05  # the rotation's sigma, tens of mdeg, in px
+
+
+def test_pnp_pose_covariance_is_the_poses_scatter_under_corner_noise():
+    """A PnP pose's covariance from its own residuals matches the scatter of poses solved from noisy corners."""
+    import cv2
+
+    from gtforge.core.geometry import transform_points
+    from gtforge.core.targets.board import solve_pnp
+    from gtforge.scale_calibration import pnp_pose_covariance
+
+    cam = default_rig(0.5).zed.left
+    gx, gy = np.meshgrid(np.arange(11) * 20.0, np.arange(8) * 20.0)
+    board = np.stack([gx.ravel() - 100, gy.ravel() - 70, np.zeros(gx.size)], 1)
+    rot = cv2.Rodrigues(np.array([0.3, -0.2, 0.05]))[0]
+    X_true = board @ rot.T + np.array([15.0, -10.0, 600.0])
+    uv_true = cam.project(X_true)
+    rng = np.random.default_rng(3)
+    deltas, covs = [], []
+    for _ in range(300):
+        uv = uv_true + rng.normal(0, 0.2, uv_true.shape)
+        T_cam_from_board = solve_pnp(board, uv, cam)
+        X = transform_points(T_cam_from_board, board)
+        covs.append(pnp_pose_covariance(X, uv, cam))
+        # the pose's error as a left perturbation X -> R_err X + tau: R_err = R R_true^T, tau = t - R_err t_true
+        R_err = T_cam_from_board[:3, :3] @ rot.T
+        deltas.append(np.r_[cv2.Rodrigues(R_err)[0].ravel(),
+                            T_cam_from_board[:3, 3] - R_err @ np.array([15.0, -10.0, 600.0])])
+    scatter = np.cov(np.array(deltas).T)
+    model = np.mean(covs, axis=0)
+    # the depth of a corner (what calibrate-scale uses): its variance as the scatter and as the model say
+    along = np.array([-10.0, -15.0, 0.0, 0.0, 0.0, 1.0])  # dz/d(omega, tau) at the centre (15, -10, 600): (y, -x, 0...)
+    assert along @ model @ along == pytest.approx(along @ scatter @ along, rel=0.2)
+    assert np.sqrt(np.diag(model)) == pytest.approx(np.sqrt(np.diag(scatter)), rel=0.2)
+
+
+def test_few_poses_covariance_describes_the_error_the_clustered_one_misses():
+    """A fit over 5 poses whose errors move all their points together: the pose-clustered covariance alone (5
+    clusters, 3 parameters) is now and then far too small (errors over 3 of its sigmas ten times as often as a
+    Gaussian's); with each pose's own covariance carried through, the normalised errors have an RMS near 1."""
+    from gtforge.scale_calibration import _cluster_ls
+
+    rng = np.random.default_rng(7)
+    G, n = 5, 40
+    z_alone, z_model = [], []
+    for _ in range(400):
+        J, r, cl, K, P = [], [], [], [], []
+        for g in range(G):
+            t = rng.uniform(-1, 1, n)
+            Jg = np.stack([np.ones(n) * rng.uniform(0.5, 1.5), t, t * t], 1)
+            Kg = np.stack([np.ones(n), t], 1)  # a pose's 2 error terms: an offset and a slope on its points
+            Pg = np.diag([0.04, 0.01])
+            J.append(Jg), K.append(Kg), P.append(Pg), cl.append(np.full(n, g))
+            r.append(Kg @ rng.multivariate_normal(np.zeros(2), Pg) + rng.normal(0, 0.05, n))
+        J, r, cl = np.concatenate(J), np.concatenate(r), np.concatenate(cl)
+        x1, C1 = _cluster_ls(J, r, cl)
+        x2, C2 = _cluster_ls(J, r, cl, K, P)
+        assert np.allclose(x1, x2)  # the estimate is the same least squares
+        z_alone.append(x1[0] / np.sqrt(C1[0, 0]))
+        z_model.append(x2[0] / np.sqrt(C2[0, 0]))
+    z_alone, z_model = np.abs(z_alone), np.abs(z_model)
+    assert np.mean(z_alone > 3) > 0.015  # 2.75 % here; a Gaussian's 0.27 %
+    # (a little on the safe side: the residuals' own scatter includes the poses' part)
+    assert 0.7 < np.sqrt(np.mean(z_model ** 2)) < 1.2 and np.mean(z_model > 3) < 0.005

@@ -1,0 +1,76 @@
+"""Which of calibrate-scale's three measurements (scenes, boards in the ZED, boards in the depth map) has errors its
+covariance does not describe: each measurement on its own, solved on the exact extrinsic, against the generator's
+truth, over the sessions ``bench_scale_coverage.py`` rendered (its WORKDIR).
+
+Printed per session and measurement: the estimate's error over its 1-sigma (z); then per measurement and term the RMS
+of z over the sessions (1 for a calibrated covariance) and the mean z (a bias shows as a mean away from 0).
+
+    python benchmarks/diag_scale_sources.py [--workdir /tmp/gtforge_bench_scale_coverage] [--glob 'seed*_0.5_*']
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from gtforge.records.calibration import CalibrationFile, ScaleParams
+from gtforge.records.dataset import BuildParams
+from gtforge.dataset.ground_truth import build_scene_arrays
+from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.scale_calibration import (IB, IC, IK, IY, apply_scale, board_measurements, scene_pixels,
+                                       solve_scenes)
+
+TRUTH = np.zeros(7)
+TRUTH[IB], TRUTH[IY], TRUTH[IK], TRUTH[IC] = 0.003, math.radians(0.15), -0.002, 0.5
+NAMES = {IB: "b", IY: "yaw", IK: "k", IC: "c"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--workdir", default="/tmp/gtforge_bench_scale_coverage")
+    ap.add_argument("--glob", default="seed*")
+    a = ap.parse_args()
+    zs: dict[str, list[float]] = {}
+    params = ScaleParams()
+    for sess in sorted(Path(a.workdir).glob(a.glob)):
+        if not (sess / "known.yaml").is_file():
+            continue
+        calib = CalibrationFile.read(sess / "known.yaml")
+        session, _ = open_calibrated_session(sess, calib, sess / "known.yaml", sess / "diag.yaml", "scaled.yaml")
+        rig = apply_scale(calib.rig, calib.rig.zed.baseline_mm, np.zeros(7))
+        line = [sess.name]
+        boards = board_measurements(session, session.select("board", None), calib.rig, calib.board.spec(), params)
+        for m in boards:
+            kind = "boards-zed" if m.A[:, IB].any() else "boards-depth"
+            for row, (yv, sv) in enumerate(zip(m.y, np.sqrt(np.diag(m.C)))):
+                term = int(np.flatnonzero(m.A[row])[0])
+                z = (yv - TRUTH[term]) / sv
+                zs.setdefault(f"{kind} {NAMES[term]}", []).append(z)
+                line.append(f"{kind} {NAMES[term]} z {z:+.2f}")
+        pix = []
+        for d in session.select("scenes", None):
+            cap = session.load_capture(d)
+            sd, _, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
+            sp = scene_pixels(d.name, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right,
+                              params, rig)
+            if sp is not None:
+                pix.append(sp)
+        theta, C_s, _ = solve_scenes(pix, rig, params, 0.0)
+        # the scenes measure b + k (with the depth offset's scale), c and yaw
+        truth_s = [TRUTH[IB] + TRUTH[IK], TRUTH[IC], TRUTH[IY]]
+        for i, name in enumerate(("b+k", "c", "yaw")):
+            z = (theta[i] - truth_s[i]) / math.sqrt(C_s[i, i])
+            zs.setdefault(f"scenes {name}", []).append(z)
+            line.append(f"scenes {name} z {z:+.2f}")
+        print("; ".join(line), flush=True)
+    print()
+    print("| measurement, term | sessions | RMS z | mean z |")
+    print("|---|---|---|---|")
+    for k, v in zs.items():
+        print(f"| {k} | {len(v)} | {math.sqrt(np.mean(np.square(v))):.2f} | {np.mean(v):+.2f} |")
+
+
+if __name__ == "__main__":
+    main()
