@@ -74,6 +74,11 @@ def session(workdir: Path, name: str, kw: dict, scale: float, boards: int, scene
     return d
 
 
+def outside(sess: Path, name: str) -> Path:
+    """A file of the benchmark's beside the session (no stage writes into a session's folder)."""
+    return sess.parent / f"{sess.name}-{name}"
+
+
 def known_calibration(sess: Path, self_rectify: bool = False) -> Path:
     """The exact extrinsic; with ``self_rectify`` (a right camera turned about x and z) the calibration ``gtforge
     calibrate`` writes, self-rectification included, with its extrinsic replaced by the exact one."""
@@ -83,13 +88,13 @@ def known_calibration(sess: Path, self_rectify: bool = False) -> Path:
         from gtforge.calibrate import calibrate
         from gtforge.records.calibration import CalibrateParams
 
-        cal = calibrate(sess, sess / "board.yaml", CalibrateParams(leave_one_out=False))
+        cal = calibrate(sess, outside(sess, "board.yaml"), CalibrateParams(leave_one_out=False))
         print(cal.zed_self_rectification.summary_line())
         cal = cal.model_copy(update=dict(rig=cal.rig.with_extrinsic(np.array(tr.T_zed_from_mech))))
-        return cal.write(sess / "known.yaml")
+        return cal.write(outside(sess, "known.yaml"))
     rig = Rig(zed=s.zed, mech=s.mech, depth_cam=s.depth_cam, T_mech_from_depth=s.T_mech_from_depth,
               T_zed_from_mech=np.array(tr.T_zed_from_mech))
-    return CalibrationFile.known_extrinsic(rig).write(sess / "known.yaml")
+    return CalibrationFile.known_extrinsic(rig).write(outside(sess, "known.yaml"))
 
 
 def figures(sess: Path, calib: CalibrationFile) -> tuple[float, float, float]:
@@ -130,7 +135,8 @@ def main() -> None:
         e0, e0max, b0 = figures(sess, c0)
         for boards in (True, False):
             t = time.perf_counter()
-            res = calibrate_scale(sess, start, sess / f"scaled_{int(boards)}.yaml", ScaleParams(use_boards=boards))
+            res = calibrate_scale(sess, start, outside(sess, f"scaled_{int(boards)}.yaml"),
+                                  ScaleParams(use_boards=boards))
             dt = time.perf_counter() - t
             e1, e1max, b1 = figures(sess, res)
             terms = "; ".join(f"{k.replace('zed_', '').replace('_frac', '')} "

@@ -20,7 +20,7 @@ import shutil
 import time
 from pathlib import Path
 
-from bench_scale_calibration import CASES, known_calibration
+from bench_scale_calibration import CASES, known_calibration, outside
 
 from gtforge.records.calibration import ScaleParams
 from gtforge.scale_calibration import calibrate_scale
@@ -51,7 +51,7 @@ def main() -> None:
             (sess / "done").write_text("")
             print(f"rendered seed {seed} in {time.perf_counter() - t:.0f} s", flush=True)
         start = known_calibration(sess)
-        res = calibrate_scale(sess, start, sess / "scaled.yaml", ScaleParams(use_boards=True))
+        res = calibrate_scale(sess, start, outside(sess, "scaled.yaml"), ScaleParams(use_boards=True))
         line = []
         for k, term in res.scale_calibration.terms.items():
             if term.estimate is None or not term.sigma:

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench_scale_calibration import outside
+
 from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.dataset.ground_truth import build_scene_arrays
@@ -35,10 +37,11 @@ def main() -> None:
     zs: dict[str, list[float]] = {}
     params = ScaleParams()
     for sess in sorted(Path(a.workdir).glob(a.glob)):
-        if not (sess / "known.yaml").is_file():
+        known = outside(sess, "known.yaml")  # (bench_scale_coverage.py's)
+        if not sess.is_dir() or not known.is_file():
             continue
-        calib = CalibrationFile.read(sess / "known.yaml")
-        session, _ = open_calibrated_session(sess, calib, sess / "known.yaml", sess / "diag.yaml", "scaled.yaml")
+        calib = CalibrationFile.read(known)
+        session, _ = open_calibrated_session(sess, calib, known, None, "scaled.yaml")
         rig = apply_scale(calib.rig, calib.rig.zed.baseline_mm, np.zeros(7))
         line = [sess.name]
         boards = board_measurements(session, session.select("board", None), calib.rig, calib.board.spec(), params)

@@ -313,8 +313,15 @@ def _cluster_ls(J: np.ndarray, r: np.ndarray, clusters: np.ndarray, K: list[np.n
     C = Hi @ (g.T @ g) @ Hi * (G / max(G - J.shape[1], 1))
     if K is None or pose_covs is None:
         return x, C
-    s2 = float(e @ e) / max(len(e) - J.shape[1], 1)
-    meat = s2 * (J.T @ J)
+    # each residual's own scatter: what is left once each pose's own motion (K's columns) is fitted out of its
+    # residuals (else the poses' errors, carried through K below, would be counted twice)
+    within, dof = 0.0, len(e) - J.shape[1]
+    for c, Kc in zip(ids, K):
+        ec = e[clusters == c]
+        beta, _, rank, _ = np.linalg.lstsq(Kc, ec, rcond=None)
+        within += float(np.sum((ec - Kc @ beta) ** 2))
+        dof -= rank
+    meat = within / max(dof, 1) * (J.T @ J)
     for c, Kc, Pc in zip(ids, K, pose_covs):
         M = J[clusters == c].T @ Kc
         meat += M @ Pc @ M.T
