@@ -73,6 +73,48 @@ def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
 DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verification", "report")  # build-dataset's
 
 
+RESULT_TABLES = ("results.json", "results.md", "results.csv", "results.html")
+# the mark of an evaluation's folder whose tables were withdrawn and not yet written again (a stopped rewrite)
+INCOMPLETE_MARK = ".evaluation-incomplete"
+
+
+def _withdraw_tables(out: Path) -> None:
+    """An earlier evaluation's tables go before this one's maps replace its maps; the folder stays one evaluate may
+    write again (``INCOMPLETE_MARK`` until this run's tables are written)."""
+    atomic_write_bytes(out / INCOMPLETE_MARK, b"an evaluation stopped before it wrote its tables: run it again\n")
+    for name in RESULT_TABLES:
+        (out / name).unlink(missing_ok=True)
+
+
+def _warn_of_quarantined(ds: Path, ids: list[str]) -> None:
+    """Scenes verify quarantined (its labels suspect) are scored like the others when asked for: said once."""
+    try:
+        quarantined = set(json.loads((ds / "manifest.json").read_text()).get("quarantined") or [])
+    except (OSError, ValueError, AttributeError):
+        return
+    hit = sorted(quarantined & set(ids))
+    if hit:
+        log.warning("scoring %d scene(s) that verify quarantined (their ground truth is suspect): %s; a split "
+                    "(--split train|val|test) leaves them out", len(hit), ", ".join(hit[:8]) + (", ..." if
+                                                                                                len(hit) > 8 else ""))
+
+
+def _refuse_output_in_session(out: Path, ds: Path) -> None:
+    """No output inside the session the dataset was built from (manifest.json's ``session_dir``): no stage writes
+    into a capture session."""
+    try:
+        session = json.loads((ds / "manifest.json").read_text())["session_dir"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    if not session:
+        return
+    o, root = Path(os.path.realpath(out)), Path(os.path.realpath(session))
+    if o == root or root in o.parents:
+        raise InputError(out, "--output", "a folder outside the capture session (no stage writes into it)",
+                         f"a path inside {root} (the session the dataset was built from)",
+                         "give a new folder beside it, e.g. ./evaluation")
+
+
 def _refuse_output_in_dataset(out: Path, ds: Path) -> None:
     """Results go to a folder of their own: not the dataset folder itself nor any folder build-dataset writes
     (a new subfolder of the dataset, e.g. DATASET/evaluation, is fine)."""
@@ -132,6 +174,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     ids = list_scenes(ds, split)
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none")
+    _warn_of_quarantined(ds, ids)
     if max_disp_px is not None and not max_disp_px > 0:
         raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:
@@ -149,8 +192,10 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                                  "the --predictions folder" + ("" if o == f else " (a folder inside it)"),
                                  "give a new folder for the results")
         _refuse_output_in_dataset(Path(out_dir), ds)
+        _refuse_output_in_session(Path(out_dir), ds)
         out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the results (an earlier "
-                                          "evaluation's folder is rewritten)", reusable_if="results.json")
+                                          "evaluation's folder is rewritten)",
+                                          reusable_if=("results.json", INCOMPLETE_MARK))
         if (out / "results.json").is_file():  # its maps are removed below: only an evaluation's own folder
             try:
                 EvalResult.read(out / "results.json")
@@ -234,6 +279,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
             fruit_ms.append((time.perf_counter() - t0) * 1000.0)
         if out is not None:
+            if not written:  # an earlier evaluation's tables go before its maps do: never tables of one model
+                _withdraw_tables(out)  # beside maps of another (a Ctrl-C now leaves this run's maps, no tables)
             written += _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px,
                                          write_clouds)
         per_scene.append(scene)
@@ -261,6 +308,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         rep.write(out / "results.json")
         write_eval_html(rep, out)
         _remove_earlier_outputs(out, written)
+        (out / INCOMPLETE_MARK).unlink(missing_ok=True)  # its tables are there: a whole evaluation again
     return rep
 
 

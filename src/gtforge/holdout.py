@@ -9,7 +9,7 @@ from gtforge.calibrate import calibrate
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
-from gtforge.io.outputs import require_output_folder
+from gtforge.io.outputs import refuse_gtforge_folder, require_output_folder
 from gtforge.records.calibration import CalibrateParams
 from gtforge.records.validation import ValidateParams, ValidationResult
 from gtforge.validate import validate
@@ -27,6 +27,7 @@ def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path 
     if out_dir is not None:
         session.refuse_output_over_inputs(out_dir)
         require_output_folder(out_dir, "--output")
+        refuse_gtforge_folder(out_dir)
     dirs = session.select("board", captures)
     if not 1 <= holdout <= len(dirs) - MIN_CALIBRATION_POSES:
         raise InputError(session_dir, "holdout", f"1 to {len(dirs) - MIN_CALIBRATION_POSES} held-out poses of "

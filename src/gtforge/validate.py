@@ -44,7 +44,7 @@ from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.captures import leave_out_hint, missing_capture_file, open_session
-from gtforge.io.outputs import require_output_folder
+from gtforge.io.outputs import refuse_gtforge_folder, require_output_folder
 from gtforge.io.zed_rectification import rectified_by
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import BuildParams
@@ -230,6 +230,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
     if out_dir is not None:
         session.refuse_output_over_inputs(out_dir)
         require_output_folder(out_dir, "--output")
+        refuse_gtforge_folder(out_dir)
     dirs = session.select("board", captures)
     if calibration is None:
         raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none")
@@ -354,6 +355,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
     if out_dir is not None:
         session.refuse_output_over_inputs(out_dir)
         require_output_folder(out_dir, "--output")
+        refuse_gtforge_folder(out_dir)
         g = (session.root / GAUGES_DIR).resolve()
         o = Path(out_dir).resolve()
         if o == g or g in o.parents:

@@ -288,3 +288,53 @@ def test_a_folder_that_is_no_session_is_named_as_such(dataset, tmp_path):
                 r.stderr
             assert "gtforge import writes a session from recordings" in r.stderr
     assert not (tmp_path / "c.yaml").exists() and not (tmp_path / "r").exists()
+
+
+def test_no_stage_writes_into_the_session_or_over_a_file_not_its_own(session_dir, true_calibration, dataset, tmp_path):
+    """A newcomer's run-through: validate and evaluate wrote into the session's folder, validate into a dataset's,
+    and the calibration-writing stages over any existing file (a report's HTML, a user's notes) or, given a folder,
+    over calibrate's calibration.yaml there. Each is refused now, exit 2, nothing written; a stage's own earlier
+    calibration is still replaced, and a folder gets the stage's own file name."""
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    before = tree_digest(sess), tree_digest(dataset[0])
+    man = json.loads((dataset[0] / "manifest.json").read_text())
+    cases = [(("validate", sess, "-c", true_calibration, "-o", sess / "val"), f"a path inside {sess}"),
+             (("calibrate", sess, "-o", sess / "c.yaml", "--no-loo"), f"a path inside {sess}"),
+             (("refine", sess, "-c", true_calibration, "-o", notes), "not a gtforge calibration (it would be lost)"),
+             (("validate", sess, "-c", true_calibration, "-o", dataset[0]), "got a dataset gtforge built")]
+    for args, needle in cases:
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r) and needle in r.stderr, (args[0], r.stderr)
+    # evaluate: the dataset's own session (manifest.json's session_dir)
+    (tmp_path / "ds").mkdir()
+    shutil.copytree(dataset[0], tmp_path / "ds" / "d")
+    m = json.loads((tmp_path / "ds" / "d" / "manifest.json").read_text())
+    m["session_dir"] = str(sess)
+    (tmp_path / "ds" / "d" / "manifest.json").write_text(json.dumps(m))
+    r = gtforge("evaluate", tmp_path / "ds" / "d", "--sgbm", "-o", sess / "eval")
+    assert r.returncode == 2 and one_line_error(r) and "the session the dataset was built from" in r.stderr, r.stderr
+    assert (tree_digest(sess), tree_digest(dataset[0])) == before and notes.read_text() == "mine"
+    assert man["session_dir"]  # (the fixture's dataset names its session too)
+    # a folder holding calibrate's calibration.yaml: calibrate-scale writes its own scaled.yaml beside it
+    folder = tmp_path / "calib"
+    folder.mkdir()
+    shutil.copy(true_calibration, folder / "calibration.yaml")
+    mine = (folder / "calibration.yaml").read_bytes()
+    r = gtforge("calibrate-scale", sess, "-c", folder / "calibration.yaml", "-o", folder)
+    assert r.returncode == 0, r.stderr
+    assert (folder / "calibration.yaml").read_bytes() == mine and (folder / "scaled.yaml").is_file()
+    assert f"wrote {folder / 'scaled.yaml'}" in r.stdout
+
+
+def test_an_evaluation_that_scored_nothing_says_so_and_exits_1(dataset, tmp_path):
+    """--max-gt-sigma below every label's sigma left no pixel to score: exit 0 with tables of dashes before (a
+    newcomer's run-through); a warning naming what left them out, and exit code 1."""
+    r = gtforge("evaluate", dataset[0], "--sgbm", "--max-gt-sigma", "1e-9", "-o", tmp_path / "ev")
+    assert r.returncode == 1, r.stderr
+    assert "warning: no pixel was scored" in r.stderr and "left out by --max-gt-sigma" in r.stderr, r.stderr
+    assert json.loads((tmp_path / "ev" / "results.json").read_text())["pooled"]["all"]["n_valid"] == 0
+    r = gtforge("evaluate", dataset[0], "--sgbm", "-o", tmp_path / "ev2")
+    assert r.returncode == 0 and "no pixel was scored" not in r.stderr, r.stderr

@@ -396,7 +396,7 @@ def test_cli_one_line_errors(tmp_path, defect, expect):
     else:
         t = (tmp_path / "mech_intrinsics.yaml").read_text()
         (tmp_path / "mech_intrinsics.yaml").write_text(t.replace("fx_px: 20.0", "fx_px: .nan"))
-    out = tmp_path / "calib.yaml"
+    out = tmp_path.parent / f"{tmp_path.name}-calib.yaml"  # (beside the session: never inside it)
     r = subprocess.run([sys.executable, "-m", "gtforge.cli", "calibrate", str(tmp_path), "-o", str(out)],
                        capture_output=True, text=True)
     assert r.returncode == 2, r.stderr

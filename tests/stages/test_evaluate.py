@@ -430,3 +430,52 @@ def test_loader_yields_training_arrays(dataset):
     assert it["left"].shape == (497, 883, 3) and it["disparity"].dtype == np.float32
     np.testing.assert_array_equal(it["valid"], np.isfinite(it["disparity"]))
     assert set(np.unique(it["weight"][it["valid"]])) <= {np.float32(0.8), np.float32(1.0), np.float32(1.4)}
+
+
+def test_an_evaluation_stopped_over_an_earlier_one_leaves_no_tables_of_the_other_model(dataset, tmp_path):
+    """Ctrl-C while an evaluation rewrote an earlier one's folder left the earlier model's results.* beside the new
+    model's maps (a newcomer's run-through). The earlier tables go before the first new map is written."""
+    ds, _ = dataset
+    out = tmp_path / "ev"
+    evaluate(ds, SGBM(), out)
+    assert (out / "results.json").is_file()
+
+    class StopsAtTheSecondScene(SGBM):
+        def __init__(self):
+            super().__init__(block_size=7, name="SGBM-7")
+            self.calls = 0
+
+        def predict(self, *args, **kwargs):
+            self.calls += 1
+            if self.calls == 3:  # (the first scene's are a warm-up and the timed call)
+                raise KeyboardInterrupt
+            return super().predict(*args, **kwargs)
+
+    with pytest.raises(KeyboardInterrupt):
+        evaluate(ds, StopsAtTheSecondScene(), out)
+    assert not [p.name for p in out.iterdir() if p.name.startswith("results.")]
+    assert len(list((out / "heatmaps").glob("*_disp_error.png"))) >= 1  # the new model's first scene, whole
+    assert (out / ".evaluation-incomplete").is_file()  # the folder stays one evaluate may write again
+    rep = evaluate(ds, SGBM(block_size=7, name="SGBM-7"), out)  # the same command again: a whole evaluation
+    assert rep.model == "SGBM-7" and (out / "results.html").is_file()
+    assert not (out / ".evaluation-incomplete").exists()
+
+
+def test_quarantined_scenes_scored_are_named(dataset, tmp_path, caplog):
+    """Scenes verify --quarantine took out of the split lists were scored without a word when every scene was asked
+    for (a newcomer's run-through): a warning names them."""
+    import json
+    import logging
+
+    ds = tmp_path / "ds"
+    shutil.copytree(dataset[0], ds)
+    man = json.loads((ds / "manifest.json").read_text())
+    man["quarantined"] = ["001"]
+    (ds / "manifest.json").write_text(json.dumps(man))
+    with caplog.at_level(logging.WARNING, logger="gtforge"):
+        evaluate(ds, SGBM(), None)
+    assert any("quarantined" in r.getMessage() and "001" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="gtforge"):
+        evaluate(dataset[0], SGBM(), None)
+    assert not any("quarantined" in r.getMessage() for r in caplog.records)

@@ -189,12 +189,13 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     board_model = _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm)
     params = _options(CalibrateParams, **({"board": board_model} if board_model else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
-    output = calibration_output_path(output)
-    report_dir = report_dir or output.parent / (output.stem + "_report")
     from gtforge.io.captures import open_session
     from gtforge.io.outputs import require_output_folder
 
     opened = open_session(session)
+    opened.refuse_output_over_inputs(output)  # (first: a session's file is named as such)
+    output = calibration_output_path(output)
+    report_dir = report_dir or output.parent / (output.stem + "_report")
     opened.refuse_output_over_inputs(output)
     opened.refuse_output_over_inputs(report_dir, "--report-dir")
     require_output_folder(report_dir, "--report-dir")
@@ -381,7 +382,7 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
                   f"{info.heldout_shift_after_mean_px:.3f} px mean |texture shift|")
     from gtforge.io.calibrated_session import calibration_output_path
 
-    out.print(f"wrote {calibration_output_path(output)}")
+    out.print(f"wrote {calibration_output_path(output, 'refined.yaml')}")
 
 
 @app.command("calibrate-scale")
@@ -413,7 +414,7 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
               f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
     from gtforge.io.calibrated_session import calibration_output_path
 
-    out.print(f"wrote {calibration_output_path(output)}")
+    out.print(f"wrote {calibration_output_path(output, 'scaled.yaml')}")
 
 
 @app.command("align-depth")
@@ -447,7 +448,7 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
               progress=_status)
     for line in summary_lines(res.depth_alignment):
         out.print(line)
-    path = calibration_output_path(output)
+    path = calibration_output_path(output, "aligned.yaml")
     rep = write_depth_alignment_report(res.depth_alignment, path.parent / (path.stem + "_report.html"))
     out.print(f"wrote {path} and {rep}")
 
@@ -609,8 +610,15 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
         out.print(f"median {rep.time_ms_median:.1f} ms/frame to read a prediction; results in {output}")
     else:
         out.print(f"median warm inference {rep.time_ms_median:.1f} ms/frame ({rep.provider}); results in {output}")
+    allm = rep.pooled["all"]
+    if allm.n_valid == 0:  # nothing measured: the tables' dashes are no result (a newcomer's run-through)
+        console.print(f"warning: no pixel was scored ({allm.n_gt} ground-truth pixels"
+                      + (f", {allm.n_gt_sigma_left_out} left out by --max-gt-sigma" if allm.n_gt_sigma_left_out else "")
+                      + ", no valid prediction on them)" + ("" if allm.n_gt else ": check --max-gt-sigma, --max-disp "
+                                                          "and --split") + "; exit code 1")
     if rep.missing:
         out.print(f"{len(rep.missing)} scene(s) excluded: " + "; ".join(f"{k}: {v}" for k, v in rep.missing.items()))
+    if rep.missing or allm.n_valid == 0:
         raise typer.Exit(1)
 
 

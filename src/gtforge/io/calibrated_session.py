@@ -86,7 +86,8 @@ def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str
     session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
-        out_path = calibration_output_path(out_path)
+        session.refuse_output_over_inputs(out_path)  # (first: a session's file is named as such)
+        out_path = calibration_output_path(out_path, example_name)
         session.refuse_output_over_inputs(out_path)
         if Path(out_path).resolve() == calib_path.resolve():
             raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
@@ -94,9 +95,29 @@ def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str
     return session, out_path
 
 
-def calibration_output_path(out_path: str | Path) -> Path:
-    """``-o DIR/`` or an existing folder means ``DIR/calibration.yaml``."""
+def calibration_output_path(out_path: str | Path, name: str = "calibration.yaml") -> Path:
+    """``-o DIR/`` or an existing folder means ``DIR/name`` (each stage its own name: a refinement written into
+    calibrate's folder never replaces calibrate's file). An existing file there is replaced only when it is a gtforge
+    calibration (an earlier run's); any other file (a report, a session's YAML, a user's notes) is refused."""
     p = Path(out_path)
     if p.is_dir() or str(out_path).endswith(("/", "\\")):
-        p = p / "calibration.yaml"
-    return require_output_file(p, "--output")  # (before any work: a read-only folder is not found by the write)
+        p = p / name
+    p = require_output_file(p, "--output")  # (before any work: a read-only folder is not found by the write)
+    if p.is_file() and not _is_calibration_file(p):
+        raise InputError(p, "--output", "a new file, or a gtforge calibration to replace", "an existing file that is "
+                         "not a gtforge calibration (it would be lost)", "give a new file name, e.g. "
+                         f"{p.with_name(name)}" if p.name != name else "give a new file name")
+    return p
+
+
+def _is_calibration_file(p: Path) -> bool:
+    """Whether ``p`` reads as a YAML mapping with a calibration's top-level fields (cheap: not validated)."""
+    import yaml
+
+    try:
+        with open(p, "rb") as f:
+            head = f.read(1 << 20)
+        d = yaml.safe_load(head)
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        return False
+    return isinstance(d, dict) and "rig" in d and "schema_version" in d

@@ -27,6 +27,7 @@ from gtforge.infra.digest import blake3_hex
 from gtforge.infra.unbuffered import AlignedBuffer, aligned_buffer
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.formats import PNG_SIGNATURE, read_image
+from gtforge.io.outputs import gtforge_folder_kind
 from gtforge.io.vendors import load_structured_light_cameras
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
@@ -350,9 +351,9 @@ class Session:
         return [self.root / "session.yaml"] + [self.root / n for n in names if n]
 
     def refuse_output_over_inputs(self, out: str | Path, option: str = "--output") -> None:
-        """Refuse an output path that lies in, or contains, a capture folder, or that is a file the session reads
-        (``session_files``): a session's inputs are never written, under any spelling of the path (relative, ``..``,
-        symbolic or hard links).
+        """Refuse an output path inside the session folder, one that contains a capture folder, or a file the session
+        reads (``session_files``, wherever they are): a session's inputs are never written, nor anything put into its
+        folder, under any spelling of the path (relative, ``..``, symbolic or hard links).
 
         Symlinked captures count with both their name and their target."""
         out_abs = Path(os.path.abspath(out))
@@ -371,6 +372,13 @@ class Session:
                                  f"the session's {f.name} ({os.path.realpath(f)})",
                                  "the session's files are never written; write the output beside the session, "
                                  "e.g. -o calib.yaml")
+        for root in {Path(os.path.abspath(self.root)), Path(os.path.realpath(self.root))}:
+            for o in {out_abs, out_real}:
+                if root in o.parents:
+                    raise InputError(out, option, "a path outside the session folder (its captures and files are never "
+                                     "written, nor anything put beside them)",
+                                     f"a path inside {root}", "write the output beside the session, e.g. -o "
+                                     f"{root.parent / ('out' if o.suffix == '' else 'out' + o.suffix)}")
         protected: list[Path] = []
         for croot in self.capture_roots():
             if croot.is_dir():
@@ -565,15 +573,6 @@ def _png_checks_out(path: Path, size_wh: tuple[int, int], colour_types: tuple[in
     return h is not None and (h[0], h[1]) == tuple(size_wh) and h[2] == 8 and h[3] in colour_types and h[4]
 
 
-def _output_kind(root: Path) -> str | None:
-    """What gtforge wrote a folder as, where it is one of its outputs (a run's or a dataset), else None."""
-    for marker, kind in (("run_state.json", "gtforge run's output folder"),
-                         ("manifest.json", "a dataset gtforge built")):
-        if (root / marker).is_file():
-            return kind
-    return None
-
-
 def _what_folder_holds(root: Path) -> str:
     """A folder's first few entries, named for an error message."""
     names = sorted(e.name + ("/" if e.is_dir() else "") for e in root.iterdir())
@@ -600,11 +599,11 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
         raise InputError(root, None, "a capture session folder", "no such folder", "see docs/capture-layout.md")
     cfg_path = root / "session.yaml"
     cfg = SessionFile.read(cfg_path) if cfg_path.exists() else SessionFile()
-    if not cfg_path.exists() and (_output_kind(root) or not any(
+    if not cfg_path.exists() and (gtforge_folder_kind(root) or not any(
             (root / n).exists() for n in (cfg.mech_intrinsics, cfg.zed_calibration, "board", "scenes"))):
         raise InputError(root, None, "a capture session folder (session.yaml, mech_intrinsics.yaml, "
                          "zed_calibration.yaml, board/, scenes/: docs/capture-layout.md)",
-                         f"{kind} (no session.yaml)" if (kind := _output_kind(root)) else
+                         f"{kind} (no session.yaml)" if (kind := gtforge_folder_kind(root)) else
                          f"a folder with none of them ({_what_folder_holds(root)})",
                          "check the path; gtforge import writes a session from recordings, gtforge synth a "
                          "synthetic one")

@@ -9,6 +9,28 @@ from pathlib import Path
 from gtforge.errors import InputError
 
 
+# the folders gtforge writes whole, by the file that marks each
+GTFORGE_FOLDERS = (("run_state.json", "gtforge run's output folder"), ("manifest.json", "a dataset gtforge built"),
+                   ("session.yaml", "a capture session"))
+
+
+def gtforge_folder_kind(path: str | Path) -> str | None:
+    """What ``path`` is where gtforge writes it whole (a run's outputs, a dataset, a session); else None."""
+    for marker, kind in GTFORGE_FOLDERS:
+        if (Path(path) / marker).is_file():
+            return kind
+    return None
+
+
+def refuse_gtforge_folder(path: str | Path, option: str = "--output") -> None:
+    """A stage's outputs never go into a run's, a dataset's or a session's own folder (their files would sit among
+    another stage's, which neither knows of)."""
+    kind = gtforge_folder_kind(path)
+    if kind is not None:
+        raise InputError(path, option, "a folder for this stage's outputs (new, empty, or its own earlier one)",
+                         kind, "give a new folder, e.g. beside it")
+
+
 def require_output_folder(path: str | Path, option: str = "--output") -> Path:
     """``path`` is an existing folder or does not exist yet (it is then created by the stage), and this user can
     write there; a file is refused. Checked before a stage's work, not found when it writes."""
@@ -52,15 +74,17 @@ def _require_writable_parents(p: Path, option: str) -> None:
         return
 
 
-def require_new_or_empty_folder(path: str | Path, option: str, hint: str, reusable_if: str | None = None) -> Path:
-    """``path`` does not exist, is an empty folder, or (``reusable_if``) holds that file (relative to ``path``):
-    the mark of a folder this command wrote before and may write again. Anything else is refused."""
+def require_new_or_empty_folder(path: str | Path, option: str, hint: str,
+                                reusable_if: str | tuple[str, ...] | None = None) -> Path:
+    """``path`` does not exist, is an empty folder, or (``reusable_if``) holds that file, or one of those files
+    (relative to ``path``): the mark of a folder this command wrote before and may write again. Anything else is
+    refused."""
     p = require_output_folder(path, option)
+    marks = (reusable_if,) if isinstance(reusable_if, str) else (reusable_if or ())
     if p.is_dir():
         entries = [e for e in p.iterdir()]
-        if entries and not (reusable_if and (p / reusable_if).is_file()):
-            raise InputError(p, option, "a new or empty folder" + (f" (or one with {reusable_if})" if reusable_if
-                                                                     else ""),
+        if entries and not any((p / m).is_file() for m in marks):
+            raise InputError(p, option, "a new or empty folder" + (f" (or one with {marks[0]})" if marks else ""),
                              f"a folder with {len(entries)} entries", hint)
     return p
 
