@@ -168,6 +168,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     and volume from the GT and the prediction (``gtforge.core.measure.fruit_size``; ``grades``: bins for the grade
     confusion)."""
     ds = Path(dataset_dir)
+    if ds.is_file():
+        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "a file",
+                         f"give the folder that holds it ({ds.parent})")
     if not (ds / "manifest.json").is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
                          "evaluate the OUT folder of build-dataset, not a capture session")

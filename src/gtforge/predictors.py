@@ -274,9 +274,13 @@ class PredictionFolder:
     def __init__(self, folder: str | Path, name: str | None = None):
         self.folder = Path(folder)
         if not self.folder.is_dir():
-            raise InputError(self.folder, "--predictions", "a folder of predicted disparities", "no such folder",
-                             "check the path; the folder holds one file per scene id: <id>.pfm, <id>.npy, <id>.png, "
-                             "<id>_10.png (KITTI) or <id>/disp0.pfm (docs/metrics.md)")
+            layout = ("the folder holds one file per scene id: <id>.pfm, <id>.npy, <id>.png, <id>_10.png (KITTI) or "
+                      "<id>/disp0.pfm (docs/metrics.md)")
+            is_file = self.folder.is_file()
+            raise InputError(self.folder, "--predictions", "a folder of predicted disparities",
+                             "a file" if is_file else "no such folder",
+                             (f"give the folder that holds it ({self.folder.parent}); " if is_file
+                              else "check the path; ") + layout)
         self.name = name or self.folder.name
         self.source = str(self.folder.resolve())
 

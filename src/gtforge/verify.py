@@ -41,8 +41,10 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     ds = Path(dataset_dir)
     man_path = ds / "manifest.json"
     if not ds.is_dir():
-        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "no such folder",
-                         "check the path (the -o of build-dataset)")
+        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset",
+                         "a file" if ds.is_file() else "no such folder",
+                         f"give the folder that holds it ({ds.parent})" if ds.is_file()
+                         else "check the path (the -o of build-dataset)")
     if not man_path.is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
                          "point verify at the dataset folder (the -o of build-dataset)")

@@ -338,3 +338,15 @@ def test_an_evaluation_that_scored_nothing_says_so_and_exits_1(dataset, tmp_path
     assert json.loads((tmp_path / "ev" / "results.json").read_text())["pooled"]["all"]["n_valid"] == 0
     r = gtforge("evaluate", dataset[0], "--sgbm", "-o", tmp_path / "ev2")
     assert r.returncode == 0 and "no pixel was scored" not in r.stderr, r.stderr
+
+
+def test_a_file_given_for_a_folder_is_named_a_file(dataset, tmp_path):
+    """A file where a folder is expected (the dataset's manifest.json, a prediction file) said "no such folder" or
+    "no manifest.json" (a newcomer's run-through): it says a file now, and which folder to give."""
+    man = dataset[0] / "manifest.json"
+    for args in (("evaluate", dataset[0], "--predictions", man, "-o", tmp_path / "e"),
+                 ("evaluate", man, "--sgbm", "-o", tmp_path / "e"), ("verify", man)):
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
+        assert "got a file" in r.stderr and f"give the folder that holds it ({dataset[0]})" in r.stderr, r.stderr
+    assert not (tmp_path / "e").exists()
