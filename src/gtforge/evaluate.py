@@ -381,6 +381,13 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
     limits, and model names used by more than one result (their rows are then labelled with the folder)."""
 
     files = [Path(p) for p in result_files]
+    seen: dict[str, Path] = {}
+    for f in files:
+        key = os.path.realpath(f)
+        if key in seen:
+            raise InputError(f, "RESULTS", "each evaluation once", f"the same file as {seen[key]}",
+                             "drop the repeated one")
+        seen[key] = f
     out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the comparison (an earlier "
                                       "comparison's folder is rewritten)", reusable_if="comparison.md")
     reports = [EvalResult.read(p) for p in files]

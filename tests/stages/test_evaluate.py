@@ -479,3 +479,16 @@ def test_quarantined_scenes_scored_are_named(dataset, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="gtforge"):
         evaluate(dataset[0], SGBM(), None)
     assert not any("quarantined" in r.getMessage() for r in caplog.records)
+
+
+def test_compare_refuses_the_same_evaluation_twice(tmp_path):
+    """compare A/results.json A/results.json gave two identical rows and only the name-clash warning (a run-through);
+    the same file twice, under any spelling, is refused before anything is written."""
+    from gtforge.evaluate import compare
+
+    (tmp_path / "a").mkdir()
+    f = tmp_path / "a" / "results.json"
+    f.write_text("{}")
+    with pytest.raises(InputError, match=r"each evaluation once, got the same file as"):
+        compare([f, tmp_path / "a" / ".." / "a" / "results.json"], tmp_path / "cmp")
+    assert not (tmp_path / "cmp").exists()
