@@ -287,9 +287,12 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             written += _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px,
                                          write_clouds)
         per_scene.append(scene)
-    if not per_scene:
-        raise InputError(ds, "scenes", "at least one scene with a prediction", "none",
-                         "; ".join(f"{k}: {v}" for k, v in list(missing.items())[:3]))
+    if not per_scene:  # (each scene's reason was said as it came: the line says where to look, once)
+        where = getattr(predictor, "folder", None)
+        raise InputError(where if where is not None else ds, "--predictions" if where is not None else "scenes",
+                         "at least one scene scored", f"none of {len(ids)} ({len(missing)} refused, each said "
+                         "above)", "fix the predictions (their files, size or type: docs/metrics.md, "
+                         "'Predictions')" if where is not None else "see each scene's error above")
 
     rep = EvalResult(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds.resolve()),
                      scenes=[s.scene for s in per_scene], missing=missing, max_disp_px=max_disp_px,

@@ -350,3 +350,21 @@ def test_a_file_given_for_a_folder_is_named_a_file(dataset, tmp_path):
         assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
         assert "got a file" in r.stderr and f"give the folder that holds it ({dataset[0]})" in r.stderr, r.stderr
     assert not (tmp_path / "e").exists()
+
+
+def test_predictions_all_refused_end_in_one_short_line_naming_their_folder(dataset, tmp_path):
+    """Every prediction of the wrong size: the last line named the dataset and repeated the scenes' errors in a
+    566-character hint (a run-through); now it names the predictions folder, once, after each scene's own line."""
+    import numpy as np
+
+    p = tmp_path / "p"
+    p.mkdir()
+    ids = sorted(d.name for d in (dataset[0] / "scenes").iterdir() if d.is_dir())
+    for sid in ids:
+        np.save(p / f"{sid}.npy", np.zeros((10, 12), np.float32))
+    r = gtforge("evaluate", dataset[0], "--predictions", p, "-o", tmp_path / "e")
+    assert r.returncode == 2, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {p} [--predictions]: expected at least one scene scored, got none of {len(ids)}")
+    assert len(last) < 300 and "Traceback" not in r.stderr, last
+    assert sum(f"scene {sid}:" in r.stderr for sid in ids) == len(ids)  # each scene's reason, said as it came
