@@ -113,8 +113,8 @@ class OnnxModel:
         try:
             self.sess = ort.InferenceSession(str(self.path), providers=providers)
         except Exception as exc:
-            raise InputError(self.path, None, "a loadable ONNX model",
-                             f"{type(exc).__name__}: {str(exc)[:100]}") from None
+            raise InputError(self.path, None, "a loadable ONNX model", f"{type(exc).__name__}: {_first_words(exc)}",
+                             "export the network with torch.onnx.export (docs/metrics.md, 'Models')") from None
         self.provider = self.sess.get_providers()[0]
         self.inputs = self.sess.get_inputs()
         self.layout = _onnx_layout(self.path, self.inputs)
@@ -153,10 +153,18 @@ class OnnxModel:
 _OUT_OF_MEMORY = ("out of memory", "failed to allocate", "bad_alloc", "cudaerrormemoryallocation")
 
 
+def _first_words(exc: Exception, limit: int = 160) -> str:
+    """A runtime's message, first line only, cut at a word (with "...") where it is longer than ``limit``."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    if len(text) <= limit:
+        return text
+    return text[:limit].rsplit(" ", 1)[0] + " ..."
+
+
 def _model_error(path: Path, exc: Exception, inputs: str) -> Exception:
     """A runtime's error on a model's first call as one line naming the model, or ``exc`` itself where it is the
     machine's (out of memory): that is no mistake in the model or its inputs."""
-    text = str(exc).splitlines()[0][:160] if str(exc) else ""
+    text = _first_words(exc)
     if isinstance(exc, MemoryError) or any(m in str(exc).lower() for m in _OUT_OF_MEMORY):
         return exc
     return InputError(path, None, f"a model that runs on {inputs} float images", f"{type(exc).__name__}: {text}",
@@ -219,7 +227,9 @@ class TorchScriptModel:
                 self.model = torch.jit.load(str(path), map_location=self.device).eval()
         except Exception as exc:
             raise InputError(path, None, "a loadable TorchScript / torch.export model",
-                             f"{type(exc).__name__}: {str(exc)[:100]}") from None
+                             f"{type(exc).__name__}: {_first_words(exc)}",
+                             "save the network with torch.jit.save or torch.export.save (docs/metrics.md, "
+                             "'Models')") from None
         self.conv = convention or InputConvention()
         self.path = path
         self.name = name or Path(path).stem

@@ -492,3 +492,20 @@ def test_compare_refuses_the_same_evaluation_twice(tmp_path):
     with pytest.raises(InputError, match=r"each evaluation once, got the same file as"):
         compare([f, tmp_path / "a" / ".." / "a" / "results.json"], tmp_path / "cmp")
     assert not (tmp_path / "cmp").exists()
+
+
+def test_a_file_that_is_no_model_is_one_line_with_a_hint(dataset, tmp_path):
+    """A file that is not an ONNX model: onnxruntime's message was cut mid-word at 100 characters ("Protobuf parsing
+    f") with no hint (a run-through); its first line whole up to 160 characters, cut at a word, and a hint."""
+    pytest.importorskip("onnxruntime")
+    bad = tmp_path / "notamodel.onnx"
+    bad.write_text("not a model")
+    r = gtforge("evaluate", dataset[0], "--onnx", bad, "-o", tmp_path / "e")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "expected a loadable ONNX model" in r.stderr and "(hint: export the network with torch.onnx.export" in \
+        r.stderr, r.stderr
+    from gtforge.predictors import _first_words
+
+    assert _first_words(ValueError("word " * 60)).endswith("word ...") and len(_first_words(ValueError("x " * 90))) \
+        <= 164
+    assert _first_words(ValueError("short\nsecond line")) == "short"
