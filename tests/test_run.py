@@ -300,3 +300,8 @@ def test_a_session_yaml_given_as_the_calibration_is_called_another_kind_of_file(
     assert "got a file of another kind (its fields: mech_intrinsics" in r.stderr and "missing: rig" in r.stderr
     assert "problems" not in r.stderr and len(r.stderr) < 600
     assert not (tmp_path / "out").exists()
+    # the stereo camera's file (one field of its own: zed) for the calibration (a run-through: 11 problems listed)
+    r = gtforge("validate", EXAMPLE, "-c", EXAMPLE / "zed_calibration.yaml", "-o", tmp_path / "v")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "got a file of another kind (its fields: zed; missing: rig" in r.stderr and "problems" not in r.stderr
+    assert not (tmp_path / "v").exists()

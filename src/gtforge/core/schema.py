@@ -114,7 +114,7 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
     top = [e for e in errs if len(e.get("loc", ())) == 1]
     missing = [field(e) for e in top if e.get("type") == "missing"]
     extra = [field(e) for e in top if e.get("type") == "extra_forbidden"]
-    if len(missing) >= 2 and len(extra) >= 2 and len(top) == len(errs):
+    if extra and len(missing) + len(extra) >= 4 and len(missing) >= 2 and len(top) == len(errs):
         # none of the fields it should have, others instead: another kind of file, not one to fix field by field
         return InputError(path, None, f"a {what}", f"a file of another kind (its fields: {', '.join(extra[:6])}"
                           f"{' ...' if len(extra) > 6 else ''}; missing: {', '.join(missing[:6])}"
