@@ -65,7 +65,10 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     ids = sorted(scenes or man.scenes)
     unknown = [s for s in ids if s not in man.scenes]
     if unknown:
-        raise InputError(man_path, "scenes", "scenes of this dataset", ", ".join(unknown))
+        known = sorted(man.scenes)
+        raise InputError(man_path, "--scenes", "scenes of this dataset", ", ".join(repr(s) for s in unknown),
+                         f"its scenes: {', '.join(known[:8])}{' ...' if len(known) > 8 else ''} (comma-separated, "
+                         "no spaces or empty names)")
     old = {}
     rep_path = ds / "verification.json"
     if rep_path.is_file():

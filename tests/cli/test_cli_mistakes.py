@@ -368,3 +368,18 @@ def test_predictions_all_refused_end_in_one_short_line_naming_their_folder(datas
     assert last.startswith(f"error: {p} [--predictions]: expected at least one scene scored, got none of {len(ids)}")
     assert len(last) < 300 and "Traceback" not in r.stderr, last
     assert sum(f"scene {sid}:" in r.stderr for sid in ids) == len(ids)  # each scene's reason, said as it came
+
+
+def test_option_mistakes_say_what_to_give(dataset, tmp_path):
+    """Errors a run-through found without a hint: each now says what to give."""
+    cases = [(("verify", dataset[0], "--scenes", "000,,001"), "got '' (hint: its scenes: 000, 001"),
+             (("verify", dataset[0], "--scenes", "009"), "got '009' (hint: its scenes:"),
+             (("evaluate", dataset[0], "-o", tmp_path / "e"), "(hint: name the model to score"),
+             (("evaluate", dataset[0], "--sgbm", "--predictions", tmp_path, "-o", tmp_path / "e"),
+              "(hint: evaluate scores one model a run"),
+             (("evaluate", dataset[0], "--sgbm", "--fit", "resize", "--resize", "544", "-o", tmp_path / "e"),
+              "(hint: write both sides, e.g. --resize 1088x376)")]
+    for args, needle in cases:
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r) and needle in r.stderr, (args, r.stderr)
+    assert not (tmp_path / "e").exists()

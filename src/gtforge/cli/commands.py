@@ -67,9 +67,10 @@ def _wh(text: Optional[str], name: str) -> Optional[tuple[int, int]]:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise InputError(None, name, "WIDTHxHEIGHT (e.g. 1088x376) or a preset (kitti = 1242x375)",
-                         repr(text)) from None
+                         repr(text), f"write both sides, e.g. {name} 1088x376") from None
     if w <= 0 or h <= 0:
-        raise InputError(None, name, "a width and height of at least 1 px", repr(text))
+        raise InputError(None, name, "a width and height of at least 1 px", repr(text),
+                         f"the size the network takes, e.g. {name} 1088x376")
     return w, h
 
 
@@ -588,7 +589,8 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
     chosen = [x for x in (onnx, torchscript, predictions) if x is not None] + ([True] if sgbm else [])
     if len(chosen) != 1:
         raise InputError(None, "model", "exactly one of --onnx, --torchscript, --predictions, --sgbm",
-                         f"{len(chosen)} given")
+                         f"{len(chosen)} given", "evaluate scores one model a run; gtforge compare puts several "
+                         "side by side" if chosen else "name the model to score, e.g. --sgbm for the baseline")
     conv = _input_convention(channels, normalize, fit, resize)
     if onnx:
         pred = OnnxModel(onnx, conv, name)
