@@ -3,6 +3,7 @@ OpenCV SGBM (baseline) and a folder of predictions. Every predictor maps an RGB 
 ``(H, W, 3)`` to a float32 ``(H, W)`` disparity (px, NaN invalid)."""
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Literal, Protocol
@@ -107,7 +108,9 @@ class OnnxModel:
         self.path = Path(path)
         if not self.path.is_file():
             raise InputError(self.path, None, "an ONNX model file",
-                             "a folder" if self.path.is_dir() else "no such file")
+                             "a folder" if self.path.is_dir() else "no such file",
+                             "a folder of predicted disparities goes to --predictions" if self.path.is_dir()
+                             else "check the path")
         self.conv = convention or InputConvention()
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
         try:
@@ -219,7 +222,9 @@ class TorchScriptModel:
         path = Path(path)
         if not path.is_file():
             raise InputError(path, None, "a TorchScript (.pt) or torch.export (.pt2) file",
-                             "a folder" if path.is_dir() else "no such file")
+                             "a folder" if path.is_dir() else "no such file",
+                             "a folder of predicted disparities goes to --predictions" if path.is_dir()
+                             else "check the path")
         try:
             if path.suffix == ".pt2":
                 self.model = torch.export.load(str(path)).module().to(self.device)
@@ -312,9 +317,17 @@ class PredictionFolder:
             d = read_kitti_disparity(p)
         else:
             try:
-                d = np.load(p, allow_pickle=False).astype(np.float32)
+                d = np.load(p, allow_pickle=False)
+                kind = d.dtype.kind
+                d = d.astype(np.float32)
             except Exception as exc:
-                raise InputError(p, None, "a readable .npy array", type(exc).__name__) from None
+                raise InputError(p, None, "a readable .npy array of disparities (float, px)",
+                                 f"{type(exc).__name__}: {_first_words(exc, 80)}",
+                                 "save the network's output with np.save(path, disparity.astype(np.float32))") from None
+            if kind != "f":  # whole-pixel disparities: scored as they are, their rounding counted as error
+                logging.getLogger("gtforge.evaluate").warning(
+                    "%s holds integer disparities (no sub-pixel part): scored as whole pixels; a network's output is "
+                    "saved as float32", p)
             d = np.squeeze(d)
             d[~np.isfinite(d) | (d <= 0)] = np.nan
         if d.shape != left.shape[:2]:

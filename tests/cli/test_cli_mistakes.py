@@ -379,6 +379,9 @@ def test_option_mistakes_say_what_to_give(dataset, tmp_path):
               "(hint: evaluate scores one model a run"),
              (("evaluate", dataset[0], "--sgbm", "--fit", "resize", "--resize", "544", "-o", tmp_path / "e"),
               "(hint: write both sides, e.g. --resize 1088x376)")]
+    if __import__("importlib").util.find_spec("onnxruntime"):
+        cases.append((("evaluate", dataset[0], "--onnx", tmp_path, "-o", tmp_path / "e"),
+                       "got a folder (hint: a folder of predicted disparities goes to --predictions)"))
     for args, needle in cases:
         r = gtforge(*args)
         assert r.returncode == 2 and one_line_error(r) and needle in r.stderr, (args, r.stderr)

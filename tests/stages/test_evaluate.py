@@ -509,3 +509,24 @@ def test_a_file_that_is_no_model_is_one_line_with_a_hint(dataset, tmp_path):
     assert _first_words(ValueError("word " * 60)).endswith("word ...") and len(_first_words(ValueError("x " * 90))) \
         <= 164
     assert _first_words(ValueError("short\nsecond line")) == "short"
+
+
+def test_prediction_arrays_that_are_not_float_are_said_so(dataset, tmp_path, caplog):
+    """An .npy of strings said only "got ValueError"; one of integers was scored without a word (a run-through)."""
+    import logging
+
+    from gtforge.predictors import PredictionFolder
+
+    ds = dataset[0]
+    ids = sorted(d.name for d in (ds / "scenes").iterdir() if d.is_dir())
+    gt = read_pfm(ds / "scenes" / ids[0] / "disp0GT.pfm")
+    p = tmp_path / "p"
+    p.mkdir()
+    np.save(p / f"{ids[0]}.npy", np.nan_to_num(gt).round().astype(np.int32))
+    np.save(p / f"{ids[1]}.npy", np.array(["a", "b"]))
+    folder = PredictionFolder(p)
+    with caplog.at_level(logging.WARNING, logger="gtforge"):
+        d = folder.predict(ids[0], np.zeros(gt.shape + (3,), np.uint8), None)
+    assert d.dtype == np.float32 and any("integer disparities" in r.getMessage() for r in caplog.records)
+    with pytest.raises(InputError, match=r"float, px\), got ValueError: could not convert string to float.*np\.save"):
+        folder.predict(ids[1], np.zeros(gt.shape + (3,), np.uint8), None)
