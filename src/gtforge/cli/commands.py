@@ -35,9 +35,12 @@ out = Console(soft_wrap=True, highlight=False, markup=False)
 
 def _setup_logging(verbose: bool) -> None:
     if console.is_terminal:
+        from rich.highlighter import NullHighlighter
         from rich.logging import RichHandler
 
-        handler: logging.Handler = RichHandler(console=console, show_time=False, show_path=False)
+        # (no highlighter: Rich's default coloured digits, parentheses and <id> in the middle of a message)
+        handler: logging.Handler = RichHandler(console=console, show_time=False, show_path=False,
+                                               highlighter=NullHighlighter())
         fmt = "%(message)s"
     else:  # logs and pipes: one plain line per message
         handler, fmt = logging.StreamHandler(sys.stderr), "%(levelname)s: %(message)s"
