@@ -25,7 +25,7 @@ from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.middlebury import SceneCalib
-from gtforge.io.outputs import require_new_or_empty_folder
+from gtforge.io.outputs import DATASET_FOLDERS, require_new_or_empty_folder
 from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
 from gtforge.records.evaluation import (
     DEPTH_ERROR_MAP_PERCENTILE,
@@ -70,10 +70,9 @@ def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
     return sorted(p.name for p in sc.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verification", "report")  # build-dataset's
 
 
-RESULT_TABLES = ("results.json", "results.md", "results.csv", "results.html")
+RESULT_TABLES = ("results.json", "results.md", "results.csv", "results.html", "fruit_size.csv")  # one model's
 # the mark of an evaluation's folder whose tables were withdrawn and not yet written again (a stopped rewrite)
 INCOMPLETE_MARK = ".evaluation-incomplete"
 

@@ -416,6 +416,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     try:
         rgbd, stereo = opened.rgbd, opened.stereo
         sources = _sources(paths)
+        finished: list[str] = []  # an earlier import's landing finished first, as a warning says
         if add and exists:
             record = session / "import.json"
             landing = _partial_folder(session) / LANDING
@@ -425,6 +426,9 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                 if [f.blake3 for f in done.sources] == [f.blake3 for f in sources]:  # this very import: it is done
                     return _summary(session, done, ["an earlier run of this import was cut off while its captures "
                                                     "landed: finished now"])
+                finished.append(f"an earlier import --add ({', '.join(Path(f.path).name for f in done.sources)}) "
+                                "was cut off while its captures landed: finished first "
+                                f"({', '.join(p.capture for p in done.pairs)})")
             earlier = ImportRecord.read(record).runs if record.is_file() else []
             check_same_rig(session, rgbd, stereo, earlier)
             check_not_imported(sources, earlier)
@@ -475,7 +479,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         streams = {"depth": rgbd.depth.name, "texture": rgbd.texture.name}
         if stereo is not None:
             streams.update(left=stereo.left.name, right=stereo.right.name)
-        warnings = rgbd.warnings + (stereo.warnings if stereo is not None else [
+        warnings = finished + rgbd.warnings + (stereo.warnings if stereo is not None else [
             "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
             "need; import the depth and the stereo recordings together for a complete session"])
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),

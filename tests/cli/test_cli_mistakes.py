@@ -386,3 +386,25 @@ def test_option_mistakes_say_what_to_give(dataset, tmp_path):
         r = gtforge(*args)
         assert r.returncode == 2 and one_line_error(r) and needle in r.stderr, (args, r.stderr)
     assert not (tmp_path / "e").exists()
+
+
+def test_outputs_inside_a_datasets_own_folders_are_refused_and_beside_the_session_accepted(session_dir,
+                                                                                          true_calibration, dataset,
+                                                                                          tmp_path):
+    """A second run-through: validate and calibrate wrote into a dataset's views/ and scenes/ (evaluate refused
+    them); -o at the session itself named one of its capture folders; a folder that holds the session (the demo's
+    layout) is a place for a calibration file."""
+    before = tree_digest(dataset[0])
+    cases = [(("validate", session_dir, "-c", true_calibration, "-o", dataset[0] / "views" / "val"),
+              "got a path inside the dataset's views/"),
+             (("calibrate", session_dir, "--no-loo", "-o", dataset[0] / "scenes" / "000" / "c.yaml"),
+              "got a path inside the dataset's scenes/"),
+             (("validate", session_dir, "-c", true_calibration, "-o", session_dir), "got the session folder itself")]
+    for args, needle in cases:
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r) and needle in r.stderr, (args[0], r.stderr)
+    assert tree_digest(dataset[0]) == before
+    holder = tmp_path / "lab"
+    shutil.copytree(session_dir, holder / "session")
+    r = gtforge("calibrate-scale", holder / "session", "-c", true_calibration, "-o", holder)
+    assert r.returncode == 0 and (holder / "scaled.yaml").is_file(), r.stderr

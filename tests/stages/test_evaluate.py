@@ -438,7 +438,7 @@ def test_an_evaluation_stopped_over_an_earlier_one_leaves_no_tables_of_the_other
     ds, _ = dataset
     out = tmp_path / "ev"
     evaluate(ds, SGBM(), out)
-    assert (out / "results.json").is_file()
+    assert (out / "results.json").is_file() and (out / "fruit_size.csv").is_file()
 
     class StopsAtTheSecondScene(SGBM):
         def __init__(self):
@@ -454,6 +454,7 @@ def test_an_evaluation_stopped_over_an_earlier_one_leaves_no_tables_of_the_other
     with pytest.raises(KeyboardInterrupt):
         evaluate(ds, StopsAtTheSecondScene(), out)
     assert not [p.name for p in out.iterdir() if p.name.startswith("results.")]
+    assert not (out / "fruit_size.csv").exists()  # one model's table too (a second run-through)
     assert len(list((out / "heatmaps").glob("*_disp_error.png"))) >= 1  # the new model's first scene, whole
     assert (out / ".evaluation-incomplete").is_file()  # the folder stays one evaluate may write again
     rep = evaluate(ds, SGBM(block_size=7, name="SGBM-7"), out)  # the same command again: a whole evaluation

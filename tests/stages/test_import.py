@@ -502,6 +502,40 @@ def test_an_add_cut_off_while_its_captures_land_is_finished_by_the_next_import(h
         import_recordings(*args, add=True)
 
 
+def test_a_cut_off_landing_is_finished_and_said_when_another_import_adds(hand, recs, tmp_path, monkeypatch):
+    """The next import --add of other recordings finishes the cut-off landing first and says so in its warnings (it
+    was silent, its table counting only its own captures; a run-through)."""
+    import gtforge.importer as importer
+
+    out = tmp_path / "s"
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, ImportParams(clock_offset_ms=recs.clock_offset_ms,
+                                                                           max_captures=1))
+    more = write_ros2_recordings(hand, tmp_path / "more", captures=["board/001", "scenes/000"], seed=1)
+    other = write_ros2_recordings(hand, tmp_path / "other", captures=["scenes/001"], seed=2)
+    real_replace, moved = os.replace, []
+
+    def replace_then_crash(src, dst):
+        if Path(dst).parent.parent == out:
+            if moved:
+                raise _Crash
+            moved.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(importer.os, "replace", replace_then_crash)
+    with pytest.raises(_Crash):
+        import_recordings([more.rgbd_bag, more.stereo_bag], out, ImportParams(clock_offset_ms=more.clock_offset_ms),
+                          add=True)
+    monkeypatch.setattr(importer.os, "replace", real_replace)
+    s = import_recordings([other.rgbd_bag, other.stereo_bag], out,
+                          ImportParams(clock_offset_ms=other.clock_offset_ms), add=True)
+    assert s.captures == ["scenes/001"]
+    note = [w for w in s.warnings if "cut off while its captures landed: finished first" in w]
+    assert len(note) == 1 and "(board/001, scenes/000)" in note[0], s.warnings
+    runs = ImportRecord.read(out / "import.json").runs
+    assert [r.capture for run in runs for r in run.pairs] == ["board/000", "board/001", "scenes/000", "scenes/001"]
+    assert not (tmp_path / ".s.import-partial").exists()
+
+
 def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     recs = write_ros2_recordings(hand, tmp_path / "rec", zed_export=True, motion_frames=3, seed=2)
     assert (recs.stereo_bag / "left000000.png").is_file()

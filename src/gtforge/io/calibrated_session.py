@@ -10,7 +10,7 @@ from gtforge.core.camera import Rig
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.captures import Session, open_session
-from gtforge.io.outputs import require_output_file
+from gtforge.io.outputs import free_path, require_output_file
 
 
 def open_with_calibration(session_dir: str | Path, calib: Any, right_yaw: bool = True) -> Session:
@@ -86,12 +86,14 @@ def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str
     session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
-        session.refuse_output_over_inputs(out_path)  # (first: a session's file is named as such)
+        if not Path(out_path).is_dir():  # (first: a session's file is named as such)
+            session.refuse_output_over_inputs(out_path)
         out_path = calibration_output_path(out_path, example_name)
         session.refuse_output_over_inputs(out_path)
         if Path(out_path).resolve() == calib_path.resolve():
             raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
-                             "the input calibration", f"write the new calibration beside it, e.g. {example_name}")
+                             "the input calibration", "write the new calibration beside it, e.g. "
+                             f"{free_path(Path(out_path).parent, example_name)}")
     return session, out_path
 
 
@@ -105,8 +107,8 @@ def calibration_output_path(out_path: str | Path, name: str = "calibration.yaml"
     p = require_output_file(p, "--output")  # (before any work: a read-only folder is not found by the write)
     if p.is_file() and not _is_calibration_file(p):
         raise InputError(p, "--output", "a new file, or a gtforge calibration to replace", "an existing file that is "
-                         "not a gtforge calibration (it would be lost)", "give a new file name, e.g. "
-                         f"{p.with_name(name)}" if p.name != name else "give a new file name")
+                         "not a gtforge calibration (it would be lost)",
+                         f"give a new file name, e.g. {free_path(p.parent, name)}")
     return p
 
 

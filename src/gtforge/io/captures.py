@@ -27,7 +27,7 @@ from gtforge.infra.digest import blake3_hex
 from gtforge.infra.unbuffered import AlignedBuffer, aligned_buffer
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.formats import PNG_SIGNATURE, read_image
-from gtforge.io.outputs import gtforge_folder_kind
+from gtforge.io.outputs import free_path, gtforge_folder_kind
 from gtforge.io.vendors import load_structured_light_cameras
 
 DEPTH_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
@@ -374,11 +374,12 @@ class Session:
                                  "e.g. -o calib.yaml")
         for root in {Path(os.path.abspath(self.root)), Path(os.path.realpath(self.root))}:
             for o in {out_abs, out_real}:
-                if root in o.parents:
+                if o == root or root in o.parents:
                     raise InputError(out, option, "a path outside the session folder (its captures and files are never "
                                      "written, nor anything put beside them)",
-                                     f"a path inside {root}", "write the output beside the session, e.g. -o "
-                                     f"{root.parent / ('out' if o.suffix == '' else 'out' + o.suffix)}")
+                                     "the session folder itself" if o == root else f"a path inside {root}",
+                                     f"write the output beside the session, e.g. {option} "
+                                     f"{free_path(root.parent, o.name if o != root else 'out')}")
         protected: list[Path] = []
         for croot in self.capture_roots():
             if croot.is_dir():

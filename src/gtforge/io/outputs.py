@@ -31,12 +31,42 @@ def refuse_gtforge_folder(path: str | Path, option: str = "--output") -> None:
                          kind, "give a new folder, e.g. beside it")
 
 
+# the folders build-dataset writes inside a dataset (its scenes and the layouts training code reads)
+DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verification", "report")
+
+
+def refuse_inside_dataset_folders(path: str | Path, option: str = "--output") -> None:
+    """No stage's output inside the folders build-dataset writes in a dataset (any dataset above ``path``, a run's
+    ``dataset/`` too): its files would sit among the scenes and layouts that training code reads. A new folder
+    beside them (``DATASET/evaluation``) is fine."""
+    p = Path(os.path.abspath(path))
+    for a in p.parents:
+        if (a / "manifest.json").is_file():
+            first = p.relative_to(a).parts[0]
+            if first in DATASET_FOLDERS:
+                raise InputError(path, option, "a path outside the folders build-dataset writes",
+                                 f"a path inside the dataset's {first}/ ({a})",
+                                 "a dataset's scenes and layouts are its own; write beside them, e.g. "
+                                 f"{a / 'evaluation'}")
+
+
+def free_path(folder: str | Path, name: str) -> Path:
+    """``folder/name``, or where that is taken ``folder/<stem>-2<suffix>``, ``-3`` ...: a name a hint may suggest."""
+    p = Path(folder) / name
+    k = 2
+    while p.exists() or p.is_symlink():
+        p = p.with_name(f"{Path(name).stem}-{k}{Path(name).suffix}")
+        k += 1
+    return p
+
+
 def require_output_folder(path: str | Path, option: str = "--output") -> Path:
     """``path`` is an existing folder or does not exist yet (it is then created by the stage), and this user can
     write there; a file is refused. Checked before a stage's work, not found when it writes."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise InputError(p, option, "a folder (new or existing)", "a file", "give a folder path for the outputs")
+    refuse_inside_dataset_folders(p, option)
     _require_writable_parents(p, option)
     return p
 
@@ -47,6 +77,7 @@ def require_output_file(path: str | Path, option: str = "--output") -> Path:
     p = Path(path)
     if p.is_dir():
         raise InputError(p, option, "a file path", "a folder", "give the output file's name, e.g. FOLDER/out.yaml")
+    refuse_inside_dataset_folders(p, option)
     _require_writable_parents(p, option)
     return p
 
