@@ -192,7 +192,7 @@ def test_run_refuses_its_session_as_output_and_leaves_no_folder_on_bad_input(tmp
     before = sorted(p.relative_to(sess) for p in sess.rglob("*"))
     r = gtforge("run", sess, "-o", sess)  # the session's root holds its capture folders
     assert r.returncode == 2 and one_line_error(r), r.stderr
-    assert "outside the session's capture folders" in r.stderr and f"containing {sess / 'board'}" in r.stderr
+    assert "expected a path outside the session folder" in r.stderr and "got the session folder itself" in r.stderr
     assert sorted(p.relative_to(sess) for p in sess.rglob("*")) == before  # nothing written into it
     r = gtforge("run", sess, "--calibration-scenes", "999", "-o", tmp_path / "out")
     assert r.returncode == 2 and one_line_error(r), r.stderr
