@@ -377,12 +377,15 @@ def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray,
 
 
 def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, list[str]]:
-    """Several ``results.json`` side by side (``comparison.md``/``.csv``/``.html``).
+    """Several ``results.json`` (or the evaluation folders holding them) side by side (``comparison.md``/``.csv``/
+    ``.html``).
 
     Returns the Markdown table and the warnings: results from different datasets, scene sets or scoring
     limits, and model names used by more than one result (their rows are then labelled with the folder)."""
 
-    files = [Path(p) for p in result_files]
+    # an evaluation's folder stands for its results.json (what evaluate's -o named)
+    files = [Path(p) / "results.json" if Path(p).is_dir() and (Path(p) / "results.json").is_file() else Path(p)
+             for p in result_files]
     seen: dict[str, Path] = {}
     for f in files:
         key = os.path.realpath(f)

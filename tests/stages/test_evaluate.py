@@ -193,8 +193,12 @@ def test_evaluation_folder_of_its_own_and_rewritten_whole(dataset, tmp_path):
     with pytest.raises(InputError, match=r"\[--output\]: expected a new or empty folder \(or one with "
                                          r"comparison\.md\)"):
         compare([ev / "results.json"], ev)
+    # an evaluation's folder stands for its results.json (a run-through: the folder evaluate's -o named was refused)
+    table, _ = compare([ev], tmp_path / "cmp")
+    assert table == compare([ev / "results.json"], tmp_path / "cmp")[0]
+    (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match=r"expected an evaluation result \(results\.json"):
-        compare([ev], tmp_path / "cmp")
+        compare([tmp_path / "empty"], tmp_path / "cmp2")
 
 
 @pytest.mark.slow

@@ -649,7 +649,8 @@ def _input_convention(channels: str, normalize: str, fit: str, resize: Optional[
 
 
 @app.command()
-def compare(results: List[Path] = typer.Argument(..., help="results.json files from gtforge evaluate."),
+def compare(results: List[Path] = typer.Argument(..., help="results.json files from gtforge evaluate (or the "
+                                                         "folders holding them)."),
             output: Path = typer.Option(Path("comparison"), "--output", "-o", metavar="DIR",
                                         help="Folder for comparison.md/.csv/.html.")) -> None:
     """Put several evaluated models side by side in one table (warns when they are not comparable)."""
