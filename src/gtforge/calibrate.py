@@ -278,10 +278,7 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     check_board_model(params.board)
     board = params.board.spec()
     if out_path is not None:
-        if not Path(out_path).is_dir():  # (first: a session's file is named as such)
-            session.refuse_output_over_inputs(out_path)
-        out_path = calibration_output_path(out_path)
-        session.refuse_output_over_inputs(out_path)
+        out_path = calibration_output_path(out_path, session=session)
     dirs = session.select("board", captures, exclude)
 
     # raw ZED images + SN.conf: the conf reading comes from the board images (re-opens the session with it)

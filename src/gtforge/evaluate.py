@@ -25,7 +25,7 @@ from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.middlebury import SceneCalib
-from gtforge.io.outputs import DATASET_FOLDERS, require_new_or_empty_folder
+from gtforge.io.outputs import require_new_or_empty_folder
 from gtforge.predictors import PREDICTION_NAMES, Predictor, timed_predict
 from gtforge.records.evaluation import (
     DEPTH_ERROR_MAP_PERCENTILE,
@@ -70,8 +70,6 @@ def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
     return sorted(p.name for p in sc.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
-
-
 RESULT_TABLES = ("results.json", "results.md", "results.csv", "results.html", "fruit_size.csv")  # one model's
 # the mark of an evaluation's folder whose tables were withdrawn and not yet written again (a stopped rewrite)
 INCOMPLETE_MARK = ".evaluation-incomplete"
@@ -85,27 +83,30 @@ def _withdraw_tables(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
 
 
-def _warn_of_quarantined(ds: Path, ids: list[str]) -> None:
-    """Scenes verify quarantined (its labels suspect) are scored like the others when asked for: said once."""
+def _manifest_fields(ds: Path) -> dict:
+    """manifest.json as a mapping, for the checks that read a field of it ({} where it cannot be read as one)."""
     try:
-        quarantined = set(json.loads((ds / "manifest.json").read_text()).get("quarantined") or [])
-    except (OSError, ValueError, AttributeError):
-        return
-    hit = sorted(quarantined & set(ids))
+        man = json.loads((ds / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return man if isinstance(man, dict) else {}
+
+
+def _warn_of_quarantined(man: dict, ids: list[str]) -> None:
+    """Scenes verify quarantined (its labels suspect) are scored like the others when asked for: said once."""
+    quarantined = man.get("quarantined")
+    hit = sorted(set(quarantined if isinstance(quarantined, list) else []) & set(ids))
     if hit:
         log.warning("scoring %d scene(s) that verify quarantined (their ground truth is suspect): %s; a split "
                     "(--split train|val|test) leaves them out", len(hit), ", ".join(hit[:8]) + (", ..." if
                                                                                                 len(hit) > 8 else ""))
 
 
-def _refuse_output_in_session(out: Path, ds: Path) -> None:
+def _refuse_output_in_session(out: Path, man: dict) -> None:
     """No output inside the session the dataset was built from (manifest.json's ``session_dir``): no stage writes
     into a capture session."""
-    try:
-        session = json.loads((ds / "manifest.json").read_text())["session_dir"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return
-    if not session:
+    session = man.get("session_dir")
+    if not isinstance(session, str) or not session:
         return
     o, root = Path(os.path.realpath(out)), Path(os.path.realpath(session))
     if o == root or root in o.parents:
@@ -115,15 +116,12 @@ def _refuse_output_in_session(out: Path, ds: Path) -> None:
 
 
 def _refuse_output_in_dataset(out: Path, ds: Path) -> None:
-    """Results go to a folder of their own: not the dataset folder itself nor any folder build-dataset writes
-    (a new subfolder of the dataset, e.g. DATASET/evaluation, is fine)."""
-    o = Path(os.path.realpath(out))
-    d = Path(os.path.realpath(ds))
-    inside = [f for f in DATASET_FOLDERS if o == d / f or (d / f) in o.parents]
-    if o == d or inside:
+    """Results go to a folder of their own: not the dataset folder itself (inside the folders build-dataset writes:
+    ``outputs.refuse_inside_dataset_folders``, every stage's check; a new subfolder such as DATASET/evaluation is
+    fine)."""
+    if Path(os.path.realpath(out)) == Path(os.path.realpath(ds)):
         raise InputError(out, "--output", "a folder of its own (for example DATASET/evaluation or ./evaluation)",
-                         "the dataset folder itself" if o == d else f"a path inside the dataset's {inside[0]}/",
-                         "evaluate never writes into the dataset's own folders")
+                         "the dataset folder itself", "evaluate never writes into the dataset's own folders")
 
 
 def _empty_split_hint(dataset_dir: Path, split: str) -> str:
@@ -176,7 +174,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     ids = list_scenes(ds, split)
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none")
-    _warn_of_quarantined(ds, ids)
+    man = _manifest_fields(ds)
+    _warn_of_quarantined(man, ids)
     if max_disp_px is not None and not max_disp_px > 0:
         raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:
@@ -194,7 +193,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                                  "the --predictions folder" + ("" if o == f else " (a folder inside it)"),
                                  "give a new folder for the results")
         _refuse_output_in_dataset(Path(out_dir), ds)
-        _refuse_output_in_session(Path(out_dir), ds)
+        _refuse_output_in_session(Path(out_dir), man)
         out = require_new_or_empty_folder(out_dir, "--output", "give a new folder for the results (an earlier "
                                           "evaluation's folder is rewritten)",
                                           reusable_if=("results.json", INCOMPLETE_MARK))

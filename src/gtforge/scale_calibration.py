@@ -315,16 +315,17 @@ def _cluster_ls(J: np.ndarray, r: np.ndarray, clusters: np.ndarray, K: list[np.n
         return x, C
     # each residual's own scatter: what is left once each pose's own motion (K's columns) is fitted out of its
     # residuals (else the poses' errors, carried through K below, would be counted twice)
-    within, dof = 0.0, len(e) - J.shape[1]
-    for c, Kc in zip(ids, K):
-        ec = e[clusters == c]
-        beta, _, rank, _ = np.linalg.lstsq(Kc, ec, rcond=None)
-        within += float(np.sum((ec - Kc @ beta) ** 2))
-        dof -= rank
-    meat = within / max(dof, 1) * (J.T @ J)
+    within, dof, carried = 0.0, len(e) - J.shape[1], []
     for c, Kc, Pc in zip(ids, K, pose_covs):
-        M = J[clusters == c].T @ Kc
-        meat += M @ Pc @ M.T
+        sel = clusters == c
+        beta, _, rank, _ = np.linalg.lstsq(Kc, e[sel], rcond=None)
+        within += float(np.sum((e[sel] - Kc @ beta) ** 2))
+        dof -= rank
+        M = J[sel].T @ Kc
+        carried.append(M @ Pc @ M.T)
+    meat = within / max(dof, 1) * (J.T @ J)
+    for term in carried:  # (added in this order: the same sum, bit for bit, as when each was added in turn)
+        meat += term
     return x, _psd_max(Hi @ meat @ Hi, C)
 
 

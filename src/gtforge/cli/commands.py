@@ -197,11 +197,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     from gtforge.io.outputs import require_output_folder
 
     opened = open_session(session)
-    if not Path(output).is_dir():  # (first: a session's file is named as such)
-        opened.refuse_output_over_inputs(output)
-    output = calibration_output_path(output)
+    output = calibration_output_path(output, session=opened)
     report_dir = report_dir or output.parent / (output.stem + "_report")
-    opened.refuse_output_over_inputs(output)
     opened.refuse_output_over_inputs(report_dir, "--report-dir")
     require_output_folder(report_dir, "--report-dir")
     res = run(session, None, params, captures.split(",") if captures else None, progress=_status)

@@ -86,10 +86,7 @@ def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str
     session = open_with_calibration(session_dir, calib)
     check_rig_matches_session(calib.rig, session, calib_path)
     if out_path is not None:
-        if not Path(out_path).is_dir():  # (first: a session's file is named as such)
-            session.refuse_output_over_inputs(out_path)
-        out_path = calibration_output_path(out_path, example_name)
-        session.refuse_output_over_inputs(out_path)
+        out_path = calibration_output_path(out_path, example_name, session)
         if Path(out_path).resolve() == calib_path.resolve():
             raise InputError(out_path, "--output", "a new file (the input calibration stays as it is)",
                              "the input calibration", "write the new calibration beside it, e.g. "
@@ -97,13 +94,18 @@ def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str
     return session, out_path
 
 
-def calibration_output_path(out_path: str | Path, name: str = "calibration.yaml") -> Path:
+def calibration_output_path(out_path: str | Path, name: str = "calibration.yaml", session: Session | None = None
+                            ) -> Path:
     """``-o DIR/`` or an existing folder means ``DIR/name`` (each stage its own name: a refinement written into
-    calibrate's folder never replaces calibrate's file). An existing file there is replaced only when it is a gtforge
-    calibration (an earlier run's); any other file (a report, a session's YAML, a user's notes) is refused."""
+    calibrate's folder never replaces calibrate's file). With ``session``: a path its inputs or folder hold is refused
+    first (``Session.refuse_output_over_inputs``: a session's own file named as such). An existing file there is
+    replaced only when it is a gtforge calibration (an earlier run's); any other file (a report, a user's notes) is
+    refused."""
     p = Path(out_path)
     if p.is_dir() or str(out_path).endswith(("/", "\\")):
         p = p / name
+    if session is not None:
+        session.refuse_output_over_inputs(p)
     p = require_output_file(p, "--output")  # (before any work: a read-only folder is not found by the write)
     if p.is_file() and not _is_calibration_file(p):
         raise InputError(p, "--output", "a new file, or a gtforge calibration to replace", "an existing file that is "

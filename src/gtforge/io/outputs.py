@@ -38,16 +38,16 @@ DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verificati
 def refuse_inside_dataset_folders(path: str | Path, option: str = "--output") -> None:
     """No stage's output inside the folders build-dataset writes in a dataset (any dataset above ``path``, a run's
     ``dataset/`` too): its files would sit among the scenes and layouts that training code reads. A new folder
-    beside them (``DATASET/evaluation``) is fine."""
-    p = Path(os.path.abspath(path))
-    for a in p.parents:
-        if (a / "manifest.json").is_file():
-            first = p.relative_to(a).parts[0]
-            if first in DATASET_FOLDERS:
-                raise InputError(path, option, "a path outside the folders build-dataset writes",
-                                 f"a path inside the dataset's {first}/ ({a})",
-                                 "a dataset's scenes and layouts are its own; write beside them, e.g. "
-                                 f"{a / 'evaluation'}")
+    beside them (``DATASET/evaluation``) is fine. Under any spelling of the path (relative, ``..``, symbolic links)."""
+    for p in {Path(os.path.abspath(path)), Path(os.path.realpath(path))}:
+        for a in p.parents:
+            if (a / "manifest.json").is_file():
+                first = p.relative_to(a).parts[0]
+                if first in DATASET_FOLDERS:
+                    raise InputError(path, option, "a path outside the folders build-dataset writes",
+                                     f"a path inside the dataset's {first}/ ({a})",
+                                     "a dataset's scenes and layouts are its own; write beside them, e.g. "
+                                     f"{a / 'evaluation'}")
 
 
 def free_path(folder: str | Path, name: str) -> Path:
