@@ -10,7 +10,7 @@ sigma (68 / 95 % for a Gaussian).
 Renders are kept in WORKDIR and reused.
 
     python benchmarks/bench_scale_coverage.py [--sessions 12] [--scale 0.3] [--boards 5] [--scenes 3]
-        [--workdir /tmp/gtforge_bench_scale_coverage]
+        [--image-noise 1] [--workdir /tmp/gtforge_bench_scale_coverage]
 """
 from __future__ import annotations
 
@@ -36,18 +36,21 @@ def main() -> None:
     ap.add_argument("--boards", type=int, default=5)
     ap.add_argument("--scenes", type=int, default=3)
     ap.add_argument("--supersample", type=int, default=2)
+    ap.add_argument("--image-noise", type=float, default=1.0, help="grey levels (0: noise-free images)")
     ap.add_argument("--workdir", default="/tmp/gtforge_bench_scale_coverage")
     a = ap.parse_args()
     work = Path(a.workdir)
     work.mkdir(parents=True, exist_ok=True)
     z: dict[str, list[float]] = {k: [] for k in TRUTH}
     for seed in range(a.sessions):
-        sess = work / f"seed{seed:02d}_{a.scale:g}_{a.boards}_{a.scenes}_{a.supersample}"
+        sess = work / (f"seed{seed:02d}_{a.scale:g}_{a.boards}_{a.scenes}_{a.supersample}"
+                       + ("" if a.image_noise == 1.0 else f"_noise{a.image_noise:g}"))
         if not (sess / "done").exists():
             shutil.rmtree(sess, ignore_errors=True)
             t = time.perf_counter()
             generate_session(sess, n_board=a.boards, n_scenes=a.scenes, scale=a.scale, seed=100 + seed,
-                             depth_noise_mm=0.03, image_noise=1.0, supersample=a.supersample, **CASES["combined"])
+                             depth_noise_mm=0.03, image_noise=a.image_noise, supersample=a.supersample,
+                             **CASES["combined"])
             (sess / "done").write_text("")
             print(f"rendered seed {seed} in {time.perf_counter() - t:.0f} s", flush=True)
         start = known_calibration(sess)

@@ -6,10 +6,17 @@ Printed per session and measurement: the estimate's error over its 1-sigma (z); 
 of z over the sessions (1 for a calibrated covariance) and the mean z (a bias shows as a mean away from 0).
 
     python benchmarks/diag_scale_sources.py [--workdir /tmp/gtforge_bench_scale_coverage] [--glob 'seed*_0.5_*']
+        [--exact-labels]
+
+``--exact-labels``: the scenes solved a second time on the same pixels with labels from the generator's exact depth
+(read with the depth camera's scale and offset errors): a bias that stays comes from the images and their matching,
+not from the depth map or its reprojection. Each scene solve also prints its three errors' joint effect on a disparity
+at the scenes' median depth (px): the three are nearly collinear over a scene's depth range.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
 
@@ -33,6 +40,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--workdir", default="/tmp/gtforge_bench_scale_coverage")
     ap.add_argument("--glob", default="seed*")
+    ap.add_argument("--exact-labels", action="store_true",
+                    help="also solve the scenes with the generator's exact labels at the same pixels")
     a = ap.parse_args()
     zs: dict[str, list[float]] = {}
     params = ScaleParams()
@@ -52,27 +61,44 @@ def main() -> None:
                 z = (yv - TRUTH[term]) / sv
                 zs.setdefault(f"{kind} {NAMES[term]}", []).append(z)
                 line.append(f"{kind} {NAMES[term]} z {z:+.2f}")
-        pix = []
+        pix, exact = [], []
+        fb = rig.zed.f_px * rig.zed.baseline_mm
         for d in session.select("scenes", None):
             cap = session.load_capture(d)
             sd, _, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
             sp = scene_pixels(d.name, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right,
                               params, rig)
-            if sp is not None:
-                pix.append(sp)
-        theta, C_s, _ = solve_scenes(pix, rig, params, 0.0)
+            if sp is None:
+                continue
+            pix.append(sp)
+            # the same pixels labelled from the generator's exact depth, read as the depth camera would (its scale
+            # and offset errors), without the depth map's noise or the reprojection: what the images alone give
+            z_read = (1 + TRUTH[IK]) * np.load(sess / "truth" / f"scene_{d.name}.npz")["zed_depth_mm"][sp.v, sp.u] \
+                + TRUTH[IC]
+            exact.append(dataclasses.replace(sp, d_gt=fb / z_read - rig.zed.doffs_px, z_mm=z_read))
         # the scenes measure b + k (with the depth offset's scale), c and yaw
-        truth_s = [TRUTH[IB] + TRUTH[IK], TRUTH[IC], TRUTH[IY]]
-        for i, name in enumerate(("b+k", "c", "yaw")):
-            z = (theta[i] - truth_s[i]) / math.sqrt(C_s[i, i])
-            zs.setdefault(f"scenes {name}", []).append(z)
-            line.append(f"scenes {name} z {z:+.2f}")
+        truth_s = np.array([TRUTH[IB] + TRUTH[IK], TRUTH[IC], TRUTH[IY]])
+        for label, sps in [("scenes", pix)] + ([("scenes, exact labels", exact)] if a.exact_labels else []):
+            theta, C_s, _ = solve_scenes(sps, rig, params, 0.0)
+            err = theta[:3] - truth_s
+            for i, name in enumerate(("b+k", "c", "yaw")):
+                z = err[i] / math.sqrt(C_s[i, i])
+                zs.setdefault(f"{label} {name}", []).append(z)
+                line.append(f"{label} {name} z {z:+.2f}")
+            # what the three errors together do to a disparity at the scenes' median depth, at the image's centre
+            z_med = float(np.median(np.concatenate([sp.z_mm for sp in sps])))
+            effect = err[0] * fb / z_med + err[1] * fb / z_med ** 2 - err[2] * rig.zed.f_px
+            zs.setdefault(f"{label}: px at the median depth", []).append(effect)
+            line.append(f"{label} {effect:+.4f} px at {z_med:.0f} mm")
         print("; ".join(line), flush=True)
     print()
     print("| measurement, term | sessions | RMS z | mean z |")
     print("|---|---|---|---|")
     for k, v in zs.items():
-        print(f"| {k} | {len(v)} | {math.sqrt(np.mean(np.square(v))):.2f} | {np.mean(v):+.2f} |")
+        if k.endswith("median depth"):
+            print(f"| {k} | {len(v)} | RMS {math.sqrt(np.mean(np.square(v))):.4f} | mean {np.mean(v):+.4f} |")
+        else:
+            print(f"| {k} | {len(v)} | {math.sqrt(np.mean(np.square(v))):.2f} | {np.mean(v):+.2f} |")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 flagged scenes out of the split lists. Nothing here changes the ground truth."""
 from __future__ import annotations
 
+import hashlib
 import logging
 from pathlib import Path
 from typing import Callable
@@ -13,7 +14,7 @@ from gtforge.dataset.motion_compensation import moved_fruit_of
 from gtforge.dataset.scene_verification import verify_scene, write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_split_views
 from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
-from gtforge.errors import InputError
+from gtforge.errors import InputError, Interrupted
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import prestart_pool, run_tasks
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
@@ -21,7 +22,13 @@ from gtforge.io.captures import read_depth
 from gtforge.io.formats import read_image, read_pfm
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.dataset import Manifest, SceneMeta
-from gtforge.records.verification import SceneVerification, VerificationResult, VerifyParams
+from gtforge.records.verification import (
+    SceneVerification,
+    VerificationResult,
+    VerifyJournal,
+    VerifyJournalEntry,
+    VerifyParams,
+)
 from gtforge.reports.verification import write_verification_report
 
 log = logging.getLogger("gtforge.verify")
@@ -59,8 +66,8 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
                          f"{calib} (no such file)", "restore it; verification needs the rig it was built with")
 
     cal = CalibrationFile.read(calib)
-    check_rig_matches_session(cal.rig, open_with_calibration(sess, cal), calib,
-                              f"is {sess} the session this dataset was built from?")
+    session = open_with_calibration(sess, cal)
+    check_rig_matches_session(cal.rig, session, calib, f"is {sess} the session this dataset was built from?")
     params = params or man.params.verify
     ids = sorted(scenes or man.scenes)
     unknown = [s for s in ids if s not in man.scenes]
@@ -80,22 +87,40 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
                 ids = sorted(man.scenes)
     # the calibration's digest: a worker reads the file once for all its scenes (worker_cache.cached_calibration)
     calib_sha = sha256_file(calib)
+    captures = session.root / session.config.scenes_dir
+    stamps = {sid: inputs_stamp(ds / "scenes" / sid, captures / sid) for sid in ids}
+    journal = ds / JOURNAL_FILE
+    results = taken_over(journal, params, calib_sha, sess, stamps)
+    if results and progress:
+        progress(f"{len(results)} scene(s) verified before an interruption, their files unchanged: kept ({journal})")
     args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json(), calib_sha)
-            for sid in ids]
-    results: dict[str, SceneVerification] = {}
+            for sid in ids if sid not in results]
 
     def handle(res):
         sid, ver = res
         results[sid] = SceneVerification.model_validate(ver)
         if progress:
-            progress(f"verified {sid} ({len(results)}/{len(args)}): {results[sid].status}")
+            progress(f"verified {sid} ({len(results)}/{len(ids)}): {results[sid].status}")
 
-    run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler,
-              heap_bytes=scene_heap_bytes(cal.rig.zed.left),
-              lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
-                                             .model_dump(mode="json")))
-    rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params, scenes={**old, **results})
+    try:
+        run_tasks(verify_one_scene, args, handle, workers=workers, scheduler=scheduler,
+                  heap_bytes=scene_heap_bytes(cal.rig.zed.left),
+                  lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
+                                                 .model_dump(mode="json")))
+    except BaseException as exc:  # Ctrl-C, a cluster lost, a bug: what was checked is kept for the next verify
+        if results:
+            VerifyJournal(params=params, calibration_sha256=calib_sha, session_dir=str(sess.resolve()),
+                          scenes={sid: VerifyJournalEntry(inputs_stamp=stamps[sid], verification=v)
+                                  for sid, v in results.items()}).write(journal)
+        if isinstance(exc, (KeyboardInterrupt, Interrupted)):
+            detail = f"{len(results)} of {len(ids)} scene(s) verified" + (f", kept in {journal}" if results else "")
+            raise Interrupted(f"interrupted: {detail}; rerun the same command to resume (it checks only the others)",
+                              detail) from None
+        raise
+    rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params,
+                             scenes={**old, **{sid: results[sid] for sid in ids}})
     write_verification_report(rep, ds)
+    journal.unlink(missing_ok=True)
     man.flagged = rep.flagged
     man.quarantined = sorted(rep.flagged) if quarantine else []
     man.splits = final_splits(sorted(man.scenes), {s: m.fruit_id for s, m in man.scenes.items()}, man.params,
@@ -104,6 +129,42 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     write_split_views(ds, man.splits, man.params)
     man.write(man_path)
     return rep
+
+
+JOURNAL_FILE = ".verify-partial.json"  # an interrupted verify's checked scenes (records.verification.VerifyJournal)
+
+
+def inputs_stamp(scene_dir: Path, capture_dir: Path) -> str:
+    """A digest of the name, size and modification time of every file in a built scene's folder and in the capture
+    it was built from: what a scene's check depends on besides the thresholds, calibration and session, which the
+    journal records once."""
+    entries = []
+    for folder in (scene_dir, capture_dir):
+        try:
+            for p in sorted(folder.iterdir()):
+                if p.is_file():
+                    st = p.stat()
+                    entries.append(f"{folder.name}/{p.name}:{st.st_size}:{st.st_mtime_ns}")
+        except FileNotFoundError:
+            entries.append(f"{folder}: missing")
+    return hashlib.sha256("\n".join(entries).encode()).hexdigest()
+
+
+def taken_over(journal: Path, params: VerifyParams, calib_sha: str, session_dir: Path,
+               stamps: dict[str, str]) -> dict[str, SceneVerification]:
+    """The scenes an interrupted verify checked (``journal``) that need no new check: the same thresholds,
+    calibration and session, and the scene's files (``stamps``) unchanged since. An unreadable journal is set aside
+    with a warning (every scene is then checked)."""
+    if not journal.is_file():
+        return {}
+    try:
+        j = VerifyJournal.read(journal)
+    except InputError as exc:
+        log.warning("%s is set aside (%s): every scene is checked", journal, exc)
+        return {}
+    if j.params != params or j.calibration_sha256 != calib_sha or j.session_dir != str(session_dir.resolve()):
+        return {}
+    return {sid: e.verification for sid, e in j.scenes.items() if stamps.get(sid) == e.inputs_stamp}
 
 
 DEPTH_FILE = "depth0.tiff"  # build-dataset's z-depth, float32 mm (docs/dataset-format.md)

@@ -470,3 +470,50 @@ def test_verify_gives_the_builds_figures_and_flags_a_depth_changed_after_it(data
     v2 = verify_dataset(out, VerifyParams(), scenes=["002"], workers=1).scenes["002"]
     assert v2.status == "flagged" and v2.reasons[-1].startswith("depth0.tiff is unreadable (")
     assert v2.reasons[-1].endswith("): checked on the disparity's depth") and v2.texture_all.dx_px is not None
+
+
+@pytest.mark.slow
+def test_an_interrupted_verify_resumes_with_the_scenes_it_had_checked(dataset, tmp_path):
+    """Ctrl-C keeps the scenes already checked (.verify-partial.json); the next verify checks only the others, and
+    again a kept scene whose files changed since; its report is the uninterrupted one's, and the journal goes."""
+    import os
+
+    from gtforge.errors import Interrupted
+    from gtforge.records.verification import VerifyJournal
+
+    out = tmp_path / "ds"
+    shutil.copytree(dataset[0], out)
+    ids = sorted(Manifest.read(out / "manifest.json").scenes)
+    assert len(ids) >= 3
+    whole = verify_dataset(out, VerifyParams(), workers=1).scenes
+    checked: list[str] = []
+
+    def stop_after_two(msg):
+        if msg.startswith("verified "):
+            checked.append(msg.split()[1])
+            if len(checked) == 2:
+                raise KeyboardInterrupt
+
+    with pytest.raises(Interrupted, match=rf"interrupted: 2 of {len(ids)} scene\(s\) verified, kept in "):
+        verify_dataset(out, VerifyParams(), workers=1, progress=stop_after_two)
+    journal = VerifyJournal.read(out / ".verify-partial.json")
+    assert sorted(journal.scenes) == sorted(checked) == ids[:2]
+    # a thresholds change takes nothing over
+    checked.clear()
+    with pytest.raises(Interrupted):
+        verify_dataset(out, VerifyParams(max_shift_px=0.9), workers=1, progress=stop_after_two)
+    assert checked == ids[:2]
+    # the record is now that run's (other thresholds): interrupted again with the first ones, then a kept scene's
+    # labels file changes (its time), so that it must be checked again
+    checked.clear()
+    with pytest.raises(Interrupted):
+        verify_dataset(out, VerifyParams(), workers=1, progress=stop_after_two)
+    st = (out / "scenes" / ids[0] / "disp0GT.pfm").stat()
+    os.utime(out / "scenes" / ids[0] / "disp0GT.pfm", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    said: list[str] = []
+    rep = verify_dataset(out, VerifyParams(), workers=1, progress=said.append)
+    assert said[0].startswith("1 scene(s) verified before an interruption, their files unchanged: kept")
+    assert [m.split()[1] for m in said[1:]] == [ids[0], *ids[2:]]
+    assert {s: v.model_dump() for s, v in rep.scenes.items()} == {s: v.model_dump() for s, v in whole.items()}
+    assert not (out / ".verify-partial.json").exists()
+    assert VerificationResult.read(out / "verification.json").scenes.keys() == whole.keys()

@@ -140,4 +140,23 @@ class VerificationResult(VersionedFile):
         return {s: v.reasons for s, v in self.scenes.items() if v.status == "flagged"}
 
 
+class VerifyJournalEntry(GTModel):
+    inputs_stamp: str  # the sizes and modification times of the files the scene was checked from (verify.inputs_stamp)
+    verification: SceneVerification
+
+
+class VerifyJournal(VersionedFile):
+    """``.verify-partial.json`` in a dataset: the scenes an interrupted ``gtforge verify`` had checked, which the next
+    verify with the same thresholds, calibration and session takes over for every scene whose files have not changed
+    since; removed once a verify completes."""
+
+    KIND: ClassVar[str] = "record of an interrupted verify (.verify-partial.json)"
+    SCHEMA_VERSION: ClassVar[int] = 1
+    schema_version: int = 1
+    params: VerifyParams
+    calibration_sha256: str
+    session_dir: str
+    scenes: dict[str, VerifyJournalEntry]
+
+
 MotionCompensation.model_rebuild()
