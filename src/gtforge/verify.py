@@ -120,7 +120,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params,
                              scenes={**old, **{sid: results[sid] for sid in ids}})
     write_verification_report(rep, ds)
-    journal.unlink(missing_ok=True)
+    _drop_from_journal(journal, ids)
     man.flagged = rep.flagged
     man.quarantined = sorted(rep.flagged) if quarantine else []
     man.splits = final_splits(sorted(man.scenes), {s: m.fruit_id for s, m in man.scenes.items()}, man.params,
@@ -165,6 +165,23 @@ def taken_over(journal: Path, params: VerifyParams, calib_sha: str, session_dir:
     if j.params != params or j.calibration_sha256 != calib_sha or j.session_dir != str(session_dir.resolve()):
         return {}
     return {sid: e.verification for sid, e in j.scenes.items() if stamps.get(sid) == e.inputs_stamp}
+
+
+def _drop_from_journal(journal: Path, ids: list[str]) -> None:
+    """After a verify's report: the scenes it now holds leave the journal (a ``--scenes`` run keeps the others for a
+    later verify); an empty or unreadable journal goes."""
+    if not journal.is_file():
+        return
+    try:
+        j = VerifyJournal.read(journal)
+    except InputError:
+        journal.unlink(missing_ok=True)
+        return
+    rest = {sid: e for sid, e in j.scenes.items() if sid not in ids}
+    if rest:
+        j.model_copy(update={"scenes": rest}).write(journal)
+    else:
+        journal.unlink(missing_ok=True)
 
 
 DEPTH_FILE = "depth0.tiff"  # build-dataset's z-depth, float32 mm (docs/dataset-format.md)

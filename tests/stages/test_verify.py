@@ -475,7 +475,8 @@ def test_verify_gives_the_builds_figures_and_flags_a_depth_changed_after_it(data
 @pytest.mark.slow
 def test_an_interrupted_verify_resumes_with_the_scenes_it_had_checked(dataset, tmp_path):
     """Ctrl-C keeps the scenes already checked (.verify-partial.json); the next verify checks only the others, and
-    again a kept scene whose files changed since; its report is the uninterrupted one's, and the journal goes."""
+    again a kept scene whose files changed since; its report is the uninterrupted one's, and the journal goes (a
+    verify of other scenes alone leaves it)."""
     import os
 
     from gtforge.errors import Interrupted
@@ -510,6 +511,8 @@ def test_an_interrupted_verify_resumes_with_the_scenes_it_had_checked(dataset, t
         verify_dataset(out, VerifyParams(), workers=1, progress=stop_after_two)
     st = (out / "scenes" / ids[0] / "disp0GT.pfm").stat()
     os.utime(out / "scenes" / ids[0] / "disp0GT.pfm", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    verify_dataset(out, VerifyParams(), scenes=[ids[-1]], workers=1)  # another scene alone: the record stays
+    assert sorted(VerifyJournal.read(out / ".verify-partial.json").scenes) == ids[:2]
     said: list[str] = []
     rep = verify_dataset(out, VerifyParams(), workers=1, progress=said.append)
     assert said[0].startswith("1 scene(s) verified before an interruption, their files unchanged: kept")
