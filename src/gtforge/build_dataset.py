@@ -30,7 +30,7 @@ from gtforge.dataset.layout import (
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
 from gtforge.dataset.scene_verification import write_verification_overlay
-from gtforge.dataset.views import final_splits, scene_view_files, write_lists, write_scene_views, write_split_views
+from gtforge.dataset.views import final_splits, scene_views_current, write_lists, write_scene_views, write_split_views
 from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
@@ -366,6 +366,11 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     remove_stale_entries(out)
     phash, expected = scene_params_hash(params, calib), scene_files(params)
     todo, unchanged, metas = plan_scenes(session, dirs, out, phash, calib_sha, expected, overwrite)
+    for sid in unchanged:  # session.yaml's fruit_ids edited since: the splits follow them, not the scene's build
+        fruit_id = session.config.fruit_ids.get(sid)
+        if metas[sid].fruit_id != fruit_id:
+            metas[sid] = metas[sid].model_copy(update={"fruit_id": fruit_id})
+            metas[sid].write(out / "scenes" / sid / "meta.json")
     before = {d.name: file_stamp(out / "scenes" / d.name / "meta.json") for d in todo}
     failures: dict[str, str] = {}
     built: list[str] = []
@@ -460,8 +465,9 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
     splits = final_splits(ok_ids, fruit_ids, params, quarantined)
     if params.verification:
         _write_verification(out, params, metas)
-    for sid in unchanged:  # views of scenes built by an earlier run with other view options, or deleted since
-        if not all(f.exists() for f in scene_view_files(out, sid, params)):
+    for sid in unchanged:  # views of scenes built by an earlier run with other view options, deleted since, or of an
+        # earlier build of the scene (a run stopped between a scene's landing and its views)
+        if not scene_views_current(out, sid, params):
             write_scene_views(out, sid, params)
     for sid in recovered:  # its worker died while writing them, or before: any of them may be missing
         write_scene_views(out, sid, params)

@@ -803,3 +803,44 @@ def test_ctrl_c_counts_the_scenes_a_worker_landed_before_reporting(session_dir, 
     n = len([d for d in (session_dir / "scenes").iterdir() if d.is_dir()])
     assert str(stop.value).startswith(f"interrupted: 1 scene(s) built in this run and complete, {n - 1} not built")
     assert list(Manifest.read(out / "manifest.json").scenes) == ["000"]
+
+
+@pytest.mark.slow
+def test_a_resume_rewrites_views_of_an_earlier_build_and_follows_edited_fruit_ids(session_dir, true_calibration,
+                                                                                dataset, tmp_path):
+    """A scene that landed without its views (its worker stopped between the two) kept an earlier build's KITTI and
+    ETH3D files on resume, because they existed: a resume writes them again from the scene as it is. fruit_ids edited
+    in session.yaml since the build: the resume's splits and metas follow them (they kept the build's)."""
+    import yaml
+
+    from gtforge.dataset.views import final_splits
+    from gtforge.io.formats import write_pfm
+
+    sess, out = tmp_path / "session", tmp_path / "ds"
+    shutil.copytree(session_dir, sess)
+    shutil.copytree(dataset[0], out)
+    man = Manifest.read(out / "manifest.json")
+    ids = sorted(man.scenes)
+    # scene ids[0] as another build landed it: other labels (new files), its views still the earlier build's
+    s = out / "scenes" / ids[0]
+    disp = read_pfm(s / "disp0GT.pfm")
+    newer = np.where(np.isfinite(disp), disp + 0.25, disp).astype(np.float32)
+    (s / "disp0GT.pfm").unlink()
+    write_pfm(s / "disp0GT.pfm", newer)
+    eth = out / "eth3d" / "two_view_training_gt" / ids[0] / "disp0GT.pfm"
+    kitti = out / "kitti" / "training" / "disp_occ_0" / f"{ids[0]}_10.png"
+    assert np.nanmax(np.abs(read_pfm(eth) - newer)) == pytest.approx(0.25, abs=1e-5)
+    cfg = yaml.safe_load((sess / "session.yaml").read_text())
+    fruit = {sid: f"melon{k}" for k, sid in enumerate(ids)}  # every scene its own fruit now
+    assert {sid: man.scenes[sid].fruit_id for sid in ids} != fruit
+    cfg["fruit_ids"] = fruit
+    (sess / "session.yaml").write_text(yaml.safe_dump(cfg))
+    summary = build_dataset(sess, true_calibration, out, workers=1)
+    assert summary.built == [] and summary.skipped_unchanged == ids
+    assert os.path.samefile(eth, s / "disp0GT.pfm")
+    k = read_kitti_disparity(kitti)  # (KITTI's 1/256 px steps)
+    assert np.array_equal(np.isfinite(k), np.isfinite(newer)) and np.nanmax(np.abs(k - newer)) <= 1 / 512
+    man = Manifest.read(out / "manifest.json")
+    assert {sid: man.scenes[sid].fruit_id for sid in ids} == fruit
+    assert man.splits == final_splits(ids, fruit, man.params, [])
+    assert json.loads((s / "meta.json").read_text())["fruit_id"] == fruit[ids[0]]

@@ -65,6 +65,33 @@ def scene_view_files(out: Path, sid: str, params: BuildParams) -> list[Path]:
     return files
 
 
+def scene_views_current(out: Path, sid: str, params: BuildParams) -> bool:
+    """Whether every view ``write_scene_views`` writes for scene ``sid`` is there and is of the scene as it is now: a
+    linked file the scene's own (or a copy with its size and time, ``_link``'s fallback), a KITTI disparity written
+    after the scene's labels. A scene that landed without its views (a worker stopped between the two) keeps an
+    earlier build's views otherwise."""
+    s = out / "scenes" / sid
+    files = scene_view_files(out, sid, params)
+    if not all(f.exists() for f in files):
+        return False
+
+    def same(src: Path, view: Path) -> bool:
+        a, b = src.stat(), view.stat()
+        return (a.st_ino, a.st_dev) == (b.st_ino, b.st_dev) or (a.st_size, a.st_mtime_ns) == (b.st_size, b.st_mtime_ns)
+
+    for view in files:
+        if view.parent.parent.name == "training" and view.parent.name.startswith("disp_"):  # KITTI, derived
+            labels = s / ("disp1GT.pfm" if view.parent.name.endswith("_1") else "disp0GT.pfm")
+            if view.stat().st_mtime_ns < labels.stat().st_mtime_ns:
+                return False
+        elif view.parent.parent.name == "training":  # KITTI image_2 / image_3: links
+            if not same(s / ("im0.png" if view.parent.name == "image_2" else "im1.png"), view):
+                return False
+        elif not same(s / view.name, view):  # ETH3D: links named as the scene's files
+            return False
+    return True
+
+
 def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray | None = None,
                       noc: np.ndarray | None = None, disp1: np.ndarray | None = None,
                       noc1: np.ndarray | None = None) -> None:
