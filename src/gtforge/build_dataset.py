@@ -30,7 +30,14 @@ from gtforge.dataset.layout import (
 )
 from gtforge.dataset.scene_folder import remove_stale_entries, scene_writer
 from gtforge.dataset.scene_verification import write_verification_overlay
-from gtforge.dataset.views import final_splits, scene_views_current, write_lists, write_scene_views, write_split_views
+from gtforge.dataset.views import (
+    final_splits,
+    moved_between_splits,
+    scene_views_current,
+    write_lists,
+    write_scene_views,
+    write_split_views,
+)
 from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
 from gtforge.io.middlebury import middlebury_calib_text
 from gtforge.records.dataset import BuildParams, Manifest, SceneMeta, SceneStats
@@ -463,6 +470,16 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
     quarantined = sorted(flagged) if params.quarantine else []
     compensated = [s for s in ok_ids if metas[s].verification is not None and metas[s].verification.compensated]
     splits = final_splits(ok_ids, fruit_ids, params, quarantined)
+    try:
+        before = Manifest.read(out / "manifest.json").splits if (out / "manifest.json").is_file() else {}
+    except InputError:  # an older schema: nothing to compare with
+        before = {}
+    moved = moved_between_splits(before, splits)
+    if moved:  # a model trained on the earlier train split has seen a scene now in val or test
+        log.warning("%d scene(s) changed split since the last build: %s (the splits are drawn over every built scene a "
+                    "fruit at a time: adding, removing or regrouping scenes can move others)",
+                    len(moved), ", ".join(f"{s} {a} -> {b}" for s, (a, b) in list(moved.items())[:8])
+                    + (" ..." if len(moved) > 8 else ""))
     if params.verification:
         _write_verification(out, params, metas)
     for sid in unchanged:  # views of scenes built by an earlier run with other view options, deleted since, or of an

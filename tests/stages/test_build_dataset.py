@@ -807,13 +807,14 @@ def test_ctrl_c_counts_the_scenes_a_worker_landed_before_reporting(session_dir, 
 
 @pytest.mark.slow
 def test_a_resume_rewrites_views_of_an_earlier_build_and_follows_edited_fruit_ids(session_dir, true_calibration,
-                                                                                dataset, tmp_path):
+                                                                                dataset, tmp_path, caplog):
     """A scene that landed without its views (its worker stopped between the two) kept an earlier build's KITTI and
     ETH3D files on resume, because they existed: a resume writes them again from the scene as it is. fruit_ids edited
-    in session.yaml since the build: the resume's splits and metas follow them (they kept the build's)."""
+    in session.yaml since the build: the resume's splits and metas follow them (they kept the build's), and it names
+    the scenes that changed split."""
     import yaml
 
-    from gtforge.dataset.views import final_splits
+    from gtforge.dataset.views import final_splits, moved_between_splits
     from gtforge.io.formats import write_pfm
 
     sess, out = tmp_path / "session", tmp_path / "ds"
@@ -835,6 +836,7 @@ def test_a_resume_rewrites_views_of_an_earlier_build_and_follows_edited_fruit_id
     assert {sid: man.scenes[sid].fruit_id for sid in ids} != fruit
     cfg["fruit_ids"] = fruit
     (sess / "session.yaml").write_text(yaml.safe_dump(cfg))
+    before = man.splits
     summary = build_dataset(sess, true_calibration, out, workers=1)
     assert summary.built == [] and summary.skipped_unchanged == ids
     assert os.path.samefile(eth, s / "disp0GT.pfm")
@@ -843,4 +845,7 @@ def test_a_resume_rewrites_views_of_an_earlier_build_and_follows_edited_fruit_id
     man = Manifest.read(out / "manifest.json")
     assert {sid: man.scenes[sid].fruit_id for sid in ids} == fruit
     assert man.splits == final_splits(ids, fruit, man.params, [])
+    moved = moved_between_splits(before, man.splits)
+    assert moved and f"{len(moved)} scene(s) changed split since the last build: " + ", ".join(
+        f"{sid} {a} -> {b}" for sid, (a, b) in moved.items()) in caplog.text
     assert json.loads((s / "meta.json").read_text())["fruit_id"] == fruit[ids[0]]

@@ -203,6 +203,13 @@ def write_lists(out: Path, splits: dict[str, list[str]]) -> None:
 
 
 
+def moved_between_splits(before: dict[str, list[str]], after: dict[str, list[str]]) -> dict[str, tuple[str, str]]:
+    """Scenes in a split in both ``before`` and ``after`` but not the same one: ``{scene: (split before, after)}``."""
+    was = {sid: k for k, v in before.items() for sid in v}
+    now = {sid: k for k, v in after.items() for sid in v}
+    return {sid: (was[sid], now[sid]) for sid in sorted(was.keys() & now.keys()) if was[sid] != now[sid]}
+
+
 def final_splits(ok_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams,
                  quarantined: list[str]) -> dict[str, list[str]]:
     """The split lists: every built scene split by fruit, then quarantined scenes taken out (so a scene's split never
