@@ -204,6 +204,30 @@ def test_run_refuses_its_session_as_output_and_leaves_no_folder_on_bad_input(tmp
     assert not (tmp_path / "out").exists()
 
 
+def test_changed_dataset_files_are_built_again(chain):
+    """A scene's labels or a view replaced since the run wrote them (the dataset's files are recorded by size and
+    time, too many to hash back) make the next run build those scenes again, and only them: the files are the
+    build's again, and the run after that redoes nothing (verify's own rewrites of the manifest and split lists are
+    not changes)."""
+    sess, out = chain["session"], chain["out"]
+    ds = out / "dataset"
+    pfm = ds / "scenes" / "002" / "disp0GT.pfm"
+    kitti = ds / "kitti" / "training" / "disp_occ_0" / "000_10.png"
+    before = {f: f.read_bytes() for f in (pfm, kitti)}
+    shutil.copyfile(ds / "scenes" / "001" / "disp0GT.pfm", pfm)
+    shutil.copyfile(ds / "kitti" / "training" / "disp_occ_0" / "001_10.png", kitti)
+    said: list[str] = []
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert res.redone == ["build-dataset", "verify"], said
+    assert any("its output " in s and "changed since" in s for s in said), said
+    assert "      built 000 (its dataset files changed since the last run)" in said
+    assert "      built 002 (its dataset files changed since the last run)" in said
+    assert not any(s.startswith("      built 001") or s.startswith("      built 003") for s in said), said
+    assert {f: f.read_bytes() for f in before} == before
+    said = []
+    assert run_session(sess, out, OPTS, say=said.append).redone == [], said
+
+
 def test_deleted_outputs_are_written_again_and_a_removed_scene_leaves_the_dataset(chain):
     """Files a run wrote and the user deleted are noticed and written again (a scene's disparity, a KITTI view, the
     calibration report); calibrate run again to the same result leaves calibration.yaml as it was, so the stages

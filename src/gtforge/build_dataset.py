@@ -6,6 +6,7 @@ import hashlib
 import logging
 import time
 from dataclasses import dataclass, field
+from collections.abc import Collection
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -340,9 +341,10 @@ def _warm_up_args(session_dir, calibration) -> tuple[str, tuple[str, str]]:
 def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str | Path,
                   params: BuildParams | None = None, *, workers: int | None = None, overwrite: bool = False,
                   strict: bool = False, scenes: list[str] | None = None, progress: bool = False,
-                  scheduler: str | None = None) -> BuildSummary:
+                  scheduler: str | None = None, rebuild: Collection[str] = ()) -> BuildSummary:
     """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.
-    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md).
+    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md). ``rebuild``: scene ids
+    built again even where their folder looks up to date (``gtforge run``: files changed since it recorded them).
 
     The recipe: check the inputs; plan (``plan_scenes``: which scenes are up to date); build and land each of the
     others (``build_one_scene`` on the pool: compute, write into a temporary folder, rename it into place); finish
@@ -372,7 +374,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
     phash, expected = scene_params_hash(params, calib), scene_files(params)
-    todo, unchanged, metas = plan_scenes(session, dirs, out, phash, calib_sha, expected, overwrite)
+    todo, unchanged, metas = plan_scenes(session, dirs, out, phash, calib_sha, expected, overwrite,
+                                         rebuild)
     for sid in unchanged:  # session.yaml's fruit_ids edited since: the splits follow them, not the scene's build
         fruit_id = session.config.fruit_ids.get(sid)
         if metas[sid].fruit_id != fruit_id:

@@ -248,13 +248,25 @@ class _Run:
 
     # ---- bookkeeping --------------------------------------------------------------------------------------------
     def outputs_ok(self, rec: StageRecord | None) -> str:
+        changed = self.changed_outputs(rec)
+        if not changed:
+            return ""
+        k, why = changed[0]
+        return f"its output {self.shown(k)} {why}" + (f" (and {len(changed) - 1} more)" if len(changed) > 1 else "")
+
+    def changed_outputs(self, rec: StageRecord | None) -> list[tuple[str, str]]:
+        """``(key, "is missing" or "changed since")`` of each output of ``rec`` that is not as the stage left it: its
+        BLAKE3, or for a stamped one (a dataset's scene files, too many to read back) its size and modification
+        time."""
+        changed = []
         for k, h in (rec.outputs.items() if rec else ()):
             p = self.out / k[len("out/"):]
             if not p.is_file():
-                return f"its output {self.shown(k)} is missing"
-            if h and self.hash(p) != h:
-                return f"its output {self.shown(k)} changed since"
-        return ""
+                changed.append((k, "is missing"))
+            elif h.startswith(STAMP_PREFIX) and h != _stamp(p) or h and not h.startswith(STAMP_PREFIX) \
+                    and self.hash(p) != h:
+                changed.append((k, "changed since"))
+        return changed
 
     def save(self) -> None:
         self.state.gtforge_version = gtforge.__version__
@@ -294,9 +306,10 @@ class _Run:
         return True
 
     def done(self, name: str, options: dict, inputs: dict, outputs: list[Path], exist_only: list[Path] = (),
-             verdict=None, reasons=(), detail=None, t0=0.0) -> None:
+             verdict=None, reasons=(), detail=None, t0=0.0, stamped: list[Path] = ()) -> None:
         outs = {self.key(p): self.hash(p) for p in outputs}
         outs.update({self.key(p): "" for p in exist_only})
+        outs.update({self.key(p): _stamp(p) for p in stamped})
         self.state.stages[name] = StageRecord(stage=name, status="done", options=_versioned(options), inputs=inputs,
                                               outputs=outs,
                                               verdict=verdict, verdict_reasons=list(reasons), detail=detail or {},
@@ -513,19 +526,29 @@ class _Run:
                 _remove_scene_outputs(ds, sid)
             if gone:
                 self.say(f"      removed from the dataset (no longer in the session): {', '.join(gone)}")
-        summ = build_dataset(self.root, ctx["calib"], ds, params, workers=self.opts.workers, progress=False)
+        # scenes whose dataset files (their folder, KITTI and ETH3D views, sigma maps) changed since this run wrote
+        # them: built again (the build's own resume checks that each file is there, not what it holds)
+        edited = sorted({sid for key, how in self.changed_outputs(rec) if how == "changed since"
+                         and (sid := _scene_of_output(key)) in per_scene})
+        for sid in edited:
+            why[sid] = why[sid] or "its dataset files changed since the last run"
+        summ = build_dataset(self.root, ctx["calib"], ds, params, workers=self.opts.workers, progress=False,
+                             rebuild=edited)
         for sid in summ.built:
             self.say(f"      built {sid} ({why.get(sid) or 'its dataset files were missing or stale'})")
         if summ.skipped_unchanged:
             self.say(f"      unchanged: {', '.join(summ.skipped_unchanged)}")
         reasons = [f"scene {s} failed: {r}" for s, r in summ.failures.items()]
-        # every file the build wrote for its scenes (their folders, the KITTI and ETH3D views): one deleted since is
-        # noticed by the next run, whose build then writes it again
-        scene_files = [p for sub in ("scenes", "kitti", "eth3d", "report", "filenames") for p in (ds / sub).rglob("*")
-                       if p.is_file() and not p.name.startswith(".")] + [ds / "build_report.html"]
-        self.done(name, options, inputs, [], [ds / "manifest.json", *scene_files], "FAIL" if reasons else "PASS",
-                  reasons, detail={"built": summ.built, "unchanged": summ.skipped_unchanged, "failures": summ.failures},
-                  t0=t0)
+        # every file the build wrote for its scenes (their folders, the KITTI and ETH3D views, the sigma maps): one
+        # deleted or changed since (its size and time) is noticed by the next run, whose build then writes it again;
+        # the files verify rewrites too (the manifest, the split lists) need only be there
+        scene_files = [p for sub in ("scenes", "kitti", "eth3d", "report") for p in (ds / sub).rglob("*")
+                       if p.is_file() and not p.name.startswith(".")]
+        lists = [p for p in (ds / "filenames").rglob("*") if p.is_file() and not p.name.startswith(".")]
+        self.done(name, options, inputs, [], [ds / "manifest.json", ds / "build_report.html", *lists],
+                  "FAIL" if reasons else "PASS", reasons,
+                  detail={"built": summ.built, "unchanged": summ.skipped_unchanged, "failures": summ.failures}, t0=t0,
+                  stamped=scene_files)
 
     def stage_verify(self, k: int, ctx: dict) -> None:
         name = "verify"
@@ -567,6 +590,31 @@ class _Run:
         pages = [ds / "verification.html", *(p for p in (ds / "verification").glob("*") if p.is_file())]
         self.done(name, options, inputs, [ds / "verification.json"], [p for p in pages if p.is_file()],
                   verdict=verdict, reasons=reasons, detail={"verified": todo}, t0=t0)
+
+
+STAMP_PREFIX = "stamp:"  # a recorded output's size and modification time, not its BLAKE3
+
+
+def _stamp(p: Path) -> str:
+    st = p.stat()
+    return f"{STAMP_PREFIX}{st.st_size}:{st.st_mtime_ns}"
+
+
+def _scene_of_output(key: str) -> str | None:
+    """The scene a dataset output belongs to (``out/dataset/scenes/<id>/...``, ``kitti/training/<kind>/<id>_10.png``,
+    ``eth3d/<kind>/<id>/...``, ``report/<id>_sigma.jpg``), None for any other output."""
+    parts = key.split("/")
+    if parts[:2] != ["out", DATASET] or len(parts) < 4:
+        return None
+    if parts[2] == "scenes":
+        return parts[3]
+    if parts[2] == "eth3d" and len(parts) >= 6:
+        return parts[4]
+    if parts[2] == "kitti" and len(parts) == 6 and parts[5].endswith("_10.png"):
+        return parts[5][:-len("_10.png")]
+    if parts[2] == "report" and len(parts) == 4 and parts[3].endswith("_sigma.jpg"):
+        return parts[3][:-len("_sigma.jpg")]
+    return None
 
 
 def run_session(session_dir: str | Path, out_dir: str | Path, options: RunOptions | None = None,

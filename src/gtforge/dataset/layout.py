@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Collection
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -105,14 +106,15 @@ def built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, ex
 
 
 def plan_scenes(session, dirs: list[Path], out: Path, phash: str, calib_sha: str, expected: list[str],
-                overwrite: bool = False) -> tuple[list[Path], list[str], dict[str, SceneMeta]]:
+                overwrite: bool = False, rebuild: Collection[str] = ()) -> tuple[list[Path], list[str],
+                                                                             dict[str, SceneMeta]]:
     """Which capture folders a build must (re)build: ``(todo, unchanged scene ids, their metas)``. A scene is
     unchanged when its folder was built with these parameters and this calibration, holds every expected file, and
-    its inputs are unchanged (``inputs_unchanged``); ``overwrite`` rebuilds every scene."""
+    its inputs are unchanged (``inputs_unchanged``); ``overwrite`` rebuilds every scene, ``rebuild`` those named."""
     todo, unchanged, metas = [], [], {}
     for d in dirs:
         meta_path = out / "scenes" / d.name / "meta.json"
-        if not overwrite and meta_path.exists():
+        if not overwrite and d.name not in rebuild and meta_path.exists():
             try:
                 m = SceneMeta.read(meta_path)
                 files = [p for p in session.capture_files(d) if p.exists()]
