@@ -92,14 +92,25 @@ def _manifest_fields(ds: Path) -> dict:
     return man if isinstance(man, dict) else {}
 
 
-def _warn_of_quarantined(man: dict, ids: list[str]) -> None:
-    """Scenes verify quarantined (its labels suspect) are scored like the others when asked for: said once."""
+def _warn_of_suspect_scenes(man: dict, ids: list[str]) -> None:
+    """Scenes verify quarantined or flagged (their labels suspect) are scored like the others when asked for: said
+    once, each kind."""
     quarantined = man.get("quarantined")
-    hit = sorted(set(quarantined if isinstance(quarantined, list) else []) & set(ids))
+    quarantined = set(quarantined if isinstance(quarantined, list) else [])
+    hit = sorted(quarantined & set(ids))
     if hit:
         log.warning("scoring %d scene(s) that verify quarantined (their ground truth is suspect): %s; a split "
-                    "(--split train|val|test) leaves them out", len(hit), ", ".join(hit[:8]) + (", ..." if
-                                                                                                len(hit) > 8 else ""))
+                    "(--split train|val|test) leaves them out", len(hit), _first_ids(hit))
+    flagged = man.get("flagged")
+    hit = sorted((set(flagged) if isinstance(flagged, dict) else set()) & set(ids) - quarantined)
+    if hit:
+        log.warning("scoring %d scene(s) that verification flagged (their ground truth may not match their images): "
+                    "%s; see the dataset's verification.html (gtforge verify --quarantine takes them out of the "
+                    "splits)", len(hit), _first_ids(hit))
+
+
+def _first_ids(ids: list[str]) -> str:
+    return ", ".join(ids[:8]) + (", ..." if len(ids) > 8 else "")
 
 
 def _refuse_output_in_session(out: Path, man: dict) -> None:
@@ -175,7 +186,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none")
     man = _manifest_fields(ds)
-    _warn_of_quarantined(man, ids)
+    _warn_of_suspect_scenes(man, ids)
     if max_disp_px is not None and not max_disp_px > 0:
         raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:

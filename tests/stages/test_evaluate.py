@@ -467,8 +467,8 @@ def test_an_evaluation_stopped_over_an_earlier_one_leaves_no_tables_of_the_other
 
 
 def test_quarantined_scenes_scored_are_named(dataset, tmp_path, caplog):
-    """Scenes verify --quarantine took out of the split lists were scored without a word when every scene was asked
-    for (a newcomer's run-through): a warning names them."""
+    """Scenes verify --quarantine took out of the split lists, or verification flagged, were scored without a word
+    when every scene was asked for (newcomers' run-throughs): a warning names them."""
     import json
     import logging
 
@@ -480,10 +480,20 @@ def test_quarantined_scenes_scored_are_named(dataset, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="gtforge"):
         evaluate(ds, SGBM(), None)
     assert any("quarantined" in r.getMessage() and "001" in r.getMessage() for r in caplog.records)
+    assert not any("verification flagged" in r.getMessage() for r in caplog.records)
+    # flagged, not quarantined (build-dataset without --quarantine): named as well (a run-through)
+    man["flagged"] = {"000": ["texture shift 0.4 px"], "001": ["texture shift 0.3 px"]}
+    (ds / "manifest.json").write_text(json.dumps(man))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="gtforge"):
+        evaluate(ds, SGBM(), None)
+    assert [r.getMessage()[:78] for r in caplog.records if "verification flagged" in r.getMessage()] == [
+        "scoring 1 scene(s) that verification flagged (their ground truth may not match"]
+    assert any("flagged" in r.getMessage() and ": 000;" in r.getMessage() for r in caplog.records)
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="gtforge"):
         evaluate(dataset[0], SGBM(), None)
-    assert not any("quarantined" in r.getMessage() for r in caplog.records)
+    assert not any("quarantined" in r.getMessage() or "flagged" in r.getMessage() for r in caplog.records)
 
 
 def test_compare_refuses_the_same_evaluation_twice(tmp_path):
