@@ -41,3 +41,16 @@ def test_files_of_a_stage_that_did_not_run_are_not_read(tmp_path):
     st.stages["calibrate-scale"] = StageRecord(stage="calibrate-scale", status="done", verdict="PASS")
     sec = [s for s in build_certificate(tmp_path, st).sections if "Scale" in s.title][0]
     assert sec.figures[0].value == 1.0 and sec.figures[0].sigma == 0.1 and sec.figures[0].status == "applied"
+
+
+def test_a_figure_value_is_escaped_in_the_page(tmp_path):
+    """A text value (a flagged scene's reason: "texture shift < ...") was written into index.html unescaped (a
+    run-through): each value is escaped as every other text there."""
+    from gtforge.records.certificate import Certificate, CertFigure, CertSection
+    from gtforge.reports.certificate import write_certificate_html
+
+    cert = build_certificate(tmp_path, _state(calibrate=("PASS", [])))
+    cert.sections.append(CertSection(title="Scenes", figures=[CertFigure(name="scene 002", value="shift <b>0.4</b> px",
+                                                                         source_file="dataset/manifest.json")]))
+    page = write_certificate_html(Certificate.model_validate(cert.model_dump()), tmp_path / "index.html").read_text()
+    assert "<td>shift &lt;b&gt;0.4&lt;/b&gt; px</td>" in page and "<b>0.4</b>" not in page

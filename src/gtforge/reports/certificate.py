@@ -341,7 +341,7 @@ def write_certificate_html(cert: Certificate, path: Path) -> Path:
             p.append(f'<p class="note">report: {_a(sec.link, sec.link)}</p>')
         rows = []
         for f in sec.figures:
-            val = fmt_value(f.value) + (f" &plusmn; {e(fmt_value(f.sigma))}" if f.sigma is not None else "")
+            val = e(fmt_value(f.value)) + (f" &plusmn; {e(fmt_value(f.sigma))}" if f.sigma is not None else "")
             src = f.source_file + (f": {f.source_field}" if f.source_field else f" ({f.derivation})")
             rows.append(f"<tr><td>{e(f.name)}</td><td>{val}</td><td>{e(f.unit)}</td>"
                         f"<td><span class=\"{_cls(f.status)}\">{e(f.status or '')}</span></td>"
