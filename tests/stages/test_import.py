@@ -239,9 +239,19 @@ def _renamed(recs, tmp_path):
     return [tmp_path / "rgbd.mkv", recs.stereo_bag], []
 
 
+def _written(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
 BAD = {
     "renamed recording": (_renamed, "expected the recording its suffix .mkv names, got an MCAP file (.mcap, .svo2) "
                           "(by its first bytes)"),
+    "an image named as a bag": (lambda recs, tmp: ([_written(tmp / "photo.bag", b"\xff\xd8\xff\xe0" + bytes(60))], []),
+                                "photo.bag: expected the recording its suffix .bag names, got a JPEG image (by its "
+                                "first bytes) (hint: is this the recording?"),
+    "an error page saved as a recording": (lambda recs, tmp: ([_written(tmp / "rec.mkv", b"<html>404</html>")], []),
+                                           "got text (an error page saved in its place?)"),
     "missing recording": (lambda recs, tmp: ([tmp / "nope.mkv"], []), "nope.mkv: expected a recording (file or "
                           "folder), got no such file or folder"),
     "board no detector can find": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--cols", "2"]),

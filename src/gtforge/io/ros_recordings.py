@@ -229,12 +229,15 @@ def _rectify_map(info):
 _MAGIC = ((b"\x1a\x45\xdf\xa3", "a Matroska file (.mkv)", (".mkv",)),
           (b"#ROSBAG V2.0", "a ROS 1 bag (.bag)", (".bag",)),
           (b"\x89MCAP", "an MCAP file (.mcap, .svo2)", (".mcap", ".svo2", ".svo")),
-          (b"SQLite format 3\x00", "a rosbag2 SQLite file (.db3)", (".db3",)))
+          (b"SQLite format 3\x00", "a rosbag2 SQLite file (.db3)", (".db3",)),
+          # files often given in a recording's place: an image renamed, an archive not unpacked
+          (b"\xff\xd8\xff", "a JPEG image", ()), (b"\x89PNG", "a PNG image", ()), (b"II*\x00", "a TIFF image", ()),
+          (b"MM\x00*", "a TIFF image", ()), (b"PK\x03\x04", "a ZIP archive", ()), (b"\x1f\x8b", "a gzip archive", ()))
 
 
 def _looks_like(p: Path) -> str | None:
-    """What ``p``'s first bytes show it to be when its suffix says otherwise (a file renamed by mistake), else None
-    (a folder, a suffix gtforge does not know, a match, or bytes none of the formats start with)."""
+    """What ``p``'s first bytes show it to be when its suffix says otherwise (a file renamed by mistake, an image or
+    archive given instead, a download cut short), else None (a folder, a suffix gtforge does not know, a match)."""
     suffix = p.suffix.lower()
     if p.is_dir() or suffix not in {s for _, _, suffixes in _MAGIC for s in suffixes}:
         return None
@@ -243,7 +246,13 @@ def _looks_like(p: Path) -> str | None:
     for magic, what, suffixes in _MAGIC:
         if head.startswith(magic):
             return None if suffix in suffixes else what
-    return None
+    if suffix == ".svo":  # a ZED SVO version 1 file: its own message (open_recordings)
+        return None
+    if not head:
+        return "an empty file"
+    if all(32 <= b < 127 or b in b"\r\n\t" for b in head):
+        return "text (an error page saved in its place?)"
+    return f"data of no recording format (first bytes {head[:8].hex(' ')})"
 
 
 @dataclass
@@ -272,7 +281,9 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         if looks_like is not None:
             raise InputError(p, None, f"the recording its suffix {p.suffix} names",
                              f"{looks_like} (by its first bytes)",
-                             "name the file by what it holds (.bag for a ROS 1 / RealSense bag, .mcap, .db3, .mkv)")
+                             "name the file by what it holds (.bag for a ROS 1 / RealSense bag, .mcap, .db3, .mkv)"
+                             if looks_like.endswith(")") and "(." in looks_like else
+                             "is this the recording? give the file the recorder wrote (copied whole)")
         if p.suffix.lower() == ".mkv":
             rgbd_c.append(read_kinect_mkv(p))
             continue
