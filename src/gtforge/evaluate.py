@@ -226,9 +226,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                              f"none for the {len(ids)} scene(s) "
                              f"({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})",
                              "name each file after its scene id (docs/metrics.md, 'Predictions')")
-        log.warning("no prediction for %d of %d scene(s) in %s (%s%s; expected %s): scoring the other %d, "
-                    "and the command will exit with code 1", len(absent), len(ids), where, ", ".join(absent[:8]),
-                    ", ..." if len(absent) > 8 else "", PREDICTION_NAMES, len(ids) - len(absent))
+        log.warning("no prediction for %d of %d scene(s) in %s (%s; expected %s): scoring the other %d, "
+                    "and the command will exit with code 1", len(absent), len(ids), where, _first_ids(absent),
+                    PREDICTION_NAMES, len(ids) - len(absent))
         for sid in absent:
             missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"
     warmed = False

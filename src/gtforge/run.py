@@ -263,8 +263,7 @@ class _Run:
             p = self.out / k[len("out/"):]
             if not p.is_file():
                 changed.append((k, "is missing"))
-            elif h.startswith(STAMP_PREFIX) and h != _stamp(p) or h and not h.startswith(STAMP_PREFIX) \
-                    and self.hash(p) != h:
+            elif h and h != (_stamp(p) if h.startswith(STAMP_PREFIX) else self.hash(p)):
                 changed.append((k, "changed since"))
         return changed
 

@@ -90,7 +90,12 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     captures = session.root / session.config.scenes_dir
     stamps = {sid: inputs_stamp(ds / "scenes" / sid, captures / sid) for sid in ids}
     journal = ds / JOURNAL_FILE
-    results = taken_over(journal, params, calib_sha, sess, stamps)
+    record = _read_journal(journal)
+    # taken over: the record's scenes checked with these thresholds, calibration and session, their files unchanged
+    same_setup = record is not None and (record.params, record.calibration_sha256, record.session_dir) == \
+        (params, calib_sha, str(sess.resolve()))
+    kept = record.scenes if same_setup else {}
+    results = {sid: e.verification for sid, e in kept.items() if stamps.get(sid) == e.inputs_stamp}
     if results and progress:
         progress(f"{len(results)} scene(s) verified before an interruption, their files unchanged: kept ({journal})")
     args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json(), calib_sha)
@@ -120,7 +125,12 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params,
                              scenes={**old, **{sid: results[sid] for sid in ids}})
     write_verification_report(rep, ds)
-    _drop_from_journal(journal, ids)
+    # the scenes this report holds leave the record; a --scenes run keeps the others for a later verify
+    rest = {sid: e for sid, e in record.scenes.items() if sid not in stamps} if record is not None else {}
+    if rest:
+        record.model_copy(update={"scenes": rest}).write(journal)
+    else:
+        journal.unlink(missing_ok=True)
     man.flagged = rep.flagged
     man.quarantined = sorted(rep.flagged) if quarantine else []
     man.splits = final_splits(sorted(man.scenes), {s: m.fruit_id for s, m in man.scenes.items()}, man.params,
@@ -150,38 +160,16 @@ def inputs_stamp(scene_dir: Path, capture_dir: Path) -> str:
     return hashlib.sha256("\n".join(entries).encode()).hexdigest()
 
 
-def taken_over(journal: Path, params: VerifyParams, calib_sha: str, session_dir: Path,
-               stamps: dict[str, str]) -> dict[str, SceneVerification]:
-    """The scenes an interrupted verify checked (``journal``) that need no new check: the same thresholds,
-    calibration and session, and the scene's files (``stamps``) unchanged since. An unreadable journal is set aside
-    with a warning (every scene is then checked)."""
+def _read_journal(journal: Path) -> VerifyJournal | None:
+    """An interrupted verify's record (None: none there, or unreadable, which is set aside with a warning: every
+    scene is then checked and the file replaced)."""
     if not journal.is_file():
-        return {}
+        return None
     try:
-        j = VerifyJournal.read(journal)
+        return VerifyJournal.read(journal)
     except InputError as exc:
         log.warning("%s is set aside (%s): every scene is checked", journal, exc)
-        return {}
-    if j.params != params or j.calibration_sha256 != calib_sha or j.session_dir != str(session_dir.resolve()):
-        return {}
-    return {sid: e.verification for sid, e in j.scenes.items() if stamps.get(sid) == e.inputs_stamp}
-
-
-def _drop_from_journal(journal: Path, ids: list[str]) -> None:
-    """After a verify's report: the scenes it now holds leave the journal (a ``--scenes`` run keeps the others for a
-    later verify); an empty or unreadable journal goes."""
-    if not journal.is_file():
-        return
-    try:
-        j = VerifyJournal.read(journal)
-    except InputError:
-        journal.unlink(missing_ok=True)
-        return
-    rest = {sid: e for sid, e in j.scenes.items() if sid not in ids}
-    if rest:
-        j.model_copy(update={"scenes": rest}).write(journal)
-    else:
-        journal.unlink(missing_ok=True)
+        return None
 
 
 DEPTH_FILE = "depth0.tiff"  # build-dataset's z-depth, float32 mm (docs/dataset-format.md)

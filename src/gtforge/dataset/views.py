@@ -50,19 +50,23 @@ def _link(src: Path, dst: Path) -> None:
 
 
 
-def scene_view_files(out: Path, sid: str, params: BuildParams) -> list[Path]:
-    """The files ``write_scene_views`` writes for scene ``sid`` (the right view's KITTI disparities where the scene
-    has ``disp1GT.pfm``)."""
-    files = []
+def scene_view_sources(out: Path, sid: str, params: BuildParams) -> list[tuple[Path, Path, bool]]:
+    """The files ``write_scene_views`` writes for scene ``sid``: ``(view, the scene's file it shows, linked)``; not
+    linked: a KITTI disparity PNG made from the labels (the right view's only where the scene has ``disp1GT.pfm``)."""
+    s = out / "scenes" / sid
+    views = []
     if params.kitti:
-        kinds = ["image_2", "image_3", "disp_occ_0", "disp_noc_0"]
-        if (out / "scenes" / sid / "disp1GT.pfm").exists():
-            kinds += ["disp_occ_1", "disp_noc_1"]
-        files += [out / "kitti" / "training" / k / f"{sid}_10.png" for k in kinds]
+        k = out / "kitti" / "training"
+        views += [(k / "image_2" / f"{sid}_10.png", s / "im0.png", True),
+                  (k / "image_3" / f"{sid}_10.png", s / "im1.png", True)]
+        views += [(k / d / f"{sid}_10.png", s / "disp0GT.pfm", False) for d in ("disp_occ_0", "disp_noc_0")]
+        if (s / "disp1GT.pfm").exists():
+            views += [(k / d / f"{sid}_10.png", s / "disp1GT.pfm", False) for d in ("disp_occ_1", "disp_noc_1")]
     if params.eth3d:
-        files += [out / "eth3d" / "two_view_training" / sid / f for f in ("im0.png", "im1.png", "calib.txt")]
-        files += [out / "eth3d" / "two_view_training_gt" / sid / f for f in ("disp0GT.pfm", "mask0nocc.png")]
-    return files
+        e = out / "eth3d"
+        views += [(e / "two_view_training" / sid / f, s / f, True) for f in ("im0.png", "im1.png", "calib.txt")]
+        views += [(e / "two_view_training_gt" / sid / f, s / f, True) for f in ("disp0GT.pfm", "mask0nocc.png")]
+    return views
 
 
 def scene_views_current(out: Path, sid: str, params: BuildParams) -> bool:
@@ -70,24 +74,15 @@ def scene_views_current(out: Path, sid: str, params: BuildParams) -> bool:
     linked file the scene's own (or a copy with its size and time, ``_link``'s fallback), a KITTI disparity written
     after the scene's labels. A scene that landed without its views (a worker stopped between the two) keeps an
     earlier build's views otherwise."""
-    s = out / "scenes" / sid
-    files = scene_view_files(out, sid, params)
-    if not all(f.exists() for f in files):
+    views = scene_view_sources(out, sid, params)
+    if not all(view.exists() for view, _, _ in views):
         return False
-
-    def same(src: Path, view: Path) -> bool:
+    for view, src, linked in views:
         a, b = src.stat(), view.stat()
-        return (a.st_ino, a.st_dev) == (b.st_ino, b.st_dev) or (a.st_size, a.st_mtime_ns) == (b.st_size, b.st_mtime_ns)
-
-    for view in files:
-        if view.parent.parent.name == "training" and view.parent.name.startswith("disp_"):  # KITTI, derived
-            labels = s / ("disp1GT.pfm" if view.parent.name.endswith("_1") else "disp0GT.pfm")
-            if view.stat().st_mtime_ns < labels.stat().st_mtime_ns:
-                return False
-        elif view.parent.parent.name == "training":  # KITTI image_2 / image_3: links
-            if not same(s / ("im0.png" if view.parent.name == "image_2" else "im1.png"), view):
-                return False
-        elif not same(s / view.name, view):  # ETH3D: links named as the scene's files
+        if linked and (a.st_ino, a.st_dev) != (b.st_ino, b.st_dev) and \
+                (a.st_size, a.st_mtime_ns) != (b.st_size, b.st_mtime_ns):
+            return False
+        if not linked and b.st_mtime_ns < a.st_mtime_ns:
             return False
     return True
 
@@ -98,10 +93,11 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
     """KITTI and ETH3D views of one built scene (links where possible). The arrays save re-reading."""
 
     s = out / "scenes" / sid
+    for view, src, linked in scene_view_sources(out, sid, params):
+        if linked:
+            _link(src, view)
     if params.kitti:
         k = out / "kitti" / "training"
-        _link(s / "im0.png", k / "image_2" / f"{sid}_10.png")
-        _link(s / "im1.png", k / "image_3" / f"{sid}_10.png")
         if disp is None:
             disp = read_pfm(s / "disp0GT.pfm")
             noc = read_image(s / "mask0nocc.png") == 255
@@ -115,12 +111,6 @@ def write_scene_views(out: Path, sid: str, params: BuildParams, disp: np.ndarray
         else:  # built without the right view's GT (--no-right-gt): none from an earlier build stays in the view
             for d in ("disp_occ_1", "disp_noc_1"):
                 (k / d / f"{sid}_10.png").unlink(missing_ok=True)
-    if params.eth3d:
-        e = out / "eth3d"
-        for f in ("im0.png", "im1.png", "calib.txt"):
-            _link(s / f, e / "two_view_training" / sid / f)
-        for f in ("disp0GT.pfm", "mask0nocc.png"):
-            _link(s / f, e / "two_view_training_gt" / sid / f)
 
 
 

@@ -234,6 +234,8 @@ _MAGIC = ((b"\x1a\x45\xdf\xa3", "a Matroska file (.mkv)", (".mkv",)),
           (b"\xff\xd8\xff", "a JPEG image", ()), (b"\x89PNG", "a PNG image", ()), (b"II*\x00", "a TIFF image", ()),
           (b"MM\x00*", "a TIFF image", ()), (b"PK\x03\x04", "a ZIP archive", ()), (b"\x1f\x8b", "a gzip archive", ()))
 
+_RECORDING_KINDS = {what for _, what, suffixes in _MAGIC if suffixes}
+
 
 def _looks_like(p: Path) -> str | None:
     """What ``p``'s first bytes show it to be when its suffix says otherwise (a file renamed by mistake, an image or
@@ -282,7 +284,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
             raise InputError(p, None, f"the recording its suffix {p.suffix} names",
                              f"{looks_like} (by its first bytes)",
                              "name the file by what it holds (.bag for a ROS 1 / RealSense bag, .mcap, .db3, .mkv)"
-                             if looks_like.endswith(")") and "(." in looks_like else
+                             if looks_like in _RECORDING_KINDS else
                              "is this the recording? give the file the recorder wrote (copied whole)")
         if p.suffix.lower() == ".mkv":
             rgbd_c.append(read_kinect_mkv(p))
