@@ -113,10 +113,11 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
                   lost_result=lambda a, reason: (a[2], SceneVerification(status="not verifiable", reasons=[reason])
                                                  .model_dump(mode="json")))
     except BaseException as exc:  # Ctrl-C, a cluster lost, a bug: what was checked is kept for the next verify
-        if results:
+        if results:  # (with the record's other scenes: a --scenes run stopped keeps what an earlier one had)
             VerifyJournal(params=params, calibration_sha256=calib_sha, session_dir=str(sess.resolve()),
-                          scenes={sid: VerifyJournalEntry(inputs_stamp=stamps[sid], verification=v)
-                                  for sid, v in results.items()}).write(journal)
+                          scenes={**{sid: e for sid, e in kept.items() if sid not in stamps},
+                                  **{sid: VerifyJournalEntry(inputs_stamp=stamps[sid], verification=v)
+                                     for sid, v in results.items()}}).write(journal)
         if isinstance(exc, (KeyboardInterrupt, Interrupted)):
             detail = f"{len(results)} of {len(ids)} scene(s) verified" + (f", kept in {journal}" if results else "")
             raise Interrupted(f"interrupted: {detail}; rerun the same command to resume (it checks only the others)",

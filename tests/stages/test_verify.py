@@ -520,3 +520,12 @@ def test_an_interrupted_verify_resumes_with_the_scenes_it_had_checked(dataset, t
     assert {s: v.model_dump() for s, v in rep.scenes.items()} == {s: v.model_dump() for s, v in whole.items()}
     assert not (out / ".verify-partial.json").exists()
     assert VerificationResult.read(out / "verification.json").scenes.keys() == whole.keys()
+    # a --scenes run stopped in its turn keeps the record's other scenes beside its own
+    checked.clear()
+    with pytest.raises(Interrupted):
+        verify_dataset(out, VerifyParams(), workers=1, progress=stop_after_two)
+    checked.clear()
+    checked.append("(one before)")
+    with pytest.raises(Interrupted, match=r"interrupted: 1 of 1 scene\(s\) verified"):
+        verify_dataset(out, VerifyParams(), scenes=[ids[-1]], workers=1, progress=stop_after_two)
+    assert sorted(VerifyJournal.read(out / ".verify-partial.json").scenes) == [*ids[:2], ids[-1]]
