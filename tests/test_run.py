@@ -228,6 +228,40 @@ def test_changed_dataset_files_are_built_again(chain):
     assert run_session(sess, out, OPTS, say=said.append).redone == [], said
 
 
+def test_an_edit_of_fruit_ids_redoes_only_the_dataset(chain):
+    """session.yaml's fruit_ids say which scenes show one fruit (the splits keep them together); no stage before
+    build-dataset reads them, so editing them redoes the build (which rebuilds no scene, only their meta and the
+    splits) and the verification of the scenes whose meta changed, and nothing else; another field of session.yaml
+    still redoes everything."""
+    sess, out = chain["session"], chain["out"]
+    ds = out / "dataset"
+    yml = sess / "session.yaml"
+    original = yml.read_text()
+    content = yaml.safe_load(original)
+    content["fruit_ids"]["003"] = "fruit07"
+    yml.write_text(yaml.safe_dump(content))
+    try:
+        said: list[str] = []
+        res = run_session(sess, out, OPTS, say=said.append)
+        assert res.redone == ["build-dataset", "verify"], said
+        st = RunState.read(out / "run_state.json").stages
+        assert st["build-dataset"].detail["built"] == [] and st["verify"].detail["verified"] == ["003"], said
+        assert json.loads((ds / "scenes" / "003" / "meta.json").read_text())["fruit_id"] == "fruit07"
+        said = []
+        assert run_session(sess, out, OPTS, say=said.append).redone == [], said
+        content["zed_conf_reading"] = "neg-x"  # read by calibrate (and, through its file, by every stage after)
+        yml.write_text(yaml.safe_dump(content))
+        said = []
+        res = run_session(sess, out, OPTS, say=said.append)
+        assert res.redone[0] == "calibrate" and any(f"{yml.as_posix()} changed" in s for s in said), said
+    finally:
+        yml.write_text(original)
+    said = []
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert "build-dataset" in res.redone
+    assert json.loads((ds / "scenes" / "003" / "meta.json").read_text())["fruit_id"] is None
+
+
 def test_deleted_outputs_are_written_again_and_a_removed_scene_leaves_the_dataset(chain):
     """Files a run wrote and the user deleted are noticed and written again (a scene's disparity, a KITTI view, the
     calibration report); calibrate run again to the same result leaves calibration.yaml as it was, so the stages

@@ -27,11 +27,11 @@ from typing import Any, Callable
 import gtforge
 from gtforge.build_dataset import build_dataset
 from gtforge.calibrate import calibrate
-from gtforge.core.schema import GTModel
+from gtforge.core.schema import GTModel, load_yaml
 from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_write_bytes
-from gtforge.infra.digest import blake3_file
+from gtforge.infra.digest import blake3_file, blake3_hex
 from gtforge.io.captures import open_session
 from gtforge.io.outputs import new_folders, remove_if_empty, require_new_or_empty_folder
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
@@ -93,6 +93,10 @@ class _Hasher:
         self.cache[key] = FileHash(blake3=h, size_bytes=st.st_size, mtime_ns=st.st_mtime_ns, hashed_at_ns=now)
         return h
 
+
+SESSION_YAML = "session.yaml"
+# the value recorded for session.yaml as an input of the stages that do not read its fruit_ids (``config_hashes``)
+WITHOUT_FRUIT_IDS = "without fruit_ids:"
 
 _TIME_LINE = re.compile(rb"^\s*time_s: .*\n", re.M)
 
@@ -225,6 +229,18 @@ class _Run:
 
     def hashes(self, paths) -> dict[str, str]:
         return {self.key(p): self.hash(p) for p in paths}
+
+    def config_hashes(self, cfg: list[Path]) -> dict[str, str]:
+        """``hashes`` of the session's own files for the stages before build-dataset, which do not read
+        ``session.yaml``'s ``fruit_ids``: that file by its contents without them, so that grouping the scenes by fruit
+        again (which moves scenes between splits) rebuilds no calibration."""
+        out = self.hashes(cfg)
+        sf = self.root / SESSION_YAML
+        if sf in cfg:
+            content = load_yaml(sf.read_text()) or {}
+            content.pop("fruit_ids", None)
+            out[self.key(sf)] = WITHOUT_FRUIT_IDS + blake3_hex(json.dumps(content, sort_keys=True).encode())
+        return out
 
     def kind_dirs(self, kind: str) -> list[Path]:
         d = self.root / (self.session.config.board_dir if kind == "board" else self.session.config.scenes_dir)
@@ -380,8 +396,9 @@ class _Run:
                              "give the rig's calibration with -c FILE (e.g. from an earlier gtforge calibrate)")
         ctx["calib"] = self.out / CALIBRATION
         options = _plain({"use_depth": opts.use_depth, "loo": opts.loo})
-        inputs = self.hashes(ctx["cfg"] + [p for d in ctx["boards"] for p in self.capture_files(d)]
-                             + [p for d in ctx["scenes"] for p in self.zed_files(d)])
+        inputs = {**self.config_hashes(ctx["cfg"]),
+                  **self.hashes([p for d in ctx["boards"] for p in self.capture_files(d)]
+                                + [p for d in ctx["scenes"] for p in self.zed_files(d)])}
         if not self.decide(k, name, options, inputs):
             return
         t0 = time.perf_counter()
@@ -402,8 +419,9 @@ class _Run:
             self.not_applicable(k, name, "no board captures and no gauges/gauges.yaml")
             return
         options = {"gauges_only": not ctx["boards"]}
-        inputs = self.hashes(ctx["cfg"] + [ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
-                             + ctx["gauges"])
+        inputs = {**self.config_hashes(ctx["cfg"]),
+                  **self.hashes([ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
+                                + ctx["gauges"])}
         if not self.decide(k, name, options, inputs):
             return
         t0 = time.perf_counter()
@@ -439,8 +457,9 @@ class _Run:
             self.not_applicable(k, name, f"{ctx['calib'].name} is already scale-corrected")
             return
         options = _plain({"scenes": self.opts.calibration_scenes, "use_boards": True})
-        inputs = self.hashes(ctx["cfg"] + [ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
-                             + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])
+        inputs = {**self.config_hashes(ctx["cfg"]),
+                  **self.hashes([ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
+                                + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])}
         scaled = self.out / SCALED
         if self.decide(k, name, options, inputs):
             t0 = time.perf_counter()
@@ -465,8 +484,8 @@ class _Run:
                       f"{len(ctx['cal_scenes'])}")
         if reason is None:
             options = _plain({"scenes": self.opts.calibration_scenes, "loo": self.opts.loo})
-            inputs = self.hashes(ctx["cfg"] + [ctx["calib"]]
-                                 + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])
+            inputs = {**self.config_hashes(ctx["cfg"]),
+                      **self.hashes([ctx["calib"]] + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])}
             refined = self.out / REFINED
             if not self.decide(k, name, options, inputs):
                 ctx["calib"] = refined
