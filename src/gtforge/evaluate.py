@@ -92,21 +92,31 @@ def _manifest_fields(ds: Path) -> dict:
     return man if isinstance(man, dict) else {}
 
 
-def _warn_of_suspect_scenes(man: dict, ids: list[str]) -> None:
-    """Scenes verify quarantined or flagged (their labels suspect) are scored like the others when asked for: said
-    once, each kind."""
+def _suspect_scenes(man: dict, ids: list[str]) -> dict[str, str]:
+    """Scenes of ``ids`` that verify quarantined or flagged (their labels suspect), each with why (``EvalResult``'s
+    ``suspect_scenes``); they are scored like the others when asked for, and said once, each kind."""
     quarantined = man.get("quarantined")
     quarantined = set(quarantined if isinstance(quarantined, list) else [])
+    flagged = man.get("flagged")
+    flagged = flagged if isinstance(flagged, dict) else {}
+
+    def why(sid: str) -> str:
+        reasons = flagged.get(sid)
+        return "; ".join(map(str, reasons)) if isinstance(reasons, list) else ""
+
+    suspect = {}
     hit = sorted(quarantined & set(ids))
     if hit:
         log.warning("scoring %d scene(s) that verify quarantined (their ground truth is suspect): %s; a split "
                     "(--split train|val|test) leaves them out", len(hit), _first_ids(hit))
-    flagged = man.get("flagged")
-    hit = sorted((set(flagged) if isinstance(flagged, dict) else set()) & set(ids) - quarantined)
+        suspect.update({s: "quarantined" + (f": {why(s)}" if why(s) else "") for s in hit})
+    hit = sorted(set(flagged) & set(ids) - quarantined)
     if hit:
         log.warning("scoring %d scene(s) that verification flagged (their ground truth may not match their images): "
                     "%s; see the dataset's verification.html (gtforge verify --quarantine takes them out of the "
                     "splits)", len(hit), _first_ids(hit))
+        suspect.update({s: "flagged" + (f": {why(s)}" if why(s) else "") for s in hit})
+    return suspect
 
 
 def _first_ids(ids: list[str]) -> str:
@@ -186,7 +196,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none")
     man = _manifest_fields(ds)
-    _warn_of_suspect_scenes(man, ids)
+    suspect = _suspect_scenes(man, ids)
     if max_disp_px is not None and not max_disp_px > 0:
         raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:
@@ -304,7 +314,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                          "'Predictions')" if where is not None else "see each scene's error above")
 
     rep = EvalResult(model=predictor.name, provider=getattr(predictor, "provider", ""), dataset_dir=str(ds.resolve()),
-                     scenes=[s.scene for s in per_scene], missing=missing, max_disp_px=max_disp_px,
+                     scenes=[s.scene for s in per_scene], missing=missing,
+                     suspect_scenes={s.scene: suspect[s.scene] for s in per_scene if s.scene in suspect},
+                     max_disp_px=max_disp_px,
                      model_source=getattr(predictor, "source", ""), gtforge_version=gtforge.__version__,
                      created=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
                      dataset_manifest_sha256=_manifest_sha256(ds), split=split, max_gt_sigma_px=max_gt_sigma_px,

@@ -486,14 +486,19 @@ def test_quarantined_scenes_scored_are_named(dataset, tmp_path, caplog):
     (ds / "manifest.json").write_text(json.dumps(man))
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="gtforge"):
-        evaluate(ds, SGBM(), None)
+        rep = evaluate(ds, SGBM(), tmp_path / "eval")
+    # and the results say which of the scored scenes they were, with verify's reasons (a run-through)
+    assert rep.suspect_scenes == {"000": "flagged: texture shift 0.4 px", "001": "quarantined: texture shift 0.3 px"}
+    assert EvalResult.read(tmp_path / "eval" / "results.json").suspect_scenes == rep.suspect_scenes
+    assert "2 scored scene(s) with suspect ground truth" in (tmp_path / "eval" / "results.html").read_text()
     assert [r.getMessage()[:78] for r in caplog.records if "verification flagged" in r.getMessage()] == [
         "scoring 1 scene(s) that verification flagged (their ground truth may not match"]
     assert any("flagged" in r.getMessage() and ": 000;" in r.getMessage() for r in caplog.records)
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="gtforge"):
-        evaluate(dataset[0], SGBM(), None)
+        rep = evaluate(dataset[0], SGBM(), None)
     assert not any("quarantined" in r.getMessage() or "flagged" in r.getMessage() for r in caplog.records)
+    assert rep.suspect_scenes == {}
 
 
 def test_compare_refuses_the_same_evaluation_twice(tmp_path):

@@ -50,6 +50,8 @@ class EvalResult(VersionedFile):
     dataset_dir: str
     scenes: list[str]
     missing: dict[str, str] = Field(default_factory=dict)
+    # scored scenes whose ground truth verify found suspect: scene -> "quarantined: ..." or "flagged: ..." (its reasons)
+    suspect_scenes: dict[str, str] = Field(default_factory=dict)
     model_source: str = ""  # the model file / prediction folder (absolute), or a description of a built-in one
     gtforge_version: str = ""
     created: str = ""  # local time with UTC offset, ISO 8601

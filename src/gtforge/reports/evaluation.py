@@ -255,6 +255,9 @@ def write_eval_html(rep: EvalResult, out: Path, max_scenes: int = MAX_SCENES_SHO
     fruit = fruit_section(rep)
     if fruit is not None:
         sections.insert(2, fruit)
+    if rep.suspect_scenes:
+        sections.insert(0, Section(f"{len(rep.suspect_scenes)} scored scene(s) with suspect ground truth (verify)",
+                                   table(["scene", "verify"], list(rep.suspect_scenes.items())), status="warn"))
     if rep.missing:
         sections.insert(0, Section(f"{len(rep.missing)} scene(s) excluded", table(
             ["scene", "reason"], list(rep.missing.items())), status="warn"))
