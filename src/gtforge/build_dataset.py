@@ -450,9 +450,9 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     if empty and ok_ids:
         n_fruit = len({fruit_ids[s] or s for s in ok_ids})
         log.warning("split(s) %s came out empty (%d scene(s), %d fruit): normal for a small session, the dataset is "
-                    "complete; each split gets about its --split share of the %d scene(s), a whole fruit at a time "
-                    "(a fruit's scenes stay in one split); for a %s split capture more fruit (or set fruit_ids in "
-                    "session.yaml, or change --split)", ", ".join(empty), len(ok_ids), n_fruit, len(ok_ids),
+                    "complete; each fruit (all its scenes) lands in a split by a draw from its id, so the --split "
+                    "shares hold over many fruit, not over %d; for a %s split capture more fruit (or set fruit_ids "
+                    "in session.yaml, or change --split or --seed)", ", ".join(empty), len(ok_ids), n_fruit, n_fruit,
                     " and ".join(empty))
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
                         quarantined, [s for s in ok_ids if metas[s].verification is not None

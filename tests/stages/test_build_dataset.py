@@ -141,6 +141,37 @@ def test_splits_group_by_fruit():
     assert sp == make_splits(ids, fruit, BuildParams(split_train=0.6, split_val=0.2, split_seed=3))
 
 
+def test_splits_are_stable_as_fruit_come_and_go():
+    """A fruit's split is its own draw: a lab adding fruit to a session (or dropping some) never moves another fruit
+    between splits, so no scene of an earlier build's train split lands in a later build's val or test. The shares
+    hold over many fruit (2,000 fruit of 1-4 scenes: within 2 points of 80/10/10 % of the fruit), and the seed
+    draws anew."""
+    from gtforge.dataset.views import fruit_draw
+
+    rng = np.random.default_rng(7)
+    ids, fruit = [], {}
+    for f in range(2000):
+        for k in range(int(rng.integers(1, 5))):
+            ids.append(f"{f:04d}_{k}")
+            fruit[ids[-1]] = f"melon{f}"
+    params = BuildParams()  # 0.8 / 0.1 / 0.1
+    full = make_splits(ids, fruit, params)
+    where = {s: k for k, v in full.items() for s in v}
+    shares = {k: len({fruit[s] for s in v}) / 2000 for k, v in full.items()}
+    assert shares["train"] == pytest.approx(0.8, abs=0.02) and shares["val"] == pytest.approx(0.1, abs=0.02), shares
+    for sub in (ids[: len(ids) // 3], ids[::7], [s for s in ids if int(s[:4]) % 5 != 2]):
+        part = make_splits(sub, fruit, params)
+        assert {s: k for k, v in part.items() for s in v} == {s: where[s] for s in sub}
+    # no fruit ids: each scene its own fruit, drawn by its id; as stable
+    unnamed = make_splits(ids[:50], {}, params)
+    more = make_splits(ids[:50] + ids[500:520], {}, params)
+    assert unnamed == {k: [s for s in v if s in ids[:50]] for k, v in more.items()}
+    assert sorted(s for v in unnamed.values() for s in v) == ids[:50]
+    other = make_splits(ids, fruit, BuildParams(split_seed=1))
+    assert other != full and fruit_draw("melon3", 0) != fruit_draw("melon3", 1)
+    assert 0.0 <= fruit_draw("melon3", 0) < 1.0
+
+
 @pytest.mark.slow
 def test_resume_skips_unchanged_and_rebuilds_changed(session_dir, true_calibration, tmp_path):
     sess = tmp_path / "sess"

@@ -258,7 +258,7 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                   split: str = typer.Option(f"{defaults.SPLIT_TRAIN:g},{defaults.SPLIT_VAL:g}", metavar="TRAIN,VAL",
                                             help="train,val ratios (test gets the rest); scenes of one fruit stay "
                                                  "in one split."),
-                  seed: int = typer.Option(defaults.SPLIT_SEED, help="Split seed."),
+                  seed: int = typer.Option(defaults.SPLIT_SEED, help="Seed of each fruit's split draw."),
                   verification: bool = typer.Option(True, "--verify/--no-verify",
                                                     help="Check every scene's ground truth against its own images "
                                                          "(texture alignment, stereo consistency; verification.html)."),

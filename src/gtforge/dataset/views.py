@@ -11,28 +11,29 @@ import numpy as np
 
 from gtforge.dataset.layout import KITTI_DISPARITY_DIRS
 from gtforge.infra.atomic import atomic_write_text
+from gtforge.infra.digest import blake3_hex
 from gtforge.io.formats import read_image, read_pfm, write_kitti_disparity_pair
 from gtforge.records.dataset import BuildParams
 
 
 def make_splits(scene_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams) -> dict[str, list[str]]:
-    """Split by fruit: all scenes of one fruit land in the same split. Deterministic by ``split_seed``."""
-    groups: dict[str, list[str]] = {}
-    for s in sorted(scene_ids):
-        groups.setdefault(fruit_ids.get(s) or f"scene:{s}", []).append(s)
-    keys = sorted(groups)
-    rng = np.random.default_rng(params.split_seed)
-    rng.shuffle(keys)
-    n = len(scene_ids)
-    targets = {"train": params.split_train * n, "val": params.split_val * n}
+    """Split by fruit: all scenes of one fruit land in the same split, chosen by that fruit's own draw
+    (``fruit_draw``): train below ``split_train``, val below ``split_train + split_val``, else test. A fruit's split
+    depends on its id and ``split_seed`` only, so adding or removing other scenes never moves it (a model trained on
+    an earlier build's train split has seen none of a later build's val or test); the shares hold on average over the
+    fruit, not exactly in a small session. A scene without a fruit id is its own fruit."""
     out = {"train": [], "val": [], "test": []}
-    for k in keys:
-        for split in ("train", "val", "test"):
-            if split == "test" or len(out[split]) + len(groups[k]) / 2 <= targets[split]:
-                out[split] += groups[k]
-                break
+    for s in scene_ids:
+        u = fruit_draw(fruit_ids.get(s) or f"scene:{s}", params.split_seed)
+        split = "train" if u < params.split_train else "val" if u < params.split_train + params.split_val else "test"
+        out[split].append(s)
     return {k: sorted(v) for k, v in out.items()}
 
+
+def fruit_draw(fruit: str, seed: int) -> float:
+    """A fruit's number in [0, 1), uniform over fruit ids: from the BLAKE3 of the seed and the id (the same on every
+    machine and Python, unlike ``hash``)."""
+    return int(blake3_hex(f"{seed}\x00{fruit}".encode())[:16], 16) / 2.0 ** 64
 
 
 def _link(src: Path, dst: Path) -> None:
