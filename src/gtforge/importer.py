@@ -389,6 +389,28 @@ def check_not_imported(sources: list[SourceFile], earlier: list[ImportRun]) -> N
                              "into a new session")
 
 
+def check_frames_not_imported(path: Path, rgbd: RgbdRecording, kept: list[Pair], earlier: list[ImportRun]) -> None:
+    """``--add``: a recording whose bytes differ from an imported one's but which holds its frames (a copy converted
+    from ``.mcap`` to ``.db3``, a cut or a re-muxed file) would add those captures a second time; told by the kept
+    pairs' depth and texture times, which ``import.json`` records (to the nanosecond, both: another recording of the
+    device matches them only where its clock restarted in phase with this one's, a chance of about one in the frame
+    period's microseconds). A one-line error before anything is written."""
+    if not kept:
+        return
+    mine = {(rgbd.depth.frames[p.depth].t_ns, rgbd.texture.frames[p.texture].t_ns) for p in kept}
+    best, hits = None, 0
+    for run in earlier:
+        n = len(mine & {(q.t_depth_ns, q.t_texture_ns) for q in run.pairs})
+        if n > hits:
+            best, hits = run, n
+    if best is not None:
+        raise InputError(path, "recording", "a recording not yet imported into this session",
+                         f"{hits} of the {len(kept)} captures it would add at the depth and texture times of "
+                         f"captures imported from {best.depth_recording} (import.json)",
+                         "each recording is imported once, and a copy, conversion or cut of one holds the same "
+                         "frames; to import it again with other options, import it into a new session")
+
+
 def import_recordings(paths: list[str | Path], session: str | Path, params: ImportParams | None = None,
                       topics: Topics | None = None, add: bool = False,
                       progress: Callable[[str], None] | None = None) -> ImportSummary:
@@ -433,6 +455,8 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             check_same_rig(session, rgbd, stereo, earlier)
             check_not_imported(sources, earlier)
         kept, dropped, offset, source, n_same, nearest_skew_ms = plan_pairs(rgbd, stereo, params, progress)
+        if add and exists:
+            check_frames_not_imported(rgbd.path, rgbd, kept, earlier)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
                              f"none ({_dropped_text(dropped, params, nearest_skew_ms)})",

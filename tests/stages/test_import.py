@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -109,6 +110,29 @@ def test_add_to_an_existing_session_and_refuse_without_add(hand, recs, tmp_path)
         import_recordings([again, recs.stereo_bag], out, p, add=True)
     assert "not yet imported" in str(dup.value) and str(recs.rgbd_bag.resolve()) in str(dup.value)
     assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
+    # the same frames in other bytes: the .mcap rewritten as a .db3 bag without its first messages (a conversion and
+    # a cut, as a lab's tools make them): refused by the captures' times, nothing written (helper-29)
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    cut = {}
+    for name, bag in (("rgbd", recs.rgbd_bag), ("zed", recs.stereo_bag)):
+        cut[name] = tmp_path / f"{name}_cut_db3"
+        with AnyReader([Path(bag)]) as reader, \
+                Writer(cut[name], version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+            conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in reader.connections}
+            for k, (conn, t_ns, raw) in enumerate(reader.messages()):
+                if k >= 6:
+                    w.write(conns[conn.topic], t_ns, raw)
+        assert list(cut[name].glob("*.db3"))
+    with pytest.raises(InputError, match="import.json") as dup:
+        import_recordings([cut["rgbd"], cut["zed"]], out, p, add=True)
+    cut = cut["rgbd"]
+    assert str(dup.value).startswith(f"{cut}") and "captures imported from" in str(dup.value), dup.value
+    assert re.search(r"[12] of the 2 captures it would add", str(dup.value)), dup.value
+    assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
     # other recordings of the same rig: added, numbered after the session's captures
     more = write_ros2_recordings(hand, tmp_path / "more", captures=["board/001", "scenes/000"], seed=1)
     s = import_recordings([more.rgbd_bag, more.stereo_bag], out,
@@ -177,6 +201,13 @@ def test_real_recordings_import_through_the_command(tmp_path):
             assert "warning: cut.mkv: its IR track holds no frame (a recording cut short?)" in r.stderr
         else:
             assert r.returncode == 2 and one_line_error(r) and "cut short" in r.stderr, r.stderr
+    # the cut one added to the session imported from the whole recording: its one capture's frame is already there
+    (tmp_path / "cut.mkv").write_bytes(data[:1_600_000])
+    listed = sorted(p.relative_to(tmp_path / "k") for p in (tmp_path / "k").rglob("*"))
+    r = gtforge("import", tmp_path / "cut.mkv", "-o", tmp_path / "k", "--add")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "1 of the 1 captures it would add at the depth and texture times of captures imported from" in r.stderr
+    assert sorted(p.relative_to(tmp_path / "k") for p in (tmp_path / "k").rglob("*")) == listed
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs0")
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert "got none (2 dropped for skew (frames over 20 ms apart; the nearest 101.6 ms))" in r.stderr
