@@ -168,15 +168,17 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
                 est, n = estimate_clock_offset(tt, ~tex_still, tl, ~left_still, 1.5 * period)
                 if est is None:
                     raise InputError(stereo.path, "clock", "two recordings whose clocks overlap (or >= 2 motion "
-                                     "events both saw)", f"depth clock {tt[0] / 1e9:.3f}-{tt[-1] / 1e9:.3f} s, "
-                                     f"stereo clock {tl[0] / 1e9:.3f}-{tl[-1] / 1e9:.3f} s, {n} common events",
+                                     "events both saw)", f"depth recording's colour frames {tt[0] / 1e9:.3f}-"
+                                     f"{tt[-1] / 1e9:.3f} s, stereo left frames {tl[0] / 1e9:.3f}-{tl[-1] / 1e9:.3f} s "
+                                     f"(each on its own clock), {n} common events",
                                      "give --clock-offset-ms (stereo clock minus depth clock)")
                 offset, source = est, "motion events"
         lo, hi = max(tt[0] + offset, tl[0]), min(tt[-1] + offset, tl[-1])
         if hi < lo - tol:
             raise InputError(stereo.path, "clock", "recordings that overlap in time (after the clock offset)",
-                             f"depth {(tt[0] + offset) / 1e9:.3f}-{(tt[-1] + offset) / 1e9:.3f} s, stereo "
-                             f"{tl[0] / 1e9:.3f}-{tl[-1] / 1e9:.3f} s (offset {offset / 1e6:.1f} ms)",
+                             f"depth recording's colour frames {(tt[0] + offset) / 1e9:.3f}-"
+                             f"{(tt[-1] + offset) / 1e9:.3f} s, stereo left frames {tl[0] / 1e9:.3f}-"
+                             f"{tl[-1] / 1e9:.3f} s (offset {offset / 1e6:.1f} ms)",
                              "give --clock-offset-ms (stereo clock minus depth clock), or check the recordings")
     drops: Counter = Counter()
     pairs: list[Pair] = []

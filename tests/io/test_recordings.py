@@ -34,7 +34,10 @@ def test_azure_kinect_mkv_matches_the_extracted_frame():
     rec_dir, frame_dir = shared_data("recordings"), shared_data("azure-kinect-frame")
     r = read_kinect_mkv(rec_dir / "azure_kinect_recording.mkv")
     assert [len(s.frames) for s in (r.depth, r.texture, r.ir)] == [1, 1, 1]
-    assert r.depth.frames[0].t_ns == r.texture.frames[0].t_ns == 463_945_000  # device time, us -> ns
+    # device time: the track's 463,945 us (pyk4a's test of this file: the playback's length) plus the recording's
+    # start offset, 336,277 us (its start_timestamp_offset_usec)
+    assert r.depth.frames[0].t_ns == r.texture.frames[0].t_ns == 463_945_000 + 336_277_000
+    assert "frame times: device time (track time + K4A_START_OFFSET_NS 336277000 ns)" in r.notes
     depth = r.depth.frames[0].decode()
     png = read_image(frame_dir / "depth_nfov_unbinned_mm.png")
     assert depth.dtype == np.float32 and np.array_equal(np.isnan(depth), png == 0)

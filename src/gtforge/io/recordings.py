@@ -432,7 +432,9 @@ KINECT_COLOR_MODES = {720: "720P", 1080: "1080P", 1440: "1440P", 1536: "1536P", 
 
 def read_kinect_mkv(path: str | Path) -> RgbdRecording:
     """COLOR (MJPG / NV12 / YUY2 / BGRA), DEPTH and IR (``b16g``: 16-bit big-endian) tracks, the ``calibration.json``
-    attachment (read by ``gtforge.io.vendors``) and the device timestamps (the tracks' pts, microseconds)."""
+    attachment (read by ``gtforge.io.vendors``) and the device timestamps: the tracks' pts (microseconds), which the
+    recorder shifted to start at 0, plus the ``K4A_START_OFFSET_NS`` tag that undoes the shift (Azure Kinect
+    Sensor SDK, ``k4a_record_configuration_t::start_timestamp_offset_usec``)."""
     av = require_extra("av")
     path = Path(path)
     try:
@@ -455,10 +457,16 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
         raise InputError(path, "DEPTH track", "a depth track", f"tracks {sorted(tracks)}", "record with depth on")
     stamps: dict[str, list[int]] = {k: [] for k in tracks}
     index = {s.index: k for k, s in tracks.items()}
+    tag = (container.metadata or {}).get("K4A_START_OFFSET_NS", "0")
+    try:
+        start_offset_ns = int(tag)
+    except ValueError:
+        raise InputError(path, "K4A_START_OFFSET_NS", "an integer (ns)", repr(tag)[:40],
+                         "record with k4arecorder") from None
     try:
         for pkt in container.demux(list(tracks.values())):
             if pkt.size and pkt.pts is not None:
-                stamps[index[pkt.stream.index]].append(int(round(pkt.pts * pkt.time_base * 1e9)))
+                stamps[index[pkt.stream.index]].append(int(round(pkt.pts * pkt.time_base * 1e9)) + start_offset_ns)
     except Exception as exc:
         raise InputError(path, "packets", "a complete recording", f"{type(exc).__name__}",
                          "the file may be truncated") from None
@@ -499,6 +507,7 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
         rec = RgbdRecording(path, "kinect", depth, texture, k.depth, k.color, k.T_color_from_depth, ir=ir,
                             kinect_calibration=calib, kinect_modes=(dmode, cmode))
     rec.notes.append(f"depth mode {dmode}, colour mode {cmode}")
+    rec.notes.append(f"frame times: device time (track time + K4A_START_OFFSET_NS {start_offset_ns} ns)")
     if "IR" in tracks and ir is None:
         rec.warnings.append(f"{path.name}: its IR track holds no frame (a recording cut short?): the captures have "
                             "no IR.png")
