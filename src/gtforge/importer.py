@@ -505,7 +505,13 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         streams = {"depth": rgbd.depth.name, "texture": rgbd.texture.name}
         if stereo is not None:
             streams.update(left=stereo.left.name, right=stereo.right.name)
-        warnings = finished + rgbd.warnings + (stereo.warnings if stereo is not None else [
+        # a lone frame has no neighbour to differ from: kept as still, which nothing checked
+        lone = [f"{rec.path.name} ({st.name})" for rec, st in [(rgbd, rgbd.texture)]
+                + ([(stereo, stereo.left)] if stereo is not None else []) if len(st.frames) == 1]
+        unchecked = [f"{', '.join(lone)} hold{'s' if len(lone) == 1 else ''} one frame: its stillness cannot be "
+                     "checked (a lone frame is kept as still); make sure nothing moved while it was taken"
+                     ] if lone else []
+        warnings = finished + unchecked + rgbd.warnings + (stereo.warnings if stereo is not None else [
             "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
             "need; import the depth and the stereo recordings together for a complete session"])
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),

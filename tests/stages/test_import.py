@@ -184,6 +184,8 @@ def test_real_recordings_import_through_the_command(tmp_path):
     assert np.abs(color.astype(int) - read_image(frame_dir / "color_720p.jpg")).mean() < 1.0
     # a depth recording alone: no stereo images, and the chain says so in one line instead of naming a missing file
     assert "no stereo recording" in r.stderr
+    # its one colour frame: kept, but nothing could check that it was still, which a warning says
+    assert "warning: azure_kinect_recording.mkv (COLOR) holds one frame: its stillness cannot be checked" in r.stderr
     r = gtforge("run", tmp_path / "k", "-o", tmp_path / "k_run")
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert "[zed_calibration]" in r.stderr and "imported from a depth recording alone" in r.stderr
