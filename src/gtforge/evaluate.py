@@ -308,8 +308,10 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         per_scene.append(scene)
     if not per_scene:  # (each scene's reason was said as it came: the line says where to look, once)
         where = getattr(predictor, "folder", None)
+        counts = [f"{n} {what}" for n, what in ((len(absent), "without a prediction file"),
+                                                (len(missing) - len(absent), "refused")) if n]
         raise InputError(where if where is not None else ds, "--predictions" if where is not None else "scenes",
-                         "at least one scene scored", f"none of {len(ids)} ({len(missing)} refused, each said "
+                         "at least one scene scored", f"none of {len(ids)} ({', '.join(counts)}, each said "
                          "above)", "fix the predictions (their files, size or type: docs/metrics.md, "
                          "'Predictions')" if where is not None else "see each scene's error above")
 

@@ -303,6 +303,11 @@ def test_prediction_folder_with_missing_and_wrong_size(dataset, tmp_path):
     assert "883x497" in rep.missing["001"] and "no prediction file (002.pfm" in rep.missing["002"]
     assert rep.pooled["all"].epe_px == pytest.approx(0.25, abs=1e-5)
     assert "2 scene(s) excluded" in (tmp_path / "ev" / "results.html").read_text()
+    # none left to score: the line counts the scenes without a file apart from those refused (it called all refused)
+    (preds / "000.pfm").unlink()
+    with pytest.raises(InputError) as err:
+        evaluate(ds, PredictionFolder(preds), tmp_path / "ev")
+    assert "got none of 3 (2 without a prediction file, 1 refused, each said above)" in str(err.value), err.value
 
 
 @pytest.mark.slow
