@@ -22,6 +22,7 @@ from gtforge.core.camera import Rig
 from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.io.formats import read_image
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.depth_alignment import DepthAlignment
 
@@ -58,7 +59,10 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
         if cap.mech_texture is None:
             raise InputError(d, "mech_texture", "the texture camera's image", "none",
                              "each capture needs its 2-D image")
-        edge_caps.append(EdgeCapture(f"{d.parent.name}/{d.name}", cap.depth_mm, rig.depth_camera, cap.mech_texture))
+        texture = None if params.edges == "silhouettes" else _depth_texture(
+            d / session.config.files.depth_texture, cap.depth_mm.shape, params.edges)
+        edge_caps.append(EdgeCapture(f"{d.parent.name}/{d.name}", cap.depth_mm, rig.depth_camera, cap.mech_texture,
+                                     texture))
     if not edge_caps:
         raise InputError(session.root, None, "board or scene captures", "none", "capture scenes with objects first")
     if progress:
@@ -66,8 +70,14 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
     T_mech_from_depth_file = rig.T_mech_from_depth_or_identity
     res = align_captures(edge_caps, rig.mech, T_mech_from_depth_file, params)
     new_rig = Rig.model_validate({**rig.model_dump(), "T_mech_from_depth": np.array(res.T_color_from_depth)})
-    info = DepthAlignment(calibrated_from=str(calib_path.resolve()), T_mech_from_depth_file=T_mech_from_depth_file,
-                          params=params, result=res, time_s=time.perf_counter() - t0)
+    method = DepthAlignment.model_fields["method"].default
+    if "texture" in res.edge_kinds:
+        method = ("edge alignment: " + " and ".join({"silhouettes": "depth silhouettes", "texture": "the depth "
+                  f"camera's own image's edges ({session.config.files.depth_texture})"}[k] for k in res.edge_kinds)
+                  + " on the texture camera's edges, every capture together")
+    info = DepthAlignment(method=method, calibrated_from=str(calib_path.resolve()),
+                          T_mech_from_depth_file=T_mech_from_depth_file, params=params, result=res,
+                          time_s=time.perf_counter() - t0)
     out = calib.model_copy(update={"rig": new_rig, "depth_alignment": info})
     out = CalibrationFile.model_validate(out.model_dump())
     if out_path is not None:
@@ -75,11 +85,28 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
     return out
 
 
+def _depth_texture(path: Path, shape: tuple[int, int], edges: str) -> np.ndarray | None:
+    """A capture's depth camera image (``IR.png``: pixel-aligned with its depth), None where the capture has none and
+    ``edges`` does not ask for it."""
+    if not path.is_file():
+        if edges in ("texture", "both"):
+            raise InputError(path, None, f"the depth camera's own image for --edges {edges}", "no such file",
+                             "use --edges auto or silhouettes, or name the image in session.yaml "
+                             "(files.depth_texture)")
+        return None
+    img = read_image(path)
+    if img.shape[:2] != tuple(shape):
+        raise InputError(path, "size", f"{shape[1]}x{shape[0]} px (the depth map's: pixel-aligned with it)",
+                         f"{img.shape[1]}x{img.shape[0]} px", "it must be the depth camera's own image, as "
+                         "gtforge import writes it")
+    return img
+
+
 def summary_lines(info: DepthAlignment) -> list[str]:
     """The console report: the decision, each parameter, the offsets before/after, per capture."""
     r = info.result
     names = ("omega_x", "omega_y", "omega_z")
-    lines = [f"depth camera pose: {r.decision} ({r.reason})"]
+    lines = [f"depth camera pose: {r.decision} ({r.reason})", f"  edges: {' and '.join(r.edge_kinds)}"]
     for k, n in enumerate(names):
         sig = f" +- {r.sigma_omega_deg[k]:.3f}" if np.isfinite(r.sigma_omega_deg[k]) else ""
         lines.append(f"  {n}: {r.omega_deg[k]:+.3f}{sig} deg [{r.status[k]}]")

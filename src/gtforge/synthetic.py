@@ -14,6 +14,7 @@ change together whenever a new effect is simulated; tests and benchmarks import 
 from __future__ import annotations
 
 import os
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +38,7 @@ from gtforge.core.schema import VersionedFile
 from gtforge.core.targets.models import board_model_of, collinear
 from gtforge.io.cameras import check_zed_conf_reading, write_zed_conf
 from gtforge.io.captures import SessionFile
-from gtforge.io.formats import write_image, write_tiff_float
+from gtforge.io.formats import write_image, write_png16, write_tiff_float
 
 OBJ_NONE, OBJ_TABLE, OBJ_BOARD, OBJ_FRUIT = 0, 1, 2, 3
 # threads rendering an image's row chunks (render_image)
@@ -365,6 +366,8 @@ class SyntheticCapture:
     # the fruit ellipsoids in the ZED-left frame (fruit_ellipsoids_zed): centre_mm (K, 3), radii_mm (K, 3),
     # R_zed_from_fruit (K, 3, 3) (columns: the semi-axes' directions), and T_zed_from_world
     fruit_truth: dict | None = None
+    # a separate depth camera's own image (its "infrared" image: uint16, pixel-aligned with depth_mm), written as IR.png
+    depth_texture: np.ndarray | None = None
 
 
 def fruit_ellipsoids_zed(scene: "Scene", T_zed_from_world: np.ndarray) -> dict:
@@ -448,9 +451,29 @@ def render_capture(name: str, scene: Scene, rig: SyntheticRig, rng: np.random.Ge
     hit_r = np.isfinite(z_r)
     disp_r = zed.depth_to_disparity(np.where(hit_r, z_r, np.nan))
     seen_r = _seen_by_depth_camera(zed_scene, rig, p_r, hit_r)
+    ir = None
+    if rig.depth_cam is not None:  # a separate depth camera: its own image, as an Azure Kinect's infrared
+        ir = depth_camera_image(scene, rig, f"{kind}/{name}", supersample, blur_sigma_px)
     return SyntheticCapture(name, kind, tex, depth.astype(np.float32), left, right, zdepth, disp, seen,
                             ids_z == OBJ_FRUIT, disp_r, seen_r,
-                            fruit_truth=fruit_ellipsoids_zed(zed_scene, rig.T_zed_from_world))
+                            fruit_truth=fruit_ellipsoids_zed(zed_scene, rig.T_zed_from_world), depth_texture=ir)
+
+
+IR_COUNTS_PER_ALBEDO = 4000.0  # the depth camera's image: 16-bit counts for a white surface, as an infrared image's
+IR_NOISE_COUNTS = 8.0
+
+
+def depth_camera_image(scene: Scene, rig: SyntheticRig, key: str, supersample: int = 3,
+                       blur_sigma_px: float = 0.6) -> np.ndarray:
+    """A separate depth camera's own image of ``scene`` (uint16, pixel-aligned with its depth: an infrared image).
+    Its noise is drawn from a generator of its own, seeded by ``key``, so a session's other images are the same with
+    or without it."""
+    rng = np.random.default_rng(zlib.crc32(key.encode()))
+    grey = render_image(scene, rig.depth_camera, rig.T_depth_from_world, supersample) @ np.array([0.299, 0.587, 0.114])
+    if blur_sigma_px > 0:
+        grey = cv2.GaussianBlur(grey, (0, 0), blur_sigma_px)
+    counts = grey * IR_COUNTS_PER_ALBEDO + rng.normal(0, IR_NOISE_COUNTS, grey.shape)
+    return np.clip(np.round(counts), 0, 65535).astype(np.uint16)
 
 
 def _seen_by_depth_camera(scene: Scene, rig: SyntheticRig, p_world: np.ndarray, hit: np.ndarray) -> np.ndarray:
@@ -661,6 +684,8 @@ def write_capture(folder: Path, cap: SyntheticCapture, truth_dir: Path, fruit_mo
     write_tiff_float(folder / "DepthMap.tiff", cap.depth_mm)
     write_image(folder / "left.png", cap.zed_left)
     write_image(folder / "right.png", cap.zed_right)
+    if cap.depth_texture is not None:
+        write_png16(folder / "IR.png", cap.depth_texture)
     truth_dir.mkdir(parents=True, exist_ok=True)
     extra = {}
     if cap.T_mech_from_board is not None:

@@ -434,9 +434,16 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
                                                      "shift is on its border."),
                 apply_z: float = typer.Option(defaults.EDGE_APPLY_Z,
                                               help="Apply the correction when it is more than this many sigma "
-                                                   "from the factory pose.")) -> None:
+                                                   "from the factory pose."),
+                edges: str = typer.Option("auto", metavar="KIND",
+                                          help="Which of the depth camera's edges to put on the texture image's: "
+                                               "silhouettes (depth jumps), texture (its own image's edges: IR.png "
+                                               "beside each capture, as gtforge import writes an Azure Kinect's "
+                                               "infrared image), both, or auto (both where a capture has IR.png)."
+                                          )) -> None:
     """Refine a separate depth camera's pose (T_mech_from_depth: Azure Kinect, Orbbec, PrimeSense-class units) by
-    putting every capture's depth silhouettes on the texture image's edges; writes a calibration file with the
+    putting every capture's depth silhouettes, and its own image's edges where it has one (IR.png), on the texture
+    image's edges; writes a calibration file with the
     corrected pose and its covariance (its 'depth_alignment' says what was found, and each capture's pixel offset
     before and after). Run it after calibrate, before calibrate-scale."""
     from gtforge.align_depth import align_depth as run
@@ -445,7 +452,7 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
     from gtforge.io.calibrated_session import calibration_output_path
     from gtforge.reports.depth_alignment import write_depth_alignment_report
 
-    params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z)
+    params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z, edges=edges)
     res = run(session, calibration, output, params, scenes.split(",") if scenes else None, use_boards=boards,
               progress=_status)
     for line in summary_lines(res.depth_alignment):

@@ -204,6 +204,9 @@ class FileNames(GTModel):
     zed_side_by_side: str = "zed_sbs.png"
     zed_video: str = "zed.mp4"
     fruit_mask: str = "fruit_mask.png"
+    # a separate depth camera's own image, pixel-aligned with its depth (an Azure Kinect's infrared image, which
+    # gtforge import writes); optional: align-depth adds its edges where it is there
+    depth_texture: str = "IR.png"
 
 
 class SessionFile(VersionedFile):
