@@ -224,6 +224,28 @@ def test_constant_disparity_offset_gives_the_predicted_diameter_change(small_dat
         assert got.diameter_error_mm < 0 and 0.6 < got.diameter_error_mm / first_order < 1.1
 
 
+def test_a_prediction_invalid_on_every_other_row_is_still_measured(small_dataset):
+    """The fit's pixels were taken on a grid before the invalid ones were dropped: a prediction invalid on every
+    other row (as an interlaced or row-skipping output is) left the grid on its holes only, and the fruit 'too few
+    table pixels' (a run-through). Now such a grid falls back to every pixel: the same fruit as from the complete GT
+    to within what half its rows change (0.2 mm), while the GT itself is measured on the grid as before."""
+    s = _scenes(small_dataset)[0]
+    cal = SceneCalib(s / "calib.txt")
+    gt = read_pfm(s / "disp0GT.pfm")
+    region = read_image(s / "region.png")
+    m = fruit_instances(region)[0]
+    holes = gt.copy()
+    holes[::2] = np.inf  # the rows a grid of step 2 starts on
+    step = 2
+    assert len(points_from_disparity(holes, cal, m, step)) == len(points_from_disparity(holes, cal, m, 1))
+    grid = m & (np.indices(m.shape) % step == 0).all(0)
+    assert np.array_equal(points_from_disparity(gt, cal, m, step), points_from_disparity(gt, cal, grid, 1))
+    assert len(points_from_disparity(gt, cal, m, step)) < len(points_from_disparity(gt, cal, m, 1)) / 3
+    full, half = measure_fruit(gt, cal, m, region == 1), measure_fruit(holes, cal, m, region == 1)
+    assert full.ok and half.ok, half.reason
+    assert half.diameter_mm == pytest.approx(full.diameter_mm, abs=0.2)
+
+
 @pytest.mark.slow
 def test_results_without_fruit_size_still_load(small_dataset, tmp_path):
     pred = _write_predictions(small_dataset, "p_old", lambda s, gt, c: gt)

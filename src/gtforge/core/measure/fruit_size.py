@@ -190,11 +190,16 @@ class _Window:
 def points_from_disparity(disp: np.ndarray, calib, mask: np.ndarray, step: int = 1) -> np.ndarray:
     """``(N, 3)`` ZED-left points (mm) of the masked pixels with a finite, positive ``d + doffs``; ``calib``: a
     ``gtforge.io.middlebury.SceneCalib`` (f, fy, cx, cy, baseline, doffs). ``step``: every ``step``-th row and column
-    only."""
+    only, unless that grid meets far fewer valid disparities than the mask holds (a prediction invalid on every other
+    row: the grid would land on its holes only); then every pixel."""
     v, u = np.nonzero(mask[::step, ::step])
     v, u = v * step, u * step
     d = disp[v, u].astype(np.float64) + calib.doffs_px
     ok = np.isfinite(d) & (d > 0)
+    if step > 1 and ok.size:
+        d_all = disp[mask].astype(np.float64) + calib.doffs_px
+        if ok.mean() < 0.5 * np.mean(np.isfinite(d_all) & (d_all > 0)):
+            return points_from_disparity(disp, calib, mask, 1)
     v, u, d = v[ok], u[ok], d[ok]
     z = calib.f_px * calib.baseline_mm / d
     fy = getattr(calib, "fy_px", calib.f_px)
