@@ -44,10 +44,12 @@ class InputConvention(GTModel):
 
     def prepare(self, img: np.ndarray) -> np.ndarray:
         x = img.astype(np.float32)
-        if self.channels == "BGR":
+        bgr = self.channels == "BGR"
+        if bgr:
             x = x[..., ::-1]
-        if self.normalize == "imagenet":
-            x = (x / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
+        if self.normalize == "imagenet":  # each colour with its own statistics, in the order the network takes them
+            x = (x / 255.0 - (IMAGENET_MEAN[::-1] if bgr else IMAGENET_MEAN)) / (IMAGENET_STD[::-1] if bgr
+                                                                                else IMAGENET_STD)
         elif self.normalize == "0-1":
             x = x / 255.0
         return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)
@@ -251,9 +253,27 @@ class TorchScriptModel:
                                  torch.from_numpy(self.conv.prepare(r)).to(self.device))
         except Exception as exc:  # the model's own errors (a shape or type it cannot take) name no file
             raise _model_error(self.path, exc, "two 1 x 3 x H x W float32")
-        if isinstance(out, (list, tuple)):
-            out = out[-1]
-        return _disparity_from_output(self.path, out.float().cpu().numpy(), l.shape[:2], info)
+        return _disparity_from_output(self.path, _torch_disparity(self.path, out), l.shape[:2], info)
+
+
+def _torch_disparity(path: Path, out) -> np.ndarray:
+    """A TorchScript model's output as an array: a tensor, the last of a list or tuple (RAFT-Stereo's iterations), or
+    a dict's one tensor; anything else is the model's mistake, one line."""
+    if isinstance(out, (list, tuple)) and out:
+        out = out[-1]
+    if isinstance(out, dict):
+        tensors = {k: v for k, v in out.items() if hasattr(v, "detach")}
+        if len(tensors) != 1:
+            raise InputError(path, "output", "a disparity tensor (or a list, tuple or dict holding one)",
+                             f"a dict with {len(tensors)} tensors ({', '.join(map(str, list(out)[:6]))})",
+                             "wrap the model so that it returns the final disparity tensor (docs/metrics.md, "
+                             "'Output')")
+        out = next(iter(tensors.values()))
+    if not hasattr(out, "detach"):
+        raise InputError(path, "output", "a disparity tensor (or a list, tuple or dict holding one)",
+                         f"{type(out).__name__}", "wrap the model so that it returns the final disparity tensor "
+                         "(docs/metrics.md, 'Output')")
+    return out.detach().float().cpu().numpy()
 
 
 class SGBM:

@@ -4,6 +4,7 @@ import re
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,6 +107,51 @@ def test_onnx_with_unexpected_inputs_is_refused(tmp_path):
     onnx.save(mdl, tmp_path / "bad.onnx")
     with pytest.raises(InputError, match=r"inputs.*two NCHW inputs.*x\[1, 3\]"):
         OnnxModel(tmp_path / "bad.onnx")
+
+
+def test_bgr_input_is_normalised_with_each_colours_own_statistics():
+    """--channels BGR --normalize imagenet: the channels flipped, then each normalised with its own colour's
+    ImageNet mean and std (the blue channel took red's before: a run-through measured the shift)."""
+    from gtforge.predictors import InputConvention
+
+    img = np.array([[[200, 100, 50]]], np.uint8)  # R, G, B
+    rgb = InputConvention(channels="RGB").prepare(img)[0, :, 0, 0]
+    bgr = InputConvention(channels="BGR").prepare(img)[0, :, 0, 0]
+    want = {"R": (200 / 255 - 0.485) / 0.229, "G": (100 / 255 - 0.456) / 0.224, "B": (50 / 255 - 0.406) / 0.225}
+    np.testing.assert_allclose(rgb, [want["R"], want["G"], want["B"]], rtol=1e-6)
+    np.testing.assert_allclose(bgr, [want["B"], want["G"], want["R"]], rtol=1e-6)
+
+
+def test_a_torchscript_models_output_is_a_tensor_or_names_what_it_is():
+    """A TorchScript model returning a dict crashed evaluate with a traceback ('dict' object has no attribute
+    'float'; a run-through): a dict's one tensor is the disparity, a list's or tuple's last; two tensors in a dict,
+    or no tensor at all, are one line naming what came out."""
+    from gtforge.predictors import _torch_disparity
+
+    class FakeTensor:  # the four calls the conversion makes (torch is an optional extra, not installed in CI)
+        def __init__(self, a):
+            self.a = a
+
+        def detach(self):
+            return self
+
+        def float(self):
+            return FakeTensor(self.a.astype(np.float32))
+
+        def cpu(self):
+            return self
+
+        def numpy(self):
+            return self.a
+
+    a, b = np.full((2, 3), 25.0), np.zeros((2, 3))
+    for out in (FakeTensor(a), [FakeTensor(b), FakeTensor(a)], (FakeTensor(a),), {"disp": FakeTensor(a), "n": 3}):
+        got = _torch_disparity(Path("m.pt"), out)
+        assert got.dtype == np.float32 and np.array_equal(got, a)
+    with pytest.raises(InputError, match=r"m.pt \[output\]: .* got a dict with 2 tensors \(disp, conf\)"):
+        _torch_disparity(Path("m.pt"), {"disp": FakeTensor(a), "conf": FakeTensor(b)})
+    with pytest.raises(InputError, match=r"got str \(hint: wrap the model"):
+        _torch_disparity(Path("m.pt"), "disparity")
 
 
 @pytest.mark.slow
