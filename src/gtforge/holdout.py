@@ -29,6 +29,11 @@ def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path 
         require_output_folder(out_dir, "--output")
         refuse_gtforge_folder(out_dir)
     dirs = session.select("board", captures)
+    if len(dirs) <= MIN_CALIBRATION_POSES:  # nothing can be held out: say so, not "1 to -1 poses"
+        raise InputError(session_dir, "holdout", f"more than {MIN_CALIBRATION_POSES} board captures to hold any out "
+                         f"({MIN_CALIBRATION_POSES} must remain to calibrate)",
+                         f"{len(dirs)}" + (" (--captures)" if captures else ""),
+                         "list more captures with --captures, or capture more board poses")
     if not 1 <= holdout <= len(dirs) - MIN_CALIBRATION_POSES:
         raise InputError(session_dir, "holdout", f"1 to {len(dirs) - MIN_CALIBRATION_POSES} held-out poses of "
                          f"{len(dirs)} ({MIN_CALIBRATION_POSES} must remain to calibrate)", str(holdout),

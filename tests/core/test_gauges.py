@@ -198,6 +198,22 @@ def test_bad_gauges_yaml_is_a_one_line_error(exact, tmp_path, gauge, field, says
         assert r.returncode == 2 and says in msg and "Traceback" not in msg and len(msg.splitlines()) == 1, msg
 
 
+def test_limits_out_of_order_are_refused(tmp_path):
+    """A pass limit above its warn limit made an error between the two PASS while a smaller one warned (a
+    run-through: size_pass_mm 0.5, size_warn_mm 0.3 reported a -0.43 mm size error as PASS): one line naming both."""
+    (tmp_path / "gauges" / "sphere").mkdir(parents=True)
+    (tmp_path / "gauges" / "gauges.yaml").write_text(yaml.safe_dump({
+        "schema_version": 1, "gauges": [{"capture": "sphere", "kind": "sphere", "diameter_mm": 100.0}],
+        "limits": {"size_pass_mm": 0.5}}))
+    with pytest.raises(InputError) as e:
+        read_gauges_file(tmp_path)
+    assert "gauges.yaml" in str(e.value) and "size_pass_mm 0.5 must not exceed size_warn_mm 0.3" in str(e.value)
+    (tmp_path / "gauges" / "gauges.yaml").write_text(yaml.safe_dump({
+        "schema_version": 1, "gauges": [{"capture": "sphere", "kind": "sphere", "diameter_mm": 100.0}],
+        "limits": {"size_pass_mm": 0.3, "flatness_warn_mm": 0.7}}))
+    assert read_gauges_file(tmp_path).limits.size_pass_mm == 0.3  # equal limits: no WARN band, allowed
+
+
 @pytest.mark.slow
 def test_gauges_only_on_the_command_line(exact, tmp_path):
     s, c, _ = exact

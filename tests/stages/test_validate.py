@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from gtforge.core.geometry import T_from_rotvec
+from gtforge.errors import InputError
 from gtforge.records.calibration import CalibrationFile
 from gtforge.validate import bilinear_valid, validate
 
@@ -46,6 +47,11 @@ def test_holdout_calibrates_and_validates_on_unseen_poses(session_dir, tmp_path)
     assert "005" not in used and "006" not in used and len(used) == 5
     assert [p.capture for p in rep.poses] == ["005", "006"] and not rep.warnings
     assert rep.xy_mean_px < 0.15 and rep.z_error_mean_pct < 0.05
+    # too few captures listed to hold any out: said so ("expected 1 to -1 held-out poses" before; a run-through)
+    with pytest.raises(InputError) as err:
+        validate_holdout(session_dir, 2, tmp_path / "out2", captures=["000", "005"])
+    assert "expected more than 3 board captures to hold any out" in str(err.value)
+    assert "got 2 (--captures)" in str(err.value) and "to -1" not in str(err.value)
 
 
 def test_bilinear_over_valid_neighbours_only():

@@ -75,6 +75,15 @@ class GaugeLimits(GTModel):
     flatness_pass_mm: float = Field(0.3, gt=0)
     flatness_warn_mm: float = Field(0.6, gt=0)
 
+    @model_validator(mode="after")
+    def _pass_within_warn(self) -> "GaugeLimits":
+        for q in ("size", "form", "spacing", "flatness"):
+            p, w = getattr(self, f"{q}_pass_mm"), getattr(self, f"{q}_warn_mm")
+            if p > w:  # an error between the two would pass while a smaller one warns
+                raise ValueError(f"{q}_pass_mm {p:g} must not exceed {q}_warn_mm {w:g} (PASS up to the first, "
+                                 "WARN up to the second, FAIL beyond)")
+        return self
+
 
 class GaugesFile(VersionedFile):
     """``gauges/gauges.yaml``."""
