@@ -164,6 +164,15 @@ def _manifest_sha256(dataset_dir: Path) -> str | None:
     return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
 
 
+def _content_sha256(dataset_dir: Path) -> str | None:
+    from gtforge.records.dataset import Manifest
+
+    try:
+        return Manifest.read(dataset_dir / "manifest.json").content_sha256()
+    except InputError:  # another schema: compare falls back to the file's hash
+        return None
+
+
 def _check_sigma_maps(ds: Path, ids: list[str]) -> None:
     absent = [sid for sid in ids if not (ds / "scenes" / sid / SIGMA_FILE).is_file()]
     if absent:
@@ -321,7 +330,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                      max_disp_px=max_disp_px,
                      model_source=getattr(predictor, "source", ""), gtforge_version=gtforge.__version__,
                      created=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-                     dataset_manifest_sha256=_manifest_sha256(ds), split=split, max_gt_sigma_px=max_gt_sigma_px,
+                     dataset_manifest_sha256=_manifest_sha256(ds),
+                     dataset_content_sha256=_content_sha256(ds), split=split, max_gt_sigma_px=max_gt_sigma_px,
                      time_ms_median=float(np.median(times)) if times else None, params_count=params_count,
                      pooled={r: a.result() for r, a in pooled.items()},
                      per_image_mean={r: mean_of([s.metrics[r] for s in per_scene]) for r in REGIONS},

@@ -471,9 +471,23 @@ def test_compare_warns_about_different_datasets(dataset, tmp_path):
     r = CliRunner().invoke(app, ["compare", str(tmp_path / "a" / "results.json"), str(tmp_path / "b" / "results.json"),
                                  "-o", str(tmp_path / "cmp")])
     assert r.exit_code == 0, r.output
-    assert "the results come from different datasets (manifest.json differs)" in r.output
+    assert "the results come from different datasets (manifest.json differs, beyond where and when" in r.output
     assert (tmp_path / "cmp" / "comparison.html").is_file() and (tmp_path / "cmp" / "comparison.csv").is_file()
     assert "> warning: the results come from different datasets" in (tmp_path / "cmp" / "comparison.md").read_text()
+    # the same labels built again elsewhere (a rebuild, a Dask build, a copy): other times, stamps and paths only,
+    # which compare called a different dataset (a run-through)
+    same = tmp_path / "same"
+    shutil.copytree(ds0, same)
+    man = json.loads((same / "manifest.json").read_text())
+    man["session_dir"] = "/elsewhere/session"
+    for meta in man["scenes"].values():
+        meta["time_s"] += 1.0
+        for st in meta["input_stamps"].values():
+            st["hashed_at_ns"] += 5
+    (same / "manifest.json").write_text(json.dumps(man))
+    evaluate(same, PredictionFolder(preds, "c"), tmp_path / "c")
+    _, warnings = compare([tmp_path / "a" / "results.json", tmp_path / "c" / "results.json"], tmp_path / "cmp2")
+    assert not any("different datasets" in w for w in warnings), warnings
 
 
 @pytest.mark.slow

@@ -118,3 +118,18 @@ class Manifest(VersionedFile):
     quarantined: list[str] = Field(default_factory=list)  # flagged scenes left out of the split lists
     # scenes whose fruit moved between the exposures and whose ground truth was rebuilt with the fruit moved (issue 37)
     compensated: list[str] = Field(default_factory=list)
+
+    # what differs between two builds of the same labels: where the build ran from and when, and how long it took
+    VOLATILE: ClassVar[tuple[str, ...]] = ("calibration_path", "session_dir", "input_stamps", "time_s", "time_read_s",
+                                           "time_compute_s", "time_write_s")
+
+    def content_sha256(self) -> str:
+        """SHA-256 of the manifest without its ``VOLATILE`` fields (at any depth): the same for two builds of the
+        same labels (a rebuild, a copy, the same session built on a Dask cluster), which the file's own hash is not."""
+        def strip(x):
+            if isinstance(x, dict):
+                return {k: strip(v) for k, v in x.items() if k not in self.VOLATILE}
+            return [strip(v) for v in x] if isinstance(x, list) else x
+
+        text = json.dumps(strip(self.model_dump(mode="json")), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()

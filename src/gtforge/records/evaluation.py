@@ -55,7 +55,10 @@ class EvalResult(VersionedFile):
     model_source: str = ""  # the model file / prediction folder (absolute), or a description of a built-in one
     gtforge_version: str = ""
     created: str = ""  # local time with UTC offset, ISO 8601
-    dataset_manifest_sha256: str | None = None  # identifies the dataset (compare warns when results differ)
+    dataset_manifest_sha256: str | None = None  # the manifest file's bytes
+    # identifies the labels (Manifest.content_sha256: the manifest without where and when it was built); compare
+    # warns when results differ in it (in the file's hash where a result has none: written before it existed)
+    dataset_content_sha256: str | None = None
     split: str | None = None
     max_disp_px: float | None = None
     max_gt_sigma_px: float | None = None

@@ -297,10 +297,12 @@ def comparison_warnings(reports: list[EvalResult], files: list[Path]) -> list[st
     def listing(key: Callable[[EvalResult], object]) -> str:
         return "; ".join(f"{f}: {key(r)}" for r, f in zip(reports, files))
 
-    hashes = [r.dataset_manifest_sha256 for r in reports]
+    content = [r.dataset_content_sha256 for r in reports]
+    hashes = content if all(content) else [r.dataset_manifest_sha256 for r in reports]
     if all(hashes) and len(set(hashes)) > 1:
-        w.append("the results come from different datasets (manifest.json differs): " +
-                 listing(lambda r: f"{r.dataset_dir} (manifest {str(r.dataset_manifest_sha256)[:12]})"))
+        w.append("the results come from different datasets (manifest.json differs" +
+                 (", beyond where and when each was built" if all(content) else "") + "): " +
+                 listing(lambda r: f"{r.dataset_dir} (manifest {str(hashes[reports.index(r)])[:12]})"))
     elif not all(hashes) and differ(lambda r: r.dataset_dir):
         w.append("the results come from different dataset folders: " + listing(lambda r: r.dataset_dir))
     if differ(lambda r: sorted(r.scenes)):
