@@ -21,7 +21,7 @@ from gtforge.core.measure.metrics import (
     region_errors,
 )
 from gtforge.core.ground_truth.regions import region_masks
-from gtforge.errors import InputError
+from gtforge.errors import InputError, MissingFileError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.middlebury import SceneCalib
@@ -206,6 +206,12 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         raise InputError(ds, "scenes", "at least one scene", "none")
     man = _manifest_fields(ds)
     suspect = _suspect_scenes(man, ids)
+    listed = man.get("scenes")
+    unlisted = [s for s in ids if isinstance(listed, dict) and s not in listed]
+    if unlisted:  # landed by a build stopped before it wrote the manifest: complete, but neither verified nor split
+        log.warning("%d of %d scene(s) are not in %s (a build stopped before it finished: they are not verified nor "
+                    "in a split): %s; scored like the others; run build-dataset again to finish it", len(unlisted),
+                    len(ids), ds / "manifest.json", _first_ids(unlisted))
     if max_disp_px is not None and not max_disp_px > 0:
         raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:
@@ -279,6 +285,10 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                 if sigma.shape != gt.shape:
                     raise InputError(s / SIGMA_FILE, "size", f"{gt.shape[1]}x{gt.shape[0]} px (disp0GT.pfm)",
                                      f"{sigma.shape[1]}x{sigma.shape[0]} px")
+        except MissingFileError as exc:  # a dataset's file, not a capture's: the build's to write again
+            leave_out(sid, InputError(exc.file, exc.field, exc.expected, exc.actual, "the scene is incomplete: run "
+                                      "build-dataset again (it rebuilds a scene whose files are missing)"))
+            continue
         except InputError as exc:
             leave_out(sid, exc)
             continue
@@ -310,8 +320,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
             fruit_records += measure_scene(sid, region, cal, gt, pred, scene_truth(ds, sid), grades)
             fruit_ms.append((time.perf_counter() - t0) * 1000.0)
         if out is not None:
-            if not written:  # an earlier evaluation's tables go before its maps do: never tables of one model
-                _withdraw_tables(out)  # beside maps of another (a Ctrl-C now leaves this run's maps, no tables)
+            if not written:  # an earlier evaluation's tables and maps go before this one's first map: never
+                _withdraw_tables(out)  # one model's tables or maps beside another's (a Ctrl-C now leaves this
+                _remove_earlier_outputs(out, [])  # run's maps alone, no tables)
             written += _write_error_maps(out, sid, scene, pred, gt, masks, cal, sigma, max_gt_sigma_px, max_disp_px,
                                          write_clouds)
         per_scene.append(scene)
@@ -420,6 +431,11 @@ def compare(result_files: list[str | Path], out_dir: str | Path) -> tuple[str, l
     # an evaluation's folder stands for its results.json (what evaluate's -o named)
     files = [Path(p) / "results.json" if Path(p).is_dir() and (Path(p) / "results.json").is_file() else Path(p)
              for p in result_files]
+    for f in files:
+        if f.is_dir() and (f / INCOMPLETE_MARK).is_file():  # a rewrite stopped before its tables: no results yet
+            raise InputError(f, "RESULTS", "an evaluation's results.json", f"an evaluation folder without one "
+                             f"({INCOMPLETE_MARK}: evaluate was stopped before it wrote its tables)",
+                             "run that evaluate again")
     seen: dict[str, Path] = {}
     for f in files:
         key = os.path.realpath(f)

@@ -73,9 +73,11 @@ def _fit(conv: InputConvention, img: np.ndarray) -> tuple[np.ndarray, tuple]:
     return out, ("pad", H, W, top)
 
 
-def _disparity_from_output(path: Path, out: np.ndarray, fitted_hw: tuple[int, int], info: tuple) -> np.ndarray:
+def _disparity_from_output(path: Path, out: np.ndarray, fitted_hw: tuple[int, int], info: tuple,
+                           said: set | None = None) -> np.ndarray:
     """A network's output as the scene's disparity (``_unfit``), after checking it is one map of the right size:
-    the same for every scene, so a mistake here is the model's (one error, before any scoring)."""
+    the same for every scene, so a mistake here is the model's (one error, before any scoring). ``said``: the
+    warnings already given for this model (each once)."""
     out = np.squeeze(out)
     if out.ndim != 2:
         raise InputError(path, "output", "a disparity map (1 x 1 x H x W, 1 x H x W or H x W)",
@@ -86,6 +88,14 @@ def _disparity_from_output(path: Path, out: np.ndarray, fitted_hw: tuple[int, in
                          f"{out.shape[1]}x{out.shape[0]} px",
                          "export the model's full-resolution output (a low-resolution disparity upsampled and "
                          "scaled), or evaluate with --fit resize --resize WxH")
+    if info[0] == "resize" and out.ndim == 2 and out.shape != tuple(fitted_hw) and said is not None \
+            and "size" not in said:
+        said.add("size")
+        logging.getLogger("gtforge.evaluate").warning(
+            "%s: its output is %dx%d px, not its input's %dx%d: read as disparities in the output's own pixels "
+            "(resized to the image and scaled by %.4g); a network that gives full-resolution disparities on a "
+            "smaller map would be scored wrong", path, out.shape[1], out.shape[0], fitted_hw[1], fitted_hw[0],
+            info[2] / out.shape[1])
     return _unfit(out, info).astype(np.float32)
 
 
@@ -114,6 +124,7 @@ class OnnxModel:
                              "a folder of predicted disparities goes to --predictions" if self.path.is_dir()
                              else "check the path")
         self.conv = convention or InputConvention()
+        self.said: set[str] = set()  # the warnings given for this model, each once
         providers = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
         try:
             self.sess = ort.InferenceSession(str(self.path), providers=providers)
@@ -123,6 +134,10 @@ class OnnxModel:
         self.provider = self.sess.get_providers()[0]
         self.inputs = self.sess.get_inputs()
         self.layout = _onnx_layout(self.path, self.inputs)
+        # (left, right) in the graph's order, unless its names say the other: "right..." first, "...left..." second
+        names = [i.name.lower() for i in self.inputs[:2]]
+        self.swapped = self.layout == "two" and "right" in names[0] and "left" in names[1] and \
+            "left" not in names[0] and "right" not in names[1]
         self.dtype = _onnx_input_dtype(self.path, self.inputs)
         # the height and width the model was exported with, where they are fixed numbers (None: any)
         dims = self.inputs[0].shape
@@ -135,13 +150,15 @@ class OnnxModel:
         r, _ = _fit(self.conv, right)
         self._check_size(l.shape[:2])
         a, b = self.conv.prepare(l).astype(self.dtype, copy=False), self.conv.prepare(r).astype(self.dtype, copy=False)
+        if self.swapped:
+            a, b = b, a
         feeds = {self.inputs[0].name: a, self.inputs[1].name: b} if self.layout == "two" else \
             {self.inputs[0].name: np.concatenate([a, b], axis=1)}
         try:
             out = self.sess.run(None, feeds)[0]
         except Exception as exc:  # onnxruntime's own errors (a shape or type the graph cannot take) name no file
             raise _model_error(self.path, exc, "two N x 3 x H x W" if self.layout == "two" else "one N x 6 x H x W")
-        return _disparity_from_output(self.path, np.asarray(out, np.float32), l.shape[:2], info)
+        return _disparity_from_output(self.path, np.asarray(out, np.float32), l.shape[:2], info, self.said)
 
     def _check_size(self, hw: tuple[int, int]) -> None:
         """A model exported with a fixed height or width takes only that: say so before onnxruntime does."""
@@ -238,6 +255,7 @@ class TorchScriptModel:
                              "save the network with torch.jit.save or torch.export.save (docs/metrics.md, "
                              "'Models')") from None
         self.conv = convention or InputConvention()
+        self.said: set[str] = set()  # the warnings given for this model, each once
         self.path = path
         self.name = name or Path(path).stem
         self.source = str(path.resolve())
@@ -253,7 +271,7 @@ class TorchScriptModel:
                                  torch.from_numpy(self.conv.prepare(r)).to(self.device))
         except Exception as exc:  # the model's own errors (a shape or type it cannot take) name no file
             raise _model_error(self.path, exc, "two 1 x 3 x H x W float32")
-        return _disparity_from_output(self.path, _torch_disparity(self.path, out), l.shape[:2], info)
+        return _disparity_from_output(self.path, _torch_disparity(self.path, out), l.shape[:2], info, self.said)
 
 
 def _torch_disparity(path: Path, out) -> np.ndarray:

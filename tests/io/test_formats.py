@@ -419,3 +419,18 @@ def test_encode_png_of_real_images_is_no_larger_than_opencvs():
         data = encode_png(rgb)
         assert len(data) <= 1.05 * len(cv2.imencode(".png", bgr)[1]), path
         np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), bgr)
+
+
+def test_a_16_bit_colour_png_where_one_channel_is_expected_is_named_as_it_is(tmp_path):
+    """A KITTI-style disparity saved as a 16-bit RGB PNG: imageio (Pillow) reduces it to 8 bits, so the refusal said
+    'got uint8 with shape (H, W, 3)', naming what the reader made of the file, not the file (a run-through)."""
+    import cv2
+
+    p = tmp_path / "rgb16.png"
+    cv2.imwrite(str(p), np.full((20, 30, 3), 40000, np.uint16))
+    with pytest.raises(InputError) as e:
+        read_image(p, expect="uint16")
+    assert str(e.value) == f"{p}: expected a 16-bit single-channel PNG, got a 16-bit RGB PNG (30x20 px)"
+    cv2.imwrite(str(p), np.full((20, 30, 3), 200, np.uint8))  # an 8-bit one: as before
+    with pytest.raises(InputError, match=r"got uint8 with shape \(20, 30, 3\)"):
+        read_image(p, expect="uint16")

@@ -95,6 +95,86 @@ def test_six_channel_onnx_and_resize(dataset, tmp_path):
     assert d.shape == (497, 883) and d[10, 10] == pytest.approx(20.0 * 883 / 320, rel=1e-5)
 
 
+def test_onnx_inputs_named_right_then_left_get_those_images(tmp_path):
+    """Inputs were fed by position only: a graph whose inputs are (right, left) got the left image as 'right' (a
+    run-through). The names decide where they say so."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from gtforge.predictors import InputConvention
+
+    def red_of(name, inputs):  # a "network" whose disparity is one input's first channel
+        axes = helper.make_tensor("axes", TensorProto.INT64, [1], [1])
+        one = helper.make_tensor("one", TensorProto.INT64, [1], [1])
+        zero = helper.make_tensor("zero", TensorProto.INT64, [1], [0])
+        g = helper.make_graph([helper.make_node("Slice", [name, "zero", "one", "axes"], ["disp"])], "g",
+                              [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["N", 3, "H", "W"]) for n in inputs],
+                              [helper.make_tensor_value_info("disp", TensorProto.FLOAT, ["N", 1, "H", "W"])],
+                              initializer=[axes, one, zero])
+        mdl = helper.make_model(g, opset_imports=[helper.make_opsetid("", 13)])
+        mdl.ir_version = 8
+        onnx.save(mdl, tmp_path / f"{name}_{'_'.join(inputs)}.onnx")
+        return OnnxModel(tmp_path / f"{name}_{'_'.join(inputs)}.onnx", InputConvention(normalize="0-255"))
+
+    rng = np.random.default_rng(3)
+    left, right = (rng.integers(0, 255, (40, 64, 3)).astype(np.uint8) for _ in range(2))
+    for m, want in ((red_of("left_img", ["right_img", "left_img"]), left),  # named the other way round
+                    (red_of("left", ["left", "right"]), left), (red_of("a", ["a", "b"]), left),  # in order
+                    (red_of("b", ["a", "b"]), right)):
+        np.testing.assert_array_equal(m.predict("x", left, right), want[..., 0].astype(np.float32))
+
+
+def test_evaluate_options_that_do_not_apply_are_said(dataset, tmp_path):
+    """--grades with --no-fruit-size, a negative --params-count: refused in one line; a network's input options
+    with --predictions or --sgbm: a warning (all were silently ignored or stored; a run-through)."""
+
+    ds, _ = dataset
+    for args, says in ((["--sgbm", "--no-fruit-size", "--grades", "diameter_mm:180,200"],
+                        "error: --grades: expected the fruit measured"), (["--sgbm", "--params-count", "-3"],
+                                                                     "--params-count")):
+        r = gtforge("evaluate", ds, *args, "-o", tmp_path / "ev")
+        assert r.returncode == 2 and one_line_error(r) and says in r.stderr, r.stderr
+        assert not (tmp_path / "ev").exists()
+    r = CliRunner().invoke(app, ["evaluate", str(ds), "--sgbm", "--channels", "BGR", "--fit", "resize", "--resize",
+                                 "320x192", "--no-fruit-size"])
+    assert r.exit_code == 0, r.output
+    assert "--channels, --fit, --resize shape a network's input (--onnx, --torchscript): ignored for --sgbm" in \
+        r.output
+
+
+def test_a_cut_off_build_and_a_low_resolution_output_are_said(dataset, tmp_path, caplog):
+    """Scene folders a stopped build landed without listing them in manifest.json are scored with a warning (they
+    are neither verified nor split); a dataset file missing names the build as the fix (it said 'check the capture
+    folder / session.yaml'); with --fit resize an output smaller than the resized input is read in its own pixels,
+    said once (a run-through of each)."""
+    import logging
+
+    from gtforge.predictors import InputConvention
+
+    ds0, _ = dataset
+    ds = tmp_path / "ds"
+    shutil.copytree(ds0, ds)
+    man = json.loads((ds / "manifest.json").read_text())
+    del man["scenes"]["002"]
+    (ds / "manifest.json").write_text(json.dumps(man))
+    (ds / "scenes" / "001" / "region.png").unlink()
+    model = OnnxModel(constant_onnx(tmp_path / "half.onnx", 10.0, step=2),
+                      InputConvention(fit="resize", resize_wh=(320, 192)))
+    with caplog.at_level(logging.WARNING, logger="gtforge"):
+        rep = evaluate(ds, model, None, fruit_size=False)
+    said = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("1 of 3 scene(s) are not in ") and "a build stopped before it finished" in m
+               and m.endswith(": 002; scored like the others; run build-dataset again to finish it") for m in said)
+    assert rep.scenes == ["000", "002"] and "run build-dataset again" in rep.missing["001"]
+    assert "check the capture folder" not in rep.missing["001"]
+    low = [m for m in said if "its output is 160x96 px, not its input's 320x192" in m]
+    assert len(low) == 1 and "scaled by 5.519" in low[0], said  # 883 / 160
+    assert rep.pooled["all"].epe_px == pytest.approx(
+        float(np.mean(np.concatenate([np.abs(10.0 * 883 / 160 - g[m]) for g, m in (
+            (read_pfm(ds / "scenes" / s / "disp0GT.pfm"), (read_image(ds / "scenes" / s / "mask0nocc.png") > 0)
+             & np.isfinite(read_pfm(ds / "scenes" / s / "disp0GT.pfm"))) for s in ("000", "002"))]))), rel=1e-4)
+
+
 def test_onnx_with_unexpected_inputs_is_refused(tmp_path):
     import onnx
     from onnx import TensorProto, helper
@@ -524,8 +604,12 @@ def test_an_evaluation_stopped_over_an_earlier_one_leaves_no_tables_of_the_other
         evaluate(ds, StopsAtTheSecondScene(), out)
     assert not [p.name for p in out.iterdir() if p.name.startswith("results.")]
     assert not (out / "fruit_size.csv").exists()  # one model's table too (a second run-through)
-    assert len(list((out / "heatmaps").glob("*_disp_error.png"))) >= 1  # the new model's first scene, whole
+    # the new model's first scene, whole, and no map of the earlier model beside it (the other scenes' stayed: a
+    # second run-through)
+    assert sorted(p.name for p in (out / "heatmaps").glob("*_disp_error.png")) == ["000_disp_error.png"]
     assert (out / ".evaluation-incomplete").is_file()  # the folder stays one evaluate may write again
+    with pytest.raises(InputError, match=r"evaluate was stopped before it wrote its tables\) \(hint: run that"):
+        compare([out, out.parent / "other"], tmp_path / "cmp")  # (said of the folder, not "give the file's path")
     rep = evaluate(ds, SGBM(block_size=7, name="SGBM-7"), out)  # the same command again: a whole evaluation
     assert rep.model == "SGBM-7" and (out / "results.html").is_file()
     assert not (out / ".evaluation-incomplete").exists()

@@ -578,7 +578,8 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
                                      help="pad (to a multiple of 32, crop back) or resize."),
              resize: Optional[str] = typer.Option(None, metavar="WxH", rich_help_panel=_NET,
                                                   help="Network input size with --fit resize."),
-             params_count: Optional[int] = typer.Option(None, metavar="N", help="Parameter count for the table."),
+             params_count: Optional[int] = typer.Option(None, metavar="N", min=0,
+                                                        help="Parameter count for the table."),
              clouds: bool = typer.Option(False, "--clouds/--no-clouds",
                                          help="Also write a PLY point cloud per scene, coloured by depth error."),
              fruit_size: bool = typer.Option(True, "--fruit-size/--no-fruit-size",
@@ -600,6 +601,15 @@ def evaluate(dataset: Path = typer.Argument(..., help="Dataset folder from build
                          f"{len(chosen)} given", "evaluate scores one model a run; gtforge compare puts several "
                          "side by side" if chosen else "name the model to score, e.g. --sgbm for the baseline")
     conv = _input_convention(channels, normalize, fit, resize)
+    if grades is not None and not fruit_size:
+        raise InputError(None, "--grades", "the fruit measured (the grades are of their sizes)", "--no-fruit-size",
+                         "drop one of the two")
+    net_options = [o for o, v, d in (("--channels", channels, "RGB"), ("--normalize", normalize, "imagenet"),
+                                     ("--fit", fit, "pad"), ("--resize", resize, None)) if v != d]
+    if net_options and not (onnx or torchscript):
+        logging.getLogger("gtforge.evaluate").warning(
+            "%s shape%s a network's input (--onnx, --torchscript): ignored for %s", ", ".join(net_options),
+            "" if len(net_options) > 1 else "s", "--predictions" if predictions else "--sgbm")
     if onnx:
         pred = OnnxModel(onnx, conv, name)
     elif torchscript:

@@ -430,7 +430,11 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
     if expect == "uint16" and a.dtype != np.uint16:
-        raise InputError(path, field, "a 16-bit single-channel PNG", f"{a.dtype} with shape {a.shape}")
+        got = f"{a.dtype} with shape {a.shape}"
+        if data is not None and bytes(data[:8]) == PNG_SIGNATURE and len(data) >= 26 and data[24] == 16:
+            # a 16-bit colour PNG, which imageio (Pillow) reduced to 8 bits: named as the file is
+            got = f"a 16-bit {_PNG_COLOURS.get(data[25], 'colour')} PNG ({a.shape[1]}x{a.shape[0]} px)"
+        raise InputError(path, field, "a 16-bit single-channel PNG", got)
     if expect == "uint8" and a.dtype != np.uint8:
         raise InputError(path, field, "an 8-bit image", f"{a.dtype}", "convert it to 8-bit PNG")
     return np.ascontiguousarray(a)
@@ -438,6 +442,7 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> samples per pixel (grey, RGB, grey + alpha, RGBA)
+_PNG_COLOURS = {2: "RGB", 4: "grey + alpha", 6: "RGBA"}
 
 
 def decode_png(data: bytes, rows: int | None = None) -> np.ndarray | None:
