@@ -10,8 +10,9 @@ of z over the sessions (1 for a calibrated covariance) and the mean z (a bias sh
 
 ``--exact-labels``: the scenes solved a second time on the same pixels with labels from the generator's exact depth
 read as the depth camera reads it (``read_labels``: its scale and offset errors along its own rays): a bias that stays
-comes from the images and their matching, not from the depth map or its reprojection. Each scene solve also prints its three errors' joint effect on a disparity
-at the scenes' median depth (px): the three are nearly collinear over a scene's depth range.
+comes from the images and their matching, not from the depth map or its reprojection. Each scene solve also prints
+its three errors' joint effect on a disparity at the scenes' median depth (px): the three are nearly collinear over a
+scene's depth range.
 """
 from __future__ import annotations
 
