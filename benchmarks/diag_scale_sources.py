@@ -48,18 +48,18 @@ def read_labels(z_mm: np.ndarray, rig) -> np.ndarray:
     that was the formula's; against these the built labels of a noise-free depth map agree to 4e-6 px on the table
     (the fruit: the mesh's chord, -0.00015 px median, as the sigma map's mesh term has it)."""
     zed = rig.zed
-    T = np.asarray(rig.T_zed_from_mech, np.float64)
-    Tinv = np.linalg.inv(T)
+    T_zed_from_mech = np.asarray(rig.T_zed_from_mech, np.float64)
+    T_mech_from_zed = np.linalg.inv(T_zed_from_mech)
     H, W = z_mm.shape
     vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
-    P = np.stack([(uu - zed.left.cx_px) / zed.left.fx_px, (vv - zed.left.cy_px) / zed.left.fy_px,
-                  np.ones_like(uu)]) * z_mm.astype(np.float64)
-    Pm = np.einsum("ij,jhw->ihw", Tinv[:3, :3], P) + Tinv[:3, 3, None, None]
-    Pm = Pm * (((1 + TRUTH[IK]) * Pm[2] + TRUTH[IC]) / Pm[2])
-    Q = np.einsum("ij,jhw->ihw", T[:3, :3], Pm) + T[:3, 3, None, None]
-    du = zed.left.fx_px * Q[0] / Q[2] + zed.left.cx_px - uu
-    dv = zed.left.fy_px * Q[1] / Q[2] + zed.left.cy_px - vv
-    d = zed.f_px * zed.baseline_mm / Q[2] - zed.doffs_px
+    p_zed = np.stack([(uu - zed.left.cx_px) / zed.left.fx_px, (vv - zed.left.cy_px) / zed.left.fy_px,
+                      np.ones_like(uu)]) * z_mm.astype(np.float64)
+    p_mech = np.einsum("ij,jhw->ihw", T_mech_from_zed[:3, :3], p_zed) + T_mech_from_zed[:3, 3, None, None]
+    p_mech = p_mech * (((1 + TRUTH[IK]) * p_mech[2] + TRUTH[IC]) / p_mech[2])
+    q_zed = np.einsum("ij,jhw->ihw", T_zed_from_mech[:3, :3], p_mech) + T_zed_from_mech[:3, 3, None, None]
+    du = zed.left.fx_px * q_zed[0] / q_zed[2] + zed.left.cx_px - uu
+    dv = zed.left.fy_px * q_zed[1] / q_zed[2] + zed.left.cy_px - vv
+    d = zed.f_px * zed.baseline_mm / q_zed[2] - zed.doffs_px
     gv, gu = np.gradient(d)
     return d - gu * du - gv * dv
 
