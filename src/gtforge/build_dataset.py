@@ -452,8 +452,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         log.warning("split(s) %s came out empty (%d scene(s), %d fruit): normal for a small session, the dataset is "
                     "complete; each fruit (all its scenes) lands in a split by a draw from its id, so the --split "
                     "shares hold over many fruit, not over %d; for a %s split capture more fruit (or set fruit_ids "
-                    "in session.yaml, or change --split or --seed)", ", ".join(empty), len(ok_ids), n_fruit, n_fruit,
-                    " and ".join(empty))
+                    "in session.yaml, or change --split or --seed)%s", ", ".join(empty), len(ok_ids), n_fruit, n_fruit,
+                    " and ".join(empty), "; --split 1,0 puts every scene in train" if "train" in empty else "")
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
                         quarantined, [s for s in ok_ids if metas[s].verification is not None
                                       and metas[s].verification.compensated])

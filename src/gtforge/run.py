@@ -1,19 +1,20 @@
-"""``gtforge run``: the whole chain in one command, in the documented order (calibrate -> validate -> calibrate-scale
--> refine -> build-dataset -> verify), each stage's output under OUT/ with the step-by-step commands' file names, then
-the dataset certificate (``OUT/index.html`` + ``certificate.json``, ``reports.certificate``).
+"""``gtforge run``: the whole chain in one command, in the documented order (calibrate -> align-depth -> validate ->
+calibrate-scale -> refine -> build-dataset -> verify), each stage's output under OUT/ with the step-by-step commands'
+file names, then the dataset certificate (``OUT/index.html`` + ``certificate.json``, ``reports.certificate``).
 
 Each stage records in ``OUT/run_state.json`` (``records.run.RunState``) its inputs' BLAKE3 (session files and the
-earlier stages' outputs), its options and its outputs; the next run skips a stage whose inputs, options and outputs are
-unchanged, and says what it redoes and why. build-dataset rebuilds only the scenes whose inputs changed (its own
+earlier stages' outputs), its options and its outputs; the next run skips a stage whose inputs, options and outputs
+are unchanged, and says what it redoes and why. build-dataset rebuilds only the scenes whose inputs changed (its own
 resume), and verify re-checks only the scenes rebuilt. A stage's record is written only once the stage is complete,
 and every stage writes its files whole, so Ctrl-C at any point leaves a run that the same command resumes.
 
 What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the scenes' ZED
-images (self-rectification matches left and right in every capture; it reads no scene depth); validate the board
-captures (and gauges/) with the calibration; calibrate-scale the boards and the scenes (or ``calibration_scenes``)
-with the calibration; refine those scenes with the scaled calibration; build-dataset every scene with the last
-calibration; verify each built scene. Stages that do not apply are skipped with the reason: no board captures (the
-calibration must then be given), no gauges, no scenes, too few scenes for refine.
+images (self-rectification matches left and right in every capture; it reads no scene depth); align-depth (a unit
+whose depth map lies on a separate depth camera only) every capture and its IR.png with the calibration; validate the
+board captures (and gauges/) with the calibration; calibrate-scale the boards and the scenes (or
+``calibration_scenes``) with the calibration; refine those scenes with the scaled calibration; build-dataset every
+scene with the last calibration; verify each built scene. Stages that do not apply are skipped with the reason: no
+board captures (the calibration must then be given), no gauges, no scenes, too few scenes for refine.
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import gtforge
+from gtforge.align_depth import align_depth
 from gtforge.build_dataset import build_dataset
 from gtforge.calibrate import calibrate
 from gtforge.core.schema import GTModel, load_yaml
@@ -41,6 +43,7 @@ from gtforge.records.run import STAGES, FileHash, RunState, StageRecord
 from gtforge.refine import RefineParams, refine
 from gtforge.reports.calibration import scale_term_lines, write_calibration_report
 from gtforge.reports.certificate import write_certificate
+from gtforge.reports.depth_alignment import write_depth_alignment_report
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.validate import validate, validate_gauges
 from gtforge.verify import verify_dataset
@@ -48,6 +51,7 @@ from gtforge.verify import verify_dataset
 # OUT's files: the names the README's step-by-step commands use
 CALIBRATION, CALIBRATION_REPORT, VALIDATION = "calibration.yaml", "calibration_report", "validation"
 SCALED, REFINED, DATASET, STATE = "scaled.yaml", "refined.yaml", "dataset", "run_state.json"
+ALIGNED, ALIGNED_REPORT = "aligned.yaml", "aligned_report.html"
 GAUGES_DIR = "gauges"
 
 
@@ -341,8 +345,8 @@ class _Run:
             # unknown names: one line, exit 2
             self.session.select("scenes", opts.calibration_scenes, option="--calibration-scenes")
         cal_scenes = [d for d in scenes if not opts.calibration_scenes or d.name in opts.calibration_scenes]
-        steps = [self.stage_calibrate, self.stage_validate, self.stage_scale, self.stage_refine, self.stage_build,
-                 self.stage_verify]
+        steps = [self.stage_calibrate, self.stage_align, self.stage_validate, self.stage_scale, self.stage_refine,
+                 self.stage_build, self.stage_verify]
         ctx = {"boards": boards, "scenes": scenes, "cfg": cfg, "gauges": gauges, "cal_scenes": cal_scenes}
         for k, (name, step) in enumerate(zip(STAGES, steps), 1):
             try:
@@ -412,6 +416,47 @@ class _Run:
         report_files = [p for p in (self.out / CALIBRATION_REPORT).rglob("*") if p.is_file()]
         self.done(name, options, inputs, [ctx["calib"]], [rep, *report_files], cal.verdict, cal.verdict_reasons,
                   t0=t0)
+
+    def stage_align(self, k: int, ctx: dict) -> None:
+        """align-depth, for a unit whose depth map lies on a separate depth camera: every capture's depth edges (and
+        its IR.png's) put on the texture images' edges; the stages after it read the aligned calibration."""
+        name = "align-depth"
+        cal = CalibrationFile.read(ctx["calib"])
+        reason = None
+        if not cal.rig.separate_depth_camera:
+            reason = "the depth map lies on the texture camera's grid (one camera)"
+        elif cal.depth_alignment is not None:
+            reason = f"{Path(ctx['calib']).name} is already aligned"
+        caps = ctx["boards"] + ctx["scenes"]
+        if reason is None and not caps:
+            reason = "no board or scene captures"
+        if reason is not None:
+            for f in (ALIGNED, ALIGNED_REPORT):  # an earlier run's, which no longer applies
+                (self.out / f).unlink(missing_ok=True)
+            self.not_applicable(k, name, reason)
+            return
+        texture = self.session.config.files.depth_texture
+        options = _plain({"edges": "auto", "use_boards": True})
+        inputs = {**self.config_hashes(ctx["cfg"]),
+                  **self.hashes([ctx["calib"]] + [p for d in caps for p in self.capture_files(d)]
+                                + [d / texture for d in caps if (d / texture).is_file()])}
+        aligned = self.out / ALIGNED
+        if self.decide(k, name, options, inputs):
+            t0 = time.perf_counter()
+            before = _previous(aligned)
+            res = align_depth(self.root, ctx["calib"], aligned, progress=self.progress)
+            _keep_if_same(aligned, before)
+            info = res.depth_alignment
+            r = info.result
+            self.say(f"      {r.decision} ({r.reason}); edges {' and '.join(r.edge_kinds)}; offset before "
+                     f"({r.offset_before_px[0]:+.2f}, {r.offset_before_px[1]:+.2f}) px, after "
+                     f"({r.offset_after_px[0]:+.2f}, {r.offset_after_px[1]:+.2f}) px")
+            rep = write_depth_alignment_report(info, self.out / ALIGNED_REPORT)
+            reasons = ([f"the depth camera's pose was not determined: {r.reason}"]
+                       if r.decision == "not determined" else []) + list(r.warnings)
+            self.done(name, options, inputs, [aligned], [rep], verdict="WARN" if reasons else "PASS",
+                      reasons=reasons, t0=t0)
+        ctx["calib"] = aligned
 
     def stage_validate(self, k: int, ctx: dict) -> None:
         name = "validate"

@@ -813,7 +813,7 @@ def generate_session(out_dir: str | Path, *, n_board: int = 8, n_scenes: int = 3
                                               np.r_[np.radians(depth_pose_error_deg), 0.0, 0.0, 0.0]).tolist()
     extra = (dict(depth_intrinsics="depth_intrinsics.yaml", T_mech_from_depth=T_mech_from_depth_rows) if two_camera
              else {})
-    if not isinstance(board, BoardSpec):  # another target: session.yaml declares it (gtforge.core.targets.models)
+    if board != BoardSpec():  # another target than the default: session.yaml declares it (targets.models)
         extra["board"] = board_model_of(board)
     SessionFile(fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
@@ -969,7 +969,7 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
         if progress:
             progress(f"scene {cap.name}")
     # another target than the checkerboard: session.yaml declares it (as generate_session)
-    extra = {} if isinstance(board, BoardSpec) else {"board": board_model_of(board)}
+    extra = {} if board == BoardSpec() else {"board": board_model_of(board)}
     SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out
 

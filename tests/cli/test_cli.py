@@ -4,7 +4,7 @@ import re
 import numpy as np
 import pytest
 import typer
-from conftest import synthetic_session
+from conftest import gtforge as run_gtforge, one_line_error, synthetic_session
 from made_once import session_spec
 from typer.testing import CliRunner
 
@@ -90,6 +90,39 @@ def test_synth_prints_progress_off_terminal(tmp_path):
     assert r.exit_code == 0, r.output
     lines = r.output.splitlines()
     assert lines[:2] == ["board 000", "scene 000"] and lines[-1] == f"wrote {tmp_path / 's'}"
+
+
+def test_synth_renders_other_targets_and_a_raw_zed(tmp_path):
+    """synth's board options (as calibrate takes them) and --raw-zed: the sessions calibrate is meant for, which only
+    the Python API could render (a run-through). session.yaml declares the target; the raw ZED session holds its
+    SN.conf and says its images are raw; options the raw-ZED generator does not take are refused by name; a ChArUco
+    without its dictionary is refused as calibrate would refuse it. (A 6-pose ChArUco session at 0.6x calibrates at
+    0.039 px RMS, PASS; calibrate is left to the stage's own tests.)"""
+    from gtforge.io.captures import SessionFile
+
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "c"), "--boards", "1", "--scenes", "0", "--scale", "0.2",
+                                 "--board", "charuco", "--cols", "9", "--rows", "7", "--square-mm", "30",
+                                 "--marker-mm", "22", "--dictionary", "DICT_5X5_100"])
+    assert r.exit_code == 0, r.output
+    b = SessionFile.read(tmp_path / "c" / "session.yaml").board
+    assert (b.kind, b.cols, b.rows, b.square_size_mm, b.marker_size_mm, b.dictionary) == (
+        "charuco", 9, 7, 30.0, 22.0, "DICT_5X5_100")
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "k"), "--boards", "1", "--scenes", "0", "--scale", "0.2",
+                                 "--cols", "8", "--rows", "5"])  # a checkerboard of another size: declared too
+    assert r.exit_code == 0, r.output
+    b = SessionFile.read(tmp_path / "k" / "session.yaml").board
+    assert (b.kind, b.cols, b.rows, b.square_size_mm) == ("checkerboard", 8, 5, 20.0)
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "r"), "--raw-zed", "--boards", "1", "--scenes", "0",
+                                 "--board", "circles_asymmetric", "--cols", "4", "--rows", "11", "--square-mm", "20"])
+    assert r.exit_code == 0, r.output
+    sf = SessionFile.read(tmp_path / "r" / "session.yaml")
+    assert sf.zed_rectified is False and (tmp_path / "r" / sf.zed_calibration).is_file()
+    assert sf.zed_calibration == "SN12345.conf" and sf.board.kind == "circles_asymmetric"
+    for args, says in ((["--raw-zed", "--scale", "0.3", "--gauges"], "got --scale, --gauges"),
+                       (["--board", "charuco"], "board.dictionary")):
+        r = run_gtforge("synth", tmp_path / "no", *args)
+        assert r.returncode == 2 and one_line_error(r) and says in r.stderr, r.stderr
+        assert not (tmp_path / "no").exists()
 
 
 # what `gtforge synth S --boards 5 --scenes 3 --scale 0.3 --seed 5 --separate-depth-camera --depth-pose-error-deg

@@ -245,3 +245,33 @@ def test_build_dataset_adds_the_rotations_sigma(session, aligned, tmp_path):
         sig[name] = read_pfm(tmp_path / name / "scenes" / "000" / "disp0GT_sigma.pfm").astype(np.float64)
     m = np.isfinite(sig["plain"])
     assert np.all(sig["aligned"][m] >= sig["plain"][m] - 1e-6) and np.median(sig["aligned"][m] - sig["plain"][m]) > 0
+
+
+def test_run_aligns_the_depth_camera_and_certifies_it(session, aligned, tmp_path):
+    """gtforge run on a two-camera session: align-depth runs after calibrate (here the calibration is given with -c)
+    and every later stage reads aligned.yaml; its figures are in the certificate; a rerun redoes nothing; on a
+    one-camera session the stage does not apply."""
+    from gtforge.records.run import RunState
+    from gtforge.run import RunOptions, run_session
+
+    start, res, _ = aligned
+    said: list[str] = []
+    opts = RunOptions(calibration=str(start), loo=False, workers=1)
+    run = run_session(session, tmp_path / "run", opts, say=said.append)
+    assert run.redone[0] == "align-depth" and "calibrate-scale" in run.redone, said
+    st = RunState.read(tmp_path / "run" / "run_state.json").stages
+    assert st["align-depth"].status == "done" and st["align-depth"].verdict == "PASS"
+    back = CalibrationFile.read(tmp_path / "run" / "aligned.yaml")
+    # the same result as the command's (the same calibration, captures and options)
+    np.testing.assert_allclose(back.depth_alignment.result.omega_deg, res.depth_alignment.result.omega_deg,
+                               atol=1e-9)
+    assert "out/aligned.yaml" in st["validate"].inputs or "out/aligned.yaml" in st["calibrate-scale"].inputs
+    assert (tmp_path / "run" / "aligned_report.html").is_file()
+    sec = next(s for s in run.certificate.sections if s.title == "Depth camera pose (align-depth)")
+    fig = {f.name: f for f in sec.figures}
+    assert fig["decision"].value == "applied" and fig["omega_y correction"].source_file == "aligned.yaml"
+    assert fig["omega_y correction"].value == pytest.approx(res.depth_alignment.result.omega_deg[1], abs=1e-9)
+    assert "edges: silhouettes and texture" in sec.notes
+    assert "Depth camera pose (align-depth)" in (tmp_path / "run" / "index.html").read_text()
+    said = []
+    assert run_session(session, tmp_path / "run", opts, say=said.append).redone == [], said

@@ -26,8 +26,9 @@ from gtforge.infra import defaults
 
 app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.\n\n"
-                       "The whole chain in one command: gtforge run SESSION -o DIR (calibrate -> validate -> "
-                       "calibrate-scale -> refine -> build-dataset -> verify, then DIR/index.html, the dataset's "
+                       "The whole chain in one command: gtforge run SESSION -o DIR (calibrate -> [align-depth] -> "
+                       "validate -> calibrate-scale -> refine -> build-dataset -> verify, then DIR/index.html, the "
+                       "dataset's "
                        "certificate). Each step is also a command of its own, listed below in that order.")
 console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 out = Console(soft_wrap=True, highlight=False, markup=False)
@@ -140,8 +141,9 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
         quarantine: bool = typer.Option(False, "--quarantine", help="Leave flagged scenes out of the split lists "
                                         "(the run then passes with a warning)."),
         workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores).")) -> None:
-    """Run the whole chain: calibrate -> validate -> calibrate-scale -> refine -> build-dataset -> verify, and write
-    the dataset certificate (DIR/index.html, DIR given by --output). A rerun redoes only what changed.
+    """Run the whole chain: calibrate -> align-depth (a separate depth camera only) -> validate -> calibrate-scale ->
+    refine -> build-dataset -> verify, and write the dataset certificate (DIR/index.html, DIR given by --output). A
+    rerun redoes only what changed.
 
     Exit code 0: every check passed; 1: a quality check failed (named); 2: bad input."""
     from gtforge.run import RunOptions, run_session
@@ -547,6 +549,7 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
 
 _MODEL = "Model (exactly one is required)"
 _NET = "Network input (--onnx, --torchscript)"
+_TARGET = "Calibration target (as calibrate takes it)"
 
 
 @app.command()
@@ -802,13 +805,65 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
               0.0, metavar="MM", min=0.0,
               help="The last scene: four melons, three moved between the structured-light and the ZED exposure by "
                    "this (mm, turned by 2/3 of it in deg, at most 2), one of them partly out of the depth camera's "
-                   "view, and one still; truth at the ZED's exposure (build-dataset's motion compensation).")
+                   "view, and one still; truth at the ZED's exposure (build-dataset's motion compensation)."),
+          raw_zed: bool = typer.Option(False, "--raw-zed",
+                                       help="The ZED's images raw, straight off the sensor (a VGA ZED Mini with "
+                                            "barrel distortion), with its factory SN12345.conf: calibrate rectifies "
+                                            "them. Takes --boards, --scenes, --seed, --depth-noise-mm and the board "
+                                            "options only."),
+          board: Optional[str] = typer.Option(None, metavar="KIND", rich_help_panel=_TARGET,
+                                              help="checkerboard (default), charuco, circles_symmetric or "
+                                                   "circles_asymmetric (docs/targets.md); session.yaml declares it."),
+          cols: Optional[int] = typer.Option(None, rich_help_panel=_TARGET,
+                                             help="Inner corners along a row (ChArUco: squares; circle grids: "
+                                                  "circles per row). Default 12."),
+          rows: Optional[int] = typer.Option(None, rich_help_panel=_TARGET,
+                                             help="Inner corners along a column (ChArUco: squares; circle grids: "
+                                                  "rows). Default 9."),
+          square_mm: Optional[float] = typer.Option(None, rich_help_panel=_TARGET,
+                                                    help="Square size, or circle spacing (mm). Default 20."),
+          marker_mm: Optional[float] = typer.Option(None, rich_help_panel=_TARGET, help="ChArUco marker side (mm)."),
+          dictionary: Optional[str] = typer.Option(None, rich_help_panel=_TARGET,
+                                                   help="ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
+          legacy_pattern: Optional[bool] = typer.Option(None, "--legacy-pattern/--no-legacy-pattern",
+                                                        rich_help_panel=_TARGET,
+                                                        help="ChArUco board made before OpenCV 4.6 (even rows)."),
+          circle_mm: Optional[float] = typer.Option(None, rich_help_panel=_TARGET,
+                                                    help="Circle diameter (mm; default half the spacing).")
           ) -> None:
-    """Render a synthetic capture session with exact truth (truth/ beside the captures)."""
+    """Render a synthetic capture session with exact truth (truth/ beside the captures).
+
+    A ChArUco session, for instance: gtforge synth S --board charuco --cols 9 --rows 7 --square-mm 30 --marker-mm
+    22 --dictionary DICT_5X5_100 --scale 0.6 (its markers must span a dozen pixels or more to be found)."""
     import math
 
     from gtforge.io.outputs import require_new_or_empty_folder
-    from gtforge.synthetic import generate_session
+    from gtforge.synthetic import generate_raw_zed_session, generate_session
+
+    board_model = _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm)
+    spec = board_model.spec() if board_model is not None else None
+    if board_model is not None:
+        from gtforge.core.targets.models import check_board_model
+
+        check_board_model(board_model)  # as calibrate will (a ChArUco without its dictionary ...)
+    if raw_zed:
+        unused = [o for o, v, d in (("--scale", scale, 0.5), ("--gauges", gauges, False),
+                                    ("--baseline-error-pct", baseline_error_pct, 0.0),
+                                    ("--right-yaw-deg", right_yaw_deg, 0.0),
+                                    ("--depth-scale-error-pct", depth_scale_error_pct, 0.0),
+                                    ("--depth-offset-mm", depth_offset_mm, 0.0),
+                                    ("--separate-depth-camera", separate_depth_camera, False),
+                                    ("--depth-pose-error-deg", depth_pose_error_deg, None),
+                                    ("--moved-fruit-mm", moved_fruit_mm, 0.0)) if v != d]
+        if unused:
+            raise InputError(None, "--raw-zed", "only --boards, --scenes, --seed, --depth-noise-mm and the board "
+                             "options with it", ", ".join(unused), "render the raw-ZED session without them")
+        require_new_or_empty_folder(output, "OUTPUT", "synth writes a whole new session; choose a new folder "
+                                    "(it never writes into existing captures)")
+        generate_raw_zed_session(output, n_board=boards, n_scenes=scenes, seed=seed, depth_noise_mm=depth_noise_mm,
+                                 **({"board": spec} if spec is not None else {}), progress=_progress_lines)
+        out.print(f"wrote {output}")
+        return
 
     pose_error = None
     if depth_pose_error_deg is not None:
@@ -835,7 +890,7 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                      zed_baseline_error_frac=baseline_error_pct / 100.0, right_yaw_deg=right_yaw_deg,
                      depth_scale_error_frac=depth_scale_error_pct / 100.0, depth_offset_mm=depth_offset_mm,
                      two_camera=separate_depth_camera, depth_pose_error_deg=pose_error, progress=_progress_lines,
-                     fruit_rigid_motion=rigid)
+                     fruit_rigid_motion=rigid, **({"board": spec} if spec is not None else {}))
     if gauges:
         from gtforge.synthetic import generate_gauges
 

@@ -8,7 +8,7 @@ from pydantic import Field
 
 from gtforge.core.schema import GTModel, VersionedFile
 
-STAGES = ("calibrate", "validate", "calibrate-scale", "refine", "build-dataset", "verify")
+STAGES = ("calibrate", "align-depth", "validate", "calibrate-scale", "refine", "build-dataset", "verify")
 
 
 class FileHash(GTModel):

@@ -164,6 +164,23 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
                                     verdict=cal.doc.get("verdict"),
                                     figures=c.items, notes=list(cal.doc.get("verdict_reasons") or []), link=c.link))
 
+    al = _Figures(out, "aligned.yaml", "aligned_report.html")
+    if ran("align-depth") and al.doc is not None and al.doc.get("depth_alignment"):
+        r = al.doc["depth_alignment"]["result"]
+        key = "depth_alignment.result."
+        al.add("decision", key + "decision")
+        for i, axis in enumerate(("omega_x", "omega_y", "omega_z")):
+            finite = isinstance(r["sigma_omega_deg"][i], (int, float)) and abs(r["sigma_omega_deg"][i]) < float("inf")
+            al.add(f"{axis} correction", f"{key}omega_deg.{i}", "deg",
+                   sigma=f"{key}sigma_omega_deg.{i}" if finite else None, status=r["status"][i])
+        for when in ("before", "after"):
+            for i, axis in enumerate(("x", "y")):
+                al.add(f"edge offset (colour - depth) {axis}, {when}", f"{key}offset_{when}_px.{i}", "px")
+        al.add("edges", key + "n_edges")
+        sections.append(CertSection(title="Depth camera pose (align-depth)", figures=al.items, link=al.link,
+                                    notes=[n for n in (r.get("reason"), "edges: " + " and ".join(
+                                        r.get("edge_kinds", [])), *r.get("warnings", [])) if n]))
+
     sc = _Figures(out, "scaled.yaml", "scaled.yaml")
     if ran("calibrate-scale") and sc.doc is not None and sc.doc.get("scale_calibration"):
         reasons = []
