@@ -435,11 +435,13 @@ class _Run:
                 (self.out / f).unlink(missing_ok=True)
             self.not_applicable(k, name, reason)
             return
-        texture = self.session.config.files.depth_texture
+        f = self.session.config.files
         options = _plain({"edges": "auto", "use_boards": True})
+        # what it reads of each capture: the depth, the texture image and the depth camera's own image (no ZED image)
         inputs = {**self.config_hashes(ctx["cfg"]),
-                  **self.hashes([ctx["calib"]] + [p for d in caps for p in self.capture_files(d)]
-                                + [d / texture for d in caps if (d / texture).is_file()])}
+                  **self.hashes([ctx["calib"]] + [d / n for d in caps for n in (f.mech_depth, f.mech_texture,
+                                                                                f.depth_texture)
+                                                  if (d / n).is_file()])}
         aligned = self.out / ALIGNED
         if self.decide(k, name, options, inputs):
             t0 = time.perf_counter()
