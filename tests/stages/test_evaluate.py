@@ -136,7 +136,7 @@ def test_evaluate_options_that_do_not_apply_are_said(dataset, tmp_path):
     r = CliRunner().invoke(app, ["evaluate", str(ds), "--sgbm", "--params-count", "-3", "-o", str(tmp_path / "ev")])
     assert r.exit_code == 2 and "--params-count" in r.output and not (tmp_path / "ev").exists()
     r = CliRunner().invoke(app, ["evaluate", str(ds), "--sgbm", "--channels", "BGR", "--fit", "resize", "--resize",
-                                 "320x192", "--no-fruit-size"])
+                                 "320x192", "--no-fruit-size", "-o", str(tmp_path / "ev_sgbm")])
     assert r.exit_code == 0, r.output
     assert "--channels, --fit, --resize shape a network's input (--onnx, --torchscript): ignored for --sgbm" in \
         r.output
