@@ -34,6 +34,7 @@ from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file, blake3_hex
+from gtforge.infra.scheduling import check_scheduler_address
 from gtforge.io.captures import open_session
 from gtforge.io.outputs import new_folders, remove_if_empty, require_new_or_empty_folder
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
@@ -56,7 +57,8 @@ GAUGES_DIR = "gauges"
 
 
 class RunOptions(GTModel):
-    """The options of ``gtforge run`` that change a stage's result (``workers`` does not)."""
+    """The options of ``gtforge run`` that change a stage's result (``workers`` and ``scheduler``, where the scenes are
+    built and verified, do not)."""
     calibration: str | None = None  # a calibration file to use instead of calibrating (sessions without boards)
     use_depth: bool = False  # calibrate --use-depth
     loo: bool = True  # calibrate and refine: leave-one-out cross-validation
@@ -64,6 +66,7 @@ class RunOptions(GTModel):
     refine: bool = True
     quarantine: bool = False  # build-dataset / verify --quarantine
     workers: int | None = None
+    scheduler: str | None = None  # a Dask scheduler's address: build-dataset's and verify's scenes run on its workers
 
 
 @dataclass
@@ -182,6 +185,12 @@ def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs
 class _Run:
     def __init__(self, session_dir: Path, out: Path, opts: RunOptions, say, progress):
         self.opts, self.say, self.progress = opts, say, progress
+        if opts.scheduler:  # refused now, not once calibrate and the stages before the build have run
+            if opts.workers is not None:
+                raise InputError(None, "--workers", "no local worker count with --scheduler (the cluster's workers "
+                                 "run the scenes)", str(opts.workers), "drop --workers, or drop --scheduler to run "
+                                 "locally")
+            check_scheduler_address(opts.scheduler)
         self.session = open_session(session_dir)
         self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
         # a folder of the user's (not an earlier run's, which holds run_state.json) is never written into: the run's
@@ -598,7 +607,7 @@ class _Run:
         for sid in edited:
             why[sid] = why[sid] or "its dataset files changed since the last run"
         summ = build_dataset(self.root, ctx["calib"], ds, params, workers=self.opts.workers, progress=False,
-                             rebuild=edited)
+                             rebuild=edited, scheduler=self.opts.scheduler)
         for sid in summ.built:
             self.say(f"      built {sid} ({why.get(sid) or 'its dataset files were missing or stale'})")
         if summ.skipped_unchanged:
@@ -638,7 +647,8 @@ class _Run:
         t0 = time.perf_counter()
         if todo:
             self.say(f"      checking {', '.join(todo)}" + (" (rebuilt)" if len(todo) < len(metas) else ""))
-            verify_dataset(ds, scenes=todo, workers=self.opts.workers, quarantine=self.opts.quarantine,
+            verify_dataset(ds, scenes=todo, workers=self.opts.workers, scheduler=self.opts.scheduler,
+                           quarantine=self.opts.quarantine,
                            progress=self.progress)
         from gtforge.records.verification import VerificationResult
 

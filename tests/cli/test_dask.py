@@ -265,6 +265,43 @@ def test_ctrl_c_cancels_the_cluster_tasks(session_dir, true_calibration, dataset
 
 
 @pytest.mark.slow
+@pytest.mark.slow
+def test_run_builds_and_verifies_on_the_cluster(session_dir, true_calibration, cluster, tmp_path):
+    """gtforge run --scheduler: build-dataset's and verify's scenes on the cluster's workers (run had no --scheduler;
+    a run-through), the labels those of the calibration it built with; a rerun redoes nothing; --workers with it, or
+    an address without a port, is refused before any stage runs."""
+    from gtforge.io.formats import read_pfm
+    from gtforge.run import RunOptions, run_session
+
+    lc, client = cluster
+    _ready(client)
+    sess = _session_of(session_dir, tmp_path / "s", 1)  # the 3 scenes, no boards: validate does not apply
+    finished = TaskLog()
+    lc.scheduler.add_plugin(finished, name="task-log")
+    opts = RunOptions(calibration=str(true_calibration), loo=False, refine=False, scheduler=lc.scheduler_address)
+    try:
+        said: list[str] = []
+        res = run_session(sess, tmp_path / "run", opts, say=said.append)
+    finally:
+        lc.scheduler.remove_plugin(name="task-log")
+    assert res.redone == ["calibrate-scale", "build-dataset", "verify"], said
+    assert sorted(k.split("-")[2] for k in finished.keys) == ["0", "1", "2"]  # the cluster's workers built them
+    ds = tmp_path / "run" / "dataset"
+    local = build_dataset(sess, tmp_path / "run" / "scaled.yaml", tmp_path / "local", workers=1)
+    assert local.built == ["000", "001", "002"]
+    for sid in local.built:
+        assert (ds / "scenes" / sid / "disp0GT.pfm").read_bytes() == \
+            (tmp_path / "local" / "scenes" / sid / "disp0GT.pfm").read_bytes()
+        assert read_pfm(ds / "scenes" / sid / "disp0GT.pfm").shape[0] > 0
+    said = []
+    assert run_session(sess, tmp_path / "run", opts, say=said.append).redone == [], said
+    for bad, words in ((opts.model_copy(update={"workers": 2}), "--workers"),
+                       (opts.model_copy(update={"scheduler": "tcp://127.0.0.1"}), "the port is required")):
+        with pytest.raises(InputError, match=words):
+            run_session(sess, tmp_path / "run2", bad, say=said.append)
+        assert not (tmp_path / "run2").exists()
+
+
 def test_scheduler_errors_are_one_line(session_dir, true_calibration, tmp_path, monkeypatch):
     import socket
 

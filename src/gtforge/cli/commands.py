@@ -140,7 +140,10 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
         refine_: bool = typer.Option(True, "--refine/--no-refine", help="Refine the extrinsic from the scenes."),
         quarantine: bool = typer.Option(False, "--quarantine", help="Leave flagged scenes out of the split lists "
                                         "(the run then passes with a warning)."),
-        workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores).")) -> None:
+        workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores)."),
+        scheduler: Optional[str] = typer.Option(
+            None, metavar="ADDRESS", help="Build and verify the scenes on a Dask cluster, e.g. tcp://HOST:8786 (needs "
+            "gtforge\\[dask]; session and output on a filesystem the workers share; docs/cluster.md).")) -> None:
     """Run the whole chain: calibrate -> align-depth (a separate depth camera only) -> validate -> calibrate-scale ->
     refine -> build-dataset -> verify, and write the dataset certificate (DIR/index.html, DIR given by --output). A
     rerun redoes only what changed.
@@ -150,7 +153,7 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
 
     opts = _options(RunOptions, calibration=str(calibration) if calibration else None, use_depth=use_depth, loo=loo,
                     calibration_scenes=calibration_scenes.split(",") if calibration_scenes else None,
-                    refine=refine_, quarantine=quarantine, workers=workers)
+                    refine=refine_, quarantine=quarantine, workers=workers, scheduler=scheduler)
     res = run_session(session, output, opts, say=out.print, progress=_status)
     if res.exit_code:
         raise typer.Exit(res.exit_code)
