@@ -96,23 +96,24 @@ def test_synth_renders_other_targets_and_a_raw_zed(tmp_path):
     """synth's board options (as calibrate takes them) and --raw-zed: the sessions calibrate is meant for, which only
     the Python API could render (a run-through). session.yaml declares the target; the raw ZED session holds its
     SN.conf and says its images are raw; options the raw-ZED generator does not take are refused by name; a ChArUco
-    without its dictionary is refused as calibrate would refuse it. (A 6-pose ChArUco session at 0.6x calibrates at
-    0.039 px RMS, PASS; calibrate is left to the stage's own tests.)"""
+    without its dictionary is refused as calibrate would refuse it. (No capture rendered: the generator's targets and
+    raw ZED are tests/core/test_targets.py's and test_selfcal.py's; a 6-pose ChArUco session from this command at 0.6x
+    calibrates at 0.039 px RMS, PASS.)"""
     from gtforge.io.captures import SessionFile
 
-    r = CliRunner().invoke(app, ["synth", str(tmp_path / "c"), "--boards", "1", "--scenes", "0", "--scale", "0.2",
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "c"), "--boards", "0", "--scenes", "0", "--scale", "0.2",
                                  "--board", "charuco", "--cols", "9", "--rows", "7", "--square-mm", "30",
                                  "--marker-mm", "22", "--dictionary", "DICT_5X5_100"])
     assert r.exit_code == 0, r.output
     b = SessionFile.read(tmp_path / "c" / "session.yaml").board
     assert (b.kind, b.cols, b.rows, b.square_size_mm, b.marker_size_mm, b.dictionary) == (
         "charuco", 9, 7, 30.0, 22.0, "DICT_5X5_100")
-    r = CliRunner().invoke(app, ["synth", str(tmp_path / "k"), "--boards", "1", "--scenes", "0", "--scale", "0.2",
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "k"), "--boards", "0", "--scenes", "0", "--scale", "0.2",
                                  "--cols", "8", "--rows", "5"])  # a checkerboard of another size: declared too
     assert r.exit_code == 0, r.output
     b = SessionFile.read(tmp_path / "k" / "session.yaml").board
     assert (b.kind, b.cols, b.rows, b.square_size_mm) == ("checkerboard", 8, 5, 20.0)
-    r = CliRunner().invoke(app, ["synth", str(tmp_path / "r"), "--raw-zed", "--boards", "1", "--scenes", "0",
+    r = CliRunner().invoke(app, ["synth", str(tmp_path / "r"), "--raw-zed", "--boards", "0", "--scenes", "0",
                                  "--board", "circles_asymmetric", "--cols", "4", "--rows", "11", "--square-mm", "20"])
     assert r.exit_code == 0, r.output
     sf = SessionFile.read(tmp_path / "r" / "session.yaml")

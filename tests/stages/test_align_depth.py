@@ -255,24 +255,27 @@ def test_run_aligns_the_depth_camera_and_certifies_it(session, aligned, tmp_path
     from gtforge.records.run import RunState
     from gtforge.run import RunOptions, run_session
 
-    start, res, _ = aligned
+    import shutil
+
+    start = aligned[0]
+    small = tmp_path / "s"  # the board and one scene (the stages after align-depth on one scene: time)
+    shutil.copytree(session, small, ignore=shutil.ignore_patterns("001", "002"))
     said: list[str] = []
     opts = RunOptions(calibration=str(start), loo=False, workers=1, refine=False)
-    run = run_session(session, tmp_path / "run", opts, say=said.append)
+    run = run_session(small, tmp_path / "run", opts, say=said.append)
     assert run.redone[0] == "align-depth" and "calibrate-scale" in run.redone, said
     st = RunState.read(tmp_path / "run" / "run_state.json").stages
     assert st["align-depth"].status == "done" and st["align-depth"].verdict == "PASS"
     back = CalibrationFile.read(tmp_path / "run" / "aligned.yaml")
-    # the same result as the command's (the same calibration, captures and options)
-    np.testing.assert_allclose(back.depth_alignment.result.omega_deg, res.depth_alignment.result.omega_deg,
-                               atol=1e-9)
+    r = back.depth_alignment.result  # the correction within 2 sigma of the truth
+    assert np.all(np.abs(np.array(r.omega_deg) + POSE_ERROR_DEG) <= 2 * np.array(r.sigma_omega_deg)), r
     assert "out/aligned.yaml" in st["validate"].inputs or "out/aligned.yaml" in st["calibrate-scale"].inputs
     assert (tmp_path / "run" / "aligned_report.html").is_file()
     sec = next(s for s in run.certificate.sections if s.title == "Depth camera pose (align-depth)")
     fig = {f.name: f for f in sec.figures}
     assert fig["decision"].value == "applied" and fig["omega_y correction"].source_file == "aligned.yaml"
-    assert fig["omega_y correction"].value == pytest.approx(res.depth_alignment.result.omega_deg[1], abs=1e-9)
+    assert fig["omega_y correction"].value == pytest.approx(r.omega_deg[1], abs=1e-9)
     assert "edges: silhouettes and texture" in sec.notes
     assert "Depth camera pose (align-depth)" in (tmp_path / "run" / "index.html").read_text()
     said = []
-    assert run_session(session, tmp_path / "run", opts, say=said.append).redone == [], said
+    assert run_session(small, tmp_path / "run", opts, say=said.append).redone == [], said
