@@ -60,8 +60,8 @@ def main() -> None:
     exact = rig.model_copy(update={"T_mech_from_depth": T_mech_from_depth_true})
     print(f"labels' mean error: factory pose {labels_epe_px(session, rig):.4f} px, exact pose "
           f"{labels_epe_px(session, exact):.4f} px")
-    print("| edges | from the true pose (deg) | omega (deg) | sigma (deg) | offset after (px) | labels' mean error (px) "
-          "| s |")
+    print("| edges | from the true pose (deg) | omega (deg) | sigma (deg) | offset after (px) "
+          "| labels' mean error (px) | s |")
     print("|---|---|---|---|---|---|---|")
     for edges in ("silhouettes", "texture", "both"):
         t0 = time.perf_counter()
