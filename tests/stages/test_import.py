@@ -206,9 +206,10 @@ def test_real_recordings_import_through_the_command(tmp_path):
     # the cut one added to the session imported from the whole recording: its one capture's frame is already there
     (tmp_path / "cut.mkv").write_bytes(data[:1_600_000])
     listed = sorted(p.relative_to(tmp_path / "k") for p in (tmp_path / "k").rglob("*"))
-    r = gtforge("import", tmp_path / "cut.mkv", "-o", tmp_path / "k", "--add")
-    assert r.returncode == 2 and one_line_error(r), r.stderr
-    assert "1 of the 1 captures it would add at the depth and texture times of captures imported from" in r.stderr
+    with pytest.raises(InputError) as dup:  # (in-process: the command's one line is its str)
+        import_recordings([tmp_path / "cut.mkv"], tmp_path / "k", add=True)
+    assert "1 of the 1 captures it would add at the depth and texture times of captures imported from" in \
+        str(dup.value)
     assert sorted(p.relative_to(tmp_path / "k") for p in (tmp_path / "k").rglob("*")) == listed
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs0")
     assert r.returncode == 2 and one_line_error(r), r.stderr

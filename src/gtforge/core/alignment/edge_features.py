@@ -215,22 +215,36 @@ def project_edges(edges: DepthEdges, T_color_from_depth: np.ndarray, pinhole: Pi
 def sample_strength(strength: tuple[np.ndarray, np.ndarray], uv: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """``(N,)`` colour edge strength at pixels ``uv`` (N, 2), bilinear (``cv2.remap``), 0 outside the image; each
     point reads the strength image of its own direction ``axis`` (N,)."""
-    out = np.zeros(len(uv), np.float64)
-    for ax in (0, 1):
-        m = axis == ax
-        if not m.any():  # (cv2.remap refuses an empty map)
-            continue
-        x = uv[m, 0] - (0.5 if ax == 0 else 0.0)  # the x image's [v, u] sits at u + 0.5
-        y = uv[m, 1] - (0.5 if ax == 1 else 0.0)
-        # cv2.remap takes maps under 32767 rows and columns: the samples go in as rows of 1024, zero-padded (into
-        # zeroed buffers: np.pad's own overhead was a fifth of an align-depth fit)
-        n = len(x)
-        rows = -(-n // 1024)
-        xm, ym = np.zeros((2, rows * 1024), np.float32)
-        xm[:n], ym[:n] = x, y
-        out[m] = cv2.remap(strength[ax], xm.reshape(rows, 1024), ym.reshape(rows, 1024), cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT).ravel()[:n]
-    return out
+    return _ShiftedSamples(strength, uv, axis).at(0, 0)
+
+
+class _ShiftedSamples:
+    """``sample_strength`` of fixed points shifted by whole pixels, the points split by direction once (an edge
+    offset scores hundreds of shifts of the same points): ``at(dx, dy)`` gives the same values as
+    ``sample_strength(strength, uv + (dx, dy), axis)``."""
+
+    def __init__(self, strength: tuple[np.ndarray, np.ndarray], uv: np.ndarray, axis: np.ndarray):
+        self.strength, self.n = strength, len(uv)
+        self.parts = []
+        for ax in (0, 1):
+            m = axis == ax
+            if m.any():  # (cv2.remap refuses an empty map)
+                self.parts.append((ax, m, uv[m, 0], uv[m, 1]))
+
+    def at(self, dx: float, dy: float) -> np.ndarray:
+        out = np.zeros(self.n, np.float64)
+        for ax, m, u, v in self.parts:
+            x = (u + dx) - (0.5 if ax == 0 else 0.0)  # the x image's [v, u] sits at u + 0.5
+            y = (v + dy) - (0.5 if ax == 1 else 0.0)
+            # cv2.remap takes maps under 32767 rows and columns: the samples go in as rows of 1024, zero-padded (into
+            # zeroed buffers: np.pad's own overhead was a fifth of an align-depth fit)
+            n = len(x)
+            rows = -(-n // 1024)
+            xm, ym = np.zeros((2, rows * 1024), np.float32)
+            xm[:n], ym[:n] = x, y
+            out[m] = cv2.remap(self.strength[ax], xm.reshape(rows, 1024), ym.reshape(rows, 1024), cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT).ravel()[:n]
+        return out
 
 
 def edge_scores(edges: DepthEdges, T_color_from_depth: np.ndarray, pinhole: PinholeCamera,
@@ -278,11 +292,11 @@ def points_offset_px(groups: list[tuple[np.ndarray, np.ndarray, tuple[np.ndarray
     n = sum(len(g[0]) for g in groups)
     R = int(radius_px)
     cache: dict[tuple[int, int], float] = {}
+    samples = [_ShiftedSamples(st, uv, ax) for uv, ax, st in groups]
 
     def score(dx: int, dy: int) -> float:
         if (dx, dy) not in cache:
-            cache[(dx, dy)] = (sum(float(sample_strength(st, uv + (dx, dy), ax).sum()) for uv, ax, st in groups)
-                               / n if n else 0.0)
+            cache[(dx, dy)] = sum(float(s.at(dx, dy).sum()) for s in samples) / n if n else 0.0
         return cache[(dx, dy)]
 
     while True:
