@@ -72,9 +72,10 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
     new_rig = Rig.model_validate({**rig.model_dump(), "T_mech_from_depth": np.array(res.T_color_from_depth)})
     method = DepthAlignment.model_fields["method"].default
     if "texture" in res.edge_kinds:
-        method = ("edge alignment: " + " and ".join({"silhouettes": "depth silhouettes", "texture": "the depth "
-                  f"camera's own image's edges ({session.config.files.depth_texture})"}[k] for k in res.edge_kinds)
-                  + " on the texture camera's edges, every capture together")
+        said = {"silhouettes": "depth silhouettes",
+                "texture": f"the depth camera's own image's edges ({session.config.files.depth_texture})"}
+        method = (f"edge alignment: {' and '.join(said[k] for k in res.edge_kinds)} on the texture camera's edges, "
+                  "every capture together")
     info = DepthAlignment(method=method, calibrated_from=str(calib_path.resolve()),
                           T_mech_from_depth_file=T_mech_from_depth_file, params=params, result=res,
                           time_s=time.perf_counter() - t0)

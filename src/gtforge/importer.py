@@ -391,7 +391,7 @@ def check_not_imported(sources: list[SourceFile], earlier: list[ImportRun]) -> N
                              "into a new session")
 
 
-def check_frames_not_imported(path: Path, rgbd: RgbdRecording, kept: list[Pair], earlier: list[ImportRun]) -> None:
+def check_frames_not_imported(rgbd: RgbdRecording, kept: list[Pair], earlier: list[ImportRun]) -> None:
     """``--add``: a recording whose bytes differ from an imported one's but which holds its frames (a copy converted
     from ``.mcap`` to ``.db3``, a cut or a re-muxed file) would add those captures a second time; told by the kept
     pairs' depth and texture times, which ``import.json`` records (to the nanosecond, both: another recording of the
@@ -406,7 +406,7 @@ def check_frames_not_imported(path: Path, rgbd: RgbdRecording, kept: list[Pair],
         if n > hits:
             best, hits = run, n
     if best is not None:
-        raise InputError(path, "recording", "a recording not yet imported into this session",
+        raise InputError(rgbd.path, "recording", "a recording not yet imported into this session",
                          f"{hits} of the {len(kept)} captures it would add at the depth and texture times of "
                          f"captures imported from {best.depth_recording} (import.json)",
                          "each recording is imported once, and a copy, conversion or cut of one holds the same "
@@ -458,7 +458,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             check_not_imported(sources, earlier)
         kept, dropped, offset, source, n_same, nearest_skew_ms = plan_pairs(rgbd, stereo, params, progress)
         if add and exists:
-            check_frames_not_imported(rgbd.path, rgbd, kept, earlier)
+            check_frames_not_imported(rgbd, kept, earlier)
         if not kept:
             raise InputError(paths[0], "captures", "at least one still, paired capture",
                              f"none ({_dropped_text(dropped, params, nearest_skew_ms)})",

@@ -44,12 +44,11 @@ class InputConvention(GTModel):
 
     def prepare(self, img: np.ndarray) -> np.ndarray:
         x = img.astype(np.float32)
-        bgr = self.channels == "BGR"
-        if bgr:
-            x = x[..., ::-1]
-        if self.normalize == "imagenet":  # each colour with its own statistics, in the order the network takes them
-            x = (x / 255.0 - (IMAGENET_MEAN[::-1] if bgr else IMAGENET_MEAN)) / (IMAGENET_STD[::-1] if bgr
-                                                                                else IMAGENET_STD)
+        mean, std = IMAGENET_MEAN, IMAGENET_STD
+        if self.channels == "BGR":  # each colour keeps its own statistics, in the order the network takes them
+            x, mean, std = x[..., ::-1], mean[::-1], std[::-1]
+        if self.normalize == "imagenet":
+            x = (x / 255.0 - mean) / std
         elif self.normalize == "0-1":
             x = x / 255.0
         return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)

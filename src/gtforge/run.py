@@ -356,7 +356,9 @@ class _Run:
         cal_scenes = [d for d in scenes if not opts.calibration_scenes or d.name in opts.calibration_scenes]
         steps = [self.stage_calibrate, self.stage_align, self.stage_validate, self.stage_scale, self.stage_refine,
                  self.stage_build, self.stage_verify]
-        ctx = {"boards": boards, "scenes": scenes, "cfg": cfg, "gauges": gauges, "cal_scenes": cal_scenes}
+        # the stages before build-dataset record the session's files so (session.yaml read once for all of them)
+        ctx = {"boards": boards, "scenes": scenes, "cfg": cfg, "cfg_before_build": self.config_hashes(cfg),
+               "gauges": gauges, "cal_scenes": cal_scenes}
         for k, (name, step) in enumerate(zip(STAGES, steps), 1):
             try:
                 step(k, ctx)
@@ -409,7 +411,7 @@ class _Run:
                              "give the rig's calibration with -c FILE (e.g. from an earlier gtforge calibrate)")
         ctx["calib"] = self.out / CALIBRATION
         options = _plain({"use_depth": opts.use_depth, "loo": opts.loo})
-        inputs = {**self.config_hashes(ctx["cfg"]),
+        inputs = {**ctx["cfg_before_build"],
                   **self.hashes([p for d in ctx["boards"] for p in self.capture_files(d)]
                                 + [p for d in ctx["scenes"] for p in self.zed_files(d)])}
         if not self.decide(k, name, options, inputs):
@@ -447,7 +449,7 @@ class _Run:
         f = self.session.config.files
         options = _plain({"edges": "auto", "use_boards": True})
         # what it reads of each capture: the depth, the texture image and the depth camera's own image (no ZED image)
-        inputs = {**self.config_hashes(ctx["cfg"]),
+        inputs = {**ctx["cfg_before_build"],
                   **self.hashes([ctx["calib"]] + [d / n for d in caps for n in (f.mech_depth, f.mech_texture,
                                                                                 f.depth_texture)
                                                   if (d / n).is_file()])}
@@ -475,7 +477,7 @@ class _Run:
             self.not_applicable(k, name, "no board captures and no gauges/gauges.yaml")
             return
         options = {"gauges_only": not ctx["boards"]}
-        inputs = {**self.config_hashes(ctx["cfg"]),
+        inputs = {**ctx["cfg_before_build"],
                   **self.hashes([ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
                                 + ctx["gauges"])}
         if not self.decide(k, name, options, inputs):
@@ -513,7 +515,7 @@ class _Run:
             self.not_applicable(k, name, f"{ctx['calib'].name} is already scale-corrected")
             return
         options = _plain({"scenes": self.opts.calibration_scenes, "use_boards": True})
-        inputs = {**self.config_hashes(ctx["cfg"]),
+        inputs = {**ctx["cfg_before_build"],
                   **self.hashes([ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
                                 + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])}
         scaled = self.out / SCALED
@@ -540,7 +542,7 @@ class _Run:
                       f"{len(ctx['cal_scenes'])}")
         if reason is None:
             options = _plain({"scenes": self.opts.calibration_scenes, "loo": self.opts.loo})
-            inputs = {**self.config_hashes(ctx["cfg"]),
+            inputs = {**ctx["cfg_before_build"],
                       **self.hashes([ctx["calib"]] + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])}
             refined = self.out / REFINED
             if not self.decide(k, name, options, inputs):

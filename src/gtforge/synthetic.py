@@ -310,13 +310,16 @@ def render_image(scene: Scene, cam: PinholeCamera, T_cam_from_world: np.ndarray,
     return out
 
 
+GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])  # RGB -> grey (ITU-R BT.601), the images' and the depth camera's
+
+
 def finish_image(linear_rgb: np.ndarray, rng: np.random.Generator, blur_sigma_px: float = 0.6,
                  noise_sigma: float = 1.5, gray: bool = False) -> np.ndarray:
     img = linear_rgb * 255.0
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px)
     if gray:
-        img = img @ np.array([0.299, 0.587, 0.114])
+        img = img @ GREY_WEIGHTS
     img = img + rng.normal(0, noise_sigma, img.shape)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
@@ -469,7 +472,7 @@ def depth_camera_image(scene: Scene, rig: SyntheticRig, key: str, supersample: i
     Its noise is drawn from a generator of its own, seeded by ``key``, so a session's other images are the same with
     or without it."""
     rng = np.random.default_rng(zlib.crc32(key.encode()))
-    grey = render_image(scene, rig.depth_camera, rig.T_depth_from_world, supersample) @ np.array([0.299, 0.587, 0.114])
+    grey = render_image(scene, rig.depth_camera, rig.T_depth_from_world, supersample) @ GREY_WEIGHTS
     if blur_sigma_px > 0:
         grey = cv2.GaussianBlur(grey, (0, 0), blur_sigma_px)
     counts = grey * IR_COUNTS_PER_ALBEDO + rng.normal(0, IR_NOISE_COUNTS, grey.shape)
@@ -968,7 +971,7 @@ def generate_raw_zed_session(out_dir: str | Path, *, reading: str = "neg-x", n_b
         fruit_ids[cap.name] = f"fruit{i // 2:02d}"
         if progress:
             progress(f"scene {cap.name}")
-    # another target than the checkerboard: session.yaml declares it (as generate_session)
+    # another target than the default checkerboard: session.yaml declares it (as generate_session)
     extra = {} if board == BoardSpec() else {"board": board_model_of(board)}
     SessionFile(zed_calibration=conf, zed_rectified=False, fruit_ids=fruit_ids, **extra).write(out / "session.yaml")
     return out

@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime as _dt
 import html
 import json
+import math
 from pathlib import Path
 from statistics import median
 from typing import Any
@@ -170,9 +171,8 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
         key = "depth_alignment.result."
         al.add("decision", key + "decision")
         for i, axis in enumerate(("omega_x", "omega_y", "omega_z")):
-            finite = isinstance(r["sigma_omega_deg"][i], (int, float)) and abs(r["sigma_omega_deg"][i]) < float("inf")
-            al.add(f"{axis} correction", f"{key}omega_deg.{i}", "deg",
-                   sigma=f"{key}sigma_omega_deg.{i}" if finite else None, status=r["status"][i])
+            al.add(f"{axis} correction", f"{key}omega_deg.{i}", "deg", status=r["status"][i],
+                   sigma=f"{key}sigma_omega_deg.{i}" if math.isfinite(r["sigma_omega_deg"][i]) else None)
         for when in ("before", "after"):
             for i, axis in enumerate(("x", "y")):
                 al.add(f"edge offset (colour - depth) {axis}, {when}", f"{key}offset_{when}_px.{i}", "px")

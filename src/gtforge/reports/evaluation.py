@@ -302,7 +302,7 @@ def comparison_warnings(reports: list[EvalResult], files: list[Path]) -> list[st
     if all(hashes) and len(set(hashes)) > 1:
         w.append("the results come from different datasets (manifest.json differs" +
                  (", beyond where and when each was built" if all(content) else "") + "): " +
-                 listing(lambda r: f"{r.dataset_dir} (manifest {str(hashes[reports.index(r)])[:12]})"))
+                 "; ".join(f"{f}: {r.dataset_dir} (manifest {h[:12]})" for r, f, h in zip(reports, files, hashes)))
     elif not all(hashes) and differ(lambda r: r.dataset_dir):
         w.append("the results come from different dataset folders: " + listing(lambda r: r.dataset_dir))
     if differ(lambda r: sorted(r.scenes)):
