@@ -343,7 +343,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                   strict: bool = False, scenes: list[str] | None = None, progress: bool = False,
                   scheduler: str | None = None, rebuild: Collection[str] = ()) -> BuildSummary:
     """Build every scene of ``session_dir/scenes`` into ``out_dir``; see docs/dataset-format.md.
-    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md). ``rebuild``: scene ids
+    ``scheduler``: a Dask scheduler address; its workers build the scenes (docs/cluster.md). ``progress``: a bar on
+    standard error while the scenes are built, where that is an interactive terminal. ``rebuild``: scene ids
     built again even where their folder looks up to date (``gtforge run``: files changed since it recorded them).
 
     The recipe: check the inputs; plan (``plan_scenes``: which scenes are up to date); build and land each of the
@@ -387,6 +388,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     recovered: list[str] = []  # landed by a worker that died before it reported them
     args = [(str(Path(session_dir).resolve()), str(d.absolute()), d.name, str(calib_path.resolve()), calib_sha,
              str(out.resolve()), params.model_dump_json()) for d in todo]
+    from rich.console import Console
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -395,8 +397,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         TimeRemainingColumn,
     )
 
+    # on stderr, as every stage's progress: standard output holds the results only (a pipe, a log)
+    bar_console = Console(stderr=True)
     with Progress(TextColumn("build-dataset"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  disable=not (progress and args)) as bar:
+                  console=bar_console, disable=not (progress and args and bar_console.is_terminal)) as bar:
         task = bar.add_task("scenes", total=len(args))
 
         def handle(result):

@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -92,6 +93,25 @@ def test_ctrl_c_stops_the_build_promptly(session_dir, true_calibration, tmp_path
     assert r.returncode == 0 and "failed 0" in r.stdout  # the rerun resumes
 
 
+def test_a_closed_output_pipe_does_not_cut_the_build_short(session_dir, true_calibration, tmp_path):
+    """``gtforge build-dataset ... | head -0``: the reader has gone before the command prints. The build still ends
+    whole (manifest, reports) with its own exit code and no traceback; before, its progress bar's last print (on
+    standard output, off a terminal too) raised BrokenPipeError and the command stopped with 1 before its manifest."""
+    out = tmp_path / "ds"
+    p = subprocess.Popen([sys.executable, "-m", "gtforge.cli", "build-dataset", str(session_dir), "-c",
+                          str(true_calibration), "-o", str(out), "--workers", "1"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    p.stdout.close()  # as `| head -0` does
+    stderr = p.stderr.read()
+    assert p.wait(timeout=300) == 0, stderr[-2000:]
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr and "Exception ignored" not in stderr
+    for name in ("manifest.json", "build_report.html", "verification.json"):
+        assert (out / name).is_file(), name
+    r = gtforge("build-dataset", session_dir, "-c", true_calibration, "-o", out, "--workers", "1")
+    assert r.returncode == 0 and "built 0, unchanged 3, failed 0" in r.stdout  # and complete: nothing to redo
+    assert "build-dataset" not in r.stdout  # the progress bar is a terminal's only, on stderr
+
+
 @pytest.mark.parametrize("umask,mode", [(0o022, 0o644), (0o027, 0o640)])
 def test_outputs_follow_the_umask(session_dir, true_calibration, tmp_path, umask, mode):
     out = tmp_path / "ds"
@@ -171,6 +191,39 @@ def test_errors_name_real_options_and_files(session_dir, true_calibration, tmp_p
     assert "gtforge calibration file" in r.stderr and "CalibrationFile" not in r.stderr and "<input>" not in r.stderr
     r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", tmp_path / "ds3", "--split", "nonsense")
     assert r.returncode == 2 and "<input>" not in r.stderr and "--split" in r.stderr
+
+
+def _fork_servers_with(marker: str) -> list[int]:
+    """The live multiprocessing fork servers whose environment holds ``marker`` (Linux /proc). (Not the resource
+    tracker, which the command also starts: it leaves once it reads the end of its pipe, maybe just after the
+    command.)"""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if marker.encode() in (d / "environ").read_bytes() and b"forkserver" in (d / "cmdline").read_bytes():
+                pids.append(int(d.name))
+        except OSError:
+            continue
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="reads /proc (Linux)")
+def test_a_build_that_ends_before_its_pool_leaves_no_fork_server_behind(session_dir, tmp_path):
+    """Bad input found once the pool's fork server has started (before option parsing): the command exits with 2
+    and its server is gone with it. Before, the server went on with its imports (0.5 s of a core) holding the
+    command's stdout and stderr, so a pipeline or a caller reading them waited for it."""
+    marker = f"GTFORGE_TEST_MARK={os.getpid()}-{tmp_path.name}"
+    (tmp_path / "x.yaml").write_text("hello: 1\n")
+    env = {**os.environ, marker.split("=")[0]: marker.split("=")[1]}
+    with open(tmp_path / "stderr.txt", "w") as err:  # a file, not a pipe: run() returns when the command exits
+        r = subprocess.run([sys.executable, "-m", "gtforge.cli", "build-dataset", str(session_dir), "-c",
+                            str(tmp_path / "x.yaml"), "-o", str(tmp_path / "ds"), "--workers", "2"],
+                           stdout=subprocess.DEVNULL, stderr=err, env=env, timeout=300)
+    assert r.returncode == 2 and "gtforge calibration file" in (tmp_path / "stderr.txt").read_text()
+    assert _fork_servers_with(marker) == []
+    assert not (tmp_path / "ds").exists()
 
 
 def test_empty_splits_are_reported(session_dir, true_calibration, tmp_path):

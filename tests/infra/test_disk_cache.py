@@ -54,6 +54,18 @@ def test_a_corrupted_or_truncated_file_is_dropped(cache):
     assert disk_cache.load_array("k", "key") is None and not f.exists()
 
 
+def test_a_dead_writers_temporary_file_goes_once_stale(cache):
+    """A process killed while it stored an array (the unused fork server killed at exit) leaves its hidden temporary
+    file; the next store removes it once no writer can still be using it (an hour old), and never a fresh one."""
+    disk_cache.store_array("k", "key", np.ones(4))
+    (cache / "k" / ".key-abc.x1.tmp.npy").write_bytes(b"half")  # as atomic_path names them
+    (cache / "k" / ".key-abc.x2.tmp.npy").write_bytes(b"writing")
+    os.utime(cache / "k" / ".key-abc.x1.tmp.npy", (1000.0, 1000.0))
+    disk_cache.store_array("k", "key2", np.zeros(4))
+    names = sorted(p.name for p in (cache / "k").iterdir())
+    assert ".key-abc.x1.tmp.npy" not in names and ".key-abc.x2.tmp.npy" in names and len(names) == 3
+
+
 def test_least_recently_used_files_go_and_empty_setting_disables(cache, monkeypatch):
     for k in range(disk_cache.KEEP_FILES + 2):
         disk_cache.store_array("k", f"key{k}", np.full(3, float(k)))

@@ -85,6 +85,47 @@ def _usage_error(exc) -> None:
     sys.exit(exc.exit_code)
 
 
+class _ClosedPipeTolerant:
+    """``sys.stdout`` / ``sys.stderr`` for a command whose reader may go away (``gtforge ... | head``): once the pipe is
+    closed, what the command still prints goes to /dev/null and its work goes on to its end, with its own exit code.
+    Without it the next print raised BrokenPipeError and Click ended the command there with exit code 1 and no word:
+    a build stopped between its last scene and its manifest."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._to_devnull()
+            return len(text)
+
+    def writelines(self, lines):
+        for line in lines:
+            self.write(line)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._to_devnull()
+
+    def _to_devnull(self):
+        fd = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(fd, self._stream.fileno())
+        finally:
+            os.close(fd)
+        try:  # what the stream still holds goes to /dev/null, so that the interpreter's flush at exit finds nothing
+            self._stream.flush()
+        except OSError:
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main() -> None:
     # At exit the interpreter's teardown would garbage-collect every object numba, LLVM and pydantic made: 0.1-0.2 s
     # of every command that loaded them (benchmarks/RESULTS.md, "The exit"). Frozen, they are left to the OS; by then
@@ -96,6 +137,9 @@ def main() -> None:
     # Ctrl-C raises Interrupted (not KeyboardInterrupt, which Click turns into "Aborted!" and exit 1):
     # stages clean up, say what is complete, and the command exits with 130 like any interrupted program.
     signal.signal(signal.SIGINT, _raise_interrupted)
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = (s if s is None or isinstance(s, _ClosedPipeTolerant) else _ClosedPipeTolerant(s)
+                              for s in streams)
     try:
         pool = pool_of(sys.argv)
         if pool is not None:
@@ -137,6 +181,11 @@ def main() -> None:
                      "path, its permissions and the free space; every file already written is complete; "
                      "GTFORGE_DEBUG=1 shows where)")
         sys.exit(2)
+    finally:
+        for wrapped in (sys.stdout, sys.stderr):
+            if isinstance(wrapped, _ClosedPipeTolerant):
+                wrapped.flush()
+        sys.stdout, sys.stderr = streams
 
 
 # what a place refuses once a stage runs, whatever gtforge does (most is checked before it starts): read-only, not

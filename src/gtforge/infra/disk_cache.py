@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,8 @@ from gtforge.infra.digest import blake3_hex
 CACHE_ENV = "GTFORGE_CACHE_DIR"
 # files of one kind kept (a full-resolution ray grid is 37 MB: 1920 x 1200 x 2 float64)
 KEEP_FILES = 4
+# a temporary file older than this is a dead writer's (a ray grid is written in well under a second)
+STALE_TEMP_S = 3600.0
 
 log = logging.getLogger("gtforge.disk_cache")
 
@@ -87,7 +90,10 @@ def store_array(kind: str, key: str, arr: np.ndarray) -> None:
         with atomic_path(path, private=False) as tmp, open(tmp, "wb") as f:
             np.save(f, arr, allow_pickle=False)
         files = sorted(folder.glob("*.npy"), key=lambda p: p.stat().st_mtime, reverse=True)
-        for old in files[KEEP_FILES:]:
+        # and what a process killed while it wrote left (an unused fork server is killed at exit): a hidden
+        # temporary file no writer has touched for STALE_TEMP_S
+        stale = [t for t in folder.glob(".*.tmp.npy") if time.time() - t.stat().st_mtime > STALE_TEMP_S]
+        for old in files[KEEP_FILES:] + stale:
             with contextlib.suppress(OSError):
                 old.unlink()
     except OSError as exc:

@@ -276,6 +276,7 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
     from concurrent.futures.process import BrokenProcessPool
 
     n_threads = threads_per_worker(workers)
+    _FORK_SERVER["used"] = True  # (when the context is the server's: it is stopped at exit as usual, not killed)
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(fn.__module__, n_threads),
                              initializer=_init_worker, initargs=(n_threads, heap_bytes))
     pending = set()
@@ -437,7 +438,30 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
             else:
                 os.environ[k] = v
     _FORK_SERVER.update(n_threads=n_threads, module=module)
+    import atexit
+
+    atexit.register(_stop_unused_fork_server)
     return ctx
+
+
+def _stop_unused_fork_server() -> None:
+    """At exit: kill this process's fork server if no pool forked from it (nothing to build, bad input found after
+    it started, one scene built here). Left alone, it finished its imports first (0.5 s of a core) and kept this
+    process's standard output and error open until then, so that a shell pipeline or a caller reading them waited
+    for it. A server that forked workers exits as multiprocessing stops it (it is idle by then)."""
+    if _FORK_SERVER.get("n_threads") is None or _FORK_SERVER.get("used"):
+        return
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    pid = getattr(server, "_forkserver_pid", None)
+    if pid is None or not hasattr(server, "_stop"):
+        return
+    with contextlib.suppress(OSError):
+        os.kill(pid, signal.SIGKILL)
+    with contextlib.suppress(OSError):
+        server._stop()  # (reaps it and removes its socket)
+    _FORK_SERVER.clear()
 
 
 def _terminate(ex: ProcessPoolExecutor) -> None:
