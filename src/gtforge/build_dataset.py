@@ -55,13 +55,14 @@ from gtforge.core.ground_truth.reproject import prepare_rays, right_view_dispari
 from gtforge.core.zed.scale_corrections import add_depth_pose_sigma, add_scale_sigma
 from gtforge.core.ground_truth.uncertainty import disparity_sigma
 from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
-from gtforge.errors import InputError, Interrupted
+from gtforge.errors import InputError, Interrupted, first_of
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_buffer, atomic_write_text, private_folder
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import check_scheduler_address, prestart_pool, release_written_pages, run_tasks
 from gtforge.infra.unbuffered import background_writes
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.formats import (
+    KITTI_MAX_DISPARITY_PX,
     write_image,
     write_label_png,
     write_pfm,
@@ -444,11 +445,13 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                                                   unchanged, recovered)
     ok_ids = sorted(metas)
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
+    _warn_of_kitti_range(metas, params)
+    _warn_of_scenes_left_from_the_session(out, session)
     if flagged:
         log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
                     ", left out of the split lists (--quarantine)" if quarantined else "",
-                    "; ".join(f"{k}: {v[0]}" + (f" (+{len(v) - 1} more)" if len(v) > 1 else "")
-                              for k, v in list(flagged.items())[:5]) + (" ..." if len(flagged) > 5 else ""),
+                    first_of((f"{k}: {v[0]}" + (f" (+{len(v) - 1} more)" if len(v) > 1 else "")
+                              for k, v in flagged.items()), 5, "; "),
                     out / "verification.html")
     empty = [k for k, v in splits.items() if not v]
     if empty and ok_ids:
@@ -461,6 +464,32 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
                         quarantined, [s for s in ok_ids if metas[s].verification is not None
                                       and metas[s].verification.compensated])
+
+
+def _warn_of_kitti_range(metas: dict[str, SceneMeta], params: BuildParams) -> None:
+    """Scenes whose ground truth reaches KITTI_MAX_DISPARITY_PX: the KITTI PNGs hold those pixels as invalid."""
+    if not params.kitti:
+        return
+    over = {s: m.stats.disp_max_px for s, m in sorted(metas.items())
+            if m.stats.disp_max_px is not None and m.stats.disp_max_px >= KITTI_MAX_DISPARITY_PX}
+    if over:
+        log.warning("%d scene(s) hold disparities beyond the %.3f px a KITTI 16-bit PNG can store (%s): kitti/ marks "
+                    "those pixels invalid (0); the PFM ground truth (scenes/, eth3d/, views/) keeps them", len(over),
+                    KITTI_MAX_DISPARITY_PX, first_of(f"{s} up to {d:.1f} px" for s, d in over.items()))
+
+
+def _warn_of_scenes_left_from_the_session(out: Path, session) -> None:
+    """Scene folders in ``out`` whose capture the session no longer holds (deleted or renamed since they were built):
+    outside the manifest and the split lists, yet in scenes/, kitti/ and eth3d/, which some training code lists
+    itself."""
+    in_session = {d.name for d in session.capture_dirs("scenes")}
+    gone = sorted(d.name for d in (out / "scenes").iterdir()
+                  if d.is_dir() and not d.name.startswith(".") and d.name not in in_session)
+    if gone:
+        log.warning("%d scene(s) in %s are no longer in the session (%s): left out of the manifest and the split "
+                    "lists, but their files stay in scenes/, kitti/ and eth3d/, where training code that lists those "
+                    "folders finds them; delete them there, or build into a new folder", len(gone), out / "scenes",
+                    first_of(gone))
 
 
 def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, params: BuildParams,
@@ -485,8 +514,7 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
     if moved:  # a model trained on the earlier train split has seen a scene now in val or test
         log.warning("%d scene(s) changed split since the last build: %s (the splits are drawn over every built scene a "
                     "fruit at a time: adding, removing or regrouping scenes can move others)",
-                    len(moved), ", ".join(f"{s} {a} -> {b}" for s, (a, b) in list(moved.items())[:8])
-                    + (" ..." if len(moved) > 8 else ""))
+                    len(moved), first_of(f"{s} {a} -> {b}" for s, (a, b) in moved.items()))
     if params.verification:
         _write_verification(out, params, metas)
     for sid in unchanged:  # views of scenes built by an earlier run with other view options, deleted since, or of an

@@ -54,3 +54,9 @@ class Interrupted(Exception):
 # what the user sees of a Ctrl-C no stage words itself
 INTERRUPTED = ("interrupted: every file already written is complete (gtforge writes each one whole); rerun the same "
                "command to finish")
+
+
+def first_of(items, n: int = 8, sep: str = ", ") -> str:
+    """The first ``n`` of ``items`` (strings), joined, and how many more there are: how a message lists ids."""
+    items = list(items)
+    return sep.join(items[:n]) + (f" (+{len(items) - n} more)" if len(items) > n else "")

@@ -21,7 +21,7 @@ from gtforge.core.measure.metrics import (
     region_errors,
 )
 from gtforge.core.ground_truth.regions import region_masks
-from gtforge.errors import InputError, MissingFileError
+from gtforge.errors import InputError, MissingFileError, first_of
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.io.formats import read_image, read_pfm, write_image, write_ply
 from gtforge.io.middlebury import SceneCalib
@@ -108,19 +108,15 @@ def _suspect_scenes(man: dict, ids: list[str]) -> dict[str, str]:
     hit = sorted(quarantined & set(ids))
     if hit:
         log.warning("scoring %d scene(s) that verify quarantined (their ground truth is suspect): %s; a split "
-                    "(--split train|val|test) leaves them out", len(hit), _first_ids(hit))
+                    "(--split train|val|test) leaves them out", len(hit), first_of(hit))
         suspect.update({s: "quarantined" + (f": {why(s)}" if why(s) else "") for s in hit})
     hit = sorted(set(flagged) & set(ids) - quarantined)
     if hit:
         log.warning("scoring %d scene(s) that verification flagged (their ground truth may not match their images): "
                     "%s; see the dataset's verification.html (gtforge verify --quarantine takes them out of the "
-                    "splits)", len(hit), _first_ids(hit))
+                    "splits)", len(hit), first_of(hit))
         suspect.update({s: "flagged" + (f": {why(s)}" if why(s) else "") for s in hit})
     return suspect
-
-
-def _first_ids(ids: list[str]) -> str:
-    return ", ".join(ids[:8]) + (", ..." if len(ids) > 8 else "")
 
 
 def _refuse_output_in_session(out: Path, man: dict) -> None:
@@ -208,10 +204,11 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     suspect = _suspect_scenes(man, ids)
     listed = man.get("scenes")
     unlisted = [s for s in ids if isinstance(listed, dict) and s not in listed]
-    if unlisted:  # landed by a build stopped before it wrote the manifest: complete, but neither verified nor split
-        log.warning("%d of %d scene(s) are not in %s (a build stopped before it finished: they are not verified nor "
-                    "in a split): %s; scored like the others; run build-dataset again to finish it", len(unlisted),
-                    len(ids), ds / "manifest.json", _first_ids(unlisted))
+    if unlisted:  # landed by a build stopped before it wrote the manifest, or no longer in the session since
+        log.warning("%d of %d scene(s) are not in %s, so not verified nor in a split: %s; scored like the others. "
+                    "Either a build stopped before it finished (run build-dataset again to finish it) or the session "
+                    "no longer holds their captures (delete them from the dataset, or build into a new folder)",
+                    len(unlisted), len(ids), ds / "manifest.json", first_of(unlisted))
     if max_disp_px is not None and not max_disp_px > 0:
         raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
     if max_gt_sigma_px is not None:
@@ -252,7 +249,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                              f"({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})",
                              "name each file after its scene id (docs/metrics.md, 'Predictions')")
         log.warning("no prediction for %d of %d scene(s) in %s (%s; expected %s): scoring the other %d, "
-                    "and the command will exit with code 1", len(absent), len(ids), where, _first_ids(absent),
+                    "and the command will exit with code 1", len(absent), len(ids), where, first_of(absent),
                     PREDICTION_NAMES, len(ids) - len(absent))
         for sid in absent:
             missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"

@@ -115,6 +115,7 @@ def test_label_png_and_kitti_quantisation(tmp_path):
     import cv2
     from PIL import Image
 
+    from gtforge.io import formats
     from gtforge.io.formats import write_label_png
 
     lab = (np.arange(37 * 53) % 4).astype(np.uint8).reshape(37, 53)
@@ -132,10 +133,15 @@ def test_label_png_and_kitti_quantisation(tmp_path):
     for bad in (np.zeros((4, 5, 3), np.uint8), np.zeros((4, 5), np.float32), np.zeros((0, 5), np.uint8)):
         with pytest.raises(ValueError):
             write_label_png(tmp_path / "x.png", bad)
-    # round(d * 256) half to even, 1 for a valid d that rounds to 0, 65535 at most, 0 for NaN / inf / < 0
+    # round(d * 256) half to even, 1 for a valid d that rounds to 0, 0 for NaN / inf / < 0 and for a d beyond 16 bits
+    # (a clip would make 300 px a valid 255.996 px label)
     d = np.array([[0.001, 1.5 / 256, 2.5 / 256, 10.0, 300.0], [np.nan, np.inf, -0.5, 0.0, 100.123]], np.float32)
     raw = cv2.imread(str(write_kitti_disparity(tmp_path / "k.png", d)), cv2.IMREAD_UNCHANGED)
-    np.testing.assert_array_equal(raw, [[1, 2, 2, 2560, 65535], [0, 0, 0, 1, round(100.123 * 256)]])
+    np.testing.assert_array_equal(raw, [[1, 2, 2, 2560, 0], [0, 0, 0, 1, round(100.123 * 256)]])
+    edge = np.array([[np.nextafter(np.float32(formats.KITTI_MAX_DISPARITY_PX), np.float32(0)),
+                      formats.KITTI_MAX_DISPARITY_PX, 65535 / 256]], np.float32)
+    np.testing.assert_array_equal(cv2.imread(str(write_kitti_disparity(tmp_path / "e.png", edge)),
+                                             cv2.IMREAD_UNCHANGED), [[65535, 0, 65535]])  # (65535.5 rounds to even)
     back = read_kitti_disparity(tmp_path / "k.png")
     assert np.isnan(back[1, :3]).all() and back[0, 3] == 10.0
     # disp_noc: the same values inside the mask, 0 outside it
@@ -173,8 +179,8 @@ def test_kitti_pair_is_two_single_writes_byte_for_byte(tmp_path):
         q = formats._kitti_quantize(d, np.ones(d.shape, bool))
         d64 = d.astype(np.float64)  # the definition, in float64 (the kernels quantise in float32)
         with np.errstate(invalid="ignore"):
-            valid = (d64 >= 0) & (d64 < np.inf)
-            np.testing.assert_array_equal(q, np.where(valid, np.clip(np.rint(d64 * 256.0), 1, 65535), 0))
+            valid = (d64 >= 0) & (np.rint(d64 * 256.0) <= 65535)
+            np.testing.assert_array_equal(q, np.where(valid, np.maximum(np.rint(d64 * 256.0), 1), 0))
         for path, want in ((po, q), (pn, np.where(noc, q, 0))):
             np.testing.assert_array_equal(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), want)
             np.testing.assert_array_equal(read_image(path, expect="uint16"), want)

@@ -880,3 +880,43 @@ def test_a_resume_rewrites_views_of_an_earlier_build_and_follows_edited_fruit_id
     assert moved and f"{len(moved)} scene(s) changed split since the last build: " + ", ".join(
         f"{sid} {a} -> {b}" for sid, (a, b) in moved.items()) in caplog.text
     assert json.loads((s / "meta.json").read_text())["fruit_id"] == fruit[ids[0]]
+
+
+def test_scenes_the_session_no_longer_holds_are_named(session_dir, true_calibration, dataset, tmp_path, caplog):
+    """A capture deleted from the session after its scene was built: the rebuild leaves it out of the manifest and
+    the splits, as before, and now says that its folders stay in scenes/, kitti/ and eth3d/ (where RAFT-Stereo's
+    KITTI reader, which lists kitti/training itself, would still train on it)."""
+    sess, out = tmp_path / "session", tmp_path / "ds"
+    shutil.copytree(session_dir, sess)
+    shutil.copytree(dataset[0], out)
+    ids = sorted(Manifest.read(out / "manifest.json").scenes)
+    shutil.rmtree(sess / "scenes" / ids[-1])
+    summary = build_dataset(sess, true_calibration, out, workers=1)
+    assert summary.built == [] and summary.skipped_unchanged == ids[:-1]
+    assert sorted(Manifest.read(out / "manifest.json").scenes) == ids[:-1]
+    assert f"1 scene(s) in {out / 'scenes'} are no longer in the session ({ids[-1]}): left out of the manifest" \
+        in caplog.text
+    caplog.clear()
+    build_dataset(session_dir, true_calibration, out, workers=1)  # the session whole again: the scene is its own
+    assert "no longer in the session" not in caplog.text
+
+
+def test_disparities_beyond_kittis_16_bits_are_named(dataset, caplog):
+    """A scene whose ground truth reaches 256 px (a ZED 2 at 2K closer than about half a metre): its KITTI PNGs hold
+    those pixels as invalid (a clip made them valid 255.996 px labels), and the build says which scenes."""
+    from gtforge.build_dataset import _warn_of_kitti_range
+    from gtforge.io.formats import KITTI_MAX_DISPARITY_PX
+
+    metas = Manifest.read(dataset[0] / "manifest.json").scenes
+    ids = sorted(metas)
+    assert all(m.stats.disp_max_px < KITTI_MAX_DISPARITY_PX for m in metas.values())
+    _warn_of_kitti_range(metas, BuildParams())
+    assert "KITTI" not in caplog.text
+    near = dict(metas)
+    near[ids[1]] = metas[ids[1]].model_copy(update={"stats": metas[ids[1]].stats.model_copy(
+        update={"disp_max_px": 300.04})})
+    _warn_of_kitti_range(near, BuildParams(kitti=False))
+    assert "KITTI" not in caplog.text
+    _warn_of_kitti_range(near, BuildParams())
+    assert f"1 scene(s) hold disparities beyond the 255.998 px a KITTI 16-bit PNG can store ({ids[1]} up to " \
+        "300.0 px): kitti/ marks those pixels invalid (0)" in caplog.text

@@ -22,7 +22,7 @@ from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.schema import GTModel, VersionedFile, matrix4_field
 from gtforge.core.zed.selfcal import corrected_right
 from gtforge.core.targets.models import BoardModel
-from gtforge.errors import InputError, MissingFileError
+from gtforge.errors import InputError, MissingFileError, first_of
 from gtforge.infra.digest import blake3_hex
 from gtforge.infra.unbuffered import AlignedBuffer, aligned_buffer
 from gtforge.io.cameras import DEFAULT_ZED_CONF_READING, ZedConfReading, load_camera, load_zed_rectified, read_zed_conf
@@ -432,8 +432,7 @@ class Session:
         for given, given_by in ((include, include_option), (exclude, "exclude")):
             unknown = [n for n in (given or []) if n not in names]
             if unknown:
-                listing = ", ".join(sorted(names)[:8]) + (", ..." if len(names) > 8 else "")
-                raise InputError(dirs[0].parent, given_by, f"capture names of {kind}/ ({listing})",
+                raise InputError(dirs[0].parent, given_by, f"capture names of {kind}/ ({first_of(sorted(names))})",
                                  ", ".join(unknown), "names are the capture folders' names")
         if include:
             dirs = [d for d in dirs if d.name in set(include)]

@@ -128,6 +128,8 @@ def read_pfm(path: str | Path) -> np.ndarray:
 
 
 # ---- KITTI ----------------------------------------------------------------------------------
+# the largest disparity KITTI's uint16 PNG holds (round(d * 256) <= 65535); a larger one is written invalid (0)
+KITTI_MAX_DISPARITY_PX = 65535.5 / 256
 def _kitti_inputs(disp_px: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     d = np.asarray(disp_px)
     if d.ndim != 2:
@@ -139,7 +141,8 @@ def _kitti_inputs(disp_px: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndar
 
 
 def write_kitti_disparity(path: str | Path, disp_px: np.ndarray, mask: np.ndarray | None = None) -> Path:
-    """KITTI uint16 PNG: ``round(d*256)``; invalid (NaN, inf, <0) -> 0; a valid value that rounds to 0 -> 1.
+    """KITTI uint16 PNG: ``round(d*256)``; invalid (NaN, inf, <0) and too large (``KITTI_MAX_DISPARITY_PX`` or more)
+    -> 0; a valid value that rounds to 0 -> 1.
     ``mask``: only these pixels (e.g. the non-occluded ones, for ``disp_noc``); 0 elsewhere."""
     return write_png16(path, _kitti_quantize(*_kitti_inputs(disp_px, mask)))
 
@@ -171,11 +174,14 @@ def write_kitti_disparity_pair(path_occ: str | Path, path_noc: str | Path, disp_
 
 @numba.njit(cache=True, inline="always")
 def _kitti_value(x):
-    """round(x * 256) (half to even), clipped to 1..65535, as an int32; 0 where x is invalid (NaN, inf, < 0). ``x``:
-    float32, computed in float32: ``x * 256`` is exact there as in float64 (a power of two), so its rounding is the
-    float64 one. Without a branch, so that a loop over a row vectorises."""
-    r = min(max(np.rint(x * np.float32(256.0)), np.float32(1.0)), np.float32(65535.0))
-    return np.int32(r) if (x >= np.float32(0.0)) & (x < np.float32(np.inf)) else np.int32(0)
+    """round(x * 256) (half to even), at least 1, as an int32; 0 where x is invalid (NaN, inf, < 0) or too large for
+    KITTI's 16 bits (round(x * 256) > 65535: x >= 255.998 px, ``KITTI_MAX_DISPARITY_PX``), which a clip to 65535 would
+    have turned into a valid label of 255.996 px. ``x``: float32, computed in float32: ``x * 256`` is exact there as in
+    float64 (a power of two), so its rounding is the float64 one. Without a branch, so that a loop over a row
+    vectorises."""
+    r = np.rint(x * np.float32(256.0))
+    clipped = min(max(r, np.float32(1.0)), np.float32(65535.0))  # (converted in either case: a finite value)
+    return np.int32(clipped) if (x >= np.float32(0.0)) & (r <= np.float32(65535.0)) else np.int32(0)
 
 
 @numba.njit(cache=True)
