@@ -446,6 +446,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     ok_ids = sorted(metas)
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
     _warn_of_kitti_range(metas, params)
+    _warn_of_openstereo_right_paths(out, ok_ids, params)
     _warn_of_scenes_left_from_the_session(out, session)
     if flagged:
         log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
@@ -476,6 +477,22 @@ def _warn_of_kitti_range(metas: dict[str, SceneMeta], params: BuildParams) -> No
         log.warning("%d scene(s) hold disparities beyond the %.3f px a KITTI 16-bit PNG can store (%s): kitti/ marks "
                     "those pixels invalid (0); the PFM ground truth (scenes/, eth3d/, views/) keeps them", len(over),
                     KITTI_MAX_DISPARITY_PX, first_of(f"{s} up to {d:.1f} px" for s, d in over.items()))
+
+
+def _warn_of_openstereo_right_paths(out: Path, ids: list[str], params: BuildParams) -> None:
+    """OpenStereo's KITTI reader (``RETURN_RIGHT_DISP``) finds a scene's right-view file by replacing every ``c_0`` in
+    its left one's path with ``c_1`` (meant for ``disp_occ_0``): a scene id, or the dataset's path, that holds ``c_0``
+    sends it to another scene's file (``sc_001`` -> ``sc_101``), or to none."""
+    if not (params.kitti and params.right_gt):
+        return
+    hit = [s for s in ids if "c_0" in s]
+    where = str(out.resolve())
+    if hit or "c_0" in where:
+        log.warning("OpenStereo's KITTI reader with RETURN_RIGHT_DISP replaces every 'c_0' in a path with 'c_1' to "
+                    "find the right view's ground truth: %s 'c_0', so it would read another scene's file or none; %s "
+                    "(the other readers are not affected)",
+                    f"scene id(s) {first_of(hit)} hold" if hit else f"the dataset's path {where} holds",
+                    "rename those capture folders in the session" if hit else "train from a path without 'c_0'")
 
 
 def _warn_of_scenes_left_from_the_session(out: Path, session) -> None:

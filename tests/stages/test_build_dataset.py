@@ -920,3 +920,21 @@ def test_disparities_beyond_kittis_16_bits_are_named(dataset, caplog):
     _warn_of_kitti_range(near, BuildParams())
     assert f"1 scene(s) hold disparities beyond the 255.998 px a KITTI 16-bit PNG can store ({ids[1]} up to " \
         "300.0 px): kitti/ marks those pixels invalid (0)" in caplog.text
+
+
+def test_scene_ids_that_mislead_openstereos_right_view_reader_are_named(dataset, tmp_path, caplog):
+    """OpenStereo's KittiDataset finds disp_occ_1's file by str.replace('c_0', 'c_1') over the whole path: scene
+    sc_001's right view would be read from sc_101's file. The build names such ids (and a dataset path with c_0)."""
+    from gtforge.build_dataset import _warn_of_openstereo_right_paths
+
+    out = tmp_path / "ds"
+    _warn_of_openstereo_right_paths(out, ["000", "sc_1", "abc_2"], BuildParams())
+    assert "OpenStereo" not in caplog.text
+    _warn_of_openstereo_right_paths(out, ["000", "sc_001", "sc_101"], BuildParams(right_gt=False))
+    assert "OpenStereo" not in caplog.text
+    _warn_of_openstereo_right_paths(out, ["000", "sc_001", "sc_101"], BuildParams())
+    assert "replaces every 'c_0' in a path with 'c_1' to find the right view's ground truth: scene id(s) sc_001 hold " \
+        "'c_0'" in caplog.text and "rename those capture folders" in caplog.text
+    caplog.clear()
+    _warn_of_openstereo_right_paths(tmp_path / "proc_0" / "ds", ["000"], BuildParams())
+    assert f"the dataset's path {(tmp_path / 'proc_0' / 'ds').resolve()} holds 'c_0'" in caplog.text
