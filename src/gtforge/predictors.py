@@ -61,15 +61,17 @@ class Predictor(Protocol):
     def predict(self, scene_id: str, left: np.ndarray, right: np.ndarray, ndisp: int, vmin: int) -> np.ndarray: ...
 
 
-def _fit(conv: InputConvention, img: np.ndarray) -> tuple[np.ndarray, tuple]:
+def _network_input(conv: InputConvention, img: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """The network's input for image ``img`` (``1 x 3 x H' x W'``, ``conv.prepare``d, fitted) and what ``_unfit``
+    needs to undo the fit. A pad comes after the normalisation: its band is 0 in the network's input, ImageNet's mean
+    colour under its normalisation, as Fast-ACVNet's loaders pad (a black band, padded before, was -2.1/-2.0/-1.8)."""
     H, W = img.shape[:2]
     if conv.fit == "resize":  # (resize_wh is set: InputConvention checks it)
-        return cv2.resize(img, conv.resize_wh, interpolation=cv2.INTER_LINEAR), ("resize", H, W)
+        return conv.prepare(cv2.resize(img, conv.resize_wh, interpolation=cv2.INTER_LINEAR)), ("resize", H, W)
     m = conv.pad_multiple
     ph, pw = (-H) % m, (-W) % m
     top = ph if conv.pad_where == "top-right" else 0
-    out = cv2.copyMakeBorder(img, top, ph - top, 0, pw, cv2.BORDER_CONSTANT, value=0)
-    return out, ("pad", H, W, top)
+    return np.pad(conv.prepare(img), ((0, 0), (0, 0), (top, ph - top), (0, pw))), ("pad", H, W, top)
 
 
 def _disparity_from_output(path: Path, out: np.ndarray, fitted_hw: tuple[int, int], info: tuple,
@@ -95,7 +97,27 @@ def _disparity_from_output(path: Path, out: np.ndarray, fitted_hw: tuple[int, in
             "(resized to the image and scaled by %.4g); a network that gives full-resolution disparities on a "
             "smaller map would be scored wrong", path, out.shape[1], out.shape[0], fitted_hw[1], fitted_hw[0],
             info[2] / out.shape[1])
-    return _unfit(out, info).astype(np.float32)
+    d = _unfit(out, info).astype(np.float32)
+    say_if_negative(d, path, said)
+    return d
+
+
+def say_if_negative(d: np.ndarray, source, said: set | None, invalid_there: bool = False) -> None:
+    """Warn, once a model (``said``), when most of a prediction's finite disparities are negative: a network or a
+    script that saved -disparity (RAFT-Stereo's ``flow_x``, for one) is otherwise scored as a 100-px error or, where
+    negative values are invalid (``invalid_there``: a .npy), not at all, with nothing to say why."""
+    if said is None or "negative" in said:
+        return
+    v = d[np.isfinite(d)]
+    n_negative = int(np.count_nonzero(v < 0))
+    if v.size and n_negative > v.size / 2:
+        said.add("negative")
+        logging.getLogger("gtforge.evaluate").warning(
+            "%s: %.0f %% of its disparities are negative (median %.3g px): was -disparity saved (RAFT-Stereo's flow_x, "
+            "for one)? gtforge scores disparities as left x minus right x, > 0; %s", source,
+            100.0 * n_negative / v.size, float(np.median(v)),
+            "a .npy's values <= 0 are invalid, so these are not scored" if invalid_there
+            else "these are scored as they are")
 
 
 def _unfit(disp: np.ndarray, info: tuple) -> np.ndarray:
@@ -145,10 +167,11 @@ class OnnxModel:
         self.source = str(self.path.resolve())
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
-        l, info = _fit(self.conv, left)
-        r, _ = _fit(self.conv, right)
-        self._check_size(l.shape[:2])
-        a, b = self.conv.prepare(l).astype(self.dtype, copy=False), self.conv.prepare(r).astype(self.dtype, copy=False)
+        a, info = _network_input(self.conv, left)
+        b, _ = _network_input(self.conv, right)
+        fitted_hw = a.shape[2:]
+        self._check_size(fitted_hw)
+        a, b = a.astype(self.dtype, copy=False), b.astype(self.dtype, copy=False)
         if self.swapped:
             a, b = b, a
         feeds = {self.inputs[0].name: a, self.inputs[1].name: b} if self.layout == "two" else \
@@ -157,7 +180,7 @@ class OnnxModel:
             out = self.sess.run(None, feeds)[0]
         except Exception as exc:  # onnxruntime's own errors (a shape or type the graph cannot take) name no file
             raise _model_error(self.path, exc, "two N x 3 x H x W" if self.layout == "two" else "one N x 6 x H x W")
-        return _disparity_from_output(self.path, np.asarray(out, np.float32), l.shape[:2], info, self.said)
+        return _disparity_from_output(self.path, np.asarray(out, np.float32), fitted_hw, info, self.said)
 
     def _check_size(self, hw: tuple[int, int]) -> None:
         """A model exported with a fixed height or width takes only that: say so before onnxruntime does."""
@@ -262,15 +285,14 @@ class TorchScriptModel:
 
     def predict(self, scene_id, left, right, ndisp=192, vmin=0) -> np.ndarray:
         torch = self.torch
-        l, info = _fit(self.conv, left)
-        r, _ = _fit(self.conv, right)
+        a, info = _network_input(self.conv, left)
+        b, _ = _network_input(self.conv, right)
         try:
             with torch.no_grad():
-                out = self.model(torch.from_numpy(self.conv.prepare(l)).to(self.device),
-                                 torch.from_numpy(self.conv.prepare(r)).to(self.device))
+                out = self.model(torch.from_numpy(a).to(self.device), torch.from_numpy(b).to(self.device))
         except Exception as exc:  # the model's own errors (a shape or type it cannot take) name no file
             raise _model_error(self.path, exc, "two 1 x 3 x H x W float32")
-        return _disparity_from_output(self.path, _torch_disparity(self.path, out), l.shape[:2], info, self.said)
+        return _disparity_from_output(self.path, _torch_disparity(self.path, out), a.shape[2:], info, self.said)
 
 
 def _torch_disparity(path: Path, out) -> np.ndarray:
@@ -335,6 +357,7 @@ class PredictionFolder:
                               else "check the path; ") + layout)
         self.name = name or self.folder.name
         self.source = str(self.folder.resolve())
+        self.said: set[str] = set()  # the warnings given for these predictions, each once
 
     def find(self, scene_id: str) -> Path | None:
         for cand in PREDICTION_CANDIDATES:
@@ -350,6 +373,7 @@ class PredictionFolder:
                              "missing")
         if p.suffix == ".pfm":
             d = read_pfm(p)
+            say_if_negative(d, p, self.said)
         elif p.suffix == ".png":
             d = read_kitti_disparity(p)
         else:
@@ -366,6 +390,7 @@ class PredictionFolder:
                     "%s holds integer disparities (no sub-pixel part): scored as whole pixels; a network's output is "
                     "saved as float32", p)
             d = np.squeeze(d)
+            say_if_negative(d, p, self.said, invalid_there=True)
             d[~np.isfinite(d) | (d <= 0)] = np.nan
         if d.shape != left.shape[:2]:
             raise InputError(p, "size", f"{left.shape[1]}x{left.shape[0]} px (the scene's image)",

@@ -203,6 +203,24 @@ def test_bgr_input_is_normalised_with_each_colours_own_statistics():
     np.testing.assert_allclose(bgr, [want["B"], want["G"], want["R"]], rtol=1e-6)
 
 
+@pytest.mark.parametrize("normalize,pad_where", [("imagenet", "top-right"), ("0-1", "bottom-right")])
+def test_the_pad_band_is_zero_in_the_networks_input(normalize, pad_where):
+    """--fit pad pads after the normalisation, as Fast-ACVNet's loaders do: the band is 0 in the network's input
+    (ImageNet's mean colour under its normalisation); padded before it, a black band became -2.1/-2.0/-1.8."""
+    from gtforge.predictors import InputConvention, _network_input
+
+    img = np.random.default_rng(1).integers(0, 256, (45, 70, 3), np.uint8)
+    conv = InputConvention(normalize=normalize, pad_where=pad_where)
+    x, info = _network_input(conv, img)
+    assert x.shape == (1, 3, 64, 96) and x.dtype == np.float32
+    assert info == ("pad", 45, 70, 19 * (pad_where == "top-right"))
+    top = info[3]
+    np.testing.assert_array_equal(x[:, :, top:top + 45, :70], conv.prepare(img))
+    band = np.ones(x.shape, bool)
+    band[:, :, top:top + 45, :70] = False
+    assert band.sum() == 3 * (64 * 96 - 45 * 70) and not x[band].any()
+
+
 def test_a_torchscript_models_output_is_a_tensor_or_names_what_it_is():
     """A TorchScript model returning a dict crashed evaluate with a traceback ('dict' object has no attribute
     'float'; a run-through): a dict's one tensor is the disparity, a list's or tuple's last; two tensors in a dict,
@@ -700,3 +718,39 @@ def test_prediction_arrays_that_are_not_float_are_said_so(dataset, tmp_path, cap
     assert d.dtype == np.float32 and any("integer disparities" in r.getMessage() for r in caplog.records)
     with pytest.raises(InputError, match=r"float, px\), got ValueError: could not convert string to float.*np\.save"):
         folder.predict(ids[1], np.zeros(gt.shape + (3,), np.uint8), None)
+
+
+def test_predictions_of_minus_the_disparity_are_said_once(dataset, tmp_path, caplog):
+    """-disparity saved (RAFT-Stereo's flow_x): as .pfm it was scored as a 100-px EPE, as .npy not at all ("no pixel
+    was scored"), neither with a word on the sign. Both now warn, once a model; a mostly positive map does not."""
+    import logging
+
+    from gtforge.io.formats import write_pfm
+    from gtforge.predictors import PredictionFolder
+
+    ds = dataset[0]
+    ids = sorted(d.name for d in (ds / "scenes").iterdir() if d.is_dir())
+    gt = read_pfm(ds / "scenes" / ids[0] / "disp0GT.pfm")
+    img = np.zeros(gt.shape + (3,), np.uint8)
+    for suffix in (".pfm", ".npy"):
+        p = tmp_path / suffix[1:]
+        p.mkdir()
+        for sid in ids[:2]:
+            neg = -np.nan_to_num(read_pfm(ds / "scenes" / sid / "disp0GT.pfm"), nan=50.0)
+            write_pfm(p / f"{sid}.pfm", neg) if suffix == ".pfm" else np.save(p / f"{sid}.npy", neg)
+        folder = PredictionFolder(p)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="gtforge"):
+            d0 = folder.predict(ids[0], img, None)
+            folder.predict(ids[1], img, None)
+        said = [r.getMessage() for r in caplog.records if "of its disparities are negative" in r.getMessage()]
+        assert len(said) == 1 and said[0].startswith(f"{p / (ids[0] + suffix)}: 100 % of its disparities are "
+                                                     "negative (median -")
+        assert ("not scored" in said[0]) == (suffix == ".npy") and np.isnan(d0).all() == (suffix == ".npy")
+    caplog.clear()
+    mostly = np.nan_to_num(gt, nan=50.0)
+    mostly[:, : gt.shape[1] // 3] *= -1  # a third negative: a bad prediction, not a sign convention
+    np.save(tmp_path / "npy" / f"{ids[2]}.npy", mostly)
+    with caplog.at_level(logging.WARNING, logger="gtforge"):
+        PredictionFolder(tmp_path / "npy").predict(ids[2], img, None)
+    assert "negative" not in caplog.text
