@@ -165,6 +165,9 @@ def test_moved_fruit_are_compensated(motion_datasets, motion_session):
     html = (out / "verification.html").read_text()
     assert "verification/000_motion_before.jpg" in html and "verification/000_motion_after.jpg" in html
     assert (out / "verification" / "000_motion_before.jpg").exists() and "compensated" in html
+    f = rep.scenes["000"].motion_compensation.fruit[0]  # sigmas unsigned, the motion signed
+    assert " / ".join(f"{a:.3f}" for a in f.sigma_translation_mm) in html and " / ".join(
+        f"{a:+.3f}" for a in f.translation_mm) in html
     assert "compensated" in (out / "build_report.html").read_text()
     # sigma: larger on the fruit by the motion's share; on the table (whose sigma follows the texture shift
     # verification measures, here the rebuilt scene's) the same within 1 %

@@ -116,8 +116,8 @@ def write_verification_html(rep: VerificationResult, out: Path) -> Path:
     return write_html(out / "verification.html", "gtforge verification", sections)
 
 
-def _v3(x) -> str:
-    return "-" if x is None else " / ".join(f"{a:+.3f}" for a in x)
+def _v3(x, signed: bool = True) -> str:
+    return "-" if x is None else " / ".join(f"{a:{'+' if signed else ''}.3f}" for a in x)
 
 
 def _motion_section(items, out: Path) -> str:
@@ -128,9 +128,9 @@ def _motion_section(items, out: Path) -> str:
         mc = v.motion_compensation
         if mc is None:
             continue
-        rows = [[f.component, f.status, _v3(f.translation_mm), _v3(f.sigma_translation_mm), _v3(f.rotvec_deg),
-                 _v3(f.sigma_rot_deg), _f(f.disparity_sigma_px, "{:.4f}"), _f(f.chi2_still, "{:.1f}"), f.n_pixels,
-                 html.escape(f.reason)] for f in mc.fruit]
+        rows = [[f.component, f.status, _v3(f.translation_mm), _v3(f.sigma_translation_mm, signed=False),
+                 _v3(f.rotvec_deg), _v3(f.sigma_rot_deg, signed=False), _f(f.disparity_sigma_px, "{:.4f}"),
+                 _f(f.chi2_still, "{:.1f}"), f.n_pixels, html.escape(f.reason)] for f in mc.fruit]
         imgs = "".join(f"<figure><a href='verification/{sid}_motion_{w}.jpg'><img style='max-width:520px' "
                        f"src='verification/{sid}_motion_{w}.jpg'/></a><figcaption>{w}</figcaption></figure>"
                        for w in ("before", "after") if (out / "verification" / f"{sid}_motion_{w}.jpg").exists())
