@@ -185,3 +185,38 @@ def test_ctrl_c_while_the_pool_starts_its_workers_stops_every_one(tmp_path):
         for pid in out["launched"]:
             with __import__("contextlib").suppress(OSError):
                 __import__("os").kill(pid, 9)
+
+
+ONE_TASK = textwrap.dedent('''
+    import json, os
+    from multiprocessing import forkserver
+    from gtforge.infra import scheduling
+
+    def alive(pid):
+        try:
+            os.kill(pid, 0)
+            return True
+        except ProcessLookupError:
+            return False
+
+    if __name__ == "__main__":
+        scheduling.prestart_pool("json", workers=2)
+        pid = forkserver._forkserver._forkserver_pid
+        before = alive(pid)
+        got = []
+        scheduling.run_tasks(alive, [(pid,)], got.append, workers=2)  # one task: run here
+        again = []
+        scheduling.run_tasks(alive, [(pid,), (pid,)], again.append, workers=2)  # a pool again: a new server
+        print(json.dumps([before, got, again, forkserver._forkserver._forkserver_pid not in (None, pid)]))
+''')
+
+
+def test_tasks_run_here_stop_the_fork_server_started_for_them(tmp_path):
+    """A build of one scene runs it in this process: the fork server started for a pool (before the options were
+    parsed) is killed first, instead of importing on the other core beside the scene; a later pool starts a new one."""
+    script = tmp_path / "one.py"
+    script.write_text(ONE_TASK)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    before, got, again, new_server = json.loads(r.stdout.strip().splitlines()[-1])
+    assert before is True and got == [False] and again == [False, False] and new_server

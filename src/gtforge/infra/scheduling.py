@@ -268,6 +268,7 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         return
     workers = max(1, min(workers or cpu_count(), len(arg_list)))
     if workers == 1:
+        _stop_unused_fork_server()  # (started for more tasks than there are: its imports would take a core from these)
         for args in arg_list:
             on_result(fn(*args))
         return
@@ -445,10 +446,11 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
 
 
 def _stop_unused_fork_server() -> None:
-    """At exit: kill this process's fork server if no pool forked from it (nothing to build, bad input found after
-    it started, one scene built here). Left alone, it finished its imports first (0.5 s of a core) and kept this
-    process's standard output and error open until then, so that a shell pipeline or a caller reading them waited
-    for it. A server that forked workers exits as multiprocessing stops it (it is idle by then)."""
+    """Kill this process's fork server if no pool forked from it: at exit (nothing to build, bad input found after it
+    started) and when ``run_tasks`` runs the tasks here (one scene). Left alone, it finished its imports first (0.5 s
+    of a core, beside this process's own scene) and kept this process's standard output and error open until then,
+    so that a shell pipeline or a caller reading them waited for it. A server that forked workers exits as
+    multiprocessing stops it (it is idle by then); a later pool starts a new one."""
     if _FORK_SERVER.get("n_threads") is None or _FORK_SERVER.get("used"):
         return
     from multiprocessing import forkserver
