@@ -4,9 +4,10 @@ Plan, then write. The plan pairs every depth frame with the nearest texture fram
 nearest stereo frame of the other recording (after the clock offset), keeps a pair only where every frame in it is
 *still* (no change beyond ``still_threshold`` to its neighbours in its own stream), and keeps one pair (the smallest
 skew) per still stretch: one capture per pose or scene. Kept pairs showing the session's board go to ``board/``,
-the rest to ``scenes/``. The session is written in a hidden folder beside ``SESSION`` and renamed into place when
-complete (``--add``: each capture folder renamed in); an interrupted import leaves that folder, and rerunning the same
-command reuses the capture folders already finished in it."""
+the rest to ``scenes/`` (``--add``: the session's ``board_dir`` and ``scenes_dir``, its file names). The session is
+written in a hidden folder beside ``SESSION`` and renamed into place when complete (``--add``: each capture folder
+renamed in); an interrupted import leaves that folder, and rerunning the same command reuses the capture folders
+already finished in it."""
 from __future__ import annotations
 
 import json
@@ -28,7 +29,7 @@ from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
 from gtforge.infra.signals import interrupt_deferred
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
-from gtforge.io.captures import SessionFile
+from gtforge.io.captures import FileNames, SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
 from gtforge.io.recordings import NO_FRAMES_HINT, RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
@@ -279,19 +280,54 @@ def _fetch(rgbd: RgbdRecording, stereo: StereoRecording | None, pairs: list[Pair
     return [{name: got[(id(s), k)] for name, (s, k) in r.items()} for r in reqs]
 
 
-def _write_capture(folder: Path, images: dict[str, np.ndarray]) -> None:
+def _write_capture(folder: Path, images: dict[str, np.ndarray], files: FileNames) -> None:
+    """One capture folder, its files named as the session names them (``session.yaml``'s ``files``)."""
     tmp = folder.parent / f".{folder.name}.partial"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+
+    def at(name: str) -> Path:
+        (tmp / name).parent.mkdir(parents=True, exist_ok=True)  # (a name may hold a subfolder)
+        return tmp / name
     tex = images["tex"]
-    write_image(tmp / "2DImage.png", tex) if tex.dtype == np.uint8 else write_png16(tmp / "2DImage.png", tex)
-    write_tiff_float(tmp / "DepthMap.tiff", images["depth"])
+    write_image(at(files.mech_texture), tex) if tex.dtype == np.uint8 else write_png16(at(files.mech_texture), tex)
+    write_tiff_float(at(files.mech_depth), images["depth"])
     if "ir" in images:
-        write_png16(tmp / "IR.png", images["ir"])
+        write_png16(at(files.depth_texture), images["ir"])
     if "left" in images:
-        write_image(tmp / "left.png", images["left"])
-        write_image(tmp / "right.png", images["right"])
+        write_image(at(files.zed_left), images["left"])
+        write_image(at(files.zed_right), images["right"])
     os.replace(tmp, folder)
+
+
+def capture_folders(session: Path, sf: SessionFile) -> dict[str, str]:
+    """kind ('board', 'scenes') -> the session's folder of those captures, relative to it (``board_dir``,
+    ``scenes_dir``): where ``--add`` puts them. A folder outside the session is refused (its captures would not be the
+    session's to record in ``import.json``)."""
+    out = {}
+    for kind, field in (("board", "board_dir"), ("scenes", "scenes_dir")):
+        d = Path(getattr(sf, field))
+        if d.is_absolute() or ".." in d.parts or not d.parts:
+            raise InputError(session / "session.yaml", field, "a folder inside the session", repr(getattr(sf, field)),
+                             "import into a new session")
+        out[kind] = d.as_posix()
+    return out
+
+
+def check_capture_files(session: Path, sf: SessionFile) -> None:
+    """``--add``: the session's capture file names (``files``) and depth encoding must be ones import writes as
+    they will be read: images as lossless PNG (16-bit ones too), depth as float32 mm TIFF. Anything else is a
+    one-line error before anything is written, not captures that read back wrong."""
+    for field in ("mech_texture", "depth_texture", "zed_left", "zed_right"):
+        name = getattr(sf.files, field)
+        if Path(name).suffix.lower() != ".png":
+            raise InputError(session / "session.yaml", f"files.{field}", "a .png name (import writes its images as "
+                             "lossless PNG)", repr(name), "import into a new session")
+    name = sf.files.mech_depth
+    if Path(name).suffix.lower() not in (".tif", ".tiff") or sf.depth_unit != "mm" or sf.depth_scale_mm is not None:
+        raise InputError(session / "session.yaml", "files.mech_depth", "float32 mm TIFF depth (a .tif/.tiff name, "
+                         "depth_unit mm, no depth_scale_mm: what import writes)", f"{name!r}, depth_unit "
+                         f"{sf.depth_unit}, depth_scale_mm {sf.depth_scale_mm}", "import into a new session")
 
 
 def _is_board(img: np.ndarray, spec) -> bool:
@@ -436,6 +472,11 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         raise InputError(session / "session.yaml", "--add", "a gtforge session to add the captures to",
                          "a folder without session.yaml", "import into a new folder (without --add)")
     add = add and exists  # --add into a new or empty folder: a new session, its rig files included
+    # --add: the captures go where the session keeps them, named as it names them
+    sf = SessionFile.read(session / "session.yaml") if add else SessionFile()
+    dirs = capture_folders(session, sf)
+    if add:
+        check_capture_files(session, sf)
     opened = open_recordings(paths, topics)
     try:
         rgbd, stereo = opened.rgbd, opened.stereo
@@ -448,8 +489,8 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                 with interrupt_deferred():
                     done = _finish_landing(landing.parent, session)
                 if [f.blake3 for f in done.sources] == [f.blake3 for f in sources]:  # this very import: it is done
-                    return _summary(session, done, ["an earlier run of this import was cut off while its captures "
-                                                    "landed: finished now"])
+                    return _summary(session, done, dirs, ["an earlier run of this import was cut off while its "
+                                                          "captures landed: finished now"])
                 finished.append(f"an earlier import --add ({', '.join(Path(f.path).name for f in done.sources)}) "
                                 "was cut off while its captures landed: finished first "
                                 f"({', '.join(p.capture for p in done.pairs)})")
@@ -464,8 +505,8 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                              f"none ({_dropped_text(dropped, params, nearest_skew_ms)})",
                              "raise --max-skew-ms or --still-threshold, or check the clock offset")
         board = params.board
-        if board is None and add and (session / "session.yaml").is_file():
-            board = SessionFile.read(session / "session.yaml").board  # the session's own target
+        if board is None and add:
+            board = sf.board  # the session's own target
         board = board or BoardModel()
         spec = board.spec()
         partial = _partial_folder(session)
@@ -480,8 +521,8 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         (partial / ".plan").write_text(stamp)
         if not add:
             _write_rig_files(partial, rgbd, stereo, params.board)
-        start = {"board": _next_index(session / "board") if add else 0,
-                 "scenes": _next_index(session / "scenes") if add else 0}
+        # numbered per folder (a session may keep both kinds in one)
+        start = {d: _next_index(session / d) if add else 0 for d in dirs.values()}
         names, records, kinds = [], [], {}
         batch: list[dict[str, np.ndarray]] = []
         for n, p in enumerate(kept):
@@ -491,10 +532,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                 progress(f"capture {n + 1}/{len(kept)}")
             images = batch[n % FETCH_BATCH]
             kind = "board" if params.classify and _is_board(images["tex"], spec) else "scenes"
-            name = f"{kind}/{start[kind]:03d}"
-            start[kind] += 1
+            name = f"{dirs[kind]}/{start[dirs[kind]]:03d}"
+            start[dirs[kind]] += 1
             if not (partial / name).is_dir():
-                _write_capture(partial / name, images)
+                _write_capture(partial / name, images, sf.files)
             names.append(name)
             kinds[name] = kind
             records.append(PairRecord(capture=name, t_depth_ns=rgbd.depth.frames[p.depth].t_ns,
@@ -534,9 +575,10 @@ def _partial_folder(session: Path) -> Path:
     return session.parent / f".{session.name}.import-partial"
 
 
-def _summary(session: Path, run: ImportRun, warnings: list[str]) -> ImportSummary:
-    kinds = Counter(p.capture.split("/")[0] for p in run.pairs)
-    return ImportSummary(session, [p.capture for p in run.pairs], kinds["board"], kinds["scenes"], run.dropped,
+def _summary(session: Path, run: ImportRun, dirs: dict[str, str], warnings: list[str]) -> ImportSummary:
+    """The summary of a run already landed; ``dirs``: ``capture_folders``'s, which tell its boards from its scenes."""
+    boards = sum(Path(p.capture).parent.as_posix() == dirs["board"] for p in run.pairs)
+    return ImportSummary(session, [p.capture for p in run.pairs], boards, len(run.pairs) - boards, run.dropped,
                          run.clock_offset_ms, run.clock_offset_source, warnings)
 
 
@@ -581,14 +623,16 @@ def _finish_landing(partial: Path, session: Path) -> ImportRun:
     import does for a landing a crash (kill -9, power) cut off: never a capture that import.json does not list, nor
     one numbered again."""
     run = ImportRun.model_validate_json((partial / LANDING).read_bytes())
-    for kind in ("board", "scenes"):
-        for cap in sorted((partial / kind).glob("*")) if (partial / kind).is_dir() else []:
-            if (session / kind / cap.name).exists():
-                raise InputError(session / kind / cap.name, "capture", "no capture of this name (an import cut off "
-                                 f"while its captures landed holds one in {partial})", "one already there",
-                                 f"the session changed since; move {partial} away and import again")
-            (session / kind).mkdir(parents=True, exist_ok=True)
-            os.replace(cap, session / kind / cap.name)
+    # by the run's own capture names (relative to the session: its board_dir/scenes_dir), those not yet moved
+    for name in sorted(p.capture for p in run.pairs):
+        if not (partial / name).is_dir():
+            continue
+        if (session / name).exists():
+            raise InputError(session / name, "capture", "no capture of this name (an import cut off while its "
+                             f"captures landed holds one in {partial})", "one already there",
+                             f"the session changed since; move {partial} away and import again")
+        (session / name).parent.mkdir(parents=True, exist_ok=True)
+        os.replace(partial / name, session / name)
     record = session / "import.json"
     previous = ImportRecord.read(record).runs if record.is_file() else []
     if run not in previous:

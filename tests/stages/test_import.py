@@ -580,6 +580,75 @@ def test_a_cut_off_landing_is_finished_and_said_when_another_import_adds(hand, r
     assert not (tmp_path / ".s.import-partial").exists()
 
 
+@pytest.fixture(scope="module")
+def more(hand, tmp_path_factory):
+    """Other recordings of the same rig: board/001 and scenes/000 again, on other clocks (for --add)."""
+    return write_ros2_recordings(hand, tmp_path_factory.mktemp("more"), captures=["board/001", "scenes/000"], seed=1)
+
+
+def test_add_writes_where_and_as_the_session_names_its_captures(hand, recs, more, tmp_path, monkeypatch):
+    """--add into a session whose session.yaml names its own folders and files (board_dir, scenes_dir, files): the
+    captures went into new board/ and scenes/ folders as 2DImage.png, DepthMap.tiff, left.png, right.png, which the
+    session never reads (a run-through). Now they land in its folders under its names, import.json names them so, and
+    a landing cut off and finished by the next import counts them by those folders."""
+    import gtforge.importer as importer
+    from gtforge.io.captures import FileNames, SessionFile, open_session
+
+    out = tmp_path / "s"
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    names = {"2DImage.png": "tex.png", "DepthMap.tiff": "depth/d.tiff", "left.png": "L.png", "right.png": "R.png"}
+    for kind, folder in (("board", "boards"), ("scenes", "fruit")):
+        os.rename(out / kind, out / folder)
+        for cap in (out / folder).iterdir():
+            (cap / "depth").mkdir()
+            for a, b in names.items():
+                os.rename(cap / a, cap / b)
+    sf = SessionFile.read(out / "session.yaml")
+    sf.model_copy(update={"board_dir": "boards", "scenes_dir": "fruit", "files": FileNames(
+        mech_texture="tex.png", mech_depth="depth/d.tiff", zed_left="L.png", zed_right="R.png")}).write(
+        out / "session.yaml")
+    real_replace, moved = os.replace, []
+
+    def replace_then_crash(src, dst):
+        if Path(dst).parent.parent == out:  # a capture landing in the session
+            if moved:
+                raise _Crash
+            moved.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(importer.os, "replace", replace_then_crash)
+    args = ([more.rgbd_bag, more.stereo_bag], out, ImportParams(clock_offset_ms=more.clock_offset_ms))
+    with pytest.raises(_Crash):
+        import_recordings(*args, add=True)
+    monkeypatch.setattr(importer.os, "replace", real_replace)
+    s = import_recordings(*args, add=True)  # finishes the landing
+    assert (s.captures, s.boards, s.scenes) == (["boards/002", "fruit/002"], 1, 1)
+    assert sorted(x.name for x in out.iterdir() if x.is_dir()) == ["boards", "fruit"]
+    runs = ImportRecord.read(out / "import.json").runs
+    assert [r.capture for r in runs[1].pairs] == ["boards/002", "fruit/002"]
+    for mine, theirs in (("boards/002", "board/001"), ("fruit/002", "scenes/000")):
+        assert sorted(str(x.relative_to(out / mine)) for x in (out / mine).rglob("*") if x.is_file()) == \
+            sorted(names.values())
+        for a, b in names.items():
+            if a != "DepthMap.tiff":
+                assert (out / mine / b).read_bytes() == (hand / theirs / a).read_bytes(), f"{mine}/{b}"
+    session = open_session(out)
+    assert [d.name for d in session.capture_dirs("board")] == ["000", "001", "002"]
+    a, b = session.load_capture(out / "fruit" / "002").depth_mm, read_depth(hand / "scenes" / "000" / "DepthMap.tiff")
+    assert np.array_equal(np.isnan(a), np.isnan(b)) and np.nanmax(np.abs(a - b) / b) <= 1.2e-7
+    # a depth encoding import does not write (16-bit PNG): refused before anything is written
+    sf = SessionFile.read(out / "session.yaml")
+    sf.model_copy(update={"files": sf.files.model_copy(update={"mech_depth": "d.png"}), "depth_scale_mm": 0.1}).write(
+        out / "session.yaml")
+    before = sorted(x.relative_to(out) for x in out.rglob("*"))
+    other = write_ros2_recordings(hand, tmp_path / "other", captures=["scenes/001"], seed=2)
+    with pytest.raises(InputError) as err:
+        import_recordings([other.rgbd_bag, other.stereo_bag], out, ImportParams(clock_offset_ms=other.clock_offset_ms),
+                          add=True)
+    assert str(err.value).startswith(f"{out / 'session.yaml'} [files.mech_depth]: expected float32 mm TIFF depth")
+    assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
+
+
 def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     recs = write_ros2_recordings(hand, tmp_path / "rec", zed_export=True, motion_frames=3, seed=2)
     assert (recs.stereo_bag / "left000000.png").is_file()

@@ -34,7 +34,7 @@ class SourceFile(GTModel):
 
 
 class PairRecord(GTModel):
-    capture: str  # e.g. board/000
+    capture: str  # relative to the session (its board_dir, scenes_dir), e.g. board/000
     t_depth_ns: int
     t_texture_ns: int
     t_left_ns: int | None = None  # the stereo camera's own clock
