@@ -23,7 +23,7 @@ import numpy as np
 
 from gtforge.core.camera import CameraFile, StereoCalibrationFile
 from gtforge.core.targets.detection import detect_target
-from gtforge.core.targets.models import BoardModel, check_board_model
+from gtforge.core.targets.models import BoardModel, board_model_of, check_board_model
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
@@ -314,6 +314,21 @@ def capture_folders(session: Path, sf: SessionFile) -> dict[str, str]:
     return out
 
 
+def _board_text(board: BoardModel) -> str:
+    return board_model_of(board.spec()).describe()  # (defaults filled in: a ChArUco's marker size, dictionary)
+
+
+def check_same_board(session: Path, sf: SessionFile, board: BoardModel | None) -> None:
+    """``--add``: a board declared (``--board``, ``--cols`` ...) must be the session's (``session.yaml``'s ``board``,
+    absent: the default 12x9 checkerboard); another one finds no board in the captures and sorts every one of them into
+    the scenes. A one-line error before anything is written."""
+    theirs = sf.board or BoardModel()
+    if board is not None and board.spec() != theirs.spec():
+        raise InputError(session / "session.yaml", "board", f"the session's board ({_board_text(theirs)})",
+                         f"{_board_text(board)} (the board options)", "drop the board options to use the session's "
+                         "board, or import into a new session")
+
+
 def check_capture_files(session: Path, sf: SessionFile) -> None:
     """``--add``: the session's capture file names (``files``) and depth encoding must be ones import writes as
     they will be read: images as lossless PNG (16-bit ones too), depth as float32 mm TIFF. Anything else is a
@@ -477,6 +492,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     dirs = capture_folders(session, sf)
     if add:
         check_capture_files(session, sf)
+        check_same_board(session, sf, params.board)
     opened = open_recordings(paths, topics)
     try:
         rgbd, stereo = opened.rgbd, opened.stereo
@@ -506,7 +522,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                              "raise --max-skew-ms or --still-threshold, or check the clock offset")
         board = params.board
         if board is None and add:
-            board = sf.board  # the session's own target
+            board = sf.board  # the session's own target (check_same_board: the one declared, if any)
         board = board or BoardModel()
         spec = board.spec()
         partial = _partial_folder(session)
@@ -552,7 +568,12 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         unchecked = [f"{', '.join(lone)} hold{'s' if len(lone) == 1 else ''} one frame: its stillness cannot be "
                      "checked (a lone frame is kept as still); make sure nothing moved while it was taken"
                      ] if lone else []
-        warnings = finished + unchecked + rgbd.warnings + (stereo.warnings if stereo is not None else [
+        boards = sum(k == "board" for k in kinds.values())
+        # every capture a scene: the board declared is likely not the one the recording shows (classified silently)
+        no_board = [f"no capture showed the board ({_board_text(board)}): all {len(names)} went to {dirs['scenes']}/; "
+                    "if the recording has board captures, check --cols/--rows/--square-mm (and --board)"
+                    ] if params.classify and not boards and names else []
+        warnings = finished + no_board + unchecked + rgbd.warnings + (stereo.warnings if stereo is not None else [
             "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
             "need; import the depth and the stereo recordings together for a complete session"])
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),
@@ -566,8 +587,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             _land(partial, session, run, add)
     finally:
         opened.close()
-    return ImportSummary(session, names, sum(k == "board" for k in kinds.values()),
-                         sum(k == "scenes" for k in kinds.values()), dropped, offset / 1e6, source, warnings)
+    return ImportSummary(session, names, boards, len(names) - boards, dropped, offset / 1e6, source, warnings)
 
 
 def _partial_folder(session: Path) -> Path:

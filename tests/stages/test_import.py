@@ -649,6 +649,37 @@ def test_add_writes_where_and_as_the_session_names_its_captures(hand, recs, more
     assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
 
 
+def test_add_refuses_another_board_and_a_board_found_nowhere_is_warned_of(hand, recs, more, tmp_path):
+    """--add with board options other than the session's board sorted every board capture into the scenes, silently
+    (a run-through); now refused, naming both boards. An import whose captures show no board at all warns, naming the
+    board it looked for."""
+    from gtforge.core.targets.models import BoardModel
+
+    out = tmp_path / "s"
+    import_recordings([recs.rgbd_bag, recs.stereo_bag], out, ImportParams(clock_offset_ms=recs.clock_offset_ms,
+                                                                           max_captures=1))
+    before = {x.relative_to(out): x.read_bytes() for x in out.rglob("*") if x.is_file()}
+    r = gtforge("import", more.rgbd_bag, more.stereo_bag, "-o", out, "--add", "--cols", "10",
+                "--clock-offset-ms", str(more.clock_offset_ms))
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert f"{out / 'session.yaml'} [board]: expected the session's board (checkerboard 12 x 9 inner corners, 20 mm " \
+        "squares), got checkerboard 10 x 9 inner corners, 20 mm squares (the board options)" in r.stderr, r.stderr
+    assert "drop the board options to use the session's board, or import into a new session" in r.stderr
+    assert {x.relative_to(out): x.read_bytes() for x in out.rglob("*") if x.is_file()} == before
+    assert not list(tmp_path.glob(".*import-partial"))
+    # the session's own board, declared: taken as ever
+    s = import_recordings([more.rgbd_bag, more.stereo_bag], out, ImportParams(
+        clock_offset_ms=more.clock_offset_ms, board=BoardModel(cols=12, rows=9)), add=True)
+    assert (s.captures, s.boards, s.scenes) == (["board/001", "scenes/000"], 1, 1)
+    assert not [w for w in s.warnings if "no capture showed the board" in w]
+    # a new session with a board the recording never shows: every capture a scene, and a warning says why
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "t", ImportParams(
+        clock_offset_ms=recs.clock_offset_ms, board=BoardModel(cols=14, rows=11)))
+    assert (s.boards, s.scenes) == (0, 4)
+    assert "no capture showed the board (checkerboard 14 x 11 inner corners, 20 mm squares): all 4 went to scenes/; " \
+        "if the recording has board captures, check --cols/--rows/--square-mm (and --board)" in s.warnings
+
+
 def test_zed_sdk_export_folder_with_the_depth_recording(hand, tmp_path):
     recs = write_ros2_recordings(hand, tmp_path / "rec", zed_export=True, motion_frames=3, seed=2)
     assert (recs.stereo_bag / "left000000.png").is_file()
