@@ -21,6 +21,7 @@ from gtforge.io.recordings import (
     camera_from_info,
     decode_compressed,
     decode_image,
+    depth_mm,
     read_kinect_mkv,
     read_realsense,
     stereo_from_infos,
@@ -166,6 +167,20 @@ def test_image_encodings():
         decode_image(m, "f", "t")
     with pytest.raises(InputError, match="yuv422"):
         decode_image(msg(rgb, "yuv422"), "f", "t")
+
+
+def test_an_image_that_is_no_depth_map_is_refused_as_depth():
+    """A mono8 or colour image named as depth had its grey levels taken for millimetres (a run-through); now refused,
+    naming the topic and what came. 16-bit unsigned and float depth are read as ever."""
+    grey = np.full((4, 5), 200, np.uint8)
+    for a, what in ((grey, "uint8, 1 channel"), (np.dstack([grey] * 3), "uint8, 3 channels"),
+                    (grey.astype(np.int16), "int16, 1 channel")):
+        with pytest.raises(InputError) as err:
+            depth_mm(a, "mm", 1.0, "rec.bag", "/cam/depth")
+        assert str(err.value) == ("rec.bag [/cam/depth]: expected a depth image (one channel, 16-bit unsigned or "
+                                  f"float), got {what} (hint: is this the depth topic? name it with --depth-topic)")
+    assert np.array_equal(depth_mm(grey.astype(np.uint16), "mm", 1.0, "f", "t"), np.full((4, 5), 200, np.float32))
+    assert np.allclose(depth_mm(np.full((4, 5), 0.5, np.float32), "m", 1.0, "f", "t"), 500.0)
 
 
 def test_compressed_and_compressed_depth():

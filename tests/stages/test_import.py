@@ -299,6 +299,9 @@ BAD = {
     "half a stereo pair": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--right-topic", "/zed/none"]),
                            "[right topic]: expected the right image beside"),
     "no depth topic": (lambda recs, tmp: ([recs.stereo_bag], []), "depth"),
+    "depth topic the colour topic": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], [
+        "--depth-topic", "/camera/camera/color/image_raw"]), "[depth topic]: expected a depth image topic other than "
+        "the colour image's, got '/camera/camera/color/image_raw', the colour topic too"),
     "32FC1 declared mm": (_metres_as_mm, "metres"),
     "intrinsics of another resolution": (_wrong_resolution, "another resolution"),
     "clocks never overlapping": (lambda recs, tmp: ([recs.rgbd_bag, recs.stereo_bag], ["--clock-offset-ms", "0"]),

@@ -171,7 +171,14 @@ def decode_compressed(msg, path, topic: str) -> np.ndarray:
 
 
 def depth_mm(a: np.ndarray, unit: str, scale_mm: float, path, topic: str) -> np.ndarray:
-    """Raw depth -> float32 mm, NaN invalid; metres refused where 'mm' was declared (and the values say metres)."""
+    """Raw depth -> float32 mm, NaN invalid; metres refused where 'mm' was declared (and the values say metres). An
+    image that is no depth map (not one channel of 16-bit unsigned or float: a mono8 or colour topic named as depth)
+    is refused: its grey levels would be taken for millimetres."""
+    if a.ndim != 2 or not (a.dtype == np.uint16 or np.issubdtype(a.dtype, np.floating)):
+        channels = 1 if a.ndim == 2 else a.shape[-1]
+        raise _bad(path, topic, "a depth image (one channel, 16-bit unsigned or float)",
+                   f"{a.dtype}, {channels} channel{'s' if channels != 1 else ''}",
+                   "is this the depth topic? name it with --depth-topic")
     d = a.astype(np.float32) * np.float32(scale_mm if unit == "mm" else 1000.0)
     d[~(d > 0) | ~np.isfinite(d)] = np.nan
     valid = d[np.isfinite(d)]

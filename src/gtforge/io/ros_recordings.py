@@ -112,6 +112,10 @@ def _ros_rgbd(bag: Bag, topics: Topics) -> RgbdRecording | None:
     if color_t is None:
         raise InputError(bag.path, "color topic", "a colour image topic beside the depth", "none",
                          f"choose one with --color-topic (image topics: {', '.join(_images(bag))})")
+    if color_t == depth_t:  # one image taken as both: its colour read as depth
+        raise InputError(bag.path, "depth topic", "a depth image topic other than the colour image's",
+                         f"'{depth_t}', the colour topic too", "name the depth topic with --depth-topic, the colour "
+                         f"one with --color-topic (image topics: {', '.join(_images(bag))})")
     cams = {}
     for t in (depth_t, color_t):
         info = bag.info_for(t)
