@@ -156,10 +156,10 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
             raise InputError(stereo.path, stereo.left.name, "frames", "none", NO_FRAMES_HINT)
         left_still = scores[1] <= params.still_threshold
         left_seg = _segments(left_still)
-        if stereo.path == rgbd.path:
-            source = "one clock"
-        elif params.clock_offset_ms is not None:
+        if params.clock_offset_ms is not None:
             offset, source = params.clock_offset_ms * 1e6, "given"
+        elif stereo.path == rgbd.path and not params.estimate_clock_offset:
+            source = "one clock"  # one bag: one recorder's clock, unless the user says otherwise
         else:
             overlap = min(tt[-1], tl[-1]) - max(tt[0], tl[0])
             if overlap > 0 and not params.estimate_clock_offset:

@@ -329,6 +329,31 @@ def test_a_stray_camera_topic_warns_and_the_depth_imports(hand, recs, tmp_path):
     assert "no stereo recording" in r.stderr and not list((tmp_path / "s").glob("*/*/left.png"))
 
 
+def test_one_bag_holding_both_cameras_takes_the_clock_offset_given_or_estimated(hand, recs, tmp_path):
+    """One bag with both cameras' topics, stamped by two clocks (a bag merged from two machines' recordings): the
+    clock offset given was ignored for one bag ('one clock'), and the error said to give it (a run-through). Now the
+    given offset and --clock-offset-ms auto apply; without either it stays one clock."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    both = tmp_path / "both"
+    with AnyReader([Path(recs.rgbd_bag), Path(recs.stereo_bag)]) as reader, Writer(both, version=8) as w:
+        out = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in reader.connections}
+        for conn, t_ns, raw in reader.messages():
+            w.write(out[conn.topic], t_ns, raw)
+    s = import_recordings([both], tmp_path / "given", ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    assert (s.clock_offset_source, s.clock_offset_ms) == ("given", recs.clock_offset_ms)
+    _same_session(hand, tmp_path / "given", s.captures)
+    s = import_recordings([both], tmp_path / "auto", ImportParams(estimate_clock_offset=True))
+    assert s.clock_offset_source == "motion events" and abs(s.clock_offset_ms - recs.clock_offset_ms) < 1000 / 15 / 2
+    _same_session(hand, tmp_path / "auto", s.captures)
+    with pytest.raises(InputError, match="offset 0.0 ms"):  # one clock: these two never overlap
+        import_recordings([both], tmp_path / "one")
+    assert not (tmp_path / "one").exists()
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_bad_input_is_a_one_line_error_and_writes_nothing(hand, recs, tmp_path, case):
     recs.hand = hand
