@@ -31,6 +31,7 @@ from gtforge.infra.signals import interrupt_deferred
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import FileNames, SessionFile
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
+from gtforge.io.outputs import free_path, refuse_inside_dataset_folders
 from gtforge.io.recordings import NO_FRAMES_HINT, RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
 from gtforge.io.vendors import load_structured_light_cameras
@@ -471,6 +472,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     paths = [Path(p) for p in paths]
     session = Path(session)
     params, topics = params or ImportParams(), topics or Topics()
+    refuse_output_inside(session)
     if params.board is not None:
         check_board_model(params.board)  # as calibrate will: refused now, not written into session.yaml
     for p in paths:
@@ -588,6 +590,22 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     finally:
         opened.close()
     return ImportSummary(session, names, boards, len(names) - boards, dropped, offset / 1e6, source, warnings)
+
+
+def refuse_output_inside(session: Path) -> None:
+    """A session is never written inside another session (its captures would sit among that one's files, or be taken
+    for its captures), inside a rosbag2 recording's folder (beside its metadata.yaml: a recording is never written
+    into), nor inside the folders build-dataset writes in a dataset; under any spelling of the path (relative, ``..``,
+    symbolic links). A one-line error before any work, naming a free place beside."""
+    refuse_inside_dataset_folders(session, "--output")
+    for p in (Path(os.path.abspath(session)), Path(os.path.realpath(session))):
+        for a in p.parents:
+            what = "another capture session" if (a / "session.yaml").is_file() else \
+                "a rosbag2 recording's folder" if (a / "metadata.yaml").is_file() else None
+            if what is not None:
+                raise InputError(session, "--output", "a session folder outside other sessions and recordings",
+                                 f"a folder inside {what} ({a})",
+                                 f"write it beside, e.g. {free_path(a.parent, p.name)}")
 
 
 def _partial_folder(session: Path) -> Path:

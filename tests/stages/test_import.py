@@ -354,6 +354,45 @@ def test_one_bag_holding_both_cameras_takes_the_clock_offset_given_or_estimated(
     assert not (tmp_path / "one").exists()
 
 
+def test_a_session_inside_another_session_a_recording_or_a_dataset_is_refused_first(recs, tmp_path):
+    """-o inside another session, inside a rosbag2 recording's folder (one not being imported) or inside a dataset's
+    scenes was written there (a run-through). Now refused under any spelling (.., a symbolic link), before the
+    recordings are even opened (a missing one is not what the error names), naming a free place beside."""
+    from gtforge.io.captures import SessionFile
+
+    (tmp_path / "sess").mkdir()
+    SessionFile().write(tmp_path / "sess" / "session.yaml")
+    (tmp_path / "link").symlink_to(tmp_path / "sess")
+    (tmp_path / "sess" / "inner").mkdir()
+    (tmp_path / "alias").symlink_to(tmp_path / "sess" / "inner")  # only its real path is inside the session
+    (tmp_path / "ds" / "scenes").mkdir(parents=True)
+    (tmp_path / "ds" / "manifest.json").write_text("{}")
+    (tmp_path / "sub").mkdir()  # taken: the hint names the next free name
+    nope = [tmp_path / "nope.mkv"]
+    for out, inside, hint in (
+            (tmp_path / "x" / ".." / "sess" / "sub", f"another capture session ({tmp_path / 'sess'})",
+             f"write it beside, e.g. {tmp_path / 'sub-2'}"),
+            (tmp_path / "link" / "sub", f"another capture session ({tmp_path / 'link'})",
+             f"write it beside, e.g. {tmp_path / 'sub-2'}"),
+            (tmp_path / "alias" / "s", f"another capture session ({tmp_path / 'sess'})",
+             f"write it beside, e.g. {tmp_path / 's'}"),
+            (Path(recs.stereo_bag) / "s", f"a rosbag2 recording's folder ({Path(recs.stereo_bag)})",
+             f"write it beside, e.g. {Path(recs.stereo_bag).parent / 's'}")):
+        with pytest.raises(InputError) as err:
+            import_recordings(nope, out)
+        assert str(err.value) == (f"{out} [--output]: expected a session folder outside other sessions and recordings, "
+                                  f"got a folder inside {inside} (hint: {hint})")
+        assert not Path(os.path.abspath(out)).exists()
+    r = gtforge("import", recs.rgbd_bag, recs.stereo_bag, "-o", tmp_path / "ds" / "scenes" / "s")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert "expected a path outside the folders build-dataset writes, got a path inside the dataset's scenes/" \
+        in r.stderr
+    assert [x.name for x in (tmp_path / "ds" / "scenes").iterdir()] == []
+    assert sorted(x.name for x in (tmp_path / "sess").iterdir()) == ["inner", "session.yaml"]
+    assert not list((tmp_path / "sess" / "inner").iterdir())
+    assert sorted(os.listdir(recs.stereo_bag)) == ["metadata.yaml", "zed.mcap"]
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_bad_input_is_a_one_line_error_and_writes_nothing(hand, recs, tmp_path, case):
     recs.hand = hand
