@@ -480,8 +480,16 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             raise InputError(session, "output", "a session folder outside the recordings", "inside a recording",
                              "gtforge never writes into a recording's folder")
     if session.exists() and not session.is_dir():
-        raise InputError(session, "output", "a folder", "a file")
+        raise InputError(session, "output", "a folder", "a file", "-o names the session folder to write; give a new "
+                         f"one, e.g. {free_path(Path(os.path.abspath(session)).parent, session.stem or 'session')}")
+    # the folder itself for the filesystem work (``-o .``, a symbolic link, one to another file system): the partial
+    # folder goes beside it, on its file system, and the session is renamed into its place
+    real = Path(os.path.realpath(session))
     exists = session.is_dir() and any(session.iterdir())
+    if os.path.ismount(real):  # a rename cannot replace it, nor move captures into it from beside it
+        raise InputError(session, "output", "a session folder that is not a mount point (the session is written "
+                         "beside it, then renamed into place)", f"the mount point {real}",
+                         f"give a new folder inside it, e.g. {free_path(real, 'session')}")
     if exists and not add:
         raise InputError(session, "output", "a new or empty session folder", "a non-empty folder",
                          "pass --add to add these recordings' captures to it")
@@ -502,10 +510,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         finished: list[str] = []  # an earlier import's landing finished first, as a warning says
         if add and exists:
             record = session / "import.json"
-            landing = _partial_folder(session) / LANDING
+            landing = _partial_folder(real) / LANDING
             if landing.is_file():  # an --add whose captures were landing when it was cut off (a crash): finish it
                 with interrupt_deferred():
-                    done = _finish_landing(landing.parent, session)
+                    done = _finish_landing(landing.parent, real)
                 if [f.blake3 for f in done.sources] == [f.blake3 for f in sources]:  # this very import: it is done
                     return _summary(session, done, dirs, ["an earlier run of this import was cut off while its "
                                                           "captures landed: finished now"])
@@ -527,7 +535,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             board = sf.board  # the session's own target (check_same_board: the one declared, if any)
         board = board or BoardModel()
         spec = board.spec()
-        partial = _partial_folder(session)
+        partial = _partial_folder(real)
         # the recordings' bytes, not only their names: a partial folder left by an import of other bytes at the same
         # paths is started again, never resumed
         stamp = json.dumps({"sources": [(f.path, f.blake3) for f in sources], "params": params.model_dump(mode="json"),
@@ -586,7 +594,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                         clock_offset_source=source, pairs=records,
                         dropped=dropped)
         with interrupt_deferred():  # the captures and the record that lists them land together
-            _land(partial, session, run, add)
+            _land(partial, real, run, add)
     finally:
         opened.close()
     return ImportSummary(session, names, boards, len(names) - boards, dropped, offset / 1e6, source, warnings)

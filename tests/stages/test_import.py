@@ -393,6 +393,68 @@ def test_a_session_inside_another_session_a_recording_or_a_dataset_is_refused_fi
     assert sorted(os.listdir(recs.stereo_bag)) == ["metadata.yaml", "zed.mcap"]
 
 
+def test_output_dot_a_link_a_mount_point_and_a_file(recs, tmp_path, monkeypatch):
+    """-o . wrote its partial folder as ./..import-partial inside the target and stopped with an OSError traceback;
+    -o a symbolic link to an empty folder stopped with NotADirectoryError; an empty mount point with EBUSY (a run-
+    through). Now the partial folder goes beside the real folder and the session lands in it; a mount point is
+    refused in one line before any work, a file with a hint."""
+    import gtforge.importer as importer
+
+    p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=1)
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], ".", p)
+    assert s.captures == ["board/000"]
+    assert sorted(x.name for x in here.iterdir()) == ["board", "import.json", "mech_intrinsics.yaml", "session.yaml",
+                                                      "zed_calibration.yaml"]
+    assert not list(tmp_path.glob(".*import-partial"))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "empty")
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], tmp_path / "link", p)
+    assert s.captures == ["board/000"] and (tmp_path / "link").is_symlink()
+    assert (tmp_path / "empty" / "board" / "000" / "left.png").read_bytes() == \
+        (here / "board" / "000" / "left.png").read_bytes()
+    assert not list(tmp_path.glob(".*import-partial"))
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    real_ismount = os.path.ismount
+    monkeypatch.setattr(importer.os.path, "ismount", lambda q: Path(q) == mount or real_ismount(q))
+    with pytest.raises(InputError) as err:
+        import_recordings([tmp_path / "nope.mkv"], mount, p)
+    assert str(err.value) == (f"{mount} [output]: expected a session folder that is not a mount point (the session "
+                              f"is written beside it, then renamed into place), got the mount point {mount} "
+                              f"(hint: give a new folder inside it, e.g. {mount / 'session'})")
+    assert not list(mount.iterdir()) and not list(tmp_path.glob(".*import-partial"))
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(InputError) as err:
+        import_recordings([recs.rgbd_bag], tmp_path / "notes.txt", p)
+    assert str(err.value) == (f"{tmp_path / 'notes.txt'} [output]: expected a folder, got a file (hint: -o names the "
+                              f"session folder to write; give a new one, e.g. {tmp_path / 'notes'})")
+
+
+def test_add_through_a_link_to_another_file_system(hand, recs, more, tmp_path):
+    """--add through a symbolic link to a session on another file system wrote its partial folder beside the link and
+    stopped at the first capture's rename (EXDEV, a traceback; a run-through). Now it works beside the real session."""
+    shm = Path("/dev/shm")
+    if not shm.is_dir() or os.stat(shm).st_dev == os.stat(tmp_path).st_dev:
+        pytest.skip("needs /dev/shm on another file system than the tests' temporary folder")
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=shm) as far:
+        import_recordings([recs.rgbd_bag, recs.stereo_bag], Path(far) / "s",
+                          ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=1))
+        (tmp_path / "s").symlink_to(Path(far) / "s")
+        s = import_recordings([more.rgbd_bag, more.stereo_bag], tmp_path / "s",
+                              ImportParams(clock_offset_ms=more.clock_offset_ms), add=True)
+        assert s.captures == ["board/001", "scenes/000"]
+        assert (Path(far) / "s" / "scenes" / "000" / "left.png").read_bytes() == \
+            (hand / "scenes" / "000" / "left.png").read_bytes()
+        assert len(ImportRecord.read(Path(far) / "s" / "import.json").runs) == 2
+        assert not list(tmp_path.glob(".*import-partial")) and not list(Path(far).glob(".*import-partial"))
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_bad_input_is_a_one_line_error_and_writes_nothing(hand, recs, tmp_path, case):
     recs.hand = hand
