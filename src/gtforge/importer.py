@@ -275,9 +275,24 @@ def _requests(rgbd: RgbdRecording, stereo: StereoRecording | None, p: Pair) -> d
 
 
 def _fetch(rgbd: RgbdRecording, stereo: StereoRecording | None, pairs: list[Pair]) -> list[dict[str, np.ndarray]]:
-    """The images of these pairs (one pass per recording)."""
+    """The images of these pairs (one pass per recording), each of its camera's size: only the first frame of each
+    stream was checked when the recordings were opened, and a resolution changed mid-recording would write captures
+    whose images do not fit the session's cameras. A one-line error before any of them is written."""
     reqs = [_requests(rgbd, stereo, p) for p in pairs]
     got = {(id(s), k): a for s, k, a in iter_frames({(id(s), k): (s, k) for r in reqs for s, k in r.values()}.values())}
+    depth_cam = rgbd.depth_camera or rgbd.texture_camera  # (an IR image is the depth camera's)
+    cams = {"tex": (rgbd, rgbd.texture_camera), "depth": (rgbd, depth_cam), "ir": (rgbd, depth_cam)}
+    if stereo is not None:
+        cams.update(left=(stereo, stereo.stereo.left), right=(stereo, stereo.stereo.right))
+    for r in reqs:
+        for name, (s, k) in r.items():
+            rec, cam = cams[name]
+            a = got[(id(s), k)]
+            if a.shape[:2] != (cam.height_px, cam.width_px):
+                raise InputError(rec.path, s.name, f"{cam.width_px}x{cam.height_px} frames (its camera_info and first "
+                                 f"frame)", f"a {a.shape[1]}x{a.shape[0]} frame at {s.frames[k].t_ns / 1e9:.3f} s",
+                                 "the resolution changed during the recording: import the part recorded at one "
+                                 "resolution (a cut of the recording)")
     return [{name: got[(id(s), k)] for name, (s, k) in r.items()} for r in reqs]
 
 

@@ -455,6 +455,42 @@ def test_add_through_a_link_to_another_file_system(hand, recs, more, tmp_path):
         assert not list(tmp_path.glob(".*import-partial")) and not list(Path(far).glob(".*import-partial"))
 
 
+def test_a_resolution_change_mid_recording_is_refused_before_the_session_lands(hand, recs, tmp_path):
+    """Only each stream's first frame was checked against its camera_info: depth frames that changed resolution
+    mid-recording were written into captures the session's cameras do not fit (a run-through). Now each fetched frame
+    is checked, a one-line error naming the recording, stream, frame time and sizes, and the session never lands."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    topic = "/camera/camera/aligned_depth_to_color/image_raw"
+    changed = tmp_path / "changed"
+    with AnyReader([Path(recs.rgbd_bag)]) as reader, Writer(changed, version=8) as w:
+        out = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in reader.connections}
+        stamps = sorted(t for c, t, _ in reader.messages() if c.topic == topic)
+        t_change = stamps[len(stamps) // 2]
+        for conn, t_ns, raw in reader.messages():
+            if conn.topic == topic and t_ns >= t_change:  # from here on at half the resolution (32FC1)
+                msg = ts.deserialize_cdr(raw, conn.msgtype)
+                d = msg.data.view(np.float32).reshape(msg.height, msg.width)[::2, ::2].copy()
+                msg.height, msg.width, msg.step, msg.data = d.shape[0], d.shape[1], 4 * d.shape[1], d.view(np.uint8)
+                msg.data = msg.data.ravel()
+                raw = ts.serialize_cdr(msg, conn.msgtype)
+            w.write(out[conn.topic], t_ns, raw)
+    session = tmp_path / "s"
+    with pytest.raises(InputError) as err:
+        import_recordings([changed, recs.stereo_bag], session, ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    w, h = read_depth(hand / "board" / "000" / "DepthMap.tiff").shape[::-1]
+    m = re.fullmatch(rf"{changed} \[{topic}\]: expected {w}x{h} frames \(its camera_info and first frame\), got a "
+                     rf"{(w + 1) // 2}x{(h + 1) // 2} frame at (\d+\.\d{{3}}) s \(hint: the resolution changed during "
+                     r"the recording: import the part recorded at one resolution \(a cut of the recording\)\)",
+                     str(err.value))
+    assert m, err.value
+    assert float(m.group(1)) >= t_change / 1e9 - 5e-4
+    assert not session.exists()
+
+
 @pytest.mark.parametrize("case", list(BAD))
 def test_bad_input_is_a_one_line_error_and_writes_nothing(hand, recs, tmp_path, case):
     recs.hand = hand
