@@ -29,7 +29,7 @@ from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file
 from gtforge.infra.signals import interrupt_deferred
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
-from gtforge.io.captures import FileNames, SessionFile
+from gtforge.io.captures import IMPORT_LANDING, FileNames, SessionFile, import_partial_folder
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
 from gtforge.io.outputs import free_path, refuse_inside_dataset_folders
 from gtforge.io.recordings import NO_FRAMES_HINT, RgbdRecording, StereoRecording, Stream, iter_frames
@@ -525,7 +525,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         finished: list[str] = []  # an earlier import's landing finished first, as a warning says
         if add and exists:
             record = session / "import.json"
-            landing = _partial_folder(real) / LANDING
+            landing = import_partial_folder(real) / IMPORT_LANDING
             if landing.is_file():  # an --add whose captures were landing when it was cut off (a crash): finish it
                 with interrupt_deferred():
                     done = _finish_landing(landing.parent, real)
@@ -550,7 +550,7 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
             board = sf.board  # the session's own target (check_same_board: the one declared, if any)
         board = board or BoardModel()
         spec = board.spec()
-        partial = _partial_folder(real)
+        partial = import_partial_folder(real)
         # the recordings' bytes, not only their names: a partial folder left by an import of other bytes at the same
         # paths is started again, never resumed
         stamp = json.dumps({"sources": [(f.path, f.blake3) for f in sources], "params": params.model_dump(mode="json"),
@@ -598,9 +598,18 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         no_board = [f"no capture showed the board ({_board_text(board)}): all {len(names)} went to {dirs['scenes']}/; "
                     "if the recording has board captures, check --cols/--rows/--square-mm (and --board)"
                     ] if params.classify and not boards and names else []
-        warnings = finished + no_board + unchecked + rgbd.warnings + (stereo.warnings if stereo is not None else [
-            "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
-            "need; import the depth and the stereo recordings together for a complete session"])
+        # build-dataset draws each fruit's split from its id, a scene without one its own fruit: one fruit captured in
+        # several poses (a still stretch each) would be spread over train and test
+        new_scenes = [n.rsplit("/", 1)[1] for n, k in kinds.items() if k == "scenes"]
+        ungrouped = [n for n in new_scenes if n not in sf.fruit_ids]
+        grouping = [f"the {len(ungrouped)} new scenes count as {len(ungrouped)} fruit in build-dataset's splits: where "
+                    "several show one fruit (turned or moved between captures), name its fruit for each in "
+                    "session.yaml's fruit_ids, or that fruit can land in both train and test"] \
+            if len(ungrouped) > 1 else []
+        warnings = finished + no_board + grouping + unchecked + rgbd.warnings + (
+            stereo.warnings if stereo is not None else [
+                "no stereo recording: the captures have no left.png/right.png, which calibrate, build-dataset and run "
+                "need; import the depth and the stereo recordings together for a complete session"])
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),
                         stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
                         notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "
@@ -631,9 +640,6 @@ def refuse_output_inside(session: Path) -> None:
                                  f"write it beside, e.g. {free_path(a.parent, p.name)}")
 
 
-def _partial_folder(session: Path) -> Path:
-    """Where an import into ``session`` writes its captures before they land (beside it: a rename away)."""
-    return session.parent / f".{session.name}.import-partial"
 
 
 def _summary(session: Path, run: ImportRun, dirs: dict[str, str], warnings: list[str]) -> ImportSummary:
@@ -659,8 +665,8 @@ def _next_index(folder: Path) -> int:
     return max(ids, default=-1) + 1
 
 
-# an --add landing's journal in the partial folder: the run being landed, written whole before its first capture moves
-LANDING = ".landing"
+# (IMPORT_LANDING, an --add landing's journal in the partial folder: the run being landed, written whole before its
+# first capture moves; open_session refuses the session while it is there)
 
 
 def _land(partial: Path, session: Path, run: ImportRun, add: bool) -> None:
@@ -673,7 +679,7 @@ def _land(partial: Path, session: Path, run: ImportRun, add: bool) -> None:
             session.rmdir()  # empty (checked before)
         os.replace(partial, session)  # (cut off before this: the next import starts again, from the recordings)
         return
-    atomic_write_bytes(partial / LANDING, run.model_dump_json().encode())
+    atomic_write_bytes(partial / IMPORT_LANDING, run.model_dump_json().encode())
     (partial / ".plan").unlink()
     _finish_landing(partial, session)
 
@@ -683,7 +689,7 @@ def _finish_landing(partial: Path, session: Path) -> ImportRun:
     run to ``import.json`` unless it is there already, and remove ``partial``: what ``_land`` does, and what the next
     import does for a landing a crash (kill -9, power) cut off: never a capture that import.json does not list, nor
     one numbered again."""
-    run = ImportRun.model_validate_json((partial / LANDING).read_bytes())
+    run = ImportRun.model_validate_json((partial / IMPORT_LANDING).read_bytes())
     # by the run's own capture names (relative to the session: its board_dir/scenes_dir), those not yet moved
     for name in sorted(p.capture for p in run.pairs):
         if not (partial / name).is_dir():

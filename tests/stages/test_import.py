@@ -735,9 +735,17 @@ def test_a_cut_off_landing_is_finished_and_said_when_another_import_adds(hand, r
         import_recordings([more.rgbd_bag, more.stereo_bag], out, ImportParams(clock_offset_ms=more.clock_offset_ms),
                           add=True)
     monkeypatch.setattr(importer.os, "replace", real_replace)
+    # meanwhile a stage reading the session (calibrate, run, build-dataset) is refused: board/001 is in it, scenes/000
+    # beside it, and import.json lists neither (they were read as the session's before)
+    from gtforge.io.captures import open_session
+    with pytest.raises(InputError, match=r"session whose last import --add landed whole, got one cut off while "
+                       r"its captures landed .*\.s\.import-partial holds the rest.*run the same gtforge import "
+                       r"--add again"):
+        open_session(out)
     s = import_recordings([other.rgbd_bag, other.stereo_bag], out,
                           ImportParams(clock_offset_ms=other.clock_offset_ms), add=True)
     assert s.captures == ["scenes/001"]
+    open_session(out)
     note = [w for w in s.warnings if "cut off while its captures landed: finished first" in w]
     assert len(note) == 1 and "(board/001, scenes/000)" in note[0], s.warnings
     runs = ImportRecord.read(out / "import.json").runs
@@ -1014,3 +1022,25 @@ def test_svo2_import_calibrate_build_measures_the_lossy_video(raw_zed_session, s
     assert s.texture_all.correlation < h.texture_all.correlation
     assert s.stereo["all"].bad_match_pct > h.stereo["all"].bad_match_pct
     assert s.stereo["all"].disparity_bias_noise_px > h.stereo["all"].disparity_bias_noise_px
+
+
+def test_scenes_imported_without_fruit_ids_are_said_to_count_as_fruit_each(hand, recs, tmp_path):
+    """Two scenes imported are two fruit to build-dataset's splits unless session.yaml's fruit_ids groups them: one
+    fruit turned between captures could land in train and test, and nothing said so (a run-through). Said once an
+    import, of the new scenes fruit_ids does not name."""
+    import yaml
+
+    out = tmp_path / "s"
+    s = import_recordings([recs.rgbd_bag, recs.stereo_bag], out, ImportParams(clock_offset_ms=recs.clock_offset_ms))
+    assert s.scenes == 2
+    said = [w for w in s.warnings if "fruit_ids" in w]
+    assert said == ["the 2 new scenes count as 2 fruit in build-dataset's splits: where several show one fruit "
+                    "(turned or moved between captures), name its fruit for each in session.yaml's fruit_ids, or "
+                    "that fruit can land in both train and test"]
+    two = write_ros2_recordings(hand, tmp_path / "two", captures=["scenes/000", "scenes/001"], seed=5)
+    cfg = yaml.safe_load((out / "session.yaml").read_text())
+    cfg["fruit_ids"] = {"002": "melon1"}  # the next import's first new scene, named beforehand: one left ungrouped
+    (out / "session.yaml").write_text(yaml.safe_dump(cfg))
+    s = import_recordings([two.rgbd_bag, two.stereo_bag], out, ImportParams(clock_offset_ms=two.clock_offset_ms),
+                          add=True)
+    assert s.captures == ["scenes/002", "scenes/003"] and not [w for w in s.warnings if "fruit_ids" in w]

@@ -584,6 +584,16 @@ def _what_folder_holds(root: Path) -> str:
     return "it holds " + ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
 
 
+# an import --add's journal, in the folder beside the session where the import writes before its captures land
+IMPORT_LANDING = ".landing"
+
+
+def import_partial_folder(session: str | Path) -> Path:
+    """Where ``gtforge import`` writes a session's captures before they land: beside the session's real folder."""
+    real = Path(os.path.realpath(session))
+    return real.parent / f".{real.name}.import-partial"
+
+
 def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_right_correction=None,
                  zed_right_yaw_deg: float = 0.0) -> Session:
     """Read ``session.yaml`` (optional) and the camera files of a capture session.
@@ -600,6 +610,11 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, None, "a capture session folder", "no such folder", "see docs/capture-layout.md")
+    landing = import_partial_folder(root) / IMPORT_LANDING
+    if landing.is_file():  # some of an import's captures are in the session, the rest beside it, import.json not yet
+        raise InputError(root, "captures", "a session whose last import --add landed whole",
+                         f"one cut off while its captures landed ({landing.parent} holds the rest)",
+                         "run the same gtforge import --add again: it finishes the landing first")
     cfg_path = root / "session.yaml"
     cfg = SessionFile.read(cfg_path) if cfg_path.exists() else SessionFile()
     if not cfg_path.exists() and (gtforge_folder_kind(root) or not any(
