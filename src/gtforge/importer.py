@@ -449,8 +449,12 @@ def check_same_rig(session: Path, rgbd: RgbdRecording, stereo: StereoRecording |
 def check_not_imported(sources: list[SourceFile], earlier: list[ImportRun]) -> None:
     """``--add``: a recording file already imported into the session (the same BLAKE3 in ``earlier``, ``import.json``'s
     runs, under any name) would add its captures a second time; a one-line error before anything is written."""
-    seen = {f.blake3: f.path for run in earlier for f in run.sources}
-    for f in sources:
+    # a rosbag2 folder's metadata.yaml is told by its data files: the same bytes in two recordings' metadata.yaml
+    # would not make them one, and naming it would not say which recording was imported
+    def data(files):
+        return [f for f in files if Path(f.path).name != "metadata.yaml"]
+    seen = {f.blake3: f.path for run in earlier for f in data(run.sources)}
+    for f in data(sources):
         if f.blake3 in seen:
             raise InputError(f.path, "recording", "a recording not yet imported into this session",
                              f"the same bytes as {seen[f.blake3]} (import.json)",

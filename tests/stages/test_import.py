@@ -109,6 +109,8 @@ def test_add_to_an_existing_session_and_refuse_without_add(hand, recs, tmp_path)
     with pytest.raises(InputError, match="import.json") as dup:
         import_recordings([again, recs.stereo_bag], out, p, add=True)
     assert "not yet imported" in str(dup.value) and str(recs.rgbd_bag.resolve()) in str(dup.value)
+    assert "metadata.yaml" not in str(dup.value)  # (the bag's data file is named: it said "the same bytes as
+    # .../metadata.yaml")
     assert sorted(x.relative_to(out) for x in out.rglob("*")) == before
     # the same frames in other bytes: the .mcap rewritten as a .db3 bag without its first messages (a conversion and
     # a cut, as a lab's tools make them): refused by the captures' times, nothing written (helper-29)
