@@ -220,3 +220,51 @@ def test_tasks_run_here_stop_the_fork_server_started_for_them(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     before, got, again, new_server = json.loads(r.stdout.strip().splitlines()[-1])
     assert before is True and got == [False] and again == [False, False] and new_server
+
+
+OPENCV_WARM_MODULE = textwrap.dedent('''
+    import os
+    import time
+
+    def warm():  # as opening a raw ZED session whose right camera is corrected: a remap big enough for OpenCV's pool
+        import cv2
+        import numpy as np
+        img = np.random.default_rng(0).random((1242, 2208), np.float32)
+        mx, my = np.meshgrid(np.arange(2208, dtype=np.float32) + 0.3, np.arange(1242, dtype=np.float32) + 0.2)
+        cv2.remap(img, mx, my, cv2.INTER_LINEAR)
+        time.sleep(0.2)  # (its threads parked, waiting for work, when the server forks: as after a real warm-up)
+
+    def task(i):
+        return i, os.getpid()
+''')
+
+OPENCV_WARM_SCRIPT = textwrap.dedent('''
+    import sys
+    sys.path.insert(0, sys.argv[1])
+    from gtforge.infra.scheduling import cpu_count, prestart_pool, run_tasks
+    from warmmod import task
+
+    if __name__ == "__main__":
+        n = cpu_count()
+        prestart_pool("warmmod", workers=n, warm_up=("warm", []))
+        got = []
+        run_tasks(task, [(i,) for i in range(2 * n)], got.append, workers=n)
+        print(sorted(i for i, _ in got))
+''')
+
+
+@pytest.mark.skipif(__import__("os").cpu_count() < 2, reason="a pool needs two cores")
+def test_a_warm_up_that_runs_opencv_in_parallel_leaves_the_workers_working(tmp_path):
+    """The fork server's warm-up opened a raw ZED session with a corrected right camera: its maps came from OpenCV's
+    thread pool, which a fork does not carry over, and each worker then hung for good in its first
+    cv2.setNumThreads (gtforge run on such a session never finished its build; a run-through). The server now runs
+    OpenCV serially."""
+    (tmp_path / "warmmod.py").write_text(OPENCV_WARM_MODULE)
+    script = tmp_path / "warm.py"
+    script.write_text(OPENCV_WARM_SCRIPT)
+    env = {**__import__("os").environ, "PYTHONPATH": str(tmp_path)}  # (the fork server imports warmmod too)
+    r = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=120,
+                       start_new_session=True, cwd=tmp_path, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    n = __import__("gtforge.infra.scheduling", fromlist=["cpu_count"]).cpu_count()
+    assert r.stdout.split("\n")[-2] == f"{list(range(2 * n))}"

@@ -8,8 +8,8 @@ arguments, as JSON; or ``POOL_WARM_UP_FILE_ENV``: the file the command writes th
 when it started the server before that): what every worker would otherwise compute for its first task (build-dataset:
 the calibration, the opened session, the depth camera's ray grid). A warm-up that fails leaves the workers to do it
 themselves (and to report the error where there is one): the server must start whatever the inputs hold. It must not
-start threads that do not survive a fork (GNU OpenMP: numba's parallel kernels; ``lens.undistort`` runs its serial
-compilation here)."""
+start threads that do not survive a fork (GNU OpenMP: numba's parallel kernels, ``lens.undistort`` runs its serial
+compilation here; OpenCV's pool: OpenCV runs serially here)."""
 from __future__ import annotations
 
 import atexit
@@ -43,6 +43,15 @@ def warm_up() -> bool:
             return False
     if not spec:
         return False
+    # OpenCV's thread pool does not survive a fork either: a worker forked after a warm-up that started it (a raw
+    # ZED session's rectification maps) hung for good in its first cv2.setNumThreads (_init_worker). OpenCV runs
+    # serially here, starting no thread; each worker sets its own count.
+    try:
+        import cv2
+
+        cv2.setNumThreads(0)
+    except ImportError:
+        pass
     logging.disable(logging.WARNING)  # the caller reports what the inputs hold, once (not the server too)
     try:
         with warnings.catch_warnings():
