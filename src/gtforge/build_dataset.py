@@ -370,6 +370,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         raise InputError(None, "--crop", f"at most the ZED image size, {session.zed.left.width_px}x"
                          f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
     dirs = session.select("scenes", scenes)
+    _warn_of_fruit_ids(session)
     if scheduler:
         check_scheduler_address(scheduler)  # before anything is written
     made = new_folders(out / "scenes", out)
@@ -465,6 +466,25 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     return BuildSummary(sorted(built), sorted(unchanged), failures, out, time.perf_counter() - t0, splits, flagged,
                         quarantined, [s for s in ok_ids if metas[s].verification is not None
                                       and metas[s].verification.compensated])
+
+
+def _warn_of_fruit_ids(session) -> None:
+    """``fruit_ids`` keys that name no scene (a typo: ``'01'`` for ``'001'``) and, where it groups some scenes, the
+    scenes it leaves out: each such scene is a fruit of its own in the splits, so a fruit can land in two."""
+    fids = session.config.fruit_ids
+    if not fids:
+        return
+    ids = sorted(d.name for d in session.capture_dirs("scenes"))
+    unknown = sorted(k for k in fids if k not in set(ids))
+    left = [s for s in ids if s not in fids]
+    where = session.root / "session.yaml"
+    if unknown:
+        log.warning("%s: fruit_ids names %s, which %s no scene (the scenes: %s): ignored; if it is a typo, its scene "
+                    "is a fruit of its own and may land in another split than the rest of that fruit", where,
+                    first_of(unknown), "is" if len(unknown) == 1 else "are", first_of(ids))
+    if left:
+        log.warning("%s: fruit_ids names no fruit for %d scene(s): %s: each is a fruit of its own in the splits", where,
+                    len(left), first_of(left))
 
 
 def _warn_of_kitti_range(metas: dict[str, SceneMeta], params: BuildParams) -> None:

@@ -938,3 +938,30 @@ def test_scene_ids_that_mislead_openstereos_right_view_reader_are_named(dataset,
     caplog.clear()
     _warn_of_openstereo_right_paths(tmp_path / "proc_0" / "ds", ["000"], BuildParams())
     assert f"the dataset's path {(tmp_path / 'proc_0' / 'ds').resolve()} holds 'c_0'" in caplog.text
+
+
+def test_fruit_ids_that_name_no_scene_or_leave_scenes_out_are_said(session_dir, true_calibration, dataset, tmp_path,
+                                                                  caplog):
+    """fruit_ids {'01': ...} meant for scene 001 was ignored without a word: 001 became a fruit of its own and could
+    land in test while the rest of its fruit trained (a run-through). The build names such keys, and the scenes a
+    partial grouping leaves out."""
+    import yaml
+
+    sess, out = tmp_path / "session", tmp_path / "ds"
+    shutil.copytree(session_dir, sess)
+    shutil.copytree(dataset[0], out)
+    ids = sorted(Manifest.read(out / "manifest.json").scenes)
+    cfg = yaml.safe_load((sess / "session.yaml").read_text())
+    cfg["fruit_ids"] = {ids[0]: "melon03", ids[1][1:]: "melon03"}  # the second's id with a digit missing
+    (sess / "session.yaml").write_text(yaml.safe_dump(cfg))
+    build_dataset(sess, true_calibration, out, workers=1)
+    said = [r.getMessage() for r in caplog.records]
+    assert f"{sess / 'session.yaml'}: fruit_ids names {ids[1][1:]}, which is no scene (the scenes: " \
+        f"{', '.join(ids)}): ignored" in " ".join(said)
+    assert f"{sess / 'session.yaml'}: fruit_ids names no fruit for {len(ids) - 1} scene(s): " \
+        f"{', '.join(ids[1:])}: each is a fruit of its own" in " ".join(said)
+    caplog.clear()
+    cfg["fruit_ids"] = {s: "melon03" for s in ids}
+    (sess / "session.yaml").write_text(yaml.safe_dump(cfg))
+    build_dataset(sess, true_calibration, out, workers=1)
+    assert "fruit_ids names" not in caplog.text
