@@ -293,3 +293,24 @@ def test_a_dying_local_worker_lists_its_scenes_as_failed(session_dir, true_calib
     r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "2", "--no-verify")
     assert r.returncode == 0 and "failed 0" in r.stdout
     assert len(list((out / "scenes").glob("*/meta.json"))) == 12
+
+
+def test_a_stage_never_writes_its_calibration_into_a_runs_folder(session_dir, true_calibration, tmp_path):
+    """calibrate -o RUN/scaled.yaml (or -o RUN) replaced the run's own stage files, which its certificate cites and its
+    later stages read (a run-through: the certificate said PASS of figures its files no longer held). Refused, one
+    line, before any work, for calibrate, calibrate-scale, refine and align-depth."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run_state.json").write_text("{}")
+    (run / "scaled.yaml").write_text("the run's own\n")
+    before = tree_digest(run)
+    cases = [("calibrate", session_dir, "-o", run / "scaled.yaml", "--no-loo"), ("calibrate", session_dir, "-o", run),
+             ("calibrate-scale", session_dir, "-c", true_calibration, "-o", run),
+             ("refine", session_dir, "-c", true_calibration, "-o", run / "refined.yaml"),
+             ("align-depth", session_dir, "-c", true_calibration, "-o", run / "x.yaml")]
+    for args in cases:
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args, r.stderr[-1500:])
+        assert "expected a path outside gtforge run's output folder" in r.stderr and "write it beside the run, e.g. " \
+            f"{tmp_path}" in r.stderr, r.stderr
+    assert tree_digest(run) == before

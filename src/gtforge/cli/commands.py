@@ -159,6 +159,21 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
         raise typer.Exit(res.exit_code)
 
 
+def _refuse_a_runs_folder(output: str, name: str) -> None:
+    """A stage's calibration never goes into ``gtforge run``'s output folder: it would replace the run's own file of a
+    stage (calibrate's over scaled.yaml, another session's over calibration.yaml), which the run's certificate cites
+    and its later stages read."""
+    from gtforge.io.outputs import free_path
+
+    path = Path(output)
+    if path.is_dir() or output.endswith(("/", "\\")):  # (as calibration_output_path reads it)
+        path = path / name
+    if (path.parent / "run_state.json").is_file():
+        raise InputError(path, "--output", "a path outside gtforge run's output folder",
+                         f"a file in {path.parent}, gtforge run's (its files are the run's stages' own)",
+                         f"write it beside the run, e.g. {free_path(path.parent.parent, name)}")
+
+
 @app.command()
 def calibrate(session: Path = typer.Argument(..., help="Capture session folder (docs/capture-layout.md)."),
               output: str = typer.Option("calibration.yaml", "--output", "-o", metavar="PATH",
@@ -202,6 +217,7 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     from gtforge.io.outputs import require_output_folder
 
     opened = open_session(session)
+    _refuse_a_runs_folder(output, "calibration.yaml")
     output = calibration_output_path(output, session=opened)
     report_dir = report_dir or output.parent / (output.stem + "_report")
     opened.refuse_output_over_inputs(report_dir, "--report-dir")
@@ -371,6 +387,7 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     from gtforge.refine import RefineParams
     from gtforge.refine import refine as run
 
+    _refuse_a_runs_folder(output, "refined.yaml")
     res = run(session, calibration, output, RefineParams(leave_one_out=loo), scenes.split(",") if scenes else None,
               progress=_status)
     info = res.refinement
@@ -410,6 +427,7 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
     from gtforge.records.calibration import ScaleParams
     from gtforge.scale_calibration import calibrate_scale as run
 
+    _refuse_a_runs_folder(output, "scaled.yaml")
     res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
               progress=_status)
     from gtforge.reports.calibration import scale_term_lines
@@ -458,6 +476,7 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
     from gtforge.reports.depth_alignment import write_depth_alignment_report
 
     params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z, edges=edges)
+    _refuse_a_runs_folder(output, "aligned.yaml")
     res = run(session, calibration, output, params, scenes.split(",") if scenes else None, use_boards=boards,
               progress=_status)
     for line in summary_lines(res.depth_alignment):
