@@ -89,12 +89,18 @@ class VersionedFile(GTModel):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise pydantic_to_input_error(exc, path, cls.KIND) from None
+            raise pydantic_to_input_error(exc, path, cls.KIND, cls.model_fields) from None
 
 
-def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what: str) -> InputError:
-    """Every problem of a file in one line (a file with several is fixed in one round), each naming its field; a
-    missing field says ``missing``, never the whole mapping it is missing from."""
+# the problems one message lists (a file of another kind has a hundred: the first ones say enough)
+MAX_PROBLEMS = 8
+
+
+def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what: str,
+                            fields_known: Any = ()) -> InputError:
+    """Every problem of a file in one line (a file with several is fixed in one round; past ``MAX_PROBLEMS``, how
+    many more), each naming its field; a missing field says ``missing``, never the whole mapping it is missing from.
+    ``fields_known``: the file's top-level field names, for a misspelt one's hint."""
     errs = exc.errors()
     version = [e for e in errs if tuple(e.get("loc", ())) == ("schema_version",)]
     errs = version or errs  # a file of another schema: its other differences follow from that one
@@ -108,22 +114,37 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
     def field(err) -> str:
         return ".".join(str(p) for p in err.get("loc", ()))
 
+    def misspelt(err) -> str | None:
+        """``did you mean ...`` for an unknown top-level field close to a known one (``zed_rectifed``)."""
+        loc = err.get("loc", ())
+        if err.get("type") != "extra_forbidden" or len(loc) != 1:
+            return None
+        import difflib
+
+        close = difflib.get_close_matches(str(loc[0]), list(fields_known), n=1, cutoff=0.8)
+        return f"did you mean {close[0]}?" if close else None
+
     if len(errs) == 1:
         err = errs[0]
-        return InputError(path, field(err) or None, f"a valid {what} ({err.get('msg')})", actual(err))
+        return InputError(path, field(err) or None, f"a valid {what} ({err.get('msg')})", actual(err), misspelt(err))
     top = [e for e in errs if len(e.get("loc", ())) == 1]
     missing = [field(e) for e in top if e.get("type") == "missing"]
     extra = [field(e) for e in top if e.get("type") == "extra_forbidden"]
-    if extra and len(missing) + len(extra) >= 4 and len(missing) >= 2 and len(top) == len(errs):
+    # (judged on the top level: a file of another kind may have nested problems too, a list of poses' fields)
+    if extra and len(missing) + len(extra) >= 4 and len(missing) >= 2:
         # none of the fields it should have, others instead: another kind of file, not one to fix field by field
         return InputError(path, None, f"a {what}", f"a file of another kind (its fields: {', '.join(extra[:6])}"
                           f"{' ...' if len(extra) > 6 else ''}; missing: {', '.join(missing[:6])}"
                           f"{' ...' if len(missing) > 6 else ''})", f"give the {what} itself (docs/pipeline.md)")
     fields = list(dict.fromkeys(field(e) or "(top level)" for e in errs))
-    return InputError(path, ", ".join(fields), f"a valid {what}",
+    hints = [h for h in map(misspelt, errs) if h]
+    shown = errs[:MAX_PROBLEMS]
+    return InputError(path, ", ".join(fields[:MAX_PROBLEMS]) + (" ..." if len(fields) > MAX_PROBLEMS else ""),
+                      f"a valid {what}",
                       f"{len(errs)} problems: " + "; ".join(f"{field(e) or '(top level)'}: {e.get('msg')} "
-                                                           f"(got {actual(e)})" for e in errs),
-                      "fix them all, then rerun")
+                                                           f"(got {actual(e)})" for e in shown)
+                      + (f"; +{len(errs) - len(shown)} more" if len(errs) > len(shown) else ""),
+                      "; ".join(hints[:3] + ["fix them all, then rerun"]))
 
 
 def matrix4_field(v: Any) -> list[list[float]]:
