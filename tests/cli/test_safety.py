@@ -145,6 +145,17 @@ def test_calibrate_into_a_folder_and_wrong_square_size(session_dir, tmp_path):
     assert r.returncode == 2 and one_line_error(r)
     assert "25 mm declared, 20.00 mm measured" in r.stderr and "--square-mm 20.0" in r.stderr
     assert not (tmp_path / "wrong.yaml").exists()
+    # 20.5 mm, within the 3 % the refusal allows: a PASS, with the extrinsic tens of sigma off (a run-through); a
+    # WARN naming the measured size now
+    r = gtforge("calibrate", session_dir, "-o", tmp_path / "near.yaml", "--no-loo", "--no-self-rectify",
+                "--square-mm", "20.5")
+    assert r.returncode == 0, r.stderr
+    c = CalibrationFile.read(tmp_path / "near.yaml")
+    assert c.verdict == "WARN" and any(
+        "the board's squares measure 20.00 mm in the depth, -2.4 % from the declared 20.5 mm" in x
+        for x in c.verdict_reasons), c.verdict_reasons
+    assert not [x for x in CalibrationFile.read(tmp_path / "calib" / "calibration.yaml").verdict_reasons
+                if "squares measure" in x]
 
 
 def test_use_depth_disagreement_fails_loudly(session_dir, tmp_path):

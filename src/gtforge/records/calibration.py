@@ -32,6 +32,8 @@ class CalibrateParams(GTModel):
     leave_one_out: bool = True
     # the board's squares measured in the depth must match square_size_mm within this (%); 0 switches it off
     square_check_pct: float = Field(3.0, ge=0)
+    # ... and within this (%) for a PASS: a board declared 2.5 % off moved the extrinsic 45 sigma under a PASS
+    square_warn_pct: float = Field(1.0, ge=0)
     # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
     methods_agree_deg: float = 0.1
     methods_agree_mm: float = 1.0
