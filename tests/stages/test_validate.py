@@ -45,13 +45,42 @@ def test_holdout_calibrates_and_validates_on_unseen_poses(session_dir, tmp_path)
     cal = tmp_path / "out" / "holdout_calibration.yaml"
     used = CalibrationFile.read(cal).captures_used
     assert "005" not in used and "006" not in used and len(used) == 5
-    assert [p.capture for p in rep.poses] == ["005", "006"] and not rep.warnings
+    assert [p.capture for p in rep.poses] == ["005", "006"]
+    assert rep.warnings == ["the hold-out calibration (holdout_calibration.yaml) is WARN: only 5 poses: 6 or more "
+                            "give a better-constrained extrinsic"]  # (passed on: it is the calibration validated)
     assert rep.xy_mean_px < 0.15 and rep.z_error_mean_pct < 0.05
     # too few captures listed to hold any out: said so ("expected 1 to -1 held-out poses" before; a run-through)
     with pytest.raises(InputError) as err:
         validate_holdout(session_dir, 2, tmp_path / "out2", captures=["000", "005"])
     assert "expected more than 3 board captures to hold any out" in str(err.value)
     assert "got 2 (--captures)" in str(err.value) and "to -1" not in str(err.value)
+
+
+def test_a_holdout_says_what_it_validated_on(session_dir, tmp_path):
+    """--holdout 2 whose last capture shows no board: validated on one pose and said nothing (a PASS resting on one
+    board pose); the hold-out calibration's WARN went unsaid too. Both are said, in the report as well. With no
+    usable held-out capture: one line about the hold-out (it said "check the board size"), its calibration removed."""
+    import shutil
+
+    from gtforge.holdout import validate_holdout
+    from gtforge.records.validation import ValidationResult
+
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    for f in ("2DImage.png", "DepthMap.tiff", "left.png", "right.png"):  # board/006 now shows a fruit
+        shutil.copy(sess / "scenes" / "000" / f, sess / "board" / "006" / f)
+    rep = validate_holdout(sess, 2, tmp_path / "out")
+    assert [p.capture for p in rep.poses] == ["005"] and list(rep.skipped) == ["006"]
+    said = [w for w in rep.warnings if w.startswith("validated on 1 of the 2 held-out captures (006: ")]
+    assert len(said) == 1 and said[0].endswith(": the figures rest on a single board pose")
+    assert any(w.startswith("the hold-out calibration (holdout_calibration.yaml) is WARN: ") for w in rep.warnings)
+    assert ValidationResult.read(tmp_path / "out" / "validation.json").warnings == rep.warnings
+    for f in ("2DImage.png", "DepthMap.tiff", "left.png", "right.png"):
+        shutil.copy(sess / "scenes" / "000" / f, sess / "board" / "005" / f)
+    with pytest.raises(InputError, match=r"\[holdout\]: expected held-out captures where both cameras see the board, "
+                       r"got none of the last 2 \(005, 006; each one's reason is above\)"):
+        validate_holdout(sess, 2, tmp_path / "out2")
+    assert not (tmp_path / "out2" / "holdout_calibration.yaml").exists()
 
 
 def test_bilinear_over_valid_neighbours_only():
