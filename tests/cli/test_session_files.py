@@ -65,3 +65,21 @@ def test_the_stages_refuse_to_write_over_session_files(example, tmp_path):
         assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
         assert "never written" in r.stderr, r.stderr
     assert tree_digest(sess) == before
+
+
+@pytest.mark.parametrize("line,says", [
+    ("fruit_ids: {000: melon1, 001: melon1}", "[fruit_ids]: expected a valid session.yaml (Value error, scene ids as "
+     "text: quote them in YAML ('000': melon07); 0 reads as a number), got {0: 'melon1', 1: 'melon1'}"),
+    ("video_frame: -3", "[video_frame]: expected a valid session.yaml (Input should be greater than or equal to 0), "
+     "got -3"),
+    ("zed_rectifed: true", "[zed_rectifed]: expected a valid session.yaml (Extra inputs are not permitted), got True "
+     "(hint: did you mean zed_rectified?)")])
+def test_session_yaml_slips_are_named_with_what_to_write(line, says, tmp_path):
+    """Unquoted scene ids (YAML reads 000 as 0: said without a hint), a negative video frame (accepted) and a
+    misspelt key (no hint) in session.yaml: one line each that says what to write (a run-through)."""
+    from gtforge.io.captures import SessionFile
+
+    (tmp_path / "session.yaml").write_text(line + "\n")
+    with pytest.raises(InputError) as err:
+        SessionFile.read(tmp_path / "session.yaml")
+    assert str(err.value) == f"{tmp_path / 'session.yaml'} {says}"

@@ -229,7 +229,7 @@ class SessionFile(VersionedFile):
     zed_conf_reading: ZedConfReading | None = None
     depth_unit: Literal["mm", "m"] = "mm"
     depth_scale_mm: float | None = None
-    video_frame: int = 0
+    video_frame: int = Field(0, ge=0)
     board_dir: str = "board"
     scenes_dir: str = "scenes"
     files: FileNames = Field(default_factory=FileNames)
@@ -242,6 +242,17 @@ class SessionFile(VersionedFile):
     @classmethod
     def _T4(cls, v):
         return None if v is None else matrix4_field(v)
+
+    @field_validator("fruit_ids", mode="before")
+    @classmethod
+    def _quoted_ids(cls, v):
+        # YAML reads an unquoted 000 as the number 0: its scene's name is gone, so it is refused, not guessed
+        if isinstance(v, dict):
+            numbers = [k for k in v if not isinstance(k, str)]
+            if numbers:
+                raise ValueError(f"scene ids as text: quote them in YAML ('000': melon07); {numbers[0]!r} reads as a "
+                                 "number")
+        return v
 
 
 @dataclass
