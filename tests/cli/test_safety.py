@@ -148,7 +148,7 @@ def test_calibrate_into_a_folder_and_wrong_square_size(session_dir, tmp_path):
     # 20.5 mm, within the 3 % the refusal allows: a PASS, with the extrinsic tens of sigma off (a run-through); a
     # WARN naming the measured size now
     r = gtforge("calibrate", session_dir, "-o", tmp_path / "near.yaml", "--no-loo", "--no-self-rectify",
-                "--square-mm", "20.5")
+                "--square-mm", "20.5", "--captures", "000,001,002,003")
     assert r.returncode == 0, r.stderr
     c = CalibrationFile.read(tmp_path / "near.yaml")
     assert c.verdict == "WARN" and any(
