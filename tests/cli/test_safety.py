@@ -147,10 +147,12 @@ def test_calibrate_into_a_folder_and_wrong_square_size(session_dir, tmp_path):
     assert not (tmp_path / "wrong.yaml").exists()
     # 20.5 mm, within the 3 % the refusal allows: a PASS, with the extrinsic tens of sigma off (a run-through); a
     # WARN naming the measured size now
-    r = gtforge("calibrate", session_dir, "-o", tmp_path / "near.yaml", "--no-loo", "--no-self-rectify",
-                "--square-mm", "20.5", "--captures", "000,001,002,003")
-    assert r.returncode == 0, r.stderr
-    c = CalibrationFile.read(tmp_path / "near.yaml")
+    from gtforge.calibrate import calibrate
+    from gtforge.core.targets.models import BoardModel
+    from gtforge.records.calibration import CalibrateParams
+
+    c = calibrate(session_dir, None, CalibrateParams(board=BoardModel(square_size_mm=20.5), leave_one_out=False,
+                                                     self_rectify=False), captures=["000", "001", "002", "003"])
     assert c.verdict == "WARN" and any(
         "the board's squares measure 20.00 mm in the depth, -2.4 % from the declared 20.5 mm" in x
         for x in c.verdict_reasons), c.verdict_reasons
