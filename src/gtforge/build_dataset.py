@@ -370,7 +370,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         raise InputError(None, "--crop", f"at most the ZED image size, {session.zed.left.width_px}x"
                          f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
     dirs = session.select("scenes", scenes)
-    _warn_of_fruit_ids(session)
+    in_session = [d.name for d in session.capture_dirs("scenes")]  # (every scene, whatever --scenes chose)
+    _warn_of_fruit_ids(session, in_session)
     if scheduler:
         check_scheduler_address(scheduler)  # before anything is written
     made = new_folders(out / "scenes", out)
@@ -448,7 +449,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     fruit_ids = {s: metas[s].fruit_id for s in ok_ids}
     _warn_of_kitti_range(metas, params)
     _warn_of_openstereo_right_paths(out, ok_ids, params)
-    _warn_of_scenes_left_from_the_session(out, session)
+    _warn_of_scenes_left_from_the_session(out, in_session)
     if flagged:
         log.warning("verification flagged %d scene(s)%s: %s (see %s)", len(flagged),
                     ", left out of the split lists (--quarantine)" if quarantined else "",
@@ -468,14 +469,14 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                                       and metas[s].verification.compensated])
 
 
-def _warn_of_fruit_ids(session) -> None:
-    """``fruit_ids`` keys that name no scene (a typo: ``'01'`` for ``'001'``) and, where it groups some scenes, the
-    scenes it leaves out: each such scene is a fruit of its own in the splits, so a fruit can land in two."""
+def _warn_of_fruit_ids(session, ids: list[str]) -> None:
+    """``fruit_ids`` keys that name none of the session's scenes ``ids`` (a typo: ``'01'`` for ``'001'``) and, where it
+    groups some scenes, the scenes it leaves out: each such scene is a fruit of its own in the splits, so a fruit can
+    land in two."""
     fids = session.config.fruit_ids
     if not fids:
         return
-    ids = sorted(d.name for d in session.capture_dirs("scenes"))
-    unknown = sorted(k for k in fids if k not in set(ids))
+    unknown = sorted(set(fids) - set(ids))
     left = [s for s in ids if s not in fids]
     where = session.root / "session.yaml"
     if unknown:
@@ -515,13 +516,13 @@ def _warn_of_openstereo_right_paths(out: Path, ids: list[str], params: BuildPara
                     "rename those capture folders in the session" if hit else "train from a path without 'c_0'")
 
 
-def _warn_of_scenes_left_from_the_session(out: Path, session) -> None:
-    """Scene folders in ``out`` whose capture the session no longer holds (deleted or renamed since they were built):
-    outside the manifest and the split lists, yet in scenes/, kitti/ and eth3d/, which some training code lists
-    itself."""
-    in_session = {d.name for d in session.capture_dirs("scenes")}
+def _warn_of_scenes_left_from_the_session(out: Path, in_session: list[str]) -> None:
+    """Scene folders in ``out`` whose capture the session no longer holds (``in_session``: its scene ids; deleted or
+    renamed since they were built): outside the manifest and the split lists, yet in scenes/, kitti/ and eth3d/, which
+    some training code lists itself."""
+    known = set(in_session)
     gone = sorted(d.name for d in (out / "scenes").iterdir()
-                  if d.is_dir() and not d.name.startswith(".") and d.name not in in_session)
+                  if d.is_dir() and not d.name.startswith(".") and d.name not in known)
     if gone:
         log.warning("%d scene(s) in %s are no longer in the session (%s): left out of the manifest and the split "
                     "lists, but their files stay in scenes/, kitti/ and eth3d/, where training code that lists those "

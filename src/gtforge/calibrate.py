@@ -119,7 +119,7 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
         X = board_corners_from_depth(o, mech, board, depth_cam, T_mech_from_depth)
         if X is not None and np.all(np.isfinite(X)):
             corners_depth[o.name] = X
-    square_measured = None
+    square_measured = dev_pct = None
     if len(corners_depth) >= 2:
         ids_of = {o.name: o.ids for o in used}
         square_measured = float(np.median([measured_square_size_mm(X, board, ids_of[n])
@@ -206,11 +206,10 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
         verdict_reasons.append("some used poses are blurred")
     if len(used) < 6:
         verdict_reasons.append(f"only {len(used)} poses: 6 or more give a better-constrained extrinsic")
-    if square_measured is not None and params.square_warn_pct and \
-            abs(dev := (square_measured / board.square_size_mm - 1.0) * 100.0) > params.square_warn_pct:
-        verdict_reasons.append(f"the board's squares measure {square_measured:.2f} mm in the depth, {dev:+.1f} % from "
-                               f"the declared {board.square_size_mm:g} mm: a wrong --square-mm moves the extrinsic far "
-                               "beyond its sigma; check the board's size (or the depth's scale)")
+    if dev_pct is not None and params.square_warn_pct and abs(dev_pct) > params.square_warn_pct:
+        verdict_reasons.append(f"the board's squares measure {square_measured:.2f} mm in the depth, {dev_pct:+.1f} % "
+                               f"from the declared {board.square_size_mm:g} mm: a wrong --square-mm moves the "
+                               "extrinsic far beyond its sigma; check the board's size (or the depth's scale)")
     loo_mean = float(np.mean(loo_means)) if loo_means else None
     if loo_mean is not None and loo_mean > LOO_WARN_PX:
         verdict_reasons.append(f"leave-one-out transfer {loo_mean:.3f} px > {LOO_WARN_PX} px")

@@ -245,8 +245,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         where = getattr(predictor, "folder", "")
         if len(absent) == len(ids):
             raise InputError(where, None, f"a prediction per scene named {PREDICTION_NAMES}",
-                             f"none for the {len(ids)} scene(s) "
-                             f"({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})",
+                             f"none for the {len(ids)} scene(s) ({first_of(ids, 3)})",
                              "name each file after its scene id (docs/metrics.md, 'Predictions')")
         log.warning("no prediction for %d of %d scene(s) in %s (%s; expected %s): scoring the other %d, "
                     "and the command will exit with code 1", len(absent), len(ids), where, first_of(absent),

@@ -644,8 +644,6 @@ def refuse_output_inside(session: Path) -> None:
                                  f"write it beside, e.g. {free_path(a.parent, p.name)}")
 
 
-
-
 def _summary(session: Path, run: ImportRun, dirs: dict[str, str], warnings: list[str]) -> ImportSummary:
     """The summary of a run already landed; ``dirs``: ``capture_folders``'s, which tell its boards from its scenes."""
     boards = sum(Path(p.capture).parent.as_posix() == dirs["board"] for p in run.pairs)
@@ -667,10 +665,6 @@ def _recording_folder(p: Path) -> Path:
 def _next_index(folder: Path) -> int:
     ids = [int(p.name) for p in folder.glob("[0-9][0-9][0-9]*") if p.name.isdigit()] if folder.is_dir() else []
     return max(ids, default=-1) + 1
-
-
-# (IMPORT_LANDING, an --add landing's journal in the partial folder: the run being landed, written whole before its
-# first capture moves; open_session refuses the session while it is there)
 
 
 def _land(partial: Path, session: Path, run: ImportRun, add: bool) -> None:

@@ -31,7 +31,7 @@ from gtforge.build_dataset import build_dataset
 from gtforge.calibrate import calibrate
 from gtforge.core.schema import GTModel, load_yaml
 from gtforge.dataset.layout import STAMP_MARGIN_NS
-from gtforge.errors import InputError, Interrupted
+from gtforge.errors import InputError, Interrupted, first_of
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file, blake3_hex
 from gtforge.infra.scheduling import check_scheduler_address
@@ -175,8 +175,7 @@ def _why(rec: StageRecord | None, options: dict, inputs: dict[str, str], outputs
     parts = []
     for what, keys in (("changed", changed), ("new", added), ("gone", removed)):
         if keys:
-            parts.append(f"{', '.join(map(shown, keys[:3]))}{f' (+{len(keys) - 3} more)' if len(keys) > 3 else ''}"
-                         f" {what}")
+            parts.append(f"{first_of(map(shown, keys), 3)} {what}")
     if parts:
         return "; ".join(parts)
     return outputs_ok or None

@@ -28,8 +28,7 @@ app = typer.Typer(cls=_Group, add_completion=False, no_args_is_help=True, pretty
                   help="Structured-light + ZED stereo rig -> stereo training data with sub-pixel ground truth.\n\n"
                        "The whole chain in one command: gtforge run SESSION -o DIR (calibrate -> [align-depth] -> "
                        "validate -> calibrate-scale -> refine -> build-dataset -> verify, then DIR/index.html, the "
-                       "dataset's "
-                       "certificate). Each step is also a command of its own, listed below in that order.")
+                       "dataset's certificate). Each step is also a command of its own, listed below in that order.")
 console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
 out = Console(soft_wrap=True, highlight=False, markup=False)
 
@@ -163,11 +162,10 @@ def _refuse_a_runs_folder(output: str, name: str) -> None:
     """A stage's calibration never goes into ``gtforge run``'s output folder: it would replace the run's own file of a
     stage (calibrate's over scaled.yaml, another session's over calibration.yaml), which the run's certificate cites
     and its later stages read."""
+    from gtforge.io.calibrated_session import calibration_output_file
     from gtforge.io.outputs import free_path
 
-    path = Path(output)
-    if path.is_dir() or output.endswith(("/", "\\")):  # (as calibration_output_path reads it)
-        path = path / name
+    path = calibration_output_file(output, name)
     if (path.parent / "run_state.json").is_file():
         raise InputError(path, "--output", "a path outside gtforge run's output folder",
                          f"a file in {path.parent}, gtforge run's (its files are the run's stages' own)",

@@ -94,6 +94,13 @@ def open_calibrated_session(session_dir: str | Path, calib: Any, calib_path: str
     return session, out_path
 
 
+def calibration_output_file(out_path: str | Path, name: str) -> Path:
+    """The file ``-o`` names for a stage's calibration: ``DIR/name`` for an existing folder or a path ending in ``/``,
+    else the path itself."""
+    p = Path(out_path)
+    return p / name if p.is_dir() or str(out_path).endswith(("/", "\\")) else p
+
+
 def calibration_output_path(out_path: str | Path, name: str = "calibration.yaml", session: Session | None = None
                             ) -> Path:
     """``-o DIR/`` or an existing folder means ``DIR/name`` (each stage its own name: a refinement written into
@@ -101,9 +108,7 @@ def calibration_output_path(out_path: str | Path, name: str = "calibration.yaml"
     first (``Session.refuse_output_over_inputs``: a session's own file named as such). An existing file there is
     replaced only when it is a gtforge calibration (an earlier run's); any other file (a report, a user's notes) is
     refused."""
-    p = Path(out_path)
-    if p.is_dir() or str(out_path).endswith(("/", "\\")):
-        p = p / name
+    p = calibration_output_file(out_path, name)
     if session is not None:
         session.refuse_output_over_inputs(p)
     p = require_output_file(p, "--output")  # (before any work: a read-only folder is not found by the write)

@@ -595,7 +595,8 @@ def _what_folder_holds(root: Path) -> str:
     return "it holds " + ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
 
 
-# an import --add's journal, in the folder beside the session where the import writes before its captures land
+# an import --add's journal in the folder beside the session where the import writes before its captures land: the
+# run being landed, written whole before its first capture moves (open_session refuses the session while it is there)
 IMPORT_LANDING = ".landing"
 
 

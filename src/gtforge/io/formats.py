@@ -130,6 +130,8 @@ def read_pfm(path: str | Path) -> np.ndarray:
 # ---- KITTI ----------------------------------------------------------------------------------
 # the largest disparity KITTI's uint16 PNG holds (round(d * 256) <= 65535); a larger one is written invalid (0)
 KITTI_MAX_DISPARITY_PX = 65535.5 / 256
+
+
 def _kitti_inputs(disp_px: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     d = np.asarray(disp_px)
     if d.ndim != 2:
