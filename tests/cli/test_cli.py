@@ -33,6 +33,27 @@ def test_every_help_page_is_free_of_type_leaks_and_every_option_has_help():
             assert "--no-no-" not in " ".join(getattr(p, "secondary_opts", []))
 
 
+def test_every_bracketed_word_of_a_help_text_is_shown():
+    """typer's boxed help reads help texts as rich markup: "calibrate -> [align-depth] ->" showed as "calibrate ->  ->"
+    in the top-level help, and a text escaped for rich ("gtforge\\[dask]") kept its backslash in click's plain help
+    (a narrow terminal). Every bracketed word is shown as written, boxed or plain."""
+    group, names = _commands()
+    runner = CliRunner()
+    pages = [([], group)] + [([n], group.commands[n]) for n in names]
+    seen = 0
+    for width in (80, 200):
+        for args, cmd in pages:
+            out = runner.invoke(app, args + ["--help"], env={"COLUMNS": str(width)}).output
+            flat = re.sub(r"\s+", " ", out.replace("│", " "))
+            assert "\\[" not in flat, (args, width)
+            texts = [getattr(o, "_plain_help", o.help) for o in (cmd, *cmd.params) if getattr(o, "help", None)]
+            for text in texts:
+                for word in re.findall(r"\[[^\]\n]+\]", text):
+                    seen += 1
+                    assert re.sub(r"\s+", " ", word) in flat, (args, width, word)
+    assert seen >= 6  # the group's "[align-depth]" and the two "gtforge[dask]", at both widths
+
+
 def test_help_never_cuts_an_option_name_short_on_a_narrow_terminal():
     """At 80 columns typer's boxed table cut long names to "--legacy-patte…" (newcomer run-through): a command whose
     table does not fit gets click's plain help, which wraps; every width shows every option's names whole."""

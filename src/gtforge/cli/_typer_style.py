@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import re
 import shutil
+from contextlib import contextmanager
 
+from rich.markup import escape
 from typer.core import TyperArgument, TyperCommand, TyperGroup
 
 # the commands in the order a lab runs them (help lists them so); any other command follows, in definition order
@@ -72,12 +74,38 @@ def _rich_table_width(cmd, ctx) -> int:
     return 4 + names + 2 + secondary + 2 + metavar + 2 + word + 8  # (+6: rich's own padding, measured)
 
 
+def _escape_markup(obj) -> None:
+    """typer's boxed help reads every help text as rich markup, which dropped a bracketed word ("calibrate ->
+    [align-depth] ->" showed as "calibrate ->  ->"): the texts are escaped once, their plain words kept beside them
+    (``_plain_help``) for click's plain help."""
+    for o in (obj, *getattr(obj, "params", ())):
+        text = getattr(o, "help", None)
+        if text and not hasattr(o, "_plain_help"):
+            o._plain_help = text
+            o.help = escape(text)
+
+
+@contextmanager
+def _plain_texts(cmd):
+    """The command's help texts as written (not escaped for rich) while click's plain help formats them."""
+    objs = [o for o in (cmd, *cmd.params) if hasattr(o, "_plain_help")]
+    escaped = [o.help for o in objs]
+    for o in objs:
+        o.help = o._plain_help
+    try:
+        yield
+    finally:
+        for o, text in zip(objs, escaped):
+            o.help = text
+
+
 class _Command(TyperCommand):
     def format_help(self, ctx, formatter):
         """typer's boxed help where the terminal is wide enough for it; else click's plain help, which wraps
         instead of cutting option names short (``--legacy-patte…`` at 80 columns)."""
         if shutil.get_terminal_size().columns < _rich_table_width(self, ctx):
-            return super(TyperCommand, self).format_help(ctx, formatter)
+            with _plain_texts(self):
+                return super(TyperCommand, self).format_help(ctx, formatter)
         return super().format_help(ctx, formatter)
 
     def collect_usage_pieces(self, ctx) -> list[str]:
@@ -97,11 +125,13 @@ class _Group(TyperGroup):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         _plain_metavars(self.params)
+        _escape_markup(self)
         for cmd in self.commands.values():
             if type(cmd) is TyperCommand:
                 cmd.__class__ = _Command
             _plain_metavars(cmd.params)
             cmd.help = _unwrapped(cmd.help)
+            _escape_markup(cmd)
 
     def parse_args(self, ctx, args: list[str]) -> list[str]:
         """The group's ``-v``/``--verbose`` is taken after the command too (``gtforge build-dataset S -v``, as users

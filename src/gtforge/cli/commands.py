@@ -142,7 +142,7 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
         workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores)."),
         scheduler: Optional[str] = typer.Option(
             None, metavar="ADDRESS", help="Build and verify the scenes on a Dask cluster, e.g. tcp://HOST:8786 (needs "
-            "gtforge\\[dask]; session and output on a filesystem the workers share; docs/cluster.md).")) -> None:
+            "gtforge[dask]; session and output on a filesystem the workers share; docs/cluster.md).")) -> None:
     """Run the whole chain: calibrate -> align-depth (a separate depth camera only) -> validate -> calibrate-scale ->
     refine -> build-dataset -> verify, and write the dataset certificate (DIR/index.html, DIR given by --output). A
     rerun redoes only what changed.
@@ -263,7 +263,7 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
                   workers: Optional[int] = typer.Option(None, min=1, help="Parallel scenes (default: all cores)."),
                   scheduler: Optional[str] = typer.Option(
                       None, metavar="ADDRESS", help="Run the scenes on a Dask cluster, e.g. tcp://HOST:8786 (needs "
-                      "gtforge\\[dask]; session, calibration and output on a filesystem the workers share; "
+                      "gtforge[dask]; session, calibration and output on a filesystem the workers share; "
                       "docs/cluster.md)."),
                   overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild every scene."),
                   strict: bool = typer.Option(False, "--strict", help="Stop at the first bad scene."),
@@ -703,6 +703,7 @@ def _progress_bar():
     import contextlib
     import re
 
+    from rich.markup import escape
     from rich.progress import Progress
 
     if not console.is_terminal:
@@ -714,7 +715,7 @@ def _progress_bar():
         if m:
             key = m.group(1).split(":")[0].strip()
             if key not in tasks:
-                tasks[key] = bar.add_task(key, total=int(m.group(3)))
+                tasks[key] = bar.add_task(escape(key), total=int(m.group(3)))  # (rich reads it as markup)
             bar.update(tasks[key], completed=int(m.group(2)))
     return bar, tick
 
