@@ -99,6 +99,27 @@ def _options(model, **values):
                          repr(err.get("input"))) from None
 
 
+# The board options calibrate, import and synth share (docs/targets.md): one help text each, a command's own note
+# after it.
+_BOARD_HELP = {
+    "board": "checkerboard (default), charuco, circles_symmetric or circles_asymmetric (docs/targets.md).",
+    "cols": "Inner corners along a row (ChArUco: squares; circle grids: circles per row). Default 12.",
+    "rows": "Inner corners along a column (ChArUco: squares; circle grids: rows). Default 9.",
+    "square_mm": "Square size, or circle spacing (mm). Default 20.",
+    "marker_mm": "ChArUco marker side (mm).",
+    "dictionary": "ChArUco ArUco dictionary, e.g. DICT_5X5_100.",
+    "legacy_pattern": "ChArUco board made before OpenCV 4.6 (even rows).",
+    "circle_mm": "Circle diameter (mm; default half the spacing).",
+}
+
+
+def _board_option(name: str, note: str = "", panel: str | None = None):
+    """The typer option of one of the shared board options (``_BOARD_HELP``); ``None`` when not given."""
+    decls = ("--legacy-pattern/--no-legacy-pattern",) if name == "legacy_pattern" else ()
+    return typer.Option(None, *decls, metavar="KIND" if name == "board" else None, rich_help_panel=panel,
+                        help=f"{_BOARD_HELP[name]} {note}".strip())
+
+
 def _board_model(kind, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm):
     """The board the options declare (calibrate's and import's), from the options given only; None where none is."""
     from gtforge.core.targets.models import BoardModel
@@ -179,18 +200,15 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
               report_dir: Optional[Path] = typer.Option(None, metavar="DIR",
                                                         help="Report folder (default: OUTPUT's name + _report, "
                                                              "beside it)."),
-              cols: Optional[int] = typer.Option(None, help="Inner corners along a row (ChArUco: squares; circle "
-                                                 "grids: circles per row). Default 12, or session.yaml's board."),
-              rows: Optional[int] = typer.Option(None, help="Inner corners along a column (ChArUco: squares; circle "
-                                                 "grids: rows). Default 9, or session.yaml's board."),
-              square_mm: Optional[float] = typer.Option(None, help="Square size, or circle spacing (mm). Default 20."),
-              board: Optional[str] = typer.Option(None, metavar="KIND", help="checkerboard (default), charuco, "
-                                                  "circles_symmetric or circles_asymmetric (docs/targets.md)."),
-              marker_mm: Optional[float] = typer.Option(None, help="ChArUco marker side (mm)."),
-              dictionary: Optional[str] = typer.Option(None, help="ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
-              legacy_pattern: Optional[bool] = typer.Option(None, "--legacy-pattern/--no-legacy-pattern",
-                                                            help="ChArUco board made before OpenCV 4.6 (even rows)."),
-              circle_mm: Optional[float] = typer.Option(None, help="Circle diameter (mm; default half the spacing)."),
+              board: Optional[str] = _board_option("board", "Where session.yaml declares the board, its values are "
+                                                   "the defaults of these options."),
+              cols: Optional[int] = _board_option("cols"),
+              rows: Optional[int] = _board_option("rows"),
+              square_mm: Optional[float] = _board_option("square_mm"),
+              marker_mm: Optional[float] = _board_option("marker_mm"),
+              dictionary: Optional[str] = _board_option("dictionary"),
+              legacy_pattern: Optional[bool] = _board_option("legacy_pattern"),
+              circle_mm: Optional[float] = _board_option("circle_mm"),
               use_depth: bool = typer.Option(False, "--use-depth", help="Also solve 3D-2D through the depth camera's "
                                              "board measurement, use it, and report both methods."),
               captures: Optional[str] = typer.Option(None, metavar="NAMES",
@@ -746,16 +764,14 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             zed_calibration: Optional[Path] = typer.Option(None, metavar="FILE", help="The calibration of a ZED .svo2 "
                                                            "(SN<serial>.conf) or ZED SDK export folder (SN<serial>.conf"
                                                            " or rectified YAML)."),
-            board: Optional[str] = typer.Option(None, metavar="KIND", help="The calibration target the board "
-                                                "captures show (default checkerboard 12x9, 20 mm)."),
-            cols: Optional[int] = typer.Option(None, help="Board columns (as calibrate)."),
-            rows: Optional[int] = typer.Option(None, help="Board rows (as calibrate)."),
-            square_mm: Optional[float] = typer.Option(None, help="Square size or circle spacing (mm)."),
-            marker_mm: Optional[float] = typer.Option(None, help="ChArUco marker side (mm; as calibrate)."),
-            dictionary: Optional[str] = typer.Option(None, help="ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
-            legacy_pattern: Optional[bool] = typer.Option(None, "--legacy-pattern/--no-legacy-pattern",
-                                                          help="ChArUco board made before OpenCV 4.6 (even rows)."),
-            circle_mm: Optional[float] = typer.Option(None, help="Circle diameter (mm; default half the spacing)."),
+            board: Optional[str] = _board_option("board", "The target the board captures show."),
+            cols: Optional[int] = _board_option("cols"),
+            rows: Optional[int] = _board_option("rows"),
+            square_mm: Optional[float] = _board_option("square_mm"),
+            marker_mm: Optional[float] = _board_option("marker_mm"),
+            dictionary: Optional[str] = _board_option("dictionary"),
+            legacy_pattern: Optional[bool] = _board_option("legacy_pattern"),
+            circle_mm: Optional[float] = _board_option("circle_mm"),
             classify: bool = typer.Option(True, "--classify/--no-classify",
                                           help="Put captures showing the board into board/ (else all in scenes/).")
             ) -> None:
@@ -832,25 +848,14 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                             "barrel distortion), with its factory SN12345.conf: calibrate rectifies "
                                             "them. Takes --boards, --scenes, --seed, --depth-noise-mm and the board "
                                             "options only."),
-          board: Optional[str] = typer.Option(None, metavar="KIND", rich_help_panel=_TARGET,
-                                              help="checkerboard (default), charuco, circles_symmetric or "
-                                                   "circles_asymmetric (docs/targets.md); session.yaml declares it."),
-          cols: Optional[int] = typer.Option(None, rich_help_panel=_TARGET,
-                                             help="Inner corners along a row (ChArUco: squares; circle grids: "
-                                                  "circles per row). Default 12."),
-          rows: Optional[int] = typer.Option(None, rich_help_panel=_TARGET,
-                                             help="Inner corners along a column (ChArUco: squares; circle grids: "
-                                                  "rows). Default 9."),
-          square_mm: Optional[float] = typer.Option(None, rich_help_panel=_TARGET,
-                                                    help="Square size, or circle spacing (mm). Default 20."),
-          marker_mm: Optional[float] = typer.Option(None, rich_help_panel=_TARGET, help="ChArUco marker side (mm)."),
-          dictionary: Optional[str] = typer.Option(None, rich_help_panel=_TARGET,
-                                                   help="ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
-          legacy_pattern: Optional[bool] = typer.Option(None, "--legacy-pattern/--no-legacy-pattern",
-                                                        rich_help_panel=_TARGET,
-                                                        help="ChArUco board made before OpenCV 4.6 (even rows)."),
-          circle_mm: Optional[float] = typer.Option(None, rich_help_panel=_TARGET,
-                                                    help="Circle diameter (mm; default half the spacing).")
+          board: Optional[str] = _board_option("board", "Written into session.yaml.", _TARGET),
+          cols: Optional[int] = _board_option("cols", panel=_TARGET),
+          rows: Optional[int] = _board_option("rows", panel=_TARGET),
+          square_mm: Optional[float] = _board_option("square_mm", panel=_TARGET),
+          marker_mm: Optional[float] = _board_option("marker_mm", panel=_TARGET),
+          dictionary: Optional[str] = _board_option("dictionary", panel=_TARGET),
+          legacy_pattern: Optional[bool] = _board_option("legacy_pattern", panel=_TARGET),
+          circle_mm: Optional[float] = _board_option("circle_mm", panel=_TARGET),
           ) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures).
 
