@@ -31,7 +31,7 @@ from gtforge.infra.signals import interrupt_deferred
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import IMPORT_LANDING, FileNames, SessionFile, import_partial_folder
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
-from gtforge.io.outputs import free_path, refuse_inside_dataset_folders
+from gtforge.io.outputs import folders_above, free_path, refuse_inside_dataset_folders
 from gtforge.io.recordings import NO_FRAMES_HINT, RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
 from gtforge.io.vendors import load_structured_light_cameras
@@ -634,14 +634,12 @@ def refuse_output_inside(session: Path) -> None:
     into), nor inside the folders build-dataset writes in a dataset; under any spelling of the path (relative, ``..``,
     symbolic links). A one-line error before any work, naming a free place beside."""
     refuse_inside_dataset_folders(session, "--output")
-    for p in (Path(os.path.abspath(session)), Path(os.path.realpath(session))):
-        for a in p.parents:
-            what = "another capture session" if (a / "session.yaml").is_file() else \
-                "a rosbag2 recording's folder" if (a / "metadata.yaml").is_file() else None
-            if what is not None:
-                raise InputError(session, "--output", "a session folder outside other sessions and recordings",
-                                 f"a folder inside {what} ({a})",
-                                 f"write it beside, e.g. {free_path(a.parent, p.name)}")
+    for p, a in folders_above(session):
+        what = "another capture session" if (a / "session.yaml").is_file() else \
+            "a rosbag2 recording's folder" if (a / "metadata.yaml").is_file() else None
+        if what is not None:
+            raise InputError(session, "--output", "a session folder outside other sessions and recordings",
+                             f"a folder inside {what} ({a})", f"write it beside, e.g. {free_path(a.parent, p.name)}")
 
 
 def _summary(session: Path, run: ImportRun, dirs: dict[str, str], warnings: list[str]) -> ImportSummary:

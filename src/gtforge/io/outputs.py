@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 from gtforge.errors import InputError
@@ -35,19 +36,26 @@ def refuse_gtforge_folder(path: str | Path, option: str = "--output") -> None:
 DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verification", "report")
 
 
+def folders_above(path: str | Path) -> Iterator[tuple[Path, Path]]:
+    """``(p, a)`` for each folder ``a`` above ``path``, under both its spellings ``p``: absolute as given, and with
+    symbolic links and ``..`` resolved (a marker file above either makes ``path`` part of what it marks)."""
+    for p in dict.fromkeys((Path(os.path.abspath(path)), Path(os.path.realpath(path)))):
+        for a in p.parents:
+            yield p, a
+
+
 def refuse_inside_dataset_folders(path: str | Path, option: str = "--output") -> None:
     """No stage's output inside the folders build-dataset writes in a dataset (any dataset above ``path``, a run's
     ``dataset/`` too): its files would sit among the scenes and layouts that training code reads. A new folder
     beside them (``DATASET/evaluation``) is fine. Under any spelling of the path (relative, ``..``, symbolic links)."""
-    for p in {Path(os.path.abspath(path)), Path(os.path.realpath(path))}:
-        for a in p.parents:
-            if (a / "manifest.json").is_file():
-                first = p.relative_to(a).parts[0]
-                if first in DATASET_FOLDERS:
-                    raise InputError(path, option, "a path outside the folders build-dataset writes",
-                                     f"a path inside the dataset's {first}/ ({a})",
-                                     "a dataset's scenes and layouts are its own; write beside them, e.g. "
-                                     f"{a / 'evaluation'}")
+    for p, a in folders_above(path):
+        if (a / "manifest.json").is_file():
+            first = p.relative_to(a).parts[0]
+            if first in DATASET_FOLDERS:
+                raise InputError(path, option, "a path outside the folders build-dataset writes",
+                                 f"a path inside the dataset's {first}/ ({a})",
+                                 "a dataset's scenes and layouts are its own; write beside them, e.g. "
+                                 f"{a / 'evaluation'}")
 
 
 def free_path(folder: str | Path, name: str) -> Path:
