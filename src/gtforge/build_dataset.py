@@ -357,7 +357,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
                   warm_up=_warm_up_args(session_dir, calibration))
     params = params or BuildParams()
     if not 0 <= params.split_train + params.split_val <= 1:
-        raise InputError(None, "split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}")
+        raise InputError(None, "--split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}",
+                         "test gets the rest (1 - train - val): e.g. --split 0.8,0.1")
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
     session = open_with_calibration(session_dir, calib)
@@ -367,8 +368,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     session.refuse_output_over_inputs(out)
     if params.crop_wh and (params.crop_wh[0] > session.zed.left.width_px
                            or params.crop_wh[1] > session.zed.left.height_px):
-        raise InputError(None, "--crop", f"at most the ZED image size, {session.zed.left.width_px}x"
-                         f"{session.zed.left.height_px} px", f"{params.crop_wh[0]}x{params.crop_wh[1]} px")
+        size = f"{session.zed.left.width_px}x{session.zed.left.height_px}"
+        raise InputError(None, "--crop", f"at most the ZED image size, {size} px",
+                         f"{params.crop_wh[0]}x{params.crop_wh[1]} px",
+                         f"give --crop WxH within {size}, or build without --crop (--crop kitti is 1242x375)")
     dirs = session.select("scenes", scenes)
     in_session = [d.name for d in session.capture_dirs("scenes")]  # (every scene, whatever --scenes chose)
     _warn_of_fruit_ids(session, in_session)
