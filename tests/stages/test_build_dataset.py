@@ -967,25 +967,15 @@ def test_fruit_ids_that_name_no_scene_or_leave_scenes_out_are_said(session_dir, 
     assert "fruit_ids names" not in caplog.text
 
 
-@pytest.mark.slow
-def test_split_and_crop_refusals_carry_a_hint(tmp_path):
+def test_split_and_crop_refusals_carry_a_hint(session_dir, true_calibration, tmp_path):
     """build-dataset's refusals of --split ratios over 1 and of a --crop larger than the images are one line with a
-    hint, as every bad-input error (docs/conventions.md, "Errors"): both said only expected and got. On the shipped
-    example (ZED 552x310)."""
-    from pathlib import Path
-
-    from gtforge.calibrate import calibrate
-    from gtforge.records.calibration import CalibrateParams
-
-    example = Path(__file__).resolve().parents[2] / "calib_data_examples" / "session"
+    hint, as every bad-input error (docs/conventions.md, "Errors"): both said only expected and got."""
     with pytest.raises(InputError) as e:
-        build_dataset(example, tmp_path / "none.yaml", tmp_path / "ds", BuildParams(split_train=0.9, split_val=0.2))
+        build_dataset(session_dir, tmp_path / "none.yaml", tmp_path / "ds", BuildParams(split_train=0.9, split_val=0.2))
     assert e.value.field == "--split" and e.value.actual == "0.9 + 0.2"
     assert e.value.hint == "test gets the rest (1 - train - val): e.g. --split 0.8,0.1"
-    calib = tmp_path / "calibration.yaml"
-    calibrate(example, calib, CalibrateParams(leave_one_out=False))
     with pytest.raises(InputError) as e:
-        build_dataset(example, calib, tmp_path / "ds", BuildParams(crop_wh=(1242, 375)), workers=1)
+        build_dataset(session_dir, true_calibration, tmp_path / "ds", BuildParams(crop_wh=(1242, 375)), workers=1)
     assert e.value.field == "--crop" and e.value.actual == "1242x375 px"
-    assert e.value.hint == "give --crop WxH within 552x310, or build without --crop (--crop kitti is 1242x375)"
-    assert not (tmp_path / "ds").exists() or not any((tmp_path / "ds").iterdir())
+    assert e.value.hint == "give --crop WxH within 883x497, or build without --crop (--crop kitti is 1242x375)"
+    assert not (tmp_path / "ds").exists()
