@@ -13,39 +13,60 @@ from typing import Iterator
 import numpy as np
 import tifffile
 
-from gtforge.errors import InputError
-from gtforge.io.formats import read_image, read_pfm
+from gtforge.errors import MissingFileError
+from gtforge.io.formats import read_image, read_kitti_disparity, read_pfm
 
 
 class StereoDataset:
     """Scenes of a built dataset as numpy dicts: left, right (H, W, 3 uint8), disparity (float32, NaN
     invalid), valid (bool), weight (float32 SGRA weights), sigma (float32 1-sigma GT uncertainty in px, +inf where
-    there is no ground truth; None for datasets built without it)."""
+    there is no ground truth; None for datasets built without it).
+
+    ``split``: a list in ``OUT/filenames/``: ``train``, ``val``, ``test`` (Middlebury layout, PFM disparity) or
+    ``kitti_train`` ... (the KITTI view, disparity from its 16-bit PNG, quantised to 1/256 px); None: every scene in
+    ``OUT/scenes/``."""
 
     def __init__(self, root: str | Path, split: str | None = "train"):
         self.root = Path(root)
+        # a KITTI list (filenames/kitti_<split>.txt) names files under OUT/kitti, its disparity a KITTI PNG
+        self.kitti = bool(split) and split.startswith("kitti_")
         if split:
             lst = self.root / "filenames" / f"{split}.txt"
             if not lst.is_file():
-                raise InputError(lst, None, f"a '{split}' list", "no such file")
+                raise MissingFileError(lst, None, f"a '{split}' list", hint="the dataset folder build-dataset -o "
+                                       "wrote, and a split it lists: train, val, test or kitti_train, kitti_val, "
+                                       "kitti_test")
             self.items = [l.split() for l in lst.read_text().splitlines() if l.strip()]
         else:
-            ids = sorted(p.name for p in (self.root / "scenes").iterdir() if p.is_dir() and not p.name.startswith("."))
+            scenes = self.root / "scenes"
+            if not scenes.is_dir():
+                raise MissingFileError(scenes, None, "a built dataset's scenes folder",
+                                       hint="the dataset folder build-dataset -o wrote")
+            ids = sorted(p.name for p in scenes.iterdir() if p.is_dir() and not p.name.startswith("."))
             self.items = [[f"scenes/{s}/im0.png", f"scenes/{s}/im1.png", f"scenes/{s}/disp0GT.pfm"] for s in ids]
 
     def __len__(self) -> int:
         return len(self.items)
 
     def __getitem__(self, i: int) -> dict:
-        l, r, d = (self.root / p for p in self.items[i])
-        disp = read_pfm(d)
-        w = tifffile.imread(d.parent / "weight.tiff").astype(np.float32)
+        base = self.root / "kitti" if self.kitti else self.root
+        l, r, d = (base / p for p in self.items[i])
+        if self.kitti:  # training/disp_occ_0/<id>_10.png: the scene's weight and sigma are in scenes/<id>/
+            disp = read_kitti_disparity(d)
+            scene = self.root / "scenes" / d.stem.removesuffix("_10")
+        else:
+            disp = read_pfm(d)
+            scene = d.parent
+        if not (scene / "weight.tiff").is_file():
+            raise MissingFileError(scene / "weight.tiff", None, "the scene's SGRA weight map",
+                                   hint="rebuild the scene: gtforge build-dataset writes it")
+        w = tifffile.imread(scene / "weight.tiff").astype(np.float32)
         sigma = None
-        if (d.parent / "disp0GT_sigma.pfm").is_file():
-            sigma = read_pfm(d.parent / "disp0GT_sigma.pfm")
+        if (scene / "disp0GT_sigma.pfm").is_file():
+            sigma = read_pfm(scene / "disp0GT_sigma.pfm")
             sigma[~np.isfinite(sigma)] = np.inf  # the file's +inf (no GT) reads as NaN: keep it +inf
         return {"left": read_image(l), "right": read_image(r), "disparity": disp, "valid": np.isfinite(disp),
-                "weight": w, "sigma": sigma, "scene": d.parent.name}
+                "weight": w, "sigma": sigma, "scene": scene.name}
 
     def __iter__(self) -> Iterator[dict]:
         for i in range(len(self)):
