@@ -163,3 +163,32 @@ def test_sigma_thumbnail_pixels(tmp_path, monkeypatch):
     want = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1] * np.isfinite(s)[..., None]
     assert written["rgb"].shape == (45, 640, 3) and (~np.isfinite(s)).any()
     np.testing.assert_array_equal(written["rgb"], want)
+
+
+def test_comparison_and_results_pages_never_round_a_share_onto_100(tmp_path):
+    """compare's comparison.html (and evaluate's results.html) showed a coverage of 99.997 % as '100' (4 significant
+    digits) while results.json and comparison.md said 99.997: an incomplete coverage read as complete."""
+    from gtforge.core.measure.metrics import Metrics
+    from gtforge.records.evaluation import EvalResult, SceneResult
+    from gtforge.reports.evaluation import tables_markdown, write_comparison_html, write_eval_html
+
+    def metrics(cov):
+        return Metrics(n_gt=300000, n_valid=299991, coverage_pct=cov, epe_px=0.17, rmse_px=0.28, bad_0_5_pct=1.244,
+                       bad_1_0_pct=0.0002, bad_2_0_pct=0.0, bad_4_0_pct=0.0, bad_0_5_all_pct=None,
+                       bad_1_0_all_pct=None, bad_2_0_all_pct=None, bad_4_0_all_pct=None, a50_px=None, a90_px=None,
+                       a95_px=None, a99_px=None)
+
+    regions = {r: metrics(99.997) for r in ("all", "fruit", "fruit_edge", "fruit_centre")}
+    rep = EvalResult(model="m", provider="cpu", dataset_dir="/d", scenes=["000"], pooled=regions,
+                     per_image_mean=regions, per_scene=[SceneResult(scene="000", time_ms=1.0, metrics=regions)])
+    page = write_comparison_html([rep], [tmp_path / "results.json"], ["m"], [], tmp_path / "comparison.html")
+    row = _row(page.read_text(), "m")
+    # region, GT pixels, EPE, RMSE, Bad-0.5, Bad-1.0, Bad-2.0, coverage, depth MAE, time
+    assert row[4:8] == ["1.244", "&lt; 0.001", "0.000", "99.997"]
+    md_row = next(line for line in tables_markdown([rep]).splitlines() if line.startswith("| m | all |"))
+    assert md_row.split(" | ")[5:9] == ["1.244", "< 0.001", "0.000", "99.997"]
+    rep.pooled["all"] = rep.per_scene[0].metrics["all"] = metrics(99.9996)
+    (tmp_path / "ev").mkdir()
+    page = write_eval_html(rep, tmp_path / "ev").read_text()
+    assert _row(page, "all")[-2] == "&gt; 99.999"  # the pooled table's coverage (then depth MAE)
+    assert _row(page, "000")[4] == "&gt; 99.999"  # the per-scene table's

@@ -19,7 +19,7 @@ from gtforge.core.measure.metrics import Metrics
 from gtforge.infra.atomic import atomic_write_text
 from gtforge.records.evaluation import DEPTH_ERROR_MAP_PERCENTILE, DISP_ERROR_MAP_MAX_PX, TABLE_REGIONS, EvalResult
 from gtforge.reports.fruit_size import comparison_section, fruit_markdown, fruit_section
-from gtforge.reports.html import Section, note, standard_header, table, write_html
+from gtforge.reports.html import Section, note, pct_text, standard_header, table, write_html
 
 ERROR_CMAP = "turbo"
 PREVIEW_MAX_WH = (360, 250)  # preview size limit (px); crops smaller than this are enlarged at most 4x
@@ -160,6 +160,13 @@ def _rows(reports: list[EvalResult], labels: list[str] | None = None, regions=TA
             yield row
 
 
+def _pct_cells(head: list[str], rows) -> list[list]:
+    """The rows with their Bad-x and coverage shares as ``pct_text`` (the table's 4 significant digits showed a
+    coverage of 99.997 % as 100)."""
+    pct = [k for k, h in enumerate(head) if h.endswith("(%)")]
+    return [[pct_text(v) if k in pct else v for k, v in enumerate(row)] for row in rows]
+
+
 def _notes(reports: list[EvalResult]) -> list[str]:
     out = [POOLED_NOTE, DEPTH_NOTE]
     for rep in reports:
@@ -177,7 +184,7 @@ def tables_markdown(reports: list[EvalResult], labels: list[str] | None = None,
     h = headers(reports)
     lines = [f"> warning: {w}" for w in warnings or []] + ([""] if warnings else [])
     lines += ["| " + " | ".join(h) + " |", "|" + "---|" * len(h)]
-    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in _rows(reports, labels)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in _pct_cells(h, _rows(reports, labels))]
 
     fruit = fruit_markdown(reports, labels)
     return "\n".join(lines) + "\n\n" + "\n\n".join(_notes(reports)) + "\n" + ("\n" + fruit if fruit else "")
@@ -238,17 +245,17 @@ def _scene_maps(rep: EvalResult, out: Path, max_scenes: int) -> str:
 def write_eval_html(rep: EvalResult, out: Path, max_scenes: int = MAX_SCENES_SHOWN) -> Path:
     """``results.html``: header, pooled table, per-scene table (worst EPE first), error-map previews."""
     head = headers([rep])[1:-1]  # no model column (one model), no time column (in the heading)
-    rows = [row[1:-1] for row in _rows([rep], regions=tuple(rep.pooled))]
+    rows = _pct_cells(head, [row[1:-1] for row in _rows([rep], regions=tuple(rep.pooled))])
     main = table(head, rows, fmt="{:.4g}") + "".join(note(n) for n in _notes([rep]))
     worst = sorted(rep.per_scene, key=lambda s: -(s.metrics["all"].epe_px or 0.0))
     scene_rows = [[s.scene, s.metrics["all"].epe_px, s.metrics["all"].bad_2_0_pct, s.metrics["fruit"].epe_px,
                    s.metrics["fruit"].depth_mae_mm, s.metrics["all"].coverage_pct, s.time_ms] for s in worst]
+    scene_head = ["scene", "EPE all (px)", "Bad-2.0 all (%)", "EPE fruit (px)", "depth MAE fruit (mm)", "coverage (%)",
+                  "time (ms)"]
     sections = [
         Section(f"{rep.model}: {len(rep.scenes)} scene(s), median {rep.time_ms_median or 0:.1f} ms/frame "
                 f"({rep.provider})", main),
-        Section("Per scene, worst EPE first", table(
-            ["scene", "EPE all (px)", "Bad-2.0 all (%)", "EPE fruit (px)", "depth MAE fruit (mm)", "coverage (%)",
-             "time (ms)"], scene_rows)),
+        Section("Per scene, worst EPE first", table(scene_head, _pct_cells(scene_head, scene_rows))),
         Section("Error maps", _scene_maps(rep, out, max_scenes)),
     ]
 
@@ -327,7 +334,7 @@ def write_comparison_html(reports: list[EvalResult], files: list[Path], labels: 
         sections.append(Section("Warnings", "".join(f'<p class="warn">{html.escape(w)}</p>' for w in warnings),
                                 status="warn"))
     h = headers(reports)
-    sections.append(Section("Pooled results", table(h, list(_rows(reports, labels))) +
+    sections.append(Section("Pooled results", table(h, _pct_cells(h, _rows(reports, labels))) +
                             "".join(note(n) for n in _notes(reports))))
 
     fruit = comparison_section(reports, labels)

@@ -49,6 +49,20 @@ def fmt_value(v: Any, fmt: str = "{:.4g}") -> str:
     return str(v)
 
 
+def pct_text(v: Any, decimals: int = 3) -> Any:
+    """A share in % as text with ``decimals`` decimals, never rounded onto 0 or 100 when it is not exactly that
+    (a coverage of 99.997 % is not "100"): ``> 99.999`` / ``< 0.001`` instead. None/NaN are returned as they are
+    (the table shows its dash)."""
+    if v is None or not math.isfinite(float(v)):
+        return v
+    v = float(v)
+    text = f"{v:.{decimals}f}"
+    step = f"{10.0 ** -decimals:.{decimals}f}"
+    if 0.0 < v < 100.0 and float(text) in (0.0, 100.0):
+        return f"< {step}" if float(text) == 0.0 else f"> {100.0 - 10.0 ** -decimals:.{decimals}f}"
+    return text
+
+
 def fig_to_png(fig, dpi: int = 100) -> bytes:
     import matplotlib.pyplot as plt
 
