@@ -58,7 +58,13 @@ from gtforge.dataset.scene_verification import verify_scene, zed_rows_used
 from gtforge.errors import InputError, Interrupted, first_of
 from gtforge.infra.atomic import atomic_copy_file, atomic_write_buffer, atomic_write_text, private_folder
 from gtforge.infra.digest import sha256_file
-from gtforge.infra.scheduling import check_scheduler_address, prestart_pool, release_written_pages, run_tasks
+from gtforge.infra.scheduling import (
+    SchedulerLost,
+    check_scheduler_address,
+    prestart_pool,
+    release_written_pages,
+    run_tasks,
+)
 from gtforge.infra.unbuffered import background_writes
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.formats import (
@@ -431,10 +437,16 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         try:
             run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost,
                       heap_bytes=scene_heap_bytes(session.zed.left))
+        except SchedulerLost as exc:
+            stopped = exc
         except InputError:  # the cluster could not be reached
             remove_if_empty(made)
             raise
         except (KeyboardInterrupt, Interrupted):
+            stopped = None
+        else:
+            stopped = False
+        if stopped is not False:  # Ctrl-C (None) or the Dask scheduler gone: keep what is complete
             for a in args:  # scenes a worker finished whose result had not reached this process: complete all the same
                 if a[2] not in metas and a[2] not in failures:
                     meta = landed_meta(out, a[2], before[a[2]], phash, calib_sha, expected)
@@ -445,6 +457,8 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
             detail = (f"{len(built)} scene(s) built in this run and complete, "
                       f"{len(args) - len(built) - len(failures)} not built")
+            if stopped is not None:
+                raise SchedulerLost(stopped.address, stopped.cause, detail) from None
             raise Interrupted(f"interrupted: {detail}; rerun the same command to resume", detail) from None
     splits, flagged, quarantined = finish_dataset(out, session_dir, calib_path, calib_sha, params, metas, failures,
                                                   unchanged, recovered)

@@ -346,3 +346,52 @@ def test_stale_cleanup_spares_a_live_writer(tmp_path):
     unlock_writer(scenes, "007", "abc", fd)
     remove_stale_entries(tmp_path)
     assert list(scenes.iterdir()) == []
+
+
+def test_a_scheduler_stopped_mid_run_is_one_line(tmp_path):
+    """The scheduler stopped while tasks were on it: the run ended in a traceback of Dask's internals
+    (CommClosedError from client.nthreads(), exit 1), build-dataset writing no manifest and leaving its scenes' locks.
+    Now one line (SchedulerLost, an InputError: exit 2) naming the scheduler, and the results that came back stand."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT="3s")
+    dask_cli = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    sched = subprocess.Popen([*dask_cli, "--host", "127.0.0.1", "--port", str(port), "--dashboard-address",
+                              "127.0.0.1:0"], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                               "--no-nanny", "--no-dashboard"], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    results = []
+
+    def on_result(res):
+        results.append(res)
+        if len(results) == 1:  # the scheduler goes with tasks still queued
+            sched.kill()
+            sched.wait()
+
+    import dask
+
+    try:
+        with dask.config.set({"distributed.comm.timeouts.connect": "30s"}):  # (the worker starts within it)
+            from gtforge.infra.scheduling import connect_scheduler
+
+            connect_scheduler(address).close()
+        with dask.config.set({"distributed.comm.timeouts.connect": "3s"}):
+            with pytest.raises(InputError) as err:
+                run_tasks(time.sleep, [(0.3,)] * 20, on_result, scheduler=address)
+    finally:
+        for p in (worker, sched):
+            p.kill()
+            p.wait()
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"--scheduler: expected the Dask scheduler at {address} for the whole run, got the "
+                          "connection lost (")
+    assert msg.endswith("(hint: restart the scheduler and its workers (docs/cluster.md) and rerun the same command: "
+                        "it resumes with the work not done)")
+    assert results == [None]

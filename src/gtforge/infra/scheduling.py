@@ -238,6 +238,19 @@ def limit_threads(n_threads: int) -> None:
         pass
 
 
+class SchedulerLost(InputError):
+    """The Dask scheduler went away (stopped, restarted, its machine or the network lost) while a run's tasks were on
+    it. One line, exit code 2 as for an unreachable scheduler. The tasks already finished are complete: the caller
+    keeps them (build-dataset writes its manifest, verify its journal) and says so in ``done``."""
+
+    def __init__(self, address: str, cause: str, done: str | None = None):
+        self.address, self.cause = address, cause
+        super().__init__(None, "--scheduler", f"the Dask scheduler at {address} for the whole run",
+                         f"the connection lost ({cause})" + (f" after {done}" if done else ""),
+                         "restart the scheduler and its workers (docs/cluster.md) and rerun the same command: it "
+                         "resumes with the work not done")
+
+
 LOST_REASON = "a worker process died while running it (out of memory? killed?); rerun to build it"
 
 
@@ -262,7 +275,7 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
     if scheduler:
         client = connect_scheduler(scheduler)
         try:
-            _run_on_cluster(client, fn, arg_list, on_result, lost_result)
+            _run_on_cluster(client, fn, arg_list, on_result, lost_result, scheduler)
         finally:
             client.close(timeout=10)
         return
@@ -555,13 +568,14 @@ def connect_scheduler(address: str, timeout_s: float | None = None) -> Client:
 
 
 def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[tuple],
-                    on_result: Callable[[Any], None], lost_result: Callable[[tuple, str], Any] | None) -> None:
+                    on_result: Callable[[Any], None], lost_result: Callable[[tuple, str], Any] | None,
+                    scheduler_address: str = "") -> None:
     from distributed import KilledWorker, as_completed
     from distributed.comm import get_address_host
 
     threads_by_host: dict[str, int] = {}
-    for address, n in client.nthreads().items():
-        host = get_address_host(address)
+    for worker_address, n in client.nthreads().items():
+        host = get_address_host(worker_address)
         threads_by_host[host] = threads_by_host.get(host, 0) + n
     import uuid
 
@@ -597,18 +611,36 @@ def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[t
                                                 f"memory? see the workers' logs"))
                     continue
             elif f.status == "cancelled" and lost_result is not None:
+                if client.status != "running":  # the client gave up on the scheduler: every other task goes too
+                    raise SchedulerLost(scheduler_address or str(client.scheduler.address), f"client {client.status}")
                 on_result(lost_result(args, "cancelled on the Dask cluster (scheduler restarted or connection lost)"))
                 continue
             result = f.result()  # re-raises the task's own exception, with its remote traceback
             f.release()
             on_result(result)
-    except BaseException:
+    except BaseException as exc:
+        lost = None
+        if not isinstance(exc, (KeyboardInterrupt, SchedulerLost)) and (
+                _is_comm_error(exc) or client.status != "running"):
+            # (the scheduler gone: Dask's CommClosedError from the next call, or a cancelled future once the client
+            # stopped reconnecting; a traceback of Dask's internals said nothing the user can act on)
+            lost = SchedulerLost(scheduler_address or str(client.scheduler.address), type(exc).__name__)
         if pending:
             try:
                 client.cancel(list(pending), force=True)
             except OSError:  # the scheduler is gone too (CommClosedError, timeout): nothing left to cancel
                 pass
+        if lost is not None:
+            raise lost from None
         raise
+
+
+def _is_comm_error(exc: BaseException) -> bool:
+    """A failure to talk to the scheduler (not a task's own error, which Dask re-raises as the task raised it)."""
+    from distributed.comm import CommClosedError
+
+    return isinstance(exc, (CommClosedError, TimeoutError)) or (
+        isinstance(exc, OSError) and type(exc).__module__.startswith(("distributed", "tornado")))
 
 
 def _run_on_worker(fn: Callable[..., Any], args: tuple, threads_by_host: dict[str, int]) -> Any:
