@@ -58,9 +58,11 @@ def _drop_time(x):
 
 def _text(path: Path, root: Path) -> str:
     s = path.read_text(errors="replace")
-    # the absolute form first: a relative folder is part of it, and replaced first would leave "/abs/path/RUN"
+    # the absolute form first: a relative folder is part of it, and replaced first would leave "/abs/path/RUN". Only
+    # where it stands as a path: a short relative name ("r2") also occurs inside words and embedded base64 images,
+    # which replaced there differed from the other run's (a folder "rI4") though the files were the same
     for r in sorted({str(root), str(root.resolve())}, key=len, reverse=True):
-        s = s.replace(r, "RUN")
+        s = re.sub(r"(?<![\w/.+=-])" + re.escape(r) + r"(?![\w.+=-])", "RUN", s)
     return s
 
 

@@ -58,3 +58,19 @@ def test_folders_given_relative_are_replaced_in_both_forms(tmp_path, monkeypatch
     assert compare(Path("a"), Path("bb")) == []
     text = sys.modules["compare_outputs"]._text(Path("a") / "meta.json", Path("a"))
     assert "RUN/session" in text and str(tmp_path) not in text
+
+
+def test_a_short_folder_name_is_replaced_only_where_it_is_a_path(tmp_path, monkeypatch):
+    """Run folders 'r2' and 'rI4' holding the same report: 'r2' was replaced everywhere in the text, inside embedded
+    base64 images and words too, so the same page read as different ('text differs at line 20')."""
+    compare = _compare()
+    disp = np.linspace(10, 20, 48, dtype=np.float32).reshape(6, 8)
+    for name in ("r2", "rI4"):
+        root = _run(tmp_path / name, disp, 0.125, 1.5, "2026-12-02 14:00")
+        (root / "report.html").write_text(f'<p>see {root}/meta.json and {name}/meta.json</p>'
+                                          '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>')
+    monkeypatch.chdir(tmp_path)
+    assert compare(Path("r2"), Path("rI4")) == []
+    text = sys.modules["compare_outputs"]._text(Path("r2") / "report.html", Path("r2"))
+    assert text == ('<p>see RUN/meta.json and RUN/meta.json</p>'
+                    '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>')
