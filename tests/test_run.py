@@ -383,3 +383,17 @@ def test_a_session_yaml_given_as_the_calibration_is_called_another_kind_of_file(
         CalibrationFile.read(report)
     assert "got a file of another kind (its fields: xy, z; missing: rig" in str(err.value)
     assert len(str(err.value)) < 600
+
+
+def test_a_run_stopped_in_its_first_stage_names_no_state_file(tmp_path):
+    """Ctrl-C during calibrate, before any stage was recorded: the run's new folder is removed on the way out, so the
+    message does not send the user to OUT/run_state.json (it did); the next run starts from nothing."""
+    def stop(msg):
+        raise Interrupted(INTERRUPTED)
+
+    out = tmp_path / "out"
+    with pytest.raises(Interrupted) as raised:
+        run_session(EXAMPLE, out, OPTS, say=lambda s: None, progress=stop)
+    assert str(raised.value) == ("interrupted during or right after calibrate: no stage was recorded yet; run the same "
+                                 "command again to start the run")
+    assert not out.exists()

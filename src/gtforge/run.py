@@ -367,9 +367,12 @@ class _Run:
                 self.save()
                 # one message: what the stage said is complete (build-dataset counts its scenes), then how to resume
                 detail = getattr(exc, "detail", None)
-                message = (f"interrupted during or right after {name}" + (f" ({detail})" if detail else "")
-                           + f": every stage recorded in {out / STATE} is complete (each writes its files whole); "
-                           "run the same command again to resume: it redoes only what is not")
+                message = f"interrupted during or right after {name}" + (f" ({detail})" if detail else "")
+                if self.state.stages:
+                    message += (f": every stage recorded in {out / STATE} is complete (each writes its files whole); "
+                                "run the same command again to resume: it redoes only what is not")
+                else:  # (a folder this run made is removed on the way out: no run_state.json to name)
+                    message += ": no stage was recorded yet; run the same command again to start the run"
                 if isinstance(exc, Interrupted):  # the command prints it
                     raise Interrupted(message) from None
                 self.say(message)
