@@ -14,7 +14,7 @@ from gtforge.dataset.motion_compensation import moved_fruit_of
 from gtforge.dataset.scene_verification import verify_scene, write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_split_views
 from gtforge.dataset.worker_cache import cached_calibration, cached_session, scene_heap_bytes
-from gtforge.errors import InputError, Interrupted
+from gtforge.errors import InputError, Interrupted, first_of
 from gtforge.infra.digest import sha256_file
 from gtforge.infra.scheduling import prestart_pool, run_tasks
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
@@ -74,8 +74,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     if unknown:
         known = sorted(man.scenes)
         raise InputError(man_path, "--scenes", "scenes of this dataset", ", ".join(repr(s) for s in unknown),
-                         f"its scenes: {', '.join(known[:8])}{' ...' if len(known) > 8 else ''} (comma-separated, "
-                         "no spaces or empty names)")
+                         f"its scenes: {first_of(known)} (comma-separated, no spaces or empty names)")
     old = {}
     rep_path = ds / "verification.json"
     if rep_path.is_file():
@@ -210,6 +209,9 @@ def verify_one_scene(session_dir: str, dataset_dir: str, sid: str, calib_path: s
                  else CalibrationFile.read(calib_path))
         session = cached_session(session_dir, calib)
         rig = calib.rig
+        if not s.is_dir():
+            raise InputError(s, None, "the scene's folder (manifest.json lists it)", "no such folder",
+                             "rerun gtforge build-dataset with the same options: it builds the scenes a dataset lacks")
         meta = SceneMeta.read(s / "meta.json")
         folder = session.root / session.config.scenes_dir / sid
         if not folder.is_dir():

@@ -222,6 +222,9 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     # a looser threshold lets them through
     r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1", "--max-shift-px", "2"])
     assert r.exit_code == 0 and "0 flagged" in r.output
+    # one scene checked again: the count says so (it said 3, the scenes the merged report holds)
+    r = CliRunner().invoke(app, ["verify", str(out), "--workers", "1", "--max-shift-px", "2", "--scenes", "001"])
+    assert r.exit_code == 0 and "verified 1 scene(s), the report holds 3: 0 flagged" in r.output, r.output
     # a verification.json of schema 1 (figures before issue 41) cannot be merged: verifying one scene verifies all
     old = json.loads((out / "verification.json").read_text())
     old["schema_version"] = 1
@@ -229,6 +232,12 @@ def test_build_flags_and_quarantines_and_verify_cli(moved_session, session_dir, 
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)
     assert sorted(rep.scenes) == ["000", "001", "clean"] and sorted(rep.flagged) == ["000", "001"]
     assert VerificationResult.read(out / "verification.json").schema_version == 3
+    # a scene folder of the dataset deleted: not verifiable, and the hint says what writes it again
+    shutil.move(out / "scenes" / "001", tmp_path / "001_aside")
+    rep = verify_dataset(out, VerifyParams(), scenes=["001"], workers=1)
+    assert rep.scenes["001"].status == "not verifiable"
+    assert "no such folder (hint: rerun gtforge build-dataset with the same options" in rep.scenes["001"].reasons[0]
+    shutil.move(tmp_path / "001_aside", out / "scenes" / "001")
     # the captures moved away: a per-scene reason, no traceback; a missing session: one-line error, exit 2
     shutil.rmtree(sess / "scenes" / "clean")
     rep = verify_dataset(out, VerifyParams(), scenes=["clean"], workers=1)

@@ -378,7 +378,9 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
                          quarantine, _status)
     n_nv = sum(v.status == "not verifiable" for v in rep.scenes.values())
     flagged = rep.flagged
-    out.print(f"verified {len(rep.scenes)} scene(s): {len(flagged)} flagged, {n_nv} not verifiable; "
+    checked = len(set(scenes.split(","))) if scenes else len(rep.scenes)
+    held = f", the report holds {len(rep.scenes)}" if checked != len(rep.scenes) else ""  # (--scenes: merged in)
+    out.print(f"verified {checked} scene(s){held}: {len(flagged)} flagged, {n_nv} not verifiable; "
               f"report: {dataset / 'verification.html'}")
     for sid, reasons in flagged.items():
         out.print(f"  {sid}: " + "; ".join(reasons))
