@@ -109,3 +109,16 @@ def test_a_type_only_import_is_an_edge(tmp_path):
     modules, edges = g.graph(pkg)
     assert g.circles(edges) == [["gtforge.core.a", "gtforge.records.b"]]
     assert g.upward(edges, LAYERS) == [("gtforge.core.a", 3, "gtforge.records.b")]
+
+
+def test_every_module_over_500_lines_says_why_in_the_docs():
+    """docs/architecture.md, "Modules over 500 lines", names each such module with why it stays one (eight had grown
+    past 500 unlisted); a module it names exists."""
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    section = doc.split("## Modules over 500 lines", 1)[1].split("\n## ", 1)[0]
+    long = {p.relative_to(SRC).as_posix() for p in SRC.rglob("*.py")
+            if len(p.read_text().splitlines()) > 500}
+    named = {line.split("`")[1] for line in section.splitlines() if line.startswith("- `")}
+    assert long <= named, sorted(long - named)
+    assert all((SRC / n).is_file() for n in named), sorted(n for n in named if not (SRC / n).is_file())
+    assert len(long) >= 10  # (the check sees them)
