@@ -436,7 +436,9 @@ def test_a_16_bit_colour_png_where_one_channel_is_expected_is_named_as_it_is(tmp
     cv2.imwrite(str(p), np.full((20, 30, 3), 40000, np.uint16))
     with pytest.raises(InputError) as e:
         read_image(p, expect="uint16")
-    assert str(e.value) == f"{p}: expected a 16-bit single-channel PNG, got a 16-bit RGB PNG (30x20 px)"
+    assert str(e.value) == (f"{p}: expected a 16-bit single-channel PNG, got a 16-bit RGB PNG (30x20 px) (hint: write "
+                            "it as a 16-bit greyscale PNG (a uint16 array through cv2.imwrite); an 8-bit or colour "
+                            "export has lost the values)")
     cv2.imwrite(str(p), np.full((20, 30, 3), 200, np.uint8))  # an 8-bit one: as before
     with pytest.raises(InputError, match=r"got uint8 with shape \(20, 30, 3\)"):
         read_image(p, expect="uint16")

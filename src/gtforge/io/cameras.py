@@ -47,9 +47,11 @@ def _load_yaml_any(path: Path) -> dict:
     try:
         data = load_yaml(text)
     except yaml.YAMLError as exc:
-        raise InputError(path, None, "valid YAML", f"a parse error ({str(exc).splitlines()[0]})") from None
+        raise InputError(path, None, "valid YAML", f"a parse error ({str(exc).splitlines()[0]})",
+                         "fix the YAML at the line named; the formats read: docs/capture-layout.md") from None
     if not isinstance(data, dict):
-        raise InputError(path, None, "a YAML mapping", type(data).__name__)
+        raise InputError(path, None, "a YAML mapping", type(data).__name__,
+                         "write a ROS camera_info, OpenCV FileStorage or gtforge camera YAML (docs/capture-layout.md)")
     return data
 
 
@@ -62,7 +64,8 @@ def _matrix(data: dict, keys: tuple[str, ...], shape: tuple[int, int], path: Pat
             a = np.asarray(v, dtype=np.float64).reshape(-1) if v is not None else np.zeros(0)
             n = shape[0] * shape[1]
             if a.size < n:
-                raise InputError(path, k, f"{n} numbers", f"{a.size}")
+                raise InputError(path, k, f"{n} numbers", f"{a.size}",
+                                 f"write the whole {shape[0]}x{shape[1]} matrix, row by row; is the export truncated?")
             a = a[:n].reshape(shape)
             if not np.all(np.isfinite(a)):
                 raise InputError(path, k, "finite numbers", "NaN/inf", "the calibration export is broken")
@@ -83,7 +86,8 @@ def _distortion(data: dict, path: Path) -> np.ndarray:
             a = np.zeros(0) if v is None else np.asarray(v, dtype=np.float64).reshape(-1)
             if a.size not in DIST_LENGTHS:
                 raise InputError(path, k, f"{'/'.join(map(str, DIST_LENGTHS[1:]))} distortion coefficients "
-                                 "(OpenCV order: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]])", f"{a.size}")
+                                 "(OpenCV order: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]])", f"{a.size}",
+                                 "export the camera's OpenCV lens model (docs/cameras.md 'Lens models')")
             if not np.all(np.isfinite(a)):
                 raise InputError(path, k, "finite numbers", "NaN/inf", "the calibration export is broken")
             return a
@@ -94,14 +98,17 @@ def _size(data: dict, path: Path) -> tuple[int, int]:
     w = data.get("image_width", data.get("width"))
     h = data.get("image_height", data.get("height"))
     if w is None or h is None:
-        raise InputError(path, "image_width/image_height", "the image size", "missing")
+        raise InputError(path, "image_width/image_height", "the image size", "missing",
+                         "add image_width and image_height: the size in px of the images this calibration is for")
     return int(w), int(h)
 
 
 def _opencv_fs(path: Path) -> dict:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     if not fs.isOpened():
-        raise InputError(path, None, "an OpenCV FileStorage file", "unreadable")
+        raise InputError(path, None, "an OpenCV FileStorage file", "unreadable",
+                         "check that it opens with cv2.FileStorage, or export ROS camera_info or gtforge YAML "
+                         "(docs/capture-layout.md)")
     out = {}
     for key in ("camera_matrix", "distortion_coefficients", "projection_matrix_right", "P2"):
         node = fs.getNode(key)
@@ -353,7 +360,8 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
     try:
         cp.read_string(path.read_text(errors="replace"))
     except configparser.Error as exc:
-        raise InputError(path, None, "an INI file", f"a parse error ({str(exc).splitlines()[0]})") from None
+        raise InputError(path, None, "an INI file", f"a parse error ({str(exc).splitlines()[0]})",
+                         "the conf file is damaged: download it again from the ZED calibration server") from None
     sections = {s.upper(): s for s in cp.sections()}
 
     def get(section: str, key: str) -> float:
@@ -368,7 +376,8 @@ def read_zed_conf(path: str | Path, eye_width_px: int) -> ZedFactoryCalibration:
         try:
             val = float(raw)
         except ValueError:
-            raise InputError(path, f"[{section}] {key}", "a number", repr(raw)) from None
+            raise InputError(path, f"[{section}] {key}", "a number", repr(raw),
+                             "the conf file is corrupt: download it again from the ZED calibration server") from None
         if not math.isfinite(val):
             raise InputError(path, f"[{section}] {key}", "a finite number", repr(raw), "the conf file is corrupt")
         return val

@@ -48,7 +48,9 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
         raise MissingFileError(path, field, "a depth map file", hint="check the capture folder / session.yaml")
     suf = path.suffix.lower()
     if suf not in DEPTH_SUFFIXES:
-        raise InputError(path, field, f"a depth map ({', '.join(DEPTH_SUFFIXES)})", f"'{suf}'")
+        raise InputError(path, field, f"a depth map ({', '.join(DEPTH_SUFFIXES)})", f"'{suf}'",
+                         "export float32 TIFF (mm), 16-bit PNG (with depth_scale_mm) or .npy; session.yaml's "
+                         "files.mech_depth names it (docs/capture-layout.md)")
     try:
         source = path if data is None else io.BytesIO(data)
         if suf in (".tif", ".tiff"):
@@ -75,7 +77,8 @@ def read_depth(path: str | Path, depth_unit: Literal["mm", "m"] = "mm", depth_sc
         scale = np.float32(depth_scale_mm)
     else:
         if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
-            raise InputError(path, field, "numeric depth", str(a.dtype))
+            raise InputError(path, field, "numeric depth", str(a.dtype),
+                             "write the depth as float32 mm (TIFF, .npy) or uint16 counts (PNG with depth_scale_mm)")
         scale = np.float32(1.0)
     if a.dtype not in (np.float32, np.uint16):  # the two types depth files come in: no other kernel compiled
         a = a.astype(np.float32)
@@ -154,7 +157,8 @@ def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: s
     if img.dtype == np.uint16:  # some Mech-Eye exports are 16-bit grey
         img = (img / 257.0).round().astype(np.uint8)
     if img.dtype != np.uint8:
-        raise InputError(path, field, "an 8/16-bit image", str(img.dtype))
+        raise InputError(path, field, "an 8/16-bit image", str(img.dtype),
+                         "export the texture as an 8- or 16-bit PNG (Mech-Eye's 2DImage.png)")
     if camera is not None:
         camera.check_image_size(img.shape, path, "texture image")
     return img
@@ -164,7 +168,8 @@ def read_texture(path: str | Path, camera: PinholeCamera | None = None, field: s
 def split_side_by_side(img: np.ndarray, eye_width_px: int | None = None, path=None) -> tuple[np.ndarray, np.ndarray]:
     w = img.shape[1]
     if w % 2:
-        raise InputError(path, "width", "an even side-by-side width (2 x eye width)", f"{w} px")
+        raise InputError(path, "width", "an even side-by-side width (2 x eye width)", f"{w} px",
+                         "is the image cropped? a side-by-side frame is the left eye then the right, uncropped")
     half = w // 2
     if eye_width_px is not None and half != eye_width_px:
         raise InputError(path, "width", f"{2 * eye_width_px} px (2 x {eye_width_px} eye width)", f"{w} px",
@@ -178,7 +183,9 @@ def read_video_frame(path: str | Path, frame_index: int = 0) -> np.ndarray:
 
     path = Path(path)
     if not path.is_file():
-        raise MissingFileError(path, "video", "a video file")
+        raise MissingFileError(path, "video", "a video file",
+                               hint="check the capture folder / session.yaml's files.zed_video "
+                                    "(docs/capture-layout.md)")
     try:
         reader = iio2.get_reader(path, format="FFMPEG")
     except Exception as exc:
@@ -187,7 +194,8 @@ def read_video_frame(path: str | Path, frame_index: int = 0) -> np.ndarray:
     try:
         n = reader.count_frames()
         if not 0 <= frame_index < n:
-            raise InputError(path, "frame", f"a frame index in [0, {n})", str(frame_index))
+            raise InputError(path, "frame", f"a frame index in [0, {n})", str(frame_index),
+                             f"set session.yaml's video_frame to a frame of the recording (0 to {n - 1})")
         return np.asarray(reader.get_data(frame_index))[..., :3].copy()
     finally:
         reader.close()
@@ -417,7 +425,8 @@ class Session:
                                                              if (self.root / "import.json").is_file() else ""))
         dirs = sorted(p for p in d.iterdir() if p.is_dir() and not p.name.startswith("."))
         if not dirs:
-            raise InputError(d, None, "at least one capture folder", "none")
+            raise InputError(d, None, "at least one capture folder", "none",
+                             f"put each {kind} capture in a folder of its own in it (docs/capture-layout.md)")
         # ids are the names in the session (a symlinked capture keeps its link's name); one capture
         # reached under two names would be built twice and could land in two splits
         seen: dict[Path, Path] = {}
@@ -699,4 +708,6 @@ def _guess_eye_width(root: Path, cfg: SessionFile) -> int:
                 return read_image(cap / f.zed_left).shape[1]
             if (cap / f.zed_side_by_side).exists():
                 return read_image(cap / f.zed_side_by_side).shape[1] // 2
-    raise InputError(root, "zed images", "at least one ZED image to choose the SN.conf resolution", "none found")
+    raise InputError(root, "zed images", "at least one ZED image to choose the SN.conf resolution", "none found",
+                     f"put the ZED images in the captures under {cfg.board_dir}/ or {cfg.scenes_dir}/ with the names "
+                     f"of session.yaml's files ({f.zed_left}, {f.zed_side_by_side}; docs/capture-layout.md)")

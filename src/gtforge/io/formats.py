@@ -111,7 +111,8 @@ def read_pfm(path: str | Path) -> np.ndarray:
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise InputError(path, None, "a readable PFM file", exc.strerror or str(exc)) from None
+        raise InputError(path, None, "a readable PFM file", exc.strerror or str(exc),
+                         "check the path, and that this user may read the file") from None
     m = re.match(rb"(P[fF])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s", data)
     if not m:
         raise InputError(path, "header", "'Pf W H scale' PFM header", repr(data[:20]), "is this a PFM file?")
@@ -442,7 +443,9 @@ def read_image(path: str | Path, expect: str | None = None, field: str | None = 
         if data is not None and bytes(data[:8]) == PNG_SIGNATURE and len(data) >= 26 and data[24] == 16:
             # a 16-bit colour PNG, which imageio (Pillow) reduced to 8 bits: named as the file is
             got = f"a 16-bit {_PNG_COLOURS.get(data[25], 'colour')} PNG ({a.shape[1]}x{a.shape[0]} px)"
-        raise InputError(path, field, "a 16-bit single-channel PNG", got)
+        raise InputError(path, field, "a 16-bit single-channel PNG", got,
+                         "write it as a 16-bit greyscale PNG (a uint16 array through cv2.imwrite); an 8-bit or colour "
+                         "export has lost the values")
     if expect == "uint8" and a.dtype != np.uint8:
         raise InputError(path, field, "an 8-bit image", f"{a.dtype}", "convert it to 8-bit PNG")
     return np.ascontiguousarray(a)

@@ -14,7 +14,9 @@ from gtforge.errors import InputError
 class SceneCalib:
     def __init__(self, path: Path):
         if not path.is_file():
-            raise InputError(path, None, "a Middlebury calib.txt", "no such file")
+            raise InputError(path, None, "a Middlebury calib.txt", "no such file",
+                             "gtforge build-dataset writes one in each scene folder (docs/dataset-format.md); run it "
+                             "again to rebuild an incomplete scene")
         kv = dict(re.findall(r"^(\w+)=(.*)$", path.read_text(errors="replace"), flags=re.M))
         try:
             cam0 = [float(x) for x in re.split(r"[\s;]+", kv["cam0"].strip("[] "))]
@@ -27,7 +29,8 @@ class SceneCalib:
             self.vmin = int(float(kv.get("vmin", 0)))
         except (KeyError, ValueError, IndexError) as exc:
             raise InputError(path, str(exc).strip("'"), "Middlebury keys cam0, doffs, baseline",
-                             "missing/invalid") from None
+                             "missing/invalid", "write cam0=[f 0 cx; 0 f cy; 0 0 1], doffs=... and baseline=... (mm), "
+                             "one per line, as build-dataset does (docs/dataset-format.md)") from None
 
     def depth(self, disp: np.ndarray) -> np.ndarray:
         d = np.asarray(disp, np.float64) + self.doffs_px

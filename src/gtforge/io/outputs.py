@@ -100,7 +100,8 @@ def _require_writable_parents(p: Path, option: str) -> None:
             raise InputError(p, option, "a path whose folders exist or can be made",
                              f"{q} is a symbolic link to nothing ({os.readlink(q)})", "remove the link or fix it")
         if q != p and not q.is_dir():
-            raise InputError(p, option, "a path whose parents are folders", f"{q} is a file")
+            raise InputError(p, option, "a path whose parents are folders", f"{q} is a file",
+                             f"give {option} a path under a folder, or move the file {q} away")
         folder = q if q.is_dir() else q.parent
         if not os.access(folder, os.W_OK | os.X_OK):
             try:

@@ -406,7 +406,8 @@ def read_realsense(bag: Bag) -> RgbdRecording:
         raise InputError(path, "depth topic", "a RealSense depth stream (/device_0/sensor_*/Depth_*/image/data)",
                          "none", "was the depth stream enabled when recording?")
     if tex_t is None:
-        raise InputError(path, "colour topic", "a RealSense colour or infrared stream", "none")
+        raise InputError(path, "colour topic", "a RealSense colour or infrared stream", "none",
+                         "record with the colour (or infrared) stream enabled as well as depth")
     units = [t for t in bag.topics if re.search(r"/option/Depth[ _]Units/value$", t)]
     scale_mm = float(bag.first(units[0]).data) * 1000.0 if units else 1.0  # librealsense's default: 1 mm a count
     cams = {}
@@ -414,7 +415,9 @@ def read_realsense(bag: Bag) -> RgbdRecording:
         info_t = t.replace("/image/data", "/info/camera_info")
         info = bag.first(info_t) if info_t in bag.topics else None
         if info is None:
-            raise InputError(path, info_t, "the stream's camera_info", "missing")
+            raise InputError(path, info_t, "the stream's camera_info", "missing",
+                             "give the bag librealsense wrote, whole (RealSense Viewer / rs-record): it holds each "
+                             "stream's camera_info")
         cams[t] = camera_from_info(info, path, info_t)
     tf_t = tex_t.replace("/image/data", "/tf/0")
     T_texture_from_depth = (quat_T_mm(*(lambda m: (m.translation, m.rotation))(bag.first(tf_t)))
@@ -564,4 +567,5 @@ def _kinect_color(buf: bytes, tag: str, w: int, h: int, path) -> np.ndarray:
         return cv2.cvtColor(a[: w * h * 2].reshape(h, w, 2), cv2.COLOR_YUV2RGB_YUY2)
     if tag in ("BGRA", "RGBA") or a.size == w * h * 4:
         return np.ascontiguousarray(a[: w * h * 4].reshape(h, w, 4)[..., 2::-1])
-    raise InputError(path, "COLOR codec", "MJPG, NV12, YUY2 or BGRA", f"'{tag}'")
+    raise InputError(path, "COLOR codec", "MJPG, NV12, YUY2 or BGRA", f"'{tag}'",
+                     "record with k4arecorder: MJPG by default, NV12/YUY2 with --color-mode 720p_NV12/720p_YUY2")

@@ -56,7 +56,9 @@ def read_zed_export(folder: Path, fps: float | None, calibration: Path | None) -
             files[m.group(1).lower()][int(m.group(2))] = f
     both = sorted(set(files["left"]) & set(files["right"]))
     if not both:
-        raise InputError(folder, "left/right", "left%06d.png and right%06d.png with the same numbers", "no pair")
+        raise InputError(folder, "left/right", "left%06d.png and right%06d.png with the same numbers", "no pair",
+                         "export the SVO as left/right image sequences with the ZED SDK (ZED_SVO_Export) into this "
+                         "folder")
     if fps is None or not fps > 0 or not np.isfinite(fps):
         raise InputError(folder, "--fps", "the frame rate of the ZED export (its images carry no time), a positive "
                          "number", "none" if fps is None else f"{fps:g}", "pass --fps (e.g. 15)")
@@ -282,7 +284,8 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     for p in paths:
         p = Path(p)
         if not p.exists():
-            raise InputError(p, None, "a recording (file or folder)", "no such file or folder")
+            raise InputError(p, None, "a recording (file or folder)", "no such file or folder",
+                             "check the path (docs/capture-layout.md 'From recordings' lists what import reads)")
         looks_like = _looks_like(p)
         if looks_like is not None:
             raise InputError(p, None, f"the recording its suffix {p.suffix} names",
@@ -310,7 +313,8 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
                              ">= 4")
         if not (p.suffix.lower() in BAG_SUFFIXES or p.is_dir()):
             raise InputError(p, None, "a .bag, .db3, .mcap, rosbag2 folder or Azure Kinect .mkv",
-                             f"'{p.suffix or p.name}'")
+                             f"'{p.suffix or p.name}'", "give the file the recorder wrote, with its own suffix; "
+                             "docs/capture-layout.md 'From recordings' lists what import reads")
         bag = Bag(p)
         bags.append(bag)
         if is_realsense_bag(bag):

@@ -147,7 +147,8 @@ def _kinect_mode_camera(entry: dict, where: str, mode: KinectModeInfo, path: Pat
     w_cal = _get(entry, "SensorWidth", path, where)
     h_cal = _get(entry, "SensorHeight", path, where)
     if not (isinstance(w_cal, int) and isinstance(h_cal, int) and w_cal > 0 and h_cal > 0):
-        raise InputError(path, f"{where}.SensorWidth/SensorHeight", "positive integers", f"{w_cal!r}, {h_cal!r}")
+        raise InputError(path, f"{where}.SensorWidth/SensorHeight", "positive integers", f"{w_cal!r}, {h_cal!r}",
+                         "is the calibration.json complete (as k4a_device_get_raw_calibration writes it)?")
     if is_depth:
         if (w_cal, h_cal) != (1024, 1024):
             raise InputError(path, f"{where}.SensorWidth/SensorHeight", "1024 x 1024 (the depth sensor)",
@@ -212,7 +213,8 @@ def kinect_calibration_from_dict(data: Any, path: str | Path, depth_mode: str | 
     info = _get(data, "CalibrationInformation", path, "")
     cameras = _get(info, "Cameras", path, "CalibrationInformation")
     if not isinstance(cameras, list):
-        raise InputError(path, "CalibrationInformation.Cameras", "a list of cameras", type(cameras).__name__)
+        raise InputError(path, "CalibrationInformation.Cameras", "a list of cameras", type(cameras).__name__,
+                         "is the calibration.json complete (as k4a_device_get_raw_calibration writes it)?")
     d_entry, d_where = _kinect_camera_entry(cameras, KINECT_DEPTH_LOCATION, path)
     c_entry, c_where = _kinect_camera_entry(cameras, KINECT_COLOR_LOCATION, path)
     depth = _kinect_mode_camera(d_entry, d_where, dmode, path, is_depth=True)

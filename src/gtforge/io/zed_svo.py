@@ -131,7 +131,9 @@ class ZedSvo:
             self.t_ns.append(log_time)
             self.keyframe.append(_is_keyframe(payload, self.codec))
         if not self.t_ns:
-            raise InputError(path, self.topic, "video frames", "none")
+            raise InputError(path, self.topic, "video frames", "none",
+                             "is the recording complete? record again, or export left/right PNGs with the ZED SDK "
+                             "(ZED_SVO_Export)")
         if not self.keyframe[0]:
             raise InputError(path, f"{self.topic} message 0", "a keyframe first", "an inter frame",
                              "the file may be cut at its start")
