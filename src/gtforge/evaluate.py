@@ -66,7 +66,8 @@ def list_scenes(dataset_dir: Path, split: str | None) -> list[str]:
         return ids
     sc = dataset_dir / "scenes"
     if not sc.is_dir():
-        raise InputError(dataset_dir, "scenes/", "a dataset built by gtforge build-dataset", "no scenes/ folder")
+        raise InputError(dataset_dir, "scenes/", "a dataset built by gtforge build-dataset", "no scenes/ folder",
+                         "give the OUT folder of gtforge build-dataset (docs/dataset-format.md)")
     return sorted(p.name for p in sc.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
@@ -199,7 +200,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                          "evaluate the OUT folder of build-dataset, not a capture session")
     ids = list_scenes(ds, split)
     if not ids:
-        raise InputError(ds, "scenes", "at least one scene", "none")
+        raise InputError(ds, "scenes", "at least one scene", "none",
+                         "run gtforge build-dataset into this folder again: it builds the scenes not there yet")
     man = _manifest_fields(ds)
     suspect = _suspect_scenes(man, ids)
     listed = man.get("scenes")
@@ -210,10 +212,13 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                     "no longer holds their captures (delete them from the dataset, or build into a new folder)",
                     len(unlisted), len(ids), ds / "manifest.json", first_of(unlisted))
     if max_disp_px is not None and not max_disp_px > 0:
-        raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px))
+        raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px),
+                         "give a positive number of px, or leave --max-disp out to score every disparity")
     if max_gt_sigma_px is not None:
         if not max_gt_sigma_px > 0:
-            raise InputError(None, "--max-gt-sigma", "a sigma limit > 0 px", str(max_gt_sigma_px))
+            raise InputError(None, "--max-gt-sigma", "a sigma limit > 0 px", str(max_gt_sigma_px),
+                             "give a positive sigma in px, or leave --max-gt-sigma out to score every label "
+                             "(docs/metrics.md)")
         _check_sigma_maps(ds, ids)
     out = None
     if out_dir:
@@ -280,7 +285,8 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                 sigma = read_pfm(s / SIGMA_FILE)
                 if sigma.shape != gt.shape:
                     raise InputError(s / SIGMA_FILE, "size", f"{gt.shape[1]}x{gt.shape[0]} px (disp0GT.pfm)",
-                                     f"{sigma.shape[1]}x{sigma.shape[0]} px")
+                                     f"{sigma.shape[1]}x{sigma.shape[0]} px", "the scene's files are not one "
+                                     "build's: build-dataset --overwrite builds them again")
         except MissingFileError as exc:  # a dataset's file, not a capture's: the build's to write again
             leave_out(sid, InputError(exc.file, exc.field, exc.expected, exc.actual, "the scene is incomplete: run "
                                       "build-dataset again (it rebuilds a scene whose files are missing)"))
@@ -301,7 +307,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         if pred.shape != gt.shape:  # (each predictor returns the image's size; the contract's last line of defence)
             leave_out(sid, InputError(getattr(predictor, "source", None), "prediction size",
                                       f"{gt.shape[1]}x{gt.shape[0]} px (scene {sid})",
-                                      f"{pred.shape[1]}x{pred.shape[0]} px"))
+                                      f"{pred.shape[1]}x{pred.shape[0]} px",
+                                      "a prediction has the dataset image's size (after its --crop): "
+                                      "docs/metrics.md 'Predictions', 'Models'"))
             continue
         times.append(ms)
         res = {}

@@ -370,7 +370,8 @@ class PredictionFolder:
         p = self.find(scene_id)
         if p is None:
             raise InputError(self.folder, scene_id, f"a prediction ({PREDICTION_NAMES.replace('<id>', scene_id)})",
-                             "missing")
+                             "missing", "write one file per scene, named after its scene id (docs/metrics.md "
+                             "'Predictions')")
         if p.suffix == ".pfm":
             d = read_pfm(p)
             say_if_negative(d, p, self.said)

@@ -233,7 +233,9 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         refuse_gtforge_folder(out_dir)
     dirs = session.select("board", captures)
     if calibration is None:
-        raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none")
+        raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none",
+                         "pass -c with the file gtforge calibrate wrote, or --holdout K (calibrate without the last K "
+                         "board captures and validate on them)")
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
     board_model = params.board or calib.board  # the calibration's board unless overridden

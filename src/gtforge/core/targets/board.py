@@ -34,14 +34,17 @@ class Detection:
 
 def check_board_spec(board: BoardSpec, where: str = "board") -> None:
     if board.cols < 3 or board.rows < 3:
-        raise InputError(None, where, "at least 3x3 inner corners", f"{board.cols}x{board.rows}")
+        raise InputError(None, where, "at least 3x3 inner corners", f"{board.cols}x{board.rows}",
+                         "count the inner corners (where 4 squares meet), not the squares: session.yaml's "
+                         "board or --cols/--rows (docs/capture-layout.md 'Declaring the board')")
     if (board.cols + board.rows) % 2 == 0:
         raise InputError(None, where, "inner-corner counts with an odd sum (e.g. 12x9)",
                          f"{board.cols}x{board.rows}",
                          "a board with an even sum looks the same turned by 180 degrees, so corner order "
                          "cannot be made consistent between cameras")
     if not board.square_size_mm > 0:
-        raise InputError(None, "square_size_mm", "a positive square size (mm)", str(board.square_size_mm))
+        raise InputError(None, "square_size_mm", "a positive square size (mm)", str(board.square_size_mm),
+                         "measure a square's side on the print and set square_size_mm (--square-mm)")
 
 
 def _square_centres(c: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, np.ndarray]:

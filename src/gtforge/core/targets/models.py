@@ -106,11 +106,13 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
         check_board_spec(board.spec(), where)
         return
     if not board.square_size_mm > 0:
-        raise InputError(None, f"{where}.square_size_mm", "a positive size (mm)", str(board.square_size_mm))
+        raise InputError(None, f"{where}.square_size_mm", "a positive size (mm)", str(board.square_size_mm),
+                         "measure the square side (circle grids: the spacing) on the print (--square-mm)")
     if board.kind == "charuco":
         if board.cols < 3 or board.rows < 3:
             raise InputError(None, f"{where}.cols/rows", "at least 3x3 squares (ChArUco counts squares)",
-                             f"{board.cols}x{board.rows}")
+                             f"{board.cols}x{board.rows}", "count the board's squares, as the generator's settings "
+                             "give them (--cols/--rows; docs/capture-layout.md 'Declaring the board')")
         if (board.dictionary is None or not hasattr(cv2.aruco, board.dictionary)
                 or not board.dictionary.startswith("DICT_")):
             raise InputError(None, f"{where}.dictionary", "an OpenCV ArUco dictionary name such as DICT_5X5_100",
@@ -123,10 +125,14 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
         size = aruco_dictionary(board.dictionary).bytesList.shape[0]
         if n_markers > size:
             raise InputError(None, f"{where}.dictionary", f"a dictionary with at least {n_markers} markers for a "
-                             f"{board.cols}x{board.rows} board", f"{board.dictionary} ({size} markers)")
+                             f"{board.cols}x{board.rows} board", f"{board.dictionary} ({size} markers)",
+                             "check cols/rows (ChArUco counts squares) and the dictionary the generator's settings "
+                             "name (--dictionary)")
         return
     if board.cols < 3 or board.rows < 3:
-        raise InputError(None, f"{where}.cols/rows", "at least 3x3 circles", f"{board.cols}x{board.rows}")
+        raise InputError(None, f"{where}.cols/rows", "at least 3x3 circles", f"{board.cols}x{board.rows}",
+                         "count the circles per row and the rows (--cols/--rows; docs/capture-layout.md "
+                         "'Declaring the board')")
     if board.kind == "circles_symmetric" and board.cols == board.rows:
         raise InputError(None, f"{where}.cols/rows", "a symmetric grid with different counts per row and column",
                          f"{board.cols}x{board.rows}", "a square grid looks the same turned by 90 degrees")
@@ -138,7 +144,8 @@ def check_board_model(board: BoardModel, where: str = "board") -> None:
     nn = board.square_size_mm * (np.sqrt(2) if board.kind == "circles_asymmetric" else 1.0)
     if not 0 < d < nn:
         raise InputError(None, f"{where}.circle_diameter_mm", f"a diameter below the circles' spacing ({nn:.3g} mm)",
-                         f"{d:g}")
+                         f"{d:g}", "measure a circle's diameter on the print (--circle-mm); square_size_mm is the "
+                         "spacing of the centres")
 
 
 # ---- ChArUco ---------------------------------------------------------------------------------
