@@ -342,7 +342,8 @@ def test_a_binary_file_given_as_a_gtforge_file_is_a_one_line_error_and_a_bom_is_
 def test_a_refused_board_option_is_named_as_the_user_typed_it(tmp_path):
     from gtforge.errors import InputError
 
-    with pytest.raises(InputError, match=r"^--board: expected a value 'checkerboard', .* got 'hexagon'$"):
+    with pytest.raises(InputError, match=r"^--board: expected a value 'checkerboard', .* got 'hexagon' "
+                       r"\(hint: docs/capture-layout\.md 'Declaring the board' lists the kinds .*\)$"):
         CliRunner().invoke(app, ["calibrate", str(tmp_path), "--board", "hexagon"], catch_exceptions=False)
 
 

@@ -95,8 +95,10 @@ def _options(model, **values):
         board = model.__name__ == "BoardModel" or "board" in loc
         name = (BOARD_OPTIONS.get(loc[-1]) if board else None) or "--" + loc[-1].replace("_", "-")
         msg = err.get("msg", "a valid value").removeprefix("Input should be ")
+        hint = ("docs/capture-layout.md 'Declaring the board' lists the kinds and what each option counts" if board
+                else f"leave {name} out for its default; docs/pipeline.md lists each stage's options")
         raise InputError(None, name, msg if msg.startswith(("a ", "an ")) else f"a value {msg}",
-                         repr(err.get("input"))) from None
+                         repr(err.get("input")), hint) from None
 
 
 # The board options calibrate, import and synth share (docs/targets.md): one help text each, a command's own note
@@ -324,9 +326,11 @@ def build_dataset(session: Path = typer.Argument(..., help="Capture session fold
     try:
         tr, va = (float(x) for x in split.split(","))
     except ValueError:
-        raise InputError(None, "--split", "two ratios 'train,val' such as 0.8,0.1", repr(split)) from None
+        raise InputError(None, "--split", "two ratios 'train,val' such as 0.8,0.1", repr(split),
+                         "give the train and val shares separated by a comma; test gets the rest") from None
     if mode not in ("mesh", "splat"):
-        raise InputError(None, "--mode", "mesh or splat", repr(mode))
+        raise InputError(None, "--mode", "mesh or splat", repr(mode),
+                         "leave --mode out for mesh, or give --mode splat (docs/pipeline.md 'build-dataset')")
     params = _options(BuildParams, mode=mode, crop_wh=_wh(crop, "--crop"), ply=ply, erosion_px=erosion_px,
                       max_slant_deg=max_slant_deg, split_train=tr, split_val=va, split_seed=seed,
                       verification=verification, right_gt=right_gt, quarantine=quarantine,
@@ -541,7 +545,8 @@ def validate(session: Path = typer.Argument(..., help="Capture session folder (b
 
     if gauges_only:
         if calibration is None:
-            raise InputError(None, "--calibration", "a calibration file with --gauges-only", "none")
+            raise InputError(None, "--calibration", "a calibration file with --gauges-only", "none",
+                             "pass -c with the file gtforge calibrate wrote")
         grep = validate_gauges(session, calibration, output, progress=_status)
         for line in gauge_lines(grep):
             out.print(line)
@@ -785,7 +790,8 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
     from gtforge.records.imports import ImportParams
 
     if depth_unit not in (None, "mm", "m"):
-        raise InputError(None, "--depth-unit", "mm or m", repr(depth_unit))
+        raise InputError(None, "--depth-unit", "mm or m", repr(depth_unit),
+                         "leave --depth-unit out to take the unit the depth image's encoding implies")
     offset, estimate = None, False
     if clock_offset_ms is not None:
         if clock_offset_ms == "auto":
@@ -794,7 +800,9 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             try:
                 offset = float(clock_offset_ms)
             except ValueError:
-                raise InputError(None, "--clock-offset-ms", "a number of ms or auto", repr(clock_offset_ms)) from None
+                raise InputError(None, "--clock-offset-ms", "a number of ms or auto", repr(clock_offset_ms),
+                                 "give the stereo clock minus the depth clock in ms (e.g. 12.5), or auto to estimate "
+                                 "it (docs/capture-layout.md 'From recordings')") from None
     params = _options(ImportParams, max_skew_ms=max_skew_ms, still_threshold=still_threshold, clock_offset_ms=offset,
                       estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
                       board=_board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern,
@@ -901,14 +909,15 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
             pose_error = ()
         if len(pose_error) != 3 or not all(math.isfinite(a) for a in pose_error):
             raise InputError(None, "--depth-pose-error-deg", "three angles 'X,Y,Z' in deg such as 0.1,-0.15,0.1",
-                             repr(depth_pose_error_deg))
+                             repr(depth_pose_error_deg), "give three finite numbers separated by commas")
         if not separate_depth_camera:
             raise InputError(None, "--depth-pose-error-deg", "--separate-depth-camera with it",
                              "a rig with one camera", "add --separate-depth-camera")
     rigid = None
     if moved_fruit_mm > 0:
         if scenes < 1:
-            raise InputError(None, "--moved-fruit-mm", "at least one scene to move the fruit in", "--scenes 0")
+            raise InputError(None, "--moved-fruit-mm", "at least one scene to move the fruit in", "--scenes 0",
+                             "give --scenes 1 or more, or drop --moved-fruit-mm")
         m, r = moved_fruit_mm, min(2.0, 2.0 / 3.0 * moved_fruit_mm)
         rigid = {scenes - 1: [((0.8 * m, -0.6 * m, 0.0), (0.6 * r, 0.0, -0.8 * r)), ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
                               ((-0.6 * m, -0.8 * m, 0.0), (0.0, 0.8 * r, 0.6 * r)), ((0.0, m, 0.0), (0.0, 0.0, r))]}
