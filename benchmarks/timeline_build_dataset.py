@@ -7,6 +7,11 @@ makes itself the child subreaper (Linux ``PR_SET_CHILD_SUBREAPER``), so the fork
 command does not wait for, are reaped and counted here. CPU time moves less with other users' load than wall time; the
 first scene's landing (its ``meta.json``'s time) is the fixed cost's critical path.
 
+Each configuration's ``gtforge`` gets its bytecode first (``gtforge.precompile.compile_bytecode``, as ``make setup``
+gives the checkout's): a copy made with ``git archive`` has none, and where Python does not write it
+(``PYTHONDONTWRITEBYTECODE``) every process of its builds compiled the source again, 0.13-0.15 s of a 6-scene build's
+wall time that the checkout did not pay (benchmarks/RESULTS.md, round 16).
+
     python benchmarks/timeline_build_dataset.py [--scenes 6] [--repeat 4] [--idle-s 0] [CONFIG ...]
     python benchmarks/timeline_build_dataset.py --scenes 6 /path/to/before/src src src:--workers,1
 """
@@ -24,6 +29,8 @@ import time
 from pathlib import Path
 
 from fullres_session import machine_line, make_session
+
+from gtforge.precompile import compile_bytecode
 
 PR_SET_CHILD_SUBREAPER = 36
 
@@ -54,6 +61,8 @@ def main():
     out = Path(args.workdir) / "out_timeline"
     exe = Path(sys.executable).with_name("gtforge")
     print(machine_line(), flush=True)
+    for src in {c.partition(":")[0] for c in args.configs}:
+        compile_bytecode(Path(src).resolve() / "gtforge")
     res: dict[str, list[tuple[float, float, float]]] = {}
     for _ in range(args.repeat):
         for config in args.configs:
