@@ -12,6 +12,8 @@ Each command imports its stage inside its function (the package's only function-
 """
 from __future__ import annotations
 
+import functools
+import inspect
 import logging
 import sys
 from pathlib import Path
@@ -115,6 +117,10 @@ _BOARD_HELP = {
 }
 
 
+_BOARD_TYPES = {"board": str, "cols": int, "rows": int, "square_mm": float, "marker_mm": float, "dictionary": str,
+                "legacy_pattern": bool, "circle_mm": float}
+
+
 def _board_option(name: str, note: str = "", panel: str | None = None):
     """The typer option of one of the shared board options (``_BOARD_HELP``); ``None`` when not given."""
     decls = ("--legacy-pattern/--no-legacy-pattern",) if name == "legacy_pattern" else ()
@@ -122,14 +128,37 @@ def _board_option(name: str, note: str = "", panel: str | None = None):
                         help=f"{_BOARD_HELP[name]} {note}".strip())
 
 
-def _board_model(kind, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm):
-    """The board the options declare (calibrate's and import's), from the options given only; None where none is."""
+def _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm):
+    """The board the options declare, from the options given only; None where none is."""
     from gtforge.core.targets.models import BoardModel
 
-    given = {k: v for k, v in dict(kind=kind, cols=cols, rows=rows, square_size_mm=square_mm, marker_size_mm=marker_mm,
-                                   dictionary=dictionary, legacy_pattern=legacy_pattern,
+    given = {k: v for k, v in dict(kind=board, cols=cols, rows=rows, square_size_mm=square_mm,
+                                   marker_size_mm=marker_mm, dictionary=dictionary, legacy_pattern=legacy_pattern,
                                    circle_diameter_mm=circle_mm).items() if v is not None}
     return _options(BoardModel, **given) if given else None
+
+
+def _with_board_options(note: str, panel: str | None = None):
+    """A command taking the eight board options (``_BOARD_HELP``, ``note`` after --board's text; after the command's
+    own options in its help), given to it as ``board_model``: the board they declare (``_board_model``), None where
+    none of them is given. One declaration for calibrate, import and synth."""
+    def add(fn):
+        sig = inspect.signature(fn)
+        own = [p for p in sig.parameters.values() if p.name != "board_model"]
+        extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=Optional[kind],
+                                   default=_board_option(name, note if name == "board" else "", panel))
+                 for name, kind in _BOARD_TYPES.items()]
+
+        @functools.wraps(fn)
+        def command(*args, **kwargs):
+            board_model = _board_model(**{name: kwargs.pop(name) for name in _BOARD_TYPES})
+            return fn(*args, board_model=board_model, **kwargs)
+
+        command.__signature__ = sig.replace(parameters=own + extra)
+        command.__annotations__ = {**{k: v for k, v in fn.__annotations__.items() if k != "board_model"},
+                                   **{p.name: p.annotation for p in extra}}
+        return command
+    return add
 
 
 def _print_version(value: bool) -> None:
@@ -196,21 +225,13 @@ def _refuse_a_runs_folder(output: str, name: str) -> None:
 
 
 @app.command()
+@_with_board_options("Where session.yaml declares the board, its values are the defaults of these options.")
 def calibrate(session: Path = typer.Argument(..., help="Capture session folder (docs/capture-layout.md)."),
               output: str = typer.Option("calibration.yaml", "--output", "-o", metavar="PATH",
                                          help="Calibration YAML to write (a folder: calibration.yaml inside it)."),
               report_dir: Optional[Path] = typer.Option(None, metavar="DIR",
                                                         help="Report folder (default: OUTPUT's name + _report, "
                                                              "beside it)."),
-              board: Optional[str] = _board_option("board", "Where session.yaml declares the board, its values are "
-                                                   "the defaults of these options."),
-              cols: Optional[int] = _board_option("cols"),
-              rows: Optional[int] = _board_option("rows"),
-              square_mm: Optional[float] = _board_option("square_mm"),
-              marker_mm: Optional[float] = _board_option("marker_mm"),
-              dictionary: Optional[str] = _board_option("dictionary"),
-              legacy_pattern: Optional[bool] = _board_option("legacy_pattern"),
-              circle_mm: Optional[float] = _board_option("circle_mm"),
               use_depth: bool = typer.Option(False, "--use-depth", help="Also solve 3D-2D through the depth camera's "
                                              "board measurement, use it, and report both methods."),
               captures: Optional[str] = typer.Option(None, metavar="NAMES",
@@ -220,7 +241,8 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
               self_rectify: bool = typer.Option(True, "--self-rectify/--no-self-rectify",
                                                 help="Correct the ZED right camera's residual rotation from left-right "
                                                      "matches over every capture (boards and scenes); applied only "
-                                                     "where the captures determine it (docs/pipeline.md).")) -> None:
+                                                     "where the captures determine it (docs/pipeline.md)."),
+              board_model=None) -> None:
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
     from gtforge.io.calibrated_session import calibration_output_path
@@ -228,7 +250,6 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     from gtforge.reports.calibration import write_calibration_report
 
     # only the board options given: session.yaml's board (if any) fills the rest
-    board_model = _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm)
     params = _options(CalibrateParams, **({"board": board_model} if board_model else {}),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     from gtforge.io.captures import open_session
@@ -746,6 +767,7 @@ def _progress_bar():
 
 
 @app.command("import")
+@_with_board_options("The target the board captures show.")
 def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera's recording (RealSense .bag, Azure "
                                                    "Kinect .mkv, ROS 1/2 bag: .bag, .db3, .mcap or a rosbag2 folder) "
                                                    "and, optionally, the stereo camera's (a ROS bag, a ZED .svo2 "
@@ -771,17 +793,9 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
             zed_calibration: Optional[Path] = typer.Option(None, metavar="FILE", help="The calibration of a ZED .svo2 "
                                                            "(SN<serial>.conf) or ZED SDK export folder (SN<serial>.conf"
                                                            " or rectified YAML)."),
-            board: Optional[str] = _board_option("board", "The target the board captures show."),
-            cols: Optional[int] = _board_option("cols"),
-            rows: Optional[int] = _board_option("rows"),
-            square_mm: Optional[float] = _board_option("square_mm"),
-            marker_mm: Optional[float] = _board_option("marker_mm"),
-            dictionary: Optional[str] = _board_option("dictionary"),
-            legacy_pattern: Optional[bool] = _board_option("legacy_pattern"),
-            circle_mm: Optional[float] = _board_option("circle_mm"),
             classify: bool = typer.Option(True, "--classify/--no-classify",
-                                          help="Put captures showing the board into board/ (else all in scenes/).")
-            ) -> None:
+                                          help="Put captures showing the board into board/ (else all in scenes/)."),
+            board_model=None) -> None:
     """Write a capture session (docs/capture-layout.md, "From recordings") from sensor recordings."""
     from rich.table import Table
 
@@ -805,8 +819,7 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
                                  "it (docs/capture-layout.md 'From recordings')") from None
     params = _options(ImportParams, max_skew_ms=max_skew_ms, still_threshold=still_threshold, clock_offset_ms=offset,
                       estimate_clock_offset=estimate, every=every, max_captures=max_captures, classify=classify,
-                      board=_board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern,
-                                         circle_mm))
+                      board=board_model)
     bar, tick = _progress_bar()
     topics = Topics(depth_topic, color_topic, left_topic, right_topic, depth_unit, fps, zed_calibration)
     with bar:
@@ -823,6 +836,7 @@ def import_(recordings: List[Path] = typer.Argument(..., help="The depth camera'
 
 
 @app.command()
+@_with_board_options("Written into session.yaml.", _TARGET)
 def synth(output: Path = typer.Argument(..., help="Folder for the synthetic session."),
           boards: int = typer.Option(8, metavar="N", min=0, help="Checkerboard captures."),
           scenes: int = typer.Option(3, metavar="N", min=0, help="Fruit scene captures."),
@@ -858,15 +872,7 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
                                             "barrel distortion), with its factory SN12345.conf: calibrate rectifies "
                                             "them. Takes --boards, --scenes, --seed, --depth-noise-mm and the board "
                                             "options only."),
-          board: Optional[str] = _board_option("board", "Written into session.yaml.", _TARGET),
-          cols: Optional[int] = _board_option("cols", panel=_TARGET),
-          rows: Optional[int] = _board_option("rows", panel=_TARGET),
-          square_mm: Optional[float] = _board_option("square_mm", panel=_TARGET),
-          marker_mm: Optional[float] = _board_option("marker_mm", panel=_TARGET),
-          dictionary: Optional[str] = _board_option("dictionary", panel=_TARGET),
-          legacy_pattern: Optional[bool] = _board_option("legacy_pattern", panel=_TARGET),
-          circle_mm: Optional[float] = _board_option("circle_mm", panel=_TARGET),
-          ) -> None:
+          board_model=None) -> None:
     """Render a synthetic capture session with exact truth (truth/ beside the captures).
 
     A ChArUco session, for instance: gtforge synth S --board charuco --cols 9 --rows 7 --square-mm 30 --marker-mm
@@ -876,7 +882,6 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_raw_zed_session, generate_session
 
-    board_model = _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm)
     spec = board_model.spec() if board_model is not None else None
     if board_model is not None:
         from gtforge.core.targets.models import check_board_model
