@@ -73,7 +73,9 @@ def test_the_stages_refuse_to_write_over_session_files(example, tmp_path):
     ("video_frame: -3", "[video_frame]: expected a valid session.yaml (Input should be greater than or equal to 0), "
      "got -3"),
     ("zed_rectifed: true", "[zed_rectifed]: expected a valid session.yaml (Extra inputs are not permitted), got True "
-     "(hint: did you mean zed_rectified?)")])
+     "(hint: did you mean zed_rectified?)"),
+    ("lighting: led", "[lighting]: expected a valid session.yaml (Extra inputs are not permitted), got 'led' "
+     "(hint: remove lighting: not a field of session.yaml)")])
 def test_session_yaml_slips_are_named_with_what_to_write(line, says, tmp_path):
     """Unquoted scene ids (YAML reads 000 as 0: said without a hint), a negative video frame (accepted) and a
     misspelt key (no hint) in session.yaml: one line each that says what to write (a run-through)."""
@@ -83,3 +85,16 @@ def test_session_yaml_slips_are_named_with_what_to_write(line, says, tmp_path):
     with pytest.raises(InputError) as err:
         SessionFile.read(tmp_path / "session.yaml")
     assert str(err.value) == f"{tmp_path / 'session.yaml'} {says}"
+
+
+def test_a_file_gtforge_writes_that_does_not_validate_is_written_again_by_its_command(tmp_path):
+    """A calibration file of another schema (edited by hand, or another version's): the hint names the command that
+    writes it (it had none)."""
+    from gtforge.records.calibration import CalibrationFile
+
+    (tmp_path / "calibration.yaml").write_text("schema_version: 99\n")
+    with pytest.raises(InputError) as err:
+        CalibrationFile.read(tmp_path / "calibration.yaml")
+    assert err.value.field == "schema_version" and err.value.actual == "99"
+    assert err.value.hint == ("write it again with gtforge calibrate (was it edited by hand, or written by another "
+                              "gtforge version?)")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, TypeVar
 
@@ -124,9 +125,25 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
         close = difflib.get_close_matches(str(loc[0]), list(fields_known), n=1, cutoff=0.8)
         return f"did you mean {close[0]}?" if close else None
 
+    def what_to_do(err) -> str | None:
+        """The hint where no field name is close: a file gtforge writes is written again by its command (``what``
+        names it: "... (from gtforge calibrate)"); a file a person writes gets a missing field added, an unknown one
+        removed (a wrong value's message says what to give: no hint repeats it)."""
+        m = re.search(r"from (gtforge [a-z-]+)", what)
+        if m:
+            return (f"write it again with {m.group(1)} (was it edited by hand, or written by another gtforge "
+                    "version?)")
+        name = field(err) or "the field"
+        if err.get("type") == "missing":
+            return f"add {name}"
+        if err.get("type") == "extra_forbidden":
+            return f"remove {name}: not a field of {what}"
+        return None
+
     if len(errs) == 1:
         err = errs[0]
-        return InputError(path, field(err) or None, f"a valid {what} ({err.get('msg')})", actual(err), misspelt(err))
+        return InputError(path, field(err) or None, f"a valid {what} ({err.get('msg')})", actual(err),
+                          misspelt(err) or what_to_do(err))
     top = [e for e in errs if len(e.get("loc", ())) == 1]
     missing = [field(e) for e in top if e.get("type") == "missing"]
     extra = [field(e) for e in top if e.get("type") == "extra_forbidden"]
