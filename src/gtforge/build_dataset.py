@@ -362,8 +362,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     prestart_pool(build_one_scene.__module__, workers, scheduler,  # (already started by the CLI)
                   warm_up=_warm_up_args(session_dir, calibration))
     params = params or BuildParams()
-    if not 0 <= params.split_train + params.split_val <= 1:
-        raise InputError(None, "--split", "train + val ratios <= 1", f"{params.split_train} + {params.split_val}",
+    if not (0 <= params.split_train <= 1 and 0 <= params.split_val <= 1
+            and params.split_train + params.split_val <= 1):  # (NaN fails every comparison: refused too)
+        raise InputError(None, "--split", "train and val ratios in [0, 1], train + val <= 1",
+                         f"{params.split_train} + {params.split_val}",
                          "test gets the rest (1 - train - val): e.g. --split 0.8,0.1")
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)

@@ -974,6 +974,10 @@ def test_split_and_crop_refusals_carry_a_hint(session_dir, true_calibration, tmp
         build_dataset(session_dir, tmp_path / "none.yaml", tmp_path / "ds", BuildParams(split_train=0.9, split_val=0.2))
     assert e.value.field == "--split" and e.value.actual == "0.9 + 0.2"
     assert e.value.hint == "test gets the rest (1 - train - val): e.g. --split 0.8,0.1"
+    for train, val in ((-0.1, 0.5), (0.5, -0.2), (float("nan"), 0.1)):  # a negative share was built (train empty)
+        with pytest.raises(InputError, match=r"^--split: expected train and val ratios in \[0, 1\]"):
+            build_dataset(session_dir, tmp_path / "none.yaml", tmp_path / "ds",
+                          BuildParams(split_train=train, split_val=val))
     with pytest.raises(InputError) as e:
         build_dataset(session_dir, true_calibration, tmp_path / "ds", BuildParams(crop_wh=(1242, 375)), workers=1)
     assert e.value.field == "--crop" and e.value.actual == "1242x375 px"
