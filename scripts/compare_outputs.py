@@ -7,7 +7,8 @@ gtforge, e.g. before and after a restructuring (docs/architecture.md, "Checking 
 Images, PFM/TIFF maps, point clouds and arrays must be byte-identical. JSON and YAML files are compared as data after
 dropping the fields that record time (``time_s``, ``time_ms``, ``time_*``, ``created``, ``hashed_at_ns``,
 ``mtime_ns``) and the hashes of files that hold such fields (``*_sha256``: a calibration file records its solve time),
-with each run's folder replaced by ``RUN``; text files (HTML, Markdown, CSV, logs) after the same replacement, with
+with each run's folder replaced by ``RUN`` (in a ``gtforge run``'s run_state.json, the digests of the run's own
+outputs too: they are compared as files); text files (HTML, Markdown, CSV, logs) after the same replacement, with
 dates, clock times and durations masked, table columns headed by a time blanked, and embedded matplotlib SVGs compared
 without their drawing date and random ids. Exit status 0: the same; 1: a difference (each one listed).
 """
@@ -66,9 +67,22 @@ def _text(path: Path, root: Path) -> str:
     return s
 
 
+def _without_output_digests(state: dict) -> dict:
+    """A ``gtforge run``'s run_state.json without the digests of the run's own outputs (``out/...`` in the stages'
+    inputs and outputs, ``RUN/...`` in its hash cache): a calibration file records its solve time, so its digest
+    differs between two identical runs; the files themselves are compared one by one."""
+    def stage(rec):
+        return {**rec, **{k: {f: "<FILE>" if f.startswith("out/") else d for f, d in rec[k].items()}
+                          for k in ("inputs", "outputs") if isinstance(rec.get(k), dict)}}
+
+    return {**state, "stages": {n: stage(r) for n, r in state.get("stages", {}).items()},
+            "hashes": {f: "<FILE>" if f.startswith("RUN/") else h for f, h in state.get("hashes", {}).items()}}
+
+
 def _data(path: Path, root: Path):
     s = _text(path, root)
-    return _drop_time(json.loads(s) if path.suffix == ".json" else yaml.safe_load(s))
+    data = _drop_time(json.loads(s) if path.suffix == ".json" else yaml.safe_load(s))
+    return _without_output_digests(data) if path.name == "run_state.json" and isinstance(data, dict) else data
 
 
 TABLE = re.compile(r"<table>.*?</table>", re.S)

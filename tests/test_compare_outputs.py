@@ -74,3 +74,24 @@ def test_a_short_folder_name_is_replaced_only_where_it_is_a_path(tmp_path, monke
     text = sys.modules["compare_outputs"]._text(Path("r2") / "report.html", Path("r2"))
     assert text == ('<p>see RUN/meta.json and RUN/meta.json</p>'
                     '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>')
+
+
+def test_a_runs_state_file_differs_only_in_its_own_outputs_digests(tmp_path):
+    """Two identical `gtforge run`s: run_state.json holds the digests of the run's own files, which differ where a
+    file records a time (a calibration's solve time); those files are compared themselves, so their digests are not.
+    An input's digest (the session's) still counts."""
+    compare = _compare()
+
+    def state(root: Path, out_digest: str, session_digest: str) -> Path:
+        root.mkdir()
+        rec = {"stage": "refine", "time_s": 1.0, "outputs": {"out/refined.yaml": out_digest},
+               "inputs": {"session/session.yaml": session_digest, "out/calibration.yaml": out_digest}}
+        (root / "run_state.json").write_text(json.dumps({
+            "schema_version": 1, "stages": {"refine": rec},
+            "hashes": {str(root / "refined.yaml"): {"blake3": out_digest, "size_bytes": 10},
+                       "/data/session/session.yaml": {"blake3": session_digest, "size_bytes": 5}}}))
+        return root
+
+    a = state(tmp_path / "a", "aa11", "5e55")
+    assert compare(a, state(tmp_path / "b", "bb22", "5e55")) == []
+    assert compare(a, state(tmp_path / "c", "aa11", "5e56")) == ["run_state.json: data differ beyond time fields"]
