@@ -32,6 +32,7 @@ BoardKind = Literal["checkerboard", "charuco", "circles_symmetric", "circles_asy
 # dictionaries tried when the declared one finds no markers (the error then names what the board carries)
 ARUCO_DICTIONARIES = ("DICT_4X4_1000", "DICT_5X5_1000", "DICT_6X6_1000", "DICT_7X7_1000", "DICT_ARUCO_ORIGINAL",
                       "DICT_APRILTAG_36h11", "DICT_APRILTAG_25h9", "DICT_APRILTAG_16h5")
+MAX_SQUARE_MM = 1000.0  # the largest square side (circle spacing) a board may declare
 MIN_COMMON_CORNERS = 6  # a pose needs this many points seen by both cameras (PnP on a plane needs 4; margin)
 
 
@@ -46,11 +47,13 @@ class BoardModel(GTModel):
     kind: BoardKind = "checkerboard"
     cols: int = 12
     rows: int = 9
-    square_size_mm: float = Field(20.0, gt=0)
-    marker_size_mm: float | None = Field(None, gt=0)  # ChArUco: the ArUco marker's side
+    # finite (an infinite size reached calibrate's solver, a traceback; import wrote it into session.yaml as null),
+    # and under a metre: 1e300 mm overflowed the same solver
+    square_size_mm: float = Field(20.0, gt=0, le=MAX_SQUARE_MM, allow_inf_nan=False)
+    marker_size_mm: float | None = Field(None, gt=0, allow_inf_nan=False)  # ChArUco: the ArUco marker's side
     dictionary: str | None = None  # ChArUco: OpenCV's predefined dictionary name, e.g. DICT_5X5_100
     legacy_pattern: bool = False  # ChArUco boards made before OpenCV 4.6 with an even row count
-    circle_diameter_mm: float | None = Field(None, gt=0)  # circle grids (None: half the spacing)
+    circle_diameter_mm: float | None = Field(None, gt=0, allow_inf_nan=False)  # circle grids (None: half the spacing)
 
     @model_serializer(mode="wrap")
     def _compact(self, handler):

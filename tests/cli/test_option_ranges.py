@@ -1,0 +1,41 @@
+"""Every numeric option refuses a value out of its range (NaN and infinity included) before any work: one line naming
+the option the user typed, exit code 2, nothing written (docs/conventions.md "Errors"). In-process and cheap: each
+command line here is refused before it reads its inputs, which need not exist."""
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from gtforge.cli.commands import app
+from gtforge.errors import InputError
+
+
+def refused_option(args, tmp_path) -> str:
+    """The option ``gtforge ARGS`` names when it refuses them: an ``InputError``'s field, or the option Click's own
+    range check names (exit code 2 both); fails when the command does anything else."""
+    r = CliRunner().invoke(app, [str(a) for a in args])
+    assert not list(tmp_path.iterdir()), f"wrote {list(tmp_path.iterdir())}"
+    if isinstance(r.exception, InputError):
+        return r.exception.field
+    assert r.exit_code == 2 and isinstance(r.exception, SystemExit), (r.exit_code, r.exception, r.output)
+    return r.output
+
+
+BOARD_CASES = [("--square-mm", "inf"), ("--square-mm", "nan"), ("--square-mm", "1e300"), ("--marker-mm", "inf"),
+               ("--circle-mm", "inf"), ("--circle-mm", "nan")]
+
+
+@pytest.mark.parametrize("option,value", BOARD_CASES)
+@pytest.mark.parametrize("command", ["calibrate", "import", "synth"])
+def test_board_sizes_must_be_finite(command, option, value, tmp_path):
+    """An infinite square reached calibrate's solver (a traceback) and was written by import into session.yaml as
+    null; 1e300 mm overflowed the solver."""
+    where = {"calibrate": [tmp_path / "session", "-o", tmp_path / "c.yaml"],
+             "import": [tmp_path / "rec.bag", "-o", tmp_path / "s"], "synth": [tmp_path / "s"]}[command]
+    assert refused_option([command, *where, option, value], tmp_path) == option
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "2000"])
+def test_validate_square_mm_must_be_finite(value, tmp_path):
+    assert refused_option(["validate", tmp_path / "session", "-o", tmp_path / "va", "--square-mm", value],
+                          tmp_path) == "--square-mm"
