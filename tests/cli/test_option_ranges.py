@@ -39,3 +39,16 @@ def test_board_sizes_must_be_finite(command, option, value, tmp_path):
 def test_validate_square_mm_must_be_finite(value, tmp_path):
     assert refused_option(["validate", tmp_path / "session", "-o", tmp_path / "va", "--square-mm", value],
                           tmp_path) == "--square-mm"
+
+
+@pytest.mark.parametrize("option", ["--max-shift-px", "--max-disparity-bias-px"])
+@pytest.mark.parametrize("value", [float("inf"), float("nan"), -1.0])
+def test_verify_thresholds_must_be_finite(option, value):
+    """verify --max-shift-px inf was accepted: the workers got it as JSON null (a pydantic traceback). (verify builds
+    its thresholds with ``_options`` from the manifest's; the library call keeps the test free of a dataset.)"""
+    from gtforge.cli.commands import _options
+    from gtforge.records.verification import VerifyParams
+
+    with pytest.raises(InputError) as e:
+        _options(VerifyParams, **{option[2:].replace("-", "_"): value})
+    assert e.value.field == option

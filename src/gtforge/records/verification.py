@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar, Literal
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from gtforge.core.alignment.photometric import ShiftEstimate
 from gtforge.core.zed.rectification import VERTICAL_WARN_PX
@@ -13,6 +13,10 @@ from gtforge.core.schema import GTModel, VersionedFile
 
 class VerifyParams(GTModel):
     """Thresholds (px at the dataset's resolution) and settings of the per-scene checks."""
+
+    # every figure finite: an infinite threshold (verify --max-shift-px inf) reached the workers as JSON null, a
+    # traceback
+    model_config = ConfigDict(allow_inf_nan=False)
 
     max_shift_px: float = Field(0.25, gt=0)  # |texture shift| over the fruit or the whole valid area
     min_correlation: float = Field(0.5, ge=-1, le=1)  # normalised cross-correlation after alignment
