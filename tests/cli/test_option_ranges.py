@@ -52,3 +52,11 @@ def test_verify_thresholds_must_be_finite(option, value):
     with pytest.raises(InputError) as e:
         _options(VerifyParams, **{option[2:].replace("-", "_"): value})
     assert e.value.field == option
+
+
+@pytest.mark.parametrize("option", ["--xy-threshold-px", "--z-threshold-pct"])
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0"])
+def test_validate_thresholds_must_be_finite(option, value, tmp_path):
+    """validate --xy-threshold-px inf was accepted: it validated, then failed in the report's plot (a traceback)."""
+    assert refused_option(["validate", tmp_path / "session", "-o", tmp_path / "va", option, value],
+                          tmp_path) == option

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from gtforge.core.measure.gauges import GaugesResult
 from gtforge.core.schema import GTModel, VersionedFile
@@ -21,6 +21,10 @@ REFERENCE_Z_PCT = 0.08
 
 
 class ValidateParams(GTModel):
+    # every figure finite: an infinite threshold (--xy-threshold-px inf) passed everything and failed in the report's
+    # plot (a traceback)
+    model_config = ConfigDict(allow_inf_nan=False)
+
     board: BoardModel | None = None  # None: the board stored in the calibration file
     xy_threshold_px: float = Field(defaults.XY_THRESHOLD_PX, gt=0)
     z_threshold_pct: float = Field(defaults.Z_THRESHOLD_PCT, gt=0)
