@@ -60,3 +60,12 @@ def test_validate_thresholds_must_be_finite(option, value, tmp_path):
     """validate --xy-threshold-px inf was accepted: it validated, then failed in the report's plot (a traceback)."""
     assert refused_option(["validate", tmp_path / "session", "-o", tmp_path / "va", option, value],
                           tmp_path) == option
+
+
+@pytest.mark.parametrize("option,value", [("--max-skew-ms", "inf"), ("--still-threshold", "inf"),
+                                          ("--still-threshold", "256"), ("--max-skew-ms", "nan"),
+                                          ("--still-threshold", "-1")])
+def test_import_pairing_thresholds_must_be_finite(option, value, tmp_path):
+    """import --max-skew-ms inf was accepted (written into import.json as Infinity, which is no JSON); a still
+    threshold above 255 grey levels takes every frame for still."""
+    assert refused_option(["import", tmp_path / "rec.bag", "-o", tmp_path / "s", option, value], tmp_path) == option

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import ClassVar, Literal
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.targets.models import BoardModel
@@ -14,9 +14,13 @@ from gtforge.core.targets.models import BoardModel
 class ImportParams(GTModel):
     """How frames become captures (docs/capture-layout.md, "From recordings")."""
 
+    # every figure finite: --max-skew-ms inf was written into import.json as Infinity (no JSON) and paired any frames
+    model_config = ConfigDict(allow_inf_nan=False)
+
     max_skew_ms: float = Field(20.0, gt=0)  # |t_a - t_b| of two frames paired (after the clock offset)
     # a frame is still when its mean |grey difference| to both neighbours (images reduced to <= 160 px wide) is below
-    still_threshold: float = Field(2.0, gt=0)
+    # this (grey levels 0-255: above 255 every frame would be still)
+    still_threshold: float = Field(2.0, gt=0, le=255)
     # the stereo camera's clock minus the depth camera's (ms); None: 0 where the clocks overlap, else estimated from
     # the motion events both recordings saw
     clock_offset_ms: float | None = Field(None, allow_inf_nan=False)
