@@ -69,3 +69,11 @@ def test_import_pairing_thresholds_must_be_finite(option, value, tmp_path):
     """import --max-skew-ms inf was accepted (written into import.json as Infinity, which is no JSON); a still
     threshold above 255 grey levels takes every frame for still."""
     assert refused_option(["import", tmp_path / "rec.bag", "-o", tmp_path / "s", option, value], tmp_path) == option
+
+
+@pytest.mark.parametrize("value", ["inf", "1e9", "100", "nan"])
+def test_align_depth_search_range_is_at_most_the_widest_search(value, tmp_path):
+    """align-depth --search-px 1e9 allocated 30 GB (a traceback), inf raised one, 100 ran for minutes: the first range
+    is at most the range the search widens itself to (48 px)."""
+    assert refused_option(["align-depth", tmp_path / "session", "-c", tmp_path / "c.yaml", "-o", tmp_path / "a.yaml",
+                           "--search-px", value], tmp_path) == "--search-px"

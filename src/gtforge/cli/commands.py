@@ -496,8 +496,8 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
                                                      help="Comma-separated scene ids (default: all)."),
                 boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
                 search_px: float = typer.Option(defaults.EDGE_SEARCH_PX,
-                                                help="First coarse search range (px); widened while the best "
-                                                     "shift is on its border."),
+                                                help="First coarse search range (px, at most 48); widened while "
+                                                     "the best shift is on its border, up to 48."),
                 apply_z: float = typer.Option(defaults.EDGE_APPLY_Z,
                                               help="Apply the correction when it is more than this many sigma "
                                                    "from the factory pose."),

@@ -65,6 +65,9 @@ Status = Literal["determined", "estimated", "not determined", "not fitted"]
 Decision = Literal["applied", "not significant", "not determined"]
 
 
+MAX_SEARCH_PX = 48.0  # the coarse search's widest range (px), and the most a first range may be
+
+
 class EdgeAlignmentParams(GTModel):
     """Settings of ``align_color_to_depth``; the defaults are the measure of ``tests/io/test_real_frame.py``."""
 
@@ -72,9 +75,11 @@ class EdgeAlignmentParams(GTModel):
     gap_px: int = Field(8, ge=0)  # ... found across at most this many invalid depth pixels
     blur_sigma_px: float = Field(1.0, gt=0)  # Gaussian blur of the colour gradients (fine stage, and the score)
     coarse_blur_sigma_px: float = Field(2.0, gt=0)  # ... of the coarse grid search (doubled with its range)
-    search_px: float = Field(defaults.EDGE_SEARCH_PX, gt=0)  # coarse grid: image shifts within +-search_px first ...
+    # coarse grid: image shifts within +-search_px first (at most MAX_SEARCH_PX: the first grid has (2 r / step + 1)^2
+    # points, and --search-px 1e9 allocated 30 GB, 100 ran for minutes, inf raised a traceback) ...
+    search_px: float = Field(defaults.EDGE_SEARCH_PX, gt=0, le=MAX_SEARCH_PX)
     search_step_px: float = Field(0.5, gt=0)  # ... in these steps; range, step and blur double while the best
-    max_search_px: float = Field(48.0, gt=0)  # point is on the border, up to this range
+    max_search_px: float = Field(MAX_SEARCH_PX, gt=0)  # point is on the border, up to this range
     fit_translation: bool = False  # one capture rarely separates a translation from a rotation
     # which edges: the depth silhouettes, the depth camera's own texture (texture_edges), or both; "auto": both
     # when a texture is given, else silhouettes
