@@ -5,6 +5,7 @@ import datetime
 import hashlib
 import json
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -191,6 +192,14 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     any scoring and listed in ``EvalResult.missing``. ``fruit_size``: also measure every fruit's diameter, height
     and volume from the GT and the prediction (``gtforge.core.measure.fruit_size``; ``grades``: bins for the grade
     confusion)."""
+    # finite (inf, the same as no limit, was written into results.json as Infinity, which is no JSON; NaN fails both)
+    if max_disp_px is not None and not 0 < max_disp_px < math.inf:
+        raise InputError(None, "--max-disp", "a finite disparity limit > 0 px", str(max_disp_px),
+                         "give a positive number of px, or leave --max-disp out to score every disparity")
+    if max_gt_sigma_px is not None and not 0 < max_gt_sigma_px < math.inf:
+        raise InputError(None, "--max-gt-sigma", "a finite sigma limit > 0 px", str(max_gt_sigma_px),
+                         "give a positive sigma in px, or leave --max-gt-sigma out to score every label "
+                         "(docs/metrics.md)")
     ds = Path(dataset_dir)
     if ds.is_file():
         raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "a file",
@@ -211,14 +220,7 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                     "Either a build stopped before it finished (run build-dataset again to finish it) or the session "
                     "no longer holds their captures (delete them from the dataset, or build into a new folder)",
                     len(unlisted), len(ids), ds / "manifest.json", first_of(unlisted))
-    if max_disp_px is not None and not max_disp_px > 0:
-        raise InputError(None, "--max-disp", "a disparity limit > 0 px", str(max_disp_px),
-                         "give a positive number of px, or leave --max-disp out to score every disparity")
     if max_gt_sigma_px is not None:
-        if not max_gt_sigma_px > 0:
-            raise InputError(None, "--max-gt-sigma", "a sigma limit > 0 px", str(max_gt_sigma_px),
-                             "give a positive sigma in px, or leave --max-gt-sigma out to score every label "
-                             "(docs/metrics.md)")
         _check_sigma_maps(ds, ids)
     out = None
     if out_dir:

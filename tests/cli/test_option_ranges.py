@@ -77,3 +77,12 @@ def test_align_depth_search_range_is_at_most_the_widest_search(value, tmp_path):
     is at most the range the search widens itself to (48 px)."""
     assert refused_option(["align-depth", tmp_path / "session", "-c", tmp_path / "c.yaml", "-o", tmp_path / "a.yaml",
                            "--search-px", value], tmp_path) == "--search-px"
+
+
+@pytest.mark.parametrize("option", ["--max-disp", "--max-gt-sigma"])
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0"])
+def test_evaluate_limits_must_be_finite(option, value, tmp_path):
+    """evaluate --max-disp inf was accepted and written into results.json as Infinity (no JSON); the limits are now
+    checked before the dataset is read."""
+    assert refused_option(["evaluate", tmp_path / "ds", "--sgbm", "-o", tmp_path / "ev", option, value],
+                          tmp_path) == option
