@@ -86,3 +86,24 @@ def test_evaluate_limits_must_be_finite(option, value, tmp_path):
     checked before the dataset is read."""
     assert refused_option(["evaluate", tmp_path / "ds", "--sgbm", "-o", tmp_path / "ev", option, value],
                           tmp_path) == option
+
+
+@pytest.mark.parametrize("option,value", [("--depth-noise-mm", "inf"), ("--baseline-error-pct", "nan"),
+                                          ("--baseline-error-pct", "-100"), ("--baseline-error-pct", "1000"),
+                                          ("--right-yaw-deg", "nan"), ("--depth-scale-error-pct", "nan"),
+                                          ("--depth-scale-error-pct", "-100"), ("--depth-offset-mm", "nan"),
+                                          ("--depth-offset-mm", "inf"), ("--moved-fruit-mm", "inf")])
+def test_synth_rig_errors_must_be_finite(option, value, tmp_path):
+    """synth rendered a session with each of these (a NaN rig, infinite noise, a baseline of zero) and exit code 0;
+    --baseline-error-pct 1000 raised a traceback after writing part of the session."""
+    assert refused_option(["synth", tmp_path / "s", option, value], tmp_path) == option
+
+
+@pytest.mark.parametrize("args,option", [(["synth", "--seed", "-1"], "'--seed'"),
+                                         (["demo", "--seed", "-1"], "'--seed'"),
+                                         (["demo", "--scenes", "0"], "'--scenes'"),
+                                         (["demo", "--scenes", "-1"], "'--scenes'")])
+def test_synth_and_demo_counts_and_seeds(args, option, tmp_path):
+    """--seed -1 raised numpy's traceback; demo --scenes 0 (or -1) calibrated, then failed at calibrate-scale on a
+    session without scenes/."""
+    assert option in refused_option([args[0], tmp_path / "o", *args[1:]], tmp_path)

@@ -842,7 +842,7 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
           scenes: int = typer.Option(3, metavar="N", min=0, help="Fruit scene captures."),
           scale: float = typer.Option(0.5, min=0.1, max=2.0,
                                       help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
-          seed: int = typer.Option(0, help="Random seed (the same seed renders the same session)."),
+          seed: int = typer.Option(0, min=0, help="Random seed (the same seed renders the same session)."),
           depth_noise_mm: float = typer.Option(0.03, metavar="MM", min=0.0,
                                                help="Gaussian noise added to the structured-light depth (mm)."),
           gauges: bool = typer.Option(False, "--gauges", help="Also capture gauge objects (a sphere, a sphere pair, "
@@ -882,6 +882,16 @@ def synth(output: Path = typer.Argument(..., help="Folder for the synthetic sess
     from gtforge.io.outputs import require_new_or_empty_folder
     from gtforge.synthetic import generate_raw_zed_session, generate_session
 
+    for option, value in (("--depth-noise-mm", depth_noise_mm), ("--baseline-error-pct", baseline_error_pct),
+                          ("--right-yaw-deg", right_yaw_deg), ("--depth-scale-error-pct", depth_scale_error_pct),
+                          ("--depth-offset-mm", depth_offset_mm), ("--moved-fruit-mm", moved_fruit_mm)):
+        if not math.isfinite(value):  # (rendered as given: a NaN rig, an infinite noise)
+            raise InputError(None, option, "a finite number", str(value), f"leave {option} out for its default")
+    for option, value in (("--baseline-error-pct", baseline_error_pct), ("--depth-scale-error-pct",
+                                                                         depth_scale_error_pct)):
+        if not -100 < value <= 100:  # (-100 %: a baseline, a depth of zero; 1000 %: no board pose fits both cameras)
+            raise InputError(None, option, "a share above -100 % and at most 100 %", f"{value:g}",
+                             "give the error in percent of the true length, e.g. 0.5 or -0.3")
     spec = board_model.spec() if board_model is not None else None
     if board_model is not None:
         from gtforge.core.targets.models import check_board_model
@@ -947,9 +957,10 @@ def demo(directory: Path = typer.Argument(Path("demo_out"), help="Where the demo
                                      help="Resolution factor of the synthetic cameras (1.0 = ZED 2K)."),
          boards: int = typer.Option(8, metavar="N", min=5,
                                     help="Checkerboard captures (the last 2 are held out for validate)."),
-         scenes: int = typer.Option(5, metavar="N", help="Fruit scene captures (in the last, the fruit rolls 0.6 mm "
-                                                         "between the two captures; 4 or more also run refine)."),
-         seed: int = typer.Option(0, help="Random seed.")) -> None:
+         scenes: int = typer.Option(5, metavar="N", min=1,
+                                    help="Fruit scene captures (in the last, the fruit rolls 0.6 mm between the two "
+                                         "captures; 4 or more also run refine)."),
+         seed: int = typer.Option(0, min=0, help="Random seed.")) -> None:
     """Generate a synthetic session and run calibrate -> validate -> calibrate-scale -> refine -> build-dataset (with
     verification and sigma maps) -> evaluate, each checked against the exact truth; then the same chain as one command
     (gtforge run), which writes the dataset certificate (DIRECTORY/run/index.html)."""
