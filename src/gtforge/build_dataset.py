@@ -380,6 +380,10 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         raise InputError(None, "--crop", f"at most the ZED image size, {size} px",
                          f"{params.crop_wh[0]}x{params.crop_wh[1]} px",
                          f"give --crop WxH within {size}, or build without --crop (--crop kitti is 1242x375)")
+    most = min(session.zed.left.width_px, session.zed.left.height_px) // 2  # (more erodes every fruit away)
+    if params.erosion_px > most:  # (--erosion-px 100000: a 40 GB kernel, OpenCV's out-of-memory traceback)
+        raise InputError(None, "--erosion-px", f"at most half the ZED image's shorter side, {most} px",
+                         f"{params.erosion_px} px", "leave --erosion-px out for its default (15 px at full size)")
     dirs = session.select("scenes", scenes)
     in_session = [d.name for d in session.capture_dirs("scenes")]  # (every scene, whatever --scenes chose)
     _warn_of_fruit_ids(session, in_session)

@@ -983,3 +983,13 @@ def test_split_and_crop_refusals_carry_a_hint(session_dir, true_calibration, tmp
     assert e.value.field == "--crop" and e.value.actual == "1242x375 px"
     assert e.value.hint == "give --crop WxH within 883x497, or build without --crop (--crop kitti is 1242x375)"
     assert not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("erosion_px", [249, 100000])
+def test_an_erosion_wider_than_the_image_is_refused_before_work(session_dir, true_calibration, tmp_path, erosion_px):
+    """--erosion-px 100000 reached OpenCV (a 40 GB kernel: its out-of-memory traceback); beyond half the image's
+    shorter side every fruit is eroded away."""
+    with pytest.raises(InputError) as e:
+        build_dataset(session_dir, true_calibration, tmp_path / "ds", BuildParams(erosion_px=erosion_px), workers=1)
+    assert e.value.field == "--erosion-px" and e.value.expected == "at most half the ZED image's shorter side, 248 px"
+    assert not (tmp_path / "ds").exists()
