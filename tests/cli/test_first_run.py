@@ -68,7 +68,7 @@ def test_a_file_with_several_problems_names_them_all(tmp_path):
     assert "params.xy_threshold_px" in msg and "{" not in msg.split("got", 1)[1].split("problems")[0]
     with pytest.raises(InputError) as e:
         F.from_dict({"b": 1, "params": {}}, tmp_path / "f.yaml")
-    assert str(e.value).endswith("got missing") and e.value.field == "a"
+    assert str(e.value).endswith("got missing (hint: add a)") and e.value.field == "a"
 
 
 def test_mistyped_paths_say_so_with_a_hint(tmp_path):
