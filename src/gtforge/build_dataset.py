@@ -443,16 +443,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
         try:
             run_tasks(build_one_scene, args, handle, workers=workers, scheduler=scheduler, lost_result=lost,
                       heap_bytes=scene_heap_bytes(session.zed.left))
-        except SchedulerLost as exc:
-            stopped = exc
-        except InputError:  # the cluster could not be reached
-            remove_if_empty(made)
-            raise
-        except (KeyboardInterrupt, Interrupted):
-            stopped = None
-        else:
-            stopped = False
-        if stopped is not False:  # Ctrl-C (None) or the Dask scheduler gone: keep what is complete
+        except (SchedulerLost, KeyboardInterrupt, Interrupted) as exc:  # Ctrl-C, the scheduler gone: keep what is whole
             for a in args:  # scenes a worker finished whose result had not reached this process: complete all the same
                 if a[2] not in metas and a[2] not in failures:
                     meta = landed_meta(out, a[2], before[a[2]], phash, calib_sha, expected)
@@ -463,9 +454,12 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
             _write_manifest(out, session_dir, calib_path, calib_sha, params, metas, failures)
             detail = (f"{len(built)} scene(s) built in this run and complete, "
                       f"{len(args) - len(built) - len(failures)} not built")
-            if stopped is not None:
-                raise SchedulerLost(stopped.address, stopped.cause, detail) from None
+            if isinstance(exc, SchedulerLost):
+                raise SchedulerLost(exc.address, exc.cause, detail) from None
             raise Interrupted(f"interrupted: {detail}; rerun the same command to resume", detail) from None
+        except InputError:  # the cluster could not be reached
+            remove_if_empty(made)
+            raise
     splits, flagged, quarantined = finish_dataset(out, session_dir, calib_path, calib_sha, params, metas, failures,
                                                   unchanged, recovered)
     ok_ids = sorted(metas)
