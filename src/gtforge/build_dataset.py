@@ -590,9 +590,6 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
 
 def _write_verification(out: Path, params: BuildParams, metas: dict[str, "SceneMeta"]) -> None:
     scenes = {s: m.verification for s, m in sorted(metas.items()) if m.verification is not None}
-    for s, v in scenes.items():  # overlays of scenes no longer flagged
-        if v.status != "flagged":
-            (out / "verification" / f"{s}_overlay.jpg").unlink(missing_ok=True)
     write_verification_report(VerificationResult(dataset_dir=str(out.resolve()), params=params.verify, scenes=scenes),
                               out)
 

@@ -124,10 +124,7 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
         raise
     rep = VerificationResult(dataset_dir=str(ds.resolve()), params=params,
                              scenes={**old, **{sid: results[sid] for sid in ids}})
-    for sid in ids:  # overlays are of flagged scenes only, as build-dataset's: a scene that passes now loses its
-        if results[sid].status != "flagged":
-            (ds / "verification" / f"{sid}_overlay.jpg").unlink(missing_ok=True)
-    write_verification_report(rep, ds)
+    write_verification_report(rep, ds)  # (and the overlays of scenes it no longer flags go)
     # the scenes this report holds leave the record; a --scenes run keeps the others for a later verify
     rest = {sid: e for sid, e in record.scenes.items() if sid not in stamps} if record is not None else {}
     if rest:

@@ -153,8 +153,13 @@ def _motion_section(items, out: Path) -> str:
 
 
 def write_verification_report(report: VerificationResult, out_dir: str | Path) -> Path:
-    """``verification.json`` + ``verification.html`` in ``out_dir``."""
+    """``verification.json`` + ``verification.html`` in ``out_dir``; ``verification/<id>_overlay.jpg`` of a scene the
+    report does not flag is removed (overlays are of flagged scenes only: a scene flagged by an earlier build or
+    verify and passing now kept one, showing a flag the dataset no longer had)."""
 
     out = Path(out_dir)
+    for sid, v in report.scenes.items():
+        if v.status != "flagged":
+            (out / "verification" / f"{sid}_overlay.jpg").unlink(missing_ok=True)
     report.write(out / "verification.json")
     return write_verification_html(report, out)
