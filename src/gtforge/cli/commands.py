@@ -103,29 +103,25 @@ def _options(model, **values):
                          repr(err.get("input")), hint) from None
 
 
-# The board options calibrate, import and synth share (docs/targets.md): one help text each, a command's own note
-# after it.
-_BOARD_HELP = {
-    "board": "checkerboard (default), charuco, circles_symmetric or circles_asymmetric (docs/targets.md).",
-    "cols": "Inner corners along a row (ChArUco: squares; circle grids: circles per row). Default 12.",
-    "rows": "Inner corners along a column (ChArUco: squares; circle grids: rows). Default 9.",
-    "square_mm": "Square size, or circle spacing (mm). Default 20.",
-    "marker_mm": "ChArUco marker side (mm).",
-    "dictionary": "ChArUco ArUco dictionary, e.g. DICT_5X5_100.",
-    "legacy_pattern": "ChArUco board made before OpenCV 4.6 (even rows).",
-    "circle_mm": "Circle diameter (mm; default half the spacing).",
+# The board options calibrate, import and synth share (docs/targets.md): each one's type and help text, a command's own
+# note after it.
+_BOARD_OPTIONS = {
+    "board": (str, "checkerboard (default), charuco, circles_symmetric or circles_asymmetric (docs/targets.md)."),
+    "cols": (int, "Inner corners along a row (ChArUco: squares; circle grids: circles per row). Default 12."),
+    "rows": (int, "Inner corners along a column (ChArUco: squares; circle grids: rows). Default 9."),
+    "square_mm": (float, "Square size, or circle spacing (mm). Default 20."),
+    "marker_mm": (float, "ChArUco marker side (mm)."),
+    "dictionary": (str, "ChArUco ArUco dictionary, e.g. DICT_5X5_100."),
+    "legacy_pattern": (bool, "ChArUco board made before OpenCV 4.6 (even rows)."),
+    "circle_mm": (float, "Circle diameter (mm; default half the spacing)."),
 }
 
 
-_BOARD_TYPES = {"board": str, "cols": int, "rows": int, "square_mm": float, "marker_mm": float, "dictionary": str,
-                "legacy_pattern": bool, "circle_mm": float}
-
-
 def _board_option(name: str, note: str = "", panel: str | None = None):
-    """The typer option of one of the shared board options (``_BOARD_HELP``); ``None`` when not given."""
+    """The typer option of one of the shared board options (``_BOARD_OPTIONS``); ``None`` when not given."""
     decls = ("--legacy-pattern/--no-legacy-pattern",) if name == "legacy_pattern" else ()
     return typer.Option(None, *decls, metavar="KIND" if name == "board" else None, rich_help_panel=panel,
-                        help=f"{_BOARD_HELP[name]} {note}".strip())
+                        help=f"{_BOARD_OPTIONS[name][1]} {note}".strip())
 
 
 def _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pattern, circle_mm):
@@ -139,7 +135,7 @@ def _board_model(board, cols, rows, square_mm, marker_mm, dictionary, legacy_pat
 
 
 def _with_board_options(note: str, panel: str | None = None):
-    """A command taking the eight board options (``_BOARD_HELP``, ``note`` after --board's text; after the command's
+    """A command taking the eight board options (``_BOARD_OPTIONS``, ``note`` after --board's text; after the command's
     own options in its help), given to it as ``board_model``: the board they declare (``_board_model``), None where
     none of them is given. One declaration for calibrate, import and synth."""
     def add(fn):
@@ -147,11 +143,11 @@ def _with_board_options(note: str, panel: str | None = None):
         own = [p for p in sig.parameters.values() if p.name != "board_model"]
         extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=Optional[kind],
                                    default=_board_option(name, note if name == "board" else "", panel))
-                 for name, kind in _BOARD_TYPES.items()]
+                 for name, (kind, _) in _BOARD_OPTIONS.items()]
 
         @functools.wraps(fn)
         def command(*args, **kwargs):
-            board_model = _board_model(**{name: kwargs.pop(name) for name in _BOARD_TYPES})
+            board_model = _board_model(**{name: kwargs.pop(name) for name in _BOARD_OPTIONS})
             return fn(*args, board_model=board_model, **kwargs)
 
         command.__signature__ = sig.replace(parameters=own + extra)
