@@ -482,12 +482,18 @@ def _stop_unused_fork_server() -> None:
 def _terminate(ex: ProcessPoolExecutor) -> None:
     """Stop a pool now: queued tasks are dropped and running workers killed (no waiting for them)."""
     procs = list(getattr(ex, "_processes", {}).values())  # the executor has no public kill
+    manager = getattr(ex, "_executor_manager_thread", None)
     ex.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         if p.is_alive():
             p.terminate()
     for p in procs:
         p.join(timeout=5)
+    # the pool's manager thread sees its workers gone and closes its wake-up pipe; at exit the interpreter writes to
+    # that pipe without the pool's lock (CPython 3.11's concurrent.futures._python_exit), and a close between its check
+    # and its write printed "OSError: [Errno 9] Bad file descriptor" after the Ctrl-C message: wait for the thread
+    if manager is not None and manager is not threading.current_thread():
+        manager.join(timeout=5)
 
 
 # ---- Dask --------------------------------------------------------------------------------------
