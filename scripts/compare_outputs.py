@@ -63,7 +63,8 @@ def _text(path: Path, root: Path) -> str:
     # where it stands as a path: a short relative name ("r2") also occurs inside words and embedded base64 images,
     # which replaced there differed from the other run's (a folder "rI4") though the files were the same
     for r in sorted({str(root), str(root.resolve())}, key=len, reverse=True):
-        s = re.sub(r"(?<![\w/.+=-])" + re.escape(r) + r"(?![\w.+=-])", "RUN", s)
+        # (a sentence may end on the folder: "dataset /tmp/out." is a path, "/tmp/out.png" is not)
+        s = re.sub(r"(?<![\w/.+=-])" + re.escape(r) + r"(?![\w+=-]|\.[\w+=-])", "RUN", s)
     return s
 
 

@@ -68,12 +68,17 @@ def test_a_short_folder_name_is_replaced_only_where_it_is_a_path(tmp_path, monke
     for name in ("r2", "rI4"):
         root = _run(tmp_path / name, disp, 0.125, 1.5, "2026-12-02 14:00")
         (root / "report.html").write_text(f'<p>see {root}/meta.json and {name}/meta.json</p>'
-                                          '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>')
+                                          '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>'
+                                          f'<p>dataset {root}.</p>')
     monkeypatch.chdir(tmp_path)
     assert compare(Path("r2"), Path("rI4")) == []
     text = sys.modules["compare_outputs"]._text(Path("r2") / "report.html", Path("r2"))
+    # a folder that ends a sentence is a path too (verification.html's summary: "dataset /abs/out.")
     assert text == ('<p>see RUN/meta.json and RUN/meta.json</p>'
-                    '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>')
+                    '<img src="data:image/png;base64,iVBORw0Kr2AAAEr2/r2+r2=="/><p>er2 r2d2</p>'
+                    '<p>dataset RUN.</p>')
+    (Path("r2") / "notes.txt").write_text("r2.png r2.")
+    assert sys.modules["compare_outputs"]._text(Path("r2") / "notes.txt", Path("r2")) == "r2.png RUN."
 
 
 def test_a_runs_state_file_differs_only_in_its_own_outputs_digests(tmp_path):

@@ -371,3 +371,30 @@ def test_no_command_has_a_v_of_its_own_and_a_v_after_dashdash_is_an_argument(tmp
     r = CliRunner().invoke(app, ["verify", "MISSING", "--", "-v"], env={"COLUMNS": "200"})
     assert r.exit_code == 2 and "unexpected extra argument(s) (-v)" in r.output
     assert logging.getLogger().level == logging.WARNING
+
+
+IMPORTS_GC = '''
+import gc, json, sys
+from gtforge.cli import main
+sys.argv = ["gtforge", "verify", "/nonexistent"]  # a pool command: exits with 2 once its imports are done
+try:
+    main()
+except SystemExit as exc:
+    code = exc.code
+print(json.dumps([code, gc.isenabled(), gc.get_stats()[2]["collections"], gc.get_freeze_count(),
+                  "gtforge.verify" in sys.modules]))
+'''
+
+
+def test_the_commands_imports_run_without_the_garbage_collector_and_are_frozen():
+    """A build's imports make some 100,000 objects and next to no garbage: the collector's passes over them while they
+    loaded cost 0.035 of the command's 0.39 CPU s (its pool's server: 0.08 of 0.49). They run with it off, are frozen
+    (no later collection walks them) and it is on again for the stage."""
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", IMPORTS_GC], capture_output=True, text=True, timeout=120)
+    code, enabled, full_collections, frozen, imported = json.loads(r.stdout.strip().splitlines()[-1])
+    assert (code, enabled, full_collections, imported) == (2, True, 0, True), r.stderr[-2000:]
+    assert frozen > 50_000

@@ -24,9 +24,12 @@ SCRIPT = textwrap.dedent('''
             libc = ctypes.CDLL("libc.so.6")
             libc.mallinfo2.restype = MallInfo2
             heap = libc.mallinfo2().f0
+        import gc
         return (os.getpid(), os.getppid(), "gtforge.infra.pool_preload" in sys.modules, \
 "gtforge.build_dataset" in sys.modules,
-                numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"), heap)
+                numba.get_num_threads(), os.environ.get("NUMBA_NUM_THREADS"), heap,
+                [gc.isenabled(), gc.get_stats()[2]["collections"], gc.get_freeze_count(),
+                 os.environ.get("GTFORGE_POOL_MODULE")])
 
     def sigint_ignored(pid):
         mask = next(int(line.split()[1], 16) for line in open(f"/proc/{pid}/status") if line.startswith("SigIgn:"))
@@ -66,6 +69,11 @@ def test_local_workers_are_forked_from_one_preloaded_server(tmp_path):
     assert all(t[2] and t[3] for t in first + second)
     assert all(t[4] == out["threads"] and t[5] == str(out["threads"]) for t in first + second)
     assert out["server_ignores_sigint"]  # a Ctrl-C while it imports gives no traceback from it
+    # the server's imports ran without the garbage collector (a full collection ran during them before), and the
+    # workers inherit its objects frozen, with the collector on; the task's module was handed over and not passed on
+    gc_facts = [t[7] for t in first + second]
+    assert all(on and full == 0 and frozen > 50_000 and module is None for on, full, frozen, module in gc_facts), \
+        gc_facts
     # the second pool's workers reserved 48 MB of heap before their first task (reserve_heap), the first's did not
     if first[0][6] is not None:
         assert all(t[6] < (40 << 20) for t in first) and all(t[6] >= (48 << 20) for t in second), (first, second)

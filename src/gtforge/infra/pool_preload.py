@@ -1,7 +1,7 @@
 """What the local pool's fork server (``gtforge.infra.scheduling``) loads before it forks the first worker, so that
 every worker starts with it: numba's typing and lowering registries, which numba loads on a process's first compiled
 call (``load_registries``: without the SciPy BLAS check numba runs then): otherwise part of each worker's start, done
-once here through one tiny function from numba's cache. The task's own module is preloaded by name beside this one.
+once here through one tiny function from numba's cache; then the task's own module (``POOL_MODULE_ENV``).
 
 Then the caller's warm-up, where ``prestart_pool`` was given one (``POOL_WARM_UP_ENV``: ``"module:function"`` and its
 arguments, as JSON; or ``POOL_WARM_UP_FILE_ENV``: the file the command writes them to once it has parsed its options,
@@ -12,18 +12,25 @@ start threads that do not survive a fork (GNU OpenMP: numba's parallel kernels, 
 compilation here; OpenCV's pool: OpenCV runs serially here)."""
 from __future__ import annotations
 
-import atexit
 import gc
-import importlib
-import json
-import logging
-import os
-import sys
-import warnings
 
-import numba
+# The server's imports (numba, its registries, the task's module) make some 150,000 objects and next to no garbage,
+# and the collector's passes over them while they load took 0.08 of the chain's 0.49 CPU s, on the critical path to
+# the first scene (benchmarks/RESULTS.md, "Round 17 (issue 39)"). It is off until they and the warm-up are done; then
+# they are frozen (no collection in a worker walks them) and it is on again for the workers (``preload``).
+gc.disable()
 
-from gtforge.infra.scheduling import POOL_WARM_UP_ENV, POOL_WARM_UP_FILE_ENV
+import atexit  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import os  # noqa: E402
+import sys  # noqa: E402
+import warnings  # noqa: E402
+
+import numba  # noqa: E402
+
+from gtforge.infra.scheduling import POOL_MODULE_ENV, POOL_WARM_UP_ENV, POOL_WARM_UP_FILE_ENV  # noqa: E402
 
 
 @numba.njit(cache=True)
@@ -90,8 +97,24 @@ def load_registries() -> None:
     numba.np.arraymath._HAVE_BLAS = True
 
 
-load_registries()
-warm_up()
+def preload() -> None:
+    """What the server does once, before its first fork: numba's registries, the task's module
+    (``POOL_MODULE_ENV``), the warm-up; then every object so far frozen and the collector on again."""
+    try:
+        load_registries()
+        module = os.environ.pop(POOL_MODULE_ENV, None)
+        if module:
+            try:
+                importlib.import_module(module)
+            except ImportError:  # (as the server's own preload does: the workers import it, and report it, themselves)
+                pass
+        warm_up()
+    finally:
+        gc.freeze()
+        gc.enable()
+
+
+preload()
 # the server's own exit (its workers leave with os._exit): no teardown collection over numba's objects (0.15-0.2 s),
 # as in the command (gtforge.cli.main)
 atexit.register(gc.freeze)

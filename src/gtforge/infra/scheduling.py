@@ -345,6 +345,8 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
 # the environment variables that hand a warm-up to the fork server (``prestart_pool``, ``pool_preload.warm_up``): the
 # warm-up itself, or the file it will be in when the server was started before the command knew it
 POOL_WARM_UP_ENV = "GTFORGE_POOL_WARM_UP"
+# the task's module, which the server imports after numba's registries (``pool_preload.preload``)
+POOL_MODULE_ENV = "GTFORGE_POOL_MODULE"
 POOL_WARM_UP_FILE_ENV = "GTFORGE_POOL_WARM_UP_FILE"
 # this process's fork server, once started: the numba/OpenMP thread count its environment set, the module it preloaded
 # and, when it was started with ``warm_up_later``, the file its warm-up goes to
@@ -422,7 +424,7 @@ def _pool_context(module: str, n_threads: int, warm_up: tuple[str, tuple] | None
         # gtforge.cli, unless the server holds it already
         preload.insert(1, "gtforge.cli")
     ctx.set_forkserver_preload(preload)
-    env = _thread_environment(n_threads)
+    env = {**_thread_environment(n_threads), POOL_MODULE_ENV: module}
     if warm_up is not None:
         env[POOL_WARM_UP_ENV] = _warm_up_spec(module, warm_up)
     elif warm_up_later:
