@@ -214,6 +214,27 @@ def test_limits_out_of_order_are_refused(tmp_path):
     assert read_gauges_file(tmp_path).limits.size_pass_mm == 0.3  # equal limits: no WARN band, allowed
 
 
+@pytest.mark.parametrize("entry, field", [
+    ({"gauges": [{"capture": "sphere", "kind": "sphere", "diameter_mm": float("inf")}]}, "gauges.0.diameter_mm"),
+    ({"gauges": [{"capture": "sphere_pair", "kind": "sphere_pair", "diameter_mm": 80.0,
+                  "centre_distance_mm": float("inf")}]}, "gauges.0.centre_distance_mm"),
+    ({"limits": {"size_warn_mm": float("inf")}}, "limits.size_warn_mm"),
+    ({"params": {"gate_mm": float("inf")}}, "params.gate_mm"),
+    ({"params": {"depth_noise": {"b_mm_per_m2": float("inf")}}}, "params.depth_noise.b_mm_per_m2"),
+])
+def test_infinite_sizes_limits_and_params_are_refused(tmp_path, entry, field):
+    """gauges.yaml's ``diameter_mm: .inf`` passed ``gt=0``: validate measured the sphere NOT MEASURABLE with a size
+    error of -inf, exited 0, and wrote gauges.json with Infinity (no JSON); now every number is refused unless finite,
+    one line naming the field."""
+    (tmp_path / "gauges" / "sphere").mkdir(parents=True)
+    (tmp_path / "gauges" / "sphere_pair").mkdir(parents=True)
+    doc = {"schema_version": 1, "gauges": [{"capture": "sphere", "kind": "sphere", "diameter_mm": 100.0}], **entry}
+    (tmp_path / "gauges" / "gauges.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputError) as e:
+        read_gauges_file(tmp_path)
+    assert e.value.field == field and "finite number" in str(e.value) and "gauges.yaml" in str(e.value)
+
+
 @pytest.mark.slow
 def test_gauges_only_on_the_command_line(exact, tmp_path):
     s, c, _ = exact

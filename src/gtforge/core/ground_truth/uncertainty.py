@@ -27,7 +27,7 @@ import math
 
 import numba
 import numpy as np
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from gtforge.core.camera import Rig
 from gtforge.core.geometry import finite_box, perturb_left
@@ -40,6 +40,8 @@ class DepthNoiseModel(GTModel):
 
     Default: Mech-Eye PRO S, rated 0.05 mm at 1 m (Mech-Mind's data sheet, Z repeatability), growing with Z^2 as
     triangulation noise does. Set it for your camera (``--depth-noise-a-mm``, ``--depth-noise-b-mm-per-m2``)."""
+
+    model_config = ConfigDict(allow_inf_nan=False)  # finite (gauges.yaml's depth_noise: .inf went into the JSON)
 
     a_mm: float = Field(0.0, ge=0)
     b_mm_per_m2: float = Field(0.05, ge=0)

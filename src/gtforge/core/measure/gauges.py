@@ -24,7 +24,7 @@ from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 from scipy.stats import norm
 
 from gtforge.core.geometry import fit_plane_robust, transform_points
@@ -43,6 +43,9 @@ Status = Literal["PASS", "WARN", "FAIL", "NOT MEASURABLE"]
 class GaugeSpec(GTModel):
     """One gauge object of ``gauges.yaml``: its capture folder (under ``gauges/``) and calibrated size."""
 
+    # finite sizes: an infinite diameter passed ``gt=0``, was measured NOT MEASURABLE (exit 0) with a size error of
+    # -inf, and gauges.json / validation.json were written with Infinity, which no JSON reader takes
+    model_config = ConfigDict(allow_inf_nan=False)
     capture: str
     kind: Literal["sphere", "sphere_pair", "plane"]
     diameter_mm: float | None = Field(None, gt=0)  # sphere, sphere_pair (both spheres)
@@ -66,6 +69,7 @@ class GaugeLimits(GTModel):
     """PASS up to ``*_pass_mm``, WARN up to ``*_warn_mm``, FAIL beyond (absolute values, mm). Defaults: about twice
     and six times a metrology-grade structured-light camera's rated figures at 0.5-1 m (docs/metrics.md)."""
 
+    model_config = ConfigDict(allow_inf_nan=False)  # finite limits (an infinite one went into the JSON as Infinity)
     size_pass_mm: float = Field(0.1, gt=0)
     size_warn_mm: float = Field(0.3, gt=0)
     form_pass_mm: float = Field(0.3, gt=0)
@@ -95,6 +99,7 @@ class GaugesFile(VersionedFile):
 
 
 class GaugeParams(GTModel):
+    model_config = ConfigDict(allow_inf_nan=False)  # finite settings, as the sizes and limits
     min_height_mm: float = Field(10.0, gt=0)  # object points: this far above the table plane
     erosion_px: int = Field(3, ge=0)  # the object's image mask is eroded by this (mixed silhouette pixels out)
     max_incidence_deg: float = Field(70.0, gt=0, le=90)  # sphere points seen more obliquely than this are left out
