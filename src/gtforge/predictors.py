@@ -380,12 +380,15 @@ class PredictionFolder:
         else:
             try:
                 d = np.load(p, allow_pickle=False)
-                kind = d.dtype.kind
-                d = d.astype(np.float32)
             except Exception as exc:
                 raise InputError(p, None, "a readable .npy array of disparities (float, px)",
                                  f"{type(exc).__name__}: {_first_words(exc, 80)}",
                                  "save the network's output with np.save(path, disparity.astype(np.float32))") from None
+            kind = d.dtype.kind
+            if kind not in "fiu":  # complex (cast to its real part with a numpy warning), bool, text, structured
+                raise InputError(p, "dtype", "an array of real disparities (float32, px)", f"{d.dtype}",
+                                 "save the network's output with np.save(path, disparity.astype(np.float32))")
+            d = d.astype(np.float32)
             if kind != "f":  # whole-pixel disparities: scored as they are, their rounding counted as error
                 logging.getLogger("gtforge.evaluate").warning(
                     "%s holds integer disparities (no sub-pixel part): scored as whole pixels; a network's output is "
@@ -397,7 +400,21 @@ class PredictionFolder:
             raise InputError(p, "size", f"{left.shape[1]}x{left.shape[0]} px (the scene's image)",
                              f"{d.shape[1]}x{d.shape[0]} px" if d.ndim == 2 else f"shape {d.shape}",
                              "predictions must be at the dataset's resolution (or crop)")
+        check_disparity_scale(d, p)
         return d
+
+
+def check_disparity_scale(d: np.ndarray, source) -> None:
+    """Refuse a prediction whose disparities are mostly as large as its image is wide: no pixel matches that far
+    away, so they are in another unit (KITTI's ``round(d * 256)`` saved as a .npy or PFM, a depth map in mm at a small
+    size). Before, such a file was scored as it was (EPE in the thousands of px, exit 0, nothing said)."""
+    v = np.abs(d[np.isfinite(d)])
+    width = d.shape[1]
+    if v.size and float(np.median(v)) >= width:
+        raise InputError(source, "disparity", f"disparities in px at the image's resolution (below its width, "
+                         f"{width} px)", f"median {float(np.median(v)):.4g} px",
+                         "KITTI's PNG stores round(d * 256): divide by 256 before saving a .npy or .pfm; a depth map "
+                         "is no disparity (d = f*B/Z - doffs, calib.txt)")
 
 
 def timed_predict(pred: Predictor, *args) -> tuple[np.ndarray, float]:

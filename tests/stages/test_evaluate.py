@@ -716,8 +716,37 @@ def test_prediction_arrays_that_are_not_float_are_said_so(dataset, tmp_path, cap
     with caplog.at_level(logging.WARNING, logger="gtforge"):
         d = folder.predict(ids[0], np.zeros(gt.shape + (3,), np.uint8), None)
     assert d.dtype == np.float32 and any("integer disparities" in r.getMessage() for r in caplog.records)
-    with pytest.raises(InputError, match=r"float, px\), got ValueError: could not convert string to float.*np\.save"):
+    with pytest.raises(InputError, match=r"\[dtype\]: expected an array of real disparities \(float32, px\), got <U1 "
+                       r".*np\.save"):
         folder.predict(ids[1], np.zeros(gt.shape + (3,), np.uint8), None)
+
+
+def test_complex_and_bool_prediction_arrays_are_refused(tmp_path):
+    """A complex .npy was cast to its real part with numpy's ComplexWarning on the terminal, said to hold "integer
+    disparities", and scored (exit 0); a bool one was scored as 0/1 px. Both are one line naming the dtype."""
+    d = np.full((30, 40), 12.5, np.float32)
+    for sid, a in (("c", d.astype(np.complex64)), ("b", d > 0)):
+        np.save(tmp_path / f"{sid}.npy", a)
+        with pytest.raises(InputError) as e:
+            PredictionFolder(tmp_path).predict(sid, np.zeros((30, 40, 3), np.uint8), None)
+        assert e.value.field == "dtype" and e.value.actual == str(a.dtype) and e.value.hint
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".pfm"])
+def test_predictions_in_another_unit_are_refused(tmp_path, suffix):
+    """A .npy or .pfm of KITTI's round(d * 256) (or of depth in mm) was scored as it was: EPE 7165 px, exit 0, not a
+    word (a run-through on a 662 px wide dataset). Disparities mostly as large as the image is wide match nothing:
+    the scene is refused with the unit's hint; right-unit disparities (up to just under the width) are read."""
+    gt = np.linspace(20.0, 39.0, 30 * 40, dtype=np.float32).reshape(30, 40)
+    img = np.zeros((30, 40, 3), np.uint8)
+    write = (lambda f, a: np.save(f, a)) if suffix == ".npy" else write_pfm
+    write(tmp_path / f"a{suffix}", gt * 256)
+    with pytest.raises(InputError) as e:
+        PredictionFolder(tmp_path).predict("a", img, None)
+    assert e.value.field == "disparity" and e.value.actual == f"median {float(np.median(gt * 256)):.4g} px"
+    assert "below its width, 40 px" in e.value.expected and "256" in e.value.hint
+    write(tmp_path / f"b{suffix}", gt)
+    np.testing.assert_array_equal(PredictionFolder(tmp_path).predict("b", img, None), gt)
 
 
 def test_predictions_of_minus_the_disparity_are_said_once(dataset, tmp_path, caplog):
