@@ -1075,10 +1075,13 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
     gauge object (``gauge_scenes``; ``sizes`` override its sizes) and ``gauges/gauges.yaml`` naming each object's
     calibrated size (docs/capture-layout.md). ``depth_scale``: the structured-light depth is multiplied by it (a
     depth scale error). ``names``: only these of ``sphere``, ``sphere_pair``, ``plane``. ``truth/gauge_<name>.npz``: the
-    exact centres (ZED-left frame) or plane, and ZED-left truth."""
+    exact centres (ZED-left frame) or plane, and ZED-left truth. The rig is the session's as its
+    ``truth/rig_truth.yaml`` records it: a separate depth camera and the errors put in the files (the ZED's true
+    baseline, the right camera's yaw, the depth map's scale and offset) hold for the gauges as for the boards and
+    scenes."""
 
     root = Path(session_dir)
-    rig = two_camera_rig(scale) if two_camera else default_rig(scale)
+    rig = _session_rig(root, scale, two_camera)
     rng = np.random.default_rng(seed + 7000)
     specs = []
     for name, (scene, truth) in gauge_scenes(rig, seed, **sizes).items():
@@ -1104,6 +1107,25 @@ def generate_gauges(session_dir: str | Path, *, scale: float = 0.5, seed: int = 
                                centre_distance_mm=truth.get("centre_distance_mm")))
     GaugesFile(gauges=specs).write(root / "gauges" / "gauges.yaml")
     return root
+
+
+def _session_rig(root: Path, scale: float, two_camera: bool) -> SyntheticRig:
+    """The rig a session's captures were rendered with, from its ``truth/rig_truth.yaml`` where there is one (before,
+    ``generate_gauges`` rendered with the plain one-camera rig whatever the session's: ``synth --gauges
+    --separate-depth-camera`` wrote gauge depth maps of the texture camera's size, which validate refused, and
+    ``--depth-scale-error-pct`` and the other file errors left the gauges exact)."""
+    p = root / "truth" / "rig_truth.yaml"
+    truth = SyntheticTruth.read(p) if p.is_file() else None
+    two_camera = two_camera or (truth is not None and truth.T_mech_from_depth is not None)
+    rig = two_camera_rig(scale) if two_camera else default_rig(scale)
+    if truth is None:
+        return rig
+    if truth.zed_baseline_true_mm is not None:
+        rig.zed_file = rig.zed
+        rig.zed = rig.zed.model_copy(update={"baseline_mm": truth.zed_baseline_true_mm})
+    rig.right_yaw_rad = float(np.radians(truth.zed_right_yaw_deg))
+    rig.depth_scale, rig.depth_offset_mm = truth.depth_scale, truth.depth_offset_mm
+    return rig
 
 
 def random_partial_board_pose(rng: np.random.Generator, rig, board, corner: int, camera: str = "mech",

@@ -350,3 +350,26 @@ def test_ball_bar_whose_bar_joins_the_spheres(tmp_path):
     for sp in g.gt.spheres:
         assert abs(sp.size_error_mm) <= 0.05 and sp.form_range_mm <= 0.05
     assert abs(g.gt.spacing_error_mm) <= 0.05 and abs(g.raw.spacing_error_mm) <= 0.005
+
+
+def test_gauges_are_rendered_with_the_sessions_rig(tmp_path):
+    """generate_gauges rendered with the plain one-camera rig whatever the session's: `synth --gauges
+    --separate-depth-camera` wrote gauge depth maps of the texture camera's size (576x360 at 0.3x), which validate
+    refused (a run-through), and a depth scale error put in the session left the gauges' depth exact. Now the
+    session's rig (truth/rig_truth.yaml) renders them: the depth camera's size, the depth scale to the last bit."""
+    from gtforge.io.cameras import CameraFile
+
+    two = generate_session(tmp_path / "two", n_board=0, n_scenes=0, scale=0.2, seed=1, depth_noise_mm=0.0,
+                           two_camera=True, supersample=1)
+    generate_gauges(two, scale=0.2, seed=1, names=("sphere",))
+    cam = CameraFile.read(two / "depth_intrinsics.yaml").camera
+    assert read_depth(two / "gauges" / "sphere" / "DepthMap.tiff").shape == (cam.height_px, cam.width_px)
+    depth = {}
+    for k in (0.0, 0.01):
+        s = generate_session(tmp_path / f"k{k}", n_board=0, n_scenes=0, scale=0.2, seed=1, depth_noise_mm=0.0,
+                             depth_scale_error_frac=k, supersample=1)
+        generate_gauges(s, scale=0.2, seed=1, names=("sphere",))
+        depth[k] = read_depth(s / "gauges" / "sphere" / "DepthMap.tiff")
+    ok = np.isfinite(depth[0.0])
+    assert ok.sum() > 1000 and np.array_equal(np.isfinite(depth[0.01]), ok)
+    np.testing.assert_allclose(depth[0.01][ok], (np.float32(1.01) * depth[0.0][ok]), rtol=1e-6)
