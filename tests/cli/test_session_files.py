@@ -69,9 +69,10 @@ def test_the_stages_refuse_to_write_over_session_files(example, tmp_path):
 
 @pytest.mark.parametrize("line,says", [
     ("fruit_ids: {000: melon1, 001: melon1}", "[fruit_ids]: expected a valid session.yaml (Value error, scene ids as "
-     "text: quote them in YAML ('000': melon07); 0 reads as a number), got {0: 'melon1', 1: 'melon1'}"),
+     "text: quote them in YAML ('000': melon07); 0 reads as a number), got {0: 'melon1', 1: 'melon1'} (hint: "
+     "correct fruit_ids in the file, then rerun)"),
     ("video_frame: -3", "[video_frame]: expected a valid session.yaml (Input should be greater than or equal to 0), "
-     "got -3"),
+     "got -3 (hint: correct video_frame in the file, then rerun)"),
     ("zed_rectifed: true", "[zed_rectifed]: expected a valid session.yaml (Extra inputs are not permitted), got True "
      "(hint: did you mean zed_rectified?)"),
     ("lighting: led", "[lighting]: expected a valid session.yaml (Extra inputs are not permitted), got 'led' "

@@ -373,3 +373,20 @@ def test_gauges_are_rendered_with_the_sessions_rig(tmp_path):
     ok = np.isfinite(depth[0.0])
     assert ok.sum() > 1000 and np.array_equal(np.isfinite(depth[0.01]), ok)
     np.testing.assert_allclose(depth[0.01][ok], (np.float32(1.01) * depth[0.0][ok]), rtol=1e-6)
+
+
+@pytest.mark.parametrize("gauges,field,says", [
+    ([{"capture": "../scenes/000", "kind": "sphere", "diameter_mm": 100.0}], "gauges.0.capture", "not a path"),
+    ([{"capture": "/abs/sphere", "kind": "sphere", "diameter_mm": 100.0}], "gauges.0.capture", "not a path"),
+    ([{"capture": "sphere", "kind": "sphere", "diameter_mm": 100.0},
+      {"capture": "sphere", "kind": "sphere", "diameter_mm": 50.0}], "gauges", "sphere is listed 2 times"),
+])
+def test_a_gauge_capture_is_a_folder_of_gauges_listed_once(tmp_path, gauges, field, says):
+    """``capture: ../scenes/000`` measured a scene as a gauge (a path outside gauges/), and one capture listed twice
+    was measured twice; both are refused, one line naming the field."""
+    (tmp_path / "gauges" / "sphere").mkdir(parents=True)
+    doc = {"schema_version": 1, "gauges": gauges}
+    (tmp_path / "gauges" / "gauges.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputError) as e:
+        read_gauges_file(tmp_path)
+    assert e.value.field == field and says in str(e.value) and e.value.hint, str(e.value)

@@ -128,7 +128,7 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
     def what_to_do(err) -> str | None:
         """The hint where no field name is close: a file gtforge writes is written again by its command (``what``
         names it: "... (from gtforge calibrate)"); a file a person writes gets a missing field added, an unknown one
-        removed (a wrong value's message says what to give: no hint repeats it)."""
+        removed, a wrong value corrected (its message says what to give)."""
         m = re.search(r"from (gtforge [a-z-]+)", what)
         if m:
             return (f"write it again with {m.group(1)} (was it edited by hand, or written by another gtforge "
@@ -138,7 +138,7 @@ def pydantic_to_input_error(exc: ValidationError, path: str | Path | None, what:
             return f"add {name}"
         if err.get("type") == "extra_forbidden":
             return f"remove {name}: not a field of {what}"
-        return None
+        return f"correct {name} in the file, then rerun"
 
     if len(errs) == 1:
         err = errs[0]

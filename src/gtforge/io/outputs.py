@@ -125,7 +125,7 @@ def require_new_or_empty_folder(path: str | Path, option: str, hint: str,
         entries = [e for e in p.iterdir()]
         if entries and not any((p / m).is_file() for m in marks):
             raise InputError(p, option, "a new or empty folder" + (f" (or one with {marks[0]})" if marks else ""),
-                             f"a folder with {len(entries)} entries", hint)
+                             f"a folder with {len(entries)} entr{'y' if len(entries) == 1 else 'ies'}", hint)
     return p
 
 

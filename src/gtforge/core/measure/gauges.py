@@ -24,7 +24,7 @@ from typing import ClassVar, Literal
 
 import cv2
 import numpy as np
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 from scipy.stats import norm
 
 from gtforge.core.geometry import fit_plane_robust, transform_points
@@ -50,6 +50,14 @@ class GaugeSpec(GTModel):
     kind: Literal["sphere", "sphere_pair", "plane"]
     diameter_mm: float | None = Field(None, gt=0)  # sphere, sphere_pair (both spheres)
     centre_distance_mm: float | None = Field(None, gt=0)  # sphere_pair
+
+    @field_validator("capture")
+    @classmethod
+    def _a_folder_of_gauges(cls, v: str) -> str:
+        # a capture folder directly under gauges/: "../scenes/000" measured a scene as a gauge
+        if not v or v in (".", "..") or "/" in v or "\\" in v:
+            raise ValueError(f"a capture folder's name under gauges/ (such as sphere), not a path: {v!r}")
+        return v
 
     @model_validator(mode="after")
     def _sizes(self):
@@ -96,6 +104,16 @@ class GaugesFile(VersionedFile):
     gauges: list[GaugeSpec] = Field(min_length=1)
     limits: GaugeLimits = Field(default_factory=GaugeLimits)
     params: "GaugeParams | None" = None  # segmentation, fit and depth-noise settings (defaults: GaugeParams())
+
+    @field_validator("gauges")
+    @classmethod
+    def _each_capture_once(cls, v: list[GaugeSpec]) -> list[GaugeSpec]:
+        # (one capture twice was measured twice, its two results side by side in the report)
+        seen = [g.capture for g in v]
+        twice = sorted({c for c in seen if seen.count(c) > 1})
+        if twice:
+            raise ValueError(f"each capture once; {', '.join(twice)} is listed {seen.count(twice[0])} times")
+        return v
 
 
 class GaugeParams(GTModel):
