@@ -142,6 +142,13 @@ def _times(s: Stream) -> np.ndarray:
 
 def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: ImportParams, progress=None):
     """The kept pairs (one per still stretch), the drop counts, and the clock offset used (ns) with its source."""
+    if stereo is None and (params.clock_offset_ms is not None or params.estimate_clock_offset):
+        # one recording, one clock: an offset would be recorded in import.json's params and never applied
+        given = "auto" if params.clock_offset_ms is None else f"{params.clock_offset_ms:g}"
+        raise InputError(None, "--clock-offset-ms", "a stereo recording beside the depth recording (the offset is the "
+                         "stereo clock minus the depth clock)", f"{given} with the depth recording "
+                         f"{rgbd.path.name} alone", "leave --clock-offset-ms out, or name the stereo camera's "
+                         "recording too: gtforge import DEPTH STEREO -o SESSION")
     td, tt = _times(rgbd.depth), _times(rgbd.texture)
     if not td.size or not tt.size:
         raise InputError(rgbd.path, rgbd.depth.name if not td.size else rgbd.texture.name, "frames", "none",

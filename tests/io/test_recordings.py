@@ -3,7 +3,9 @@ extracted from it (../shared/data/azure-kinect-frame), the real RealSense .bag a
 librealsense >= 2.49 bag (4 bytes after each Image), and the ROS encodings one by one."""
 from __future__ import annotations
 
+import re
 import struct
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -51,6 +53,37 @@ def test_azure_kinect_mkv_matches_the_extracted_frame():
     assert r.depth_camera == k.depth and r.texture_camera == k.color
     assert np.allclose(r.T_texture_from_depth, k.T_color_from_depth, atol=0, rtol=0)
     assert r.kinect_modes == ("NFOV_UNBINNED", "720P")
+
+
+@pytest.mark.parametrize("name", ["azure_kinect_recording.mkv", RS_BAG])
+def test_a_truncated_recording_is_one_line_naming_the_size_it_declares(tmp_path, name):
+    """A copy of a real recording cut anywhere: one line naming the file, the size the file itself declares (the
+    Matroska Segment's size; a ROS 1 bag's index position and index records) and the size there is. Was: an .mkv cut
+    where only its IR frame was missing imported with a warning (exit 0), one cut at its start said 'got OSError',
+    and a .bag 'AnyReaderError: Bag index looks damaged'."""
+    data = (shared_data("recordings") / name).read_bytes()
+    from gtforge.io.recordings import check_not_truncated, expected_size_bytes
+
+    assert expected_size_bytes(shared_data("recordings") / name)[0] == len(data)  # the whole file: all it declares
+    check_not_truncated(shared_data("recordings") / name)
+    index_pos = 997_561  # the bag's header: its index starts there, 36,521 bytes of index records after it
+    for size in (1_000, len(data) // 2, len(data) * 9 // 10, len(data) - 100, len(data) - 1):
+        cut = tmp_path / f"cut{Path(name).suffix}"
+        cut.write_bytes(data[:size])
+        with pytest.raises(InputError) as e:
+            read_kinect_mkv(cut) if name.endswith(".mkv") else Bag(cut)
+        if name.endswith(".mkv"):
+            declared = f"{len(data)} bytes (its Matroska Segment's size)"
+        elif size < index_pos:
+            declared = f"at least {index_pos} bytes (its header's index_pos: the index starts there)"
+        else:  # cut inside the index: its size, or as far as the records left can be followed
+            m = re.search(r"expected (at least )?(\d+) bytes \((the end of )?the index records its header counts\)",
+                          str(e.value))
+            assert m and (int(m[2]) == len(data) if m[3] else size < int(m[2]) <= len(data)), str(e.value)
+            declared = m[0].removeprefix("expected ")
+        assert str(e.value).startswith(f"{cut} [size]: expected {declared}, got {size} bytes (truncated) (hint: the "
+                                       "file was cut short"), str(e.value)
+        assert "\n" not in str(e.value)
 
 
 def test_realsense_bag_depth_in_mm_and_intrinsics_match_its_camera_info():

@@ -192,27 +192,38 @@ def test_real_recordings_import_through_the_command(tmp_path):
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert "[zed_calibration]" in r.stderr and "imported from a depth recording alone" in r.stderr
     assert not (tmp_path / "k_run").exists()
-    # the recording cut short: where its IR track has no frame left, the depth and colour import without it (was an
-    # IndexError traceback); where no depth frame is left, one line that says the file may be cut short
+    # the recording cut short, wherever: one line with the size its Matroska Segment declares and the size there is
+    # (cut where only its IR frame was missing, it imported with a warning and exit 0, the truncation unnoticed)
     data = (rec_dir / "azure_kinect_recording.mkv").read_bytes()
-    for size, ok in ((1_600_000, True), (800_000, False)):
-        (tmp_path / "cut.mkv").write_bytes(data[:size])
-        r = gtforge("import", tmp_path / "cut.mkv", "-o", tmp_path / f"cut{size}")
-        if ok:
-            assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
-            cap = tmp_path / f"cut{size}" / "scenes" / "000"
-            assert (cap / "DepthMap.tiff").is_file() and not (cap / "IR.png").exists()
-            assert "warning: cut.mkv: its IR track holds no frame (a recording cut short?)" in r.stderr
-        else:
-            assert r.returncode == 2 and one_line_error(r) and "cut short" in r.stderr, r.stderr
-    # the cut one added to the session imported from the whole recording: its one capture's frame is already there
-    (tmp_path / "cut.mkv").write_bytes(data[:1_600_000])
+    # (other sizes, and the RealSense .bag: tests/io/test_recordings.py)
+    size = 1_600_000
+    (tmp_path / "cut.mkv").write_bytes(data[:size])
+    r = gtforge("import", tmp_path / "cut.mkv", "-o", tmp_path / "cut")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert r.stderr.startswith(f"error: {tmp_path / 'cut.mkv'} [size]: expected {len(data)} bytes (its Matroska "
+                               f"Segment's size), got {size} bytes (truncated) (hint: "), r.stderr
+    assert not (tmp_path / "cut").exists()
+    # a copy with other bytes (padded at the end) added to the session imported from the recording: its one
+    # capture's frame is already there
+    (tmp_path / "padded.mkv").write_bytes(data + bytes(64))
     listed = sorted(p.relative_to(tmp_path / "k") for p in (tmp_path / "k").rglob("*"))
     with pytest.raises(InputError) as dup:  # (in-process: the command's one line is its str)
-        import_recordings([tmp_path / "cut.mkv"], tmp_path / "k", add=True)
+        import_recordings([tmp_path / "padded.mkv"], tmp_path / "k", add=True)
     assert "1 of the 1 captures it would add at the depth and texture times of captures imported from" in \
         str(dup.value)
     assert sorted(p.relative_to(tmp_path / "k") for p in (tmp_path / "k").rglob("*")) == listed
+    # a clock offset with one recording (one clock) is refused, not recorded in import.json's params and ignored
+    r = gtforge("import", rec_dir / "azure_kinect_recording.mkv", "-o", tmp_path / "k_offset", "--clock-offset-ms",
+                "50")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert r.stderr.startswith("error: --clock-offset-ms: expected a stereo recording beside the depth recording (the "
+                               "offset is the stereo clock minus the depth clock), got 50 with the depth recording "
+                               "azure_kinect_recording.mkv alone (hint: "), r.stderr
+    assert not (tmp_path / "k_offset").exists()
+    with pytest.raises(InputError, match="got auto with the depth recording realsense_d435"):
+        import_recordings([rec_dir / "realsense_d435_single_depth_color_640x480.bag"], tmp_path / "rs_offset",
+                          ImportParams(estimate_clock_offset=True, max_skew_ms=150))
+    assert not (tmp_path / "rs_offset").exists()
     r = gtforge("import", rec_dir / "realsense_d435_single_depth_color_640x480.bag", "-o", tmp_path / "rs0")
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert "got none (2 dropped for skew (frames over 20 ms apart; the nearest 101.6 ms))" in r.stderr

@@ -239,6 +239,90 @@ def quat_T_mm(translation, rotation) -> np.ndarray:
     return make_T(R, np.array([translation.x, translation.y, translation.z]) * 1000.0)
 
 
+# ---- a recording cut short --------------------------------------------------------------------------
+TRUNCATED_HINT = ("the file was cut short (a copy or download stopped early, or a disk filled up): copy the whole "
+                  "recording again from where it was recorded")
+
+
+def _ebml_vint(b: bytes, i: int, keep_marker: bool = False) -> tuple[int, int, bool]:
+    """An EBML variable-length integer at ``b[i]``: its value, its length in bytes, and whether it is all ones
+    (a size that is "unknown")."""
+    first = b[i]
+    if first == 0:
+        raise ValueError("an EBML number longer than 8 bytes")
+    n = 9 - first.bit_length()
+    value = first if keep_marker else first & ((1 << (8 - n)) - 1)
+    for k in range(1, n):
+        value = (value << 8) | b[i + k]
+    unknown = not keep_marker and value == (1 << (7 * n)) - 1
+    return value, n, unknown
+
+
+def expected_size_bytes(path: str | Path) -> tuple[int, str] | None:
+    """How many bytes a Matroska (``.mkv``) or ROS 1 (``.bag``) recording says it holds (at least), and where it says
+    so, as ``(bytes, "N bytes (where)")``: the
+    Segment's size (Matroska; written when the recorder closes the file), or the end of the index a ROS 1 bag's
+    header points to (its ``index_pos``, then ``conn_count`` + ``chunk_count`` records). None where the file does
+    not say (another format, a size left "unknown", an index never written) or cannot be parsed that far."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(4096 + 64)
+            if head.startswith(b"\x1a\x45\xdf\xa3"):  # EBML header, then the Segment
+                i = 4
+                hsize, n, _ = _ebml_vint(head, i)
+                i += n + hsize
+                seg_id, n, _ = _ebml_vint(head, i, keep_marker=True)
+                if seg_id != 0x18538067:
+                    return None
+                i += n
+                seg_size, n, unknown = _ebml_vint(head, i)
+                if unknown:
+                    return None
+                return i + n + seg_size, f"{i + n + seg_size} bytes (its Matroska Segment's size)"
+            if head.startswith(b"#ROSBAG V2.0\n"):
+                header_len = struct.unpack_from("<I", head, 13)[0]
+                header, j, fields = head[17:17 + header_len], 0, {}
+                while j + 4 <= len(header):
+                    field_len = struct.unpack_from("<I", header, j)[0]
+                    name, _, value = header[j + 4:j + 4 + field_len].partition(b"=")
+                    fields[name] = value
+                    j += 4 + field_len
+                index_pos = struct.unpack("<Q", fields[b"index_pos"])[0]
+                if index_pos == 0:  # never indexed (a recorder killed): rosbag reindex's matter, not a size
+                    return None
+                if index_pos > size:  # the index itself is not there to count
+                    return index_pos, f"at least {index_pos} bytes (its header's index_pos: the index starts there)"
+                n_records = sum(struct.unpack("<I", fields[k])[0] for k in (b"conn_count", b"chunk_count"))
+                end = index_pos
+                for _ in range(n_records):  # each record: header length, header, data length, data
+                    for _part in range(2):
+                        f.seek(end)
+                        raw = f.read(4)
+                        if len(raw) < 4:
+                            return end + 4, f"at least {end + 4} bytes (the index records its header counts)"
+                        end += 4 + struct.unpack("<I", raw)[0]
+                return end, f"{end} bytes (the end of the index records its header counts)"
+    except (OSError, ValueError, KeyError, IndexError, struct.error):
+        return None
+    return None
+
+
+def check_not_truncated(path: str | Path) -> None:
+    """A one-line error when a recording file is shorter than it says it is (``expected_size_bytes``)."""
+    path = Path(path)
+    if not path.is_file():
+        return
+    expected = expected_size_bytes(path)
+    if expected is None:
+        return
+    expected_bytes, what = expected
+    actual = path.stat().st_size
+    if actual < expected_bytes:
+        raise InputError(path, "size", what, f"{actual} bytes (truncated)", TRUNCATED_HINT)
+
+
 # ---- bags -------------------------------------------------------------------------------------------
 def _bag_source(path: Path) -> Path:
     """A rosbag2 folder for a ``.db3``/``.mcap`` inside one (its metadata.yaml); otherwise the path itself."""
@@ -257,6 +341,7 @@ class Bag:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(self.path, None, "a recording", "no such file or folder", "check the path")
+        check_not_truncated(self.path)
         try:
             self.reader = AnyReader([_bag_source(self.path)])
             self.reader.open()
@@ -447,6 +532,7 @@ def read_kinect_mkv(path: str | Path) -> RgbdRecording:
     Sensor SDK, ``k4a_record_configuration_t::start_timestamp_offset_usec``)."""
     av = require_extra("av")
     path = Path(path)
+    check_not_truncated(path)
     try:
         container = av.open(str(path))
     except Exception as exc:
