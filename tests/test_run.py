@@ -20,7 +20,7 @@ import yaml
 from typer.testing import CliRunner
 
 from gtforge.cli.commands import app
-from gtforge.errors import INTERRUPTED, Interrupted
+from gtforge.errors import INTERRUPTED, InputError, Interrupted
 from gtforge.records.certificate import Certificate
 from gtforge.records.run import RunState
 from gtforge.reports.certificate import field_value
@@ -356,6 +356,52 @@ def test_another_sessions_run_folder_is_refused(chain, tmp_path):
     with pytest.raises(InputError, match=r"\[--output\].*the run folder of another session.*delete the folder first"):
         run_session(other, out, OPTS)
     assert {p: p.read_bytes() for p in before} == before
+
+
+def test_a_calibration_in_the_run_folder_is_refused_before_any_stage(tmp_path):
+    """-c OUT/aligned.yaml (an earlier run's file given back to it): align-depth, not applying to an aligned
+    calibration, removed the file as a stale output, and validate stopped on a FileNotFoundError traceback; -c
+    OUT/refined.yaml got as far as refine, which refused to replace its input. Now refused before anything, the file
+    kept; a copy beside the run is the way (the hint names it)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    given = out / "aligned.yaml"
+    shutil.copy(EXAMPLE / "zed_calibration.yaml", given)  # (refused by its place: never read)
+    data = given.read_bytes()
+    for spelled in (given, out / ".." / "out" / "refined.yaml"):
+        with pytest.raises(InputError) as e:
+            run_session(EXAMPLE, out, RunOptions(calibration=str(spelled)))
+        assert str(e.value).startswith(f"{spelled} [--calibration]: expected a calibration outside the run's folder "
+                                       f"(its stages write and remove calibration.yaml, aligned.yaml, scaled.yaml and "
+                                       f"refined.yaml there), got a file in {out} (the run's own {spelled.name}) "
+                                       f"(hint: copy it beside the run and give the copy: cp {spelled} "
+                                       f"{tmp_path / ('given-' + spelled.name)})"), str(e.value)
+    assert given.read_bytes() == data and sorted(p.name for p in out.iterdir()) == ["aligned.yaml"]
+
+
+def test_a_calibration_of_another_rig_is_refused_before_any_stage(tmp_path):
+    """-c with another rig's calibration: one line naming the camera's size, before any stage is announced (it was
+    found at validate or calibrate-scale, after align-depth had been skipped as not applying because the other rig
+    had one camera, on an Azure Kinect session)."""
+    import numpy as np
+
+    from gtforge.core.camera import Rig
+    from gtforge.core.targets.models import BoardModel
+    from gtforge.io.captures import open_session
+    from gtforge.records.calibration import CalibrationFile
+
+    s = open_session(EXAMPLE)
+    other = s.mech.model_copy(update={"width_px": s.mech.width_px * 2, "height_px": s.mech.height_px * 2})
+    given = tmp_path / "other_rig.yaml"
+    CalibrationFile(rig=Rig(zed=s.zed, mech=other, T_zed_from_mech=np.eye(4)), board=BoardModel(), captures_used=[],
+                    rms_px=0.1, max_px=0.2, sigma_rot_xyz_deg=[0.01] * 3, sigma_trans_xyz_mm=[0.1] * 3,
+                    sigma_rot_deg=0.01, sigma_trans_mm=0.1, poses=[]).write(given)
+    said = []
+    with pytest.raises(InputError) as e:
+        run_session(EXAMPLE, tmp_path / "out", RunOptions(calibration=str(given)), say=said.append)
+    assert str(e.value).startswith(f"{given} [rig.mech]: expected 480x300 px (the session's camera), got 960x600 px "
+                                   "(hint: "), str(e.value)
+    assert said == [] and not (tmp_path / "out").exists()
 
 
 def test_a_session_yaml_given_as_the_calibration_is_called_another_kind_of_file(tmp_path):

@@ -35,8 +35,9 @@ from gtforge.errors import InputError, Interrupted, first_of
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file, blake3_hex
 from gtforge.infra.scheduling import check_scheduler_address
+from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
 from gtforge.io.captures import open_session
-from gtforge.io.outputs import new_folders, remove_if_empty, require_new_or_empty_folder
+from gtforge.io.outputs import free_path, new_folders, remove_if_empty, require_new_or_empty_folder
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
 from gtforge.records.certificate import Certificate
 from gtforge.records.dataset import BuildParams
@@ -192,6 +193,16 @@ class _Run:
             check_scheduler_address(opts.scheduler)
         self.session = open_session(session_dir)
         self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
+        if opts.calibration is not None:
+            given = Path(opts.calibration)
+            if out.resolve() in given.resolve().parents:
+                # the run's folder is the run's: its stages replace (refine: refined.yaml) or remove (align-depth,
+                # where it no longer applies: aligned.yaml) the files there, the one given included
+                raise InputError(given, "--calibration", "a calibration outside the run's folder (its stages write and "
+                                 "remove calibration.yaml, aligned.yaml, scaled.yaml and refined.yaml there)",
+                                 f"a file in {out} (the run's own {given.name})",
+                                 f"copy it beside the run and give the copy: cp {given} "
+                                 f"{free_path(out.resolve().parent, 'given-' + given.name)}")
         # a folder of the user's (not an earlier run's, which holds run_state.json) is never written into: the run's
         # files (calibration.yaml, dataset/ ...) would replace theirs
         require_new_or_empty_folder(out, "--output", "choose a new folder for the run, or an earlier run's folder (a "
@@ -395,6 +406,8 @@ class _Run:
         if opts.calibration is not None:
             given = Path(opts.calibration)
             cal = CalibrationFile.read(given)  # a bad file stops here, with its one line
+            # another rig's calibration stops here too, before align-depth decides from its rig whether it applies
+            check_rig_matches_session(cal.rig, open_with_calibration(self.root, cal), given)
             ctx["calib"] = given
             reason = f"calibration given: {given}"
             self.header(k, name, f"skipped, does not apply ({reason}; its verdict {cal.verdict})")
