@@ -86,6 +86,37 @@ def test_a_truncated_recording_is_one_line_naming_the_size_it_declares(tmp_path,
         assert "\n" not in str(e.value)
 
 
+def test_a_truncated_mcap_is_one_line_naming_its_missing_closing_magic(tmp_path):
+    """A ROS 2 .mcap (alone or in its rosbag2 folder) cut short: one line naming the closing magic bytes it lacks
+    and its size (was 'got AnyReaderError: File end magic is invalid.')."""
+    pytest.importorskip("mcap")
+    from mcap.writer import Writer
+
+    from gtforge.io.recordings import check_not_truncated
+
+    whole = tmp_path / "whole.mcap"
+    with open(whole, "wb") as f:
+        w = Writer(f)
+        w.start()
+        ch = w.register_channel(topic="/camera/depth/image_raw", message_encoding="cdr", schema_id=0)
+        for k in range(20):
+            w.add_message(ch, log_time=k, publish_time=k, data=bytes(500))
+        w.finish()
+    check_not_truncated(whole)
+    data = whole.read_bytes()
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    for size in (20, len(data) // 2, len(data) - 1):
+        (folder / "cut.mcap").write_bytes(data[:size])
+        for given, named in ((folder / "cut.mcap", folder / "cut.mcap"), (folder, folder / "cut.mcap")):
+            with pytest.raises(InputError) as e:
+                Bag(given)
+            assert str(e.value).startswith(f"{named} [size]: expected an MCAP file that ends in its closing magic "
+                                           "bytes (89 4d 43 41 50 30 0d 0a, written when the recorder closes the "
+                                           f"file), got {size} bytes that end without them (truncated, or never "
+                                           "closed) (hint: "), str(e.value)
+
+
 def test_realsense_bag_depth_in_mm_and_intrinsics_match_its_camera_info():
     path = shared_data("recordings") / RS_BAG
     bag = Bag(path)

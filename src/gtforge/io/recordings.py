@@ -309,11 +309,32 @@ def expected_size_bytes(path: str | Path) -> tuple[int, str] | None:
     return None
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 def check_not_truncated(path: str | Path) -> None:
-    """A one-line error when a recording file is shorter than it says it is (``expected_size_bytes``)."""
+    """A one-line error when a recording file is shorter than it says it is (``expected_size_bytes``), or is an MCAP
+    file (ROS 2 ``.mcap``, ZED ``.svo2``) that does not end in the magic bytes its writer closes it with. A rosbag2
+    folder: each of its ``.mcap`` files."""
     path = Path(path)
+    if path.is_dir():
+        for f in sorted(path.glob("*.mcap")):
+            check_not_truncated(f)
+        return
     if not path.is_file():
         return
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+            f.seek(max(0, path.stat().st_size - len(MCAP_MAGIC)))
+            tail = f.read()
+    except OSError:
+        return
+    if head == MCAP_MAGIC and (tail != MCAP_MAGIC or path.stat().st_size < 2 * len(MCAP_MAGIC)):
+        raise InputError(path, "size", "an MCAP file that ends in its closing magic bytes (89 4d 43 41 50 30 0d 0a, "
+                         "written when the recorder closes the file)", f"{path.stat().st_size} bytes that end "
+                         "without them (truncated, or never closed)", TRUNCATED_HINT + "; one whose recorder was "
+                         "killed may be recovered with the mcap CLI: mcap recover")
     expected = expected_size_bytes(path)
     if expected is None:
         return

@@ -22,7 +22,7 @@ import numpy as np
 
 from gtforge.errors import InputError
 from gtforge.io.cameras import read_zed_conf
-from gtforge.io.recordings import StereoRecording, Stream, _indexed_stream, require_extra
+from gtforge.io.recordings import StereoRecording, Stream, _indexed_stream, check_not_truncated, require_extra
 
 SIDE_BY_SIDE = re.compile(r"^Camera_SN(\d+)/side_by_side$")
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -94,6 +94,7 @@ class ZedSvo:
         from mcap.reader import make_reader  # an optional dependency (gtforge[recordings])
 
         self.path = path
+        check_not_truncated(path)
         try:
             with open(path, "rb") as f:
                 summary = make_reader(f).get_summary()
