@@ -38,10 +38,12 @@ class MissingFileError(InputError):
         super().__init__(file, field, expected, actual, hint)
 
 
-class Interrupted(Exception):
+class Interrupted(BaseException):
     """Ctrl-C, as the ``gtforge`` command raises it (its SIGINT handler) and as a stage re-raises it after
     stopping cleanly, with ``str()`` saying what is complete. The CLI prints it and exits with code 130.
-    Library callers get the usual ``KeyboardInterrupt``; stages treat both alike.
+    Library callers get the usual ``KeyboardInterrupt``; stages treat both alike. A ``BaseException``, as
+    ``KeyboardInterrupt`` is: an ``except Exception`` that turns a reader's error into an ``InputError`` (a bag's
+    message, an image's bytes) lets it through, so Ctrl-C is never reported as bad input (exit 2).
 
     ``detail``: what the stage that stopped says is complete, where it says more than ``INTERRUPTED`` (build-dataset:
     the scenes built), for a caller that words its own message (``gtforge run``)."""

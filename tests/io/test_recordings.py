@@ -117,6 +117,31 @@ def test_a_truncated_mcap_is_one_line_naming_its_missing_closing_magic(tmp_path)
                                            "closed) (hint: "), str(e.value)
 
 
+def test_ctrl_c_while_a_bag_is_read_stays_ctrl_c(monkeypatch):
+    """The command's Ctrl-C (``Interrupted``, raised by its SIGINT handler wherever the code is) inside a bag's reader:
+    the reader's ``except Exception`` made it one line of bad input, 'expected a sensor_msgs/msg/Image message, got
+    Interrupted: ...', exit 2 (a run-through: Ctrl-C mid-import). Now it passes through, as KeyboardInterrupt does."""
+    from gtforge.errors import INTERRUPTED, Interrupted
+
+    assert not issubclass(Interrupted, Exception)
+
+    def interrupted(*args, **kwargs):
+        raise Interrupted(INTERRUPTED)
+
+    bag = Bag(shared_data("recordings") / RS_BAG)
+    try:
+        conn = next(c for c in bag.reader.connections if c.msgtype == "sensor_msgs/msg/Image")
+        raw = next(r for c, _, r in bag.reader.messages(connections=[conn]))
+        monkeypatch.setattr(bag.reader, "deserialize", interrupted)
+        with pytest.raises(Interrupted):
+            bag.deserialize(raw, conn, lenient=True)
+        monkeypatch.setattr(bag.reader, "messages", interrupted)
+        with pytest.raises(Interrupted):
+            list(bag.messages([conn.topic]))
+    finally:
+        bag.close()
+
+
 def test_realsense_bag_depth_in_mm_and_intrinsics_match_its_camera_info():
     path = shared_data("recordings") / RS_BAG
     bag = Bag(path)
