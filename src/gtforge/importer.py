@@ -225,11 +225,15 @@ def plan_pairs(rgbd: RgbdRecording, stereo: StereoRecording | None, params: Impo
         if p.segment not in best or p.skew_ns < best[p.segment].skew_ns:
             best[p.segment] = p
     kept = sorted(best.values(), key=lambda p: p.depth)
-    n_same = len(pairs) - len(kept)  # the same still stretch: not dropped, one capture taken from it
     kept_every = kept[::params.every]
     if params.max_captures is not None:
         kept_every = kept_every[:params.max_captures]
     drops["every/max"] += len(kept) - len(kept_every)
+    # the same still stretch: not dropped, one capture taken from it; counted apart for the stretches --every /
+    # --max-captures left out (their one capture is in every/max), so that every depth frame is counted once
+    taken = {p.segment for p in kept_every}
+    n_same = (sum(p.segment in taken for p in pairs) - len(kept_every),
+              sum(p.segment not in taken for p in pairs) - (len(kept) - len(kept_every)))
     return kept_every, {r: drops.get(r, 0) for r in REASONS}, offset, source, n_same, nearest_skew_ns / 1e6
 
 
@@ -623,8 +627,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
                 "need; import the depth and the stereo recordings together for a complete session"])
         run = ImportRun(sources=sources, depth_recording=str(rgbd.path.resolve()),
                         stereo_recording=None if stereo is None else str(stereo.path.resolve()), streams=streams,
-                        notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same} more still pairs in the "
-                                                                               "kept captures' stretches"],
+                        notes=rgbd.notes + (stereo.notes if stereo else []) + [f"{n_same[0]} more still pairs in the "
+                                                                               "kept captures' stretches"]
+                        + ([f"{n_same[1]} more still pairs in the stretches --every/--max-captures left out"]
+                           if n_same[1] else []),
                         serials=recording_serials(rgbd, stereo), params=params, clock_offset_ms=offset / 1e6,
                         clock_offset_source=source, pairs=records,
                         dropped=dropped)

@@ -99,6 +99,14 @@ def test_add_to_an_existing_session_and_refuse_without_add(hand, recs, tmp_path)
     out = tmp_path / "session"
     p = ImportParams(clock_offset_ms=recs.clock_offset_ms, max_captures=2)
     import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
+    # every depth frame counted once: the captures, the drops, the other still pairs of the captures' stretches and
+    # of the stretches --max-captures left out (those were all called "in the kept captures' stretches")
+    run = ImportRecord.read(out / "import.json").runs[0]
+    same = [int(n.split()[0]) for n in run.notes if " more still pairs in the " in n]
+    assert run.notes[-2:] == [f"{same[0]} more still pairs in the kept captures' stretches",
+                              f"{same[1]} more still pairs in the stretches --every/--max-captures left out"]
+    assert len(run.pairs) + sum(run.dropped.values()) + sum(same) == len(recs.frame_capture)
+    assert run.dropped["every/max"] == 2 and same == [3, 3]  # 2 captures kept, 2 stretches left out
     before = sorted(x.relative_to(out) for x in out.rglob("*"))
     with pytest.raises(InputError, match="--add"):
         import_recordings([recs.rgbd_bag, recs.stereo_bag], out, p)
