@@ -334,8 +334,12 @@ def test_a_calibration_given_with_c_is_in_the_certificate(chain, tmp_path):
     given = tmp_path / "given.yaml"
     given.write_text(yaml.safe_dump(doc))
     said: list[str] = []
-    res = run_session(sess, tmp_path / "out", RunOptions(loo=False, calibration_scenes=CAL_SCENES, workers=1,
-                                                         calibration=str(given)), say=said.append)
+    out = tmp_path / "out"  # an earlier run's folder: its calibration no longer applies, and is not left beside
+    shutil.copytree(chain["out"], out, symlinks=True)
+    assert (out / "calibration.yaml").is_file() and (out / "calibration_report").is_dir()
+    res = run_session(sess, out, RunOptions(loo=False, calibration_scenes=CAL_SCENES, workers=1,
+                                            calibration=str(given)), say=said.append)
+    assert not (out / "calibration.yaml").exists() and not (out / "calibration_report").exists()
     cert = res.certificate
     assert cert.verdict == "FAIL" and "calibrate: made to fail for the test" in cert.verdict_reasons
     sec = {s.title: s for s in cert.sections}["Calibration (given with -c)"]

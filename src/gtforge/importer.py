@@ -31,7 +31,7 @@ from gtforge.infra.signals import interrupt_deferred
 from gtforge.io.cameras import load_camera, load_zed_rectified, read_zed_conf
 from gtforge.io.captures import IMPORT_LANDING, FileNames, SessionFile, import_partial_folder
 from gtforge.io.formats import write_image, write_png16, write_tiff_float
-from gtforge.io.outputs import folders_above, free_path, refuse_inside_dataset_folders
+from gtforge.io.outputs import folders_above, free_path, refuse_inside_dataset_folders, require_output_folder
 from gtforge.io.recordings import NO_FRAMES_HINT, RgbdRecording, StereoRecording, Stream, iter_frames
 from gtforge.io.ros_recordings import Topics, open_recordings
 from gtforge.io.vendors import load_structured_light_cameras
@@ -506,9 +506,13 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     if params.board is not None:
         check_board_model(params.board)  # as calibrate will: refused now, not written into session.yaml
     for p in paths:
-        if session.resolve().is_relative_to(_recording_folder(p)):
-            raise InputError(session, "output", "a session folder outside the recordings", "inside a recording",
-                             "gtforge never writes into a recording's folder")
+        owned = _recording_folder(p)
+        if session.resolve().is_relative_to(owned):
+            itself = session.resolve() == owned and owned.is_file()
+            raise InputError(session, "output", "a session folder outside the recordings",
+                             "the recording itself" if itself else "inside a recording",
+                             f"give a new folder for the session, e.g. {free_path(owned.parent, owned.stem)}"
+                             if itself else "gtforge never writes into a recording's folder")
     if session.exists() and not session.is_dir():
         raise InputError(session, "output", "a folder", "a file", "-o names the session folder to write; give a new "
                          f"one, e.g. {free_path(Path(os.path.abspath(session)).parent, session.stem or 'session')}")
@@ -526,6 +530,9 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
     if exists and not (session / "session.yaml").is_file():
         raise InputError(session / "session.yaml", "--add", "a gtforge session to add the captures to",
                          "a folder without session.yaml", "import into a new folder (without --add)")
+    # before any recording is read: the captures are written beside the session's folder, then moved into it
+    require_output_folder(session, "--output")
+    require_output_folder(real.parent, "--output")
     add = add and exists  # --add into a new or empty folder: a new session, its rig files included
     # --add: the captures go where the session keeps them, named as it names them
     sf = SessionFile.read(session / "session.yaml") if add else SessionFile()
@@ -605,9 +612,10 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         # a lone frame has no neighbour to differ from: kept as still, which nothing checked
         lone = [f"{rec.path.name} ({st.name})" for rec, st in [(rgbd, rgbd.texture)]
                 + ([(stereo, stereo.left)] if stereo is not None else []) if len(st.frames) == 1]
-        unchecked = [f"{', '.join(lone)} hold{'s' if len(lone) == 1 else ''} one frame: its stillness cannot be "
-                     "checked (a lone frame is kept as still); make sure nothing moved while it was taken"
-                     ] if lone else []
+        unchecked = ([f"{lone[0]} holds one frame: its stillness cannot be checked (a lone frame is kept as "
+                      "still); make sure nothing moved while it was taken"] if len(lone) == 1 else
+                     [f"{' and '.join(lone)} each hold one frame: their stillness cannot be checked (lone frames are "
+                      "kept as still); make sure nothing moved while they were taken"] if lone else [])
         boards = sum(k == "board" for k in kinds.values())
         # every capture a scene: the board declared is likely not the one the recording shows (classified silently)
         no_board = [f"no capture showed the board ({_board_text(board)}): all {len(names)} went to {dirs['scenes']}/; "
@@ -644,12 +652,14 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
 def refuse_output_inside(session: Path) -> None:
     """A session is never written inside another session (its captures would sit among that one's files, or be taken
     for its captures), inside a rosbag2 recording's folder (beside its metadata.yaml: a recording is never written
-    into), nor inside the folders build-dataset writes in a dataset; under any spelling of the path (relative, ``..``,
+    into), inside a ``gtforge run``'s output folder (its stages' files), nor inside the folders build-dataset writes
+    in a dataset; under any spelling of the path (relative, ``..``,
     symbolic links). A one-line error before any work, naming a free place beside."""
     refuse_inside_dataset_folders(session, "--output")
     for p, a in folders_above(session):
         what = "another capture session" if (a / "session.yaml").is_file() else \
-            "a rosbag2 recording's folder" if (a / "metadata.yaml").is_file() else None
+            "a rosbag2 recording's folder" if (a / "metadata.yaml").is_file() else \
+            "gtforge run's output folder" if (a / "run_state.json").is_file() else None
         if what is not None:
             raise InputError(session, "--output", "a session folder outside other sessions and recordings",
                              f"a folder inside {what} ({a})", f"write it beside, e.g. {free_path(a.parent, p.name)}")

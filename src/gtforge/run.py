@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -411,6 +412,10 @@ class _Run:
             ctx["calib"] = given
             reason = f"calibration given: {given}"
             self.header(k, name, f"skipped, does not apply ({reason}; its verdict {cal.verdict})")
+            # an earlier run's calibration and its report no longer apply: left, they sat beside a certificate that
+            # cites the file given
+            (self.out / CALIBRATION).unlink(missing_ok=True)
+            shutil.rmtree(self.out / CALIBRATION_REPORT, ignore_errors=True)
             # its verdict and figures are the certificate's (a FAIL calibration given with -c fails the run as one
             # made here would)
             rec = StageRecord(stage=name, status="not applicable", reason=reason, verdict=cal.verdict,

@@ -309,7 +309,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         rectification=rect)
 
     if gauges and (session.root / GAUGES_DIR / GAUGES_FILE).is_file():
-        rep.gauges = validate_gauges(session_dir, calib_path, out_dir, progress=progress)
+        rep.gauges = validate_gauges(session_dir, calib_path, out_dir, progress=progress, update_validation=False)
     if out_dir is not None:
         write_validation_report(rep, Path(out_dir), calib.rig.zed.left)
     return rep
@@ -342,9 +342,12 @@ def measure_gauge(spec: GaugeSpec, depth_mm: np.ndarray, rig, params: GaugeParam
 
 def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: str | Path | None = None,
                     params: GaugeParams | None = None, progress: Callable[[str], None] | None = None,
-                    write_html: bool = True) -> GaugesResult:
+                    write_html: bool = True, update_validation: bool = True) -> GaugesResult:
     """Measure every gauge of ``session_dir/gauges/gauges.yaml``; ``gauges.json``/``gauges.html`` go to ``out_dir``.
-    ``params``: None takes ``gauges.yaml``'s ``params`` (or the defaults)."""
+    ``params``: None takes ``gauges.yaml``'s ``params`` (or the defaults). ``update_validation``: where ``out_dir``
+    holds a whole validation of the same session and calibration (``validation.json``), its gauge section is replaced
+    by these figures (its page too), so that the folder's two reports agree; one of another session or calibration
+    is refused before anything is measured (the folder would hold both, disagreeing)."""
     import time
 
     t0 = time.perf_counter()
@@ -363,6 +366,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         if o == g or g in o.parents:
             raise InputError(out_dir, "--output", "a folder outside the session's captures", f"a path inside {g}",
                              "gtforge never writes into capture folders")
+    whole = _whole_validation(out_dir, session_dir, calibration) if out_dir is not None and update_validation else None
     rig = calib.rig
     results, maps = [], {}
     for k, spec in enumerate(gfile.gauges):
@@ -384,4 +388,22 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         rep.write(out / "gauges.json")
         if write_html:
             write_gauges_html(rep, maps, out / "gauges.html")
+        if whole is not None:
+            write_validation_report(whole.model_copy(update={"gauges": rep}), out, calib.rig.zed.left)
     return rep
+
+
+def _whole_validation(out_dir: str | Path, session_dir: str | Path, calibration: str | Path) -> ValidationResult | None:
+    """``out_dir``'s earlier whole validation (``validation.json``) where there is one, of this session and
+    calibration; one of another is refused: its board figures and these gauges' would sit side by side."""
+    p = Path(out_dir) / "validation.json"
+    if not p.is_file():
+        return None
+    whole = ValidationResult.read(p)
+    here = (str(Path(session_dir).resolve()), str(Path(calibration).resolve()))
+    if (whole.session_dir, whole.calibration_path) != here:
+        theirs = whole.calibration_path if whole.calibration_path != here[1] else whole.session_dir
+        raise InputError(out_dir, "--output", "a folder for these gauges' figures (new, or one validating this "
+                         "session with this calibration)", f"the validation of {theirs} (validation.json)",
+                         "give another folder, e.g. beside it")
+    return whole

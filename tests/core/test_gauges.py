@@ -390,3 +390,34 @@ def test_a_gauge_capture_is_a_folder_of_gauges_listed_once(tmp_path, gauges, fie
     with pytest.raises(InputError) as e:
         read_gauges_file(tmp_path)
     assert e.value.field == field and says in str(e.value) and e.value.hint, str(e.value)
+
+
+@pytest.mark.slow
+def test_gauges_only_into_a_whole_validation_updates_its_gauge_section(tmp_path):
+    """``validate --gauges-only`` into the folder of an earlier whole validation left its validation.json (and page)
+    with the earlier gauge figures beside the new gauges.json, the two disagreeing. Now the whole validation's gauge
+    section is replaced (same session and calibration); another calibration's folder is refused before measuring."""
+    from gtforge.records.validation import ValidationResult
+    from gtforge.validate import validate
+
+    s = tmp_path / "session"
+    generate_session(s, n_board=3, n_scenes=0, scale=SCALE, seed=3, depth_noise_mm=0.0, image_noise=1.0,
+                     supersample=1)
+    generate_gauges(s, scale=SCALE, seed=3, depth_noise_mm=0.0)
+    c = _calib(tmp_path / "calib.yaml")
+    out = tmp_path / "v"
+    whole = validate(s, c, out)
+    assert whole.gauges is not None and whole.gauges.params.erosion_px == 3
+    board_figures = whole.xy_mean_px, whole.z_error_mean_pct
+    again = validate_gauges(s, c, out, params=GaugeParams(erosion_px=5))
+    now = ValidationResult.read(out / "validation.json")
+    assert now.gauges == GaugesResult.read(out / "gauges.json") == again and now.gauges.params.erosion_px == 5
+    assert (now.xy_mean_px, now.z_error_mean_pct) == board_figures
+    assert "validation.html" in {p.name for p in out.iterdir()}
+    other = tmp_path / "other.yaml"
+    shutil.copy(c, other)
+    before = (out / "gauges.json").read_bytes()
+    with pytest.raises(InputError) as e:
+        validate_gauges(s, other, out)
+    assert e.value.field == "--output" and "calib.yaml" in str(e.value) and e.value.hint
+    assert (out / "gauges.json").read_bytes() == before

@@ -389,8 +389,12 @@ def test_a_session_inside_another_session_a_recording_or_a_dataset_is_refused_fi
     (tmp_path / "ds" / "scenes").mkdir(parents=True)
     (tmp_path / "ds" / "manifest.json").write_text("{}")
     (tmp_path / "sub").mkdir()  # taken: the hint names the next free name
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "run_state.json").write_text("{}")  # a gtforge run's folder: its stages' files
     nope = [tmp_path / "nope.mkv"]
     for out, inside, hint in (
+            (tmp_path / "run" / "new", f"gtforge run's output folder ({tmp_path / 'run'})",
+             f"write it beside, e.g. {tmp_path / 'new'}"),
             (tmp_path / "x" / ".." / "sess" / "sub", f"another capture session ({tmp_path / 'sess'})",
              f"write it beside, e.g. {tmp_path / 'sub-2'}"),
             (tmp_path / "link" / "sub", f"another capture session ({tmp_path / 'link'})",
@@ -412,6 +416,13 @@ def test_a_session_inside_another_session_a_recording_or_a_dataset_is_refused_fi
     assert sorted(x.name for x in (tmp_path / "sess").iterdir()) == ["inner", "session.yaml"]
     assert not list((tmp_path / "sess" / "inner").iterdir())
     assert sorted(os.listdir(recs.stereo_bag)) == ["metadata.yaml", "zed.mcap"]
+    assert sorted(x.name for x in (tmp_path / "run").iterdir()) == ["run_state.json"]
+    rec = tmp_path / "rec.mkv"
+    rec.write_bytes(b"")
+    with pytest.raises(InputError) as err:  # -o the recording itself: said so (was "inside a recording")
+        import_recordings([rec], rec)
+    assert str(err.value) == (f"{rec} [output]: expected a session folder outside the recordings, got the recording "
+                              f"itself (hint: give a new folder for the session, e.g. {tmp_path / 'rec'})")
 
 
 def test_output_dot_a_link_a_mount_point_and_a_file(recs, tmp_path, monkeypatch):
