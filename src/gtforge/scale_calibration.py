@@ -259,6 +259,7 @@ class BoardMeasurement:
     C: np.ndarray
     source: str
     poses: list[str]
+    kind: str = ""  # "zed_pair" or "depth_map" (ScaleCalibration.board_poses_by_measurement)
 
 
 def pnp_pose_covariance(X_cam: np.ndarray, uv: np.ndarray, cam) -> np.ndarray:
@@ -365,7 +366,7 @@ def board_zed_measurement(poses: list[tuple[str, np.ndarray, np.ndarray, np.ndar
     A = np.zeros((2, len(PARAMS)))
     A[0, IB], A[1, IY] = 1.0, 1.0
     return BoardMeasurement(A, x[:2], C[:2, :2], "boards: corner disparity against ZED-left PnP depth",
-                            [p[0] for p in poses])
+                            [p[0] for p in poses], "zed_pair")
 
 
 def depth_at_rays(depth_mm: np.ndarray, uv: np.ndarray, half_px: int) -> np.ndarray:
@@ -432,7 +433,7 @@ def board_depth_measurement(poses: list[tuple[str, np.ndarray, np.ndarray]], rig
     A[0, IK], A[1, IC] = 1.0, 1.0
     if rig.separate_depth_camera:
         A[:, IP] = np.linalg.lstsq(J, np.concatenate(jp), rcond=None)[0]
-    return BoardMeasurement(A, x, C, "boards: depth map against texture-camera PnP depth", names)
+    return BoardMeasurement(A, x, C, "boards: depth map against texture-camera PnP depth", names, "depth_map")
 
 
 def board_measurements(session, dirs, rig: Rig, board, params: ScaleParams,
@@ -696,7 +697,8 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         baseline_file_mm=B_file,
         T_mech_from_depth_file=rig_file.T_mech_from_depth_or_identity.tolist() if separate else None,
         scenes_used=[sp.name for sp in pix],
-        board_poses_used=sorted({p for m in boards for p in m.poses}), passes=passes,
+        board_poses_used=sorted({p for m in boards for p in m.poses}),
+        board_poses_by_measurement={m.kind: sorted(m.poses) for m in boards}, passes=passes,
         scenes=[reports[s] for s in sorted(reports)], time_s=time.perf_counter() - t0)
     out = calib.model_copy(update=dict(rig=rig, scale_calibration=info))
     out = CalibrationFile.model_validate(out.model_dump())

@@ -94,6 +94,11 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
         assert t.status == "applied" or t.value == 0.0  # what is not applied is held at 0
         if t.status == "applied":  # a reason only where the all-free estimate alone is not significant
             assert (t.reason == "") == (abs(t.estimate) > 2 * t.sigma), (name, t)
+    # the poses each board measurement used, named apart (the console's "board poses N (ZED pair a, depth map b)":
+    # a pose one camera alone saw counts where it was used); together the poses used
+    by = info.board_poses_by_measurement
+    assert sorted(by) == ["depth_map", "zed_pair"] and all(by.values())
+    assert sorted(set(by["zed_pair"]) | set(by["depth_map"])) == info.board_poses_used
     # the covariance is a covariance, its diagonal the sigmas
     C = np.array(info.covariance)
     np.testing.assert_allclose(np.sqrt(np.diag(C)), [info.terms[n].sigma for n in info.terms], rtol=1e-9)

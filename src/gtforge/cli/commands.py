@@ -474,8 +474,11 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
     info = res.scale_calibration
     for line in scale_term_lines(info):
         out.print("  " + line)
+    by = info.board_poses_by_measurement
+    each = [f"{label} {len(by[k])}" for k, label in (("zed_pair", "ZED pair"), ("depth_map", "depth map")) if k in by]
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
-              f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}")
+              f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}"
+              + (f" ({', '.join(each)})" if len(each) > 1 else ""))
     from gtforge.io.calibrated_session import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output, 'scaled.yaml')}")

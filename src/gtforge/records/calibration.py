@@ -252,7 +252,11 @@ class ScaleCalibration(GTModel):
     # a separate depth camera's pose before this correction (rig.T_mech_from_depth now holds the corrected one)
     T_mech_from_depth_file: list[list[float]] | None = None
     scenes_used: list[str]
-    board_poses_used: list[str] = Field(default_factory=list)
+    board_poses_used: list[str] = Field(default_factory=list)  # any of the two measurements' below
+    # the board poses each measurement used: "zed_pair" (corner disparities: every pose the ZED pair saw) and
+    # "depth_map" (the depth against the texture camera's PnP: the poses the depth camera saw), so that a pose seen by
+    # one camera only is counted where it was used (calibrate's extrinsic needs poses both cameras saw)
+    board_poses_by_measurement: dict[str, list[str]] = Field(default_factory=dict)
     passes: int = 0
     scenes: list[SceneScaleResult] = Field(default_factory=list)
     time_s: float = 0.0
