@@ -374,8 +374,18 @@ def test_a_scheduler_stopped_mid_run_is_one_line(tmp_path):
             sched.kill()
             sched.wait()
 
+    import logging
+
     import dask
 
+    class Seen(logging.Handler):  # what Dask's client logs, as the user's terminal would get it
+        records: list = []
+
+        def emit(self, record):
+            self.records.append(record)
+
+    seen = Seen()
+    logging.getLogger("distributed.client").addHandler(seen)
     try:
         with dask.config.set({"distributed.comm.timeouts.connect": "30s"}):  # (the worker starts within it)
             from gtforge.infra.scheduling import connect_scheduler
@@ -385,9 +395,14 @@ def test_a_scheduler_stopped_mid_run_is_one_line(tmp_path):
             with pytest.raises(InputError) as err:
                 run_tasks(time.sleep, [(0.3,)] * 20, on_result, scheduler=address)
     finally:
+        logging.getLogger("distributed.client").removeHandler(seen)
         for p in (worker, sched):
             p.kill()
             p.wait()
+    # Dask's own "Failed to reconnect to scheduler after 3.00 seconds" and its shutdown's tracebacks (CancelledError)
+    # went to the terminal beside the one line below, which says it
+    said = [r.getMessage() for r in seen.records if r.levelno >= logging.WARNING]
+    assert not [m for m in said if "reconnect" in m] and not [r for r in seen.records if r.exc_info], said
     msg = str(err.value)
     assert "\n" not in msg
     assert msg.startswith(f"--scheduler: expected the Dask scheduler at {address} for the whole run, got the "

@@ -274,10 +274,16 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         return
     if scheduler:
         client = connect_scheduler(scheduler)
+        import logging
+
+        said_by_us = _DropReconnectFailure()
+        client_log = logging.getLogger("distributed.client")
+        client_log.addFilter(said_by_us)
         try:
             _run_on_cluster(client, fn, arg_list, on_result, lost_result, scheduler)
         finally:
             client.close(timeout=10)
+            client_log.removeFilter(said_by_us)
         return
     workers = max(1, min(workers or cpu_count(), len(arg_list)))
     if workers == 1:
@@ -573,6 +579,20 @@ def connect_scheduler(address: str, timeout_s: float | None = None) -> Client:
         client.close(timeout=10)
         raise
     return client
+
+
+class _DropReconnectFailure:
+    """A logging filter for Dask's client: its "Failed to reconnect to scheduler after N seconds" (and the tracebacks of
+    its own shutdown that follow it) went to the user's terminal beside ``SchedulerLost``'s one line, which says the
+    same with what was built and what to do."""
+
+    def filter(self, record) -> bool:
+        import asyncio
+
+        if str(record.msg).startswith("Failed to reconnect to scheduler"):
+            return False
+        exc = record.exc_info[1] if record.exc_info else None
+        return not isinstance(exc, asyncio.CancelledError)  # (the client's own tasks cancelled as it closes)
 
 
 def _run_on_cluster(client: Client, fn: Callable[..., Any], arg_list: Sequence[tuple],
