@@ -348,6 +348,30 @@ def test_a_calibration_given_with_c_is_in_the_certificate(chain, tmp_path):
     assert str(given.resolve()) in cert.inputs_blake3
 
 
+def test_a_refined_calibration_given_with_c_is_not_scale_corrected_again(chain, tmp_path):
+    """-c a refined calibration: calibrate-scale does not apply (refine fitted its extrinsic through the uncorrected
+    depth; the terms it would find now would correct a second time what refine took up), saying which file to give;
+    the run goes on with the given calibration."""
+    from gtforge.records.calibration import CalibrationFile, RefinementInfo
+
+    # refine run on the board calibration itself (skipping calibrate-scale)
+    board = CalibrationFile.read(chain["out"] / "calibration.yaml")
+    info = RefinementInfo(refined_from="calibration.yaml", scenes_used=CAL_SCENES, change_rot_deg=0.01,
+                          change_trans_mm=0.2)
+    given = board.model_copy(update={"refinement": info}).write(tmp_path / "refined.yaml")
+    said: list[str] = []
+    res = run_session(chain["session"], tmp_path / "out", RunOptions(loo=False, calibration_scenes=CAL_SCENES,
+                                                                     workers=1, calibration=str(given),
+                                                                     refine=False), say=said.append)
+    st = RunState.read(tmp_path / "out" / "run_state.json").stages
+    assert st["calibrate-scale"].status == "not applicable"
+    assert st["calibrate-scale"].reason == ("refined.yaml is refined; calibrate-scale runs before refine: give -c the "
+                                            "calibration refine started from (calibration.yaml) to correct the scale")
+    assert not (tmp_path / "out" / "scaled.yaml").exists()
+    assert f"file:{given}" in st["build-dataset"].inputs  # the run went on with the calibration given
+    assert res.exit_code == 0, said
+
+
 def test_another_sessions_run_folder_is_refused(chain, tmp_path):
     """-o at the run folder of another session (a mistyped -o) is refused before anything is written: that run's
     calibration and dataset are the other session's (they were replaced, with one line of notice)."""

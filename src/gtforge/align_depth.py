@@ -37,6 +37,18 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
     params = params or EdgeAlignmentParams()
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
+    # the stages after align-depth estimate through the depth camera's pose: a pose changed under them would leave
+    # their terms (calibrate-scale's depth scale, offset and pose, and its record of the pose it started from; refine's
+    # extrinsic) fitted to another depth than the one the labels are built from
+    for field, done, stage in (("scale_calibration", calib.scale_calibration is not None
+                                or calib.rig.scale_corrections is not None, "calibrate-scale"),
+                               ("refinement", calib.refinement is not None, "refine")):
+        if done:
+            raise InputError(calib_path, field, f"a calibration from before {stage} (align-depth runs after "
+                             f"calibrate and before calibrate-scale and refine, which estimate through the depth "
+                             f"camera's pose)", f"one {stage} wrote",
+                             "run align-depth on the calibration calibrate wrote, then calibrate-scale and refine on "
+                             "its output (docs/pipeline.md)")
     session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "aligned.yaml")
     rig = calib.rig
     if not rig.separate_depth_camera:

@@ -458,6 +458,11 @@ class _Run:
             reason = "the depth map lies on the texture camera's grid (one camera)"
         elif cal.depth_alignment is not None:
             reason = f"{Path(ctx['calib']).name} is already aligned"
+        elif cal.scale_calibration is not None or cal.rig.scale_corrections is not None or cal.refinement is not None:
+            # align-depth runs before them: they estimated through the depth camera's pose the file holds
+            reason = (f"{Path(ctx['calib']).name} is already "
+                      f"{'refined' if cal.refinement is not None else 'scale-corrected'}; align-depth runs before "
+                      f"calibrate-scale and refine: give -c the calibration calibrate wrote to align it")
         caps = ctx["boards"] + ctx["scenes"]
         if reason is None and not caps:
             reason = "no board or scene captures"
@@ -533,6 +538,11 @@ class _Run:
         cal = CalibrationFile.read(ctx["calib"])
         if cal.scale_calibration is not None or cal.rig.scale_corrections is not None:
             self.not_applicable(k, name, f"{ctx['calib'].name} is already scale-corrected")
+            return
+        if cal.refinement is not None:  # refine fitted its extrinsic through the uncorrected depth (calibrate_scale)
+            self.not_applicable(k, name, f"{ctx['calib'].name} is refined; calibrate-scale runs before refine: give "
+                                         f"-c the calibration refine started from ({cal.refinement.refined_from}) to "
+                                         f"correct the scale")
             return
         options = _plain({"scenes": self.opts.calibration_scenes, "use_boards": True})
         inputs = {**ctx["cfg_before_build"],

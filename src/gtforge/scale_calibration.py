@@ -546,7 +546,17 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     calib = CalibrationFile.read(calib_path)
     if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
         raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
-                         "one already corrected", "run calibrate-scale on the board (or refined) calibration")
+                         "one already corrected", "run calibrate-scale on the calibration calibrate (or align-depth) "
+                         "wrote")
+    if calib.refinement is not None:
+        # refine fits the extrinsic to the scenes through the uncorrected depth: it takes up part of a depth scale or
+        # offset error in the translation, which the terms found here would then correct a second time
+        start = calib.refinement.refined_from
+        raise InputError(calib_path, "refinement", "a calibration refine has not moved (calibrate-scale runs before "
+                         "refine: refine fits the extrinsic through the depth, and would take up part of a depth "
+                         "scale or offset error that calibrate-scale then corrects again)",
+                         f"one refined from {start}",
+                         f"run calibrate-scale on {start}, then refine its output (docs/pipeline.md)")
     # the session as the calibration sees it: its SN.conf reading and ZED self-rectification (no yaw yet: a calibration
     # with one is refused above), so the yaw is measured on the right images as the self-rectification leaves them
     session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "scaled.yaml")

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from gtforge.align_depth import align_depth, summary_lines
-from gtforge.core.camera import Rig
+from gtforge.core.camera import Rig, ScaleCorrections
 from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
 from gtforge.core.geometry import perturb_left, pose_difference
 from gtforge.core.zed.scale_corrections import depth_pose_jacobian_image, depth_pose_sigma_px
@@ -23,7 +23,7 @@ from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.errors import InputError
 from gtforge.io.formats import write_png16
 from gtforge.io.captures import open_session
-from gtforge.records.calibration import CalibrationFile
+from gtforge.records.calibration import CalibrationFile, RefinementInfo
 from gtforge.records.dataset import BuildParams
 from gtforge.synthetic import SyntheticTruth, generate_session, two_camera_rig
 
@@ -207,6 +207,18 @@ def test_bad_input(session, tmp_path):
         align_depth(session, one.write(tmp_path / "one.yaml"))
     with pytest.raises(InputError, match="input calibration"):
         align_depth(session, start, start)
+    # a calibration calibrate-scale or refine made: they estimated through the depth camera's pose it would change
+    c = CalibrationFile.read(start)
+    scaled = c.model_copy(update={"rig": c.rig.model_copy(update={"scale_corrections": ScaleCorrections()})})
+    refined = c.model_copy(update={"refinement": RefinementInfo(refined_from="a.yaml", scenes_used=["000"],
+                                                                change_rot_deg=0.0, change_trans_mm=0.0)})
+    for name, made, field in (("scaled", scaled, "scale_calibration"), ("refined", refined, "refinement")):
+        stage = {"scaled": "calibrate-scale", "refined": "refine"}[name]
+        with pytest.raises(InputError, match=rf"{name}.yaml \[{field}\]: expected a calibration from before {stage} "
+                                             rf".*got one {stage} wrote.*run align-depth on the calibration calibrate "
+                                             rf"wrote"):
+            align_depth(session, made.write(tmp_path / f"{name}.yaml"), tmp_path / "out.yaml")
+        assert not (tmp_path / "out.yaml").exists()
 
 
 def test_the_command(session, tmp_path, monkeypatch, capsys):

@@ -23,7 +23,7 @@ from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_with_calibration
 from gtforge.io.captures import open_session
 from gtforge.io.middlebury import middlebury_calib_text
-from gtforge.records.calibration import CalibrationFile, ScaleParams
+from gtforge.records.calibration import CalibrationFile, RefinementInfo, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.synthetic import SyntheticTruth, default_rig
@@ -317,6 +317,15 @@ def test_a_calibration_without_the_fields_changes_nothing(tmp_path):
                                                                   "scale_corrections": {"depth_scale": 1.001}}})
     with pytest.raises(InputError, match="scale_calibration"):
         calibrate_scale(tmp_path, p.write(tmp_path / "c.yaml"), None)
+    # and one refine has moved: refine fitted its extrinsic through the uncorrected depth, so the terms found here would
+    # correct a second time what it took up; the hint names the file refine started from
+    refined = c.model_copy(update={"refinement": RefinementInfo(refined_from="/lab/scaled_before.yaml",
+                                                                scenes_used=["000"], change_rot_deg=0.01,
+                                                                change_trans_mm=0.3)})
+    with pytest.raises(InputError, match=r"\[refinement\]: expected a calibration refine has not moved.*got one "
+                                         r"refined from /lab/scaled_before.yaml.*run calibrate-scale on "
+                                         r"/lab/scaled_before.yaml, then refine its output"):
+        calibrate_scale(tmp_path, refined.write(tmp_path / "r.yaml"), None)
 
 
 def test_yaw_homography_is_the_turned_cameras_projection():

@@ -17,6 +17,10 @@ MIN_POINTS_SPHERE = 20
 MIN_POINTS_PLANE = 20
 MIN_POINTS_ELLIPSOID = 50
 MIN_HEIGHT_MM = 5.0  # an object whose points rise less than this above its support plane has no measurable shape
+# the robust refit's scale: residuals beyond about this many robust standard deviations (1.4826 MAD) of the plain
+# fit's residuals count less and less; never under ROBUST_MIN_SCALE_MM (an exact surface has a MAD of ~0)
+ROBUST_SCALE_SIGMAS = 3.0
+ROBUST_MIN_SCALE_MM = 0.5
 
 
 @dataclass
@@ -164,7 +168,8 @@ def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_offset_mm: float,
-                          constraint: str = "resting", min_points: int = MIN_POINTS_ELLIPSOID) -> EllipsoidFit:
+                          constraint: str = "resting", min_points: int = MIN_POINTS_ELLIPSOID,
+                          loss: str = "cauchy") -> EllipsoidFit:
     """Ellipsoid fitted to the visible surface of an object lying on a plane ``n . p = offset`` (``n`` pointing
     from the plane towards the object).
 
@@ -172,9 +177,16 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
     along ``n`` and, with ``constraint="resting"``, the lowest point on the plane (centre height = ``c``): 6
     parameters (2 for the foot point, the yaw of the horizontal axes, ``a``, ``b``, ``c``). ``"upright"``
     frees the centre height (7). Residual: the distance along the line to the centre from each point to the
-    surface, ``(1 - 1/|q|) |p - centre|`` with ``q`` the point in unit-sphere coordinates (exact for a sphere)."""
+    surface, ``(1 - 1/|q|) |p - centre|`` with ``q`` the point in unit-sphere coordinates (exact for a sphere).
+
+    Robust: the least-squares fit is refitted from where it ended with ``loss`` (``scipy.optimize.least_squares``'s
+    robust losses; default Cauchy) at the scale ``max(ROBUST_MIN_SCALE_MM, ROBUST_SCALE_SIGMAS * 1.4826 * MAD)`` of
+    its residuals, so a few points far off the surface (a stereo model's streaks at the limb, flying pixels) do not
+    pull the axes outwards; ``loss="linear"`` keeps the plain least-squares fit."""
     if constraint not in ("resting", "upright"):
         raise ValueError(f"constraint {constraint!r}: expected 'resting' or 'upright'")
+    if loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
+        raise ValueError(f"loss {loss!r}: expected one of scipy.optimize.least_squares's losses")
     p = _finite_points(points)
     if len(p) < min_points:
         return EllipsoidFit(False, f"too few points ({len(p)} < {min_points})", n_points=len(p), constraint=constraint)
@@ -219,6 +231,14 @@ def fit_resting_ellipsoid(points: np.ndarray, plane_normal: np.ndarray, plane_of
     try:
         with np.errstate(all="ignore"):
             out = least_squares(res, np.array(x0, float), method="lm", x_scale="jac", max_nfev=600)
+            if loss != "linear" and out.status > 0 and np.all(np.isfinite(out.x)):
+                r0 = res(out.x)
+                scale_mm = max(ROBUST_MIN_SCALE_MM,
+                               ROBUST_SCALE_SIGMAS * 1.4826 * float(np.median(np.abs(r0 - np.median(r0)))))
+                rob = least_squares(res, out.x, method="trf", loss=loss, f_scale=scale_mm, x_scale="jac", tr_solver="lsmr",
+                                    max_nfev=600)
+                if rob.status > 0 and np.all(np.isfinite(rob.x)):
+                    out = rob
     except (ValueError, np.linalg.LinAlgError) as exc:
         return EllipsoidFit(False, f"the fit failed ({exc})", n_points=len(p), constraint=constraint)
     if out.status <= 0 or not np.all(np.isfinite(out.x)):
