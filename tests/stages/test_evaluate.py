@@ -314,7 +314,7 @@ def test_evaluation_folder_of_its_own_and_rewritten_whole(dataset, tmp_path):
     other.mkdir()
     (other / "mine.txt").write_text("a user's file")
     with pytest.raises(InputError, match=r"notes \[--output\]: expected a new or empty folder \(or one with "
-                                         r"results\.json\), got a folder with 1 entries"):
+                                         r"results\.json\), got a folder with 1 entry"):
         evaluate(ds, PredictionFolder(preds), other)
     (other / "results.json").write_text('{"mine": 1}')  # a results.json, but no evaluation's: not taken as one
     with pytest.raises(InputError, match=r"notes \[--output\]: expected a new or empty folder, or an earlier "
