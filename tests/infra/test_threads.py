@@ -50,3 +50,4 @@ def test_an_error_is_raised_at_its_item_and_no_later_item_is_started():
     assert got == [0, 1]
     # items 0-3 may have been started (2 in flight while 0 and 1 were consumed); none after the window
     assert max(started) <= 3 and sorted(started) == list(range(len(started)))
+

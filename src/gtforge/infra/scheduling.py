@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import signal
 import sys
@@ -58,6 +59,15 @@ def cpu_count() -> int:
 
 def threads_per_worker(workers: int) -> int:
     return max(1, cpu_count() // max(1, workers))
+
+
+def oversubscription_warning(asked: int | None, workers: int, cores: int) -> str | None:
+    """What to tell a user whose ``--workers`` starts more processes than there are cores (a typo's 100000 would start
+    one per task): they only share the cores, and each holds a task's arrays. None when the processes fit."""
+    if asked is None or workers <= cores:
+        return None
+    return (f"--workers {asked}: {workers} processes on {cores} core{'s' if cores != 1 else ''} share them (no faster "
+            f"than {cores}, and each holds a scene's arrays in memory); leave --workers out for one per core")
 
 
 def _init_worker(n_threads: int, heap_bytes: int = 0) -> None:
@@ -274,7 +284,6 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
         return
     if scheduler:
         client = connect_scheduler(scheduler)
-        import logging
 
         said_by_us = _DropReconnectFailure()
         client_log = logging.getLogger("distributed.client")
@@ -285,7 +294,10 @@ def run_tasks(fn: Callable[..., Any], arg_list: Sequence[tuple], on_result: Call
             client.close(timeout=10)
             client_log.removeFilter(said_by_us)
         return
-    workers = max(1, min(workers or cpu_count(), len(arg_list)))
+    asked, workers = workers, max(1, min(workers or cpu_count(), len(arg_list)))
+    said = oversubscription_warning(asked, workers, cpu_count())
+    if said:
+        logging.getLogger(__name__).warning(said)
     if workers == 1:
         _stop_unused_fork_server()  # (started for more tasks than there are: its imports would take a core from these)
         for args in arg_list:
