@@ -17,6 +17,7 @@ from gtforge.core.ground_truth.regions import occlusion_mask, region_sigma_stats
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.motion_compensation import (
     add_motion_sigma,
+    fruit_motion_suspected,
     verify_and_compensate,
     write_compensated_list,
     write_motion_overlays,
@@ -77,7 +78,7 @@ from gtforge.io.formats import (
 )
 from gtforge.io.outputs import new_folders, remove_if_empty, require_output_folder
 from gtforge.records.calibration import CalibrationFile
-from gtforge.records.verification import VerificationResult
+from gtforge.records.verification import SceneVerification, VerificationResult, VerifyParams
 from gtforge.reports.build import write_build_report
 from gtforge.reports.verification import write_verification_report
 
@@ -179,10 +180,19 @@ def _crop_window(fruit: np.ndarray, crop_wh: tuple[int, int]) -> tuple[int, int,
 RIGHT_IMAGE_RESAMPLING = "one exact cubic B-spline resampling (round 3)"
 
 
-def scene_params_hash(params: BuildParams, calib) -> str:
+def motion_matters(verification: SceneVerification | None, verify_params: VerifyParams) -> bool:
+    """Whether a scene's files depend on the motion compensation's parameters: its verification suspected that its
+    fruit moved (compensation was tried, or would be: ``fruit_motion_suspected``). Every other scene's files are the
+    same with compensation on, off, or other limits, so changing those does not rebuild it."""
+    return verification is not None and (verification.motion_compensation is not None
+                                         or fruit_motion_suspected(verification, verify_params))
+
+
+def scene_params_hash(params: BuildParams, calib, with_motion: bool = True) -> str:
     """The hash a scene's meta.json records and a resumed build compares (``BuildParams.output_hash``, with
-    ``RIGHT_IMAGE_RESAMPLING`` where the calibration corrects the right camera)."""
-    h = params.output_hash()
+    ``RIGHT_IMAGE_RESAMPLING`` where the calibration corrects the right camera); ``with_motion``: ``motion_matters``
+    for the scene."""
+    h = params.output_hash(with_motion)
     if calib.zed_right_correction is not None or calib.rig.zed_right_yaw_deg != 0.0:
         h = hashlib.sha256((h + RIGHT_IMAGE_RESAMPLING).encode()).hexdigest()[:16]
     return h
@@ -308,7 +318,8 @@ def build_one_scene(session_dir: str, capture_dir: str, sid: str, calib_path: st
                 write_s += time.perf_counter() - t
             inputs, stamps = hash_inputs([p for p in cap.input_files if p.exists()], cap.read_records)
             meta = SceneMeta(scene=sid, fruit_id=cap.fruit_id, gtforge_version=gtforge.__version__,
-                             calibration_sha256=calib_sha, params_hash=scene_params_hash(params, calib),
+                             calibration_sha256=calib_sha,
+                             params_hash=scene_params_hash(params, calib, motion_matters(verification, params.verify)),
                              input_blake3=inputs, input_stamps=stamps, stats=stats, crop_xywh=crop,
                              fruit_mask_source="user" if cap.fruit_mask is not None else "geometry",
                              verification=verification,
@@ -392,7 +403,11 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     made = new_folders(out / "scenes", out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     remove_stale_entries(out)
-    phash, expected = scene_params_hash(params, calib), scene_files(params)
+    expected = scene_files(params)
+
+    def phash(m: SceneMeta) -> str:  # the hash a scene built as asked records (its own verification decides)
+        return scene_params_hash(params, calib, motion_matters(m.verification, params.verify))
+
     todo, unchanged, metas = plan_scenes(session, dirs, out, phash, calib_sha, expected, overwrite,
                                          rebuild)
     for sid in unchanged:  # session.yaml's fruit_ids edited since: the splits follow them, not the scene's build

@@ -251,13 +251,49 @@ def test_unmoved_scene_is_unchanged_by_the_feature(dataset, session_dir, true_ca
     names = sorted(p.name for p in a.iterdir())
     assert names == sorted(p.name for p in b.iterdir()) and "disp0GT.pfm" in names
     for n in names:
-        if n != "meta.json":  # (its params_hash names the build's settings, compensation off being one)
+        if n != "meta.json":  # (its times differ)
             assert (a / n).read_bytes() == (b / n).read_bytes(), n
     ma, mb = (json.loads((d / "meta.json").read_text()) for d in (a, b))
     assert ma["verification"] == mb["verification"] and ma["verification"]["motion_compensation"] is None
     assert ma["stats"] == mb["stats"] and ma["sigma"] == mb["sigma"]
+    # the same params_hash: a resumed build with compensation toggled keeps the scene (the test below)
+    assert ma["params_hash"] == mb["params_hash"]
     assert not (out / "filenames" / "compensated.txt").exists()
     assert Manifest.read(out / "manifest.json").compensated == []
+
+
+def test_toggling_compensation_rebuilds_only_the_scenes_whose_fruit_moved(dataset, session_dir, true_calibration,
+                                                                           motion_datasets, motion_session, tmp_path):
+    """A resumed build with compensation off (or other motion limits) rebuilds only the scenes whose verification
+    suspected fruit motion, the only files the setting changes: the shared dataset's scenes (none suspected) are kept;
+    the motion session's two are rebuilt, as a fresh build without compensation writes them; turned on again, they
+    are rebuilt again."""
+    out, first = dataset
+    kept = tmp_path / "kept"
+    shutil.copytree(out, kept)
+    before = {p: p.read_bytes() for p in (kept / "scenes").rglob("*") if p.is_file()}
+    off = build_dataset(session_dir, true_calibration, kept, BuildParams(motion=MotionParams(compensate=False)),
+                        workers=1)
+    assert off.built == [] and sorted(off.skipped_unchanged) == sorted(first.built), off
+    assert {p: p.read_bytes() for p in (kept / "scenes").rglob("*") if p.is_file()} == before
+    other = build_dataset(session_dir, true_calibration, kept, BuildParams(motion=MotionParams(max_sigma_px=0.05)),
+                          workers=1)
+    assert other.built == []
+
+    on, fresh_off, calib = motion_datasets
+    moved = tmp_path / "moved"
+    shutil.copytree(on.out_dir, moved)
+    res = build_dataset(motion_session, calib, moved, BuildParams(motion=MotionParams(compensate=False)), workers=1)
+    assert sorted(res.built) == ["000", "001"] and res.compensated == [], res
+    a, b = moved / "scenes" / "000", fresh_off.out_dir / "scenes" / "000"
+    for f in sorted(p.name for p in b.iterdir()):
+        if f != "meta.json":
+            assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    ma, mb = (json.loads((d / "meta.json").read_text()) for d in (a, b))
+    assert ma["verification"] == mb["verification"] and ma["params_hash"] == mb["params_hash"]
+    again = build_dataset(motion_session, calib, moved, BuildParams(motion=MotionParams(max_sigma_px=0.02)),
+                          workers=1)
+    assert sorted(again.built) == ["000", "001"] and again.compensated == on.compensated
 
 
 @pytest.mark.slow

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -83,8 +83,8 @@ def file_stamp(path: Path) -> tuple[int, int] | None:
 
 
 
-def landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash: str, calib_sha: str,
-                 expected: list[str]) -> "SceneMeta | None":
+def landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash: Callable[[SceneMeta], str],
+                calib_sha: str, expected: list[str]) -> "SceneMeta | None":
     """The meta of scene ``sid`` if a worker of this run landed it whole (a new meta.json, for these parameters and
     this calibration, with every scene file) and then died before it reported it; else None."""
     meta_path = out / "scenes" / sid / "meta.json"
@@ -98,16 +98,17 @@ def landed_meta(out: Path, sid: str, stamp_before: tuple[int, int] | None, phash
 
 
 
-def built_as_asked(m: SceneMeta, scene_dir: Path, phash: str, calib_sha: str, expected: list[str]) -> bool:
-    """Whether the scene in ``scene_dir`` (its meta ``m``) was built with these parameters and this calibration and
-    still has every scene file (none deleted since)."""
-    return m.params_hash == phash and m.calibration_sha256 == calib_sha and \
+def built_as_asked(m: SceneMeta, scene_dir: Path, phash: Callable[[SceneMeta], str], calib_sha: str,
+                   expected: list[str]) -> bool:
+    """Whether the scene in ``scene_dir`` (its meta ``m``) was built with these parameters (``phash(m)``: the hash
+    such a scene records) and this calibration and still has every scene file (none deleted since)."""
+    return m.params_hash == phash(m) and m.calibration_sha256 == calib_sha and \
         all((scene_dir / name).is_file() for name in expected)
 
 
-def plan_scenes(session, dirs: list[Path], out: Path, phash: str, calib_sha: str, expected: list[str],
-                overwrite: bool = False, rebuild: Collection[str] = ()) -> tuple[list[Path], list[str],
-                                                                             dict[str, SceneMeta]]:
+def plan_scenes(session, dirs: list[Path], out: Path, phash: Callable[[SceneMeta], str], calib_sha: str,
+                expected: list[str], overwrite: bool = False,
+                rebuild: Collection[str] = ()) -> tuple[list[Path], list[str], dict[str, SceneMeta]]:
     """Which capture folders a build must (re)build: ``(todo, unchanged scene ids, their metas)``. A scene is
     unchanged when its folder was built with these parameters and this calibration, holds every expected file, and
     its inputs are unchanged (``inputs_unchanged``); ``overwrite`` rebuilds every scene, ``rebuild`` those named."""

@@ -47,11 +47,12 @@ class BuildParams(GTModel):
     def reproject_params(self) -> ReprojectParams:
         return ReprojectParams(self.mode, self.max_slant_deg, self.abs_tol_mm)
 
-    def output_hash(self) -> str:
-        """Hash of the parameters that change a scene's files (not the split lists)."""
+    def output_hash(self, with_motion: bool = True) -> str:
+        """Hash of the parameters that change a scene's files (not the split lists). ``with_motion=False``: without
+        the motion compensation's, which change only the files of a scene whose fruit verification suspects moved."""
         d = self.model_dump(exclude={"split_train", "split_val", "split_seed", "quarantine"})
-        if self.motion == MotionParams():  # the default: the hash of the builds before motion compensation existed
-            del d["motion"]  # (a scene it changes says so in its meta.json; the others' files are the same)
+        if not with_motion or self.motion == MotionParams():  # the default: the hash of the builds before motion
+            del d["motion"]  # compensation existed (a scene it changes says so in its meta.json)
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
