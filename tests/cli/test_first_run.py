@@ -50,6 +50,10 @@ def test_scale_terms_show_their_estimate_whatever_their_status():
     a, b, c = scale_term_lines(info)
     assert "estimate -0.000376 +- 0.000338 [not significant]" in a and "+0 " not in a
     assert "[applied], value applied +0.0399" in b and "not estimated [not determined]" in c
+    # a term without an estimate says so once ("estimate not estimated" read as a contradiction)
+    assert c.startswith("depth_offset_mm: not estimated [not determined]") and "estimate" not in c.replace(
+        "not estimated", "")
+    assert a.startswith("zed_baseline_frac: estimate -0.000376") and b.startswith("zed_right_yaw_deg: estimate +0.0399")
 
 
 def test_a_file_with_several_problems_names_them_all(tmp_path):

@@ -304,9 +304,9 @@ def scale_term_lines(info) -> list[str]:
     "not applied", never a bare 0)."""
     lines = []
     for name, t in info.terms.items():
-        est = "not estimated" if t.estimate is None else f"{t.estimate:+.4g}" + (
+        est = "not estimated" if t.estimate is None else "estimate " + f"{t.estimate:+.4g}" + (
             f" +- {t.sigma:.3g}" if t.sigma is not None else "")
         applied = f", value applied {t.value:+.4g}" if t.status == "applied" else ""
-        lines.append(f"{name}: estimate {est} [{t.status}]{applied}" + (f" ({t.reason})" if t.reason else "")
+        lines.append(f"{name}: {est} [{t.status}]{applied}" + (f" ({t.reason})" if t.reason else "")
                      + (f"; from {', '.join(t.sources)}" if t.sources else ""))
     return lines
