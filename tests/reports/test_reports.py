@@ -192,3 +192,17 @@ def test_comparison_and_results_pages_never_round_a_share_onto_100(tmp_path):
     page = write_eval_html(rep, tmp_path / "ev").read_text()
     assert _row(page, "all")[-2] == "&gt; 99.999"  # the pooled table's coverage (then depth MAE)
     assert _row(page, "000")[4] == "&gt; 99.999"  # the per-scene table's
+
+
+def test_rectification_line_counts_one_pose_as_one():
+    """validate --holdout 1 measures one pose: 'on 1 pose', not 'on 1 poses' (the docs run-through, session 18)."""
+    from types import SimpleNamespace
+
+    from gtforge.reports.rectification import summary_lines
+
+    overall = SimpleNamespace(fit_mean_abs_px=0.009, mean_abs_px=0.047, max_abs_px=0.157)
+    one = summary_lines(SimpleNamespace(overall=overall, poses=["004"], threshold_px=0.15))
+    two = summary_lines(SimpleNamespace(overall=overall, poses=["003", "004"], threshold_px=0.15))
+    assert one == ["ZED vertical disparity on 1 pose: mean 0.009 px (fitted corners), 0.047 px (detected; "
+                   "max 0.157 px); threshold 0.15 px"]
+    assert two[0].startswith("ZED vertical disparity on 2 poses: mean 0.009 px")

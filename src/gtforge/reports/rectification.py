@@ -131,7 +131,8 @@ def summary_lines(q: RectificationQuality | None, choice: ZedConfChoice | None =
         lines.append(line)
     if q is not None:
         o = q.overall
-        lines.append(f"ZED vertical disparity on {len(q.poses)} poses: mean {o.fit_mean_abs_px:.3f} px "
+        n = len(q.poses)
+        lines.append(f"ZED vertical disparity on {n} pose{'' if n == 1 else 's'}: mean {o.fit_mean_abs_px:.3f} px "
                      "(fitted corners), "
                      f"{o.mean_abs_px:.3f} px (detected; max {o.max_abs_px:.3f} px); threshold {q.threshold_px} px")
     else:
