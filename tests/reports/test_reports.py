@@ -194,6 +194,44 @@ def test_comparison_and_results_pages_never_round_a_share_onto_100(tmp_path):
     assert _row(page, "000")[4] == "&gt; 99.999"  # the per-scene table's
 
 
+def test_params_count_shows_in_every_table(tmp_path):
+    """evaluate --params-count N ('Parameter count for the table') reached results.json only: results.md/.csv/.html and
+    compare's tables showed no size (the docs run-through, session 18). A column where some result has it."""
+    import csv
+
+    from gtforge.core.measure.metrics import Metrics
+    from gtforge.records.evaluation import EvalResult, SceneResult
+    from gtforge.reports.evaluation import tables_markdown, write_comparison_html, write_eval_html, write_tables
+
+    m = Metrics(n_gt=100, n_valid=100, coverage_pct=100.0, epe_px=0.17, rmse_px=0.28, bad_0_5_pct=1.0,
+                bad_1_0_pct=0.5, bad_2_0_pct=0.0, bad_4_0_pct=0.0, bad_0_5_all_pct=None, bad_1_0_all_pct=None,
+                bad_2_0_all_pct=None, bad_4_0_all_pct=None, a50_px=None, a90_px=None, a95_px=None, a99_px=None)
+    regions = {r: m for r in ("all", "fruit", "fruit_edge", "fruit_centre")}
+
+    def result(name, n):
+        return EvalResult(model=name, provider="cpu", dataset_dir="/d", scenes=["000"], pooled=regions,
+                          per_image_mean=regions, per_scene=[SceneResult(scene="000", time_ms=1.0, metrics=regions)],
+                          time_ms_median=2.0, params_count=n)
+
+    big, sgbm = result("net", 1234567), result("sgbm", None)
+    md = tables_markdown([big, sgbm]).splitlines()
+    head = next(line for line in md if line.startswith("| model |")).split(" | ")
+    assert head[-1] == "parameters |"
+    assert next(line for line in md if line.startswith("| net | all |")).endswith("| 2.000 | 1234567 |")
+    assert next(line for line in md if line.startswith("| sgbm | all |")).endswith("| 2.000 | - |")
+    write_tables([big, sgbm], tmp_path)
+    rows = list(csv.reader((tmp_path / "results.csv").open()))
+    assert rows[0][-2:] == ["time (ms/frame)", "parameters"] and rows[1][-1] == "1234567" and rows[-1][-1] == ""
+    page = write_comparison_html([big, sgbm], [tmp_path / "a.json", tmp_path / "b.json"], ["net", "sgbm"], [],
+                                 tmp_path / "comparison.html").read_text()
+    assert _row(page, "net")[-1] == "1234567" and _row(page, "sgbm")[-1] == MISSING
+    (tmp_path / "ev").mkdir()
+    page = write_eval_html(big, tmp_path / "ev").read_text()
+    assert "1,234,567 parameters" in page and _row(page, "all")[-1] == MISSING  # depth MAE last, as before
+    # without --params-count the tables are as they were
+    assert "parameters" not in tables_markdown([sgbm])
+
+
 def test_rectification_line_counts_one_pose_as_one():
     """validate --holdout 1 measures one pose: 'on 1 pose', not 'on 1 poses' (the docs run-through, session 18)."""
     from types import SimpleNamespace

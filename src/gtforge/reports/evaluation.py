@@ -134,6 +134,10 @@ def _uses_sigma(reports: list[EvalResult]) -> bool:
     return any(r.max_gt_sigma_px is not None for r in reports)
 
 
+def _uses_params(reports: list[EvalResult]) -> bool:
+    return any(r.params_count is not None for r in reports)
+
+
 def _left_out_text(m: Metrics) -> str:
     total = m.n_gt + m.n_gt_sigma_left_out
     return f"{m.n_gt_sigma_left_out} ({100.0 * m.n_gt_sigma_left_out / total:.1f} %)" if total else "0"
@@ -144,12 +148,14 @@ def headers(reports: list[EvalResult]) -> list[str]:
          "coverage (%)", "depth MAE (mm)", "time (ms/frame)"]
     if _uses_sigma(reports):
         h.insert(3, "GT left out by sigma")
+    if _uses_params(reports):  # evaluate --params-count: the model's size beside its figures
+        h.append("parameters")
     return h
 
 
 def _rows(reports: list[EvalResult], labels: list[str] | None = None, regions=TABLE_REGIONS,
           left_out: Callable[[Metrics], object] = _left_out_text):
-    sig = _uses_sigma(reports)
+    sig, params = _uses_sigma(reports), _uses_params(reports)
     for k, rep in enumerate(reports):
         for r in regions:
             m = rep.pooled[r]
@@ -157,6 +163,8 @@ def _rows(reports: list[EvalResult], labels: list[str] | None = None, regions=TA
                    m.bad_2_0_pct, m.coverage_pct, m.depth_mae_mm, rep.time_ms_median]
             if sig:
                 row.insert(3, left_out(m) if rep.max_gt_sigma_px is not None else None)
+            if params:
+                row.append(rep.params_count)
             yield row
 
 
@@ -244,8 +252,11 @@ def _scene_maps(rep: EvalResult, out: Path, max_scenes: int) -> str:
 
 def write_eval_html(rep: EvalResult, out: Path, max_scenes: int = MAX_SCENES_SHOWN) -> Path:
     """``results.html``: header, pooled table, per-scene table (worst EPE first), error-map previews."""
-    head = headers([rep])[1:-1]  # no model column (one model), no time column (in the heading)
-    rows = _pct_cells(head, [row[1:-1] for row in _rows([rep], regions=tuple(rep.pooled))])
+    # no model column (one model), no time or parameters column (in the heading)
+    full = headers([rep])
+    keep = [k for k, h in enumerate(full) if h not in ("model", "time (ms/frame)", "parameters")]
+    head = [full[k] for k in keep]
+    rows = _pct_cells(head, [[row[k] for k in keep] for row in _rows([rep], regions=tuple(rep.pooled))])
     main = table(head, rows, fmt="{:.4g}") + "".join(note(n) for n in _notes([rep]))
     worst = sorted(rep.per_scene, key=lambda s: -(s.metrics["all"].epe_px or 0.0))
     scene_rows = [[s.scene, s.metrics["all"].epe_px, s.metrics["all"].bad_2_0_pct, s.metrics["fruit"].epe_px,
@@ -254,7 +265,8 @@ def write_eval_html(rep: EvalResult, out: Path, max_scenes: int = MAX_SCENES_SHO
                   "time (ms)"]
     sections = [
         Section(f"{rep.model}: {len(rep.scenes)} scene(s), median {rep.time_ms_median or 0:.1f} ms/frame "
-                f"({rep.provider})", main),
+                f"({rep.provider})" + (f", {rep.params_count:,} parameters" if rep.params_count is not None else ""),
+                main),
         Section("Per scene, worst EPE first", table(scene_head, _pct_cells(scene_head, scene_rows))),
         Section("Error maps", _scene_maps(rep, out, max_scenes)),
     ]
