@@ -35,6 +35,7 @@ from gtforge.dataset.scene_verification import write_verification_overlay
 from gtforge.dataset.views import (
     final_splits,
     moved_between_splits,
+    moved_splits_warning,
     scene_views_current,
     write_lists,
     write_scene_views,
@@ -582,9 +583,7 @@ def finish_dataset(out: Path, session_dir, calib_path: Path, calib_sha: str, par
         before = {}
     moved = moved_between_splits(before, splits)
     if moved:  # a model trained on the earlier train split has seen a scene now in val or test
-        log.warning("%d scene(s) changed split since the last build: %s (the splits are drawn over every built scene a "
-                    "fruit at a time: adding, removing or regrouping scenes can move others)",
-                    len(moved), first_of(f"{s} {a} -> {b}" for s, (a, b) in moved.items()))
+        log.warning("%s", moved_splits_warning(moved))
     if params.verification:
         _write_verification(out, params, metas)
     for sid in unchanged:  # views of scenes built by an earlier run with other view options, deleted since, or of an

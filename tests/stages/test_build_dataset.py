@@ -141,6 +141,23 @@ def test_splits_group_by_fruit():
     assert sp == make_splits(ids, fruit, BuildParams(split_train=0.6, split_val=0.2, split_seed=3))
 
 
+def test_a_moved_scene_is_named_with_what_can_move_it():
+    """The warning for scenes that changed split said 'adding, removing or regrouping scenes can move others', the rule
+    before the per-fruit draw; since it, only a scene's own fruit id, --split or --seed (or a build from before the
+    draw) moves it (the docs run-through, session 18: regrouping one scene warned as if others could have moved)."""
+    from gtforge.dataset.views import moved_between_splits, moved_splits_warning
+
+    params = BuildParams()
+    ids = [f"{k:03d}" for k in range(12)]
+    before = make_splits(ids, {s: "melon0" if s in ("000", "001") else None for s in ids}, params)
+    after = make_splits(ids, {s: "melon0" if s == "000" else None for s in ids}, params)  # 001 its own fruit now
+    moved = moved_between_splits(before, after)
+    assert set(moved) <= {"001"}  # regrouping 001 moved nothing else
+    text = moved_splits_warning({"001": ("val", "train")})
+    assert text.startswith("1 scene(s) changed split since the last build: 001 val -> train (")
+    assert "its fruit id in session.yaml, --split or --seed changed" in text and "move others" not in text
+
+
 def test_splits_are_stable_as_fruit_come_and_go():
     """A fruit's split is its own draw: a lab adding fruit to a session (or dropping some) never moves another fruit
     between splits, so no scene of an earlier build's train split lands in a later build's val or test. The shares

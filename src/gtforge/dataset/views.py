@@ -201,6 +201,20 @@ def moved_between_splits(before: dict[str, list[str]], after: dict[str, list[str
     return {sid: (was[sid], now[sid]) for sid in sorted(was.keys() & now.keys()) if was[sid] != now[sid]}
 
 
+def moved_splits_warning(moved: dict[str, tuple[str, str]]) -> str:
+    """build-dataset's warning for ``moved_between_splits``: which scenes moved and what can have moved them. A fruit's
+    split is its own draw (``fruit_draw``: --seed and its fruit id), so adding, removing or regrouping other scenes
+    never moves a scene; its own fruit id, --split or --seed can, and so can a build over a dataset from before the
+    per-fruit draw (round 4, session 14)."""
+    from gtforge.errors import first_of
+
+    return (f"{len(moved)} scene(s) changed split since the last build: "
+            + first_of(f"{s} {a} -> {b}" for s, (a, b) in moved.items())
+            + " (a scene's split is drawn from --seed and its fruit id alone: it moves when its fruit id in "
+              "session.yaml, --split or --seed changed, or when the last build drew the splits before round 4's "
+              "per-fruit draw; a model trained on the last build's train split has seen these scenes)")
+
+
 def final_splits(ok_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams,
                  quarantined: list[str]) -> dict[str, list[str]]:
     """The split lists: every built scene split by fruit, then quarantined scenes taken out (so a scene's split never
