@@ -156,6 +156,9 @@ def test_a_moved_scene_is_named_with_what_can_move_it():
     text = moved_splits_warning({"001": ("val", "train")})
     assert text.startswith("1 scene(s) changed split since the last build: 001 val -> train (")
     assert "its fruit id in session.yaml, --split or --seed changed" in text and "move others" not in text
+    assert "has seen" not in text  # into train: no earlier model saw it
+    assert moved_splits_warning({"001": ("val", "train"), "004": ("train", "test")}).endswith(
+        "per-fruit draw; a model trained on the last build's train split has seen 004)")
 
 
 def test_splits_are_stable_as_fruit_come_and_go():

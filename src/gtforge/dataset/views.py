@@ -208,11 +208,14 @@ def moved_splits_warning(moved: dict[str, tuple[str, str]]) -> str:
     per-fruit draw (round 4, session 14)."""
     from gtforge.errors import first_of
 
+    left_train = [s for s, (a, _) in moved.items() if a == "train"]
+    seen = (f"; a model trained on the last build's train split has seen {first_of(left_train)}" if left_train
+            else "")
     return (f"{len(moved)} scene(s) changed split since the last build: "
             + first_of(f"{s} {a} -> {b}" for s, (a, b) in moved.items())
             + " (a scene's split is drawn from --seed and its fruit id alone: it moves when its fruit id in "
-              "session.yaml, --split or --seed changed, or when the last build drew the splits before round 4's "
-              "per-fruit draw; a model trained on the last build's train split has seen these scenes)")
+              f"session.yaml, --split or --seed changed, or when the last build drew the splits before round 4's "
+              f"per-fruit draw{seen})")
 
 
 def final_splits(ok_ids: list[str], fruit_ids: dict[str, str | None], params: BuildParams,
