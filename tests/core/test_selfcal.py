@@ -417,3 +417,25 @@ def test_resample_is_exact_and_keeps_16_bit_values():
     shifted = resample(ramp.astype(np.uint16), uu.ravel() + 0.3, vv.ravel(), (40, 50)).astype(float)
     inner = (slice(6, -6), slice(6, -7))  # the mirrored border reaches a few pixels in
     np.testing.assert_allclose(shifted[inner], ramp[inner] + 300.0, atol=2.0)  # 0.002 px
+
+
+def test_self_rectification_names_each_capture_with_its_folder(tmp_path):
+    """calibrate's zed_self_rectification listed board/000 and scenes/000 both as '000' (and a skipped scene would
+    have replaced a skipped board of the same number): each capture is named with its folder (the docs run-through,
+    session 18, on the shipped example session, read here, never written)."""
+    import shutil
+    from pathlib import Path
+
+    from gtforge.io.zed_rectification import collect_matches
+
+    example = Path(__file__).resolve().parents[2] / "calib_data_examples" / "session"
+    sess = tmp_path / "session"
+    shutil.copytree(example, sess, ignore=shutil.ignore_patterns("truth"))
+    (sess / "scenes" / "001" / "right.png").unlink()  # one scene and one board skipped, both 001
+    (sess / "board" / "001" / "right.png").unlink()
+    session = open_session(sess)
+    dirs = session.capture_dirs("board") + session.capture_dirs("scenes")
+    matches, skipped = collect_matches(session, dirs)
+    assert [m.capture for m in matches] == ["board/000", "board/002", "board/003", "board/004", "scenes/000",
+                                            "scenes/002"]
+    assert sorted(skipped) == ["board/001", "scenes/001"]

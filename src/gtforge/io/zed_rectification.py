@@ -331,14 +331,15 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
         pl, pr = match_points(cap.zed_left, cap.zed_right, max_features=max_features)
         if not len(pl):
             return None, "no left-right match (too little texture?)"
-        return Matches(d.name, pl, pr), None
+        # named with its folder: boards and scenes are matched together and both number from 000
+        return Matches(f"{d.parent.name}/{d.name}", pl, pr), None
 
     out, skipped = [], {}
     for k, (d, (m, why)) in enumerate(zip(dirs, ordered_map(one, dirs))):
         if progress:
             progress(f"left-right matches {d.parent.name}/{d.name} ({k + 1}/{len(dirs)})")
         if m is None:
-            skipped[d.name] = why
+            skipped[f"{d.parent.name}/{d.name}"] = why
         else:
             out.append(m)
     return out, skipped
