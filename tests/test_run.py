@@ -246,6 +246,8 @@ def test_an_edit_of_fruit_ids_redoes_only_the_dataset(chain):
         assert res.redone == ["build-dataset", "verify"], said
         st = RunState.read(out / "run_state.json").stages
         assert st["build-dataset"].detail["built"] == [] and st["verify"].detail["verified"] == ["003"], said
+        # 003 was regrouped, not rebuilt (the line said "checking 003 (rebuilt)": the docs run-through, session 18)
+        assert "      checking 003 (meta.json changed; the other scenes as verified before)" in said, said
         assert json.loads((ds / "scenes" / "003" / "meta.json").read_text())["fruit_id"] == "fruit07"
         said = []
         assert run_session(sess, out, OPTS, say=said.append).redone == [], said

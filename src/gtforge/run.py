@@ -678,7 +678,9 @@ class _Run:
             todo = sorted(metas)
         t0 = time.perf_counter()
         if todo:
-            self.say(f"      checking {', '.join(todo)}" + (" (rebuilt)" if len(todo) < len(metas) else ""))
+            # the scenes whose meta.json changed: rebuilt, or regrouped by session.yaml's fruit_ids (not rebuilt)
+            self.say(f"      checking {', '.join(todo)}" + (" (meta.json changed; the other scenes as verified before)"
+                                                            if len(todo) < len(metas) else ""))
             verify_dataset(ds, scenes=todo, workers=self.opts.workers, scheduler=self.opts.scheduler,
                            quarantine=self.opts.quarantine,
                            progress=self.progress)
