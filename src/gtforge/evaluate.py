@@ -1,6 +1,7 @@
 """Stage 4: score a stereo model's disparities against the built ground truth, per region."""
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import json
@@ -384,6 +385,9 @@ def _remove_earlier_outputs(out: Path, written: list[Path]) -> None:
             stale += [f for f in (out / folder).iterdir() if f.name.endswith(suffixes) and f not in keep]
     for f in stale:
         f.unlink(missing_ok=True)
+    for folder in sorted(_MAP_FOLDERS, reverse=True):  # a folder left empty goes too (clouds/ after --no-clouds)
+        with contextlib.suppress(OSError):  # not empty (a user's file, this run's maps) or not there: stays
+            (out / folder).rmdir()
 
 
 def _write_error_maps(out: Path, sid: str, scene: SceneResult, pred: np.ndarray, gt: np.ndarray,

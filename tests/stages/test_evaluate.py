@@ -288,6 +288,26 @@ def test_onnx_model_mistakes_stop_before_scoring(dataset, tmp_path):
         OnnxModel(tmp_path)
 
 
+def test_a_rewrite_leaves_no_empty_map_folder(tmp_path):
+    """An evaluation written again without --clouds removed the earlier one's clouds but left clouds/ empty (the docs
+    run-through, session 18); a folder holding a user's file, or this run's maps, stays."""
+    from gtforge.evaluate import _remove_earlier_outputs
+
+    ev = tmp_path / "ev"
+    for name in ("clouds/000_depth_error.ply", "heatmaps/000_disp_error.png", "heatmaps/preview/000_disp_error.jpg",
+                 "heatmaps/001_disp_error.png", "heatmaps/preview/001_disp_error.jpg", "fruit_size.csv"):
+        (ev / name).parent.mkdir(parents=True, exist_ok=True)
+        (ev / name).write_bytes(b"x")
+    kept = [ev / "heatmaps" / "000_disp_error.png", ev / "heatmaps" / "preview" / "000_disp_error.jpg"]
+    _remove_earlier_outputs(ev, kept)
+    assert sorted(p.relative_to(ev).as_posix() for p in ev.rglob("*")) == [
+        "heatmaps", "heatmaps/000_disp_error.png", "heatmaps/preview", "heatmaps/preview/000_disp_error.jpg"]
+    (ev / "clouds").mkdir()
+    (ev / "clouds" / "mine.txt").write_text("a user's")
+    _remove_earlier_outputs(ev, [])  # what evaluate does before its first map: every map goes, the user's file stays
+    assert sorted(p.relative_to(ev).as_posix() for p in ev.rglob("*")) == ["clouds", "clouds/mine.txt"]
+
+
 def test_network_input_options_are_checked_by_name(tmp_path):
     """--resize without --fit resize was ignored, --fit resize without --resize failed once per scene, and a bad
     --fit printed pydantic's 'validation error for InputConvention': each is now one line naming the option."""
