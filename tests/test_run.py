@@ -352,8 +352,8 @@ def test_a_calibration_given_with_c_is_in_the_certificate(chain, tmp_path):
 
 def test_a_refined_calibration_given_with_c_is_not_scale_corrected_again(chain, tmp_path):
     """-c a refined calibration: calibrate-scale does not apply (refine fitted its extrinsic through the uncorrected
-    depth; the terms it would find now would correct a second time what refine took up), saying which file to give;
-    the run goes on with the given calibration."""
+    depth; the terms it would find now would correct a second time what refine took up), nor refine again, each saying
+    which file to give; the run builds with the given calibration."""
     from gtforge.records.calibration import CalibrationFile, RefinementInfo
 
     # refine run on the board calibration itself (skipping calibrate-scale)
@@ -363,13 +363,16 @@ def test_a_refined_calibration_given_with_c_is_not_scale_corrected_again(chain, 
     given = board.model_copy(update={"refinement": info}).write(tmp_path / "refined.yaml")
     said: list[str] = []
     res = run_session(chain["session"], tmp_path / "out", RunOptions(loo=False, calibration_scenes=CAL_SCENES,
-                                                                     workers=1, calibration=str(given),
-                                                                     refine=False), say=said.append)
+                                                                     workers=1, calibration=str(given)),
+                      say=said.append)
     st = RunState.read(tmp_path / "out" / "run_state.json").stages
     assert st["calibrate-scale"].status == "not applicable"
     assert st["calibrate-scale"].reason == ("refined.yaml is refined; calibrate-scale runs before refine: give -c the "
                                             "calibration refine started from (calibration.yaml) to correct the scale")
-    assert not (tmp_path / "out" / "scaled.yaml").exists()
+    assert st["refine"].status == "not applicable"
+    assert st["refine"].reason == ("refined.yaml is already refined; give -c the calibration refine started from "
+                                   "(calibration.yaml) to refine again")
+    assert not (tmp_path / "out" / "scaled.yaml").exists() and not (tmp_path / "out" / "refined.yaml").exists()
     assert f"file:{given}" in st["build-dataset"].inputs  # the run went on with the calibration given
     assert res.exit_code == 0, said
 

@@ -564,8 +564,12 @@ class _Run:
         name = "refine"
         need = RefineParams().min_scenes
         reason = None
+        given = CalibrationFile.read(ctx["calib"])
         if not self.opts.refine:
             reason = "--no-refine"
+        elif given.refinement is not None:  # (-c a refined file: refine again only from the file it started from)
+            reason = (f"{Path(ctx['calib']).name} is already refined; give -c the calibration refine started from "
+                      f"({given.refinement.refined_from}) to refine again")
         elif len(ctx["cal_scenes"]) < need:
             reason = (f"refinement needs at least {need} scenes, "
                       f"{'--calibration-scenes names' if self.opts.calibration_scenes else 'the session has'} "
