@@ -102,7 +102,7 @@ def run_demo(directory: str | Path, scale: float = 0.5, n_board: int = 8, n_scen
     stage = f"calibrate-scale (boards + scenes {', '.join(scaled.scenes_used)})"
     for name, term in scaled.terms.items():
         est = "-" if term.estimate is None else f"{term.estimate:+.5f} +- {term.sigma:.5f}"
-        say(f"      {name}: {est} ({term.status}{f', {term.value:+.5f} applied' if term.status == 'applied' else ''});"
+        say(f"      {name}: {est} ({term.status}{f' as {term.value:+.5f}' if term.status == 'applied' else ''});"
             f" truth {truth_terms[name]:+.5f}")
         rows.append((stage, f"{name} (truth {truth_terms[name]:+.5f})", f"{est} ({term.status})"))
         stage = ""

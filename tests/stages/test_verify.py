@@ -551,7 +551,21 @@ def test_verify_removes_the_overlays_of_scenes_no_longer_flagged(dataset, tmp_pa
     assert not list(overlays.glob("*_overlay.jpg"))
     rep = verify_dataset(out, VerifyParams(max_shift_px=1e-9), workers=1)  # every scene's shift is over it
     assert sorted(rep.flagged) == ids
+    # the shift shown with the decimals the limit needs (it read "0.00 px > 1e-09 px")
+    import re
+
+    for sid in ids:
+        shown = [re.fullmatch(r"texture shift over the whole area (\d+\.\d{6}) px > 1e-09 px \(dx [-+]\d+\.\d{6}, "
+                              r"dy [-+]\d+\.\d{6}\)", r) for r in rep.flagged[sid]]
+        assert any(m and float(m.group(1)) > 0 for m in shown), rep.flagged[sid]
     assert sorted(p.name for p in overlays.glob("*_overlay.jpg")) == [f"{i}_overlay.jpg" for i in ids]
     rep = verify_dataset(out, VerifyParams(), scenes=[ids[1]], workers=1)  # it passes: its overlay goes, not others'
     assert sorted(rep.flagged) == [ids[0], *ids[2:]]
     assert sorted(p.name for p in overlays.glob("*_overlay.jpg")) == [f"{i}_overlay.jpg" for i in rep.flagged]
+
+
+def test_a_figure_is_shown_with_the_decimals_its_limit_needs():
+    from gtforge.dataset.scene_verification import _decimals
+
+    assert [_decimals(x, 2) for x in (0.25, 0.1, 0.05, 0.002, 1e-9, 3.0)] == [2, 2, 3, 4, 6, 2]
+    assert [_decimals(x, 3) for x in (0.1, 0.01, 0.005)] == [3, 3, 4]

@@ -266,6 +266,12 @@ def _stereo_pixels(noc, disp, x0, y0, width, height, ok, d, x_match, inside):
             inside[v, u] = row_in & (xm > lo) & (xm < hx)
 
 
+def _decimals(limit: float, least: int) -> int:
+    """Decimals for a figure shown against ``limit``: at least ``least``, and one more than the limit's first digit
+    needs, at most 6 (a 0.002 px limit gets 4: "0.0031 px > 0.002 px", not "0.00 px > 0.002 px")."""
+    return min(6, max(least, 1 - math.floor(math.log10(limit)))) if limit > 0 else least
+
+
 def _pm(noise_px: float | None) -> str:
     """`` ± noise`` for a figure's reason (its noise floor), empty when not measured."""
     return "" if noise_px is None else f" ± {noise_px:.3f}"
@@ -453,24 +459,27 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
         return SceneVerification(status="not verifiable", reasons=[
             f"too little textured ground truth to align ({e_all.n_pixels} px < {params.min_pixels})"],
             texture_all=e_all, texture_fruit=e_fruit, stereo=stereo), None
+    nd = _decimals(params.max_shift_px, 2)
     for name, e in (("whole area", e_all), ("fruit", e_fruit)):
         if e.magnitude_px is not None and e.magnitude_px > params.max_shift_px:
-            reasons.append(f"texture shift over the {name} {e.magnitude_px:.2f} px > {params.max_shift_px} px "
-                           f"(dx {e.dx_px:+.2f}, dy {e.dy_px:+.2f})")
+            reasons.append(f"texture shift over the {name} {e.magnitude_px:.{nd}f} px > {params.max_shift_px} px "
+                           f"(dx {e.dx_px:+.{nd}f}, dy {e.dy_px:+.{nd}f})")
         if e.correlation is not None and e.correlation < params.min_correlation:
             reasons.append(f"texture correlation over the {name} {e.correlation:.2f} < {params.min_correlation} "
                            "(the scene changed between the captures?)")
     for k, e in enumerate(e_each, 1):
         if e.magnitude_px is not None and e.magnitude_px > params.max_shift_px:
-            reasons.append(f"texture shift over fruit {k} of {len(e_each)} {e.magnitude_px:.2f} px > "
-                           f"{params.max_shift_px} px (dx {e.dx_px:+.2f}, dy {e.dy_px:+.2f})")
+            reasons.append(f"texture shift over fruit {k} of {len(e_each)} {e.magnitude_px:.{nd}f} px > "
+                           f"{params.max_shift_px} px (dx {e.dx_px:+.{nd}f}, dy {e.dy_px:+.{nd}f})")
     for name, s in stereo.items():
         if s.disparity_bias_px is not None and abs(s.disparity_bias_px) > params.max_disparity_bias_px:
             area = "whole area" if name == "all" else name  # the texture checks' words for the same areas
-            reasons.append(f"stereo: disparity bias over the {area} {s.disparity_bias_px:+.3f}"
+            reasons.append(f"stereo: disparity bias over the {area} "
+                           f"{s.disparity_bias_px:+.{_decimals(params.max_disparity_bias_px, 3)}f}"
                            f"{_pm(s.disparity_bias_noise_px)} px (> {params.max_disparity_bias_px} px)")
         if name == "all" and s.vertical_px is not None and abs(s.vertical_px) > params.max_vertical_px:
-            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.3f}{_pm(s.vertical_noise_px)} px "
+            reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.{_decimals(params.max_vertical_px, 3)}f}"
+                           f"{_pm(s.vertical_noise_px)} px "
                            f"(> {params.max_vertical_px} px; "
                            "is the rectification the calibration's?)")
         if name == "all" and s.bad_match_pct is not None and s.bad_match_pct > params.max_bad_match_pct:
