@@ -40,8 +40,7 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
     # the stages after align-depth estimate through the depth camera's pose: a pose changed under them would leave
     # their terms (calibrate-scale's depth scale, offset and pose, and its record of the pose it started from; refine's
     # extrinsic) fitted to another depth than the one the labels are built from
-    for field, done, stage in (("scale_calibration", calib.scale_calibration is not None
-                                or calib.rig.scale_corrections is not None, "calibrate-scale"),
+    for field, done, stage in (("scale_calibration", calib.scale_corrected, "calibrate-scale"),
                                ("refinement", calib.refinement is not None, "refine")):
         if done:
             raise InputError(calib_path, field, f"a calibration from before {stage} (align-depth runs after "

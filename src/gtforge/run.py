@@ -458,7 +458,7 @@ class _Run:
             reason = "the depth map lies on the texture camera's grid (one camera)"
         elif cal.depth_alignment is not None:
             reason = f"{Path(ctx['calib']).name} is already aligned"
-        elif cal.scale_calibration is not None or cal.rig.scale_corrections is not None or cal.refinement is not None:
+        elif cal.scale_corrected or cal.refinement is not None:
             # align-depth runs before them: they estimated through the depth camera's pose the file holds
             reason = (f"{Path(ctx['calib']).name} is already "
                       f"{'refined' if cal.refinement is not None else 'scale-corrected'}; align-depth runs before "
@@ -536,7 +536,7 @@ class _Run:
             self.not_applicable(k, name, "no scene captures")
             return
         cal = CalibrationFile.read(ctx["calib"])
-        if cal.scale_calibration is not None or cal.rig.scale_corrections is not None:
+        if cal.scale_corrected:
             self.not_applicable(k, name, f"{ctx['calib'].name} is already scale-corrected")
             return
         if cal.refinement is not None:  # refine fitted its extrinsic through the uncorrected depth (calibrate_scale)
@@ -564,10 +564,10 @@ class _Run:
         name = "refine"
         need = RefineParams().min_scenes
         reason = None
-        given = CalibrationFile.read(ctx["calib"])
         if not self.opts.refine:
             reason = "--no-refine"
-        elif given.refinement is not None:  # (-c a refined file: refine again only from the file it started from)
+        elif (given := CalibrationFile.read(ctx["calib"])).refinement is not None:
+            # (-c a refined file: refine again only from the file it started from)
             reason = (f"{Path(ctx['calib']).name} is already refined; give -c the calibration refine started from "
                       f"({given.refinement.refined_from}) to refine again")
         elif len(ctx["cal_scenes"]) < need:

@@ -544,7 +544,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     params = params or ScaleParams()
     calib_path = Path(calibration)
     calib = CalibrationFile.read(calib_path)
-    if calib.rig.scale_corrections is not None or calib.scale_calibration is not None:
+    if calib.scale_corrected:
         raise InputError(calib_path, "scale_calibration", "a calibration without a scale correction",
                          "one already corrected", "run calibrate-scale on the calibration calibrate (or align-depth) "
                          "wrote")

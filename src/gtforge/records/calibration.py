@@ -169,6 +169,12 @@ class CalibrationFile(VersionedFile):
     depth_alignment: DepthAlignment | None = None
 
     @property
+    def scale_corrected(self) -> bool:
+        """calibrate-scale has run on it (its record, or corrections in the rig): a second run would compound them,
+        and align-depth, which changes the pose they were fitted through, comes before it."""
+        return self.scale_calibration is not None or self.rig.scale_corrections is not None
+
+    @property
     def zed_conf_reading(self) -> str | None:
         """The SN.conf reading later stages rectify raw ZED images with (None: not a raw + SN.conf session)."""
         return self.zed_conf.reading if self.zed_conf is not None else None
