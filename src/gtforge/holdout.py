@@ -14,7 +14,7 @@ from gtforge.io.outputs import refuse_gtforge_folder, require_output_folder
 from gtforge.records.calibration import CalibrateParams
 from gtforge.records.validation import ValidateParams, ValidationResult
 from gtforge.reports.validation import write_validation_report
-from gtforge.validate import validate
+from gtforge.validate import require_report_folder, validate
 
 log = logging.getLogger("gtforge.validate")
 
@@ -32,6 +32,7 @@ def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path 
         session.refuse_output_over_inputs(out_dir)
         require_output_folder(out_dir, "--output")
         refuse_gtforge_folder(out_dir)
+        require_report_folder(out_dir)
     dirs = session.select("board", captures)
     if len(dirs) <= MIN_CALIBRATION_POSES:  # nothing can be held out: say so, not "1 to -1 poses"
         raise InputError(session_dir, "holdout", f"more than {MIN_CALIBRATION_POSES} board captures to hold any out "

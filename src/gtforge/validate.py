@@ -231,6 +231,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         session.refuse_output_over_inputs(out_dir)
         require_output_folder(out_dir, "--output")
         refuse_gtforge_folder(out_dir)
+        require_report_folder(out_dir)
     dirs = session.select("board", captures)
     if calibration is None:
         raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none",
@@ -361,6 +362,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         session.refuse_output_over_inputs(out_dir)
         require_output_folder(out_dir, "--output")
         refuse_gtforge_folder(out_dir)
+        require_report_folder(out_dir)
         g = (session.root / GAUGES_DIR).resolve()
         o = Path(out_dir).resolve()
         if o == g or g in o.parents:
@@ -391,6 +393,30 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
         if whole is not None:
             write_validation_report(whole.model_copy(update={"gauges": rep}), out, calib.rig.zed.left)
     return rep
+
+
+REPORT_FILES = {"validation.json": ValidationResult, "gauges.json": GaugesResult}  # each with its .html page
+
+
+def require_report_folder(out_dir: str | Path) -> None:
+    """``out_dir`` (``--output``) is new, or its ``validation.json``/``.html`` and ``gauges.json``/``.html``, those it
+    has, are an earlier validation's: validate writes those four names, and a file of them that gtforge did not write
+    (another tool's report, someone's notes) is refused, not overwritten."""
+    p = Path(out_dir)
+    if not p.is_dir():
+        return
+    hint = "give --output a folder of its own (validate writes validation.json/.html and gauges.json/.html there)"
+    for name, model in REPORT_FILES.items():
+        f, page = p / name, p / name.replace(".json", ".html")
+        if f.exists() or f.is_symlink():
+            try:
+                model.read(f)
+            except InputError:
+                raise InputError(f, "--output", f"an earlier gtforge validation's {name} (validate writes over it)",
+                                 "a file gtforge validate did not write", hint) from None
+        elif page.exists() or page.is_symlink():
+            raise InputError(page, "--output", f"{page.name} only beside the {name} gtforge validate wrote with it "
+                             "(validate writes over both)", f"{page.name} without {name}", hint)
 
 
 def _whole_validation(out_dir: str | Path, session_dir: str | Path, calibration: str | Path) -> ValidationResult | None:

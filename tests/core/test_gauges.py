@@ -421,3 +421,19 @@ def test_gauges_only_into_a_whole_validation_updates_its_gauge_section(tmp_path)
         validate_gauges(s, other, out)
     assert e.value.field == "--output" and "calib.yaml" in str(e.value) and e.value.hint
     assert (out / "gauges.json").read_bytes() == before
+    # a report of those names that gtforge did not write is refused, not overwritten (validate wrote over any before)
+    theirs = tmp_path / "theirs"
+    shutil.copytree(out, theirs)
+    (theirs / "gauges.json").write_text('{"gauges": "measured by hand"}')
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (alone / "validation.html").write_text("<p>another tool's page</p>")
+    for folder, name, needle in ((theirs, "gauges.json", "got a file gtforge validate did not write"),
+                                 (alone, "validation.html", "got validation.html without validation.json")):
+        kept = {p.name: p.read_bytes() for p in folder.iterdir()}
+        for call in (lambda: validate(s, c, folder), lambda: validate_gauges(s, c, folder)):
+            with pytest.raises(InputError) as e:
+                call()
+            assert e.value.field == "--output" and name in str(e.value) and needle in str(e.value), str(e.value)
+            assert "give --output a folder of its own" in e.value.hint
+        assert {p.name: p.read_bytes() for p in folder.iterdir()} == kept
