@@ -86,6 +86,51 @@ def test_a_truncated_recording_is_one_line_naming_the_size_it_declares(tmp_path,
         assert "\n" not in str(e.value)
 
 
+def test_a_damaged_jpeg_frame_is_refused_and_an_intact_one_decodes_as_opencv_does(tmp_path):
+    """The real Kinect recording's MJPEG colour frame decodes exactly as OpenCV decodes it (the same libjpeg-turbo
+    decoding); a copy of the recording with 4 KiB of that frame zeroed (a damaged disk block) is one line naming the
+    file, the track and libjpeg's complaint. Before, OpenCV printed 'Corrupt JPEG data' on stderr and the damaged
+    picture was imported as the capture's texture."""
+    import av
+
+    src = shared_data("recordings") / "azure_kinect_recording.mkv"
+    with av.open(str(src)) as c:
+        jpg = next(bytes(p) for p in c.demux([s for s in c.streams if s.metadata.get("title") == "COLOR"]) if p.size)
+    ref = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(read_kinect_mkv(src).texture.frames[0].decode(), ref)
+    data = bytearray(src.read_bytes())
+    at = data.find(jpg[:4096])
+    assert at > 0 and data.count(jpg[:4096]) == 1
+    mid = at + len(jpg) // 2
+    data[mid:mid + 4096] = bytes(4096)
+    damaged = tmp_path / "damaged.mkv"
+    damaged.write_bytes(bytes(data))
+    rec = read_kinect_mkv(damaged)  # (the index and the depth frame are intact)
+    assert rec.depth.frames[0].decode().shape == (576, 640)
+    with pytest.raises(InputError) as e:
+        rec.texture.frames[0].decode()
+    assert str(e.value).startswith(f"{damaged} [COLOR]: expected an intact JPEG frame, got libjpeg: Corrupt JPEG "
+                                   "data"), str(e.value)
+    assert "copy it again from the recorder" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_compressed_jpeg_colour_and_grey_and_a_damaged_one():
+    """A ROS CompressedImage JPEG: colour as RGB, grey as one channel, both as OpenCV decodes them; bytes lost from
+    the middle of one refused (libjpeg's 'premature end of data segment'), where OpenCV returned the picture."""
+    yy, xx = np.mgrid[0:240, 0:320]
+    smooth = np.dstack([xx, yy, (xx + yy) // 2]).astype(np.uint8)
+    for img in (smooth, smooth[..., 1].copy()):
+        enc = cv2.imencode(".jpg", img[..., ::-1] if img.ndim == 3 else img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1]
+        ocv = cv2.imdecode(enc, cv2.IMREAD_UNCHANGED)
+        got = decode_compressed(_Msg(format="jpeg", data=enc), "f.bag", "/cam/image/compressed")
+        assert np.array_equal(got, ocv[..., ::-1] if ocv.ndim == 3 else ocv) and got.shape == img.shape
+        cut = np.concatenate([enc[:len(enc) // 2], enc[len(enc) // 2 + 100:]])
+        assert cv2.imdecode(cut, cv2.IMREAD_UNCHANGED) is not None  # OpenCV: a picture (and a warning on stderr)
+        with pytest.raises(InputError, match=r"^f\.bag \[/cam/image/compressed\]: expected an intact JPEG frame, got "
+                                             r"libjpeg: Corrupt JPEG data"):
+            decode_compressed(_Msg(format="jpeg", data=cut), "f.bag", "/cam/image/compressed")
+
+
 def test_a_truncated_mcap_is_one_line_naming_its_missing_closing_magic(tmp_path):
     """A ROS 2 .mcap (alone or in its rosbag2 folder) cut short: one line naming the closing magic bytes it lacks
     and its size (was 'got AnyReaderError: File end magic is invalid.')."""

@@ -15,6 +15,7 @@ import numpy as np
 
 from gtforge.errors import InputError
 from gtforge.io.cameras import load_zed_rectified, read_zed_conf
+from gtforge.io.formats import read_image
 from gtforge.io.recordings import (
     BAG_SUFFIXES,
     COLOR_TOPICS,
@@ -66,11 +67,9 @@ def read_zed_export(folder: Path, fps: float | None, calibration: Path | None) -
         raise InputError(folder, "--zed-calibration", "the ZED's calibration (SN<serial>.conf or rectified YAML)",
                          "none", "pass --zed-calibration SN12345.conf")
 
-    def rgb(path):
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
-            raise InputError(path, None, "a readable image", "undecodable", "the file may be truncated")
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    def rgb(path):  # (read_image: a truncated PNG refused, where cv2.imread returns the rows it could read)
+        img = read_image(path)
+        return np.ascontiguousarray(np.dstack([img] * 3)) if img.ndim == 2 else img
 
     def stream(side):
         return Stream(side, [Frame(int(round(i * 1e9 / fps)), (lambda p: lambda: rgb(p))(files[side][i]))
