@@ -40,6 +40,19 @@ def test_pfm_truncated(tmp_path):
         read_pfm(p)
 
 
+@pytest.mark.parametrize("scale", [b".", b"-e", b"--1", b"1e"])
+def test_pfm_scale_that_is_no_number(tmp_path, scale):
+    """A scale the header's pattern lets through but that is no number: one line naming the header, not a ValueError
+    (a prediction 000.pfm with the scale '.' stopped gtforge evaluate with a traceback)."""
+    p = tmp_path / "d.pfm"
+    p.write_bytes(b"Pf\n3 2\n" + scale + b"\n" + np.ones((2, 3), "<f4").tobytes())
+    with pytest.raises(InputError) as e:
+        read_pfm(p)
+    assert e.value.field == "header" and repr(scale.decode()) in str(e.value)
+    p.write_bytes(b"Pf\n3 2\n-1.0\n" + np.full((2, 3), 2.5, "<f4").tobytes())  # the same bytes with a number
+    np.testing.assert_array_equal(read_pfm(p), np.full((2, 3), 2.5, np.float32))
+
+
 def test_kitti_png_encoding(tmp_path):
     d = np.array([[0.0, 1.0 / 1024, 12.3456], [np.nan, -1.0, 200.0]], np.float32)
     p = write_kitti_disparity(tmp_path / "d.png", d)

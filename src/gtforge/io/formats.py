@@ -116,7 +116,13 @@ def read_pfm(path: str | Path) -> np.ndarray:
     m = re.match(rb"(P[fF])\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s", data)
     if not m:
         raise InputError(path, "header", "'Pf W H scale' PFM header", repr(data[:20]), "is this a PFM file?")
-    kind, w, h, scale = m.group(1), int(m.group(2)), int(m.group(3)), float(m.group(4))
+    kind, w, h = m.group(1), int(m.group(2)), int(m.group(3))
+    try:  # the pattern lets through what is no number ('.', '-e', '--1'): a ValueError traceback before
+        scale = float(m.group(4))
+    except ValueError:
+        raise InputError(path, "header", "a PFM scale (a number: < 0 little-endian, > 0 big-endian)",
+                         repr(m.group(4).decode())[:40], "write the header as 'Pf', 'W H', '-1.0' (one a line), "
+                         "as gtforge.io.formats.write_pfm does") from None
     ch = 3 if kind == b"PF" else 1
     n = w * h * ch * 4
     body = data[m.end():m.end() + n]
