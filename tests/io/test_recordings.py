@@ -377,6 +377,23 @@ def test_topic_choice_lists_the_candidates_and_svo_version_1_is_refused_with_a_h
         open_recordings([tmp_path / "a.svo"])
 
 
+@pytest.mark.parametrize("name", ["rec.mkv", "rec.svo2", "rec.SVO"])
+def test_a_folder_under_a_one_file_recordings_name_is_one_line_saying_so(tmp_path, name):
+    """A folder named like an Azure Kinect .mkv or a ZED .svo2 / .svo: one line saying a folder came where the
+    recording file was expected (before: 'got IsADirectoryError (hint: the file may be truncated)' for a .mkv, the
+    same after the calibration check for an .svo2, 'an .svo that is no .svo2' for an .svo)."""
+    from gtforge.io.ros_recordings import Topics, open_recordings
+
+    (tmp_path / name).mkdir()
+    conf = tmp_path / "SN1.conf"
+    conf.write_text("[STEREO]\n")
+    with pytest.raises(InputError) as e:
+        open_recordings([tmp_path / name], Topics(zed_calibration=conf))
+    assert e.value.file == str(tmp_path / name) and e.value.actual == "a folder"
+    assert "one file" in e.value.expected and "ZED SDK export folder" in e.value.hint
+    assert list((tmp_path / name).iterdir()) == []
+
+
 def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
     """realsense-ros without align_depth: depth/image_rect_raw on the depth camera, the pose from /tf_static's tree."""
     from rosbags.rosbag2 import Writer

@@ -240,6 +240,10 @@ _MAGIC = ((b"\x1a\x45\xdf\xa3", "a Matroska file (.mkv)", (".mkv",)),
           (b"MM\x00*", "a TIFF image", ()), (b"PK\x03\x04", "a ZIP archive", ()), (b"\x1f\x8b", "a gzip archive", ()))
 
 _RECORDING_KINDS = {what for _, what, suffixes in _MAGIC if suffixes}
+# recordings that are one file, never a folder (a folder under such a name was opened as the file: "got
+# IsADirectoryError (hint: the file may be truncated)")
+_ONE_FILE_SUFFIXES = {".mkv": "an Azure Kinect recording", ".svo2": "a ZED SVO2 recording",
+                      ".svo": "a ZED SVO recording"}
 
 
 def _looks_like(p: Path) -> str | None:
@@ -285,6 +289,11 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
         if not p.exists():
             raise InputError(p, None, "a recording (file or folder)", "no such file or folder",
                              "check the path (docs/capture-layout.md 'From recordings' lists what import reads)")
+        if p.is_dir() and p.suffix.lower() in _ONE_FILE_SUFFIXES and not is_zed_export(p):
+            raise InputError(p, None, f"the recording file its suffix {p.suffix} names "
+                             f"({_ONE_FILE_SUFFIXES[p.suffix.lower()]}, one file)", "a folder",
+                             "give the recording file itself; a folder is read as a rosbag2 folder (metadata.yaml "
+                             "beside its .db3 / .mcap) or a ZED SDK export folder (left%06d.png / right%06d.png)")
         looks_like = _looks_like(p)
         if looks_like is not None:
             raise InputError(p, None, f"the recording its suffix {p.suffix} names",
