@@ -394,6 +394,22 @@ def test_a_folder_under_a_one_file_recordings_name_is_one_line_saying_so(tmp_pat
     assert list((tmp_path / name).iterdir()) == []
 
 
+def test_one_recording_named_twice_is_one_line_naming_it(tmp_path):
+    """The same recording given twice (as written, or through a link): one line naming it, before either is read
+    (it said 'recordings: expected one depth recording and at most one stereo recording, got 2 depth, 0 stereo (hint:
+    import them one pair at a time)', naming no file, after reading both)."""
+    from gtforge.io.ros_recordings import open_recordings
+
+    rec = tmp_path / "rec.mkv"
+    rec.write_bytes(b"\x1a\x45\xdf\xa3 not read")  # never opened: the refusal comes first
+    (tmp_path / "link.mkv").symlink_to(rec)
+    for second, also in ((rec, ""), (tmp_path / "link.mkv", f" (also as {rec})")):
+        with pytest.raises(InputError) as e:
+            open_recordings([rec, second])
+        assert e.value.file == str(second) and e.value.actual == "the same recording twice" + also
+        assert "each once" in e.value.hint
+
+
 def test_depth_not_aligned_to_colour_gets_its_pose_from_tf_static(tmp_path):
     """realsense-ros without align_depth: depth/image_rect_raw on the depth camera, the pose from /tf_static's tree."""
     from rosbags.rosbag2 import Writer

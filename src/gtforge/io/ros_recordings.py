@@ -277,6 +277,17 @@ class Opened:
             b.close()
 
 
+def _refuse_one_recording_twice(paths: list[Path]) -> None:
+    """One recording named twice (the same path, or another path to it: a link, ``./``): one line naming it, before
+    either is read (it said "expected one depth recording ..., got 2 depth", naming no file)."""
+    for i, p in enumerate(paths):
+        twice = next((q for q in paths[:i] if p.exists() and q.exists() and p.samefile(q)), None)
+        if twice is not None:
+            raise InputError(p, None, "each recording once (the depth camera's, and the stereo camera's)",
+                             "the same recording twice" + ("" if str(twice) == str(p) else f" (also as {twice})"),
+                             "name the depth camera's recording and the stereo camera's, each once")
+
+
 def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     """The depth camera's and the stereo camera's recordings among ``paths`` (one or two files/folders)."""
     topics = topics or Topics()
@@ -284,6 +295,7 @@ def open_recordings(paths: list[Path], topics: Topics | None = None) -> Opened:
     halves: list[InputError] = []  # bags with one camera of a stereo pair (``_ros_stereo``)
     calibration_used = False  # --zed-calibration applies to a ZED export folder or an .svo2 only
     used: set[str] = set()  # the options some recording here reads (the others are refused, not ignored)
+    _refuse_one_recording_twice([Path(p) for p in paths])
     for p in paths:
         p = Path(p)
         if not p.exists():
