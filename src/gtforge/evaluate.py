@@ -87,12 +87,25 @@ def _withdraw_tables(out: Path) -> None:
 
 
 def _manifest_fields(ds: Path) -> dict:
-    """manifest.json as a mapping, for the checks that read a field of it ({} where it cannot be read as one)."""
+    """manifest.json as a mapping, for the checks that read a field of it (of any schema). A file that is no JSON
+    mapping (cut short, overwritten) is refused: without it the session the dataset came from, its flagged and
+    quarantined scenes and its content hash are unknown (it was read as {}: the scenes scored, exit 0, nothing said,
+    no output check against the session, no hash for compare)."""
+    p = ds / "manifest.json"
     try:
-        man = json.loads((ds / "manifest.json").read_text())
-    except (OSError, ValueError):
-        return {}
-    return man if isinstance(man, dict) else {}
+        man = json.loads(p.read_bytes().decode("utf-8-sig"))
+        got = None if isinstance(man, dict) else f"a JSON {type(man).__name__}, not a mapping"
+    except UnicodeDecodeError as exc:
+        got = f"binary data (byte 0x{exc.object[exc.start]:02x} at offset {exc.start} is not UTF-8 text)"
+    except ValueError as exc:
+        got = f"a parse error ({str(exc).splitlines()[0]})"
+    except OSError as exc:
+        got = exc.strerror or type(exc).__name__
+    if got is not None:
+        raise InputError(p, None, "the dataset's manifest (a JSON mapping, as build-dataset writes it)", got,
+                         "run gtforge build-dataset with the dataset's session and calibration into this folder "
+                         "again: it keeps the scenes built and writes manifest.json anew")
+    return man
 
 
 def _suspect_scenes(man: dict, ids: list[str]) -> dict[str, str]:

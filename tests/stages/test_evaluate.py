@@ -142,6 +142,50 @@ def test_evaluate_options_that_do_not_apply_are_said(dataset, tmp_path):
         r.output
 
 
+def tiny_dataset(root: Path, built: list[str], listed: list[str]) -> Path:
+    """A dataset laid out by hand, fast: scenes ``built`` (16x8 px, ground truth 4.0 px, all background) and a
+    manifest.json that lists ``listed``."""
+    from gtforge.io.formats import write_image
+
+    for sid in built:
+        s = root / "scenes" / sid
+        s.mkdir(parents=True)
+        rgb = np.full((8, 16, 3), 100, np.uint8)
+        write_image(s / "im0.png", rgb)
+        write_image(s / "im1.png", rgb)
+        write_pfm(s / "disp0GT.pfm", np.full((8, 16), 4.0, np.float32))
+        write_image(s / "region.png", np.ones((8, 16), np.uint8))
+        write_image(s / "mask0nocc.png", np.full((8, 16), 255, np.uint8))
+        (s / "calib.txt").write_text("cam0=[100 0 8; 0 100 4; 0 0 1]\ncam1=[100 0 8; 0 100 4; 0 0 1]\ndoffs=0\n"
+                                     "baseline=63\nwidth=16\nheight=8\nndisp=16\n")
+    (root / "manifest.json").write_text(json.dumps({"scenes": {sid: {} for sid in listed}}))
+    return root
+
+
+def constant_predictions(folder: Path, ids: list[str], value: float) -> PredictionFolder:
+    folder.mkdir()
+    for sid in ids:
+        write_pfm(folder / f"{sid}.pfm", np.full((8, 16), value, np.float32))
+    return PredictionFolder(folder)
+
+
+@pytest.mark.parametrize("text, got", [("{", "a parse error (Expecting property name enclosed in double quotes"),
+                                       ("[1, 2]", "a JSON list, not a mapping"),
+                                       ("", "a parse error (Expecting value")])
+def test_a_manifest_that_is_no_json_mapping_is_refused_before_any_output(tmp_path, text, got):
+    """A dataset whose manifest.json is cut short or overwritten: one line naming it, nothing written (it was read as
+    {} and the scenes scored, exit 0, nothing said: no check of the output against the session the dataset came
+    from, flagged and quarantined scenes not named, no content hash for compare)."""
+    ds = tiny_dataset(tmp_path / "ds", ["000"], ["000"])
+    pred = constant_predictions(tmp_path / "pred", ["000"], 4.5)
+    assert evaluate(ds, pred, None, fruit_size=False).pooled["all"].epe_px == pytest.approx(0.5)  # the JSON one
+    (ds / "manifest.json").write_text(text)
+    with pytest.raises(InputError) as e:
+        evaluate(ds, pred, tmp_path / "eval", fruit_size=False)
+    assert e.value.file == str(ds / "manifest.json") and e.value.actual.startswith(got)
+    assert "build-dataset" in e.value.hint and not (tmp_path / "eval").exists()
+
+
 def test_a_cut_off_build_and_a_low_resolution_output_are_said(dataset, tmp_path, caplog):
     """Scene folders a stopped build landed without listing them in manifest.json are scored with a warning (they
     are neither verified nor split); a dataset file missing names the build as the fix (it said 'check the capture
