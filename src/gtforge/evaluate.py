@@ -234,8 +234,12 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
                     "Either a build stopped before it finished (run build-dataset again to finish it) or the session "
                     "no longer holds their captures (delete them from the dataset, or build into a new folder)",
                     len(unlisted), len(ids), ds / "manifest.json", first_of(unlisted))
+    # a scene the manifest lists whose folder is gone is one not scored (exit 1, the rebuild named), as in a split
+    # that lists it; an evaluation of every scene left it out, exit 0, nothing said
+    gone = sorted({str(s) for s in listed} - set(ids)) if not split and isinstance(listed, dict) else []
+    ids = sorted(ids + gone)
     if max_gt_sigma_px is not None:
-        _check_sigma_maps(ds, ids)
+        _check_sigma_maps(ds, [s for s in ids if s not in gone])
     out = None
     if out_dir:
         # a folder of its own: new, empty, or an earlier evaluation's (rewritten: maps of scenes not scored this time
@@ -261,18 +265,24 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     pooled = {r: Accumulator() for r in REGIONS}
     per_scene, missing, times = [], {}, []
     from_files = hasattr(predictor, "find")  # a folder of predictions, not a network
-    absent = [sid for sid in ids if predictor.find(sid) is None] if from_files else []
+    for sid in gone:
+        missing[sid] = str(MissingFileError(ds / "scenes" / sid, None, "the scene's folder (manifest.json lists it)",
+                                            "no such folder", "run gtforge build-dataset into this folder again: it "
+                                            "builds the scenes a dataset lacks"))
+    absent = [sid for sid in ids if sid not in missing and predictor.find(sid) is None] if from_files else []
     if absent:
         where = getattr(predictor, "folder", "")
-        if len(absent) == len(ids):
+        if len(absent) == len(ids) - len(gone):
             raise InputError(where, None, f"a prediction per scene named {PREDICTION_NAMES}",
-                             f"none for the {len(ids)} scene(s) ({first_of(ids, 3)})",
+                             f"none for the {len(absent)} scene(s) ({first_of(absent, 3)})",
                              "name each file after its scene id (docs/metrics.md, 'Predictions')")
         log.warning("no prediction for %d of %d scene(s) in %s (%s; expected %s): scoring the other %d, "
                     "and the command will exit with code 1", len(absent), len(ids), where, first_of(absent),
-                    PREDICTION_NAMES, len(ids) - len(absent))
+                    PREDICTION_NAMES, len(ids) - len(gone) - len(absent))
         for sid in absent:
             missing[sid] = f"no prediction file ({PREDICTION_NAMES.replace('<id>', sid)})"
+    for sid in gone:
+        log.error("scene %s: %s", sid, missing[sid])
     warmed = False
     fruit_records, fruit_ms = [], []
     written: list[Path] = []  # the error maps this run wrote

@@ -186,6 +186,30 @@ def test_a_manifest_that_is_no_json_mapping_is_refused_before_any_output(tmp_pat
     assert "build-dataset" in e.value.hint and not (tmp_path / "eval").exists()
 
 
+def test_a_scene_the_manifest_lists_whose_folder_is_gone_is_not_scored_and_named(tmp_path, caplog):
+    """Evaluating every scene of a dataset one of whose scene folders was deleted: that scene is listed as not scored
+    (exit 1), the hint naming build-dataset, as a split that lists it already did; it was left out silently, exit 0,
+    the results pooled over the others as if they were the dataset."""
+    import logging
+
+    ds = tiny_dataset(tmp_path / "ds", ["000", "002"], ["000", "001", "002"])
+    pred = constant_predictions(tmp_path / "pred", ["000", "001", "002"], 4.5)
+    with caplog.at_level(logging.ERROR, logger="gtforge"):
+        rep = evaluate(ds, pred, None, fruit_size=False)
+    assert rep.scenes == ["000", "002"] and list(rep.missing) == ["001"]
+    assert rep.missing["001"].startswith(f"{ds / 'scenes' / '001'}: expected the scene's folder (manifest.json lists "
+                                         "it), got no such folder") and "build-dataset" in rep.missing["001"]
+    assert [r.getMessage() for r in caplog.records] == [f"scene 001: {rep.missing['001']}"]
+    assert rep.pooled["all"].epe_px == pytest.approx(0.5) and rep.pooled["all"].n_gt == 2 * 8 * 16
+    r = CliRunner().invoke(app, ["evaluate", str(ds), "--predictions", str(tmp_path / "pred"), "-o",
+                                 str(tmp_path / "eval")])
+    assert r.exit_code == 1, r.output
+    for sid in ("000", "002"):  # no prediction for the others: said as before, the gone scene on its own
+        (tmp_path / "pred" / f"{sid}.pfm").unlink()
+    with pytest.raises(InputError, match=r"got none for the 2 scene\(s\) \(000, 002\)"):
+        evaluate(ds, pred, None, fruit_size=False)
+
+
 def test_a_cut_off_build_and_a_low_resolution_output_are_said(dataset, tmp_path, caplog):
     """Scene folders a stopped build landed without listing them in manifest.json are scored with a warning (they
     are neither verified nor split); a dataset file missing names the build as the fix (it said 'check the capture
