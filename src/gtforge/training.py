@@ -11,8 +11,6 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-import tifffile
-
 from gtforge.errors import MissingFileError
 from gtforge.io.formats import read_image, read_kitti_disparity, read_pfm
 
@@ -51,6 +49,14 @@ class StereoDataset:
     def __getitem__(self, i: int) -> dict:
         base = self.root / "kitti" if self.kitti else self.root
         l, r, d = (base / p for p in self.items[i])
+        try:
+            return self._read(l, r, d)
+        except MissingFileError as exc:  # a dataset's file, not a capture's (read_image's hint named those)
+            raise MissingFileError(exc.file, exc.field, exc.expected, exc.actual, "the scene is incomplete: run "
+                                   "gtforge build-dataset into the dataset again (it rebuilds a scene whose files "
+                                   "are missing)") from None
+
+    def _read(self, l: Path, r: Path, d: Path) -> dict:
         if self.kitti:  # training/disp_occ_0/<id>_10.png: the scene's weight and sigma are in scenes/<id>/
             disp = read_kitti_disparity(d)
             scene = self.root / "scenes" / d.stem.removesuffix("_10")
@@ -60,7 +66,8 @@ class StereoDataset:
         if not (scene / "weight.tiff").is_file():
             raise MissingFileError(scene / "weight.tiff", None, "the scene's SGRA weight map",
                                    hint="rebuild the scene: gtforge build-dataset writes it")
-        w = tifffile.imread(scene / "weight.tiff").astype(np.float32)
+        # read_image: a damaged file is an InputError naming it (tifffile's TiffFileError named none)
+        w = read_image(scene / "weight.tiff").astype(np.float32)
         sigma = None
         if (scene / "disp0GT_sigma.pfm").is_file():
             sigma = read_pfm(scene / "disp0GT_sigma.pfm")

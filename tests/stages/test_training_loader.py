@@ -63,3 +63,22 @@ def test_an_empty_split_and_a_folder_that_is_no_dataset(tmp_path):
     (root / "scenes" / "001" / "weight.tiff").unlink()
     with pytest.raises(InputError, match=r"001/weight.tiff: expected the scene's SGRA weight map, got no such file"):
         StereoDataset(root, "kitti_train")[0]
+
+
+def test_a_damaged_or_missing_dataset_file_is_one_line_naming_it_with_the_builds_hint(tmp_path):
+    """A weight.tiff cut to nothing raised tifffile's 'TiffFileError: not a TIFF file: header=b''' (no file named, no
+    InputError); a KITTI image missing said 'check the capture folder / session.yaml' (a capture's hint, for a file
+    build-dataset writes). The weight read as before: float32, the values written."""
+    root = _dataset(tmp_path / "ds")
+    w = StereoDataset(root, "train")[0]["weight"]
+    assert w.dtype == np.float32 and w[0, 0] == 0.0 and np.all(w.ravel()[1:] == np.float32(1.4))
+    (root / "scenes" / "001" / "weight.tiff").write_bytes(b"")
+    with pytest.raises(InputError) as e:
+        StereoDataset(root, "train")[0]
+    assert e.value.file == str(root / "scenes" / "001" / "weight.tiff") and e.value.expected == "a readable image"
+    write_tiff_float(root / "scenes" / "001" / "weight.tiff", w)
+    (root / "kitti" / "training" / "image_3" / "001_10.png").unlink()
+    with pytest.raises(InputError) as e:
+        StereoDataset(root, "kitti_train")[0]
+    assert e.value.file == str(root / "kitti" / "training" / "image_3" / "001_10.png")
+    assert "build-dataset" in e.value.hint and "capture folder" not in e.value.hint
