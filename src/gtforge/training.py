@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from gtforge.errors import MissingFileError
+from gtforge.errors import InputError, MissingFileError
 from gtforge.io.formats import read_image, read_kitti_disparity, read_pfm
 
 
@@ -34,7 +34,13 @@ class StereoDataset:
                 raise MissingFileError(lst, None, f"a '{split}' list", hint="the dataset folder build-dataset -o "
                                        "wrote, and a split it lists: train, val, test or kitti_train, kitti_val, "
                                        "kitti_test")
-            self.items = [l.split() for l in lst.read_text().splitlines() if l.strip()]
+            lines = [(k, l.split()) for k, l in enumerate(lst.read_text().splitlines()) if l.strip()]
+            self.items = [it for _, it in lines]
+            bad = next(((k, it) for k, it in lines if len(it) != 3), None)
+            if bad is not None:  # (a bare ValueError, 'not enough values to unpack', when the sample was read)
+                raise InputError(lst, f"line {bad[0] + 1}", "three paths: left image, right image, disparity",
+                                 f"{len(bad[1])} ({' '.join(bad[1])[:80]!r})", "build-dataset writes the lists so "
+                                 "(docs/dataset-format.md); a list of your own needs the disparity's path too")
         else:
             scenes = self.root / "scenes"
             if not scenes.is_dir():

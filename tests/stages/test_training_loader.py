@@ -82,3 +82,17 @@ def test_a_damaged_or_missing_dataset_file_is_one_line_naming_it_with_the_builds
         StereoDataset(root, "kitti_train")[0]
     assert e.value.file == str(root / "kitti" / "training" / "image_3" / "001_10.png")
     assert "build-dataset" in e.value.hint and "capture folder" not in e.value.hint
+
+
+def test_a_list_line_without_three_paths_is_one_line_naming_the_list_and_line(tmp_path):
+    """A split list of one's own whose line lacks the disparity's path: refused when the loader is made, naming the
+    list and the line (a bare 'ValueError: not enough values to unpack' came when that sample was read)."""
+    root = _dataset(tmp_path / "ds")
+    (root / "filenames" / "mine.txt").write_text("scenes/000/im0.png scenes/000/im1.png scenes/000/disp0GT.pfm\n\n"
+                                                 "scenes/001/im0.png scenes/001/im1.png\n")
+    with pytest.raises(InputError) as e:
+        StereoDataset(root, "mine")
+    assert e.value.file == str(root / "filenames" / "mine.txt") and e.value.field == "line 3"
+    assert e.value.actual == "2 ('scenes/001/im0.png scenes/001/im1.png')"
+    (root / "filenames" / "mine.txt").write_text("scenes/001/im0.png scenes/001/im1.png scenes/001/disp0GT.pfm\n")
+    assert StereoDataset(root, "mine")[0]["scene"] == "001"
