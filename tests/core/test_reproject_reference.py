@@ -156,7 +156,8 @@ def test_two_halves_path_on_one_thread(monkeypatch):
     rig, depth = small_scene()
     check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="halves synthetic")
     left = rig.zed.left
-    flipped = left.model_copy(update={"cx_px": left.width_px - 1 - left.cx_px, "cy_px": left.height_px - 1 - left.cy_px})
+    flipped = left.model_copy(update={"cx_px": left.width_px - 1 - left.cx_px,
+                                      "cy_px": left.height_px - 1 - left.cy_px})
     check_both_modes(depth, rig.mech, np.diag([-1.0, -1.0, 1.0, 1.0]) @ rig.T_zed_from_mech, flipped,
                      what="halves upside down")
     top_only = depth.copy()

@@ -40,10 +40,11 @@ def test_pfm_truncated(tmp_path):
         read_pfm(p)
 
 
-@pytest.mark.parametrize("scale", [b".", b"-e", b"--1", b"1e"])
+@pytest.mark.parametrize("scale", [b".", b"-e", b"--1", b"1e", b"0.0", b"-0", b"1e999"])
 def test_pfm_scale_that_is_no_number(tmp_path, scale):
     """A scale the header's pattern lets through but that is no number: one line naming the header, not a ValueError
-    (a prediction 000.pfm with the scale '.' stopped gtforge evaluate with a traceback)."""
+    (a prediction 000.pfm with the scale '.' stopped gtforge evaluate with a traceback); a zero or infinite scale,
+    whose sign gives no byte order, likewise (0.0 was read as big-endian: little-endian data became nonsense)."""
     p = tmp_path / "d.pfm"
     p.write_bytes(b"Pf\n3 2\n" + scale + b"\n" + np.ones((2, 3), "<f4").tobytes())
     with pytest.raises(InputError) as e:

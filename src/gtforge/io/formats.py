@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import io
+import math
 import re
 import struct
 import sys
@@ -123,6 +124,10 @@ def read_pfm(path: str | Path) -> np.ndarray:
         raise InputError(path, "header", "a PFM scale (a number: < 0 little-endian, > 0 big-endian)",
                          repr(m.group(4).decode())[:40], "write the header as 'Pf', 'W H', '-1.0' (one a line), "
                          "as gtforge.io.formats.write_pfm does") from None
+    if scale == 0.0 or not math.isfinite(scale):  # its sign is the byte order: 0 gives none (was read as big-endian)
+        raise InputError(path, "header", "a non-zero PFM scale (< 0 little-endian, > 0 big-endian)",
+                         repr(m.group(4).decode())[:40], "write the header as 'Pf', 'W H', '-1.0' (one a line), "
+                         "as gtforge.io.formats.write_pfm does")
     ch = 3 if kind == b"PF" else 1
     n = w * h * ch * 4
     body = data[m.end():m.end() + n]

@@ -451,7 +451,7 @@ def _mesh_halves(out, sout, aux, saux, want_span, window, depth, rx, ry, R, t, f
 
 @numba.njit(parallel=True, **_JIT)
 def _merge_window(out, sout, aux, saux, want_span, lo, hi):
-    """Rows ``lo..hi`` of ``aux`` (``saux``) merged into ``out`` (``sout``) by a per-pixel minimum, ``out``'s on a tie."""
+    """Rows ``lo..hi`` of ``aux`` (``saux``) merged into ``out`` (``sout``): a per-pixel minimum, ``out``'s on a tie."""
     W = out.shape[1]
     for y in numba.prange(lo, hi):
         for u in range(W):
