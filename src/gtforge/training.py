@@ -101,7 +101,10 @@ def sigma_confidence(sigma_px: np.ndarray, sigma_ref_px: float = 0.1) -> np.ndar
 
 
 def weighted_smooth_l1(pred: np.ndarray, gt: np.ndarray, weight: np.ndarray, valid: np.ndarray | None = None) -> float:
-    m = np.isfinite(gt) & np.isfinite(pred) & (weight > 0)
+    """Smooth-L1 of ``pred - gt`` averaged with ``weight`` over the pixels with finite ground truth and a positive
+    weight (and ``valid``). A non-finite prediction on such a pixel makes it NaN (inf), as ``sgra_loss_torch`` does:
+    a diverged network must not look better by its NaN pixels being left out."""
+    m = np.isfinite(gt) & (weight > 0)
     if valid is not None:
         m &= valid
     if not m.any():

@@ -59,6 +59,15 @@ def test_sgra_loss_by_hand():
     l_res = (1.4 * 0.0 + 1.0 * 0.125 + 0.8 * 2.5) / 3.2
     assert weighted_smooth_l1(init, gt, w) == pytest.approx(l_init)
     assert sgra_loss(init, resid, gt, w, gamma1=0.3, gamma2=1.0) == pytest.approx(0.3 * l_init + l_res)
+    # a non-finite prediction where the label counts: NaN (inf), as the torch loss gives, not left out (the numpy
+    # reference skipped it and read 0.3 * l_init + 0.125 / 2.4 where torch read NaN); where the label is NaN: ignored
+    for bad, expect in ((np.nan, np.isnan), (np.inf, np.isposinf)):
+        r = resid.copy()
+        r[2] = bad
+        assert expect(sgra_loss(init, r, gt, w, gamma1=0.3, gamma2=1.0))
+        r = resid.copy()
+        r[3] = bad
+        assert sgra_loss(init, r, gt, w, gamma1=0.3, gamma2=1.0) == pytest.approx(0.3 * l_init + l_res)
 
 
 def test_max_gt_sigma_by_hand():

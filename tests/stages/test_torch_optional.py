@@ -36,6 +36,10 @@ def test_torch_sgra_loss_matches_numpy():
     t = {k: torch.tensor(v) for k, v in dict(init=init, resid=resid, gt=gt, w=w).items()}
     got = sgra_loss_torch(t["init"], t["resid"], t["gt"], t["w"], 0.3, 1.0)
     assert float(got) == pytest.approx(ref, rel=1e-9)
+    w[1, 1] = 1.0
+    resid[1, 1] = np.nan  # a diverged pixel where the label counts: NaN in both
+    got = sgra_loss_torch(t["init"], torch.tensor(resid), t["gt"], torch.tensor(w), 0.3, 1.0)
+    assert np.isnan(float(got)) and np.isnan(sgra_loss(init, resid, gt, w, 0.3, 1.0))
 
 
 def test_torch_export_program(tmp_path):
