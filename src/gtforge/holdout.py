@@ -10,11 +10,10 @@ from gtforge.calibrate import calibrate
 from gtforge.core.targets.models import BoardModel
 from gtforge.errors import InputError
 from gtforge.io.captures import open_session
-from gtforge.io.outputs import refuse_gtforge_folder, require_output_folder
 from gtforge.records.calibration import CalibrateParams
 from gtforge.records.validation import ValidateParams, ValidationResult
 from gtforge.reports.validation import write_validation_report
-from gtforge.validate import require_report_folder, validate
+from gtforge.validate import check_report_folder, validate
 
 log = logging.getLogger("gtforge.validate")
 
@@ -29,10 +28,7 @@ def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path 
     params = params or ValidateParams()
     session = open_session(session_dir)
     if out_dir is not None:
-        session.refuse_output_over_inputs(out_dir)
-        require_output_folder(out_dir, "--output")
-        refuse_gtforge_folder(out_dir)
-        require_report_folder(out_dir)
+        check_report_folder(session, out_dir)
     dirs = session.select("board", captures)
     if len(dirs) <= MIN_CALIBRATION_POSES:  # nothing can be held out: say so, not "1 to -1 poses"
         raise InputError(session_dir, "holdout", f"more than {MIN_CALIBRATION_POSES} board captures to hold any out "

@@ -228,10 +228,7 @@ def validate(session_dir: str | Path, calibration: str | Path | None, out_dir: s
         _check_board(params.board)
     session = open_session(session_dir)
     if out_dir is not None:
-        session.refuse_output_over_inputs(out_dir)
-        require_output_folder(out_dir, "--output")
-        refuse_gtforge_folder(out_dir)
-        require_report_folder(out_dir)
+        check_report_folder(session, out_dir)
     dirs = session.select("board", captures)
     if calibration is None:
         raise InputError(None, "--calibration", "a calibration file (or --holdout K)", "none",
@@ -359,10 +356,7 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
     gfile = read_gauges_file(session.root)
     params = params if params is not None else (gfile.params or GaugeParams())
     if out_dir is not None:
-        session.refuse_output_over_inputs(out_dir)
-        require_output_folder(out_dir, "--output")
-        refuse_gtforge_folder(out_dir)
-        require_report_folder(out_dir)
+        check_report_folder(session, out_dir)
         g = (session.root / GAUGES_DIR).resolve()
         o = Path(out_dir).resolve()
         if o == g or g in o.parents:
@@ -396,6 +390,15 @@ def validate_gauges(session_dir: str | Path, calibration: str | Path, out_dir: s
 
 
 REPORT_FILES = {"validation.json": ValidationResult, "gauges.json": GaugesResult}  # each with its .html page
+
+
+def check_report_folder(session, out_dir: str | Path) -> None:
+    """Every check of validate's ``--output`` before any work (validate, its gauges alone, its hold-out): outside the
+    session's captures, a folder this user can write, no other gtforge stage's folder, and ``require_report_folder``."""
+    session.refuse_output_over_inputs(out_dir)
+    require_output_folder(out_dir, "--output")
+    refuse_gtforge_folder(out_dir)
+    require_report_folder(out_dir)
 
 
 def require_report_folder(out_dir: str | Path) -> None:

@@ -118,16 +118,15 @@ def read_pfm(path: str | Path) -> np.ndarray:
     if not m:
         raise InputError(path, "header", "'Pf W H scale' PFM header", repr(data[:20]), "is this a PFM file?")
     kind, w, h = m.group(1), int(m.group(2)), int(m.group(3))
+    got, hint = repr(m.group(4).decode())[:40], "write the header as 'Pf', 'W H', '-1.0' (one a line), as " \
+        "gtforge.io.formats.write_pfm does"
     try:  # the pattern lets through what is no number ('.', '-e', '--1'): a ValueError traceback before
         scale = float(m.group(4))
     except ValueError:
-        raise InputError(path, "header", "a PFM scale (a number: < 0 little-endian, > 0 big-endian)",
-                         repr(m.group(4).decode())[:40], "write the header as 'Pf', 'W H', '-1.0' (one a line), "
-                         "as gtforge.io.formats.write_pfm does") from None
+        raise InputError(path, "header", "a PFM scale (a number: < 0 little-endian, > 0 big-endian)", got,
+                         hint) from None
     if scale == 0.0 or not math.isfinite(scale):  # its sign is the byte order: 0 gives none (was read as big-endian)
-        raise InputError(path, "header", "a non-zero PFM scale (< 0 little-endian, > 0 big-endian)",
-                         repr(m.group(4).decode())[:40], "write the header as 'Pf', 'W H', '-1.0' (one a line), "
-                         "as gtforge.io.formats.write_pfm does")
+        raise InputError(path, "header", "a non-zero PFM scale (< 0 little-endian, > 0 big-endian)", got, hint)
     ch = 3 if kind == b"PF" else 1
     n = w * h * ch * 4
     body = data[m.end():m.end() + n]

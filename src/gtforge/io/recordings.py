@@ -142,6 +142,11 @@ def decode_jpeg(buf: bytes | np.ndarray, path, field: str) -> np.ndarray:
     return np.ascontiguousarray(img[..., 0]) if grey else img
 
 
+def as_rgb(img: np.ndarray) -> np.ndarray:
+    """A grey image as three equal channels (a colour stream's frame stays as it is)."""
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB) if img.ndim == 2 else img
+
+
 def is_jpeg(buf: bytes | np.ndarray) -> bool:
     return bytes(buf[:3]) == b"\xff\xd8\xff"
 
@@ -689,8 +694,7 @@ class KinectMkv:
 
 def _kinect_color(buf: bytes, tag: str, w: int, h: int, path) -> np.ndarray:
     if tag in ("MJPG", "mjpg", "") or buf[:2] == b"\xff\xd8":
-        img = decode_jpeg(buf, path, "COLOR")
-        return np.ascontiguousarray(np.dstack([img] * 3)) if img.ndim == 2 else img
+        return as_rgb(decode_jpeg(buf, path, "COLOR"))
     a = np.frombuffer(buf, np.uint8)
     if tag == "NV12":
         return cv2.cvtColor(a[: w * h * 3 // 2].reshape(h * 3 // 2, w), cv2.COLOR_YUV2RGB_NV12)

@@ -28,6 +28,7 @@ from gtforge.io.recordings import (
     RgbdRecording,
     StereoRecording,
     Stream,
+    as_rgb,
     camera_from_info,
     check_size,
     depth_mm,
@@ -68,8 +69,7 @@ def read_zed_export(folder: Path, fps: float | None, calibration: Path | None) -
                          "none", "pass --zed-calibration SN12345.conf")
 
     def rgb(path):  # (read_image: a truncated PNG refused, where cv2.imread returns the rows it could read)
-        img = read_image(path)
-        return np.ascontiguousarray(np.dstack([img] * 3)) if img.ndim == 2 else img
+        return as_rgb(read_image(path))
 
     def stream(side):
         return Stream(side, [Frame(int(round(i * 1e9 / fps)), (lambda p: lambda: rgb(p))(files[side][i]))
