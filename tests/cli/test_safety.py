@@ -1,6 +1,7 @@
 """A user's captures are sacred, outputs are normal files, Ctrl-C stops cleanly, wrong settings are caught.
 Each test reproduces a fault a new user met (issue 11) through the command line."""
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -91,6 +92,31 @@ def test_ctrl_c_stops_the_build_promptly(session_dir, true_calibration, tmp_path
     assert len(names) < 14
     r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", out, "--workers", "2", "--no-verify")
     assert r.returncode == 0 and "failed 0" in r.stdout  # the rerun resumes
+
+
+def test_a_build_started_with_ctrl_c_ignored_runs_to_its_end(session_dir, true_calibration, tmp_path):
+    """A background job of a shell script (``gtforge build-dataset ... &``) inherits SIGINT ignored, so that the
+    terminal's Ctrl-C stops the script, not the job. The command kept that until it set its own handler: such a build
+    then stopped with 130 at the script's Ctrl-C. It now runs to its end, pool and all, as a Python program does."""
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess)
+    for i in range(3, 6):
+        shutil.copytree(session_dir / "scenes" / f"{i % 3:03d}", sess / "scenes" / f"{i:03d}")
+    out = tmp_path / "ds"
+    command = " ".join(shlex.quote(str(a)) for a in [sys.executable, "-m", "gtforge.cli", "build-dataset", sess, "-c",
+                                                      true_calibration, "-o", out, "--workers", "2", "--no-verify"])
+    p = subprocess.Popen(["sh", "-c", f"trap '' INT; exec {command}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, start_new_session=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((out / "scenes").glob("*/meta.json")) and p.poll() is None:
+        time.sleep(0.05)
+    assert p.poll() is None, "the build ended before the Ctrl-C"
+    os.killpg(p.pid, signal.SIGINT)  # the whole group: the command, its fork server and its workers
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 0, (p.returncode, stderr[-2000:])
+    assert "built 6" in stdout and "interrupted" not in stderr
+    assert sorted(d.name for d in (out / "scenes").iterdir()) == [f"{i:03d}" for i in range(6)]
+    assert (out / "manifest.json").is_file()
 
 
 def test_a_closed_output_pipe_does_not_cut_the_build_short(session_dir, true_calibration, tmp_path):

@@ -161,8 +161,9 @@ CTRL_C_SCRIPT = textwrap.dedent('''
 
     if __name__ == "__main__":
         # Ctrl-C as a terminal gives it: a process started with SIGINT ignored keeps it ignored, and then run_tasks
-        # rightly does nothing on it (the test failed so in fresh clones' CI: a test before it in the same pytest
-        # worker had left SIGINT ignored, which this script inherited)
+        # rightly does nothing on it (the test failed so in fresh clones' CI when the suite itself was started in the
+        # background of a script, `make test &`, which starts it with SIGINT ignored; another test that set a handler
+        # in the same pytest worker first hid that, hence only some runs)
         sigint_at_start = repr(signal.getsignal(signal.SIGINT))
         signal.signal(signal.SIGINT, signal.default_int_handler)
         from gtforge.infra import scheduling

@@ -136,8 +136,11 @@ def main() -> None:
     for name, value in OPENBLAS_SPIN_ENV.items():  # before numpy is imported; a user's own setting stands
         os.environ.setdefault(name, value)
     # Ctrl-C raises Interrupted (not KeyboardInterrupt, which Click turns into "Aborted!" and exit 1):
-    # stages clean up, say what is complete, and the command exits with 130 like any interrupted program.
-    signal.signal(signal.SIGINT, _raise_interrupted)
+    # stages clean up, say what is complete, and the command exits with 130 like any interrupted program. A Ctrl-C
+    # the command inherited as ignored (started with `&` by a script, or under a launcher that ignores it) stays
+    # ignored, as Python itself keeps it: the terminal's Ctrl-C is then meant for the script, not this run.
+    if signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
+        signal.signal(signal.SIGINT, _raise_interrupted)
     streams = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = (s if s is None or isinstance(s, _ClosedPipeTolerant) else _ClosedPipeTolerant(s)
                               for s in streams)
