@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import os
 import pickle
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -113,6 +114,10 @@ def pytest_configure(config):
     from gtforge.infra.disk_cache import CACHE_ENV
 
     os.environ[CACHE_ENV] = str(config._tmp_path_factory.getbasetemp() / "disk-cache")
+    # The commands the tests start and then Ctrl-C must start with Ctrl-C in effect, as from a terminal; a suite started
+    # in the background of a script (`make test &`) has it ignored, which they would inherit and keep (gtforge.cli.main)
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 PREFETCH = "calibration"  # besides SPECS' fixtures: the shared session's calibration
