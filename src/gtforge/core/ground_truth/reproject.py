@@ -360,7 +360,11 @@ def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx,
     Wm = depth.shape[1]
     P = np.empty((2, 3, Wm))  # two row slots: u, v, 1/Z
     Q = np.empty((3, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), the hit's index, its depth
-    S = np.empty(Wm)  # per quad: span of the hit pixel's triangle
+    # per quad: span of the hit pixel's triangle. Zeroed, not np.empty: _raster_quads stores into it with an AVX-512
+    # masked store whose mask is empty without span_mm, and such a store to a page this process has not written (a
+    # fresh arena's, or one shared copy-on-write with the fork server) takes a microcode assist every time: 2.7x the
+    # time for the whole call (benchmarks/RESULTS.md, "The masked store")
+    S = np.zeros(Wm)
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
     _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r0, P[0, 0], P[0, 1], P[0, 2])
@@ -389,7 +393,7 @@ def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, 
     P = np.empty((2, 3, Wm))
     Ur = np.empty((2, Wm))  # the right view's u (its v and 1/Z are P's)
     Q = np.empty((3, Wm))
-    S = np.empty(Wm)
+    S = np.zeros(Wm)  # (zeroed: _mesh_rows's note)
     F = np.empty(Wm, np.uint8)
     cand = np.empty(Wm, np.int64)
     _project_row_stereo(depth, rx, ry, R, t, t_r[0], fx, fy, cx, cy, cx_r, 0, P[0, 0], P[0, 1], P[0, 2], Ur[0])
