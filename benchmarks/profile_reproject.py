@@ -63,11 +63,7 @@ def _mesh_stages(buf, sbuf, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol
     edge flags, 3 + the quads' vectorised pass, 4 + the z-buffer updates."""
     Hm, Wm = depth.shape
     H = buf.shape[0]
-    P = np.empty((2, 3, Wm))
-    Q = np.empty((3, Wm))
-    S = np.empty(Wm)
-    F = np.empty(Wm, np.uint8)
-    cand = np.empty(Wm, np.int64)
+    P, Q, S, F, cand = rp._mesh_work_rows(Wm)
     rp._project_row(depth, rx, ry, R, t, fx, fy, cx, cy, 0, P[0, 0], P[0, 1], P[0, 2])
     acc = 0.0
     for r in range(Hm - 1):

@@ -69,22 +69,29 @@ def test_middlebury_motorcycle_reprojection_is_no_worse(mode):
 
 
 @pytest.mark.slow
-def test_middlebury_motorcycle_thread_paths_agree(tmp_path):
-    """The windowed multi-thread path draws the same image as one thread on real depth. numba's thread count is fixed
-    when it starts, so the four-thread run (above MIN_PARALLEL_THREADS, on any number of cores) is a child process."""
+@pytest.mark.parametrize("threads", [2, 4])
+def test_middlebury_motorcycle_thread_paths_agree(tmp_path, threads):
+    """The multi-thread paths draw the same image and span_mm as one thread on real depth: two threads the mesh's two
+    halves (``HALVES_MIN_THREADS``), four the windowed path (above ``MIN_PARALLEL_THREADS``). numba's thread count is
+    fixed when it starts, so each run is a child process (on any number of cores)."""
     z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
     previous = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        one = project_depth_to_camera(z0, cam0, T_cam1_from_cam0, cam1)
+        one, one_span = project_depth_to_camera(z0, cam0, T_cam1_from_cam0, cam1, return_span=True)
     finally:
         numba.set_num_threads(previous)
-    out = tmp_path / "many.npy"
+    out = tmp_path / "many.npz"
     paths = [str(Path(__file__).parent), str(Path(__file__).parents[1])]  # this module's folder and conftest's
     child = (f"import sys, numba; sys.path[:0] = {paths!r}; "
              "import test_real_reprojection as t; from gtforge.core.ground_truth import reproject; import numpy as np; "
-             "assert numba.get_num_threads() >= reproject.MIN_PARALLEL_THREADS; "
+             f"assert numba.get_num_threads() == {threads}; "
+             "assert (reproject.HALVES_MIN_THREADS <= numba.get_num_threads() < reproject.MIN_PARALLEL_THREADS) == "
+             f"{threads == 2}; "
              "z0, c0, c1, T_cam1_from_cam0, _, _ = t.motorcycle(); "
-             f"np.save({str(out)!r}, reproject.project_depth_to_camera(z0, c0, T_cam1_from_cam0, c1))")
-    subprocess.run([sys.executable, "-c", child], check=True, env={**os.environ, "NUMBA_NUM_THREADS": "4"})
-    np.testing.assert_array_equal(one, np.load(out))
+             "d, s = reproject.project_depth_to_camera(z0, c0, T_cam1_from_cam0, c1, return_span=True); "
+             f"np.savez({str(out)!r}, depth=d, span=s)")
+    subprocess.run([sys.executable, "-c", child], check=True, env={**os.environ, "NUMBA_NUM_THREADS": str(threads)})
+    many = np.load(out)
+    np.testing.assert_array_equal(one, many["depth"])
+    np.testing.assert_array_equal(one_span, many["span"])

@@ -7,7 +7,7 @@ one-pass stereo path) and on real data (Middlebury 2014 Motorcycle, as tests/cor
 A speed change that moves any depth by one bit, or draws one pixel more or less, fails here (docs/pipeline.md,
 "Speed work never changes results"). One numba thread throughout: the windowed multi-thread path is forced onto it
 once here (its chunks, windows and merge), and tests/core/test_real_reprojection.py holds a real four-thread run to the
-one-thread image.
+one-thread image. The two-thread path (two halves of the grid) is forced onto one thread here as well.
 """
 from __future__ import annotations
 
@@ -147,6 +147,26 @@ def test_windowed_path_on_one_thread(monkeypatch):
     check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="windowed Middlebury Motorcycle")
 
 
+def test_two_halves_path_on_one_thread(monkeypatch):
+    """The two-thread path (the grid's rows in two halves, the second rasterised into the rows of a second buffer it
+    reaches and merged by a per-pixel minimum, the first half's on a tie) forced on the one thread here: the same images
+    as the reference, span_mm included; also upside down, where the second half's rows lie above the first's, and
+    where the grid's second half holds no valid depth (nothing to merge)."""
+    monkeypatch.setattr(reproject, "HALVES_MIN_THREADS", 1)
+    rig, depth = small_scene()
+    check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="halves synthetic")
+    left = rig.zed.left
+    flipped = left.model_copy(update={"cx_px": left.width_px - 1 - left.cx_px,
+                                      "cy_px": left.height_px - 1 - left.cy_px})
+    check_both_modes(depth, rig.mech, np.diag([-1.0, -1.0, 1.0, 1.0]) @ rig.T_zed_from_mech, flipped,
+                     what="halves upside down")
+    top_only = depth.copy()
+    top_only[depth.shape[0] // 2:] = np.nan
+    check_both_modes(top_only, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="halves, second half empty")
+    z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
+    check_both_modes(z0, cam0, T_cam1_from_cam0, cam1, what="halves Middlebury Motorcycle")
+
+
 @pytest.mark.parametrize("upside_down", [False, True])
 def test_kernels_ignore_what_the_output_held(upside_down):
     """The kernels set each output row to NaN just before the first point or triangle reaches it (no full-image fill
@@ -176,6 +196,15 @@ def test_kernels_ignore_what_the_output_held(upside_down):
     ref, ref_span = project_depth_reference(depth, mech, T_zed_from_mech, cam, MESH, return_span=True)
     assert_identical(mesh, ref, "mesh into zeros")
     assert_identical(span, ref_span, "mesh span_mm into zeros")
+    # the two halves: the first into zeros, the second into a buffer of zeros of which only the rows it reaches are read
+    halves, hspan = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)
+    aux, saux, window = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32), np.zeros(2, np.int64)
+    reproject._mesh_halves(halves, hspan, aux, saux, True, window, depth, rx, ry, R, t, *intrinsics, k1, k2,
+                           MESH.abs_tol_mm, (Hm - 1) // 2)
+    reproject._merge_window(halves, hspan, aux, saux, True, window[0], window[1])
+    assert 0 < window[1] - window[0] < H  # (a window, not the whole image)
+    assert_identical(halves, ref, "halves into zeros")
+    assert_identical(hspan, ref_span, "halves span_mm into zeros")
     if not upside_down:  # the one-pass stereo path (the right view differs from the left by a shift along x only)
         T_zedr_from_mech = zed.T_zedr_from_zed @ T_zed_from_mech
         left, right = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)

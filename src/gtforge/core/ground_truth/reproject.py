@@ -15,7 +15,10 @@ through the general triangle loop. With several numba threads the grid rows are 
 rasterised into its own window of target rows (the rows its points reach, from a first projection
 pass) and the windows are merged by a per-pixel minimum: no full-size buffer per thread, no locks, and
 chunks are handed out dynamically so a thread on a busy core takes fewer. The result does not depend
-on the number of threads (the minimum is order-free).
+on the number of threads (the minimum is order-free). With two threads (2 cores) a mesh is drawn in two halves of
+the grid's rows instead, one straight into the image, the other into a second buffer whose rows it reaches are merged
+into the image afterwards: no first pass for the rows each part reaches, which on 2 cores cost the windowed path more
+than the second thread gave.
 
 Over 500 lines on purpose: the kernels and their hand-inlined copies of ``_pixel`` stay side by side so that they
 change together (tests/core/test_reproject_reference.py pins every path to the float64 reference).
@@ -42,10 +45,13 @@ Mode = Literal["mesh", "splat"]
 # would keep the compiler from vectorising the row loops.
 _JIT = {"cache": True, "error_model": "numpy"}
 _EPS = 1e-9  # pixel-centre tolerance (px): a centre on a triangle's edge belongs to it
-# Below this many numba threads one thread rasterises straight into the image: the parallel path adds a second
-# projection pass, the windows and the merge, and each parallel region waits for the thread that shares a busy
-# core, so on 2 cores it lost more than it gained (benchmarks/RESULTS.md, "Figures from code comments").
+# Below this many numba threads the windowed path is not used: it adds a second projection pass, the windows and the
+# merge, and each parallel region waits for the thread that shares a busy core, so on 2 cores it lost more than it
+# gained (benchmarks/RESULTS.md, "Figures from code comments"); a splat is then drawn by one thread.
 MIN_PARALLEL_THREADS = 3
+# From this many threads (and below MIN_PARALLEL_THREADS) a mesh is drawn by two threads, each rasterising half the
+# grid's rows (``_mesh_halves``): on 2 cores faster than one thread (benchmarks/RESULTS.md, issue 39, round 18).
+HALVES_MIN_THREADS = 2
 
 
 @functools.lru_cache(maxsize=4)
@@ -351,6 +357,18 @@ def _init_rows(buf, sbuf, want_span, filled, end):
     return filled
 
 
+@numba.njit(inline="always", **_JIT)
+def _mesh_work_rows(Wm):
+    """The mesh kernels' work rows for a grid ``Wm`` points wide: ``P`` two row slots of u, v, 1/Z; per quad ``Q`` its
+    code (0 nothing, 1 one pixel hit, 2 general), the hit's index and depth, ``S`` the hit triangle's span, ``F`` its
+    triangles (``_quad_flags``); ``cand`` the compacted quads. ``S`` is zeroed, not np.empty: ``_raster_quads`` stores
+    into it with an AVX-512 masked store whose mask is empty without span_mm, and such a store to a page this process
+    or thread has not written (a thread's fresh malloc arena, a page shared copy-on-write with the fork server) takes a
+    microcode assist every time: 2.7x the time of the whole call (benchmarks/RESULTS.md, "The masked store")."""
+    return (np.empty((2, 3, Wm)), np.empty((3, Wm)), np.zeros(Wm), np.empty(Wm, np.uint8),
+            np.empty(Wm, np.int64))
+
+
 @numba.njit(**_JIT)
 def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol,
                r0, r1):
@@ -358,15 +376,7 @@ def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx,
     target rows ``y_lo..y_hi`` of ``buf`` (row ``y`` stored at ``y - y_off``; NaN = empty; its contents on entry are
     ignored: ``_init_rows``). ``sbuf`` (when ``want_span``): the winning triangle's vertex Z range (mm)."""
     Wm = depth.shape[1]
-    P = np.empty((2, 3, Wm))  # two row slots: u, v, 1/Z
-    Q = np.empty((3, Wm))  # per quad: code (0 nothing, 1 one pixel hit, 2 general), the hit's index, its depth
-    # per quad: span of the hit pixel's triangle. Zeroed, not np.empty: _raster_quads stores into it with an AVX-512
-    # masked store whose mask is empty without span_mm, and such a store to a page this process has not written (a
-    # fresh arena's, or one shared copy-on-write with the fork server) takes a microcode assist every time: 2.7x the
-    # time for the whole call (benchmarks/RESULTS.md, "The masked store")
-    S = np.zeros(Wm)
-    F = np.empty(Wm, np.uint8)
-    cand = np.empty(Wm, np.int64)
+    P, Q, S, F, cand = _mesh_work_rows(Wm)
     _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r0, P[0, 0], P[0, 1], P[0, 2])
     filled = 0
     top = _rows_reached(P[0, 1], P[0, 2])
@@ -384,18 +394,87 @@ def _mesh_rows(buf, sbuf, want_span, y_off, y_lo, y_hi, depth, rx, ry, R, t, fx,
 
 
 @numba.njit(**_JIT)
+def _rows_from(V, IZ):
+    """A start (inclusive) for the target rows that the triangles of a projected grid row can touch: before its valid
+    points' smallest v, with ``_rows_reached``'s margin (a huge value if none). Vectorised, as ``_rows_reached``."""
+    m = np.int64(4_000_000_000_000_000_000)
+    for c in range(V.shape[0]):
+        v = max(V[c] if IZ[c] > 0.0 else 4e18, -1e9)  # finite where valid; clipped so that the conversion is defined
+        m = min(m, np.int64(v))
+    return m - 2
+
+
+@numba.njit(**_JIT)
+def _mesh_rows_window(buf, sbuf, want_span, window, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol, r0, r1):
+    """``_mesh_rows`` of grid rows ``r0..r1`` into the image-sized ``buf`` (and ``sbuf``) with only the target rows its
+    triangles may reach initialised (to NaN), as they are reached; ``window`` gets those rows' range ``[lo, hi)``
+    (``lo == hi``: none). Its other rows are left as they were (``np.empty``'s pages never touched)."""
+    Wm = depth.shape[1]
+    H = buf.shape[0]
+    P, Q, S, F, cand = _mesh_work_rows(Wm)
+    _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r0, P[0, 0], P[0, 1], P[0, 2])
+    lo = hi = 0
+    top_lo, top_hi = _rows_from(P[0, 1], P[0, 2]), _rows_reached(P[0, 1], P[0, 2])
+    for r in range(r0, r1):
+        a_ = (r - r0) & 1
+        b_ = 1 - a_
+        _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r + 1, P[b_, 0], P[b_, 1], P[b_, 2])
+        bot_lo, bot_hi = _rows_from(P[b_, 1], P[b_, 2]), _rows_reached(P[b_, 1], P[b_, 2])
+        want_lo, want_hi = max(min(top_lo, bot_lo), 0), min(max(top_hi, bot_hi), H)
+        top_lo, top_hi = bot_lo, bot_hi
+        if want_lo < want_hi:
+            if lo == hi:
+                lo = hi = want_lo
+            if want_lo < lo:
+                _init_rows(buf, sbuf, want_span, want_lo, lo)
+                lo = want_lo
+            hi = _init_rows(buf, sbuf, want_span, hi, want_hi)
+        _quad_flags(depth[r], depth[r + 1], P[a_, 2], P[b_, 2], k1, k2, abs_tol, F)
+        _raster_quads(buf, sbuf, want_span, 0, lo, hi - 1, P[a_, 0], P[a_, 1], P[a_, 2], P[b_, 0], P[b_, 1],
+                      P[b_, 2], F, Q, S, cand)
+    window[0], window[1] = lo, hi
+
+
+@numba.njit(parallel=True, **_JIT)
+def _mesh_halves(out, sout, aux, saux, want_span, window, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol, mid):
+    """Two threads: the quads of grid rows ``0..mid`` straight into ``out`` (``sout``), those of ``mid..`` into the
+    rows of ``aux`` (``saux``) they reach, then merged into ``out`` by a per-pixel minimum, ``out``'s on a tie: the
+    quad a thread raster of the whole grid meets first. No first pass over the grid for the rows each half reaches
+    (the windowed path's ``_v_range``), and one extra buffer; the same image and span as ``_mesh_rows``."""
+    H = out.shape[0]
+    Hm = depth.shape[0]
+    for k in numba.prange(2):
+        if k == 0:
+            _mesh_rows(out, sout, want_span, 0, 0, H - 1, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol, 0,
+                       mid)
+        else:
+            _mesh_rows_window(aux, saux, want_span, window, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2, abs_tol,
+                              mid, Hm - 1)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _merge_window(out, sout, aux, saux, want_span, lo, hi):
+    """Rows ``lo..hi`` of ``aux`` (``saux``) merged into ``out`` (``sout``): a per-pixel minimum, ``out``'s on a tie."""
+    W = out.shape[1]
+    for y in numba.prange(lo, hi):
+        for u in range(W):
+            z = aux[y, u]
+            o = out[y, u]
+            take = (z < o) | (np.isnan(o) & ~np.isnan(z))
+            out[y, u] = z if take else o
+            if want_span:
+                sout[y, u] = saux[y, u] if take else sout[y, u]
+
+
+@numba.njit(**_JIT)
 def _mesh_rows_stereo(buf, sbuf, want_span, buf_r, depth, rx, ry, R, t, fx, fy, cx, cy, t_r, cx_r, k1, k2, abs_tol):
     """``_mesh_rows`` over the whole grid into two cameras that differ only by a translation along x and their cx
     (the rectified ZED's left, ``buf``/``sbuf``, and right, ``buf_r``, no span): their 1/Z is the same, so is which
     triangles are drawn (``_quad_flags``, computed once for both). The same images as two ``_mesh_rows`` calls."""
     Hm, Wm = depth.shape
     H = buf.shape[0]
-    P = np.empty((2, 3, Wm))
+    P, Q, S, F, cand = _mesh_work_rows(Wm)
     Ur = np.empty((2, Wm))  # the right view's u (its v and 1/Z are P's)
-    Q = np.empty((3, Wm))
-    S = np.zeros(Wm)  # (zeroed: _mesh_rows's note)
-    F = np.empty(Wm, np.uint8)
-    cand = np.empty(Wm, np.int64)
     _project_row_stereo(depth, rx, ry, R, t, t_r[0], fx, fy, cx, cy, cx_r, 0, P[0, 0], P[0, 1], P[0, 2], Ur[0])
     # the two views' v are the same (the same expression: t and t_r differ only in x), so are the rows reached
     filled = 0
@@ -484,8 +563,8 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
 
     ``return_span`` (mesh only): also return ``span_mm`` ``(H, W)`` float32: for the triangle that won the
     z-buffer at each pixel, max - min of its three vertices' Z in ``cam`` (mm); NaN where no triangle.
-    Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS``; the result is the
-    same for any number."""
+    Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS`` (a mesh: two from
+    ``HALVES_MIN_THREADS``); the result is the same for any number."""
     depth = np.asarray(depth_mm)
     if depth.shape != (depth_cam.height_px, depth_cam.width_px):
         raise ValueError(f"{depth.shape=} but expected {(depth_cam.height_px, depth_cam.width_px)} from the depth "
@@ -506,6 +585,16 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
     k1, k2 = _slant_bounds(depth_cam, params)
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
+    if mesh and HALVES_MIN_THREADS <= n_threads < MIN_PARALLEL_THREADS and Hm >= 8:
+        out = np.empty((H, W), np.float32)
+        span = np.empty((H, W) if return_span else (1, 1), np.float32)
+        aux = np.empty((H, W), np.float32)  # (only the rows the second half reaches are touched)
+        saux = np.empty((H, W) if return_span else (1, 1), np.float32)
+        window = np.zeros(2, np.int64)
+        _mesh_halves(out, span, aux, saux, return_span, window, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
+                     params.abs_tol_mm, (Hm - 1) // 2)
+        _merge_window(out, span, aux, saux, return_span, window[0], window[1])  # (after: it reads the halves' window)
+        return (out, span) if return_span else out
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
         out = np.empty((H, W), np.float32)  # the kernels set each row to NaN as they reach it
         span = np.empty((H, W) if return_span else (1, 1), np.float32)
