@@ -5,8 +5,8 @@ Baseline (what a careful user writes): ``cv2.remap`` of the depth through the le
 (nearest neighbour; maps computed once, outside the timing), then Open3D ``create_from_depth_image`` +
 ``project_to_depth_image``. Measured on the machine as it is ("quiet") and again with one core kept busy
 by another process (a Python spin loop), methods interleaved round-robin, medians of --repeat.
-gtforge runs with its defaults (numba's threads: with two, a mesh is drawn in two halves of the grid's rows,
-``reproject.HALVES_MIN_THREADS``, and a splat by one thread; the windowed path from reproject.MIN_PARALLEL_THREADS),
+gtforge runs with its defaults (numba's threads: with two, a mesh or a splat is drawn in two halves of the grid's rows,
+``reproject.HALVES_MIN_THREADS``; the windowed path from reproject.MIN_PARALLEL_THREADS),
 with one thread (what a build worker gets with --workers = cores) and with the windowed multi-thread path
 forced. OMP_WAIT_POLICY=PASSIVE (set here unless given) keeps the two OpenMP runtimes in this process
 (Open3D's, numba's) from spinning against each other. ``--write`` puts the table into benchmarks/RESULTS.md.

@@ -71,14 +71,15 @@ def test_middlebury_motorcycle_reprojection_is_no_worse(mode):
 @pytest.mark.slow
 @pytest.mark.parametrize("threads", [2, 4])
 def test_middlebury_motorcycle_thread_paths_agree(tmp_path, threads):
-    """The multi-thread paths draw the same image and span_mm as one thread on real depth: two threads the mesh's two
-    halves (``HALVES_MIN_THREADS``), four the windowed path (above ``MIN_PARALLEL_THREADS``). numba's thread count is
-    fixed when it starts, so each run is a child process (on any number of cores)."""
+    """The multi-thread paths draw the same image and span_mm as one thread on real depth, mesh and splat: two threads
+    their two halves (``HALVES_MIN_THREADS``), four the windowed path (above ``MIN_PARALLEL_THREADS``). numba's
+    thread count is fixed when it starts, so each run is a child process (on any number of cores)."""
     z0, cam0, cam1, T_cam1_from_cam0, _, _ = motorcycle()
     previous = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
         one, one_span = project_depth_to_camera(z0, cam0, T_cam1_from_cam0, cam1, return_span=True)
+        one_splat = project_depth_to_camera(z0, cam0, T_cam1_from_cam0, cam1, ReprojectParams(mode="splat"))
     finally:
         numba.set_num_threads(previous)
     out = tmp_path / "many.npz"
@@ -90,8 +91,11 @@ def test_middlebury_motorcycle_thread_paths_agree(tmp_path, threads):
              f"{threads == 2}; "
              "z0, c0, c1, T_cam1_from_cam0, _, _ = t.motorcycle(); "
              "d, s = reproject.project_depth_to_camera(z0, c0, T_cam1_from_cam0, c1, return_span=True); "
-             f"np.savez({str(out)!r}, depth=d, span=s)")
+             "p = reproject.project_depth_to_camera(z0, c0, T_cam1_from_cam0, c1, "
+             "reproject.ReprojectParams(mode='splat')); "
+             f"np.savez({str(out)!r}, depth=d, span=s, splat=p)")
     subprocess.run([sys.executable, "-c", child], check=True, env={**os.environ, "NUMBA_NUM_THREADS": str(threads)})
     many = np.load(out)
     np.testing.assert_array_equal(one, many["depth"])
     np.testing.assert_array_equal(one_span, many["span"])
+    np.testing.assert_array_equal(one_splat, many["splat"])

@@ -148,10 +148,10 @@ def test_windowed_path_on_one_thread(monkeypatch):
 
 
 def test_two_halves_path_on_one_thread(monkeypatch):
-    """The two-thread path (the grid's rows in two halves, the second rasterised into the rows of a second buffer it
-    reaches and merged by a per-pixel minimum, the first half's on a tie) forced on the one thread here: the same images
-    as the reference, span_mm included; also upside down, where the second half's rows lie above the first's, and
-    where the grid's second half holds no valid depth (nothing to merge)."""
+    """The two-thread path (the grid's rows in two halves, the second drawn into the rows of a second buffer it reaches
+    and merged by a per-pixel minimum, the first half's on a tie; mesh and splat) forced on the one thread here: the
+    same images as the reference, span_mm included; also upside down, where the second half's rows lie above the
+    first's, and where the grid's second half holds no valid depth (nothing to merge)."""
     monkeypatch.setattr(reproject, "HALVES_MIN_THREADS", 1)
     rig, depth = small_scene()
     check_both_modes(depth, rig.mech, rig.T_zed_from_mech, rig.zed.left, what="halves synthetic")
@@ -205,6 +205,12 @@ def test_kernels_ignore_what_the_output_held(upside_down):
     assert 0 < window[1] - window[0] < H  # (a window, not the whole image)
     assert_identical(halves, ref, "halves into zeros")
     assert_identical(hspan, ref_span, "halves span_mm into zeros")
+    splat_halves, aux, window = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32), np.zeros(2, np.int64)
+    reproject._splat_halves(splat_halves, aux, window, depth, rx, ry, R, t, *intrinsics, Hm // 2)
+    one = np.zeros((1, 1), np.float32)
+    reproject._merge_window(splat_halves, one, aux, one, False, window[0], window[1])
+    assert 0 < window[1] - window[0] < H
+    assert_identical(splat_halves, splat, "splat halves into zeros")
     if not upside_down:  # the one-pass stereo path (the right view differs from the left by a shift along x only)
         T_zedr_from_mech = zed.T_zedr_from_zed @ T_zed_from_mech
         left, right = np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)

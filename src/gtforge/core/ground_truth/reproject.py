@@ -15,10 +15,10 @@ through the general triangle loop. With several numba threads the grid rows are 
 rasterised into its own window of target rows (the rows its points reach, from a first projection
 pass) and the windows are merged by a per-pixel minimum: no full-size buffer per thread, no locks, and
 chunks are handed out dynamically so a thread on a busy core takes fewer. The result does not depend
-on the number of threads (the minimum is order-free). With two threads (2 cores) a mesh is drawn in two halves of
-the grid's rows instead, one straight into the image, the other into a second buffer whose rows it reaches are merged
-into the image afterwards: no first pass for the rows each part reaches, which on 2 cores cost the windowed path more
-than the second thread gave.
+on the number of threads (the minimum is order-free). With two threads (2 cores) a mesh or a splat is drawn in
+two halves of the grid's rows instead, one straight into the image, the other into a second buffer whose rows it
+reaches are merged into the image afterwards: no first pass for the rows each part reaches, which on 2 cores cost the
+windowed path more than the second thread gave.
 
 Over 500 lines on purpose: the kernels and their hand-inlined copies of ``_pixel`` stay side by side so that they
 change together (tests/core/test_reproject_reference.py pins every path to the float64 reference).
@@ -47,10 +47,11 @@ _JIT = {"cache": True, "error_model": "numpy"}
 _EPS = 1e-9  # pixel-centre tolerance (px): a centre on a triangle's edge belongs to it
 # Below this many numba threads the windowed path is not used: it adds a second projection pass, the windows and the
 # merge, and each parallel region waits for the thread that shares a busy core, so on 2 cores it lost more than it
-# gained (benchmarks/RESULTS.md, "Figures from code comments"); a splat is then drawn by one thread.
+# gained (benchmarks/RESULTS.md, "Figures from code comments").
 MIN_PARALLEL_THREADS = 3
-# From this many threads (and below MIN_PARALLEL_THREADS) a mesh is drawn by two threads, each rasterising half the
-# grid's rows (``_mesh_halves``): on 2 cores faster than one thread (benchmarks/RESULTS.md, issue 39, round 18).
+# From this many threads (and below MIN_PARALLEL_THREADS) a mesh or a splat is drawn by two threads, each drawing half
+# the grid's rows (``_mesh_halves``, ``_splat_halves``): on 2 cores faster than one thread (benchmarks/RESULTS.md,
+# issue 39, rounds 18 and 19).
 HALVES_MIN_THREADS = 2
 
 
@@ -180,6 +181,74 @@ def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
                 old = flat[i]
                 flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
     buf[filled:] = np.nan
+
+
+@numba.njit(**_JIT)
+def _splat_rows_window(buf, window, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
+    """``_splat_rows`` of grid rows ``r0..r1`` into the image-sized ``buf`` with only the target rows its points reach
+    initialised (to NaN), as they are reached, upwards or downwards; ``window`` gets those rows' range ``[lo, hi)``
+    (``lo == hi``: none). Its other rows are left as they were. The same expressions as ``_splat_rows``."""
+    H, W = buf.shape
+    Wm = depth.shape[1]
+    U = np.empty(Wm)
+    V = np.empty(Wm)
+    Z = np.empty(Wm)
+    Zf = np.empty(Wm, np.float32)
+    idx = np.empty(Wm, np.int64)
+    flat = buf.reshape(-1)
+    Wf, Hf = np.float64(W), np.float64(H)
+    lo = hi = 0
+    for r in range(r0, r1):
+        for c in range(Wm):
+            z = np.float64(depth[r, c])
+            x = rx[r, c] * z
+            y = ry[r, c] * z
+            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+            inv = 1.0 / Zc
+            U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
+            V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+            Z[c] = Zc if ok else -1.0
+        for c in range(Wm):
+            ui = np.floor(U[c] + 0.5)
+            vi = np.floor(V[c] + 0.5)
+            ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
+            idx[c] = np.int64(vi * Wf + ui) if ok else -1
+            Zf[c] = np.float32(Z[c])
+        first = np.int64(H) * W
+        last = np.int64(-1)
+        for c in range(Wm):
+            first = min(first, idx[c] if idx[c] >= 0 else np.int64(H) * W)
+            last = max(last, idx[c])
+        if last >= 0:
+            want_lo, want_hi = first // W, last // W + 1
+            if lo == hi:
+                lo = hi = want_lo
+            if want_lo < lo:
+                buf[want_lo:lo] = np.nan
+                lo = want_lo
+            if want_hi > hi:
+                buf[hi:want_hi] = np.nan
+                hi = want_hi
+        for c in range(Wm):
+            i = idx[c]
+            if i >= 0:
+                zf = Zf[c]
+                old = flat[i]
+                flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
+    window[0], window[1] = lo, hi
+
+
+@numba.njit(parallel=True, **_JIT)
+def _splat_halves(out, aux, window, depth, rx, ry, R, t, fx, fy, cx, cy, mid):
+    """Two threads: grid rows ``0..mid`` splatted straight into ``out``, rows ``mid..`` into the rows of ``aux`` they
+    reach (``window``), to be merged into ``out`` by ``_merge_window`` (``out``'s on a tie: the point a one-thread splat
+    meets first). The same image as ``_splat_rows`` over the whole grid."""
+    for k in numba.prange(2):
+        if k == 0:
+            _splat_rows(out, 0, depth, rx, ry, R, t, fx, fy, cx, cy, 0, mid)
+        else:
+            _splat_rows_window(aux, window, depth, rx, ry, R, t, fx, fy, cx, cy, mid, depth.shape[0])
 
 
 # ---- mesh ------------------------------------------------------------------------------------
@@ -457,13 +526,18 @@ def _merge_window(out, sout, aux, saux, want_span, lo, hi):
     """Rows ``lo..hi`` of ``aux`` (``saux``) merged into ``out`` (``sout``): a per-pixel minimum, ``out``'s on a tie."""
     W = out.shape[1]
     for y in numba.prange(lo, hi):
-        for u in range(W):
-            z = aux[y, u]
-            o = out[y, u]
-            take = (z < o) | (np.isnan(o) & ~np.isnan(z))
-            out[y, u] = z if take else o
-            if want_span:
+        if want_span:  # (outside the pixel loop: inside, it compiled to a masked store, slow on unwritten pages)
+            for u in range(W):
+                z = aux[y, u]
+                o = out[y, u]
+                take = (z < o) | (np.isnan(o) & ~np.isnan(z))
+                out[y, u] = z if take else o
                 sout[y, u] = saux[y, u] if take else sout[y, u]
+        else:
+            for u in range(W):
+                z = aux[y, u]
+                o = out[y, u]
+                out[y, u] = z if (z < o) | (np.isnan(o) & ~np.isnan(z)) else o
 
 
 @numba.njit(**_JIT)
@@ -563,8 +637,8 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
 
     ``return_span`` (mesh only): also return ``span_mm`` ``(H, W)`` float32: for the triangle that won the
     z-buffer at each pixel, max - min of its three vertices' Z in ``cam`` (mm); NaN where no triangle.
-    Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS`` (a mesh: two from
-    ``HALVES_MIN_THREADS``); the result is the same for any number."""
+    Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS`` (two from
+    ``HALVES_MIN_THREADS``: two halves); the result is the same for any number."""
     depth = np.asarray(depth_mm)
     if depth.shape != (depth_cam.height_px, depth_cam.width_px):
         raise ValueError(f"{depth.shape=} but expected {(depth_cam.height_px, depth_cam.width_px)} from the depth "
@@ -585,14 +659,17 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
     k1, k2 = _slant_bounds(depth_cam, params)
     Hm = depth.shape[0]
     n_threads = numba.get_num_threads()
-    if mesh and HALVES_MIN_THREADS <= n_threads < MIN_PARALLEL_THREADS and Hm >= 8:
+    if HALVES_MIN_THREADS <= n_threads < MIN_PARALLEL_THREADS and Hm >= 8:
         out = np.empty((H, W), np.float32)
         span = np.empty((H, W) if return_span else (1, 1), np.float32)
         aux = np.empty((H, W), np.float32)  # (only the rows the second half reaches are touched)
         saux = np.empty((H, W) if return_span else (1, 1), np.float32)
         window = np.zeros(2, np.int64)
-        _mesh_halves(out, span, aux, saux, return_span, window, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
-                     params.abs_tol_mm, (Hm - 1) // 2)
+        if mesh:
+            _mesh_halves(out, span, aux, saux, return_span, window, depth, rx, ry, R, t, fx, fy, cx, cy, k1, k2,
+                         params.abs_tol_mm, (Hm - 1) // 2)
+        else:
+            _splat_halves(out, aux, window, depth, rx, ry, R, t, fx, fy, cx, cy, Hm // 2)
         _merge_window(out, span, aux, saux, return_span, window[0], window[1])  # (after: it reads the halves' window)
         return (out, span) if return_span else out
     if n_threads < MIN_PARALLEL_THREADS or Hm < 8:
