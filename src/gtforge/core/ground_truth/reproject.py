@@ -132,54 +132,71 @@ def _v_range(depth, rx, ry, R, t, fy, cy, r0, r1):
 
 
 # ---- splat -----------------------------------------------------------------------------------
+@numba.njit(inline="always", **_JIT)
+def _splat_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, y_off, Wf, Hf, U, V, Z, Zf, idx):
+    """Grid row ``r``'s points: ``idx`` each one's index in a buffer of ``Hf`` rows of ``Wf`` pixels holding target
+    rows ``y_off ..`` (nearest pixel, rounded, never truncated; -1: none) and ``Zf`` its depth; ``U``, ``V``,
+    ``Z``: work rows.
+    Two passes, each one simple enough to vectorise well: the projection (as _project_row, Z <= 0 marks an invalid
+    point) and the rounding to a pixel index. One loop doing both took 9.2 CPU ms at full resolution against 4.5 + 1.2
+    for the two (benchmarks/RESULTS.md, "Where the kernels' time goes"); the values are the same float64 expressions,
+    so the same bits."""
+    for c in range(depth.shape[1]):
+        z = np.float64(depth[r, c])
+        x = rx[r, c] * z
+        y = ry[r, c] * z
+        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        inv = 1.0 / Zc
+        U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
+        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+        ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+        Z[c] = Zc if ok else -1.0
+    for c in range(depth.shape[1]):
+        ui = np.floor(U[c] + 0.5)
+        vi = np.floor(V[c] + 0.5) - y_off
+        ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
+        idx[c] = np.int64(vi * Wf + ui) if ok else -1
+        Zf[c] = np.float32(Z[c])
+
+
+@numba.njit(inline="always", **_JIT)
+def _splat_zbuffer(flat, idx, Zf):
+    """The scalar z-buffer update of one grid row's points (``_splat_row``) into the flattened buffer: nearest wins,
+    the earlier point on a tie."""
+    for c in range(idx.shape[0]):
+        i = idx[c]
+        if i >= 0:
+            zf = Zf[c]
+            old = flat[i]
+            flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
+
+
+@numba.njit(inline="always", **_JIT)
+def _splat_work_rows(Wm):
+    """The splat kernels' work rows for a grid ``Wm`` points wide: ``U``, ``V``, ``Z``, ``Zf``, ``idx``
+    (``_splat_row``); each written before it is read."""
+    return np.empty(Wm), np.empty(Wm), np.empty(Wm), np.empty(Wm, np.float32), np.empty(Wm, np.int64)
+
+
 @numba.njit(**_JIT)
 def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
     """Splat grid rows ``r0 <= r < r1`` into ``buf`` (holds target rows ``y_off ..``; its contents are ignored: every
     row is set to NaN = empty before the first point lands on it, which it then does while in cache):
     nearest pixel (rounded, never truncated), nearest depth wins."""
     Hb, W = buf.shape
-    Wm = depth.shape[1]
-    U = np.empty(Wm)
-    V = np.empty(Wm)
-    Z = np.empty(Wm)
-    Zf = np.empty(Wm, np.float32)
-    idx = np.empty(Wm, np.int64)
+    U, V, Z, Zf, idx = _splat_work_rows(depth.shape[1])
     flat = buf.reshape(-1)
     Wf, Hf = np.float64(W), np.float64(Hb)
     filled = 0  # rows buf[:filled] are initialised
     for r in range(r0, r1):
-        # Three passes a row, each one simple enough to vectorise well: the projection (as _project_row, Z <= 0 marks
-        # an invalid point), the rounding to a pixel index (-1: none) and the scalar z-buffer update. One loop doing
-        # the first two took 9.2 CPU ms at full resolution against 4.5 + 1.2 for the two (benchmarks/RESULTS.md,
-        # "Where the kernels' time goes"); the values are the same float64 expressions, so the same bits.
-        for c in range(Wm):
-            z = np.float64(depth[r, c])
-            x = rx[r, c] * z
-            y = ry[r, c] * z
-            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-            inv = 1.0 / Zc
-            U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
-            V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
-            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
-            Z[c] = Zc if ok else -1.0
-        for c in range(Wm):
-            ui = np.floor(U[c] + 0.5)
-            vi = np.floor(V[c] + 0.5) - y_off
-            ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
-            idx[c] = np.int64(vi * Wf + ui) if ok else -1
-            Zf[c] = np.float32(Z[c])
+        _splat_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, y_off, Wf, Hf, U, V, Z, Zf, idx)
         last = -1
-        for c in range(Wm):
+        for c in range(idx.shape[0]):
             last = max(last, idx[c])
         if last >= 0 and last // W >= filled:
             buf[filled:last // W + 1] = np.nan
             filled = last // W + 1
-        for c in range(Wm):
-            i = idx[c]
-            if i >= 0:
-                zf = Zf[c]
-                old = flat[i]
-                flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
+        _splat_zbuffer(flat, idx, Zf)
     buf[filled:] = np.nan
 
 
@@ -187,38 +204,19 @@ def _splat_rows(buf, y_off, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
 def _splat_rows_window(buf, window, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1):
     """``_splat_rows`` of grid rows ``r0..r1`` into the image-sized ``buf`` with only the target rows its points reach
     initialised (to NaN), as they are reached, upwards or downwards; ``window`` gets those rows' range ``[lo, hi)``
-    (``lo == hi``: none). Its other rows are left as they were. The same expressions as ``_splat_rows``."""
+    (``lo == hi``: none). Its other rows are left as they were."""
     H, W = buf.shape
-    Wm = depth.shape[1]
-    U = np.empty(Wm)
-    V = np.empty(Wm)
-    Z = np.empty(Wm)
-    Zf = np.empty(Wm, np.float32)
-    idx = np.empty(Wm, np.int64)
+    U, V, Z, Zf, idx = _splat_work_rows(depth.shape[1])
     flat = buf.reshape(-1)
     Wf, Hf = np.float64(W), np.float64(H)
+    none = np.int64(H) * W
     lo = hi = 0
     for r in range(r0, r1):
-        for c in range(Wm):
-            z = np.float64(depth[r, c])
-            x = rx[r, c] * z
-            y = ry[r, c] * z
-            Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-            inv = 1.0 / Zc
-            U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
-            V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
-            ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
-            Z[c] = Zc if ok else -1.0
-        for c in range(Wm):
-            ui = np.floor(U[c] + 0.5)
-            vi = np.floor(V[c] + 0.5)
-            ok = (Z[c] > 0.0) & (ui >= 0.0) & (ui < Wf) & (vi >= 0.0) & (vi < Hf)
-            idx[c] = np.int64(vi * Wf + ui) if ok else -1
-            Zf[c] = np.float32(Z[c])
-        first = np.int64(H) * W
+        _splat_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, 0, Wf, Hf, U, V, Z, Zf, idx)
+        first = none
         last = np.int64(-1)
-        for c in range(Wm):
-            first = min(first, idx[c] if idx[c] >= 0 else np.int64(H) * W)
+        for c in range(idx.shape[0]):
+            first = min(first, idx[c] if idx[c] >= 0 else none)
             last = max(last, idx[c])
         if last >= 0:
             want_lo, want_hi = first // W, last // W + 1
@@ -230,12 +228,7 @@ def _splat_rows_window(buf, window, depth, rx, ry, R, t, fx, fy, cx, cy, r0, r1)
             if want_hi > hi:
                 buf[hi:want_hi] = np.nan
                 hi = want_hi
-        for c in range(Wm):
-            i = idx[c]
-            if i >= 0:
-                zf = Zf[c]
-                old = flat[i]
-                flat[i] = old if old <= zf else zf  # empty (NaN) or farther: replaced
+        _splat_zbuffer(flat, idx, Zf)
     window[0], window[1] = lo, hi
 
 
