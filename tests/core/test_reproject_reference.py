@@ -236,3 +236,47 @@ def test_middlebury_motorcycle_stereo_one_pass():
     assert_identical(sd.span_mm, ref_span, "Middlebury stereo left span_mm")
     assert_identical(sd.depth_right_mm, project_depth_reference(z0, cam0, zed.T_zedr_from_zed, zed.right, MESH),
                      "Middlebury stereo right")
+
+
+def test_a_child_forked_after_the_parallel_kernels_reprojects_as_its_parent(tmp_path):
+    """A child forked from a process whose numba ran its OpenMP parallel loops (the two halves with two threads) was
+    stopped by numba at its first parallel loop (SIGTERM: GNU OpenMP is not fork-safe), as in a ``multiprocessing``
+    pool forked after the parent reprojected. Such a child now runs the one-thread kernels: the same images as its
+    parent's, for the mesh, the splat and a depth camera with another lens (its undistortion's parallel loop)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    paths = [str(Path(__file__).parent), str(Path(__file__).parents[1])]
+    script = f"""
+import os, sys
+sys.path[:0] = {paths!r}
+import numba, numpy as np
+import test_reproject_reference as t
+from gtforge.core.ground_truth.reproject import project_depth_to_camera
+assert numba.get_num_threads() == 2
+rig, depth = t.small_scene()
+other = rig.mech.model_copy(update={{"dist": [0.05, -0.02, 0.0, 0.0, 0.0]}})
+def images():
+    return [project_depth_to_camera(depth, cam, rig.T_zed_from_mech, rig.zed.left, p)
+            for cam in (rig.mech, other) for p in (t.MESH, t.SPLAT)]
+parent = images()[:2]  # (the parallel loops run here; the other lens is left for the child)
+assert numba.threading_layer() == "omp", numba.threading_layer()
+pid = os.fork()
+if pid == 0:
+    np.savez({str(tmp_path / "child.npz")!r}, *images())
+    os._exit(0)
+_, status = os.waitpid(pid, 0)
+print("child", status)
+np.savez({str(tmp_path / "parent.npz")!r}, *images())
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                       env={**__import__("os").environ, "NUMBA_NUM_THREADS": "2"})
+    if r.returncode != 0 and "threading layer" in r.stderr:
+        pytest.skip("numba's OpenMP threading layer is not available here")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "child 0" in r.stdout, (r.stdout, r.stderr[-2000:])  # not stopped by a signal
+    child, parent = np.load(tmp_path / "child.npz"), np.load(tmp_path / "parent.npz")
+    assert len(child.files) == 4
+    for name in child.files:
+        np.testing.assert_array_equal(child[name], parent[name])

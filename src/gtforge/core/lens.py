@@ -33,6 +33,8 @@ import types
 import numba
 import numpy as np
 
+from gtforge.core.numba_threads import parallel_allowed
+
 # numba: prefer OpenMP (as gtforge.core.ground_truth.reproject; TBB builds on Debian are often too old)
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
@@ -306,7 +308,8 @@ def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15, 
     NaN where no valid solution exists (outside :func:`valid_radius`, or residual above :data:`ACCEPT_TOL`).
     ``iterations``: Newton iterations per start; ``tol``: the residual (normalised) at which a point stops.
     ``serial``: the serial compilation (the same values; no OpenMP runtime started); default where this process's
-    numba runs one thread (``NUMBA_NUM_THREADS`` = 1: a local pool's workers and fork server).
+    numba runs one thread (``NUMBA_NUM_THREADS`` = 1: a local pool's workers and fork server) or may use only one (a
+    child forked after OpenMP started: ``numba_threads``).
     """
     target = np.ascontiguousarray(np.asarray(xy_d, np.float64).reshape(-1, 2))
     d = full_coeffs(dist)
@@ -320,7 +323,7 @@ def undistort(xy_d: np.ndarray, dist, iterations: int = 40, tol: float = 1e-15, 
     f_hi = float(r_hi * num[0] / den[0])  # the largest distorted radius of the monotonic branch
     out = np.empty_like(target)
     if serial is None:
-        serial = numba.config.NUMBA_NUM_THREADS == 1
+        serial = numba.config.NUMBA_NUM_THREADS == 1 or not parallel_allowed()
     kernel = _undistort_kernel_serial if serial else _undistort_kernel
     kernel(target, d, Minv, tilted, r_valid * r_valid, r_hi, f_hi, int(iterations), tol * tol, ACCEPT_TOL * ACCEPT_TOL,
            out)

@@ -38,6 +38,7 @@ numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 from gtforge.core.camera import PinholeCamera, RectifiedStereo
 from gtforge.core.geometry import finite_box
+from gtforge.core.numba_threads import usable_threads
 
 Mode = Literal["mesh", "splat"]
 
@@ -630,7 +631,8 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
 
     ``return_span`` (mesh only): also return ``span_mm`` ``(H, W)`` float32: for the triangle that won the
     z-buffer at each pixel, max - min of its three vertices' Z in ``cam`` (mm); NaN where no triangle.
-    Uses ``numba.get_num_threads()`` threads when there are at least ``MIN_PARALLEL_THREADS`` (two from
+    Uses ``numba.get_num_threads()`` threads (one in a child forked after OpenMP started: ``numba_threads``) when there
+    are at least ``MIN_PARALLEL_THREADS`` (two from
     ``HALVES_MIN_THREADS``: two halves); the result is the same for any number."""
     depth = np.asarray(depth_mm)
     if depth.shape != (depth_cam.height_px, depth_cam.width_px):
@@ -651,7 +653,7 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
     fx, fy, cx, cy = cam.fx_px, cam.fy_px, cam.cx_px, cam.cy_px
     k1, k2 = _slant_bounds(depth_cam, params)
     Hm = depth.shape[0]
-    n_threads = numba.get_num_threads()
+    n_threads = usable_threads()
     if HALVES_MIN_THREADS <= n_threads < MIN_PARALLEL_THREADS and Hm >= 8:
         out = np.empty((H, W), np.float32)
         span = np.empty((H, W) if return_span else (1, 1), np.float32)
@@ -745,7 +747,7 @@ def reproject_to_zed(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_zed_from_
     ``left_span`` (mesh): also the left view's ``span_mm``."""
     span = None
     T_zedr_from_depth = zed.T_zedr_from_zed @ T_zed_from_depth
-    if params.mode == "mesh" and numba.get_num_threads() < MIN_PARALLEL_THREADS and np.shape(depth_mm)[0] >= 8 \
+    if params.mode == "mesh" and usable_threads() < MIN_PARALLEL_THREADS and np.shape(depth_mm)[0] >= 8 \
             and not zed.left.has_distortion and np.shape(depth_mm) == (depth_cam.height_px, depth_cam.width_px):
         # one thread (a build worker): both views in one pass over the grid, the same images as the two calls below
         depth_l, span, depth_r = _project_depth_to_stereo(depth_mm, depth_cam, T_zed_from_depth, T_zedr_from_depth, zed,
