@@ -515,6 +515,13 @@ def _mesh_halves(out, sout, aux, saux, want_span, window, depth, rx, ry, R, t, f
                               mid, Hm - 1)
 
 
+@numba.njit(inline="always", **_JIT)
+def _nearer(z, o):
+    """Whether depth ``z`` wins a merge against ``o`` (NaN = empty): nearer, or ``o`` empty and ``z`` not; a tie keeps
+    ``o``. Branch-free so that the merges' pixel loops vectorise."""
+    return (z < o) | (np.isnan(o) & ~np.isnan(z))
+
+
 @numba.njit(parallel=True, **_JIT)
 def _merge_window(out, sout, aux, saux, want_span, lo, hi):
     """Rows ``lo..hi`` of ``aux`` (``saux``) merged into ``out`` (``sout``): a per-pixel minimum, ``out``'s on a tie."""
@@ -524,14 +531,14 @@ def _merge_window(out, sout, aux, saux, want_span, lo, hi):
             for u in range(W):
                 z = aux[y, u]
                 o = out[y, u]
-                take = (z < o) | (np.isnan(o) & ~np.isnan(z))
+                take = _nearer(z, o)
                 out[y, u] = z if take else o
                 sout[y, u] = saux[y, u] if take else sout[y, u]
         else:
             for u in range(W):
                 z = aux[y, u]
                 o = out[y, u]
-                out[y, u] = z if (z < o) | (np.isnan(o) & ~np.isnan(z)) else o
+                out[y, u] = z if _nearer(z, o) else o
 
 
 @numba.njit(**_JIT)
@@ -610,7 +617,7 @@ def _merge_windows(out, sout, want_span, arena, sarena, wlo, whi):
             if wlo[k] <= y <= whi[k]:
                 for u in range(W):
                     z = arena[k, y, u]
-                    if z < out[y, u] or (math.isnan(out[y, u]) and not math.isnan(z)):
+                    if _nearer(z, out[y, u]):
                         out[y, u] = z
                         if want_span:
                             sout[y, u] = sarena[k, y, u]
@@ -631,9 +638,9 @@ def project_depth_to_camera(depth_mm: np.ndarray, depth_cam: PinholeCamera, T_ca
 
     ``return_span`` (mesh only): also return ``span_mm`` ``(H, W)`` float32: for the triangle that won the
     z-buffer at each pixel, max - min of its three vertices' Z in ``cam`` (mm); NaN where no triangle.
-    Uses ``numba.get_num_threads()`` threads (one in a child forked after OpenMP started: ``numba_threads``) when there
-    are at least ``MIN_PARALLEL_THREADS`` (two from
-    ``HALVES_MIN_THREADS``: two halves); the result is the same for any number."""
+    Uses ``numba.get_num_threads()`` threads (one in a child forked after OpenMP started: ``numba_threads``): the
+    windowed path from ``MIN_PARALLEL_THREADS``, two halves from ``HALVES_MIN_THREADS``; the result is the same for any
+    number."""
     depth = np.asarray(depth_mm)
     if depth.shape != (depth_cam.height_px, depth_cam.width_px):
         raise ValueError(f"{depth.shape=} but expected {(depth_cam.height_px, depth_cam.width_px)} from the depth "
