@@ -68,8 +68,8 @@ def scene_depth(rig):
 
 
 def module_at_revision(rev: str):
-    """gtforge/core/ground_truth/reproject.py as it was at git revision ``rev``, imported as a separate module."""
-    import importlib.util
+    """gtforge/core/ground_truth/reproject.py as it was at git revision ``rev``, imported as a separate module (its
+    file, in a temporary folder of its own: ``__file__``, where numba caches its kernels)."""
     import tempfile
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -78,7 +78,14 @@ def module_at_revision(rev: str):
     path = os.path.join(tempfile.mkdtemp(), f"reproject_{rev}.py")
     with open(path, "w") as f:
         f.write(src)
-    spec = importlib.util.spec_from_file_location(f"reproject_{rev}", path)
+    return module_from_file(path)
+
+
+def module_from_file(path: str):
+    """The Python file ``path`` imported as a module of its own, named after the file."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(os.path.splitext(os.path.basename(path))[0], path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up there
     spec.loader.exec_module(mod)

@@ -20,12 +20,13 @@ the fix); configurations alternate in each round.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -36,24 +37,18 @@ def child(module_path: str, repeat: int) -> None:
     import numba
     import numpy as np
 
-    from gtforge.core.ground_truth.reproject import ReprojectParams
     from gtforge.synthetic import default_rig
 
     sys.path.insert(0, HERE)
-    from bench_reproject import scene_depth
+    from bench_reproject import module_from_file, scene_depth
 
     if module_path == "current":
         from gtforge.core.ground_truth import reproject as rp
     else:
-        import importlib.util
-
-        spec = importlib.util.spec_from_file_location("reproject_at_revision", module_path)
-        rp = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = rp  # dataclasses look their module up there
-        spec.loader.exec_module(rp)
+        rp = module_from_file(module_path)
     rig = default_rig()
     depth = np.ascontiguousarray(scene_depth(rig), np.float32)
-    params = rp.ReprojectParams() if hasattr(rp, "ReprojectParams") else ReprojectParams()
+    params = rp.ReprojectParams()
 
     def median_ms() -> float:
         def once() -> float:
@@ -91,13 +86,11 @@ def main() -> None:
         return
     sources = {"current": "current"}
     if args.against:
-        text = subprocess.run(["git", "-C", os.path.dirname(HERE), "show",
-                               f"{args.against}:src/gtforge/core/ground_truth/reproject.py"],
-                              capture_output=True, text=True, check=True).stdout
-        folder = tempfile.mkdtemp(prefix="diag-masked-store-")  # one path for every child: numba's cache is shared
-        path = os.path.join(folder, "reproject_at_revision.py")
-        with open(path, "w") as f:
-            f.write(text)
+        sys.path.insert(0, HERE)
+        from bench_reproject import module_at_revision
+
+        path = module_at_revision(args.against).__file__  # one file for every child: numba's cache beside it shared
+        atexit.register(shutil.rmtree, os.path.dirname(path), ignore_errors=True)
         sources[f"@{args.against}"] = path
     configs = [(name, threads) for name in sources for threads in (1, 2)]
     results: dict = {c: [] for c in configs}
