@@ -478,8 +478,17 @@ def test_kinect_colour_formats():
     smooth = np.dstack([*np.meshgrid(np.arange(16) * 10, np.arange(16) * 12), np.full((16, 16), 90)]).astype(np.uint8)
     jpg = cv2.imencode(".jpg", smooth[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
     assert np.abs(_kinect_color(jpg, "MJPG", 16, 16, "f").astype(int) - smooth).mean() < 3
+    assert np.array_equal(_kinect_color(jpg, "", 16, 16, "f"), _kinect_color(jpg, "MJPG", 16, 16, "f"))
     with pytest.raises(InputError, match="MJPG, NV12"):
         _kinect_color(b"\x00" * 10, "H264", 12, 8, "f")
+    # the SDK's player knows BGRA only: an RGBA tag (its channels the other way round) or a frame of BGRA's size under
+    # another tag is refused, not decoded with BGRA's channel order
+    for tag in ("RGBA", ""):
+        with pytest.raises(InputError, match=f"COLOR codec.*'{tag}'"):
+            _kinect_color(bgra.tobytes(), tag, 12, 8, "f")
+    # a frame cut short: one line naming the format and both sizes, not numpy's reshape error
+    with pytest.raises(InputError, match=r"COLOR frame \(NV12, 12x8\).*144 bytes.*100 bytes"):
+        _kinect_color(nv12.tobytes()[:100], "NV12", 12, 8, "f")
 
 
 # ---- ZED .svo2 (gtforge.io.zed_svo) ---------------------------------------------------------------------------

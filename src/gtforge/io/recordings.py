@@ -693,14 +693,19 @@ class KinectMkv:
 
 
 def _kinect_color(buf: bytes, tag: str, w: int, h: int, path) -> np.ndarray:
-    if tag in ("MJPG", "mjpg", "") or buf[:2] == b"\xff\xd8":
+    """A COLOR frame as RGB. The Azure Kinect SDK's player knows four FourCCs for it (matroska_read.cpp's
+    read_bitmap_info_header): MJPG, NV12, YUY2 and BGRA; anything else is refused, not guessed from its size."""
+    if tag.upper() == "MJPG" or (tag == "" and is_jpeg(buf)):
         return as_rgb(decode_jpeg(buf, path, "COLOR"))
+    need = {"NV12": w * h * 3 // 2, "YUY2": w * h * 2, "BGRA": w * h * 4}.get(tag)
+    if need is not None and len(buf) < need:
+        raise InputError(path, f"COLOR frame ({tag}, {w}x{h})", f"{need} bytes", f"{len(buf)} bytes", DAMAGED_HINT)
     a = np.frombuffer(buf, np.uint8)
     if tag == "NV12":
-        return cv2.cvtColor(a[: w * h * 3 // 2].reshape(h * 3 // 2, w), cv2.COLOR_YUV2RGB_NV12)
+        return cv2.cvtColor(a[:need].reshape(h * 3 // 2, w), cv2.COLOR_YUV2RGB_NV12)
     if tag == "YUY2":
-        return cv2.cvtColor(a[: w * h * 2].reshape(h, w, 2), cv2.COLOR_YUV2RGB_YUY2)
-    if tag in ("BGRA", "RGBA") or a.size == w * h * 4:
-        return np.ascontiguousarray(a[: w * h * 4].reshape(h, w, 4)[..., 2::-1])
+        return cv2.cvtColor(a[:need].reshape(h, w, 2), cv2.COLOR_YUV2RGB_YUY2)
+    if tag == "BGRA":
+        return np.ascontiguousarray(a[:need].reshape(h, w, 4)[..., 2::-1])
     raise InputError(path, "COLOR codec", "MJPG, NV12, YUY2 or BGRA", f"'{tag}'",
                      "record with k4arecorder: MJPG by default, NV12/YUY2 with --color-mode 720p_NV12/720p_YUY2")
