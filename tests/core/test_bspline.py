@@ -82,6 +82,22 @@ def test_resample_is_the_scipy_pipelines_image(dtype, channels):
     assert (got == 0).any() and (got == top).any() and (us > w - 1).any()  # both clips and the outside occurred
 
 
+def test_a_homography_through_the_horizon_leaves_those_pixels_black():
+    """A pixel whose homogeneous coordinate is zero (the map's horizon crosses the image) has no position: black, as a
+    pixel mapped outside the image, and every other pixel as ``resample`` of ``apply_homography``'s positions (the
+    kernel divided by zero with Python's error model, a ZeroDivisionError out of a build, before it had numpy's)."""
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 256, (6, 9, 3), dtype=np.uint8)
+    H = np.array([[1.0, 0.0, 0.25], [0.0, 1.0, 0.0], [-0.25, 0.0, 1.0]])  # w = 1 - u / 4: zero at column 4
+    uu, vv = np.meshgrid(np.arange(9.0), np.arange(6.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        us, vs = apply_homography(H, uu.ravel(), vv.ravel())
+    assert not np.isfinite(us.reshape(6, 9)[:, 4]).any()
+    got = bspline.resample_homography(img, H)
+    assert np.array_equal(got, bspline.resample(img, us, vs, (6, 9)))
+    assert (got[:, 4] == 0).all() and (got[:, :3] != 0).any()
+
+
 def test_resample_refuses_a_float_image():
     with pytest.raises(TypeError, match="8- or 16-bit"):
         bspline.resample(np.zeros((4, 4), np.float32), np.zeros(16), np.zeros(16), (4, 4))

@@ -246,7 +246,9 @@ def _resample(coef, us, vs, top, out):
         _resample_point(coef, us[p], vs[p], top, out, p)
 
 
-@numba.njit(cache=True)
+# numpy's error model: a division by a zero homogeneous coordinate gives a non-finite position (a black pixel), and
+# without Python's zero test before each division the compiler vectorises the row's positions and weights
+@numba.njit(cache=True, error_model="numpy")
 def _resample_homography(coef, M, h, w, top, out):
     """``out`` (h * w, K): ``_resample_point`` at ``M`` (3x3) times each output pixel, row-major, in
     ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic. A row's positions and weights first, then its
