@@ -14,7 +14,12 @@ border are mirrored about the edge pixels' centres.
 
 The image is kept channel-last: the coefficients are ``(H, W, K)`` float64, filtered along the columns as one (H, W*K)
 array, then along the rows in blocks of rows copied side by side (each line's recursion independent, the inner loop
-across lines, which the compiler vectorises). Each point's taps and weights serve all its channels."""
+across lines, which the compiler vectorises). Each point's taps and weights serve all its channels.
+
+``resample_homography`` keeps them channel by channel instead, ``(K, H, W)`` (the same values: each line is filtered
+alone either way): along a row of output pixels whose taps move one column a pixel (a run), each channel's taps are
+then consecutive values, which the compiler loads as vectors, each pixel in its own lane with its own sums in SciPy's
+order."""
 from __future__ import annotations
 
 import math
@@ -91,6 +96,21 @@ def coefficients(image: np.ndarray) -> np.ndarray:
                   or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
     _filter_lines(a.reshape(h, w * k), c.reshape(h, w * k), POLE, finite)  # along the columns (SciPy's first axis)
     _filter_rows(c, POLE, finite)  # then along the rows
+    return c
+
+
+def _planar_coefficients(image: np.ndarray) -> np.ndarray:
+    """``coefficients(image)`` as ``(K, H, W)``: each channel's own (H, W) plane, filtered alone (the same values)."""
+    a = np.ascontiguousarray(image)
+    h, w = a.shape[:2]
+    a3 = a.reshape(h, w, -1)
+    k = a3.shape[2]
+    finite = bool(np.issubdtype(a.dtype, np.integer)
+                  or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
+    c = np.empty((k, h, w))
+    for j in range(k):
+        _filter_lines(a3[:, :, j], c[j], POLE, finite)
+        _filter_rows(c[j].reshape(h, w, 1), POLE, finite)
     return c
 
 
@@ -246,17 +266,52 @@ def _resample(coef, us, vs, top, out):
         _resample_point(coef, us[p], vs[p], top, out, p)
 
 
+@numba.njit(cache=True)
+def _run_taps(R0, R1, R2, R3, weights, out):
+    """``out[i]``: the sum of a run's pixel ``i`` over its 4 x 4 taps, rows ``R0..R3`` (one channel's coefficients from
+    the run's first tap column on: pixel ``i``'s taps are ``R[i .. i + 3]``), ``weights`` (8, n): its ``wx0..wx3``,
+    ``wy0..wy3``; each product ``c * wy * wx`` summed as ``_sum_taps`` sums it. Unit strides and no branch: the
+    compiler runs it over several pixels at a time."""
+    for i in range(out.shape[0]):
+        a0, a1, a2, a3 = weights[0, i], weights[1, i], weights[2, i], weights[3, i]
+        c0, c1, c2, c3 = weights[4, i], weights[5, i], weights[6, i], weights[7, i]
+        t = 0.0
+        t += R0[i] * c0 * a0
+        t += R0[i + 1] * c0 * a1
+        t += R0[i + 2] * c0 * a2
+        t += R0[i + 3] * c0 * a3
+        t += R1[i] * c1 * a0
+        t += R1[i + 1] * c1 * a1
+        t += R1[i + 2] * c1 * a2
+        t += R1[i + 3] * c1 * a3
+        t += R2[i] * c2 * a0
+        t += R2[i + 1] * c2 * a1
+        t += R2[i + 2] * c2 * a2
+        t += R2[i + 3] * c2 * a3
+        t += R3[i] * c3 * a0
+        t += R3[i + 1] * c3 * a1
+        t += R3[i + 2] * c3 * a2
+        t += R3[i + 3] * c3 * a3
+        out[i] = t
+
+
 # numpy's error model: a division by a zero homogeneous coordinate gives a non-finite position (a black pixel), and
 # without Python's zero test before each division the compiler vectorises the row's positions and weights
 @numba.njit(cache=True, error_model="numpy")
 def _resample_homography(coef, M, h, w, top, out):
     """``out`` (h * w, K): ``_resample_point`` at ``M`` (3x3) times each output pixel, row-major, in
-    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic. A row's positions and weights first, then its
-    taps: a point whose 4 x 4 taps are all inside the image (nearly every point) reads them without the border's
-    mirroring; each value as ``_resample_point``'s."""
-    H, W, K = coef.shape
+    ``gtforge.core.zed.scale_corrections.apply_homography``'s arithmetic; ``coef`` (K, H, W): ``_planar_coefficients``.
+    A row's positions and weights first; then its runs (pixels whose 4 x 4 taps are inside the image, in the same rows,
+    one column further each pixel: nearly every pixel of a small turn), each channel's sums by ``_run_taps``; the other
+    pixels one by one, with the border's mirroring. Each value as ``_resample_point``'s."""
+    K, H, W = coef.shape
+    chl = coef.transpose((1, 2, 0))  # (H, W, K), as _sum_taps reads it
     xs, ys = np.empty(w), np.empty(w)
-    wx, wy = np.empty((4, w)), np.empty((4, w))
+    wt = np.empty((8, w))  # each pixel's wx0..wx3, wy0..wy3
+    run_weights = np.empty(8 * w)
+    x0s, y0s = np.empty(w, np.int64), np.empty(w, np.int64)
+    inner = np.empty(w, np.bool_)
+    sums = np.empty((K, w))
     m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
     m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
     m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
@@ -268,28 +323,49 @@ def _resample_homography(coef, M, h, w, top, out):
             px = (m00 * x + m01 * y + m02) / d
             py = (m10 * x + m11 * y + m12) / d
             xs[u], ys[u] = px, py
-            wx[0, u], wx[1, u], wx[2, u], wx[3, u] = _weights(px)
-            wy[0, u], wy[1, u], wy[2, u], wy[3, u] = _weights(py)
+            wt[0, u], wt[1, u], wt[2, u], wt[3, u] = _weights(px)
+            wt[4, u], wt[5, u], wt[6, u], wt[7, u] = _weights(py)
+        for u in range(w):
+            px, py = xs[u], ys[u]
+            inside = px >= 0.0 and px <= W - 1 and py >= 0.0 and py <= H - 1
+            x0 = int(math.floor(px)) - 1 if inside else -1
+            y0 = int(math.floor(py)) - 1 if inside else -1
+            inner[u] = inside and 0 <= x0 and x0 + 3 < W and 0 <= y0 and y0 + 3 < H
+            x0s[u], y0s[u] = x0, y0
+        u = 0
+        while u < w:
+            if not inner[u]:
+                u += 1
+                continue
+            e = u + 1
+            while e < w and inner[e] and y0s[e] == y0s[u] and x0s[e] == x0s[u] + (e - u):
+                e += 1
+            n = e - u
+            weights = run_weights[:8 * n].reshape(8, n)  # (contiguous: unit strides for _run_taps)
+            for j in range(8):
+                weights[j, :] = wt[j, u:e]
+            x0, y0 = x0s[u], y0s[u]
+            for k in range(K):
+                c = coef[k]
+                _run_taps(c[y0, x0:x0 + n + 3], c[y0 + 1, x0:x0 + n + 3], c[y0 + 2, x0:x0 + n + 3],
+                          c[y0 + 3, x0:x0 + n + 3], weights, sums[k, u:e])
+            u = e
         for u in range(w):
             p = v * w + u
+            if inner[u]:
+                for k in range(K):
+                    out[p, k] = _rounded(sums[k, u], top)
+                continue
             px, py = xs[u], ys[u]
             if not (px >= 0.0 and px <= W - 1 and py >= 0.0 and py <= H - 1):
                 for k in range(K):
                     out[p, k] = 0
                 continue
-            x0 = int(math.floor(px)) - 1
-            y0 = int(math.floor(py)) - 1
-            wx4 = (wx[0, u], wx[1, u], wx[2, u], wx[3, u])
-            wy4 = (wy[0, u], wy[1, u], wy[2, u], wy[3, u])
-            if 0 <= x0 and x0 + 3 < W and 0 <= y0 and y0 + 3 < H:
-                # its own call: taps at constant offsets from (x0, y0), which the compiler folds into the addresses
-                xs4, ys4 = (x0, x0 + 1, x0 + 2, x0 + 3), (y0, y0 + 1, y0 + 2, y0 + 3)
-                for k in range(K):
-                    out[p, k] = _rounded(_sum_taps(coef, k, xs4, ys4, wx4, wy4), top)
-                continue
             xs4, ys4, _, _ = _stencil(H, W, px, py)
+            wx4 = (wt[0, u], wt[1, u], wt[2, u], wt[3, u])
+            wy4 = (wt[4, u], wt[5, u], wt[6, u], wt[7, u])
             for k in range(K):
-                out[p, k] = _rounded(_sum_taps(coef, k, xs4, ys4, wx4, wy4), top)
+                out[p, k] = _rounded(_sum_taps(chl, k, xs4, ys4, wx4, wy4), top)
 
 
 def sample(coef: np.ndarray, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
@@ -315,7 +391,7 @@ def resample_homography(image: np.ndarray, M: np.ndarray) -> np.ndarray:
     h, w = img.shape[:2]
     k = 1 if img.ndim == 2 else img.shape[2]
     out = np.empty((h, w, k), img.dtype)
-    _resample_homography(coefficients(img), np.ascontiguousarray(M, np.float64), h, w,
+    _resample_homography(_planar_coefficients(img), np.ascontiguousarray(M, np.float64), h, w,
                          float(np.iinfo(img.dtype).max), out.reshape(-1, k))
     return out[..., 0] if img.ndim == 2 else out
 
