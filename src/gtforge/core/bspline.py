@@ -109,7 +109,8 @@ def _planar_coefficients(image: np.ndarray) -> np.ndarray:
                   or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
     c = np.empty((k, h, w))
     for j in range(k):
-        _filter_lines(a3[:, :, j], c[j], POLE, finite)
+        # (a contiguous copy of the channel: the same compiled filter as ``coefficients``' and unit-stride reads)
+        _filter_lines(np.ascontiguousarray(a3[:, :, j]), c[j], POLE, finite)
         _filter_rows(c[j].reshape(h, w, 1), POLE, finite)
     return c
 
