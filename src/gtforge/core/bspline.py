@@ -306,7 +306,6 @@ def _resample_homography(coef, M, h, w, top, out):
     one column further each pixel: nearly every pixel of a small turn), each channel's sums by ``_run_taps``; the other
     pixels one by one, with the border's mirroring. Each value as ``_resample_point``'s."""
     K, H, W = coef.shape
-    chl = coef.transpose((1, 2, 0))  # (H, W, K), as _sum_taps reads it
     xs, ys = np.empty(w), np.empty(w)
     wt = np.empty((8, w))  # each pixel's wx0..wx3, wy0..wy3
     run_weights = np.empty(8 * w)
@@ -365,8 +364,8 @@ def _resample_homography(coef, M, h, w, top, out):
             xs4, ys4, _, _ = _stencil(H, W, px, py)
             wx4 = (wt[0, u], wt[1, u], wt[2, u], wt[3, u])
             wy4 = (wt[4, u], wt[5, u], wt[6, u], wt[7, u])
-            for k in range(K):
-                out[p, k] = _rounded(_sum_taps(chl, k, xs4, ys4, wx4, wy4), top)
+            for k in range(K):  # (a plane as (H, W, 1): C-order indexing, 3 s less to compile than a transpose)
+                out[p, k] = _rounded(_sum_taps(coef[k].reshape(H, W, 1), 0, xs4, ys4, wx4, wy4), top)
 
 
 def sample(coef: np.ndarray, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
