@@ -267,33 +267,29 @@ def _resample(coef, us, vs, top, out):
         _resample_point(coef, us[p], vs[p], top, out, p)
 
 
+@numba.njit(cache=True, inline="always")
+def _run_row_of_taps(R, i, wy, wx0, wx1, wx2, wx3, t):
+    """``t`` plus one row of a run's pixel ``i``'s taps, ``R[i .. i + 3]``, each product ``c * wy * wx`` in SciPy's
+    order (``_row_of_taps`` over a row slice)."""
+    t += R[i] * wy * wx0
+    t += R[i + 1] * wy * wx1
+    t += R[i + 2] * wy * wx2
+    t += R[i + 3] * wy * wx3
+    return t
+
+
 @numba.njit(cache=True)
 def _run_taps(R0, R1, R2, R3, weights, out):
     """``out[i]``: the sum of a run's pixel ``i`` over its 4 x 4 taps, rows ``R0..R3`` (one channel's coefficients from
     the run's first tap column on: pixel ``i``'s taps are ``R[i .. i + 3]``), ``weights`` (8, n): its ``wx0..wx3``,
-    ``wy0..wy3``; each product ``c * wy * wx`` summed as ``_sum_taps`` sums it. Unit strides and no branch: the
-    compiler runs it over several pixels at a time."""
+    ``wy0..wy3``; summed as ``_sum_taps`` sums them. Unit strides and no branch: the compiler runs it over several
+    pixels at a time."""
     for i in range(out.shape[0]):
         a0, a1, a2, a3 = weights[0, i], weights[1, i], weights[2, i], weights[3, i]
-        c0, c1, c2, c3 = weights[4, i], weights[5, i], weights[6, i], weights[7, i]
-        t = 0.0
-        t += R0[i] * c0 * a0
-        t += R0[i + 1] * c0 * a1
-        t += R0[i + 2] * c0 * a2
-        t += R0[i + 3] * c0 * a3
-        t += R1[i] * c1 * a0
-        t += R1[i + 1] * c1 * a1
-        t += R1[i + 2] * c1 * a2
-        t += R1[i + 3] * c1 * a3
-        t += R2[i] * c2 * a0
-        t += R2[i + 1] * c2 * a1
-        t += R2[i + 2] * c2 * a2
-        t += R2[i + 3] * c2 * a3
-        t += R3[i] * c3 * a0
-        t += R3[i + 1] * c3 * a1
-        t += R3[i + 2] * c3 * a2
-        t += R3[i + 3] * c3 * a3
-        out[i] = t
+        t = _run_row_of_taps(R0, i, weights[4, i], a0, a1, a2, a3, 0.0)
+        t = _run_row_of_taps(R1, i, weights[5, i], a0, a1, a2, a3, t)
+        t = _run_row_of_taps(R2, i, weights[6, i], a0, a1, a2, a3, t)
+        out[i] = _run_row_of_taps(R3, i, weights[7, i], a0, a1, a2, a3, t)
 
 
 # numpy's error model: a division by a zero homogeneous coordinate gives a non-finite position (a black pixel), and
