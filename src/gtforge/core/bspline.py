@@ -90,13 +90,17 @@ def coefficients(image: np.ndarray) -> np.ndarray:
     h, w = a.shape[:2]
     k = 1 if a.ndim == 2 else a.shape[2]
     c = np.empty((h, w, k))
-    # every value the two passes see is finite: an integer image's, and a float image's whose values are finite and
-    # far from overflowing (each pass multiplies a line's values by at most about 20)
-    finite = bool(np.issubdtype(a.dtype, np.integer)
-                  or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
+    finite = _stays_finite(a)
     _filter_lines(a.reshape(h, w * k), c.reshape(h, w * k), POLE, finite)  # along the columns (SciPy's first axis)
     _filter_rows(c, POLE, finite)  # then along the rows
     return c
+
+
+def _stays_finite(a: np.ndarray) -> bool:
+    """Every value the two passes see is finite: an integer image's, and a float image's whose values are finite and
+    far from overflowing (each pass multiplies a line's values by at most about 20). ``_filter_lines``' ``finite``."""
+    return bool(np.issubdtype(a.dtype, np.integer)
+                or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
 
 
 def _planar_coefficients(image: np.ndarray) -> np.ndarray:
@@ -105,8 +109,7 @@ def _planar_coefficients(image: np.ndarray) -> np.ndarray:
     h, w = a.shape[:2]
     a3 = a.reshape(h, w, -1)
     k = a3.shape[2]
-    finite = bool(np.issubdtype(a.dtype, np.integer)
-                  or (a.size and np.isfinite(a).all() and float(np.abs(a).max()) < 1e300))
+    finite = _stays_finite(a)
     c = np.empty((k, h, w))
     for j in range(k):
         # (a contiguous copy of the channel: the same compiled filter as ``coefficients``' and unit-stride reads)
