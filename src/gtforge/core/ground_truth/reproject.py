@@ -77,19 +77,30 @@ def prepare_rays(depth_cam: PinholeCamera) -> None:
 
 # ---- projection ------------------------------------------------------------------------------
 @numba.njit(inline="always", **_JIT)
+def _project_point(depth, rx, ry, R, t, fx, fy, cx, cy, r, c):
+    """Grid point ``(r, c)`` in the target camera: ``(u, v, Z, 1/Z, ok)``, ``ok`` False where the depth is invalid
+    (NaN, <= 0, inf) or the point is not in front of the camera. Branch-free, so that a loop over a row vectorises.
+    The mesh's rows (``_project_row``) and the splat's (``_splat_row``) both project with it: the same bits."""
+    z = np.float64(depth[r, c])
+    x = rx[r, c] * z
+    y = ry[r, c] * z
+    Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+    inv = 1.0 / Zc
+    u = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
+    v = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
+    ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+    return u, v, Zc, inv, ok
+
+
+@numba.njit(inline="always", **_JIT)
 def _project_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, U, V, IZ):
     """Project grid row ``r`` into the target camera: ``U``, ``V`` (px) and ``IZ`` = 1/Z (1/mm), with
     ``IZ`` = 0 where the depth is invalid (NaN, <= 0, inf) or the point is not in front of the camera.
     Branch-free so that it vectorises."""
     for c in range(depth.shape[1]):
-        z = np.float64(depth[r, c])
-        x = rx[r, c] * z
-        y = ry[r, c] * z
-        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-        inv = 1.0 / Zc
-        U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
-        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
-        ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+        u, v, _, inv, ok = _project_point(depth, rx, ry, R, t, fx, fy, cx, cy, r, c)
+        U[c] = u
+        V[c] = v
         IZ[c] = inv if ok else 0.0
 
 
@@ -143,14 +154,9 @@ def _splat_row(depth, rx, ry, R, t, fx, fy, cx, cy, r, y_off, Wf, Hf, U, V, Z, Z
     for the two (benchmarks/RESULTS.md, "Where the kernels' time goes"); the values are the same float64 expressions,
     so the same bits."""
     for c in range(depth.shape[1]):
-        z = np.float64(depth[r, c])
-        x = rx[r, c] * z
-        y = ry[r, c] * z
-        Zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-        inv = 1.0 / Zc
-        U[c] = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]) * inv + cx
-        V[c] = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]) * inv + cy
-        ok = (z > 0.0) & (z < np.inf) & (Zc > 0.0)
+        u, v, Zc, _, ok = _project_point(depth, rx, ry, R, t, fx, fy, cx, cy, r, c)
+        U[c] = u
+        V[c] = v
         Z[c] = Zc if ok else -1.0
     for c in range(depth.shape[1]):
         ui = np.floor(U[c] + 0.5)
