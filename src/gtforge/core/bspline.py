@@ -13,8 +13,9 @@ causal one from the whole mirrored line, as SciPy does: no truncation, whatever 
 border are mirrored about the edge pixels' centres.
 
 The image is kept channel-last: the coefficients are ``(H, W, K)`` float64, filtered along the columns as one (H, W*K)
-array, then along the rows in blocks of rows copied side by side (each line's recursion independent, the inner loop
-across lines, which the compiler vectorises). Each point's taps and weights serve all its channels.
+array (each line's recursion independent, the inner loop across lines, which the compiler vectorises), then along the
+rows, a block of rows at a time as the columns of its transposed view (a few independent recursions a step, each
+sample read where it lies). Each point's taps and weights serve all its channels.
 
 ``resample_homography`` keeps them channel by channel instead, ``(K, H, W)`` (the same values: each line is filtered
 alone either way): along a row of output pixels whose taps move one column a pixel (a run), each channel's taps are
@@ -118,29 +119,22 @@ def _planar_coefficients(image: np.ndarray) -> np.ndarray:
     return c
 
 
-# rows ``_filter_rows`` filters together: a block's lines, side by side, stay in the L2 cache (8 x 2208 x 3 doubles)
-_ROWS = 8
+# rows ``_filter_rows`` filters together: each step along the rows advances this many independent recursions, which
+# the processor overlaps, and their lines (16 x 2208 doubles) stay in the L2 cache
+_ROWS = 16
 
 
 @numba.njit(cache=True)
 def _filter_rows(c, z, finite):
     """In place: the cubic B-spline prefilter of every row of every channel of ``c`` (H, W, K) float64, ``_ROWS``
-    rows at a time: copied side by side into a (W, rows x K) block, filtered as its columns, copied back.
-    ``finite``: as ``_filter_lines``'s."""
+    rows of a channel at a time, filtered where they are as the columns of their transposed view (``_filter_lines``:
+    each line's recursion alone, so the same values as a row filtered by itself). ``finite``: as
+    ``_filter_lines``'s."""
     H, W, K = c.shape
-    buf = np.empty((W, _ROWS * K))
     for y0 in range(0, H, _ROWS):
-        n = min(_ROWS, H - y0)
-        block = buf[:, :n * K]
-        for r in range(n):
-            for x in range(W):
-                for k in range(K):
-                    block[x, r * K + k] = c[y0 + r, x, k]
-        _filter_lines(block, block, z, finite)
-        for r in range(n):
-            for x in range(W):
-                for k in range(K):
-                    c[y0 + r, x, k] = block[x, r * K + k]
+        for k in range(K):
+            lines = c[y0:y0 + _ROWS, :, k].T
+            _filter_lines(lines, lines, z, finite)
 
 
 @numba.njit(cache=True, inline="always")
