@@ -276,17 +276,17 @@ def _run_row_of_taps(R, i, wy, wx0, wx1, wx2, wx3, t):
 
 
 @numba.njit(cache=True)
-def _run_taps(R0, R1, R2, R3, weights, out):
+def _run_taps(R0, R1, R2, R3, wx0, wx1, wx2, wx3, wy0, wy1, wy2, wy3, out):
     """``out[i]``: the sum of a run's pixel ``i`` over its 4 x 4 taps, rows ``R0..R3`` (one channel's coefficients from
-    the run's first tap column on: pixel ``i``'s taps are ``R[i .. i + 3]``), ``weights`` (8, n): its ``wx0..wx3``,
-    ``wy0..wy3``; summed as ``_sum_taps`` sums them. Unit strides and no branch: the compiler runs it over several
-    pixels at a time."""
+    the run's first tap column on: pixel ``i``'s taps are ``R[i .. i + 3]``), weights ``wx0[i]..wx3[i]``,
+    ``wy0[i]..wy3[i]``; summed as ``_sum_taps`` sums them. Unit strides (every argument a slice of one row) and no
+    branch: the compiler runs it over several pixels at a time."""
     for i in range(out.shape[0]):
-        a0, a1, a2, a3 = weights[0, i], weights[1, i], weights[2, i], weights[3, i]
-        t = _run_row_of_taps(R0, i, weights[4, i], a0, a1, a2, a3, 0.0)
-        t = _run_row_of_taps(R1, i, weights[5, i], a0, a1, a2, a3, t)
-        t = _run_row_of_taps(R2, i, weights[6, i], a0, a1, a2, a3, t)
-        out[i] = _run_row_of_taps(R3, i, weights[7, i], a0, a1, a2, a3, t)
+        a0, a1, a2, a3 = wx0[i], wx1[i], wx2[i], wx3[i]
+        t = _run_row_of_taps(R0, i, wy0[i], a0, a1, a2, a3, 0.0)
+        t = _run_row_of_taps(R1, i, wy1[i], a0, a1, a2, a3, t)
+        t = _run_row_of_taps(R2, i, wy2[i], a0, a1, a2, a3, t)
+        out[i] = _run_row_of_taps(R3, i, wy3[i], a0, a1, a2, a3, t)
 
 
 # numpy's error model: a division by a zero homogeneous coordinate gives a non-finite position (a black pixel), and
@@ -301,10 +301,9 @@ def _resample_homography(coef, M, h, w, top, out):
     K, H, W = coef.shape
     xs, ys = np.empty(w), np.empty(w)
     wt = np.empty((8, w))  # each pixel's wx0..wx3, wy0..wy3
-    run_weights = np.empty(8 * w)
     x0s, y0s = np.empty(w, np.int64), np.empty(w, np.int64)
     inner = np.empty(w, np.bool_)
-    sums = np.empty((K, w))
+    sums = np.zeros((K, w))  # (a pixel outside every run keeps an earlier, finite sum: rounded, then overwritten)
     m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
     m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
     m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
@@ -334,21 +333,21 @@ def _resample_homography(coef, M, h, w, top, out):
             while e < w and inner[e] and y0s[e] == y0s[u] and x0s[e] == x0s[u] + (e - u):
                 e += 1
             n = e - u
-            weights = run_weights[:8 * n].reshape(8, n)  # (contiguous: unit strides for _run_taps)
-            for j in range(8):
-                weights[j, :] = wt[j, u:e]
             x0, y0 = x0s[u], y0s[u]
             for k in range(K):
                 c = coef[k]
                 _run_taps(c[y0, x0:x0 + n + 3], c[y0 + 1, x0:x0 + n + 3], c[y0 + 2, x0:x0 + n + 3],
-                          c[y0 + 3, x0:x0 + n + 3], weights, sums[k, u:e])
+                          c[y0 + 3, x0:x0 + n + 3], wt[0, u:e], wt[1, u:e], wt[2, u:e], wt[3, u:e], wt[4, u:e],
+                          wt[5, u:e], wt[6, u:e], wt[7, u:e], sums[k, u:e])
             u = e
-        for u in range(w):
-            p = v * w + u
+        p0 = v * w
+        for k in range(K):  # every pixel as if in a run (no branch: the compiler vectorises it) ...
+            for u in range(w):
+                out[p0 + u, k] = _rounded(sums[k, u], top)
+        for u in range(w):  # ... then the others
             if inner[u]:
-                for k in range(K):
-                    out[p, k] = _rounded(sums[k, u], top)
                 continue
+            p = p0 + u
             px, py = xs[u], ys[u]
             if not (px >= 0.0 and px <= W - 1 and py >= 0.0 and py <= H - 1):
                 for k in range(K):
