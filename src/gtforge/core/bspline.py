@@ -120,7 +120,8 @@ def _planar_coefficients(image: np.ndarray) -> np.ndarray:
 
 
 # rows ``_filter_rows`` filters together: each step along the rows advances this many independent recursions, which
-# the processor overlaps, and their lines (16 x 2208 doubles) stay in the L2 cache
+# the processor overlaps, and the block stays in the L2 cache (16 rows of 2208 x K doubles: 0.28 MB for a plane,
+# 0.85 MB for a channel-last RGB image, whose cache lines hold all three channels)
 _ROWS = 16
 
 
