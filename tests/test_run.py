@@ -79,7 +79,12 @@ def test_run_equals_the_six_commands_by_hand(chain):
     logging.getLogger().handlers.clear()  # CliRunner's captured stderr is closed now
     diffs = _compare_module().compare(out, hand)
     run_only = {f"only in {out}: {p}" for p in ("run_state.json", "certificate.json", "index.html")}
+    # (verify by hand computed every scene's figures; the run took its build's: the same files)
     assert [d for d in diffs if d not in run_only] == []
+    st = RunState.read(out / "run_state.json").stages
+    assert st["verify"].detail["checked_by_build"] == st["verify"].detail["verified"] == ["000", "001", "002", "003"]
+    assert "      4 of them with the figures build-dataset's checks gave (verify computes the same from their files)" \
+        in chain["said"], chain["said"]
     assert res.exit_code == 0 and res.certificate.verdict in ("PASS", "WARN")
 
 
@@ -137,6 +142,7 @@ def test_rerun_edit_and_interrupt(chain):
     assert res.redone == ["build-dataset", "verify"]
     st = RunState.read(out / "run_state.json").stages
     assert st["build-dataset"].detail["built"] == ["003"] and st["verify"].detail["verified"] == ["003"]
+    assert st["verify"].detail["checked_by_build"] == ["003"]
     # the file as the user's folder names it (the state's "session/..." key was printed before)
     assert any(f"build-dataset: running ({(sess / 'scenes/003/DepthMap.tiff').as_posix()} changed)" in s
                for s in said), said

@@ -5,8 +5,10 @@ file names, then the dataset certificate (``OUT/index.html`` + ``certificate.jso
 Each stage records in ``OUT/run_state.json`` (``records.run.RunState``) its inputs' BLAKE3 (session files and the
 earlier stages' outputs), its options and its outputs; the next run skips a stage whose inputs, options and outputs
 are unchanged, and says what it redoes and why. build-dataset rebuilds only the scenes whose inputs changed (its own
-resume), and verify re-checks only the scenes rebuilt. A stage's record is written only once the stage is complete,
-and every stage writes its files whole, so Ctrl-C at any point leaves a run that the same command resumes.
+resume), and verify re-checks only the scenes rebuilt: with the figures the build's own checks gave them, which are
+the ones verify computes from their files (this run's records vouch for the files), and computed again only for a
+scene whose fruit moved. A stage's record is written only once the stage is complete, and every stage writes its
+files whole, so Ctrl-C at any point leaves a run that the same command resumes.
 
 What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the scenes' ZED
 images (self-rectification matches left and right in every capture; it reads no scene depth); align-depth (a unit
@@ -49,7 +51,7 @@ from gtforge.reports.certificate import write_certificate
 from gtforge.reports.depth_alignment import write_depth_alignment_report
 from gtforge.scale_calibration import calibrate_scale
 from gtforge.validate import validate, validate_gauges
-from gtforge.verify import verify_dataset
+from gtforge.verify import build_checks, verify_dataset
 
 # OUT's files: the names the README's step-by-step commands use
 CALIBRATION, CALIBRATION_REPORT, VALIDATION = "calibration.yaml", "calibration_report", "validation"
@@ -681,13 +683,20 @@ class _Run:
         else:
             todo = sorted(metas)
         t0 = time.perf_counter()
+        taken = {}
         if todo:
             # the scenes whose meta.json changed: rebuilt, or regrouped by session.yaml's fruit_ids (not rebuilt)
             self.say(f"      checking {', '.join(todo)}" + (" (meta.json changed; the other scenes as verified before)"
                                                             if len(todo) < len(metas) else ""))
+            # the build's own checks of the scenes it wrote, whose files this run's records vouch for (a scene whose
+            # files changed since is built again first): taken as verify would compute them, not computed twice
+            taken = build_checks(ds, todo)
+            if taken:
+                rest = len(todo) - len(taken)
+                self.say(f"      {len(taken)} of them with the figures build-dataset's checks gave (verify computes "
+                         "the same from their files)" + (f"; {rest} checked again" if rest else ""))
             verify_dataset(ds, scenes=todo, workers=self.opts.workers, scheduler=self.opts.scheduler,
-                           quarantine=self.opts.quarantine,
-                           progress=self.progress)
+                           quarantine=self.opts.quarantine, progress=self.progress, build_figures=taken)
         from gtforge.records.verification import VerificationResult
 
         rep = VerificationResult.read(ds / "verification.json")
@@ -702,7 +711,8 @@ class _Run:
         self.say(f"      {len(rep.scenes)} scene(s): {len(rep.flagged)} flagged -> {verdict}")
         pages = [ds / "verification.html", *(p for p in (ds / "verification").glob("*") if p.is_file())]
         self.done(name, options, inputs, [ds / "verification.json"], [p for p in pages if p.is_file()],
-                  verdict=verdict, reasons=reasons, detail={"verified": todo}, t0=t0)
+                  verdict=verdict, reasons=reasons, detail={"verified": todo, "checked_by_build": sorted(taken)},
+                  t0=t0)
 
 
 STAMP_PREFIX = "stamp:"  # a recorded output's size and modification time, not its BLAKE3

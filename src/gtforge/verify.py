@@ -39,12 +39,18 @@ log = logging.getLogger("gtforge.verify")
 
 def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, scenes: list[str] | None = None,
                    session_dir: str | Path | None = None, workers: int | None = None, scheduler: str | None = None,
-                   quarantine: bool = False, progress: Callable[[str], None] | None = None) -> VerificationResult:
+                   quarantine: bool = False, progress: Callable[[str], None] | None = None,
+                   build_figures: dict[str, SceneVerification] | None = None) -> VerificationResult:
     """Re-run the checks on an existing dataset (its manifest names the session and calibration); writes
     ``verification.json``/``.html`` and the flagged list into ``manifest.json`` (and, with ``quarantine``, leaves
-    flagged scenes out of the split lists)."""
+    flagged scenes out of the split lists).
 
-    prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
+    ``build_figures``: scenes' figures as build-dataset checked them (``build_checks``), for scenes whose files the
+    caller vouches are the ones that build wrote (``gtforge run``, whose records notice a change and build such a scene
+    again): taken instead of computed when the thresholds are the build's. verify computes the same figures from those
+    files, to the last digit (tests/stages/test_verify.py), in about the time the build took for them."""
+    if not build_figures:  # (otherwise most scenes may need no worker: the pool starts only if one does)
+        prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
     ds = Path(dataset_dir)
     man_path = ds / "manifest.json"
     if not ds.is_dir():
@@ -97,6 +103,8 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     results = {sid: e.verification for sid, e in kept.items() if stamps.get(sid) == e.inputs_stamp}
     if results and progress:
         progress(f"{len(results)} scene(s) verified before an interruption, their files unchanged: kept ({journal})")
+    if build_figures and params == man.params.verify:
+        results.update({sid: v for sid, v in build_figures.items() if sid in ids and sid not in results})
     args = [(str(sess.resolve()), str(ds.resolve()), sid, str(calib.resolve()), params.model_dump_json(), calib_sha)
             for sid in ids if sid not in results]
 
@@ -139,6 +147,21 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     write_split_views(ds, man.splits, man.params)
     man.write(man_path)
     return rep
+
+
+def build_checks(ds: Path, ids: list[str]) -> dict[str, SceneVerification]:
+    """The checks build-dataset made of scenes ``ids`` of dataset ``ds`` (each ``meta.json``'s verification), for the
+    scenes that have one and whose fruit did not move: verify checks a compensated scene on the fruit it finds moved
+    in the files (``moved_fruit_of``), which the build did not, so that scene is checked again."""
+    found = {}
+    for sid in ids:
+        try:
+            ver = SceneMeta.read(ds / "scenes" / sid / "meta.json").verification
+        except InputError:  # (missing or unreadable: verify_one_scene says so for that scene)
+            continue
+        if ver is not None and ver.motion_compensation is None:
+            found[sid] = ver
+    return found
 
 
 JOURNAL_FILE = ".verify-partial.json"  # an interrupted verify's checked scenes (records.verification.VerifyJournal)

@@ -482,6 +482,37 @@ def test_verify_gives_the_builds_figures_and_flags_a_depth_changed_after_it(data
 
 
 @pytest.mark.slow
+def test_the_builds_figures_are_taken_only_as_given_and_with_the_builds_thresholds(dataset, tmp_path):
+    """``build_figures`` (what ``gtforge run`` passes for the scenes its build just wrote): a scene's figures are taken
+    as given, not computed, when the thresholds are the build's; with other thresholds every scene is computed.
+    ``build_checks`` gives each scene's ``meta.json`` verification, except where the build tried motion compensation
+    (verify checks such a scene on the fruit it finds moved in the files)."""
+    from gtforge.records.verification import MotionCompensation, SceneVerification
+    from gtforge.verify import build_checks
+
+    out = tmp_path / "ds"
+    shutil.copytree(dataset[0], out)
+    built = VerificationResult.read(out / "verification.json").scenes
+    checks = build_checks(out, ["000", "001", "002"])
+    assert checks == {sid: built[sid] for sid in ("000", "001", "002")}
+    meta = out / "scenes" / "002" / "meta.json"
+    m = json.loads(meta.read_text())
+    m["verification"]["motion_compensation"] = MotionCompensation(status="not compensated").model_dump(mode="json")
+    meta.write_text(json.dumps(m))
+    assert sorted(build_checks(out, ["000", "001", "002", "999"])) == ["000", "001"]
+    # a figure no computation gives: taken for 001 (so 001 was not computed), 000 and 002 computed as the build did
+    marked = SceneVerification(status="flagged", reasons=["as given"])
+    rep = verify_dataset(out, scenes=["000", "001", "002"], workers=1, build_figures={"001": marked})
+    assert rep.scenes["001"] == marked and Manifest.read(out / "manifest.json").flagged == {"001": ["as given"]}
+    for sid in ("000", "002"):
+        assert rep.scenes[sid].model_dump(exclude={"time_s"}) == built[sid].model_dump(exclude={"time_s"}), sid
+    # other thresholds than the build's: nothing taken
+    rep = verify_dataset(out, VerifyParams(max_shift_px=0.4), scenes=["001"], workers=1,
+                         build_figures={"001": marked})
+    assert rep.scenes["001"].status == "ok" and rep.scenes["001"].reasons == []
+
+
+@pytest.mark.slow
 def test_an_interrupted_verify_resumes_with_the_scenes_it_had_checked(dataset, tmp_path):
     """Ctrl-C keeps the scenes already checked (.verify-partial.json); the next verify checks only the others, and
     again a kept scene whose files changed since; its report is the uninterrupted one's, and the journal goes (a
