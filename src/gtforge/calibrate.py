@@ -31,7 +31,6 @@ from gtforge.core.camera import PinholeCamera, RectifiedStereo, Rig
 from gtforge.core.targets.coverage import coverage_report
 from gtforge.core.geometry import invert_T, perturb_left, pose_difference, transform_points
 from gtforge.core.zed.rectification import RectificationMeter
-from gtforge.core.zed.selfcal import SelfRectifyParams
 from gtforge.core.targets.detection import PairSkipped, captures_detected_ahead, detect_target, match_target_views
 from gtforge.core.targets.models import MIN_COMMON_CORNERS, check_board_model
 from gtforge.errors import InputError
@@ -289,10 +288,11 @@ def calibrate(session_dir: str | Path, out_path: str | Path | None = None, param
     session, zed_conf = settle_zed_conf_reading(session, dirs, board, progress=progress)
     selfcal = None
     if params.self_rectify:
-        # every capture with both images: the scenes' texture constrains the rows as well as the boards
+        # the captures with both images: the scenes' texture constrains the rows as well as the boards (at most
+        # params.self_rectification.max_scenes of them, evenly spread)
         scene_root = session.root / session.config.scenes_dir
         scene_dirs = session.capture_dirs("scenes") if scene_root.is_dir() and any(scene_root.iterdir()) else []
-        selfcal = self_rectify(session, dirs + scene_dirs, SelfRectifyParams(), progress)
+        selfcal = self_rectify(session, dirs + scene_dirs, params.self_rectification, progress)
         if selfcal.correction is not None:
             session = open_session(session_dir, zed_conf_reading=zed_conf.reading if zed_conf else None,
                                    zed_right_correction=selfcal.correction)

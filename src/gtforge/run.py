@@ -10,13 +10,14 @@ the ones verify computes from their files (this run's records vouch for the file
 scene whose fruit moved. A stage's record is written only once the stage is complete, and every stage writes its
 files whole, so Ctrl-C at any point leaves a run that the same command resumes.
 
-What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the scenes' ZED
-images (self-rectification matches left and right in every capture; it reads no scene depth); align-depth (a unit
-whose depth map lies on a separate depth camera only) every capture and its IR.png with the calibration; validate the
-board captures (and gauges/) with the calibration; calibrate-scale the boards and the scenes (or
-``calibration_scenes``) with the calibration; refine those scenes with the scaled calibration; build-dataset every
-scene with the last calibration; verify each built scene. Stages that do not apply are skipped with the reason: no
-board captures (the calibration must then be given), no gauges, no scenes, too few scenes for refine.
+What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the scenes'
+ZED images (self-rectification matches left and right in every board capture and up to 24 scenes; it reads no scene
+depth); align-depth (a unit whose depth map lies on a separate depth camera only) every capture and its IR.png with
+the calibration; validate the board captures (and gauges/) with the calibration; calibrate-scale the boards and the
+scenes (or ``calibration_scenes``) with the calibration; refine those scenes with the scaled calibration;
+build-dataset every scene with the last calibration; verify each built scene. Stages that do not apply are skipped
+with the reason: no board captures (the calibration must then be given), no gauges, no scenes, too few scenes for
+refine.
 """
 from __future__ import annotations
 

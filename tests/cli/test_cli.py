@@ -182,8 +182,11 @@ def test_a_separate_depth_cameras_pose_through_the_commands(depth_pose_session, 
     from gtforge.records.calibration import CalibrationFile
 
     sess = depth_pose_session
-    r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(tmp_path / "calib.yaml"), "--no-loo"])
+    r = CliRunner().invoke(app, ["calibrate", str(sess), "-o", str(tmp_path / "calib.yaml"), "--no-loo",
+                                 "--self-rectify-scenes", "2"])
     assert r.exit_code == 0, r.output
+    sr = CalibrationFile.read(tmp_path / "calib.yaml").zed_self_rectification  # of its 3 scenes 000 and 002
+    assert [c.capture for c in sr.captures][-2:] == ["scenes/000", "scenes/002"] and sr.scenes_not_matched == 1
     r = CliRunner().invoke(app, ["calibrate-scale", str(sess), "-c", str(tmp_path / "calib.yaml"),
                                  "-o", str(tmp_path / "scaled.yaml")])
     assert r.exit_code == 0, r.output

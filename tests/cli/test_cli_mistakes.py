@@ -83,6 +83,8 @@ def test_option_values_are_checked(session_dir, true_calibration, dataset, tmp_p
         (("calibrate", session_dir, "--square-mm", "-2", "-o", tmp_path / "c.yaml"),
          "--square-mm: expected a value greater than 0, got -2.0"),
         (("calibrate", session_dir, "--board", "hexagon", "-o", tmp_path / "c.yaml"), "--board: expected a value"),
+        (("calibrate", session_dir, "--self-rectify-scenes", "-1", "-o", tmp_path / "c.yaml"),
+         "'--self-rectify-scenes'"),  # Click's own range check
     ]
     for args, needle in cases:
         r = gtforge(*args)

@@ -146,6 +146,37 @@ def test_synthetic_turned_right_camera_is_corrected(fixture, request):
     assert np.mean(np.abs(cv2.GaussianBlur(a, (0, 0), 2.0) - cv2.GaussianBlur(b, (0, 0), 2.0))[m]) < 0.15
 
 
+def test_evenly_spread_keeps_the_first_and_the_last():
+    from gtforge.io.zed_rectification import evenly_spread
+
+    assert evenly_spread(list(range(10)), 4) == [0, 3, 6, 9]
+    assert evenly_spread(list(range(10)), 1) == [0] and evenly_spread(list(range(10)), 2) == [0, 9]
+    assert evenly_spread(list(range(808)), 24)[:3] == [0, 35, 70] and evenly_spread(list(range(808)), 24)[-1] == 807
+    assert len(evenly_spread(list(range(808)), 24)) == 24
+    assert evenly_spread([3, 1], 5) == [3, 1] and evenly_spread([3, 1], None) == [3, 1]
+
+
+@pytest.mark.slow
+def test_at_most_max_scenes_scene_captures_are_matched(turned_session):
+    """``SelfRectifyParams.max_scenes``: every board capture and that many scene captures (evenly spread) are matched,
+    the fit is the fit of exactly those matches, and the result and its summary say how many scenes were not."""
+    from gtforge.io.zed_rectification import collect_matches, rectified_by
+
+    session = open_session(turned_session)
+    boards, scenes = session.capture_dirs("board"), session.capture_dirs("scenes")
+    assert len(boards) == 1 and len(scenes) == 2
+    res = self_rectify(session, boards + scenes, SelfRectifyParams(max_scenes=1))
+    assert [c.capture for c in res.captures] == ["board/000", "scenes/000"] and res.scenes_not_matched == 1
+    matches, skipped = collect_matches(session, boards + scenes[:1])
+    alone = fit_self_rectification(matches, session.zed, SelfRectifyParams(), rectified_by(session), skipped)
+    assert res.rotvec_rad == alone.rotvec_rad and res.sigma_rotvec_rad == alone.sigma_rotvec_rad
+    assert res.status == alone.status == "applied" and alone.scenes_not_matched == 0
+    assert res.summary_line().endswith("captures (1 scene captures not matched: max_scenes, the matched ones "
+                                       "evenly spread)")
+    every = self_rectify(session, boards + scenes)  # (the default, 24, is more than this session has)
+    assert len(every.captures) == 3 and every.scenes_not_matched == 0 and "not matched" not in every.summary_line()
+
+
 @pytest.mark.slow
 def test_synthetic_without_error_changes_nothing(session_dir):
     """A session whose right camera is as its files say: every estimate within 2 sigma of zero, nothing applied, the

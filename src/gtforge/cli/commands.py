@@ -236,8 +236,11 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                        help="Leave-one-pose-out cross-validation (--no-loo saves time)."),
               self_rectify: bool = typer.Option(True, "--self-rectify/--no-self-rectify",
                                                 help="Correct the ZED right camera's residual rotation from left-right "
-                                                     "matches over every capture (boards and scenes); applied only "
+                                                     "matches over the captures (boards and scenes); applied only "
                                                      "where the captures determine it (docs/pipeline.md)."),
+              self_rectify_scenes: Optional[int] = typer.Option(
+                  None, min=0, metavar="N", help="Scene captures the self-rectification matches at most, evenly "
+                  "spread over the session (default 24; 0: every scene); every board capture is matched."),
               board_model=None) -> None:
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
@@ -246,7 +249,13 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     from gtforge.reports.calibration import write_calibration_report
 
     # only the board options given: session.yaml's board (if any) fills the rest
-    params = _options(CalibrateParams, **({"board": board_model} if board_model else {}),
+    if self_rectify_scenes is not None:  # (0: every scene)
+        from gtforge.core.zed.selfcal import SelfRectifyParams
+
+        self_rect_kw = {"self_rectification": SelfRectifyParams(max_scenes=self_rectify_scenes or None)}
+    else:
+        self_rect_kw = {}
+    params = _options(CalibrateParams, **({"board": board_model} if board_model else {}), **self_rect_kw,
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     from gtforge.io.captures import open_session
     from gtforge.io.outputs import require_output_folder

@@ -345,14 +345,30 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
     return out, skipped
 
 
+def evenly_spread(items: Sequence, k: int | None) -> list:
+    """At most ``k`` of ``items``, evenly spread over their order (the first and, for ``k`` > 1, the last among them);
+    all of them when ``k`` is None or not fewer."""
+    n = len(items)
+    if k is None or k >= n:
+        return list(items)
+    return [items[i] for i in np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))]
+
+
 def self_rectify(session: Session, dirs: Sequence[Path], params: SelfRectifyParams | None = None,
                  progress: Callable[[str], None] | None = None) -> ZedSelfRectification:
-    """Match left and right in every capture of ``dirs`` (boards and scenes alike) as ``session`` rectifies them, fit
-    the right camera's correction and decide whether it is applied (module docstring)."""
+    """Match left and right in the captures of ``dirs`` (boards and scenes alike) as ``session`` rectifies them, fit
+    the right camera's correction and decide whether it is applied (module docstring). Every board capture is
+    matched, and at most ``params.max_scenes`` scene captures (``evenly_spread`` over their order in ``dirs``)."""
 
     params = params or SelfRectifyParams()
-    matches, skipped = collect_matches(session, dirs, params.max_features, progress)
+    scene_root = (session.root / session.config.scenes_dir).resolve()
+    in_scenes = [Path(d).parent.resolve() == scene_root for d in dirs]
+    scenes = evenly_spread([d for d, s in zip(dirs, in_scenes) if s], params.max_scenes)
+    chosen = set(scenes)
+    matched = [d for d, s in zip(dirs, in_scenes) if not s or d in chosen]
+    matches, skipped = collect_matches(session, matched, params.max_features, progress)
     res = fit_self_rectification(matches, session.zed, params, rectified_by(session), skipped)
+    res.scenes_not_matched = sum(in_scenes) - len(scenes)
     (log.info if res.status == "applied" else log.warning if res.status == "not determined" else log.info)(
         res.summary_line())
     return res

@@ -13,7 +13,7 @@ from gtforge.core.camera import Rig
 from gtforge.core.targets.coverage import CoverageResult
 from gtforge.core.zed.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
-from gtforge.core.zed.selfcal import ZedRightCorrection, ZedSelfRectification
+from gtforge.core.zed.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification
 from gtforge.core.targets.models import BoardModel
 from gtforge.io.zed_rectification import ZedConfChoice
 from gtforge.records.depth_alignment import DepthAlignment
@@ -37,8 +37,9 @@ class CalibrateParams(GTModel):
     # --use-depth: the two methods may differ by at most max(these floors, 5 sigma) before the verdict is FAIL
     methods_agree_deg: float = 0.1
     methods_agree_mm: float = 1.0
-    # the ZED right camera's residual rotation from left-right matches over every capture (gtforge.core.zed.selfcal)
+    # the ZED right camera's residual rotation from left-right matches over the captures (gtforge.core.zed.selfcal)
     self_rectify: bool = True
+    self_rectification: SelfRectifyParams = Field(default_factory=SelfRectifyParams)
 
 
 

@@ -87,7 +87,9 @@ def self_rectification_section(s: ZedSelfRectification | None) -> Section | None
     w, sw = np.degrees(s.rotvec_rad), np.degrees(s.sigma_rotvec_rad)
     status = {"applied": "pass", "not needed": None, "not determined": "warn"}[s.status]
     body = f"<p><b>{html.escape(s.status)}</b>: {html.escape(s.reason)}.</p>"
-    rows = [["matches (captures)", f"{s.n_matches} ({len(s.captures)})"],
+    rows = [["matches (captures)", f"{s.n_matches} ({len(s.captures)}"
+             + (f"; {s.scenes_not_matched} scene captures not matched, the matched ones evenly spread)"
+                if s.scenes_not_matched else ")")],
             ["median |v_left - v_right| before (px)", s.median_abs_before_px],
             ["median |v_left - v_right| after (px)", s.median_abs_after_px],
             ["rotation about x (deg)", f"{w[0]:+.4f} \u00b1 {sw[0]:.4f}"],
@@ -102,7 +104,8 @@ def self_rectification_section(s: ZedSelfRectification | None) -> Section | None
     body += note(f"Matched in the images as rectified {html.escape(s.rectified_by)}. The right camera's rectifying "
                  "rotation gets a small extra rotation and its focal length a scale, fitted to the rows of SIFT "
                  "matches "
-                 "refined by Lucas-Kanade over every capture (boards and scenes). The rotation about the vertical axis "
+                 "refined by Lucas-Kanade over every board capture and up to max_scenes scene captures, evenly "
+                 "spread over the session. The rotation about the vertical axis "
                  "shifts every disparity by about f times its angle and shows in the rows only at second order: it is "
                  "reported, never applied here. A vertical principal-point offset is the rotation about x to first "
                  "order. 'After': the same matches with the correction applied.")

@@ -56,6 +56,10 @@ class SelfRectifyParams(GTModel):
     disagree_px: float = Field(0.3, gt=0)  # |median residual row offset| of one capture after the common fit
     apply_min_px: float = Field(0.03, ge=0)  # the correction's largest vertical move over the image
     max_features: int = Field(8000, ge=100)  # SIFT features per image
+    # scene captures matched at most, evenly spread over the session (None: every scene; every board capture always).
+    # A full-resolution capture's matching costs 1.1 s on two cores, so every scene of an 808-scene session would take
+    # 15 min, while the fit's estimate stops moving after a few thousand matches (benchmarks/RESULTS.md, round 22)
+    max_scenes: int | None = Field(24, ge=1)
     # a yaw (rotation about y) moves rows by psi x y: where the matches determine it within this 1-sigma, it is fitted
     # with the rest and left out of the correction (calibrate-scale measures the yaw from disparities), so that it
     # does not leak into the focal scale and the roll, which also move columns; else the 3-parameter fit
@@ -130,14 +134,22 @@ class ZedSelfRectification(GTModel):
     rectified_by: str = ""  # the rectification the matches were made in
     captures: list[CaptureRows] = Field(default_factory=list)
     skipped: dict[str, str] = Field(default_factory=dict)  # capture -> why it gave no matches
+    scenes_not_matched: int = 0  # scene captures beyond SelfRectifyParams.max_scenes (the matched ones evenly spread)
 
     def summary_line(self) -> str:
         if self.status == "applied":
             w = np.degrees(self.rotvec_rad)
             return (f"ZED self-rectification applied: right camera rotated ({w[0]:+.4f}, 0, {w[2]:+.4f}) deg, focal "
                     f"scale {self.focal_scale:+.2e}; median |vertical disparity| {self.median_abs_before_px:.3f} -> "
-                    f"{self.median_abs_after_px:.3f} px over {self.n_matches} matches in {len(self.captures)} captures")
-        return f"ZED self-rectification {self.status}: {self.reason}"
+                    f"{self.median_abs_after_px:.3f} px over {self.n_matches} matches in {len(self.captures)} captures"
+                    + self.scenes_note())
+        return f"ZED self-rectification {self.status}: {self.reason}" + self.scenes_note()
+
+    def scenes_note(self) -> str:
+        """"" when every scene capture was matched; otherwise how many were not (SelfRectifyParams.max_scenes)."""
+        if not self.scenes_not_matched:
+            return ""
+        return f" ({self.scenes_not_matched} scene captures not matched: max_scenes, the matched ones evenly spread)"
 
 
 @dataclass
