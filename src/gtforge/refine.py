@@ -47,7 +47,9 @@ from gtforge.core.schema import GTModel
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
+from gtforge.infra import defaults
 from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.io.captures import evenly_spread
 from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import VerifyParams
@@ -60,6 +62,10 @@ class RefineParams(GTModel):
     huber: float = Field(0.5, gt=0)  # on normalised intensities (unit local standard deviation)
     iterations: int = Field(30, ge=1)  # Gauss-Newton steps per solve
     outer_iterations: int = Field(6, ge=1)  # solve, rebuild the scenes' GT with the result, solve again...
+    # the scenes used when none are named: at most this many, evenly spread over the session (None: every scene); 48
+    # full-resolution scenes take 90 s and 2.4 GB with the cross-validation, which grows as the square of their
+    # number (benchmarks/RESULTS.md, round 22)
+    max_scenes: int | None = Field(defaults.REFINE_MAX_SCENES, ge=1)
     converged_deg: float = 0.002  # ... until a pass moves the extrinsic by less than these (the passes jitter by
     # about 0.001 deg / 0.02 mm on the synthetic scenes at 0.4x: the noise floor of re-building the templates)
     converged_mm: float = 0.03
@@ -225,6 +231,10 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     rig0 = calib.rig
     build = BuildParams()
     dirs = session.select("scenes", scenes)
+    not_selected = 0
+    if scenes is None:
+        chosen = evenly_spread(dirs, params.max_scenes)
+        dirs, not_selected = chosen, len(dirs) - len(chosen)
     caps, pts, reports = {}, {}, {}
     flagged_before: set[str] = set()
     for k, d in enumerate(dirs):
@@ -319,6 +329,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     dr, dt = pose_difference(rig0.T_zed_from_mech, T_zed_from_mech)
     info = RefinementInfo(refined_from=str(calib_path.resolve()), scenes_used=used,
                           scenes_excluded={s: r.reason for s, r in reports.items() if r.status != "used"},
+                          scenes_not_selected=not_selected,
                           change_rot_deg=dr, change_trans_mm=dt,
                           heldout_shift_before_mean_px=float(np.mean(held_before)) if held_before else None,
                           heldout_shift_after_mean_px=float(np.mean(held_after)) if held_after else None,

@@ -10,14 +10,14 @@ the ones verify computes from their files (this run's records vouch for the file
 scene whose fruit moved. A stage's record is written only once the stage is complete, and every stage writes its
 files whole, so Ctrl-C at any point leaves a run that the same command resumes.
 
-What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the scenes'
-ZED images (self-rectification matches left and right in every board capture and up to 24 scenes; it reads no scene
-depth); align-depth (a unit whose depth map lies on a separate depth camera only) every capture and its IR.png with
-the calibration; validate the board captures (and gauges/) with the calibration; calibrate-scale the boards and the
-scenes (or ``calibration_scenes``) with the calibration; refine those scenes with the scaled calibration;
-build-dataset every scene with the last calibration; verify each built scene. Stages that do not apply are skipped
-with the reason: no board captures (the calibration must then be given), no gauges, no scenes, too few scenes for
-refine.
+What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the ZED images
+of up to 24 scenes, evenly spread (its self-rectification matches left and right in those; it reads no scene depth);
+align-depth (a unit whose depth map lies on a separate depth camera only) every capture and its IR.png with the
+calibration; validate the board captures (and gauges/) with the calibration; calibrate-scale the boards and up to 24
+scenes, evenly spread (or ``calibration_scenes``), with the calibration; refine up to 48 scenes, evenly spread (or
+those), with the scaled calibration; build-dataset every scene with the last calibration; verify each built scene.
+Stages that do not apply are skipped with the reason: no board captures (the calibration must then be given), no
+gauges, no scenes, too few scenes for refine.
 """
 from __future__ import annotations
 
@@ -34,13 +34,14 @@ from gtforge.align_depth import align_depth
 from gtforge.build_dataset import build_dataset
 from gtforge.calibrate import calibrate
 from gtforge.core.schema import GTModel, load_yaml
+from gtforge.core.zed.selfcal import SelfRectifyParams
 from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted, first_of
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file, blake3_hex
 from gtforge.infra.scheduling import check_scheduler_address
 from gtforge.io.calibrated_session import check_rig_matches_session, open_with_calibration
-from gtforge.io.captures import open_session
+from gtforge.io.captures import evenly_spread, open_session
 from gtforge.io.outputs import free_path, new_folders, remove_if_empty, require_new_or_empty_folder
 from gtforge.records.calibration import CalibrateParams, CalibrationFile, ScaleParams
 from gtforge.records.certificate import Certificate
@@ -67,7 +68,7 @@ class RunOptions(GTModel):
     calibration: str | None = None  # a calibration file to use instead of calibrating (sessions without boards)
     use_depth: bool = False  # calibrate --use-depth
     loo: bool = True  # calibrate and refine: leave-one-out cross-validation
-    calibration_scenes: list[str] | None = None  # the scenes calibrate-scale and refine use (default: all)
+    calibration_scenes: list[str] | None = None  # the scenes calibrate-scale and refine use (default: max_scenes)
     refine: bool = True
     quarantine: bool = False  # build-dataset / verify --quarantine
     workers: int | None = None
@@ -367,12 +368,18 @@ class _Run:
         if opts.calibration_scenes:
             # unknown names: one line, exit 2
             self.session.select("scenes", opts.calibration_scenes, option="--calibration-scenes")
-        cal_scenes = [d for d in scenes if not opts.calibration_scenes or d.name in opts.calibration_scenes]
+        # the scenes calibrate-scale and refine read: those named, else as many as each uses by default (max_scenes,
+        # evenly spread: the same ones the stage picks), so that an edit of another scene redoes neither
+        if opts.calibration_scenes:
+            scale_scenes = refine_scenes = [d for d in scenes if d.name in opts.calibration_scenes]
+        else:
+            scale_scenes = evenly_spread(scenes, ScaleParams().max_scenes)
+            refine_scenes = evenly_spread(scenes, RefineParams().max_scenes)
         steps = [self.stage_calibrate, self.stage_align, self.stage_validate, self.stage_scale, self.stage_refine,
                  self.stage_build, self.stage_verify]
         # the stages before build-dataset record the session's files so (session.yaml read once for all of them)
         ctx = {"boards": boards, "scenes": scenes, "cfg": cfg, "cfg_before_build": self.config_hashes(cfg),
-               "gauges": gauges, "cal_scenes": cal_scenes}
+               "gauges": gauges, "scale_scenes": scale_scenes, "refine_scenes": refine_scenes}
         for k, (name, step) in enumerate(zip(STAGES, steps), 1):
             try:
                 step(k, ctx)
@@ -436,7 +443,8 @@ class _Run:
         options = _plain({"use_depth": opts.use_depth, "loo": opts.loo})
         inputs = {**ctx["cfg_before_build"],
                   **self.hashes([p for d in ctx["boards"] for p in self.capture_files(d)]
-                                + [p for d in ctx["scenes"] for p in self.zed_files(d)])}
+                                + [p for d in evenly_spread(ctx["scenes"], SelfRectifyParams().max_scenes)
+                                   for p in self.zed_files(d)])}  # (the scenes its self-rectification matches)
         if not self.decide(k, name, options, inputs):
             return
         t0 = time.perf_counter()
@@ -535,7 +543,7 @@ class _Run:
 
     def stage_scale(self, k: int, ctx: dict) -> None:
         name = "calibrate-scale"
-        if not ctx["cal_scenes"]:
+        if not ctx["scale_scenes"]:
             self.not_applicable(k, name, "no scene captures")
             return
         cal = CalibrationFile.read(ctx["calib"])
@@ -550,7 +558,7 @@ class _Run:
         options = _plain({"scenes": self.opts.calibration_scenes, "use_boards": True})
         inputs = {**ctx["cfg_before_build"],
                   **self.hashes([ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
-                                + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])}
+                                + [p for d in ctx["scale_scenes"] for p in self.capture_files(d)])}
         scaled = self.out / SCALED
         if self.decide(k, name, options, inputs):
             t0 = time.perf_counter()
@@ -573,14 +581,14 @@ class _Run:
             # (-c a refined file: refine again only from the file it started from)
             reason = (f"{Path(ctx['calib']).name} is already refined; give -c the calibration refine started from "
                       f"({given.refinement.refined_from}) to refine again")
-        elif len(ctx["cal_scenes"]) < need:
+        elif len(ctx["refine_scenes"]) < need:
             reason = (f"refinement needs at least {need} scenes, "
                       f"{'--calibration-scenes names' if self.opts.calibration_scenes else 'the session has'} "
-                      f"{len(ctx['cal_scenes'])}")
+                      f"{len(ctx['refine_scenes'])}")
         if reason is None:
             options = _plain({"scenes": self.opts.calibration_scenes, "loo": self.opts.loo})
             inputs = {**ctx["cfg_before_build"],
-                      **self.hashes([ctx["calib"]] + [p for d in ctx["cal_scenes"] for p in self.capture_files(d)])}
+                      **self.hashes([ctx["calib"]] + [p for d in ctx["refine_scenes"] for p in self.capture_files(d)])}
             refined = self.out / REFINED
             if not self.decide(k, name, options, inputs):
                 ctx["calib"] = refined

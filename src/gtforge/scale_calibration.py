@@ -81,7 +81,7 @@ from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
-from gtforge.io.captures import missing_capture_file
+from gtforge.io.captures import evenly_spread, missing_capture_file
 from gtforge.records.calibration import (
     CalibrationFile,
     ScaleCalibration,
@@ -572,6 +572,10 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     have_b = any(m.A[:, IB].any() for m in boards)
     have_k = any(m.A[:, IK].any() for m in boards)
     dirs = session.select("scenes", scenes)
+    not_selected = 0
+    if scenes is None:
+        chosen = evenly_spread(dirs, params.max_scenes)
+        dirs, not_selected = chosen, len(dirs) - len(chosen)
     caps = {d.name: session.load_capture(d) for d in dirs}
     build = BuildParams()
     x = np.zeros(len(PARAMS))
@@ -706,7 +710,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         combined_scale_sigma_frac=float(np.sqrt(s_var)) if determined[IB] else None,
         baseline_file_mm=B_file,
         T_mech_from_depth_file=rig_file.T_mech_from_depth_or_identity.tolist() if separate else None,
-        scenes_used=[sp.name for sp in pix],
+        scenes_used=[sp.name for sp in pix], scenes_not_selected=not_selected,
         board_poses_used=sorted({p for m in boards for p in m.poses}),
         board_poses_by_measurement={m.kind: sorted(m.poses) for m in boards}, passes=passes,
         scenes=[reports[s] for s in sorted(reports)], time_s=time.perf_counter() - t0)

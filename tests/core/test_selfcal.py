@@ -147,7 +147,7 @@ def test_synthetic_turned_right_camera_is_corrected(fixture, request):
 
 
 def test_evenly_spread_keeps_the_first_and_the_last():
-    from gtforge.io.zed_rectification import evenly_spread
+    from gtforge.io.captures import evenly_spread
 
     assert evenly_spread(list(range(10)), 4) == [0, 3, 6, 9]
     assert evenly_spread(list(range(10)), 1) == [0] and evenly_spread(list(range(10)), 2) == [0, 9]

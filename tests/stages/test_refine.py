@@ -73,6 +73,20 @@ def test_refinement_recovers_the_extrinsic_from_scenes(refine_session, true_cali
     assert again.cov_jackknife_scale is not None and again.cov_jackknife_scale >= 1.0
 
 
+def test_without_named_scenes_at_most_max_scenes_evenly_spread_are_used(refine_session, true_calibration,
+                                                                         T_zed_from_mech_true, tmp_path):
+    """RefineParams.max_scenes (the CLI's --max-scenes): of the session's 7 scenes, 4 evenly spread (000, 002, 004,
+    006; 006's fruit rolled: excluded), the others counted as not selected; named scenes are used whatever it says."""
+    start, _ = _start(true_calibration, T_zed_from_mech_true, tmp_path, [0.03, -0.03, 0.025], [0.3, -0.3, 0.25])
+    res = refine(refine_session, start, tmp_path / "r.yaml", RefineParams(leave_one_out=False, max_scenes=4))
+    info = res.refinement
+    assert info.scenes_used == ["000", "002", "004"] and list(info.scenes_excluded) == ["006"]
+    assert info.scenes_not_selected == 3
+    named = refine(refine_session, start, tmp_path / "n.yaml", RefineParams(leave_one_out=False, max_scenes=1),
+                   scenes=["001", "003", "005"]).refinement
+    assert named.scenes_used == ["001", "003", "005"] and named.scenes_not_selected == 0
+
+
 def test_refine_refuses_to_overwrite_its_input_and_needs_scenes(refine_session, true_calibration, T_zed_from_mech_true,
                                                                 tmp_path):
     start, _ = _start(true_calibration, T_zed_from_mech_true, tmp_path, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])

@@ -218,6 +218,24 @@ def test_no_error_leaves_the_ground_truth_unchanged(session_dir, tmp_path):
         assert np.mean(np.abs(a[m] - b[m])) < 0.002
 
 
+@pytest.mark.slow
+def test_without_named_scenes_at_most_max_scenes_evenly_spread_are_used(session_dir, tmp_path):
+    """ScaleParams.max_scenes (the CLI's --max-scenes): of the shared session's 3 scenes the first and the last, the
+    third counted as not selected, on the command's line too."""
+    from typer.testing import CliRunner
+
+    from gtforge.cli.commands import app
+
+    start = _known_calibration(session_dir, tmp_path / "start.yaml")
+    r = CliRunner().invoke(app, ["calibrate-scale", str(session_dir), "-c", str(start), "-o",
+                                 str(tmp_path / "scaled.yaml"), "--max-scenes", "2"])
+    assert r.exit_code == 0, r.output
+    info = CalibrationFile.read(tmp_path / "scaled.yaml").scale_calibration
+    assert info.scenes_used == ["000", "002"] and info.scenes_not_selected == 1
+    assert "scenes 000, 002 (1 more scene(s) of the session not used: --max-scenes, those used evenly spread)" \
+        in r.output, r.output
+
+
 # ---- both corrections of the right camera: the self-rectification and the yaw, in one resampling -----------------
 BOTH_SESSION_SPEC = session_spec("both_session", "both_errors", n_board=5, n_scenes=2, scale=0.3, seed=5,
                                  depth_noise_mm=0.03, image_noise=1.0, supersample=2, right_yaw_deg=0.15,

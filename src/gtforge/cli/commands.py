@@ -183,7 +183,8 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
         loo: bool = typer.Option(True, "--loo/--no-loo", help="Leave-one-out cross-validation in calibrate and "
                                  "refine (--no-loo saves time)."),
         calibration_scenes: Optional[str] = typer.Option(
-            None, metavar="IDS", help="Comma-separated scene ids calibrate-scale and refine use (default: all)."),
+            None, metavar="IDS", help="Comma-separated scene ids calibrate-scale and refine use (default: up to "
+            f"{defaults.MAX_SCENES} and {defaults.REFINE_MAX_SCENES} scenes, evenly spread over the session)."),
         refine_: bool = typer.Option(True, "--refine/--no-refine", help="Refine the extrinsic from the scenes."),
         quarantine: bool = typer.Option(False, "--quarantine", help="Leave flagged scenes out of the split lists "
                                         "(the run then passes with a warning)."),
@@ -238,9 +239,9 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
                                                 help="Correct the ZED right camera's residual rotation from left-right "
                                                      "matches over the captures (boards and scenes); applied only "
                                                      "where the captures determine it (docs/pipeline.md)."),
-              self_rectify_scenes: Optional[int] = typer.Option(
-                  None, min=0, metavar="N", help="Scene captures the self-rectification matches at most, evenly "
-                  "spread over the session (default 24; 0: every scene); every board capture is matched."),
+              self_rectify_scenes: int = typer.Option(
+                  defaults.MAX_SCENES, min=0, metavar="N", help="Scene captures the self-rectification matches at "
+                  "most, evenly spread over the session (0: every scene); every board capture is matched."),
               board_model=None) -> None:
     """Solve T_zed_from_mech from board captures in SESSION/board/ (checkerboard, ChArUco or circle grid)."""
     from gtforge.calibrate import calibrate as run
@@ -249,13 +250,10 @@ def calibrate(session: Path = typer.Argument(..., help="Capture session folder (
     from gtforge.reports.calibration import write_calibration_report
 
     # only the board options given: session.yaml's board (if any) fills the rest
-    if self_rectify_scenes is not None:  # (0: every scene)
-        from gtforge.core.zed.selfcal import SelfRectifyParams
+    from gtforge.core.zed.selfcal import SelfRectifyParams
 
-        self_rect_kw = {"self_rectification": SelfRectifyParams(max_scenes=self_rectify_scenes or None)}
-    else:
-        self_rect_kw = {}
-    params = _options(CalibrateParams, **({"board": board_model} if board_model else {}), **self_rect_kw,
+    params = _options(CalibrateParams, **({"board": board_model} if board_model else {}),
+                      self_rectification=SelfRectifyParams(max_scenes=self_rectify_scenes or None),
                       use_depth=use_depth, leave_one_out=loo, self_rectify=self_rectify)
     from gtforge.io.captures import open_session
     from gtforge.io.outputs import require_output_folder
@@ -421,13 +419,22 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
         raise typer.Exit(1)
 
 
+def _not_selected(n: int) -> str:
+    """What a stage's line adds when ``max_scenes`` left scenes of the session out."""
+    return f" ({n} more scene(s) of the session not used: --max-scenes, those used evenly spread)" if n else ""
+
+
 @app.command()
 def refine(session: Path = typer.Argument(..., help="Capture session folder (its scenes/ captures are used)."),
            calibration: Path = typer.Option(..., "--calibration", "-c", metavar="FILE",
                                             help="The board calibration to start from (gtforge calibrate)."),
            output: str = typer.Option("refined.yaml", "--output", "-o", metavar="PATH",
                                       help="Refined calibration YAML to write (never the input file)."),
-           scenes: Optional[str] = typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: all)."),
+           scenes: Optional[str] = typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: up to "
+                                                "--max-scenes of them, evenly spread over the session)."),
+           max_scenes: int = typer.Option(defaults.REFINE_MAX_SCENES, min=0, metavar="N",
+                                          help="Without --scenes: use at most N scenes, evenly spread over the "
+                                               "session (0: every scene)."),
            loo: bool = typer.Option(True, "--loo/--no-loo",
                                     help="Hold each scene out in turn and measure it (cross-validation).")) -> None:
     """Refine T_zed_from_mech from the scenes' texture alignment; writes a normal calibration file whose
@@ -436,10 +443,11 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
     from gtforge.refine import refine as run
 
     _refuse_a_runs_folder(output, "refined.yaml")
-    res = run(session, calibration, output, RefineParams(leave_one_out=loo), scenes.split(",") if scenes else None,
-              progress=_status)
+    params = RefineParams(leave_one_out=loo, max_scenes=max_scenes or None)
+    res = run(session, calibration, output, params, scenes.split(",") if scenes else None, progress=_status)
     info = res.refinement
     out.print(f"refined over {len(info.scenes_used)} scene(s); excluded {len(info.scenes_excluded)}"
+              + _not_selected(info.scenes_not_selected)
               + "".join(f"\n  {k}: {v}" for k, v in info.scenes_excluded.items()))
     out.print(f"the extrinsic moved by {info.change_rot_deg:.4f} deg / {info.change_trans_mm:.3f} mm; "
               f"1-sigma now {res.sigma_rot_deg:.4f} deg / {res.sigma_trans_mm:.3f} mm")
@@ -464,7 +472,11 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
                     output: str = typer.Option("scaled.yaml", "--output", "-o", metavar="PATH",
                                                help="Corrected calibration YAML to write (never the input file)."),
                     scenes: Optional[str] = typer.Option(None, metavar="IDS",
-                                                         help="Comma-separated scene ids (default: all)."),
+                                                         help="Comma-separated scene ids (default: up to --max-scenes "
+                                                              "of them, evenly spread over the session)."),
+                    max_scenes: int = typer.Option(defaults.REFINE_MAX_SCENES, min=0, metavar="N",
+                                                   help="Without --scenes: use at most N scenes, evenly spread over "
+                                                        "the session (0: every scene)."),
                     boards: bool = typer.Option(True, "--boards/--no-boards",
                                                 help="Use the board captures (they separate baseline from depth "
                                                      "scale).")
@@ -476,8 +488,8 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
     from gtforge.scale_calibration import calibrate_scale as run
 
     _refuse_a_runs_folder(output, "scaled.yaml")
-    res = run(session, calibration, output, ScaleParams(use_boards=boards), scenes.split(",") if scenes else None,
-              progress=_status)
+    params = ScaleParams(use_boards=boards, max_scenes=max_scenes or None)
+    res = run(session, calibration, output, params, scenes.split(",") if scenes else None, progress=_status)
     from gtforge.reports.calibration import scale_term_lines
 
     info = res.scale_calibration
@@ -486,8 +498,8 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
     by = info.board_poses_by_measurement
     each = [f"{label} {len(by[k])}" for k, label in (("zed_pair", "ZED pair"), ("depth_map", "depth map")) if k in by]
     out.print(f"baseline {info.baseline_file_mm:.4f} -> {res.rig.zed.baseline_mm:.4f} mm; "
-              f"scenes {', '.join(info.scenes_used)}; board poses {len(info.board_poses_used)}"
-              + (f" ({', '.join(each)})" if len(each) > 1 else ""))
+              f"scenes {', '.join(info.scenes_used)}{_not_selected(info.scenes_not_selected)}; board poses "
+              f"{len(info.board_poses_used)}" + (f" ({', '.join(each)})" if len(each) > 1 else ""))
     from gtforge.io.calibrated_session import calibration_output_path
 
     out.print(f"wrote {calibration_output_path(output, 'scaled.yaml')}")

@@ -18,3 +18,9 @@ Z_THRESHOLD_PCT = 0.05
 # align-depth (gtforge.core.alignment.edge_alignment.EdgeAlignmentParams)
 EDGE_SEARCH_PX = 6.0  # the coarse search's first range (+-px)
 EDGE_APPLY_Z = 3.0  # apply the correction when it is more than this many sigma from the factory pose
+
+# the stages that fit a few terms to a session's scenes use at most this many scenes, evenly spread over the session
+# (calibrate's self-rectification: SelfRectifyParams; calibrate-scale: ScaleParams); refine's extrinsic keeps
+# gaining with more (its sigma as 1 / sqrt(scenes)) and holds less a scene (benchmarks/RESULTS.md, round 22)
+MAX_SCENES = 24
+REFINE_MAX_SCENES = 48

@@ -9,6 +9,7 @@ import io
 import os
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Literal
@@ -261,6 +262,16 @@ class SessionFile(VersionedFile):
                 raise ValueError(f"scene ids as text: quote them in YAML ('000': melon07); {numbers[0]!r} reads as a "
                                  "number")
         return v
+
+
+def evenly_spread(items: Sequence, k: int | None) -> list:
+    """At most ``k`` of ``items``, evenly spread over their order (the first and, for ``k`` > 1, the last among them);
+    all of them when ``k`` is None or not fewer. The stages that fit a few terms to a session's scenes use this many
+    (``SelfRectifyParams``, ``ScaleParams``, ``RefineParams``: ``max_scenes``), the same ones every time."""
+    n = len(items)
+    if k is None or k >= n:
+        return list(items)
+    return [items[i] for i in np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))]
 
 
 @dataclass

@@ -38,7 +38,7 @@ from gtforge.io.cameras import (
     check_zed_conf_reading,
     describe_zed_conf_reading,
 )
-from gtforge.io.captures import Session, leave_out_hint, missing_capture_file, open_session
+from gtforge.io.captures import Session, evenly_spread, leave_out_hint, missing_capture_file, open_session
 
 log = logging.getLogger("gtforge.io.zed_rectification")
 
@@ -343,15 +343,6 @@ def collect_matches(session: Session, dirs: Sequence[Path], max_features: int = 
         else:
             out.append(m)
     return out, skipped
-
-
-def evenly_spread(items: Sequence, k: int | None) -> list:
-    """At most ``k`` of ``items``, evenly spread over their order (the first and, for ``k`` > 1, the last among them);
-    all of them when ``k`` is None or not fewer."""
-    n = len(items)
-    if k is None or k >= n:
-        return list(items)
-    return [items[i] for i in np.unique(np.round(np.linspace(0, n - 1, k)).astype(int))]
 
 
 def self_rectify(session: Session, dirs: Sequence[Path], params: SelfRectifyParams | None = None,

@@ -15,6 +15,7 @@ from gtforge.core.zed.rectification import RectificationQuality
 from gtforge.core.schema import GTModel, VersionedFile
 from gtforge.core.zed.selfcal import SelfRectifyParams, ZedRightCorrection, ZedSelfRectification
 from gtforge.core.targets.models import BoardModel
+from gtforge.infra import defaults
 from gtforge.io.zed_rectification import ZedConfChoice
 from gtforge.records.depth_alignment import DepthAlignment
 from gtforge.records.verification import VerifyParams
@@ -98,6 +99,7 @@ class RefinementInfo(GTModel):
     method: str = "scene texture alignment (direct photometric, Huber IRLS)"
     scenes_used: list[str]
     scenes_excluded: dict[str, str] = Field(default_factory=dict)
+    scenes_not_selected: int = 0  # the session's scenes beyond RefineParams.max_scenes (those used evenly spread)
     change_rot_deg: float
     change_trans_mm: float
     heldout_shift_before_mean_px: float | None = None
@@ -212,6 +214,10 @@ class ScaleParams(GTModel):
     # correction would only move the GT by noise); the others are then solved again with it held at 0
     apply_z: float = Field(2.0, ge=0)
     use_boards: bool = True
+    # the scenes used when none are named: at most this many, evenly spread over the session (None: every scene). Each
+    # full-resolution scene holds about 160 MB and takes about 1.5 s here, so every scene of an 808-scene session
+    # would need some 130 GB (benchmarks/RESULTS.md, round 22)
+    max_scenes: int | None = Field(defaults.MAX_SCENES, ge=1)
     board_depth_window_px: int = Field(3, ge=1)  # half-size of the depth window fitted at each corner
     verify: VerifyParams = Field(default_factory=VerifyParams)
 
@@ -259,6 +265,7 @@ class ScaleCalibration(GTModel):
     # a separate depth camera's pose before this correction (rig.T_mech_from_depth now holds the corrected one)
     T_mech_from_depth_file: list[list[float]] | None = None
     scenes_used: list[str]
+    scenes_not_selected: int = 0  # the session's scenes beyond ScaleParams.max_scenes (those used evenly spread)
     board_poses_used: list[str] = Field(default_factory=list)  # any of the two measurements' below
     # the board poses each measurement used: "zed_pair" (corner disparities: every pose the ZED pair saw) and
     # "depth_map" (the depth against the texture camera's PnP: the poses the depth camera saw), so that a pose seen by

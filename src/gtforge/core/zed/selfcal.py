@@ -43,6 +43,7 @@ from gtforge.core.bspline import resample_homography
 from gtforge.core.camera import RectifiedStereo
 from gtforge.core.zed.scale_corrections import right_yaw_homography
 from gtforge.core.schema import GTModel
+from gtforge.infra import defaults
 
 if TYPE_CHECKING:
     pass
@@ -59,7 +60,7 @@ class SelfRectifyParams(GTModel):
     # scene captures matched at most, evenly spread over the session (None: every scene; every board capture always).
     # A full-resolution capture's matching costs 1.1 s on two cores, so every scene of an 808-scene session would take
     # 15 min, while the fit's estimate stops moving after a few thousand matches (benchmarks/RESULTS.md, round 22)
-    max_scenes: int | None = Field(24, ge=1)
+    max_scenes: int | None = Field(defaults.MAX_SCENES, ge=1)
     # a yaw (rotation about y) moves rows by psi x y: where the matches determine it within this 1-sigma, it is fitted
     # with the rest and left out of the correction (calibrate-scale measures the yaw from disparities), so that it
     # does not leak into the focal scale and the roll, which also move columns; else the 3-parameter fit
