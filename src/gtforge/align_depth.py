@@ -22,6 +22,7 @@ from gtforge.core.camera import Rig
 from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
+from gtforge.io.captures import evenly_spread
 from gtforge.io.formats import read_image
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.depth_alignment import DepthAlignment
@@ -31,7 +32,8 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
                 params: EdgeAlignmentParams | None = None, captures: list[str] | None = None,
                 use_boards: bool = True, progress: Callable[[str], None] | None = None) -> CalibrationFile:
     """Refine the calibration's ``T_mech_from_depth`` from the session's captures (module docstring); ``captures``:
-    the scene ids to use (default all), ``use_boards``: the board captures too. Writes ``out_path`` when given (never
+    the scene ids to use (default: ``params.max_scenes`` of them, evenly spread), ``use_boards``: the board captures
+    too. Writes ``out_path`` when given (never
     the input file). Returns the new calibration file."""
     t0 = time.perf_counter()
     params = params or EdgeAlignmentParams()
@@ -59,6 +61,10 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
         raise InputError(calib_path, "depth_alignment", "a calibration whose depth camera pose is not aligned yet",
                          "one already aligned", "run align-depth on the calibration it was made from")
     dirs = session.select("scenes", captures)
+    not_selected = 0
+    if captures is None:
+        chosen = evenly_spread(dirs, params.max_scenes)
+        dirs, not_selected = chosen, len(dirs) - len(chosen)
     board_root = session.root / session.config.board_dir
     if use_boards and board_root.is_dir():
         dirs = list(session.select("board", None)) + list(dirs)
@@ -89,7 +95,7 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
                   "every capture together")
     info = DepthAlignment(method=method, calibrated_from=str(calib_path.resolve()),
                           T_mech_from_depth_file=T_mech_from_depth_file, params=params, result=res,
-                          time_s=time.perf_counter() - t0)
+                          scenes_not_selected=not_selected, time_s=time.perf_counter() - t0)
     out = calib.model_copy(update={"rig": new_rig, "depth_alignment": info})
     out = CalibrationFile.model_validate(out.model_dump())
     if out_path is not None:
@@ -119,6 +125,9 @@ def summary_lines(info: DepthAlignment) -> list[str]:
     r = info.result
     names = ("omega_x", "omega_y", "omega_z")
     lines = [f"depth camera pose: {r.decision} ({r.reason})", f"  edges: {' and '.join(r.edge_kinds)}"]
+    if info.scenes_not_selected:
+        lines.append(f"  {info.scenes_not_selected} more scene(s) of the session not used (--max-scenes: those used "
+                     "evenly spread)")
     for k, n in enumerate(names):
         sig = f" +- {r.sigma_omega_deg[k]:.3f}" if np.isfinite(r.sigma_omega_deg[k]) else ""
         lines.append(f"  {n}: {r.omega_deg[k]:+.3f}{sig} deg [{r.status[k]}]")

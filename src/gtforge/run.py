@@ -12,12 +12,12 @@ files whole, so Ctrl-C at any point leaves a run that the same command resumes.
 
 What each stage reads (its inputs here): calibrate the session's camera files, the board captures and the ZED images
 of up to 24 scenes, evenly spread (its self-rectification matches left and right in those; it reads no scene depth);
-align-depth (a unit whose depth map lies on a separate depth camera only) every capture and its IR.png with the
-calibration; validate the board captures (and gauges/) with the calibration; calibrate-scale the boards and up to 24
-scenes, evenly spread (or ``calibration_scenes``), with the calibration; refine up to 48 scenes, evenly spread (or
-those), with the scaled calibration; build-dataset every scene with the last calibration; verify each built scene.
-Stages that do not apply are skipped with the reason: no board captures (the calibration must then be given), no
-gauges, no scenes, too few scenes for refine.
+align-depth (a unit whose depth map lies on a separate depth camera only) every board capture and up to 24 scenes,
+evenly spread, and their IR.png, with the calibration; validate the board captures (and gauges/) with the
+calibration; calibrate-scale the boards and up to 24 scenes, evenly spread (or ``calibration_scenes``), with the
+calibration; refine up to 48 scenes, evenly spread (or those), with the scaled calibration; build-dataset every
+scene with the last calibration; verify each built scene. Stages that do not apply are skipped with the reason: no
+board captures (the calibration must then be given), no gauges, no scenes, too few scenes for refine.
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ import gtforge
 from gtforge.align_depth import align_depth
 from gtforge.build_dataset import build_dataset
 from gtforge.calibrate import calibrate
+from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams
 from gtforge.core.schema import GTModel, load_yaml
 from gtforge.core.zed.selfcal import SelfRectifyParams
 from gtforge.dataset.layout import STAMP_MARGIN_NS
@@ -474,7 +475,7 @@ class _Run:
             reason = (f"{Path(ctx['calib']).name} is already "
                       f"{'refined' if cal.refinement is not None else 'scale-corrected'}; align-depth runs before "
                       f"calibrate-scale and refine: give -c the calibration calibrate wrote to align it")
-        caps = ctx["boards"] + ctx["scenes"]
+        caps = ctx["boards"] + evenly_spread(ctx["scenes"], EdgeAlignmentParams().max_scenes)  # (those it reads)
         if reason is None and not caps:
             reason = "no board or scene captures"
         if reason is not None:

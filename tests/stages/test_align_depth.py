@@ -227,7 +227,8 @@ def test_the_command(session, tmp_path, monkeypatch, capsys):
     from gtforge.cli import main
 
     start = _calibration(session, tmp_path / "start.yaml")
-    for args, code in (([str(tmp_path / "a.yaml"), "--scenes", "000"], 0), ([str(start)], 2)):
+    for args, code in (([str(tmp_path / "a.yaml"), "--scenes", "000"], 0), ([str(start)], 2),
+                       ([str(tmp_path / "b.yaml"), "--max-scenes", "2"], 0)):
         monkeypatch.setattr(sys, "argv", ["gtforge", "align-depth", str(session), "-c", str(start), "-o"] + args)
         with pytest.raises(SystemExit) as e:
             main()
@@ -241,6 +242,11 @@ def test_the_command(session, tmp_path, monkeypatch, capsys):
     assert r.decision in page and "omega_x" in page and "scenes/000" in page
     assert f"{r.offset_before_px[0]:+.2f}" in page and f"{r.offset_after_px[1]:+.2f}" in page
     assert cap.err.strip().startswith("error:") and len(cap.err.strip().splitlines()) == 1
+    # --max-scenes 2 (EdgeAlignmentParams.max_scenes): of the 3 scenes the first and the last, beside the board
+    two = CalibrationFile.read(tmp_path / "b.yaml").depth_alignment
+    assert [c.name for c in two.result.captures] == ["board/000", "scenes/000", "scenes/002"]
+    assert two.scenes_not_selected == 1 and info.scenes_not_selected == 0 and two.params.max_scenes == 2
+    assert "  1 more scene(s) of the session not used (--max-scenes: those used evenly spread)" in cap.out
 
 
 def test_build_dataset_adds_the_rotations_sigma(session, aligned, tmp_path):

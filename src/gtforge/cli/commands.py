@@ -513,7 +513,11 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
                 output: str = typer.Option("aligned.yaml", "--output", "-o", metavar="PATH",
                                            help="Calibration YAML to write (never the input file)."),
                 scenes: Optional[str] = typer.Option(None, metavar="IDS",
-                                                     help="Comma-separated scene ids (default: all)."),
+                                                     help="Comma-separated scene ids (default: up to --max-scenes "
+                                                          "of them, evenly spread over the session)."),
+                max_scenes: int = typer.Option(defaults.MAX_SCENES, min=0, metavar="N",
+                                               help="Without --scenes: use at most N scenes, evenly spread over the "
+                                                    "session (0: every scene)."),
                 boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
                 search_px: float = typer.Option(defaults.EDGE_SEARCH_PX,
                                                 help="First coarse search range (px, at most 48); widened while "
@@ -538,7 +542,8 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
     from gtforge.io.calibrated_session import calibration_output_path
     from gtforge.reports.depth_alignment import write_depth_alignment_report
 
-    params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z, edges=edges)
+    params = _options(EdgeAlignmentParams, search_px=search_px, apply_z=apply_z, edges=edges,
+                      max_scenes=max_scenes or None)
     _refuse_a_runs_folder(output, "aligned.yaml")
     res = run(session, calibration, output, params, scenes.split(",") if scenes else None, use_boards=boards,
               progress=_status)

@@ -20,6 +20,7 @@ class DepthAlignment(GTModel):
     T_mech_from_depth_file: list[list[float]]
     params: EdgeAlignmentParams = Field(default_factory=EdgeAlignmentParams)
     result: EdgeAlignmentResult
+    scenes_not_selected: int = 0  # the session's scenes beyond params.max_scenes (those used evenly spread)
     time_s: float = 0.0
 
     @field_validator("T_mech_from_depth_file", mode="before")

@@ -99,6 +99,10 @@ class EdgeAlignmentParams(GTModel):
     # the silhouette placement rule's own sub-pixel bias (a curved object's limb seen from two viewpoints, the depth
     # grid): added to every determined parameter's 1-sigma in quadrature (measured: up to ~0.05 px, synthetic)
     edge_bias_px: float = Field(0.05, ge=0)
+    # align-depth's scenes when none are named: at most this many, evenly spread over the session (None: every scene;
+    # every board capture too): a 0.5x scene takes about 1.1 s and 19 MB, and the estimate did not move from 12 scenes
+    # to 40 (benchmarks/RESULTS.md, round 22)
+    max_scenes: int | None = Field(defaults.MAX_SCENES, ge=1)
     disagree_px: float = Field(1.0, gt=0)  # a capture whose offset after the fit exceeds this is flagged
     min_gradient: float = Field(2.0, ge=0)  # a colour image whose strongest blurred gradient is below: blank
 
