@@ -22,7 +22,6 @@ from gtforge.core.camera import Rig
 from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams, EdgeCapture, align_captures
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
-from gtforge.io.captures import evenly_spread
 from gtforge.io.formats import read_image
 from gtforge.records.calibration import CalibrationFile
 from gtforge.records.depth_alignment import DepthAlignment
@@ -33,8 +32,7 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
                 use_boards: bool = True, progress: Callable[[str], None] | None = None) -> CalibrationFile:
     """Refine the calibration's ``T_mech_from_depth`` from the session's captures (module docstring); ``captures``:
     the scene ids to use (default: ``params.max_scenes`` of them, evenly spread), ``use_boards``: the board captures
-    too. Writes ``out_path`` when given (never
-    the input file). Returns the new calibration file."""
+    too. Writes ``out_path`` when given (never the input file). Returns the new calibration file."""
     t0 = time.perf_counter()
     params = params or EdgeAlignmentParams()
     calib_path = Path(calibration)
@@ -60,11 +58,7 @@ def align_depth(session_dir: str | Path, calibration: str | Path, out_path: str 
     if calib.depth_alignment is not None:
         raise InputError(calib_path, "depth_alignment", "a calibration whose depth camera pose is not aligned yet",
                          "one already aligned", "run align-depth on the calibration it was made from")
-    dirs = session.select("scenes", captures)
-    not_selected = 0
-    if captures is None:
-        chosen = evenly_spread(dirs, params.max_scenes)
-        dirs, not_selected = chosen, len(dirs) - len(chosen)
+    dirs, not_selected = session.select_scenes(captures, params.max_scenes)
     board_root = session.root / session.config.board_dir
     if use_boards and board_root.is_dir():
         dirs = list(session.select("board", None)) + list(dirs)

@@ -49,7 +49,6 @@ from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.infra import defaults
 from gtforge.io.calibrated_session import open_calibrated_session
-from gtforge.io.captures import evenly_spread
 from gtforge.records.calibration import CalibrationFile, RefinementInfo, SceneRefinement
 from gtforge.records.dataset import BuildParams
 from gtforge.records.verification import VerifyParams
@@ -230,11 +229,7 @@ def refine(session_dir: str | Path, calibration: str | Path, out_path: str | Pat
     session, out_path = open_calibrated_session(session_dir, calib, calib_path, out_path, "refined.yaml")
     rig0 = calib.rig
     build = BuildParams()
-    dirs = session.select("scenes", scenes)
-    not_selected = 0
-    if scenes is None:
-        chosen = evenly_spread(dirs, params.max_scenes)
-        dirs, not_selected = chosen, len(dirs) - len(chosen)
+    dirs, not_selected = session.select_scenes(scenes, params.max_scenes)
     caps, pts, reports = {}, {}, {}
     flagged_before: set[str] = set()
     for k, d in enumerate(dirs):

@@ -81,7 +81,7 @@ from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.dataset.scene_verification import verify_scene
 from gtforge.errors import InputError
 from gtforge.io.calibrated_session import open_calibrated_session
-from gtforge.io.captures import evenly_spread, missing_capture_file
+from gtforge.io.captures import missing_capture_file
 from gtforge.records.calibration import (
     CalibrationFile,
     ScaleCalibration,
@@ -571,11 +571,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
         boards = board_measurements(session, board_dirs, rig_file, calib.board.spec(), params, progress)
     have_b = any(m.A[:, IB].any() for m in boards)
     have_k = any(m.A[:, IK].any() for m in boards)
-    dirs = session.select("scenes", scenes)
-    not_selected = 0
-    if scenes is None:
-        chosen = evenly_spread(dirs, params.max_scenes)
-        dirs, not_selected = chosen, len(dirs) - len(chosen)
+    dirs, not_selected = session.select_scenes(scenes, params.max_scenes)
     caps = {d.name: session.load_capture(d) for d in dirs}
     build = BuildParams()
     x = np.zeros(len(PARAMS))

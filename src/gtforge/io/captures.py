@@ -471,6 +471,15 @@ class Session:
             dirs = [d for d in dirs if d.name not in set(exclude)]
         return dirs
 
+    def select_scenes(self, include: list[str] | None, most: int | None) -> tuple[list[Path], int]:
+        """The scene folders ``include`` names (``select``), or, without names, at most ``most`` of the session's scenes
+        (``evenly_spread``; None: every one); and how many scenes that leaves out (0 when they are named)."""
+        dirs = self.select("scenes", include)
+        if include is not None:
+            return dirs, 0
+        chosen = evenly_spread(dirs, most)
+        return chosen, len(dirs) - len(chosen)
+
     def capture_files(self, folder: Path) -> list[Path]:
         """The input files a capture uses (for hashing), without reading them."""
         f = self.config.files
