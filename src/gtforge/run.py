@@ -569,6 +569,11 @@ class _Run:
             _keep_if_same(scaled, before)
             for line in scale_term_lines(res.scale_calibration):
                 self.say("      " + line)
+            info = res.scale_calibration
+            if info.scenes_not_selected:  # (the session's other scenes: --calibration-scenes names those it uses)
+                picked = len(info.scenes)  # (every scene it read: used or excluded)
+                self.say(f"      over {len(info.scenes_used)} scene(s) ({picked} of the session's "
+                         f"{picked + info.scenes_not_selected} picked, evenly spread)")
             self.done(name, options, inputs, [scaled], verdict="PASS", t0=t0)
         ctx["calib"] = scaled
 
@@ -607,7 +612,10 @@ class _Run:
                 reason = str(exc)
             else:
                 info = res.refinement
-                self.say(f"      over {len(info.scenes_used)} scene(s); moved {info.change_rot_deg:.4f} deg / "
+                picked = len(info.scenes_used) + len(info.scenes_excluded)
+                spread = (f" ({picked} of the session's {picked + info.scenes_not_selected} picked, evenly spread)"
+                          if info.scenes_not_selected else "")
+                self.say(f"      over {len(info.scenes_used)} scene(s){spread}; moved {info.change_rot_deg:.4f} deg / "
                          f"{info.change_trans_mm:.3f} mm")
                 self.done(name, options, inputs, [refined], verdict="PASS", t0=t0)
                 ctx["calib"] = refined
