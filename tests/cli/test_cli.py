@@ -203,12 +203,13 @@ def test_options_default_to_the_models_values():
     """An option named as a parameter model's field shows and passes the model's default (both read
     gtforge.infra.defaults; the booleans are the flags' own): one number in one place."""
     from gtforge.core.alignment.edge_alignment import EdgeAlignmentParams
-    from gtforge.records.calibration import CalibrateParams
+    from gtforge.records.calibration import CalibrateParams, ScaleParams
     from gtforge.records.dataset import BuildParams
     from gtforge.records.validation import ValidateParams
+    from gtforge.refine import RefineParams
 
     models = {"build-dataset": BuildParams, "validate": ValidateParams, "align-depth": EdgeAlignmentParams,
-              "calibrate": CalibrateParams}
+              "calibrate": CalibrateParams, "calibrate-scale": ScaleParams, "refine": RefineParams}
     group, _ = _commands()
     checked = 0
     for name, model in models.items():

@@ -474,7 +474,7 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
                     scenes: Optional[str] = typer.Option(None, metavar="IDS",
                                                          help="Comma-separated scene ids (default: up to --max-scenes "
                                                               "of them, evenly spread over the session)."),
-                    max_scenes: int = typer.Option(defaults.REFINE_MAX_SCENES, min=0, metavar="N",
+                    max_scenes: int = typer.Option(defaults.MAX_SCENES, min=0, metavar="N",
                                                    help="Without --scenes: use at most N scenes, evenly spread over "
                                                         "the session (0: every scene)."),
                     boards: bool = typer.Option(True, "--boards/--no-boards",
