@@ -151,8 +151,9 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
 
 def build_checks(ds: Path, ids: list[str]) -> dict[str, SceneVerification]:
     """The checks build-dataset made of scenes ``ids`` of dataset ``ds`` (each ``meta.json``'s verification), for the
-    scenes that have one and whose fruit did not move: verify checks a compensated scene on the fruit it finds moved
-    in the files (``moved_fruit_of``), which the build did not, so that scene is checked again."""
+    scenes that have one where the build did not try motion compensation: verify checks a compensated scene on the
+    fruit it finds moved in the files (``moved_fruit_of``) and keeps no record of a compensation that was tried and
+    not made, so such a scene is checked again."""
     found = {}
     for sid in ids:
         try:
