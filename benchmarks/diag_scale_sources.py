@@ -29,8 +29,8 @@ from gtforge.records.calibration import CalibrationFile, ScaleParams
 from gtforge.records.dataset import BuildParams
 from gtforge.dataset.ground_truth import build_scene_arrays
 from gtforge.io.calibrated_session import open_calibrated_session
-from gtforge.scale_calibration import (IB, IC, IK, IY, apply_scale, board_measurements, scene_pixels,
-                                       solve_scenes)
+from gtforge.scale_calibration import (IB, IC, IK, IY, apply_scale, board_measurements, scene_images,
+                                       scene_pixels, solve_scenes)
 
 TRUTH = np.zeros(7)
 TRUTH[IB], TRUTH[IY], TRUTH[IK], TRUTH[IC] = 0.003, math.radians(0.15), -0.002, 0.5
@@ -94,8 +94,8 @@ def main() -> None:
         for d in session.select("scenes", None):
             cap = session.load_capture(d)
             sd, _, _ = build_scene_arrays(cap.depth_mm, rig, BuildParams(), cap.fruit_mask)
-            sp = scene_pixels(d.name, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right,
-                              params, rig)
+            sp = scene_pixels(d.name, sd.depth_mm, sd.disparity_px, sd.nonoccluded,
+                              scene_images(cap.zed_left, cap.zed_right, params), params, rig)
             if sp is None:
                 continue
             pix.append(sp)

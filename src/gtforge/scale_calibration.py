@@ -107,6 +107,30 @@ COARSE_SIGMA_PX = 1.5  # the coarse pass's blur: brings shifts of a few px into 
 
 # ---- scenes: stereo consistency -----------------------------------------------------------------
 @dataclass
+class SceneImages:
+    """What a scene's fit reads from its two images, whatever its GT: computed once per scene, read by every pass of
+    ``calibrate_scale`` (each pass rebuilds the GT with the pass before's result, never the images)."""
+    left: np.ndarray  # (H, W) normalised left image (float32)
+    left_blur: np.ndarray  # the same blurred (the coarse pass)
+    textured: np.ndarray  # (H, W) bool: where the normalised left image has texture
+    right_stack: np.ndarray  # (H, W, 3) B-spline coefficients (gtforge.core.bspline) of the normalised right image
+    # (as captured) and of its x and y gradients
+    right_stack_blur: np.ndarray  # the same blurred (the coarse pass; blurring the coefficients blurs the spline they
+    # describe the same way)
+
+
+def scene_images(zed_left: np.ndarray, zed_right: np.ndarray, params: ScaleParams) -> SceneImages:
+    """``SceneImages`` of one scene's ZED pair."""
+    sigma = params.verify.norm_sigma_px
+    nl = local_normalize(to_gray(zed_left).astype(np.float32), None, sigma)
+    nr = local_normalize(to_gray(zed_right).astype(np.float32), None, sigma)
+    stack = bspline.coefficients(np.stack([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+                                           cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)], axis=2))
+    return SceneImages(nl, cv2.GaussianBlur(nl, (0, 0), COARSE_SIGMA_PX), textured_mask(nl), stack,
+                       cv2.GaussianBlur(stack, (0, 0), COARSE_SIGMA_PX))  # (each channel alike)
+
+
+@dataclass
 class ScenePixels:
     name: str
     u: np.ndarray  # ZED-left pixel columns / rows of the used GT pixels
@@ -115,23 +139,19 @@ class ScenePixels:
     z_mm: np.ndarray  # GT depth there
     left: np.ndarray  # normalised left value there
     left_blur: np.ndarray  # the same of the normalised left image blurred (the coarse pass)
-    right_stack: np.ndarray  # (H, W, 3) B-spline coefficients (gtforge.core.bspline) of the normalised right image (as
-    # captured) and of its x and y gradients
+    right_stack: np.ndarray  # SceneImages.right_stack
+    right_stack_blur: np.ndarray  # SceneImages.right_stack_blur
     g_pose: np.ndarray | None = None  # (N, 3) d(GT)/d(depth camera rotation) px/rad; None: one camera
 
 
 def scene_pixels(name: str, depth_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded: np.ndarray,
-                 zed_left: np.ndarray, zed_right: np.ndarray, params: ScaleParams,
-                 rig: Rig | None = None) -> ScenePixels | None:
+                 images: SceneImages, params: ScaleParams, rig: Rig | None = None) -> ScenePixels | None:
     """The textured GT pixels of one scene away from depth edges (as verify's stereo check selects them); with a
     ``rig`` that has a separate depth camera, the GT's sensitivity to that camera's rotation there."""
-    sigma = params.verify.norm_sigma_px
-    nl = local_normalize(to_gray(zed_left).astype(np.float32), None, sigma)
-    nr = local_normalize(to_gray(zed_right).astype(np.float32), None, sigma)
     ok = nonoccluded & np.isfinite(disparity_px)
     h, w = disparity_px.shape
     x_match = np.arange(w, dtype=np.float32)[None, :] - np.where(ok, disparity_px, 0)
-    use = interior_mask(ok, 2) & (x_match > 8) & (x_match < w - 9) & textured_mask(nl) & \
+    use = interior_mask(ok, 2) & (x_match > 8) & (x_match < w - 9) & images.textured & \
         smooth_depth_mask(disparity_px)
     use[:8], use[-8:] = False, False
     v, u = np.nonzero(use)
@@ -139,21 +159,18 @@ def scene_pixels(name: str, depth_mm: np.ndarray, disparity_px: np.ndarray, nono
         return None
     keep = even_subset(len(v), params.points_per_scene)
     v, u = v[keep], u[keep]
-    stack = bspline.coefficients(np.stack([nr, cv2.Sobel(nr, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
-                                           cv2.Sobel(nr, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)], axis=2))
     g_pose = None
     if rig is not None and rig.separate_depth_camera:
         d = disparity_px.astype(np.float64)  # (interior_mask: both neighbours have GT)
         g_pose = depth_pose_jacobian_px(u, v, depth_mm[v, u], 0.5 * (d[v, u + 1] - d[v, u - 1]),
                                         0.5 * (d[v + 1, u] - d[v - 1, u]), rig)
     return ScenePixels(name, u, v, disparity_px[v, u].astype(np.float64), depth_mm[v, u].astype(np.float64),
-                       nl[v, u].astype(np.float64),
-                       cv2.GaussianBlur(nl, (0, 0), COARSE_SIGMA_PX)[v, u].astype(np.float64),
-                       stack, g_pose)
+                       images.left[v, u].astype(np.float64), images.left_blur[v, u].astype(np.float64),
+                       images.right_stack, images.right_stack_blur, g_pose)
 
 
 def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, tile_px: float | None = None,
-                  blurred: np.ndarray | None = None):
+                  coarse: bool = False):
     """Normal equations of one scene at ``theta = (ds, dc_mm, yaw_rad[, omega_rad (3)], dy0)`` (increments of the
     scale sum, the offset and the depth camera's rotation relative to the GT's rig, the yaw in total) plus the scene's
     nuisances (vertical offset ``dy0``, gain, offset): ``(H, g, S or None, residuals)`` over ``theta``, gain, offset."""
@@ -170,8 +187,8 @@ def _scene_system(sp: ScenePixels, theta: np.ndarray, rig: Rig, huber: float, ti
     H = yaw_homography(rig, yaw)
     ua, va = apply_homography(H, xr, yr)
     va = va + dy0
-    right = blurred if blurred is not None else sp.right_stack
-    left = sp.left_blur if blurred is not None else sp.left
+    right = sp.right_stack_blur if coarse else sp.right_stack
+    left = sp.left_blur if coarse else sp.left
     # cubic B-spline at the exact positions, not verify's Keys cubic convolution: that one's error depends on the
     # sub-pixel phase, which along a row is the disparity's fractional part, so it correlates with depth, the very thing
     # the scale terms are fitted to. On the synthetic scenes (0.35x, right camera turned 0.15 deg) it biased the scenes'
@@ -211,8 +228,6 @@ def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_
     fb = rig.zed.f_px * rig.zed.baseline_mm
     z_mm = float(np.median(np.concatenate([sp.z_mm for sp in scenes])))
     step_px = np.r_[fb / z_mm, fb / z_mm ** 2, rig.zed.f_px, pose_effect_px(scenes)][:m]
-    # (blurring the coefficients blurs the spline they describe the same way)
-    blurred = [cv2.GaussianBlur(sp.right_stack, (0, 0), COARSE_SIGMA_PX) for sp in scenes]  # each channel alike
 
     def index(k: int) -> np.ndarray:
         return np.r_[0:m, m + 3 * k: m + 3 + 3 * k]
@@ -222,8 +237,7 @@ def solve_scenes(scenes: list[ScenePixels], rig: Rig, params: ScaleParams, yaw0_
             A = np.zeros((m + 3 * n, m + 3 * n))
             g = np.zeros(m + 3 * n)
             for k, sp in enumerate(scenes):
-                Hk, gk, _, _ = _scene_system(sp, np.r_[theta, nuis[k][0]], rig, params.huber,
-                                             blurred=None if level else blurred[k])
+                Hk, gk, _, _ = _scene_system(sp, np.r_[theta, nuis[k][0]], rig, params.huber, coarse=not level)
                 idx = index(k)
                 A[np.ix_(idx, idx)] += Hk
                 g[idx] += gk
@@ -572,25 +586,31 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     have_b = any(m.A[:, IB].any() for m in boards)
     have_k = any(m.A[:, IK].any() for m in boards)
     dirs, not_selected = session.select_scenes(scenes, params.max_scenes)
-    caps = {d.name: session.load_capture(d) for d in dirs}
     build = BuildParams()
     x = np.zeros(len(PARAMS))
     rig = apply_scale(rig_file, B_file, x)
     separate = rig_file.separate_depth_camera
-    reports = {s: SceneScaleResult(scene=s) for s in caps}
-    # a scene whose fruit moved between the captures (its texture shift over the fruit differs from the whole area's)
-    # has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes, is kept)
-    for s in list(caps):
-        cap = caps[s]
+    reports = {d.name: SceneScaleResult(scene=d.name) for d in dirs}
+    # each scene's depth and fruit mask (what every pass rebuilds its GT from) and what the fit reads from its images;
+    # the decoded images themselves are not kept
+    scenes_kept: dict[str, tuple[np.ndarray, np.ndarray | None, SceneImages]] = {}
+    for d in dirs:
+        if progress:
+            progress(f"scene {d.name}")
+        cap = session.load_capture(d)
+        # a scene whose fruit moved between the captures (its texture shift over the fruit differs from the whole
+        # area's) has a GT the images do not show: left out (a uniform shift, which a depth scale error also causes,
+        # is kept)
         sd, region, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
         ver, _ = verify_scene(sd.depth_mm, sd.disparity_px, sd.nonoccluded, region, cap.zed_left, None,
                               cap.mech_texture, rig, params.verify)
         a, f = ver.texture_all, ver.texture_fruit
         if a.dx_px is not None and f.dx_px is not None and \
                 np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px) > params.verify.max_shift_px:
-            reports[s].excluded = (f"the fruit's texture shift differs from the whole area's by "
-                                   f"{np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px):.2f} px (did it move?)")
-            del caps[s]
+            reports[d.name].excluded = (f"the fruit's texture shift differs from the whole area's by "
+                                        f"{np.hypot(f.dx_px - a.dx_px, f.dy_px - a.dy_px):.2f} px (did it move?)")
+            continue
+        scenes_kept[d.name] = cap.depth_mm, cap.fruit_mask, scene_images(cap.zed_left, cap.zed_right, params)
     # without a board measurement of b or of k, scenes see only b + k: one term, carried by b
     # the depth camera's rotation: only a separate depth camera has one of its own (else it is the extrinsic's)
     free = np.array([True, True, have_k or have_b, True] + [separate] * 3)
@@ -600,12 +620,11 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
     for outer in range(params.outer_iterations):
         passes = outer + 1
         pix = []
-        for s, cap in caps.items():
+        for s, (depth_mm, fruit_mask, images) in scenes_kept.items():
             if progress:
                 progress(f"pass {outer + 1}: scene {s}")
-            sd, _, _ = build_scene_arrays(cap.depth_mm, rig, build, cap.fruit_mask)
-            sp = scene_pixels(s, sd.depth_mm, sd.disparity_px, sd.nonoccluded, cap.zed_left, cap.zed_right, params,
-                              rig)
+            sd, _, _ = build_scene_arrays(depth_mm, rig, build, fruit_mask)
+            sp = scene_pixels(s, sd.depth_mm, sd.disparity_px, sd.nonoccluded, images, params, rig)
             if sp is not None:
                 pix.append(sp)
                 reports[s].n_points = len(sp.u)
