@@ -60,7 +60,11 @@ def load_array(kind: str, key: str) -> np.ndarray | None:
     for path in _files(kind, key):
         digest = path.stem.rsplit("-", 1)[1]
         try:
-            arr = np.load(path, allow_pickle=False)
+            # mapped, not read: the file's pages in the page cache are the array (a fork server's workers share them),
+            # where reading it into new memory cost a fresh process 0.08-0.1 s of page faults for a full-resolution
+            # ray grid, on the first scene's critical path (benchmarks/RESULTS.md, round 23). The file is never
+            # written in place (``store_array`` renames a new one over it), so the mapped bytes stay those checked
+            arr = np.asarray(np.load(path, mmap_mode="r", allow_pickle=False))
             ok = arr.flags.c_contiguous and blake3_hex(memoryview(arr).cast("B")) == digest
         except (OSError, ValueError, EOFError) as exc:
             log.debug("cache file %s unreadable (%s): recomputed", path, exc)
