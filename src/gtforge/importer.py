@@ -531,8 +531,9 @@ def import_recordings(paths: list[str | Path], session: str | Path, params: Impo
         raise InputError(session / "session.yaml", "--add", "a gtforge session to add the captures to",
                          "a folder without session.yaml", "import into a new folder (without --add)")
     # before any recording is read: the captures are written beside the session's folder, then moved into it
-    require_output_folder(session, "--output")
-    require_output_folder(real.parent, "--output")
+    # (a session and the sessions around it: its own checks, which name what they found)
+    require_output_folder(session, "--output", session_ok=True)
+    require_output_folder(real.parent, "--output", session_ok=True)
     add = add and exists  # --add into a new or empty folder: a new session, its rig files included
     # --add: the captures go where the session keeps them, named as it names them
     sf = SessionFile.read(session / "session.yaml") if add else SessionFile()

@@ -1,5 +1,6 @@
 """A user's captures are sacred, outputs are normal files, Ctrl-C stops cleanly, wrong settings are caught.
 Each test reproduces a fault a new user met (issue 11) through the command line."""
+import json
 import os
 import shlex
 import shutil
@@ -38,6 +39,62 @@ def test_build_refuses_outputs_in_or_around_the_captures(session_dir, true_calib
     r = gtforge("calibrate", sess, "-o", sess / "board" / "000" / "calib.yaml")
     assert r.returncode == 2 and one_line_error(r)
     assert tree_digest(sess) == before
+
+
+def test_no_stage_writes_into_another_session_or_a_foreign_folder(session_dir, true_calibration, tmp_path):
+    """``build-dataset -o OTHER_SESSION`` replaced that session's scene folders with the dataset's (a newcomer's
+    run-through, round 4): every stage refuses any capture session, not only the one it reads; build-dataset refuses
+    a run's folder, a dataset of another session and a folder of someone else's files."""
+    sess, other = tmp_path / "sess", tmp_path / "other"
+    shutil.copytree(session_dir, sess)
+    shutil.copytree(session_dir, other)
+    hand_laid = tmp_path / "hand_laid"  # a session without session.yaml: its camera file beside scenes/
+    shutil.copytree(session_dir / "scenes", hand_laid / "scenes")
+    shutil.copy(session_dir / "mech_intrinsics.yaml", hand_laid)
+    (hand_laid / "session.yaml").unlink(missing_ok=True)
+    before = {p: tree_digest(p) for p in (other, hand_laid)}
+    for args, out in [(("build-dataset", sess, "-c", true_calibration, "--workers", "1"), other),
+                      (("build-dataset", sess, "-c", true_calibration, "--workers", "1"), other / "scenes" / "new"),
+                      (("build-dataset", sess, "-c", true_calibration, "--workers", "1"), hand_laid),
+                      (("calibrate", sess), other / "calibration.yaml"),
+                      (("validate", sess, "-c", true_calibration), hand_laid / "validation")]:
+        r = gtforge(*args, "-o", out)
+        assert r.returncode == 2 and one_line_error(r), (args[0], out, r.stderr)
+        assert "expected a path outside every capture session folder" in r.stderr, r.stderr
+        assert f"capture session {other if other in [out, *out.parents] else hand_laid}" in r.stderr, r.stderr
+    assert {p: tree_digest(p) for p in before} == before
+    # a folder of the user's own files: refused, untouched
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", mine, "--workers", "1", "--no-verify")
+    assert r.returncode == 2 and one_line_error(r) and "got a folder holding notes.txt, which no dataset holds" \
+        in r.stderr, r.stderr
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+    # a dataset of another session: refused (its scenes with this session's ids would be replaced, the others kept)
+    ds = tmp_path / "ds"
+    r = gtforge("build-dataset", other, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify")
+    assert r.returncode == 0, r.stderr
+    ds_before = tree_digest(ds)
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify")
+    assert r.returncode == 2 and one_line_error(r), r.stderr
+    assert f"manifest.json [session_dir]: expected a dataset built from this session ({sess.resolve()}), got one " \
+           f"built from {other.resolve()}" in r.stderr, r.stderr
+    assert tree_digest(ds) == ds_before
+    # the same session moved: --overwrite rebuilds it there
+    moved = tmp_path / "moved"
+    other.rename(moved)
+    r = gtforge("build-dataset", moved, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify",
+                "--overwrite")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((ds / "manifest.json").read_text())["session_dir"] == str(moved.resolve())
+    # a run's folder: its dataset is dataset/ inside it
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "run_state.json").write_text("{}")
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", run_dir, "--workers", "1")
+    assert r.returncode == 2 and one_line_error(r) and "got gtforge run's output folder" in r.stderr, r.stderr
+    assert sorted(p.name for p in run_dir.iterdir()) == ["run_state.json"]
 
 
 def test_symlinked_scenes_keep_their_names(session_dir, true_calibration, tmp_path):

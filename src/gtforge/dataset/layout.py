@@ -2,13 +2,15 @@
 (BLAKE3, with a size+mtime fast path) and the checks that a landed scene is the one this build asked for."""
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from gtforge.errors import InputError
+from gtforge.errors import InputError, first_of
 from gtforge.infra.digest import blake3_file
+from gtforge.io.outputs import DATASET_FILES, DATASET_FOLDERS, free_path
 from gtforge.records.dataset import BuildParams, InputStamp, SceneMeta
 
 if TYPE_CHECKING:
@@ -18,6 +20,56 @@ if TYPE_CHECKING:
 # the KITTI view's disparity folders (its image_2/image_3 are links to the scene's im0/im1)
 KITTI_DISPARITY_DIRS = ("disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1")
 
+
+
+def require_dataset_folder(out: Path, session_root: Path, overwrite: bool, option: str = "--output") -> None:
+    """build-dataset's output folder: new or empty, a dataset it built from this session before (or what a first
+    build cut off left: only the entries a dataset holds), or, with ``overwrite``, a dataset built from a session
+    elsewhere (a session that moved). Refused: a ``gtforge run``'s output folder (its dataset is ``dataset/`` inside
+    it), a dataset built from another session (this session's scenes would replace those with the same ids and leave
+    the others in scenes/, kitti/ and eth3d/, one dataset of two sessions), a folder holding anything else."""
+    if not out.is_dir():
+        return
+    if (out / "run_state.json").is_file():
+        raise InputError(out, option, "a folder for a dataset (new, empty, or a dataset build-dataset wrote)",
+                         "gtforge run's output folder",
+                         f"the run's dataset is {out / 'dataset'}: rerun gtforge run, or build into a new folder, "
+                         f"e.g. {free_path(out.parent, 'dataset')}")
+    manifest = out / "manifest.json"
+    if manifest.is_file():
+        recorded = _manifest_session_dir(manifest)
+        if recorded is not None and not overwrite and not _same_folder(Path(recorded), session_root):
+            raise InputError(manifest, "session_dir", f"a dataset built from this session ({session_root.resolve()})",
+                             f"one built from {recorded}",
+                             "build into a new folder (this session's scenes would replace that dataset's with the "
+                             "same ids and leave its others beside them); if the session was moved from there, "
+                             "--overwrite rebuilds every scene from it here")
+        return
+    foreign = sorted(e.name for e in out.iterdir()
+                     if not e.name.startswith(".") and e.name not in DATASET_FOLDERS + DATASET_FILES)
+    if foreign:
+        raise InputError(out, option, "a folder for a dataset (new, empty, or a dataset build-dataset wrote)",
+                         f"a folder holding {first_of(foreign)}, which no dataset holds",
+                         f"give a new folder, e.g. {free_path(out, 'dataset')}")
+
+
+def _manifest_session_dir(manifest: Path) -> str | None:
+    """The ``session_dir`` an earlier build recorded, or None where the manifest cannot say (the build reads it
+    again, and reports what is wrong with it)."""
+    import json
+
+    try:
+        value = json.loads(manifest.read_text(encoding="utf-8")).get("session_dir")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) and value else None
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
 
 
 # A recorded size + mtime is trusted only when the file was last modified this long before it was hashed:

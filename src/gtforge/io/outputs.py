@@ -34,6 +34,8 @@ def refuse_gtforge_folder(path: str | Path, option: str = "--output") -> None:
 
 # the folders build-dataset writes inside a dataset (its scenes and the layouts training code reads)
 DATASET_FOLDERS = ("scenes", "views", "kitti", "eth3d", "filenames", "verification", "report")
+# and the files at its top
+DATASET_FILES = ("manifest.json", "build_report.html", "verification.html", "verification.json")
 
 
 def folders_above(path: str | Path) -> Iterator[tuple[Path, Path]]:
@@ -58,6 +60,38 @@ def refuse_inside_dataset_folders(path: str | Path, option: str = "--output") ->
                                  f"{a / 'evaluation'}")
 
 
+# what marks a capture session without a session.yaml (docs/capture-layout.md: every field has a default): one of its
+# camera files under the default name beside its captures
+SESSION_CAMERA_FILES = ("mech_intrinsics.yaml", "zed_calibration.yaml")
+SESSION_CAPTURE_FOLDERS = ("board", "scenes")
+
+
+def is_capture_session(folder: str | Path) -> bool:
+    """``folder`` is a capture session: its ``session.yaml``, or a camera file under its default name beside
+    ``board/`` or ``scenes/`` (a hand-laid session without a session.yaml)."""
+    f = Path(folder)
+    if (f / "session.yaml").is_file():
+        return True
+    return any((f / n).is_file() for n in SESSION_CAMERA_FILES) and any(
+        (f / d).is_dir() for d in SESSION_CAPTURE_FOLDERS)
+
+
+def refuse_inside_capture_sessions(path: str | Path, option: str = "--output") -> None:
+    """No stage writes into a capture session, the one it reads or any other (``build-dataset -o SESSION`` replaced
+    the session's scene folders with the dataset's), nor anything beside its captures: ``path`` is neither a session
+    folder nor inside one, under any spelling (relative, ``..``, symbolic links). ``gtforge import`` and ``synth``,
+    which write sessions, make their own checks."""
+    for p in dict.fromkeys((Path(os.path.abspath(path)), Path(os.path.realpath(path)))):
+        for a in (p, *p.parents):
+            if is_capture_session(a):
+                raise InputError(path, option, "a path outside every capture session folder (a session's captures "
+                                 "and files are never written, nor anything put beside them)",
+                                 f"the capture session {a} itself" if a == p else
+                                 f"a path inside the capture session {a}",
+                                 f"write beside the session, e.g. {option} "
+                                 f"{free_path(a.parent, p.name if a != p else 'out')}")
+
+
 def free_path(folder: str | Path, name: str) -> Path:
     """``folder/name``, or where that is taken ``folder/<stem>-2<suffix>``, ``-3`` ...: a name a hint may suggest."""
     p = Path(folder) / name
@@ -68,12 +102,15 @@ def free_path(folder: str | Path, name: str) -> Path:
     return p
 
 
-def require_output_folder(path: str | Path, option: str = "--output") -> Path:
+def require_output_folder(path: str | Path, option: str = "--output", session_ok: bool = False) -> Path:
     """``path`` is an existing folder or does not exist yet (it is then created by the stage), and this user can
-    write there; a file is refused. Checked before a stage's work, not found when it writes."""
+    write there; a file is refused, and so is a path in a capture session (``session_ok``: a stage that writes
+    sessions, which checks its own). Checked before a stage's work, not found when it writes."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise InputError(p, option, "a folder (new or existing)", "a file", "give a folder path for the outputs")
+    if not session_ok:
+        refuse_inside_capture_sessions(p, option)
     refuse_inside_dataset_folders(p, option)
     _require_writable_parents(p, option)
     return p
@@ -85,6 +122,7 @@ def require_output_file(path: str | Path, option: str = "--output") -> Path:
     p = Path(path)
     if p.is_dir():
         raise InputError(p, option, "a file path", "a folder", "give the output file's name, e.g. FOLDER/out.yaml")
+    refuse_inside_capture_sessions(p, option)
     refuse_inside_dataset_folders(p, option)
     _require_writable_parents(p, option)
     return p
@@ -119,13 +157,14 @@ def require_new_or_empty_folder(path: str | Path, option: str, hint: str,
     """``path`` does not exist, is an empty folder, or (``reusable_if``) holds that file, or one of those files
     (relative to ``path``): the mark of a folder this command wrote before and may write again. Anything else is
     refused."""
-    p = require_output_folder(path, option)
+    p = require_output_folder(path, option, session_ok=True)
     marks = (reusable_if,) if isinstance(reusable_if, str) else (reusable_if or ())
     if p.is_dir():
         entries = [e for e in p.iterdir()]
         if entries and not any((p / m).is_file() for m in marks):
             raise InputError(p, option, "a new or empty folder" + (f" (or one with {marks[0]})" if marks else ""),
                              f"a folder with {len(entries)} entr{'y' if len(entries) == 1 else 'ies'}", hint)
+    refuse_inside_capture_sessions(p, option)  # (after: a session itself is a folder that is not empty, said first)
     return p
 
 
