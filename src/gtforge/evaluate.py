@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 
 import gtforge
+from gtforge.core.schema import parse_error
 from gtforge.core.measure.fruit_size import GradeBins, measure_scene, scene_truth, summarise
 from gtforge.core.measure.metrics import (
     Accumulator,
@@ -98,7 +99,7 @@ def _manifest_fields(ds: Path) -> dict:
     except UnicodeDecodeError as exc:
         got = f"binary data (byte 0x{exc.object[exc.start]:02x} at offset {exc.start} is not UTF-8 text)"
     except ValueError as exc:
-        got = f"a parse error ({str(exc).splitlines()[0]})"
+        got = parse_error(exc, "JSON")[0]
     except OSError as exc:
         got = exc.strerror or type(exc).__name__
     if got is not None:

@@ -516,3 +516,24 @@ def test_read_recorded_bytes_record_and_buffer(tmp_path, size_change):
     assert read_recorded(tmp_path / "missing.png", records) is None
     plain = read_recorded(tmp_path / "f.png", {})  # nothing kept: the bytes object (io.BytesIO shares it)
     assert type(plain) is bytes and plain == content
+
+
+@pytest.mark.parametrize("text, got, hint", [
+    ("a: 1\n\tb: 2\n", "a parse error at line 2, column 1: found a tab character", "indent with spaces, not tabs (line 2)"),
+    ("rig: {zed: [1, 2\n", "a parse error at line 2, column 1: ", "the text ends before its YAML does: is the file "
+     "truncated, or a bracket or quote left open?"),
+    ("a:\n  b: 1\n c: 2\n", "a parse error at line 3, column 2: ", "fix the YAML at line 3 (an indent or a ':' out "
+     "of place is the usual cause)"),
+])
+def test_a_yaml_that_does_not_parse_names_its_line_and_a_fitting_hint(tmp_path, text, got, hint):
+    """A tab-indented line said only "a parse error (while scanning for the next token)" with the hint "is the file
+    truncated?" (a newcomer's run-through, round 4): the line and column now, and a hint for what went wrong."""
+    from gtforge.records.calibration import CalibrationFile
+
+    p = tmp_path / "calibration.yaml"
+    p.write_text(text)
+    for read in (CalibrationFile.read, load_camera):
+        with pytest.raises(InputError) as e:
+            read(p)
+        assert e.value.file == str(p) and e.value.actual.startswith(got), (read, e.value)
+        assert e.value.hint.startswith(hint), (read, e.value.hint)

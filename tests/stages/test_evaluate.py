@@ -169,9 +169,10 @@ def constant_predictions(folder: Path, ids: list[str], value: float) -> Predicti
     return PredictionFolder(folder)
 
 
-@pytest.mark.parametrize("text, got", [("{", "a parse error (Expecting property name enclosed in double quotes"),
-                                       ("[1, 2]", "a JSON list, not a mapping"),
-                                       ("", "a parse error (Expecting value")])
+@pytest.mark.parametrize("text, got", [
+    ("{", "a parse error at line 1, column 2: Expecting property name enclosed in double quotes"),
+    ("[1, 2]", "a JSON list, not a mapping"),
+    ("", "a parse error at line 1, column 1: Expecting value")])
 def test_a_manifest_that_is_no_json_mapping_is_refused_before_any_output(tmp_path, text, got):
     """A dataset whose manifest.json is cut short or overwritten: one line naming it, nothing written (it was read as
     {} and the scenes scored, exit 0, nothing said: no check of the output against the session the dataset came

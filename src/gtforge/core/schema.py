@@ -26,6 +26,29 @@ def load_yaml(text: str) -> Any:
     return yaml.load(text, Loader=_YAML_LOADER)
 
 
+def parse_error(exc: Exception, what: str = "YAML", text: str | None = None) -> tuple[str, str]:
+    """``(got, hint)`` of an InputError for a YAML or JSON ``text`` that did not parse: the problem with its line and
+    column (1-based, as editors count), and a hint that fits it (a tab, a text that ends too soon, else the place)."""
+    mark = getattr(exc, "problem_mark", None)  # yaml.MarkedYAMLError (PyYAML's and libyaml's parsers)
+    if mark is not None:
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        line, col, index = mark.line + 1, mark.column + 1, mark.index
+    elif isinstance(exc, json.JSONDecodeError):
+        problem, line, col, index, text = exc.msg, exc.lineno, exc.colno, exc.pos, exc.doc
+    else:
+        return f"a parse error ({str(exc).splitlines()[0]})", f"fix the {what}, or is the file truncated?"
+    got = f"a parse error at line {line}, column {col}: {problem}"
+    if "tab" in problem.lower() or "'\\t'" in problem:
+        hint = f"indent with spaces, not tabs (line {line})"
+    elif text is not None and index >= len(text.rstrip()):
+        hint = f"the text ends before its {what} does: is the file truncated, or a bracket or quote left open?"
+    elif what == "JSON":
+        hint = f"fix the JSON at line {line} (a comma, quote or bracket out of place is the usual cause)"
+    else:
+        hint = f"fix the YAML at line {line} (an indent or a ':' out of place is the usual cause)"
+    return got, hint
+
+
 class GTModel(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
@@ -77,8 +100,8 @@ class VersionedFile(GTModel):
         try:
             data = json.loads(text) if path.suffix.lower() == ".json" else load_yaml(text)
         except (yaml.YAMLError, json.JSONDecodeError) as exc:
-            raise InputError(path, None, "valid YAML/JSON", f"a parse error ({str(exc).splitlines()[0]})",
-                             "is the file truncated?") from None
+            raise InputError(path, None, "valid YAML/JSON", *parse_error(
+                exc, "JSON" if path.suffix.lower() == ".json" else "YAML", text)) from None
         return cls.from_dict(data, path)
 
     @classmethod

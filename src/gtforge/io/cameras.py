@@ -27,7 +27,7 @@ from gtforge.core.camera import (
     RectifiedStereo,
     StereoCalibrationFile,
 )
-from gtforge.core.schema import load_yaml
+from gtforge.core.schema import load_yaml, parse_error
 from gtforge.core.bspline import resample
 from gtforge.errors import InputError
 from gtforge.infra.atomic import atomic_write_text
@@ -47,8 +47,8 @@ def _load_yaml_any(path: Path) -> dict:
     try:
         data = load_yaml(text)
     except yaml.YAMLError as exc:
-        raise InputError(path, None, "valid YAML", f"a parse error ({str(exc).splitlines()[0]})",
-                         "fix the YAML at the line named; the formats read: docs/capture-layout.md") from None
+        got, hint = parse_error(exc, text=text)
+        raise InputError(path, None, "valid YAML", got, f"{hint}; the formats read: docs/capture-layout.md") from None
     if not isinstance(data, dict):
         raise InputError(path, None, "a YAML mapping", type(data).__name__,
                          "write a ROS camera_info, OpenCV FileStorage or gtforge camera YAML (docs/capture-layout.md)")

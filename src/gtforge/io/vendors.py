@@ -24,7 +24,7 @@ from pydantic import Field, field_validator
 
 from gtforge.core.camera import PinholeCamera
 from gtforge.core.geometry import invert_T, make_T
-from gtforge.core.schema import GTModel, VersionedFile, load_yaml
+from gtforge.core.schema import GTModel, VersionedFile, load_yaml, parse_error
 from gtforge.errors import InputError
 from gtforge.io.cameras import load_camera
 
@@ -200,8 +200,7 @@ def read_kinect_calibration(path: str | Path, depth_mode: str | None, color_mode
     try:
         data = json.loads(path.read_text(errors="replace"))
     except json.JSONDecodeError as exc:
-        raise InputError(path, None, "valid JSON (Azure Kinect calibration.json)", f"a parse error ({exc.msg})",
-                         "is the file truncated?") from None
+        raise InputError(path, None, "valid JSON (Azure Kinect calibration.json)", *parse_error(exc, "JSON")) from None
     return kinect_calibration_from_dict(data, path, depth_mode, color_mode)
 
 
@@ -374,8 +373,7 @@ def load_structured_light_cameras(path: str | Path, *, depth_mode: str | None = 
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise InputError(path, None, "valid JSON", f"a parse error ({exc.msg} at line {exc.lineno})",
-                             "is the file truncated?") from None
+            raise InputError(path, None, "valid JSON", *parse_error(exc, "JSON")) from None
         if not is_kinect_calibration(data):
             keys = list(data)[:5] if isinstance(data, dict) else type(data).__name__
             raise InputError(path, None, "an Azure Kinect calibration.json (top-level 'CalibrationInformation')",
