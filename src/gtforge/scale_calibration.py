@@ -548,6 +548,23 @@ def _disparity_effect_px(rig: Rig, z_mm: float, pose_px: np.ndarray) -> np.ndarr
     return np.r_[fb / z_mm, rig.zed.f_px, fb / z_mm, fb / z_mm ** 2, pose_px]
 
 
+def _refuse_implausible(x: np.ndarray, applied: np.ndarray, params: ScaleParams, calib_path: Path,
+                        baseline_file_mm: float) -> None:
+    """A correction larger than any rig's files need (``ScaleParams.max_*``) is a symptom, not a correction: a length
+    in another unit, another rig's calibration, a session of another camera. Refused (nothing written), naming it."""
+    limits = {IB: (params.max_scale_correction_frac, 1.0, ""), IY: (params.max_yaw_deg, np.degrees(1.0), " deg"),
+              IK: (params.max_scale_correction_frac, 1.0, ""), IC: (params.max_depth_offset_mm, 1.0, " mm")}
+    limits.update({i: (params.max_depth_pose_deg, np.degrees(1.0), " deg") for i in range(IP.start, IP.stop)})
+    for i, (limit, unit, suffix) in limits.items():
+        if i < len(x) and applied[i] and abs(x[i] * unit) > limit:
+            value = f"{x[i]:+.4g} ({x[i]:+.2%})" if suffix == "" else f"{x[i] * unit:+.4g}{suffix}"
+            raise InputError(calib_path, PARAMS[i], f"a correction within +-{limit:g}{suffix} (what a rig's files "
+                             "can be off by)", f"{value} from the scenes and boards",
+                             f"the files or the session are wrong, not the rig: the ZED baseline here is "
+                             f"{baseline_file_mm:g} mm (a ZED Mini's is 63 mm); check the camera files' units (mm) and "
+                             "that -c is this rig's calibration; nothing was written")
+
+
 def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: str | Path | None = None,
                     params: ScaleParams | None = None, scenes: list[str] | None = None,
                     progress: Callable[[str], None] | None = None):
@@ -673,6 +690,7 @@ def calibrate_scale(session_dir: str | Path, calibration: str | Path, out_path: 
             progress(f"pass {outer + 1}: correction moved disparities by {moved:.4f} px")
         if moved < params.converged_px:
             break
+    _refuse_implausible(x, applied, params, calib_path, B_file)
     # reported: every determined term's estimate and the covariance with all of them free (the uncertainty the labels
     # carry, applied or not); applied: x
     sig = np.sqrt(np.maximum(np.diag(cov_est), 0))

@@ -537,3 +537,37 @@ def test_a_yaml_that_does_not_parse_names_its_line_and_a_fitting_hint(tmp_path, 
             read(p)
         assert e.value.file == str(p) and e.value.actual.startswith(got), (read, e.value)
         assert e.value.hint.startswith(hint), (read, e.value.hint)
+
+
+def test_a_baseline_in_another_unit_is_refused_where_it_is_read(session_dir, true_calibration, tmp_path):
+    """A ZED baseline written in metres (0.063) was read as 0.063 mm: calibrate and validate passed, calibrate-scale
+    "corrected" it by +190,000 % (a newcomer's run-through, round 4). The session refuses it, naming the file; a
+    calibration whose baseline is not the session's (beyond calibrate-scale's corrections) is refused too."""
+    import shutil
+
+    from gtforge.io.calibrated_session import check_rig_matches_session
+    from gtforge.records.calibration import CalibrationFile
+
+    sess = tmp_path / "sess"
+    shutil.copytree(session_dir, sess, ignore=shutil.ignore_patterns("scenes", "board", "gauges", "truth"))
+    zpath = sess / "zed_calibration.yaml"
+    good = zpath.read_text()
+    assert "baseline_mm: 63.0" in good
+    for value, unit in (("0.063", "metres"), ("63000.0", "micrometres")):
+        zpath.write_text(good.replace("baseline_mm: 63.0", f"baseline_mm: {value}"))
+        with pytest.raises(InputError) as e:
+            open_session(sess)
+        assert e.value.file == str(zpath) and e.value.field == "baseline", e.value
+        assert e.value.actual == f"{float(value):g} mm" and unit in e.value.hint, e.value
+    zpath.write_text(good)
+    session = open_session(sess)
+    calib = CalibrationFile.read(true_calibration)
+    check_rig_matches_session(calib.rig, session, true_calibration)  # the session's own baseline
+    for b_mm in (63.0 * 1.05, 63.0 * 0.95):  # calibrate-scale's largest corrections
+        rig = calib.rig.model_copy(update={"zed": calib.rig.zed.model_copy(update={"baseline_mm": b_mm})})
+        check_rig_matches_session(rig, session, true_calibration)
+    rig = calib.rig.model_copy(update={"zed": calib.rig.zed.model_copy(update={"baseline_mm": 0.063})})
+    with pytest.raises(InputError) as e:
+        check_rig_matches_session(rig, session, true_calibration)
+    assert e.value.field == "rig.zed.baseline_mm" and e.value.actual == "0.063 mm", e.value
+    assert e.value.expected == "63 mm (the session's zed_calibration.yaml), within 10%", e.value

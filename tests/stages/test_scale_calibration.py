@@ -115,6 +115,20 @@ def test_combined_errors_with_boards_are_each_recovered(errors_session, errors_c
 
 
 @pytest.mark.slow
+def test_a_correction_beyond_what_a_rigs_files_can_be_off_by_is_refused(errors_session, tmp_path):
+    """A baseline written in metres made calibrate-scale apply +190,000 % and a 6 deg yaw, verdict PASS (a newcomer's
+    run-through, round 4). The errors session's yaw (0.15 deg) against a limit of 0.1 deg: refused, naming the term
+    and its value, nothing written; within the default limits (0.5 deg) applied as before."""
+    start = _known_calibration(errors_session, tmp_path / "start.yaml")
+    with pytest.raises(InputError) as e:
+        calibrate_scale(errors_session, start, tmp_path / "scaled.yaml", FAST.model_copy(update={"max_yaw_deg": 0.1}))
+    assert e.value.file == str(start) and e.value.field == "zed_right_yaw_deg", e.value
+    assert e.value.expected.startswith("a correction within +-0.1 deg") and e.value.actual.startswith("+0.1"), e.value
+    assert "the ZED baseline here is 63 mm" in e.value.hint and "nothing was written" in e.value.hint
+    assert not (tmp_path / "scaled.yaml").exists()
+
+
+@pytest.mark.slow
 def test_verification_reads_no_stereo_bias_after_the_correction(errors_session, errors_calibrated):
     """verify's stereo check, with the corrected rig and the right image the calibration's session gives (the yaw
     applied in its one resampling, as build-dataset writes im1)."""

@@ -45,6 +45,12 @@ def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
         if (a.width_px, a.height_px) != (b.width_px, b.height_px):
             raise InputError(calib_path, f"rig.{name}", f"{b.width_px}x{b.height_px} px (the session's camera)",
                              f"{a.width_px}x{a.height_px} px", hint)
+    # the ZED baseline: the session's, or calibrate-scale's correction of it (at most MAX_SCALE_CORRECTION_FRAC)
+    b_rig, b_session = rig.zed.baseline_mm, session.zed.baseline_mm
+    if abs(b_rig / b_session - 1.0) > BASELINE_TOL_FRAC:
+        raise InputError(calib_path, "rig.zed.baseline_mm", f"{b_session:g} mm (the session's "
+                         f"{session.config.zed_calibration}), within {BASELINE_TOL_FRAC:.0%}", f"{b_rig:g} mm",
+                         "a length in another unit (metres?), or " + hint)
     # the structured-light unit's cameras are the session's files' as calibrate read them: other intrinsics mean the
     # files changed after calibrating (the extrinsic was solved with the old ones) or another unit's session
     files = {"mech": session.config.mech_intrinsics, "depth_cam": session.config.depth_intrinsics
@@ -57,6 +63,9 @@ def check_rig_matches_session(rig: Rig, session, calib_path: str | Path,
                              "the session's intrinsics changed since this calibration (calibrate again), or " + hint)
 
 
+# how far a calibration's ZED baseline may lie from the session's: calibrate-scale's largest correction
+# (ScaleParams.max_scale_correction_frac, 5 %) with a margin
+BASELINE_TOL_FRAC = 0.1
 # how far a calibration's copy of an intrinsic may lie from the session's file: rounding when a file is re-exported
 # (6 decimals), far below anything a pose or a label feels
 INTRINSICS_TOL_PX = 1e-3

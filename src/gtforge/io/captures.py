@@ -696,8 +696,17 @@ def open_session(root: str | Path, zed_conf_reading: str | None = None, zed_righ
             rectification = None  # SDK-rectified images with the factory conf: only the model is used
     else:
         zed = load_zed_rectified(zpath, root / cfg.zed_right_info if cfg.zed_right_info else None)
+    if not MIN_BASELINE_MM <= zed.baseline_mm <= MAX_BASELINE_MM:  # (a length in metres: 0.063 for a ZED Mini)
+        raise InputError(zpath, "baseline", f"a stereo baseline in mm, {MIN_BASELINE_MM:g} to {MAX_BASELINE_MM:g} "
+                         "(a ZED Mini's is 63 mm, a ZED 2's 120 mm)", f"{zed.baseline_mm:g} mm",
+                         "is it in metres or micrometres? gtforge's lengths are in mm (docs/conventions.md)")
     rectification = corrected_right(rectification, zed, zed_right_correction, zed_right_yaw_deg)
     return Session(root, cfg, mech, zed, rectification, depth_cam, T_mech_from_depth)
+
+
+# the stereo baselines a session may have: a length outside is in another unit (metres, micrometres)
+MIN_BASELINE_MM = 1.0
+MAX_BASELINE_MM = 10_000.0
 
 
 def _no_stereo_hint(root: Path) -> str:

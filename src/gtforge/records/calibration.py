@@ -219,6 +219,13 @@ class ScaleParams(GTModel):
     # would need some 130 GB (benchmarks/RESULTS.md, round 22)
     max_scenes: int | None = Field(defaults.MAX_SCENES, ge=1)
     board_depth_window_px: int = Field(3, ge=1)  # half-size of the depth window fitted at each corner
+    # the largest corrections a rig's files can need: beyond them the files or the session are wrong (a baseline in
+    # metres, another rig's calibration), and calibrate-scale refuses rather than apply a "correction" of them. A ZED's
+    # factory baseline and yaw and a structured-light unit's depth scale are good to about 0.1 %, 0.05 deg and 0.1 %
+    max_scale_correction_frac: float = Field(0.05, gt=0)  # zed_baseline_frac, depth_scale_frac
+    max_yaw_deg: float = Field(0.5, gt=0)
+    max_depth_offset_mm: float = Field(20.0, gt=0)
+    max_depth_pose_deg: float = Field(2.0, gt=0)  # a separate depth camera's rotation (align-depth's to correct)
     verify: VerifyParams = Field(default_factory=VerifyParams)
 
 
