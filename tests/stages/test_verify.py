@@ -173,6 +173,14 @@ def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibratio
                           a.mech_texture, rig)
     assert ver.stereo["all"].disparity_bias_px == pytest.approx(-0.3, abs=0.03)
     assert ver.status == "flagged" and any("disparity bias" in r for r in ver.reasons)
+    # ground truth off by more than the Gauss-Newton reaches from it (a baseline 29 % off gave labels 5-8 px small and a
+    # reported bias of +0.2 +- 0.005 px: a newcomer's run-through, round 4): the search before it finds the offset
+    for offset in (6.0, -15.0):
+        ver, _ = verify_scene(sd.depth_mm, sd.disparity_px + offset, sd.nonoccluded, region, a.zed_left, a.zed_right,
+                              a.mech_texture, rig)
+        for name in ("all", "fruit", "background"):
+            assert ver.stereo[name].disparity_bias_px == pytest.approx(-offset, abs=0.03), (offset, name, ver.stereo)
+        assert ver.status == "flagged" and any("disparity bias over the whole area" in r for r in ver.reasons)
     # a right image 0.4 px lower than the rectification says
     import cv2
 

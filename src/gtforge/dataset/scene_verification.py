@@ -82,6 +82,12 @@ WINDOW_MARGIN_PX = 32
 # by the work factor aliases); with the B-spline sampling it leaves at most 0.002 px of phase-dependent bias on the
 # textured-plane sweep (docs/design/accuracy.md, issue 41)
 STEREO_BLUR_PX = 1.0
+# The stereo check's search for a ground truth off by more than its Gauss-Newton reaches (``_coarse_disparity_offset``):
+# the offsets tried (work px; within the window's margin, WINDOW_MARGIN_PX, less the spline's taps), the pixels it
+# correlates over, and by how much an offset must correlate better than the ground truth's own matches to be taken
+STEREO_SEARCH_PX = 24
+STEREO_SEARCH_POINTS = 2000
+STEREO_SEARCH_MARGIN = 0.1
 
 
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
@@ -197,6 +203,10 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         for o in (-0.5, 0.5, 1.0):  # (a minimum is exact: the order does not matter)
             np.minimum(best_other, cost(o), out=best_other)
         worse = cost(0.0) > params.bad_match_ratio * best_other
+    # where the Gauss-Newton starts: the ground truth's own matches, or, where those are off by more than its reach
+    # (a pixel or two), the whole offset that matches best
+    b0 = _coarse_disparity_offset(right, nl_gn, v, u, take_at(d, idx), window, w) if len(v) >= params.min_pixels \
+        else 0.0
     out = {}
     for name, sel in regions.items():
         at = None if sel is None else np.flatnonzero(sel)  # the region's used pixels
@@ -210,7 +220,7 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         vk, uk = v[at], u[at]
         # the matches in the right array's pixels
         xr = (uk + (window.x0_px - window.xr0_px)) - take_at(d, idx[at]).astype(np.float64)
-        b, dy = 0.0, 0.0
+        b, dy = b0, 0.0
         lv = take_at(nl_gn, vk * w + uk).astype(np.float64)
         yr = vk.astype(np.float64)
         A = np.empty((len(lv), 4))  # the linearised model's columns: d/db, d/d(dy), gain, offset
@@ -222,9 +232,9 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
             A[:, 1] = wy
             step = np.linalg.solve(A.T @ A, -(A.T @ (w_ - lv)))
             b, dy = b + step[0], dy + step[1]
-            if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b), abs(dy)) > 10:
+            if max(abs(step[0]), abs(step[1])) < 1e-4 or max(abs(b - b0), abs(dy)) > 10:
                 break
-        if max(abs(b), abs(dy)) > 10:
+        if max(abs(b - b0), abs(dy)) > 10:
             out[name] = StereoEstimate(n_pixels=n)
             continue
         # the noise floor: the last linearisation solved per band of pixels (block_noise; A, w_ are at the solution
@@ -236,6 +246,32 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
                                    disparity_bias_noise_px=None if noise is None else float(noise[0]),
                                    vertical_noise_px=None if noise is None else float(noise[1]))
     return out
+
+
+def _coarse_disparity_offset(right: np.ndarray, left: np.ndarray, v: np.ndarray, u: np.ndarray, d: np.ndarray,
+                             window: Window, w: int) -> float:
+    """The whole disparity offset (work px, within +-``STEREO_SEARCH_PX``) at which the right image matches the left
+    best over an even subset of the used pixels ``(v, u)`` (their GT disparities ``d``): their Pearson correlation, the
+    right image sampled from its B-spline ``right`` at each offset, the left one from ``left``. The ground truth's own
+    matches (0) unless an offset of 2 px or more correlates better by ``STEREO_SEARCH_MARGIN``: the Gauss-Newton
+    reaches a pixel or so, and from 0 a label 5-8 px off converged to a local minimum and a tight, tiny bias."""
+    keep = even_subset(len(v), STEREO_SEARCH_POINTS)
+    vk, uk = v[keep], u[keep]
+    lv = take_at(left, vk * w + uk).astype(np.float64)
+    lv -= lv.mean()
+    norm = float(np.linalg.norm(lv))
+    if norm == 0.0:
+        return 0.0
+    xr = (uk + (window.x0_px - window.xr0_px)) - d[keep].astype(np.float64)
+    offsets = np.arange(-STEREO_SEARCH_PX, STEREO_SEARCH_PX + 1, dtype=np.float64)
+    r = sample_spline(right, (xr[None, :] - offsets[:, None]).ravel(),
+                      np.tile(vk.astype(np.float64), len(offsets))).reshape(len(offsets), -1)
+    r -= r.mean(axis=1, keepdims=True)
+    corr = (r @ lv) / np.maximum(np.linalg.norm(r, axis=1) * norm, 1e-300)
+    k = int(np.argmax(corr))
+    if abs(offsets[k]) >= 2 and corr[k] > corr[STEREO_SEARCH_PX] + STEREO_SEARCH_MARGIN:
+        return float(offsets[k])
+    return 0.0
 
 
 @numba.njit(cache=True)
