@@ -14,7 +14,9 @@ Two independent checks per scene (docs/pipeline.md, "verify"):
 * **Stereo consistency (disparity)**: the ZED-right image is warped into the left view through the GT disparity;
   Gauss-Newton finds the disparity bias ``b`` and vertical offset ``dy`` that best explain the residual
   (``left(u, v) ~ right(u - d - b, v + dy)``; reported as the vertical disparity ``v_left - v_right = -dy``, as
-  ``gtforge.core.zed.rectification`` reports it for board corners), per region. The right image is sampled by cubic
+  ``gtforge.core.zed.rectification`` reports it for board corners), per region; it starts from ``b = 0`` unless a whole
+  offset within +-24 px correlates clearly better (``_coarse_disparity_offset``: its reach is a pixel or two, and
+  labels 5-8 px off converged to a tiny bias). The right image is sampled by cubic
   B-spline with its own derivatives (``sample_spline``): phase-unbiased, where Keys' cubic convolution read a false
   bias on surfaces of one disparity phase (a fronto-parallel table, issue 41). A textured pixel's match is "clearly
   worse" when the 5x5 sum of absolute normalised differences at its GT disparity exceeds the best within +-1 px (steps
