@@ -181,6 +181,13 @@ def test_changed_content_and_bad_stereo_are_flagged(session_dir, true_calibratio
         for name in ("all", "fruit", "background"):
             assert ver.stereo[name].disparity_bias_px == pytest.approx(-offset, abs=0.03), (offset, name, ver.stereo)
         assert ver.status == "flagged" and any("disparity bias over the whole area" in r for r in ver.reasons)
+    # beyond the search (24 px at this scale): no bias fitted (a tiny one from a local minimum before), flagged for it
+    ver, _ = verify_scene(sd.depth_mm, sd.disparity_px + 40.0, sd.nonoccluded, region, a.zed_left, a.zed_right,
+                          a.mech_texture, rig)
+    assert ver.status == "flagged" and all(ver.stereo[k].disparity_bias_px is None for k in ver.stereo), ver.stereo
+    assert any(r.startswith(f"stereo: no disparity bias found over the whole area's {ver.stereo['all'].n_pixels} "
+                            "textured pixels (the right image matches the labels nowhere within +-24 px")
+               for r in ver.reasons), ver.reasons
     # a right image 0.4 px lower than the rectification says
     import cv2
 

@@ -90,6 +90,10 @@ STEREO_BLUR_PX = 1.0
 STEREO_SEARCH_PX = 24
 STEREO_SEARCH_POINTS = 2000
 STEREO_SEARCH_MARGIN = 0.1
+# below this correlation at every offset searched the right image matches the labels nowhere (random texture gives
+# about 0; exact labels 0.99 on the generator's scenes, 0.96 on Middlebury 2014 Motorcycle): no bias is fitted, and the
+# scene is flagged for it
+STEREO_MIN_MATCH_CORRELATION = 0.2
 
 
 def texture_alignment(depth_zed_mm: np.ndarray, region: np.ndarray, zed_left: np.ndarray, texture: np.ndarray,
@@ -207,14 +211,14 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
         worse = cost(0.0) > params.bad_match_ratio * best_other
     # where the Gauss-Newton starts: the ground truth's own matches, or, where those are off by more than its reach
     # (a pixel or two), the whole offset that matches best
-    b0 = _coarse_disparity_offset(right, nl_gn, v, u, take_at(d, idx), window, w) if len(v) >= params.min_pixels \
-        else 0.0
+    b0, matched = _coarse_disparity_offset(right, nl_gn, v, u, take_at(d, idx), window, w) \
+        if len(v) >= params.min_pixels else (0.0, 1.0)
     out = {}
     for name, sel in regions.items():
         at = None if sel is None else np.flatnonzero(sel)  # the region's used pixels
         wr = worse if sel is None else worse[sel]
         n = len(wr)
-        if n < params.min_pixels:
+        if n < params.min_pixels or matched < STEREO_MIN_MATCH_CORRELATION:  # (the latter: no bias to fit)
             out[name] = StereoEstimate(n_pixels=n)
             continue
         keep = even_subset(n, MAX_POINTS)
@@ -251,19 +255,20 @@ def stereo_consistency(zed_left: np.ndarray, zed_right: np.ndarray, disparity_px
 
 
 def _coarse_disparity_offset(right: np.ndarray, left: np.ndarray, v: np.ndarray, u: np.ndarray, d: np.ndarray,
-                             window: Window, w: int) -> float:
+                             window: Window, w: int) -> tuple[float, float]:
     """The whole disparity offset (work px, within +-``STEREO_SEARCH_PX``) at which the right image matches the left
     best over an even subset of the used pixels ``(v, u)`` (their GT disparities ``d``): their Pearson correlation, the
     right image sampled from its B-spline ``right`` at each offset, the left one from ``left``. The ground truth's own
     matches (0) unless an offset of 2 px or more correlates better by ``STEREO_SEARCH_MARGIN``: the Gauss-Newton
-    reaches a pixel or so, and from 0 a label 5-8 px off converged to a local minimum and a tight, tiny bias."""
+    reaches a pixel or so, and from 0 a label 5-8 px off converged to a local minimum and a tight, tiny bias.
+    Returns ``(offset, the best correlation found)``."""
     keep = even_subset(len(v), STEREO_SEARCH_POINTS)
     vk, uk = v[keep], u[keep]
     lv = take_at(left, vk * w + uk).astype(np.float64)
     lv -= lv.mean()
     norm = float(np.linalg.norm(lv))
     if norm == 0.0:
-        return 0.0
+        return 0.0, 0.0
     xr = (uk + (window.x0_px - window.xr0_px)) - d[keep].astype(np.float64)
     offsets = np.arange(-STEREO_SEARCH_PX, STEREO_SEARCH_PX + 1, dtype=np.float64)
     r = sample_spline(right, (xr[None, :] - offsets[:, None]).ravel(),
@@ -272,8 +277,8 @@ def _coarse_disparity_offset(right: np.ndarray, left: np.ndarray, v: np.ndarray,
     corr = (r @ lv) / np.maximum(np.linalg.norm(r, axis=1) * norm, 1e-300)
     k = int(np.argmax(corr))
     if abs(offsets[k]) >= 2 and corr[k] > corr[STEREO_SEARCH_PX] + STEREO_SEARCH_MARGIN:
-        return float(offsets[k])
-    return 0.0
+        return float(offsets[k]), float(corr[k])
+    return 0.0, float(corr[k])
 
 
 @numba.njit(cache=True)
@@ -515,6 +520,10 @@ def verify_scene(depth_zed_mm: np.ndarray, disparity_px: np.ndarray, nonoccluded
             reasons.append(f"stereo: disparity bias over the {area} "
                            f"{s.disparity_bias_px:+.{_decimals(params.max_disparity_bias_px, 3)}f}"
                            f"{_pm(s.disparity_bias_noise_px)} px (> {params.max_disparity_bias_px} px)")
+        if name == "all" and s.disparity_bias_px is None and s.n_pixels >= params.min_pixels:
+            reasons.append(f"stereo: no disparity bias found over the whole area's {s.n_pixels} textured pixels (the "
+                           f"right image matches the labels nowhere within +-{STEREO_SEARCH_PX * f} px of them: labels "
+                           "far off, or another scene's pair?)")
         if name == "all" and s.vertical_px is not None and abs(s.vertical_px) > params.max_vertical_px:
             reasons.append(f"stereo: vertical misalignment {s.vertical_px:+.{_decimals(params.max_vertical_px, 3)}f}"
                            f"{_pm(s.vertical_noise_px)} px "
