@@ -21,6 +21,7 @@ from typer.testing import CliRunner
 
 from gtforge.cli.commands import app
 from gtforge.errors import INTERRUPTED, InputError, Interrupted
+from gtforge.records.calibration import CalibrationFile
 from gtforge.records.certificate import Certificate
 from gtforge.records.run import RunState
 from gtforge.reports.certificate import field_value
@@ -183,6 +184,37 @@ def test_rerun_edit_and_interrupt(chain):
             run_session(sess, out, OPTS, say=said.append, after_stage=stop_cli)
         assert str(raised.value).startswith(words) and "run the same command again to resume" in str(raised.value)
         assert str(raised.value).count("interrupted") == 1 and not any("interrupted" in s for s in said)
+
+
+def test_holdout_validates_on_captures_the_calibration_never_saw(chain, tmp_path):
+    """run --holdout K (a newcomer's run-through, round 4: run's validation warned "optimistic; use --holdout K", which
+    run had no way to take): validate alone is redone, on the last K board captures with a calibration made without
+    them, and the certificate says so; the dataset's calibration is the run's. Without it again: validated as before,
+    the hold-out's calibration gone."""
+    out = tmp_path / "run"
+    shutil.copytree(chain["out"], out, symlinks=True)
+    said: list[str] = []
+    res = run_session(chain["session"], out, OPTS.model_copy(update={"holdout": 1}), say=said.append)
+    assert res.redone == ["validate"], said
+    doc = json.loads((out / "validation" / "validation.json").read_text())
+    assert [p["capture"] for p in doc["poses"]] == ["004"]
+    assert doc["calibration_path"] == str((out / "validation" / "holdout_calibration.yaml").resolve())
+    assert not any("optimistic" in w for w in doc["warnings"]), doc["warnings"]
+    held = CalibrationFile.read(out / "validation" / "holdout_calibration.yaml")
+    assert "004" not in held.captures_used and "004" in CalibrationFile.read(out / "calibration.yaml").captures_used
+    cert = Certificate.read(out / "certificate.json")
+    notes = [n for s in cert.sections if s.title == "Board accuracy (validate)" for n in s.notes]
+    assert notes[0].startswith("validated on the last 1 board capture(s) (004) with a calibration made without them")
+    assert any("on the last 1 board capture(s), calibrated without them" in s for s in said), said
+    res = run_session(chain["session"], out, OPTS, say=said.append)
+    assert res.redone == ["validate"] and not (out / "validation" / "holdout_calibration.yaml").exists()
+    doc = json.loads((out / "validation" / "validation.json").read_text())
+    assert any("optimistic" in w for w in doc["warnings"])
+    # with -c: refused (the run would use the file given, not the one the hold-out validates)
+    with pytest.raises(InputError) as e:
+        run_session(chain["session"], tmp_path / "run2",
+                    OPTS.model_copy(update={"holdout": 1, "calibration": str(out / "calibration.yaml")}))
+    assert e.value.field == "--holdout" and not (tmp_path / "run2").exists()
 
 
 def test_run_without_boards_needs_a_calibration(tmp_path):

@@ -18,6 +18,7 @@ from gtforge.validate import check_report_folder, validate
 log = logging.getLogger("gtforge.validate")
 
 MIN_CALIBRATION_POSES = 3  # the captures that must remain to calibrate
+HOLDOUT_CALIBRATION = "holdout_calibration.yaml"  # the calibration of the other captures, in the report folder
 
 
 def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path | None = None,
@@ -40,7 +41,7 @@ def validate_holdout(session_dir: str | Path, holdout: int, out_dir: str | Path 
                          f"{len(dirs)} ({MIN_CALIBRATION_POSES} must remain to calibrate)", str(holdout),
                          "captures where the board is not found do not count among the 3, so fewer may be needed")
     held = [d.name for d in dirs[-holdout:]]
-    calib_path = Path(out_dir or ".") / "holdout_calibration.yaml"
+    calib_path = Path(out_dir or ".") / HOLDOUT_CALIBRATION
     made = not calib_path.exists()
     cal = calibrate(session_dir, calib_path, CalibrateParams(board=params.board or BoardModel()), exclude=held,
                     progress=progress)

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from pydantic import Field
+
 import gtforge
 from gtforge.align_depth import align_depth
 from gtforge.build_dataset import build_dataset
@@ -38,6 +40,7 @@ from gtforge.core.schema import GTModel, load_yaml
 from gtforge.core.zed.selfcal import SelfRectifyParams
 from gtforge.dataset.layout import STAMP_MARGIN_NS
 from gtforge.errors import InputError, Interrupted, first_of
+from gtforge.holdout import HOLDOUT_CALIBRATION, validate_holdout
 from gtforge.infra.atomic import atomic_write_bytes
 from gtforge.infra.digest import blake3_file, blake3_hex
 from gtforge.infra.scheduling import check_scheduler_address
@@ -69,6 +72,9 @@ class RunOptions(GTModel):
     calibration: str | None = None  # a calibration file to use instead of calibrating (sessions without boards)
     use_depth: bool = False  # calibrate --use-depth
     loo: bool = True  # calibrate and refine: leave-one-out cross-validation
+    # validate: the last K board captures, with a calibration made without them (``holdout.validate_holdout``); 0: the
+    # run's calibration on the captures it was made from (optimistic, and said so)
+    holdout: int = Field(0, ge=0)
     calibration_scenes: list[str] | None = None  # the scenes calibrate-scale and refine use (default: max_scenes)
     refine: bool = True
     quarantine: bool = False  # build-dataset / verify --quarantine
@@ -199,6 +205,11 @@ class _Run:
             check_scheduler_address(opts.scheduler)
         self.session = open_session(session_dir)
         self.session.refuse_output_over_inputs(out)  # the run's folder holds every stage's outputs
+        if opts.calibration is not None and opts.holdout:
+            raise InputError(opts.calibration, "--holdout", "no --holdout with -c (a hold-out validates a calibration "
+                             "made from the session's boards without the last K; the run would use the file given)",
+                             f"--holdout {opts.holdout} with -c",
+                             "drop -c to calibrate from the session's boards, or drop --holdout to validate the file")
         if opts.calibration is not None:
             given = Path(opts.calibration)
             if out.resolve() in given.resolve().parents:
@@ -513,7 +524,7 @@ class _Run:
         if not ctx["boards"] and not ctx["gauges"]:
             self.not_applicable(k, name, "no board captures and no gauges/gauges.yaml")
             return
-        options = {"gauges_only": not ctx["boards"]}
+        options = {"gauges_only": not ctx["boards"], **({"holdout": self.opts.holdout} if self.opts.holdout else {})}
         inputs = {**ctx["cfg_before_build"],
                   **self.hashes([ctx["calib"]] + [p for d in ctx["boards"] for p in self.capture_files(d)]
                                 + ctx["gauges"])}
@@ -523,7 +534,13 @@ class _Run:
         vdir = self.out / VALIDATION
         reasons: list[str] = []
         if ctx["boards"]:
-            rep = validate(self.root, ctx["calib"], vdir, progress=self.progress)
+            if self.opts.holdout:  # (a calibration of the other captures, in vdir: the dataset's is the run's own)
+                rep = validate_holdout(self.root, self.opts.holdout, vdir, progress=self.progress)
+                self.say(f"      on the last {self.opts.holdout} board capture(s), calibrated without them "
+                         f"({VALIDATION}/{HOLDOUT_CALIBRATION})")
+            else:
+                (vdir / HOLDOUT_CALIBRATION).unlink(missing_ok=True)  # (an earlier --holdout run's, no longer cited)
+                rep = validate(self.root, ctx["calib"], vdir, progress=self.progress)
             if not rep.pass_xy:
                 reasons.append(f"board XY reprojection {rep.xy_mean_px:.3f} px over the threshold "
                                f"{rep.thresholds.get('xy_px', rep.thresholds)}")

@@ -182,6 +182,10 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
         use_depth: bool = typer.Option(False, "--use-depth", help="calibrate --use-depth."),
         loo: bool = typer.Option(True, "--loo/--no-loo", help="Leave-one-out cross-validation in calibrate and "
                                  "refine (--no-loo saves time)."),
+        holdout: int = typer.Option(0, min=0, metavar="K", help="validate on the last K board captures with a "
+                                    "calibration made without them (validate --holdout K; the dataset still uses "
+                                    "every capture's). 0: validate the run's calibration on the captures it used "
+                                    "(optimistic)."),
         calibration_scenes: Optional[str] = typer.Option(
             None, metavar="IDS", help="Comma-separated scene ids calibrate-scale and refine use (default: up to "
             f"{defaults.MAX_SCENES} and {defaults.REFINE_MAX_SCENES} scenes, evenly spread over the session)."),
@@ -200,7 +204,7 @@ def run(session: Path = typer.Argument(..., help="Capture session folder (docs/c
     from gtforge.run import RunOptions, run_session
 
     opts = _options(RunOptions, calibration=str(calibration) if calibration else None, use_depth=use_depth, loo=loo,
-                    calibration_scenes=calibration_scenes.split(",") if calibration_scenes else None,
+                    holdout=holdout, calibration_scenes=calibration_scenes.split(",") if calibration_scenes else None,
                     refine=refine_, quarantine=quarantine, workers=workers, scheduler=scheduler)
     res = run_session(session, output, opts, say=out.print, progress=_status)
     if res.exit_code:

@@ -123,8 +123,12 @@ def build_certificate(out: Path, state: RunState, session_root: Path | None = No
         val.add("board flatness RMS", "flatness_rms_mm", "mm")
         val.add("published reference XY", "reference.xy_px", "px")
         val.add("published reference Z", "reference.z_pct", "%")
+        held = st["validate"].options.get("holdout")
+        what = ([f"validated on the last {held} board capture(s) ({', '.join(p['capture'] for p in d['poses'])}) with "
+                 "a calibration made without them (validation/holdout_calibration.yaml; run --holdout): the dataset's "
+                 "calibration uses every capture"] if held else [])
         sections.append(CertSection(title="Board accuracy (validate)", verdict=_pf(d["passed"]), figures=val.items,
-                                    notes=list(d.get("warnings") or []), link=val.link))
+                                    notes=what + list(d.get("warnings") or []), link=val.link))
         if d.get("gauges"):
             sections.append(_gauges(out, "validation/validation.json", "gauges."))
     elif ran("validate") and (out / "validation" / "gauges.json").is_file():
