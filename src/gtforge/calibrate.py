@@ -125,12 +125,17 @@ def calibrate_observations(obs: list[PoseObs], reports: list[PoseResult], mech: 
                                            for n, X in corners_depth.items()]))
         dev_pct = (square_measured / board.square_size_mm - 1.0) * 100.0
         if params.square_check_pct and abs(dev_pct) > params.square_check_pct:
+            ratio = square_measured / board.square_size_mm
+            # a ratio of two length units (depth in m read as mm, or the reverse): the depth's unit, not the board
+            unit = next((f for f in (1000.0, 0.001, 10.0, 0.1, 25.4, 1 / 25.4) if abs(ratio / f - 1.0) < 0.05), None)
+            hint = (f"the depth reads {ratio:.4g}x the board: set the depth maps' unit (depth_unit / depth_scale_mm "
+                    "in session.yaml, docs/capture-layout.md)" if unit is not None else
+                    f"pass --square-mm {square_measured:.1f} if that is the board; if the board is right, the depth "
+                    "is off (depth_unit / depth_scale_mm in session.yaml)")
             raise InputError(None, "--square-mm", f"the board's square size as the depth camera measures it "
                              f"(within {params.square_check_pct:g} %)",
                              f"{board.square_size_mm:g} mm declared, {square_measured:.2f} mm measured in the depth "
-                             f"of {len(corners_depth)} poses ({dev_pct:+.1f} %)",
-                             f"pass --square-mm {square_measured:.1f} if that is the board; if the board is right, the "
-                             "depth is off (depth_unit / depth_scale_mm in session.yaml)")
+                             f"of {len(corners_depth)} poses ({dev_pct:+.1f} %)", hint)
     if progress:
         progress("joint refinement")
     ref = joint_refine(used, mech, zed.left, board, T_zed_from_mech_init, params.huber_px)

@@ -219,6 +219,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
     if ds.is_file():
         raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "a file",
                          f"give the folder that holds it ({ds.parent})")
+    if not ds.is_dir():  # (said as verify says it)
+        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "no such folder",
+                         "check the path (the -o of build-dataset)")
     if not (ds / "manifest.json").is_file():
         raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
                          "evaluate the OUT folder of build-dataset, not a capture session")

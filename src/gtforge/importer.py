@@ -662,8 +662,10 @@ def refuse_output_inside(session: Path) -> None:
             "a rosbag2 recording's folder" if (a / "metadata.yaml").is_file() else \
             "gtforge run's output folder" if (a / "run_state.json").is_file() else None
         if what is not None:
+            name = "session" if p.is_file() else p.name  # (-o SESSION/session.yaml: a file, no session's name)
             raise InputError(session, "--output", "a session folder outside other sessions and recordings",
-                             f"a folder inside {what} ({a})", f"write it beside, e.g. {free_path(a.parent, p.name)}")
+                             f"{'a file' if p.is_file() else 'a folder'} inside {what} ({a})",
+                             f"write it beside, e.g. {free_path(a.parent, name)}")
 
 
 def _summary(session: Path, run: ImportRun, dirs: dict[str, str], warnings: list[str]) -> ImportSummary:

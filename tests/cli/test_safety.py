@@ -227,6 +227,12 @@ def test_calibrate_into_a_folder_and_wrong_square_size(session_dir, tmp_path):
     assert r.returncode == 2 and one_line_error(r)
     assert "25 mm declared, 20.00 mm measured" in r.stderr and "--square-mm 20.0" in r.stderr
     assert not (tmp_path / "wrong.yaml").exists()
+    # a ratio of length units (the depth in m read as mm, here 0.02 mm declared for 20): the depth's unit, first
+    r = gtforge("calibrate", session_dir, "-o", tmp_path / "wrong.yaml", "--no-loo", "--no-self-rectify",
+                "--square-mm", "0.02")
+    assert r.returncode == 2 and one_line_error(r)
+    assert "(hint: the depth reads 1000x the board: set the depth maps' unit (depth_unit / depth_scale_mm" \
+        in r.stderr and "--square-mm 20.0" not in r.stderr, r.stderr
     # 20.5 mm, within the 3 % the refusal allows: a PASS, with the extrinsic tens of sigma off (a run-through); a
     # WARN naming the measured size now
     from gtforge.calibrate import calibrate
