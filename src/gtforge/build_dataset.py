@@ -387,7 +387,7 @@ def build_dataset(session_dir: str | Path, calibration: str | Path, out_dir: str
     calib_sha = sha256_file(calib_path)
     out = require_output_folder(out_dir, "--output")
     session.refuse_output_over_inputs(out)
-    require_dataset_folder(out, session.root, overwrite)
+    require_dataset_folder(out, session, overwrite)
     if params.crop_wh and (params.crop_wh[0] > session.zed.left.width_px
                            or params.crop_wh[1] > session.zed.left.height_px):
         size = f"{session.zed.left.width_px}x{session.zed.left.height_px}"

@@ -71,7 +71,12 @@ def test_no_stage_writes_into_another_session_or_a_foreign_folder(session_dir, t
     assert r.returncode == 2 and one_line_error(r) and "got a folder holding notes.txt, which no dataset holds" \
         in r.stderr, r.stderr
     assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
-    # a dataset of another session: refused (its scenes with this session's ids would be replaced, the others kept)
+    # a dataset of another session: refused (its scenes with this session's ids would be replaced, the others kept);
+    # other's textures saved again uncompressed: the same scene ids, other captures
+    import cv2
+
+    for png in sorted(other.glob("scenes/*/2DImage.png")):
+        cv2.imwrite(str(png), cv2.imread(str(png), cv2.IMREAD_UNCHANGED), [cv2.IMWRITE_PNG_COMPRESSION, 0])
     ds = tmp_path / "ds"
     r = gtforge("build-dataset", other, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify")
     assert r.returncode == 0, r.stderr
@@ -79,15 +84,22 @@ def test_no_stage_writes_into_another_session_or_a_foreign_folder(session_dir, t
     r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify")
     assert r.returncode == 2 and one_line_error(r), r.stderr
     assert f"manifest.json [session_dir]: expected a dataset built from this session ({sess.resolve()}), got one " \
-           f"built from {other.resolve()}" in r.stderr, r.stderr
+           f"built from {other.resolve()}, whose scenes' inputs are not this session's" in r.stderr, r.stderr
     assert tree_digest(ds) == ds_before
-    # the same session moved: --overwrite rebuilds it there
+    # the same session moved (or copied) with its dataset: the build resumes there, nothing rebuilt
     moved = tmp_path / "moved"
     other.rename(moved)
-    r = gtforge("build-dataset", moved, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify",
+    scenes_before = tree_digest(ds / "scenes")
+    r = gtforge("build-dataset", moved, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify")
+    assert r.returncode == 0, r.stderr
+    manifest = json.loads((ds / "manifest.json").read_text())
+    assert manifest["session_dir"] == str(moved.resolve())
+    assert r.stdout.startswith("built 0, unchanged 3, failed 0") and tree_digest(ds / "scenes") == scenes_before
+    # another session with --overwrite: every scene rebuilt from it
+    r = gtforge("build-dataset", sess, "-c", true_calibration, "-o", ds, "--workers", "1", "--no-verify",
                 "--overwrite")
     assert r.returncode == 0, r.stderr
-    assert json.loads((ds / "manifest.json").read_text())["session_dir"] == str(moved.resolve())
+    assert json.loads((ds / "manifest.json").read_text())["session_dir"] == str(sess.resolve())
     # a run's folder: its dataset is dataset/ inside it
     run_dir = tmp_path / "run"
     run_dir.mkdir()

@@ -519,7 +519,8 @@ def test_read_recorded_bytes_record_and_buffer(tmp_path, size_change):
 
 
 @pytest.mark.parametrize("text, got, hint", [
-    ("a: 1\n\tb: 2\n", "a parse error at line 2, column 1: found a tab character", "indent with spaces, not tabs (line 2)"),
+    ("a: 1\n\tb: 2\n", "a parse error at line 2, column 1: found a tab character",
+     "indent with spaces, not tabs (line 2)"),
     ("rig: {zed: [1, 2\n", "a parse error at line 2, column 1: ", "the text ends before its YAML does: is the file "
      "truncated, or a bracket or quote left open?"),
     ("a:\n  b: 1\n c: 2\n", "a parse error at line 3, column 2: ", "fix the YAML at line 3 (an indent or a ':' out "

@@ -22,12 +22,13 @@ KITTI_DISPARITY_DIRS = ("disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1")
 
 
 
-def require_dataset_folder(out: Path, session_root: Path, overwrite: bool, option: str = "--output") -> None:
+def require_dataset_folder(out: Path, session, overwrite: bool, option: str = "--output") -> None:
     """build-dataset's output folder: new or empty, a dataset it built from this session before (or what a first
-    build cut off left: only the entries a dataset holds), or, with ``overwrite``, a dataset built from a session
-    elsewhere (a session that moved). Refused: a ``gtforge run``'s output folder (its dataset is ``dataset/`` inside
-    it), a dataset built from another session (this session's scenes would replace those with the same ids and leave
-    the others in scenes/, kitti/ and eth3d/, one dataset of two sessions), a folder holding anything else."""
+    build cut off left: only the entries a dataset holds), a dataset built from a copy of this session elsewhere
+    (``_built_from_these_captures``: a session moved or copied with its dataset), or, with ``overwrite``, any dataset.
+    Refused: a ``gtforge run``'s output folder (its dataset is ``dataset/`` inside it), a dataset built from another
+    session (this session's scenes would replace those with the same ids and leave the others in scenes/, kitti/ and
+    eth3d/, one dataset of two sessions), a folder holding anything else. ``session``: the ``CaptureSession``."""
     if not out.is_dir():
         return
     if (out / "run_state.json").is_file():
@@ -37,13 +38,15 @@ def require_dataset_folder(out: Path, session_root: Path, overwrite: bool, optio
                          f"e.g. {free_path(out.parent, 'dataset')}")
     manifest = out / "manifest.json"
     if manifest.is_file():
-        recorded = _manifest_session_dir(manifest)
-        if recorded is not None and not overwrite and not _same_folder(Path(recorded), session_root):
-            raise InputError(manifest, "session_dir", f"a dataset built from this session ({session_root.resolve()})",
-                             f"one built from {recorded}",
+        recorded = _read_manifest(manifest)
+        where = recorded.get("session_dir")
+        if isinstance(where, str) and where and not overwrite and not _same_folder(Path(where), session.root) \
+                and not _built_from_these_captures(recorded.get("scenes"), session):
+            raise InputError(manifest, "session_dir", f"a dataset built from this session ({session.root.resolve()})",
+                             f"one built from {where}, whose scenes' inputs are not this session's",
                              "build into a new folder (this session's scenes would replace that dataset's with the "
-                             "same ids and leave its others beside them); if the session was moved from there, "
-                             "--overwrite rebuilds every scene from it here")
+                             "same ids and leave its others beside them); if the session was moved from there and "
+                             "its captures edited since, --overwrite rebuilds every scene from it here")
         return
     foreign = sorted(e.name for e in out.iterdir()
                      if not e.name.startswith(".") and e.name not in DATASET_FOLDERS + DATASET_FILES)
@@ -53,16 +56,37 @@ def require_dataset_folder(out: Path, session_root: Path, overwrite: bool, optio
                          f"give a new folder, e.g. {free_path(out, 'dataset')}")
 
 
-def _manifest_session_dir(manifest: Path) -> str | None:
-    """The ``session_dir`` an earlier build recorded, or None where the manifest cannot say (the build reads it
-    again, and reports what is wrong with it)."""
+def _read_manifest(manifest: Path) -> dict:
+    """An earlier build's manifest as plain JSON, or {} where it cannot be read (the build reads it again, and
+    reports what is wrong with it)."""
     import json
 
     try:
-        value = json.loads(manifest.read_text(encoding="utf-8")).get("session_dir")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return value if isinstance(value, str) and value else None
+        value = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
+def _built_from_these_captures(scenes, session) -> bool:
+    """Whether a dataset whose manifest holds ``scenes`` (scene id -> its meta, as JSON) was built from copies of
+    this session's captures: at least half of its scenes are scene folders here that still have the input files it
+    recorded, with the recorded sizes (a stat each, no reading). Captures deleted or edited since are left out or
+    rebuilt by the build as in its own folder; two sessions' PNG and TIFF captures do not agree in size file for
+    file."""
+    if not isinstance(scenes, dict) or not scenes:
+        return False
+    here = {d.name: d for d in session.capture_dirs("scenes")}
+    same = 0
+    for sid, meta in scenes.items():
+        stamps = meta.get("input_stamps") if isinstance(meta, dict) else None
+        if sid not in here or not isinstance(stamps, dict) or not stamps:
+            continue
+        files = {p.name: p for p in session.capture_files(here[sid]) if p.exists()}
+        if set(files) == set(stamps) and all(isinstance(s, dict) and files[n].stat().st_size == s.get("size_bytes")
+                                             for n, s in stamps.items()):
+            same += 1
+    return 2 * same >= len(scenes)
 
 
 def _same_folder(a: Path, b: Path) -> bool:
