@@ -198,5 +198,6 @@ def write_figures(path: Path, rows: list[tuple[str, str, str]], seconds: float, 
               "on "
               f"{time.strftime('%Y-%m-%d')} ({seconds:.0f} s on {os.cpu_count()} cores, {platform.machine()}; gtforge "
               f"{gtforge.__version__}, OpenCV {cv2.__version__}, numba {numba.__version__}, NumPy {np.__version__}); "
-              "another OpenCV, numba or NumPy build may change the last digits."]
+              "another processor, or another OpenCV, numba or NumPy build, may change the last digits (refine's "
+              "error by a fraction of its 1-sigma)."]
     return atomic_write_text(path, "\n".join(lines) + "\n")
