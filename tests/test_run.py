@@ -420,13 +420,35 @@ def test_another_sessions_run_folder_is_refused(chain, tmp_path):
     calibration and dataset are the other session's (they were replaced, with one line of notice)."""
     from gtforge.errors import InputError
 
+    import cv2
+
     other = tmp_path / "other"
     shutil.copytree(EXAMPLE, other, ignore=shutil.ignore_patterns("truth"))
+    for png in sorted(other.glob("*/*/*.png")):  # other captures: the same names, other files
+        cv2.imwrite(str(png), cv2.imread(str(png), cv2.IMREAD_UNCHANGED), [cv2.IMWRITE_PNG_COMPRESSION, 0])
     out = chain["out"]
     before = {p: p.read_bytes() for p in (out / "run_state.json", out / "calibration.yaml", out / "certificate.json")}
-    with pytest.raises(InputError, match=r"\[--output\].*the run folder of another session.*delete the folder first"):
+    with pytest.raises(InputError, match=r"\[--output\].*the run folder of another session .*, whose captures are "
+                                         r"not this session's.*delete the folder first"):
         run_session(other, out, OPTS)
     assert {p: p.read_bytes() for p in before} == before
+
+
+def test_a_session_moved_with_its_run_resumes_there(chain, tmp_path):
+    """A lab moves a session and its run folder to another disk: the run resumes there, redoing nothing (it was
+    refused: "delete the folder first", and every stage ran again); the certificate names the new place."""
+    run_session(chain["session"], chain["out"], OPTS, say=lambda s: None)  # up to date with the earlier tests' edits
+    sess, out = tmp_path / "moved" / "session", tmp_path / "moved" / "run"
+    shutil.copytree(chain["session"], sess, symlinks=True)
+    shutil.copytree(chain["out"], out, symlinks=True)
+    said: list[str] = []
+    res = run_session(sess, out, OPTS, say=said.append)
+    assert res.redone == [], said
+    assert f"{out}: the run of {chain['session'].resolve()}, whose captures are this session's (moved or copied): " \
+           "resumed here" in said
+    assert RunState.read(out / "run_state.json").session_dir == str(sess.resolve())
+    assert Certificate.read(out / "certificate.json").session_dir == str(sess.resolve())
+    assert all(not k.startswith(str(chain["session"].resolve())) for k in RunState.read(out / "run_state.json").hashes)
 
 
 def test_a_calibration_in_the_run_folder_is_refused_before_any_stage(tmp_path):

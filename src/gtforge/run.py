@@ -94,6 +94,32 @@ class RunResult:
         return 1 if self.certificate.verdict == "FAIL" else 0
 
 
+def _captures_of(state: RunState, root: Path) -> bool:
+    """Whether the run ``state`` records is one of the session at ``root`` that has moved or been copied there: at
+    least half of the session files its hash cache holds are at the same place under ``root``, with the same sizes (a
+    stat each: a resume hashes them again and redoes what differs). Two sessions' PNG captures do not agree in size
+    file for file."""
+    old = Path(state.session_dir)
+    files = []
+    for key, h in state.hashes.items():
+        try:
+            files.append((Path(key).relative_to(old), h.size_bytes))
+        except ValueError:  # an output or a file given from elsewhere
+            continue
+    same = 0
+    for rel, size in files:
+        p = root / rel
+        same += p.is_file() and p.stat().st_size == size
+    return bool(files) and 2 * same >= len(files)
+
+
+def _moved_key(key: str, old: Path, here: Path) -> str:
+    try:
+        return str(here / Path(key).relative_to(old))
+    except ValueError:
+        return key
+
+
 class _Hasher:
     """BLAKE3 of files, trusting a cached hash while the file's size and mtime are unchanged (``dataset.layout``'s
     rule: not when the file was modified within ``STAMP_MARGIN_NS`` of being hashed)."""
@@ -229,17 +255,27 @@ class _Run:
         self.out = out
         state_path = out / STATE
         self.state = None
+        moved = False
         if state_path.is_file():
             try:
                 self.state = RunState.read(state_path)
             except InputError as exc:
                 say(f"{state_path} unreadable ({exc}): every stage runs again")
         if self.state is not None and self.state.session_dir != str(self.root.resolve()):
-            # another session's dataset and calibration: never replaced on a mistyped -o
-            raise InputError(out, "--output", f"a new folder or an earlier run of {self.root.resolve()}",
-                             f"the run folder of another session ({self.state.session_dir})",
-                             "choose another -o; to replace that run (or if this session was moved there from "
-                             "elsewhere), delete the folder first")
+            if not _captures_of(self.state, self.root):
+                # another session's dataset and calibration: never replaced on a mistyped -o
+                raise InputError(out, "--output", f"a new folder or an earlier run of {self.root.resolve()}",
+                                 f"the run folder of another session ({self.state.session_dir}, whose captures are "
+                                 "not this session's)", "choose another -o; to replace that run, delete the folder "
+                                 "first")
+            # the session moved (or was copied) with its run: the run resumes here, redoing what differs
+            say(f"{out}: the run of {self.state.session_dir}, whose captures are this session's (moved or copied): "
+                "resumed here")
+            old, here = Path(self.state.session_dir), self.root.resolve()
+            # the hash cache's entries follow the files (a move keeps their sizes and times: nothing is read again)
+            self.state.hashes = {_moved_key(k, old, here): h for k, h in self.state.hashes.items()}
+            self.state.session_dir = str(here)
+            moved = True
         if self.state is None:
             self.state = RunState(gtforge_version=gtforge.__version__, session_dir=str(self.root.resolve()))
             if not state_path.exists():
@@ -251,6 +287,8 @@ class _Run:
         self.redone: list[str] = []
         self.skipped: list[str] = []
         self.changed = False  # a stage ran or its record changed: the certificate is written again
+        if moved:
+            self.withdraw_certificate()  # it names the session's folder
 
     # ---- inputs ------------------------------------------------------------------------------------------------
     def key(self, p: Path) -> str:
