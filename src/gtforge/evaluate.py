@@ -215,16 +215,9 @@ def evaluate(dataset_dir: str | Path, predictor: Predictor, out_dir: str | Path 
         raise InputError(None, "--max-gt-sigma", "a finite sigma limit > 0 px", str(max_gt_sigma_px),
                          "give a positive sigma in px, or leave --max-gt-sigma out to score every label "
                          "(docs/metrics.md)")
-    ds = Path(dataset_dir)
-    if ds.is_file():
-        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "a file",
-                         f"give the folder that holds it ({ds.parent})")
-    if not ds.is_dir():  # (said as verify says it)
-        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset", "no such folder",
-                         "check the path (the -o of build-dataset)")
-    if not (ds / "manifest.json").is_file():
-        raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
-                         "evaluate the OUT folder of build-dataset, not a capture session")
+    from gtforge.dataset.layout import require_dataset
+
+    ds = require_dataset(dataset_dir, "evaluate the OUT folder of build-dataset, not a capture session")
     ids = list_scenes(ds, split)
     if not ids:
         raise InputError(ds, "scenes", "at least one scene", "none",

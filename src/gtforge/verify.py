@@ -10,6 +10,7 @@ from typing import Callable
 
 import numpy as np
 
+from gtforge.dataset.layout import require_dataset
 from gtforge.dataset.motion_compensation import moved_fruit_of
 from gtforge.dataset.scene_verification import verify_scene, write_verification_overlay
 from gtforge.dataset.views import final_splits, write_lists, write_split_views
@@ -51,16 +52,8 @@ def verify_dataset(dataset_dir: str | Path, params: VerifyParams | None = None, 
     files, to the last digit (tests/stages/test_verify.py), in about the time the build took for them."""
     if not build_figures:  # (otherwise most scenes may need no worker: the pool starts only if one does)
         prestart_pool(verify_one_scene.__module__, workers, scheduler)  # its imports overlap the checks of the dataset
-    ds = Path(dataset_dir)
+    ds = require_dataset(dataset_dir, "point verify at the dataset folder (the -o of build-dataset)")
     man_path = ds / "manifest.json"
-    if not ds.is_dir():
-        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset",
-                         "a file" if ds.is_file() else "no such folder",
-                         f"give the folder that holds it ({ds.parent})" if ds.is_file()
-                         else "check the path (the -o of build-dataset)")
-    if not man_path.is_file():
-        raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
-                         "point verify at the dataset folder (the -o of build-dataset)")
     man = Manifest.read(man_path)
     sess = Path(session_dir) if session_dir else Path(man.session_dir)
     if not sess.is_dir():

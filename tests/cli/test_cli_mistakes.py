@@ -352,6 +352,13 @@ def test_a_file_given_for_a_folder_is_named_a_file(dataset, tmp_path):
         assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
         assert "got a file" in r.stderr and f"give the folder that holds it ({dataset[0]})" in r.stderr, r.stderr
     assert not (tmp_path / "e").exists()
+    # a folder that does not exist: both stages say so alike (evaluate said "no manifest.json")
+    for args in (("evaluate", tmp_path / "nowhere", "--sgbm", "-o", tmp_path / "e"), ("verify", tmp_path / "nowhere")):
+        r = gtforge(*args)
+        assert r.returncode == 2 and one_line_error(r), (args, r.stderr)
+        assert f"{tmp_path / 'nowhere'}: expected a dataset folder built by gtforge build-dataset, got no such " \
+               "folder (hint: check the path (the -o of build-dataset))" in r.stderr, r.stderr
+    assert not (tmp_path / "e").exists()
 
 
 def test_predictions_all_refused_end_in_one_short_line_naming_their_folder(dataset, tmp_path):

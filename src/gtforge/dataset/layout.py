@@ -22,6 +22,21 @@ KITTI_DISPARITY_DIRS = ("disp_occ_0", "disp_noc_0", "disp_occ_1", "disp_noc_1")
 
 
 
+def require_dataset(path: str | Path, manifest_hint: str) -> Path:
+    """``path`` is a dataset build-dataset wrote (a folder with its manifest.json), for the stages that read one
+    (verify, evaluate); ``manifest_hint``: what to do about a folder without a manifest, in the stage's words."""
+    ds = Path(path)
+    if not ds.is_dir():
+        raise InputError(ds, None, "a dataset folder built by gtforge build-dataset",
+                         "a file" if ds.is_file() else "no such folder",
+                         f"give the folder that holds it ({ds.parent})" if ds.is_file()
+                         else "check the path (the -o of build-dataset)")
+    if not (ds / "manifest.json").is_file():
+        raise InputError(ds, "manifest.json", "a dataset built by gtforge build-dataset", "no manifest.json",
+                         manifest_hint)
+    return ds
+
+
 def require_dataset_folder(out: Path, session, overwrite: bool, option: str = "--output") -> None:
     """build-dataset's output folder: new or empty, a dataset it built from this session before (or what a first
     build cut off left: only the entries a dataset holds), a dataset built from a copy of this session elsewhere
