@@ -113,6 +113,12 @@ def _captures_of(state: RunState, root: Path) -> bool:
     return bool(files) and 2 * same >= len(files)
 
 
+def _picked_note(picked: int, not_selected: int) -> str:
+    """What a calibration stage's line adds where its ``max_scenes`` left ``not_selected`` of the session's scenes out
+    (``picked``: the scenes it read)."""
+    return f" ({picked} of the session's {picked + not_selected} picked, evenly spread)" if not_selected else ""
+
+
 def _moved_key(key: str, old: Path, here: Path) -> str:
     try:
         return str(here / Path(key).relative_to(old))
@@ -626,9 +632,9 @@ class _Run:
                 self.say("      " + line)
             info = res.scale_calibration
             if info.scenes_not_selected:  # (the session's other scenes: --calibration-scenes names those it uses)
-                picked = len(info.scenes)  # (every scene it read: used or excluded)
-                self.say(f"      over {len(info.scenes_used)} scene(s) ({picked} of the session's "
-                         f"{picked + info.scenes_not_selected} picked, evenly spread)")
+                # (info.scenes: every scene it read, used or excluded)
+                self.say(f"      over {len(info.scenes_used)} scene(s)"
+                         + _picked_note(len(info.scenes), info.scenes_not_selected))
             self.done(name, options, inputs, [scaled], verdict="PASS", t0=t0)
         ctx["calib"] = scaled
 
@@ -667,9 +673,7 @@ class _Run:
                 reason = str(exc)
             else:
                 info = res.refinement
-                picked = len(info.scenes_used) + len(info.scenes_excluded)
-                spread = (f" ({picked} of the session's {picked + info.scenes_not_selected} picked, evenly spread)"
-                          if info.scenes_not_selected else "")
+                spread = _picked_note(len(info.scenes_used) + len(info.scenes_excluded), info.scenes_not_selected)
                 self.say(f"      over {len(info.scenes_used)} scene(s){spread}; moved {info.change_rot_deg:.4f} deg / "
                          f"{info.change_trans_mm:.3f} mm")
                 self.done(name, options, inputs, [refined], verdict="PASS", t0=t0)
