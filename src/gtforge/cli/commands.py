@@ -423,6 +423,18 @@ def verify(dataset: Path = typer.Argument(..., help="Dataset folder from gtforge
         raise typer.Exit(1)
 
 
+def _scenes_option():
+    """``--scenes`` of the stages that use a few of the session's scenes (refine, calibrate-scale, align-depth)."""
+    return typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: up to --max-scenes of them, "
+                        "evenly spread over the session).")
+
+
+def _max_scenes_option(default: int):
+    """``--max-scenes`` of those stages, with the stage's default (its parameters' ``max_scenes``)."""
+    return typer.Option(default, min=0, metavar="N", help="Without --scenes: use at most N scenes, evenly spread over "
+                        "the session (0: every scene).")
+
+
 def _not_selected(n: int) -> str:
     """What a stage's line adds when ``max_scenes`` left scenes of the session out."""
     return f" ({n} more scene(s) of the session not used: --max-scenes, those used evenly spread)" if n else ""
@@ -434,11 +446,8 @@ def refine(session: Path = typer.Argument(..., help="Capture session folder (its
                                             help="The board calibration to start from (gtforge calibrate)."),
            output: str = typer.Option("refined.yaml", "--output", "-o", metavar="PATH",
                                       help="Refined calibration YAML to write (never the input file)."),
-           scenes: Optional[str] = typer.Option(None, metavar="IDS", help="Comma-separated scene ids (default: up to "
-                                                "--max-scenes of them, evenly spread over the session)."),
-           max_scenes: int = typer.Option(defaults.REFINE_MAX_SCENES, min=0, metavar="N",
-                                          help="Without --scenes: use at most N scenes, evenly spread over the "
-                                               "session (0: every scene)."),
+           scenes: Optional[str] = _scenes_option(),
+           max_scenes: int = _max_scenes_option(defaults.REFINE_MAX_SCENES),
            loo: bool = typer.Option(True, "--loo/--no-loo",
                                     help="Hold each scene out in turn and measure it (cross-validation).")) -> None:
     """Refine T_zed_from_mech from the scenes' texture alignment; writes a normal calibration file whose
@@ -475,12 +484,8 @@ def calibrate_scale(session: Path = typer.Argument(..., help="Capture session fo
                                                      help="The calibration to correct (gtforge calibrate)."),
                     output: str = typer.Option("scaled.yaml", "--output", "-o", metavar="PATH",
                                                help="Corrected calibration YAML to write (never the input file)."),
-                    scenes: Optional[str] = typer.Option(None, metavar="IDS",
-                                                         help="Comma-separated scene ids (default: up to --max-scenes "
-                                                              "of them, evenly spread over the session)."),
-                    max_scenes: int = typer.Option(defaults.MAX_SCENES, min=0, metavar="N",
-                                                   help="Without --scenes: use at most N scenes, evenly spread over "
-                                                        "the session (0: every scene)."),
+                    scenes: Optional[str] = _scenes_option(),
+                    max_scenes: int = _max_scenes_option(defaults.MAX_SCENES),
                     boards: bool = typer.Option(True, "--boards/--no-boards",
                                                 help="Use the board captures (they separate baseline from depth "
                                                      "scale).")
@@ -516,12 +521,8 @@ def align_depth(session: Path = typer.Argument(..., help="Capture session folder
                                                       "(gtforge calibrate)."),
                 output: str = typer.Option("aligned.yaml", "--output", "-o", metavar="PATH",
                                            help="Calibration YAML to write (never the input file)."),
-                scenes: Optional[str] = typer.Option(None, metavar="IDS",
-                                                     help="Comma-separated scene ids (default: up to --max-scenes "
-                                                          "of them, evenly spread over the session)."),
-                max_scenes: int = typer.Option(defaults.MAX_SCENES, min=0, metavar="N",
-                                               help="Without --scenes: use at most N scenes, evenly spread over the "
-                                                    "session (0: every scene)."),
+                scenes: Optional[str] = _scenes_option(),
+                max_scenes: int = _max_scenes_option(defaults.MAX_SCENES),
                 boards: bool = typer.Option(True, "--boards/--no-boards", help="Use the board captures too."),
                 search_px: float = typer.Option(defaults.EDGE_SEARCH_PX,
                                                 help="First coarse search range (px, at most 48); widened while "
